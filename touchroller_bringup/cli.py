@@ -1,0 +1,67 @@
+"""The `touchroller` command line: one subcommand per module in `touchroller_bringup.commands`.
+
+Each command module defines `register(subparsers)`, which adds its parser and sets
+`func=run` on it. Errors on bad input are one line on stderr and a non-zero exit.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+from collections.abc import Sequence
+
+from touchroller_bringup.errors import UserError
+
+# Order is the order shown in `touchroller --help`.
+COMMANDS = (
+    "scan",
+    "contacts",
+    "map",
+    "simulate",
+    "calibrate",
+    "record",
+    "replay",
+    "bench",
+    "report",
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, like argparse but without the usage dump
+        raise SystemExit(_fail(f"{self.prog}: {message}", code=2))
+
+
+def _fail(message: str, code: int = 1) -> int:
+    print(f"touchroller: error: {message}" if not message.startswith("touchroller") else message,
+          file=sys.stderr)
+    return code
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="touchroller", description="TouchRoller rolling tactile sensor tools.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name in COMMANDS:
+        importlib.import_module(f"touchroller_bringup.commands.{name}").register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        result = args.func(args)
+    except UserError as exc:
+        return _fail(str(exc), code=2)
+    except KeyboardInterrupt:
+        return _fail("interrupted", code=130)
+    except Exception as exc:  # noqa: BLE001 - the CLI contract is one line, never a traceback
+        if os.environ.get("TOUCHROLLER_DEBUG"):
+            raise
+        return _fail(f"{type(exc).__name__}: {exc} (set TOUCHROLLER_DEBUG=1 for a traceback)")
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,15 @@
+"""`touchroller bench`: placeholder until issue 8 lands."""
+from __future__ import annotations
+
+import argparse
+
+from touchroller_bringup.errors import UserError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("bench", help="(not implemented yet: issue 8)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    raise UserError("'touchroller bench' is not implemented yet (issue 8)")

@@ -1,0 +1,1 @@
+"""TouchRoller perception: geometry, contact detection, map stitching, calibration and metrics."""
