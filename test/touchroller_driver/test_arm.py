@@ -1,0 +1,174 @@
+"""The arm interface, its limits, and the simulated arm's kinematics (with an injected clock)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from touchroller_driver.arm import Arm, ArmError, ArmLimitError, ArmLimits, SimulatedArm, as_pose
+from touchroller_driver.motion import TrapezoidProfile
+
+START = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0)
+
+
+class FakeClock:
+    def __init__(self, t: float = 100.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def make_arm(**kwargs) -> tuple[SimulatedArm, FakeClock]:
+    clock = FakeClock()
+    arm = SimulatedArm(START, clock=clock, **kwargs)
+    arm.connect()
+    return arm, clock
+
+
+def test_simulated_arm_satisfies_the_protocol():
+    arm, _ = make_arm()
+    assert isinstance(arm, Arm)
+
+
+@pytest.mark.parametrize(("speed", "accel"), [
+    (0.2, 0.1),            # too fast
+    (0.01, 5.0),           # accelerates too hard
+    (0.0, 0.1),            # not moving at all
+    (-0.01, 0.1),
+    (float("nan"), 0.1),
+    (0.01, float("inf")),
+])
+def test_limits_are_checked_before_any_motion(speed, accel):
+    arm, clock = make_arm(limits=ArmLimits(max_speed=0.1, max_accel=0.5))
+    target = np.array(START) + [0.05, 0, 0, 0, 0, 0]
+    with pytest.raises(ArmLimitError):
+        arm.move_linear(target, speed, accel)
+    clock.t += 10.0
+    assert not arm.is_moving()
+    np.testing.assert_allclose(arm.tcp_pose(), START)
+
+
+def test_non_finite_or_malformed_targets_are_refused():
+    arm, _ = make_arm()
+    with pytest.raises(ArmLimitError, match="non-finite"):
+        arm.move_linear([0.4, float("nan"), 0.2, 0, 0, 0], 0.01, 0.1)
+    with pytest.raises(ArmLimitError, match="6 values"):
+        arm.move_linear([0.4, 0.0, 0.2], 0.01, 0.1)
+
+
+def test_workspace_bounds_refuse_targets_outside():
+    limits = ArmLimits(workspace_min=(0.2, -0.3, 0.1), workspace_max=(0.6, 0.3, 0.5))
+    arm, _ = make_arm(limits=limits)
+    with pytest.raises(ArmLimitError, match="below workspace"):
+        arm.move_linear([0.4, 0.0, 0.05, math.pi, 0, 0], 0.01, 0.1)
+    arm.move_linear([0.45, 0.0, 0.15, math.pi, 0, 0], 0.01, 0.1)  # inside: accepted
+
+
+def test_invalid_limits_are_rejected():
+    with pytest.raises(ValueError):
+        ArmLimits(max_speed=0.0)
+    with pytest.raises(ValueError):
+        ArmLimits(max_accel=float("nan"))
+
+
+def test_motion_requires_connection():
+    arm = SimulatedArm(START, clock=FakeClock())
+    with pytest.raises(ArmError, match="not connected"):
+        arm.move_linear(np.array(START) + [0.01, 0, 0, 0, 0, 0], 0.01, 0.1)
+
+
+def test_linear_move_follows_the_trapezoid_profile():
+    arm, clock = make_arm()
+    target = np.array(START) + [0.11, 0.0, 0.0, 0, 0, 0]
+    arm.move_linear(target, 0.011, 0.1)
+    profile = TrapezoidProfile(0.11, 0.011, 0.1)
+    t0 = clock.t
+    for dt in (0.05, 1.0, 5.0, profile.duration - 0.05):
+        clock.t = t0 + dt
+        assert arm.is_moving()
+        pose = arm.tcp_pose()
+        assert pose[0] == pytest.approx(START[0] + profile.position(dt), abs=1e-12)
+        assert pose[1:] == pytest.approx(START[1:])
+        assert arm.progress() == pytest.approx(profile.position(dt) / 0.11)
+    clock.t = t0 + profile.duration + 1e-6
+    assert not arm.is_moving()
+    np.testing.assert_allclose(arm.tcp_pose(), target)
+    assert arm.progress() == pytest.approx(1.0)
+
+
+def test_stop_halts_where_the_arm_is_and_keeps_progress():
+    arm, clock = make_arm()
+    target = np.array(START) + [0.1, 0.0, 0.0, 0, 0, 0]
+    arm.move_linear(target, 0.01, 0.1)
+    clock.t += 5.0
+    halted = arm.tcp_pose()
+    arm.stop()
+    clock.t += 20.0
+    assert not arm.is_moving()
+    np.testing.assert_allclose(arm.tcp_pose(), halted)
+    assert 0.3 < arm.progress() < 0.6
+
+
+def test_fault_stops_motion_and_refuses_commands_until_reconnect():
+    arm, clock = make_arm()
+    arm.move_linear(np.array(START) + [0.1, 0, 0, 0, 0, 0], 0.01, 0.1)
+    clock.t += 2.0
+    arm.inject_fault("protective stop")
+    assert arm.fault() == "protective stop"
+    assert not arm.is_moving()
+    with pytest.raises(ArmError, match="protective stop"):
+        arm.move_linear(START, 0.01, 0.1)
+    arm.connect()
+    assert arm.fault() is None
+    arm.move_linear(START, 0.01, 0.1)
+
+
+def test_roller_state_rolls_without_slip():
+    try:
+        from touchroller_driver.sim import RollerState  # noqa: F401
+    except ImportError:
+        pytest.skip("simulator (touchroller_driver.sim.RollerState) not landed yet")
+    arm, clock = make_arm(radius=0.05, rolling_direction=(1.0, 0.0, 0.0))
+    arm.move_linear(np.array(START) + [0.0, 0.0, -0.001, 0, 0, 0], 0.01, 0.1)
+    clock.t += 5.0
+    pressed = arm.tcp_pose()
+    arm.move_linear(pressed + [0.11, 0.0, 0.0, 0, 0, 0], 0.011, 0.1)
+    t0 = clock.t
+    state = arm.roller_state(t0 + 5.0)
+    travel = TrapezoidProfile(0.11, 0.011, 0.1).position(5.0)
+    assert state.travel == pytest.approx(travel)
+    assert state.roll == pytest.approx(travel / 0.05)
+    assert state.depth == pytest.approx(0.001)
+    assert state.speed == pytest.approx(0.011)
+    assert state.x_along == pytest.approx(0.0, abs=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    distance=st.floats(-0.3, 0.3).filter(lambda d: abs(d) > 1e-6),
+    speed=st.floats(1e-3, 0.1),
+    accel=st.floats(1e-2, 0.5),
+    fraction=st.floats(0.0, 1.2),
+)
+def test_pose_stays_on_the_segment_and_progress_is_monotonic(distance, speed, accel, fraction):
+    arm, clock = make_arm()
+    target = np.array(START) + [0.0, distance, 0.0, 0, 0, 0]
+    arm.move_linear(target, speed, accel)
+    duration = TrapezoidProfile(abs(distance), speed, accel).duration
+    t0 = clock.t
+    clock.t = t0 + fraction * duration
+    first = arm.progress()
+    pose = arm.tcp_pose()
+    assert 0.0 <= first <= 1.0
+    assert min(START[1], target[1]) - 1e-12 <= pose[1] <= max(START[1], target[1]) + 1e-12
+    clock.t += 0.01 * duration
+    assert arm.progress() >= first
+
+
+def test_as_pose_returns_a_float_copy():
+    pose = as_pose([1, 2, 3, 4, 5, 6])
+    assert pose.dtype == np.float64 and pose.shape == (6,)

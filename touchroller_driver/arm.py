@@ -1,0 +1,255 @@
+"""The arm that rolls the sensor: one interface, a simulated implementation (the UR5 one is in `ur5.py`).
+
+Poses are UR TCP poses in the robot base frame: (x, y, z, rx, ry, rz), metres and a rotation vector
+(radians), z up. Every motion command is checked against `ArmLimits` before it is sent, and an arm that
+has faulted refuses further motion until it is reconnected. No rclpy here: the sweep node drives an
+`Arm` from its one worker thread.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from touchroller_driver.motion import TrapezoidProfile
+
+if TYPE_CHECKING:  # the simulator is only needed when a simulated sensor asks for the roller state
+    from touchroller_driver.sim import RollerState
+
+
+class ArmError(RuntimeError):
+    """An arm command could not be carried out (not connected, faulted, refused by the controller)."""
+
+
+class ArmLimitError(ArmError, ValueError):
+    """A command asked for more speed, acceleration or reach than the limits allow; nothing was sent."""
+
+
+@dataclass(frozen=True)
+class ArmLimits:
+    """Hard limits checked before any motion command.
+
+    The defaults are conservative for rolling a tactile sensor (the paper rolls at about 1 cm/s);
+    a UR5's own tool limits are higher. `workspace_min`/`workspace_max` optionally bound the target
+    position (base frame, metres).
+    """
+
+    max_speed: float = 0.1  # m/s
+    max_accel: float = 0.5  # m/s^2
+    workspace_min: tuple[float, float, float] | None = None
+    workspace_max: tuple[float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("max_speed", "max_accel"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"ArmLimits.{name} must be a finite number > 0, got {value}")
+
+    def check(self, target_pose: ArrayLike, speed: float, accel: float) -> np.ndarray:
+        """Validate a linear move; return the target as a float64 (6,) array or raise ArmLimitError."""
+        pose = as_pose(target_pose)
+        if not (math.isfinite(speed) and 0 < speed <= self.max_speed):
+            raise ArmLimitError(f"speed {speed} m/s outside (0, {self.max_speed}]")
+        if not (math.isfinite(accel) and 0 < accel <= self.max_accel):
+            raise ArmLimitError(f"acceleration {accel} m/s^2 outside (0, {self.max_accel}]")
+        if self.workspace_min is not None and np.any(pose[:3] < np.asarray(self.workspace_min)):
+            raise ArmLimitError(f"target {pose[:3].tolist()} below workspace minimum {list(self.workspace_min)}")
+        if self.workspace_max is not None and np.any(pose[:3] > np.asarray(self.workspace_max)):
+            raise ArmLimitError(f"target {pose[:3].tolist()} above workspace maximum {list(self.workspace_max)}")
+        return pose
+
+
+def as_pose(pose: ArrayLike) -> np.ndarray:
+    """A finite (6,) float64 pose, or ArmLimitError (a NaN target must never reach a robot)."""
+    array = np.asarray(pose, dtype=np.float64).reshape(-1)
+    if array.shape != (6,):
+        raise ArmLimitError(f"a pose has 6 values (x, y, z, rx, ry, rz), got {array.size}")
+    if not np.all(np.isfinite(array)):
+        raise ArmLimitError(f"pose has non-finite values: {array.tolist()}")
+    return array
+
+
+@runtime_checkable
+class Arm(Protocol):
+    """What the sweep node needs from an arm. All calls come from one thread."""
+
+    limits: ArmLimits
+
+    def connect(self) -> None: ...
+    def tcp_pose(self) -> np.ndarray: ...
+    def move_linear(self, target_pose: ArrayLike, speed: float, accel: float,
+                    asynchronous: bool = True) -> None: ...
+    def progress(self) -> float: ...
+    def is_moving(self) -> bool: ...
+    def stop(self) -> None: ...
+    def fault(self) -> str | None: ...
+    def disconnect(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class _Move:
+    t0: float
+    start: np.ndarray
+    target: np.ndarray
+    profile: TrapezoidProfile
+
+    @property
+    def direction(self) -> np.ndarray:
+        delta = self.target - self.start
+        length = float(np.linalg.norm(delta[:3]))
+        return delta / length if length > 0 else np.zeros(6)
+
+    def pose(self, t: float) -> np.ndarray:
+        distance = abs(self.profile.distance)
+        fraction = float(self.profile.position(t - self.t0)) / distance if distance > 0 else 1.0
+        return self.start + fraction * (self.target - self.start)
+
+    def velocity(self, t: float) -> np.ndarray:
+        return float(self.profile.velocity(t - self.t0)) * self.direction[:3]
+
+    def fraction(self, t: float) -> float:
+        distance = abs(self.profile.distance)
+        return float(self.profile.position(t - self.t0)) / distance if distance > 0 else 1.0
+
+    def end_time(self) -> float:
+        return self.t0 + self.profile.duration
+
+
+class SimulatedArm:
+    """A kinematic arm: linear moves follow a trapezoid velocity profile in real (or injected) time.
+
+    Its pose drives the simulated sensor through `roller_state(t)`: the roller rolls without slip along
+    `rolling_direction` (base frame), so roll angle = travel / radius; it touches the surface at
+    `surface_z`, so depth = surface_z - z. `stop()` halts instantly (an idealisation); `inject_fault`
+    stands in for a protective stop.
+    """
+
+    def __init__(self, start_pose: ArrayLike = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0), *,
+                 limits: ArmLimits | None = None, surface_z: float | None = None,
+                 rolling_direction: Sequence[float] = (1.0, 0.0, 0.0), radius: float = 0.05,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.limits = limits or ArmLimits()
+        self.origin = as_pose(start_pose)
+        self.surface_z = float(self.origin[2] if surface_z is None else surface_z)
+        direction = np.asarray(rolling_direction, dtype=np.float64)
+        if direction.shape != (3,) or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) == 0:
+            raise ValueError(f"rolling_direction must be a non-zero 3-vector, got {rolling_direction}")
+        self.rolling_direction = direction / np.linalg.norm(direction)
+        # The roller's axis is horizontal and perpendicular to the rolling direction.
+        axis = np.cross((0.0, 0.0, 1.0), self.rolling_direction)
+        self.axis_direction = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else np.array([0., 1., 0.])
+        if not (math.isfinite(radius) and radius > 0):
+            raise ValueError(f"radius must be > 0, got {radius}")
+        self.radius = float(radius)
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._connected = False
+        self._fault: str | None = None
+        self._move: _Move | None = None
+        self._rest_pose = self.origin.copy()
+        self._halted_fraction = 1.0  # progress of a move that was stopped part-way
+
+    # -- Arm interface -------------------------------------------------------------------------
+    def connect(self) -> None:
+        with self._lock:
+            self._connected = True
+            self._fault = None
+
+    def disconnect(self) -> None:
+        self.stop()
+        with self._lock:
+            self._connected = False
+
+    def tcp_pose(self) -> np.ndarray:
+        return self.pose_at(self.clock())
+
+    def move_linear(self, target_pose: ArrayLike, speed: float, accel: float,
+                    asynchronous: bool = True) -> None:
+        target = self.limits.check(target_pose, speed, accel)
+        with self._lock:
+            self._require_ready()
+            now = self.clock()
+            start = self._pose_locked(now)
+            distance = float(np.linalg.norm(target[:3] - start[:3]))
+            self._move = _Move(now, start, target, TrapezoidProfile(distance, speed, accel))
+        if not asynchronous:
+            self._wait_until(self._move.end_time())
+
+    def progress(self) -> float:
+        """Fraction (0..1) of the current or last move; 1.0 if there was none."""
+        with self._lock:
+            move = self._move
+        return self._halted_fraction if move is None else move.fraction(self.clock())
+
+    def is_moving(self) -> bool:
+        with self._lock:
+            move = self._move
+        return move is not None and self.clock() < move.end_time()
+
+    def stop(self) -> None:
+        with self._lock:
+            self._halt_locked(self.clock())
+
+    def fault(self) -> str | None:
+        with self._lock:
+            return self._fault
+
+    # -- simulation ----------------------------------------------------------------------------
+    def inject_fault(self, message: str = "protective stop") -> None:
+        """Behave like a protective stop: the arm halts where it is and refuses motion until reconnected."""
+        with self._lock:
+            self._halt_locked(self.clock())
+            self._fault = message
+
+    def pose_at(self, t: float) -> np.ndarray:
+        with self._lock:
+            return self._pose_locked(t)
+
+    def roller_state(self, t: float | None = None) -> RollerState:
+        """The simulated sensor's state at arm-clock time `t` (seconds; now if None)."""
+        from touchroller_driver.sim import RollerState
+
+        t = self.clock() if t is None else float(t)
+        with self._lock:
+            pose = self._pose_locked(t)
+            velocity = self._move.velocity(t) if self._move is not None else np.zeros(3)
+        offset = pose[:3] - self.origin[:3]
+        travel = float(offset @ self.rolling_direction)
+        return RollerState(
+            x_along=float(offset @ self.axis_direction),
+            travel=travel,
+            roll=travel / self.radius,
+            depth=self.surface_z - float(pose[2]),
+            speed=float(velocity @ self.rolling_direction),
+            t=t,
+        )
+
+    # -- internals -----------------------------------------------------------------------------
+    def _require_ready(self) -> None:
+        if not self._connected:
+            raise ArmError("arm not connected")
+        if self._fault is not None:
+            raise ArmError(f"arm faulted: {self._fault}")
+
+    def _pose_locked(self, t: float) -> np.ndarray:
+        if self._move is None:
+            return self._rest_pose.copy()
+        return self._move.pose(t)
+
+    def _halt_locked(self, t: float) -> None:
+        if self._move is not None:
+            self._halted_fraction = self._move.fraction(t)
+        self._rest_pose = self._pose_locked(t)
+        self._move = None
+
+    def _wait_until(self, t_end: float) -> None:
+        while self.clock() < t_end:
+            if self.fault() is not None:
+                raise ArmError(f"arm faulted: {self.fault()}")
+            time.sleep(min(0.01, max(t_end - self.clock(), 0.0)))
