@@ -1,0 +1,173 @@
+"""A Universal Robots UR5 (CB3 or e-Series) behind the `Arm` interface, through ur_rtde.
+
+`rtde_receive` streams the robot state (TCP pose, safety mode); `rtde_control` uploads its control
+script and executes `moveL`. Limits are checked before a command is sent; a protective or emergency
+stop, or a lost connection, becomes `fault()` and refuses further motion until `connect()` again.
+All calls must come from one thread (the sweep node's worker): ur_rtde's interfaces are not shared.
+See docs/ur5.md for running against a real robot or URSim.
+"""
+from __future__ import annotations
+
+import ipaddress
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from touchroller_driver.arm import ArmError, ArmLimits, as_pose
+
+# Every ur_rtde call this module makes, with the positional arguments it passes (besides self).
+# test_ur5.py checks these against the installed module's pybind signatures.
+CONTROL_CALLS: dict[str, int] = {
+    "moveL": 4,  # pose, speed, acceleration, asynchronous
+    "stopL": 1,  # deceleration
+    "getAsyncOperationProgress": 0,
+    "isSteady": 0,
+    "isConnected": 0,
+    "isPoseWithinSafetyLimits": 1,
+    "stopScript": 0,
+    "disconnect": 0,
+}
+RECEIVE_CALLS: dict[str, int] = {
+    "getActualTCPPose": 0,
+    "isProtectiveStopped": 0,
+    "isEmergencyStopped": 0,
+    "getSafetyMode": 0,
+    "isConnected": 0,
+    "disconnect": 0,
+}
+CONSTRUCTOR_CALLS: dict[str, int] = {"RTDEControlInterface": 2, "RTDEReceiveInterface": 2}  # host, frequency
+
+STOP_DECELERATION = 0.5  # m/s^2: stopL's tool deceleration when the sweep is stopped
+
+
+class UR5Arm:
+    """ur_rtde implementation of `touchroller_driver.arm.Arm`."""
+
+    def __init__(self, robot_ip: str, *, limits: ArmLimits | None = None, frequency: float = -1.0,
+                 check_reachability: bool = True) -> None:
+        try:
+            ipaddress.ip_address(robot_ip)
+        except ValueError:
+            if not robot_ip or any(c.isspace() for c in robot_ip):
+                raise ValueError(f"robot_ip {robot_ip!r} is not an IP address or host name") from None
+        self.robot_ip = robot_ip
+        self.limits = limits or ArmLimits()
+        self.frequency = float(frequency)
+        self.check_reachability = check_reachability
+        self._control: Any = None
+        self._receive: Any = None
+        self._fault: str | None = None
+        self._move_start: np.ndarray | None = None
+        self._move_target: np.ndarray | None = None
+        self._halted_fraction = 1.0
+
+    # -- connection ----------------------------------------------------------------------------
+    def connect(self) -> None:
+        """Open the receive stream, then the control interface (which uploads the control script)."""
+        import rtde_control
+        import rtde_receive
+
+        self.disconnect()
+        try:
+            self._receive = rtde_receive.RTDEReceiveInterface(self.robot_ip, self.frequency)
+            self._control = rtde_control.RTDEControlInterface(self.robot_ip, self.frequency)
+        except RuntimeError as exc:
+            self.disconnect()
+            message = f"cannot connect to the UR at {self.robot_ip}: {_one_line(exc)}"
+            self._fault = message
+            raise ArmError(message) from exc
+        self._fault = None
+
+    def disconnect(self) -> None:
+        control, receive = self._control, self._receive
+        self._control = self._receive = None
+        for interface, calls in ((control, ("stopScript", "disconnect")), (receive, ("disconnect",))):
+            if interface is None:
+                continue
+            for call in calls:
+                try:
+                    getattr(interface, call)()
+                except RuntimeError:
+                    pass  # already gone: nothing left to release
+
+    # -- state ---------------------------------------------------------------------------------
+    def tcp_pose(self) -> np.ndarray:
+        receive = self._require_receive()
+        pose = np.asarray(receive.getActualTCPPose(), dtype=np.float64)
+        if pose.shape != (6,):
+            raise ArmError(f"robot returned a TCP pose with {pose.size} values")
+        return pose
+
+    def fault(self) -> str | None:
+        """A protective/emergency stop or a lost connection, as one line; None when healthy."""
+        if self._fault is not None:
+            return self._fault
+        if self._receive is None or self._control is None:
+            return None
+        if not self._receive.isConnected() or not self._control.isConnected():
+            self._fault = "lost the RTDE connection to the robot"
+        elif self._receive.isEmergencyStopped():
+            self._fault = "emergency stop"
+        elif self._receive.isProtectiveStopped():
+            self._fault = f"protective stop (safety mode {self._receive.getSafetyMode()})"
+        return self._fault
+
+    def is_moving(self) -> bool:
+        control = self._require_control()
+        return control.getAsyncOperationProgress() >= 0 or not control.isSteady()
+
+    def progress(self) -> float:
+        """Fraction (0..1) of the current or last move, from the measured TCP position."""
+        if self._move_start is None or self._move_target is None:
+            return self._halted_fraction
+        return _fraction_along(self._move_start, self._move_target, self.tcp_pose())
+
+    # -- motion --------------------------------------------------------------------------------
+    def move_linear(self, target_pose: ArrayLike, speed: float, accel: float,
+                    asynchronous: bool = True) -> None:
+        target = self.limits.check(target_pose, speed, accel)
+        control = self._require_control()
+        if self.fault() is not None:
+            raise ArmError(f"arm faulted: {self._fault}")
+        if self.check_reachability and not control.isPoseWithinSafetyLimits(target.tolist()):
+            raise ArmError(f"target {np.round(target, 4).tolist()} is outside the robot's safety limits")
+        self._move_start, self._move_target = self.tcp_pose(), target
+        if not control.moveL(target.tolist(), float(speed), float(accel), bool(asynchronous)):
+            raise ArmError(self.fault() or "the robot refused moveL")
+
+    def stop(self) -> None:
+        if self._control is None:
+            return
+        if self._move_start is not None and self._move_target is not None and self._receive is not None:
+            self._halted_fraction = _fraction_along(self._move_start, self._move_target, self.tcp_pose())
+        self._move_start = self._move_target = None
+        self._control.stopL(STOP_DECELERATION)
+
+    # -- internals -----------------------------------------------------------------------------
+    def _require_control(self) -> Any:
+        if self._control is None:
+            raise ArmError(self._fault or "arm not connected")
+        return self._control
+
+    def _require_receive(self) -> Any:
+        if self._receive is None:
+            raise ArmError(self._fault or "arm not connected")
+        return self._receive
+
+
+def _fraction_along(start: np.ndarray, target: np.ndarray, pose: np.ndarray) -> float:
+    delta = target[:3] - start[:3]
+    length_sq = float(delta @ delta)
+    if length_sq == 0.0:
+        return 1.0
+    fraction = float((pose[:3] - start[:3]) @ delta) / length_sq
+    return min(max(fraction, 0.0), 1.0) if math.isfinite(fraction) else float("nan")
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+__all__ = ["UR5Arm", "CONTROL_CALLS", "RECEIVE_CALLS", "as_pose"]
