@@ -1,0 +1,81 @@
+"""Shared fixtures: an isolated rclpy Context per test, a spin helper, and rosbag2 bags made in the test."""
+from __future__ import annotations
+
+import itertools
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# Each test gets its own DDS domain; the worker's pid spreads parallel runs apart.
+_DOMAIN_IDS = itertools.cycle(range(10 + os.getpid() % 50, 10 + os.getpid() % 50 + 100))
+
+
+@pytest.fixture
+def ros_context(monkeypatch: pytest.MonkeyPatch) -> Iterator[object]:
+    """An initialised rclpy Context on a unique ROS_DOMAIN_ID with localhost-only discovery."""
+    rclpy = pytest.importorskip("rclpy")
+    domain_id = next(_DOMAIN_IDS) % 200
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    try:
+        yield context
+    finally:
+        context.try_shutdown()
+
+
+def _spin_until(executor_or_node: object, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+    """Spin until `predicate()` is true or `timeout` s pass; returns the predicate's last value."""
+    from rclpy.executors import Executor, SingleThreadedExecutor
+
+    if isinstance(executor_or_node, Executor):
+        executor, owned = executor_or_node, False
+    else:
+        executor = SingleThreadedExecutor(context=executor_or_node.context)
+        executor.add_node(executor_or_node)
+        owned = True
+    try:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                return bool(predicate())
+            executor.spin_once(timeout_sec=0.02)
+        return True
+    finally:
+        if owned:
+            executor.remove_node(executor_or_node)
+            executor.shutdown()
+
+
+@pytest.fixture
+def spin_until() -> Callable[..., bool]:
+    return _spin_until
+
+
+@pytest.fixture
+def bag_factory(tmp_path: Path) -> Callable[..., Path]:
+    """`bag_factory(records, storage="sqlite3", topic=...)` writes a rosbag2 folder and returns its path.
+
+    `records` are (stamp_ns, image) pairs or ImageRecords; bags are written inside the test rather
+    than committed as binaries.
+    """
+    from touchroller_bringup.bags import IMAGE_TOPIC, write_images
+
+    counter = itertools.count()
+
+    def make(records, storage: str = "sqlite3", topic: str = IMAGE_TOPIC) -> Path:
+        path = tmp_path / f"bag_{next(counter)}_{storage}"
+        write_images(path, records, topic=topic, storage=storage)
+        return path
+
+    return make
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)

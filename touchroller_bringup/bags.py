@@ -1,0 +1,180 @@
+"""rosbag2 recordings of TouchRoller images through `rosbags` (pure Python; sqlite3 and MCAP).
+
+`read_images` yields (stamp, image) records from `sensor_msgs/Image` or `CompressedImage`
+topics; Image messages are parsed straight from their CDR bytes (one header, then a view of the
+pixel buffer), which is several times faster than a generic deserialiser on VGA frames.
+"""
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from touchroller_bringup.errors import UserError
+from touchroller_driver.image_conversion import ImageFormatError, compressed_to_array, image_to_array
+
+IMAGE_TOPIC = "/touchroller/image_raw"
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+Storage = Literal["sqlite3", "mcap"]
+
+
+@dataclass(frozen=True)
+class ImageRecord:
+    stamp_ns: int          # header stamp of the image (capture time)
+    image: np.ndarray      # HxWx3 BGR uint8, or HxW mono; may be read-only
+
+
+def typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_KILTED)
+
+
+def _open_reader(path: str | Path):
+    from rosbags.rosbag2 import Reader
+
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"no such bag: {path}")
+    if path.is_file():   # a bare .db3/.mcap file: rosbags wants the folder with metadata.yaml
+        path = path.parent
+    try:
+        reader = Reader(path)
+        reader.open()
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several types for unreadable bags
+        raise UserError(f"cannot open bag {path}: {exc}") from None
+    return reader
+
+
+def _image_connections(reader, path, topic: str):
+    connections = [c for c in reader.connections if c.topic == topic]
+    if not connections:
+        topics = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+        raise UserError(f"bag {path} has no topic {topic} (topics: {topics})")
+    bad = [c.msgtype for c in connections if c.msgtype not in (IMAGE_TYPE, COMPRESSED_TYPE)]
+    if bad:
+        raise UserError(f"topic {topic} in {path} has type {bad[0]}, expected {IMAGE_TYPE} or {COMPRESSED_TYPE}")
+    return connections
+
+
+def image_topic_count(path: str | Path, topic: str = IMAGE_TOPIC) -> int:
+    reader = _open_reader(path)
+    try:
+        return sum(c.msgcount for c in _image_connections(reader, path, topic))
+    finally:
+        reader.close()
+
+
+def read_images(path: str | Path, topic: str = IMAGE_TOPIC) -> Iterator[ImageRecord]:
+    """Images on `topic` in recording order. UserError on a missing, unreadable or truncated bag."""
+    reader = _open_reader(path)
+    store = None
+    try:
+        connections = _image_connections(reader, path, topic)
+        try:
+            for connection, _timestamp, raw in reader.messages(connections=connections):
+                if connection.msgtype == IMAGE_TYPE:
+                    stamp_ns, image = _parse_image_cdr(raw)
+                else:
+                    store = store or typestore()
+                    msg = store.deserialize_cdr(raw, connection.msgtype)
+                    stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                    image = compressed_to_array(msg)
+                yield ImageRecord(stamp_ns, image)
+        except (ImageFormatError, struct.error, ValueError) as exc:
+            raise UserError(f"bag {path}: malformed image message: {exc}") from None
+        except UserError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - truncated sqlite/mcap files surface as various errors
+            raise UserError(f"bag {path} is truncated or corrupt: {type(exc).__name__}: {exc}") from None
+    finally:
+        reader.close()
+
+
+class _ImageView:
+    """The fields of a sensor_msgs/Image, enough for `image_to_array`."""
+
+    __slots__ = ("height", "width", "encoding", "is_bigendian", "step", "data")
+
+
+def _parse_image_cdr(raw: bytes | memoryview) -> tuple[int, np.ndarray]:
+    """Parse a CDR-encoded sensor_msgs/Image (XCDR1, as rosbag2 stores it) without copying pixels."""
+    buf = memoryview(raw)
+    if len(buf) < 4:
+        raise ValueError("message shorter than its CDR header")
+    endian = "<" if buf[1] == 1 else ">"
+    offset = 4                                    # CDR encapsulation header; alignment is relative to here
+
+    def align(pos: int, n: int) -> int:
+        return pos + (-(pos - 4)) % n
+
+    def read_u32(pos: int) -> tuple[int, int]:
+        pos = align(pos, 4)
+        return struct.unpack_from(endian + "I", buf, pos)[0], pos + 4
+
+    def read_string(pos: int) -> tuple[str, int]:
+        length, pos = read_u32(pos)
+        if length == 0 or pos + length > len(buf):
+            raise ValueError("bad string length")
+        return bytes(buf[pos:pos + length - 1]).decode(), pos + length
+
+    sec, offset = read_u32(offset)
+    nanosec, offset = read_u32(offset)
+    sec = sec - (1 << 32) if sec >= 1 << 31 else sec   # int32
+    _frame_id, offset = read_string(offset)
+    msg = _ImageView()
+    msg.height, offset = read_u32(offset)
+    msg.width, offset = read_u32(offset)
+    msg.encoding, offset = read_string(offset)
+    msg.is_bigendian = buf[offset]
+    offset += 1
+    msg.step, offset = read_u32(offset)
+    size, offset = read_u32(offset)
+    if offset + size > len(buf):
+        raise ValueError(f"pixel data truncated ({len(buf) - offset} of {size} bytes)")
+    msg.data = np.frombuffer(buf, dtype=np.uint8, count=size, offset=offset)
+    return sec * 1_000_000_000 + nanosec, image_to_array(msg)
+
+
+def write_images(
+    path: str | Path,
+    records: Iterable[ImageRecord | tuple[int, np.ndarray]],
+    topic: str = IMAGE_TOPIC,
+    storage: Storage = "sqlite3",
+    frame_id: str = "touchroller_camera",
+) -> int:
+    """Write images as sensor_msgs/Image to a new rosbag2 folder; returns the number written."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys.stores.ros2_kilted import builtin_interfaces__msg__Time as Time
+    from rosbags.typesys.stores.ros2_kilted import sensor_msgs__msg__Image as Image
+    from rosbags.typesys.stores.ros2_kilted import std_msgs__msg__Header as Header
+
+    from touchroller_driver.image_conversion import encoding_for
+
+    plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
+    if plugin is None:
+        raise UserError(f"unknown bag storage {storage!r} (use sqlite3 or mcap)")
+    path = Path(path)
+    if path.exists():
+        raise UserError(f"bag {path} already exists")
+    store = typestore()
+    count = 0
+    with Writer(path, version=9, storage_plugin=plugin) as writer:
+        connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store)
+        for record in records:
+            stamp_ns, image = (record.stamp_ns, record.image) if isinstance(record, ImageRecord) else record
+            image = np.ascontiguousarray(image)
+            sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+            msg = Image(
+                header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id),
+                height=image.shape[0], width=image.shape[1], encoding=encoding_for(image),
+                is_bigendian=0, step=int(image.strides[0]), data=image.reshape(-1).view(np.uint8),
+            )
+            writer.write(connection, int(stamp_ns), store.serialize_cdr(msg, IMAGE_TYPE))
+            count += 1
+    return count
