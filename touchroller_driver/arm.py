@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from enum import Enum
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
@@ -253,3 +254,143 @@ class SimulatedArm:
             if self.fault() is not None:
                 raise ArmError(f"arm faulted: {self.fault()}")
             time.sleep(min(0.01, max(t_end - self.clock(), 0.0)))
+
+
+# -- the sweep: a plan of linear moves and a sequencer that drives any Arm through it ---------------
+
+class SweepPhase(str, Enum):
+    IDLE = "idle"
+    MOVING = "moving"      # on the way to the start pose, pressing in, or lifting off
+    SWEEPING = "sweeping"  # rolling along the surface at the sweep speed and depth
+    DONE = "done"
+    STOPPED = "stopped"
+    FAULT = "fault"
+
+
+@dataclass(frozen=True)
+class Segment:
+    name: str
+    target: np.ndarray
+    speed: float
+    accel: float
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """Linear moves: to the start pose (touching), press in by `depth`, roll `length`, lift off."""
+
+    segments: tuple[Segment, ...]
+    sweep_index: int  # which segment is the roll
+    length: float
+
+
+def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: float, depth: float,
+               direction: Sequence[float] = (1.0, 0.0, 0.0), approach_speed: float | None = None,
+               retract: bool = True) -> SweepPlan:
+    """The moves of one sweep. `start_pose` is where the roller just touches the surface (z up)."""
+    start = as_pose(start_pose)
+    for name, value in (("length", length), ("depth", depth)):
+        if not (math.isfinite(value) and value >= 0):
+            raise ArmLimitError(f"sweep {name} must be a finite number >= 0, got {value}")
+    heading = np.asarray(direction, dtype=np.float64).reshape(-1)
+    if heading.shape != (3,) or not np.all(np.isfinite(heading)):
+        raise ArmLimitError(f"sweep direction must be 3 finite numbers, got {list(direction)}")
+    heading = heading - np.array([0.0, 0.0, heading[2]])  # roll along the surface, never into it
+    if np.linalg.norm(heading) == 0:
+        raise ArmLimitError("sweep direction must have a horizontal component")
+    heading /= np.linalg.norm(heading)
+    slow = min(speed, approach_speed) if approach_speed is not None else speed
+    pressed = start - np.array([0.0, 0.0, depth, 0.0, 0.0, 0.0])
+    end = pressed + np.concatenate([length * heading, np.zeros(3)])
+    segments = [Segment("to_start", start, slow, accel), Segment("press", pressed, slow, accel),
+                Segment("sweep", end, speed, accel)]
+    if retract:
+        segments.append(Segment("lift", end + np.array([0.0, 0.0, depth, 0.0, 0.0, 0.0]), slow, accel))
+    return SweepPlan(tuple(segments), sweep_index=2, length=float(length))
+
+
+@dataclass(frozen=True)
+class SweepStatus:
+    phase: SweepPhase
+    segment: str | None
+    roll_progress: float  # 0..1 of the rolling segment
+    message: str = ""
+
+
+class SweepSequencer:
+    """Drives an `Arm` through a `SweepPlan`, one `poll()` at a time, from the caller's (single) thread.
+
+    Every segment is checked against the arm's limits before the first command is sent, so a sweep
+    either starts whole or not at all. A fault stops the arm and ends the sweep in FAULT.
+    """
+
+    def __init__(self, arm: Arm) -> None:
+        self.arm = arm
+        self.plan: SweepPlan | None = None
+        self._index = -1
+        self._status = SweepStatus(SweepPhase.IDLE, None, 0.0)
+
+    @property
+    def status(self) -> SweepStatus:
+        return self._status
+
+    @property
+    def active(self) -> bool:
+        return self._status.phase in (SweepPhase.MOVING, SweepPhase.SWEEPING)
+
+    def start(self, plan: SweepPlan) -> None:
+        if self.active:
+            raise ArmError("a sweep is already running")
+        for segment in plan.segments:
+            self.arm.limits.check(segment.target, segment.speed, segment.accel)
+        fault = self.arm.fault()
+        if fault is not None:
+            raise ArmError(f"arm faulted: {fault}")
+        self.plan, self._index = plan, -1
+        self._status = SweepStatus(SweepPhase.MOVING, None, 0.0)
+        self._next_segment()
+
+    def stop(self, message: str = "stopped on request") -> None:
+        was_active = self.active
+        self.arm.stop()
+        if was_active:
+            self._status = SweepStatus(SweepPhase.STOPPED, self._status.segment, self._roll_progress(), message)
+
+    def poll(self) -> SweepStatus:
+        """Advance through the plan; call regularly (e.g. at 50 Hz) while a sweep runs."""
+        if not self.active:
+            return self._status
+        fault = self.arm.fault()
+        if fault is not None:
+            self.arm.stop()
+            self._status = SweepStatus(SweepPhase.FAULT, self._status.segment, self._roll_progress(), fault)
+            return self._status
+        if not self.arm.is_moving():
+            self._next_segment()
+        else:
+            self._status = SweepStatus(self._status.phase, self._status.segment, self._roll_progress())
+        return self._status
+
+    def _next_segment(self) -> None:
+        assert self.plan is not None
+        self._index += 1
+        if self._index >= len(self.plan.segments):
+            self._status = SweepStatus(SweepPhase.DONE, None, 1.0, "sweep complete")
+            return
+        segment = self.plan.segments[self._index]
+        phase = SweepPhase.SWEEPING if self._index == self.plan.sweep_index else SweepPhase.MOVING
+        try:
+            self.arm.move_linear(segment.target, segment.speed, segment.accel, asynchronous=True)
+        except ArmError as exc:
+            self.arm.stop()
+            self._status = SweepStatus(SweepPhase.FAULT, segment.name, self._roll_progress(), str(exc))
+            return
+        self._status = SweepStatus(phase, segment.name, self._roll_progress())
+
+    def _roll_progress(self) -> float:
+        if self.plan is None or self._index < self.plan.sweep_index:
+            return 0.0
+        if self._index > self.plan.sweep_index:
+            return 1.0
+        progress = self.arm.progress()
+        return min(max(progress, 0.0), 1.0) if math.isfinite(progress) else 0.0

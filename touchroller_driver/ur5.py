@@ -143,7 +143,11 @@ class UR5Arm:
         if self._move_start is not None and self._move_target is not None and self._receive is not None:
             self._halted_fraction = _fraction_along(self._move_start, self._move_target, self.tcp_pose())
         self._move_start = self._move_target = None
-        self._control.stopL(STOP_DECELERATION)
+        try:
+            self._control.stopL(STOP_DECELERATION)
+        except RuntimeError as exc:  # e.g. the script already ended on a protective stop: nothing moves
+            self._fault = self._fault or f"stopL failed: {_one_line(exc)}"
+
 
     # -- internals -----------------------------------------------------------------------------
     def _require_control(self) -> Any:

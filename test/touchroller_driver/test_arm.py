@@ -8,7 +8,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from touchroller_driver.arm import Arm, ArmError, ArmLimitError, ArmLimits, SimulatedArm, as_pose
+from touchroller_driver.arm import (
+    Arm,
+    ArmError,
+    ArmLimitError,
+    ArmLimits,
+    SimulatedArm,
+    SweepPhase,
+    SweepSequencer,
+    as_pose,
+    plan_sweep,
+)
 from touchroller_driver.motion import TrapezoidProfile
 
 START = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0)
@@ -172,3 +182,92 @@ def test_pose_stays_on_the_segment_and_progress_is_monotonic(distance, speed, ac
 def test_as_pose_returns_a_float_copy():
     pose = as_pose([1, 2, 3, 4, 5, 6])
     assert pose.dtype == np.float64 and pose.shape == (6,)
+
+
+# -- the sweep plan and sequencer -------------------------------------------------------------------
+
+def run_sweep(arm: SimulatedArm, clock: FakeClock, plan, *, step: float = 0.05, until: float = 60.0):
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan)
+    seen = []
+    while sequencer.active and until > 0:
+        clock.t += step
+        until -= step
+        status = sequencer.poll()
+        seen.append(status)
+    return sequencer, seen
+
+
+def test_plan_presses_rolls_and_lifts():
+    plan = plan_sweep(START, length=0.11, speed=0.011, accel=0.1, depth=0.001, direction=(0, 2, 0))
+    names = [s.name for s in plan.segments]
+    assert names == ["to_start", "press", "sweep", "lift"]
+    press, sweep, lift = (s.target for s in plan.segments[1:])
+    assert press[2] == pytest.approx(START[2] - 0.001)
+    np.testing.assert_allclose(sweep - press, [0, 0.11, 0, 0, 0, 0], atol=1e-12)
+    assert lift[2] == pytest.approx(START[2])
+    assert plan.segments[plan.sweep_index].speed == 0.011
+
+
+@pytest.mark.parametrize("kwargs", [
+    {"length": -0.1}, {"depth": float("nan")}, {"direction": (0, 0, 1)}, {"direction": (1, float("inf"), 0)},
+])
+def test_plan_rejects_nonsense(kwargs):
+    args = {"length": 0.1, "speed": 0.01, "accel": 0.1, "depth": 0.001} | kwargs
+    with pytest.raises(ArmLimitError):
+        plan_sweep(START, **args)
+
+
+def test_sequencer_runs_the_whole_sweep_and_reports_roll_progress():
+    arm, clock = make_arm()
+    plan = plan_sweep(START, length=0.11, speed=0.011, accel=0.1, depth=0.001)
+    sequencer, seen = run_sweep(arm, clock, plan)
+    assert sequencer.status.phase is SweepPhase.DONE
+    rolling = [s.roll_progress for s in seen if s.phase is SweepPhase.SWEEPING]
+    assert len(rolling) > 100  # ~10 s of rolling at 20 Hz polling
+    assert rolling == sorted(rolling) and rolling[-1] > 0.95
+    assert all(s.roll_progress == 0.0 for s in seen if s.segment in ("to_start", "press"))
+    np.testing.assert_allclose(arm.tcp_pose(), plan.segments[-1].target, atol=1e-12)
+
+
+def test_sequencer_checks_every_segment_before_the_first_command():
+    arm, clock = make_arm(limits=ArmLimits(max_speed=0.02, max_accel=0.5))
+    plan = plan_sweep(START, length=0.11, speed=0.05, accel=0.1, depth=0.001, approach_speed=0.01)
+    with pytest.raises(ArmLimitError):
+        SweepSequencer(arm).start(plan)
+    clock.t += 5
+    assert not arm.is_moving()
+    np.testing.assert_allclose(arm.tcp_pose(), START)
+
+
+def test_fault_during_the_roll_stops_the_sweep():
+    arm, clock = make_arm()
+    plan = plan_sweep(START, length=0.11, speed=0.011, accel=0.1, depth=0.001)
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan)
+    while sequencer.status.phase is not SweepPhase.SWEEPING:
+        clock.t += 0.05
+        sequencer.poll()
+    clock.t += 3.0
+    sequencer.poll()
+    arm.inject_fault("protective stop")
+    halted = arm.tcp_pose()
+    status = sequencer.poll()
+    assert status.phase is SweepPhase.FAULT and status.message == "protective stop"
+    assert 0.1 < status.roll_progress < 0.5
+    clock.t += 10
+    assert sequencer.poll().phase is SweepPhase.FAULT
+    np.testing.assert_allclose(arm.tcp_pose(), halted)
+
+
+def test_stop_request_ends_the_sweep_in_stopped():
+    arm, clock = make_arm()
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan_sweep(START, length=0.11, speed=0.011, accel=0.1, depth=0.001))
+    clock.t += 0.5
+    sequencer.poll()
+    sequencer.stop()
+    assert sequencer.status.phase is SweepPhase.STOPPED and not sequencer.active
+    with pytest.raises(ArmError):  # a faulted arm cannot start a new sweep
+        arm.inject_fault("estop")
+        sequencer.start(plan_sweep(START, length=0.1, speed=0.01, accel=0.1, depth=0.0))
