@@ -9,7 +9,9 @@ HERE = Path(__file__).resolve().parent
 
 def data_tree(folder: str) -> list[tuple[str, list[str]]]:
     """(install dir, files) pairs mirroring `folder` under share/<package>/."""
-    entries = []
+    entries: list[tuple[str, list[str]]] = []
+    if not (HERE / folder).is_dir():
+        return entries
     for directory in sorted(p for p in (HERE / folder).rglob("*") if p.is_dir()) + [HERE / folder]:
         files = sorted(str(f.relative_to(HERE)) for f in directory.iterdir() if f.is_file())
         if files:
@@ -34,7 +36,6 @@ setup(
     maintainer_email="touchroller@example.org",
     description="ROS 2 software for the TouchRoller rolling optical tactile sensor",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "touchroller = touchroller_bringup.cli:main",
