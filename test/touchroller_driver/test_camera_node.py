@@ -1,0 +1,211 @@
+"""CameraNode over a real rclpy context: bgr8 images with capture stamps, camera info, parameters, diagnostics."""
+from __future__ import annotations
+
+import itertools
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+
+from touchroller_bringup.ros_diagnostics import status_values  # noqa: E402
+from touchroller_driver.camera_node import CAMERA_INFO_TOPIC, IMAGE_TOPIC, CameraNode  # noqa: E402
+from touchroller_driver.image_conversion import image_to_array  # noqa: E402
+from touchroller_driver.sources import Frame, SourceStats  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+class ListSource:
+    """An external FrameSource that hands out given images (or raises for bad ones) once each."""
+
+    def __init__(self, images, stamps=None):
+        self.images = list(images)
+        self.stamps = list(stamps or [1_700_000_000_000_000_000 + i * 33_000_000 for i in range(len(self.images))])
+        self.index = 0
+        self.stats = SourceStats()
+        self.lock = threading.Lock()
+
+    @property
+    def info(self):
+        return "list source"
+
+    def open(self):
+        self.stats.connected = True
+
+    def read(self, timeout):
+        with self.lock:
+            if self.index >= len(self.images):
+                self.stats.finished = True
+                threading.Event().wait(min(timeout, 0.01))
+                return None
+            i = self.index
+            self.index += 1
+        self.stats.captured += 1
+        return Frame(self.stamps[i], self.images[i], i)
+
+    def close(self):
+        self.stats.connected = False
+
+
+class Listener:
+    def __init__(self, context, qos=10):
+        self.node = Node("listener", context=context)
+        self.images, self.infos, self.diagnostics = [], [], []
+        from diagnostic_msgs.msg import DiagnosticArray
+        from sensor_msgs.msg import CameraInfo, Image
+
+        self.node.create_subscription(Image, IMAGE_TOPIC, self.images.append, qos)
+        self.node.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, self.infos.append, qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
+
+
+def make_graph(context, **camera_kwargs):
+    listener = Listener(context)
+    camera = CameraNode(context=context, autostart=False, **camera_kwargs)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(listener.node)
+    executor.add_node(camera)
+    return listener, camera, executor
+
+
+def wait_for_subscription(camera, spin_until, executor):
+    assert spin_until(executor, lambda: camera.image_pub.get_subscription_count() > 0, timeout=5.0)
+
+
+def test_external_source_frames_are_published_as_bgr8_with_capture_stamps(ros_context, spin_until):
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(3)]
+    images.append(images[0][..., 0].copy())  # a grey frame: still published as bgr8
+    source = ListSource(images)
+    listener, camera, executor = make_graph(
+        ros_context, source=source,
+        parameter_overrides=[Parameter("camera.fx", value=612.5), Parameter("frame_id", value="cam_optical")])
+    try:
+        wait_for_subscription(camera, spin_until, executor)
+        camera.start()
+        assert spin_until(executor, lambda: len(listener.images) >= 4 and len(listener.infos) >= 4, timeout=10)
+        for msg, image, stamp in zip(listener.images, images, source.stamps, strict=False):
+            assert msg.encoding == "bgr8"
+            assert msg.header.frame_id == "cam_optical"
+            assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
+            expected = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+            assert np.array_equal(image_to_array(msg), expected)
+        info = listener.infos[0]
+        assert info.k[0] == pytest.approx(612.5) and info.distortion_model == "plumb_bob"
+        assert (info.width, info.height) == (640, 480)
+        assert info.header.stamp == listener.images[0].header.stamp
+        assert spin_until(executor, lambda: camera.finished, timeout=5)
+    finally:
+        executor.shutdown()
+        camera.destroy_node()
+
+
+def test_malformed_frames_are_logged_and_skipped_and_the_node_keeps_publishing(ros_context, spin_until):
+    good = np.full((8, 8, 3), 9, np.uint8)
+    images = [good, np.zeros((8, 8, 3), np.float32), np.zeros((8, 8, 2), np.uint8), good]
+    listener, camera, executor = make_graph(ros_context, source=ListSource(images))
+    try:
+        wait_for_subscription(camera, spin_until, executor)
+        camera.start()
+        assert spin_until(executor, lambda: len(listener.images) >= 2, timeout=10)
+        assert camera.malformed == 2 and camera.published == 2
+        stamps = [m.header.stamp.nanosec for m in listener.images]
+        assert len(set(stamps)) == 2  # the first and the last frame, nothing else
+    finally:
+        executor.shutdown()
+        camera.destroy_node()
+
+
+def test_bad_parameter_values_are_rejected_and_good_ones_reopen_the_source(ros_context, spin_until, tmp_path):
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 30.0, (32, 24))
+    for i in range(5):
+        writer.write(np.full((24, 32, 3), 50 * i, np.uint8))
+    writer.release()
+    listener, camera, executor = make_graph(
+        ros_context, parameter_overrides=[Parameter("source", value="video"),
+                                          Parameter("video_path", value=str(tmp_path / "missing.avi")),
+                                          Parameter("rate", value=0.0)])
+    try:
+        camera.start()
+        results = camera.set_parameters([Parameter("source", value="usb")])
+        assert not results[0].successful and "one of" in results[0].reason
+        results = camera.set_parameters([Parameter("width", value=-5)])
+        assert not results[0].successful
+        results = camera.set_parameters([Parameter("extrinsics.d", value=0.2)])  # outside the 5 cm tube
+        assert not results[0].successful
+        assert camera.get_parameter("source").value == "video"
+        wait_for_subscription(camera, spin_until, executor)
+        assert listener.images == []  # the missing file: logged, nothing published, still alive
+        assert camera.set_parameters([Parameter("video_path", value=str(video))])[0].successful
+        assert spin_until(executor, lambda: len(listener.images) >= 5, timeout=10)
+        assert [listener.images[i].encoding for i in range(5)] == ["bgr8"] * 5
+        assert camera.source is not None and "clip.avi" in camera.source.info
+    finally:
+        executor.shutdown()
+        camera.destroy_node()
+
+
+def test_diagnostics_report_rate_lag_and_drops(ros_context, spin_until):
+    counter = itertools.count()
+
+    class Endless(ListSource):
+        def read(self, timeout):
+            threading.Event().wait(0.01)
+            i = next(counter)
+            self.stats.captured += 1
+            self.stats.dropped = i // 2  # pretend every other frame was dropped at capture
+            return Frame(camera.get_clock().now().nanoseconds, np.zeros((4, 4, 3), np.uint8), i)
+
+    listener, camera, executor = make_graph(ros_context, source=Endless([]))
+    try:
+        camera.start()
+
+        def has_status():
+            return any(s.values for array in listener.diagnostics for s in array.status
+                       if status_values(s).get("published", "0") not in ("0",))
+
+        assert spin_until(executor, has_status, timeout=10)
+        status = [s for a in listener.diagnostics for s in a.status if status_values(s).get("published") != "0"][-1]
+        values = status_values(status)
+        assert float(values["frame_rate_hz"]) > 0
+        assert float(values["lag_median_ms"]) >= 0
+        assert int(values["dropped"]) > 0
+        assert values["source"] == "list source"
+        assert status.level == b"\x00" and status.message == "streaming"
+    finally:
+        executor.shutdown()
+        camera.destroy_node()
+
+
+def test_image_publisher_is_reliable_and_qos_can_be_overridden(ros_context, spin_until):
+    source = ListSource([np.zeros((4, 4, 3), np.uint8)])
+    camera = CameraNode(context=ros_context, source=source, autostart=False)
+    try:
+        info = camera.get_publishers_info_by_topic(IMAGE_TOPIC)
+        assert info and info[0].qos_profile.reliability == ReliabilityPolicy.RELIABLE
+    finally:
+        camera.destroy_node()
+    override = "qos_overrides." + IMAGE_TOPIC + ".publisher.reliability"
+    camera = CameraNode(context=ros_context, source=ListSource([]), autostart=False,
+                        parameter_overrides=[Parameter(override, value="best_effort")])
+    try:
+        info = camera.get_publishers_info_by_topic(IMAGE_TOPIC)
+        assert info[0].qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        # a best-effort subscriber still connects, as the perception node does
+        listener = Node("be_listener", context=ros_context)
+        from sensor_msgs.msg import Image
+
+        listener.create_subscription(Image, IMAGE_TOPIC, lambda m: None,
+                                     QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        assert spin_until(camera, lambda: camera.image_pub.get_subscription_count() == 1, timeout=5)
+        listener.destroy_node()
+    finally:
+        camera.destroy_node()

@@ -1,0 +1,310 @@
+"""The TouchRoller camera driver node: a `FrameSource` -> `/touchroller/image_raw` + `/touchroller/camera_info`.
+
+Thin ROS shell around `touchroller_driver.sources`: a publishing thread takes the newest frame
+from the source and publishes it at once (no timer in the path, so no added latency), stamped
+with the capture time. Images are always `bgr8`. Reliable QoS (REP 2003), overridable with
+`qos_overrides./touchroller/image_raw.publisher.*` parameters. `/diagnostics` carries the
+measured frame rate, publish lag (publish time - capture stamp) and drops.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import rclpy
+import rclpy.executors
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import CameraInfo, Image
+
+from touchroller_bringup.ros_diagnostics import (
+    ERROR,
+    OK,
+    WARN,
+    DiagnosticsPublisher,
+    LagWindow,
+    RateMeter,
+    Status,
+)
+from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_driver.image_conversion import fill_image
+from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
+from touchroller_perception.geometry import CameraModel
+
+IMAGE_TOPIC = "/touchroller/image_raw"
+CAMERA_INFO_TOPIC = "/touchroller/camera_info"
+#: Parameters that select or configure the source: changing one reopens it.
+SOURCE_PARAMETERS = (
+    "source", "device", "width", "height", "fps", "exposure", "video_path", "bag_path", "bag_topic",
+    "scene", "seed", "rate", "loop",
+)
+IMAGE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+
+def camera_info_from_model(model: CameraModel, stamp_ns: int, frame_id: str) -> CameraInfo:
+    """CameraInfo (plumb_bob) of the calibrated intrinsics; theta and d are extrinsics, kept as parameters."""
+    info = CameraInfo()
+    info.header.stamp.sec, info.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    info.header.frame_id = frame_id
+    info.width, info.height = model.width, model.height
+    info.distortion_model = "plumb_bob"
+    info.d = [float(k) for k in model.distortion]
+    info.k = [float(x) for x in model.K.reshape(-1)]
+    info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    info.p = [model.fx, 0.0, model.cx, 0.0, 0.0, model.fy, model.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return info
+
+
+class CameraNode(Node):
+    """Publishes camera frames; `source=` supplies an external FrameSource (then `source.*` params are ignored)."""
+
+    def __init__(self, node_name: str = "camera_node", *, source: FrameSource | None = None,
+                 autostart: bool = True, **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self._declare_parameters()
+        self.geometry = GeometryParameters(self, on_change=self._on_geometry)
+        self.add_on_set_parameters_callback(self._validate)
+        self.add_post_set_parameters_callback(self._apply)
+        self.frame_id = str(self.get_parameter("frame_id").value)
+        self._external_source = source is not None
+        self.source: FrameSource | None = source
+        self._opened = False
+        self._restart = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._image_msg = Image()
+        self._lock = threading.Lock()  # guards source swaps against diagnostics reads
+        self.published = 0
+        self.malformed = 0
+        self.rate_meter = RateMeter()
+        self.lag = LagWindow(200)
+        self._finished_logged = False
+        self._last_error_log = 0.0
+        self._closed_stats = SourceStats()  # drops etc. of sources closed by a restart
+
+        overrides = QoSOverridingOptions.with_default_policies()
+        self.image_pub = self.create_publisher(Image, IMAGE_TOPIC, IMAGE_QOS, qos_overriding_options=overrides)
+        self.info_pub = self.create_publisher(CameraInfo, CAMERA_INFO_TOPIC, IMAGE_QOS,
+                                              qos_overriding_options=overrides)
+        self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: camera", hardware_id="")
+        self.diagnostics.add(self._diagnostic_status)
+        if autostart:
+            self.start()
+
+    # ------------------------------------------------------------------ parameters
+    def _declare_parameters(self) -> None:
+        declare(self, "source", "v4l2", f"Camera source: one of {', '.join(SOURCE_KINDS)}",
+                additional_constraints=f"one of {', '.join(SOURCE_KINDS)}")
+        declare(self, "device", "0", "V4L2 device: an index or a path (prefer a stable /dev/v4l/by-id/... path)")
+        declare(self, "width", 640, "Requested capture width, pixels (v4l2)", min=16, max=8192)
+        declare(self, "height", 480, "Requested capture height, pixels (v4l2)", min=16, max=8192)
+        declare(self, "fps", 30.0, "Requested frame rate, Hz (v4l2; sim when bound to an arm)", min=0.1, max=1000.0)
+        declare(self, "exposure", 0.0, "Manual exposure in V4L2 units; 0 = auto exposure", min=0.0, max=100000.0)
+        declare(self, "video_path", "", "Video file to play (source=video)")
+        declare(self, "bag_path", "", "rosbag2 folder to play images from (source=bag)")
+        declare(self, "bag_topic", IMAGE_TOPIC, "Image topic inside the bag (source=bag)")
+        declare(self, "scene", "surface_mapping", "Simulator scene name or YAML path (source=sim)")
+        declare(self, "seed", 0, "Simulator random seed (source=sim)", min=0, max=2**31 - 1)
+        declare(self, "rate", 1.0, "Playback rate for video/bag/sim: 1 real time, 0 as fast as possible",
+                min=0.0, max=100.0)
+        declare(self, "loop", False, "Restart video/bag/sim sources at their end")
+        declare(self, "frame_id", "touchroller_camera", "frame_id of published images and camera info")
+
+    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        for param in parameters:
+            if param.name == "source" and str(param.value) not in SOURCE_KINDS:
+                return SetParametersResult(
+                    successful=False, reason=f"source must be one of {', '.join(SOURCE_KINDS)}, got {param.value!r}")
+            if param.name in ("frame_id", "device", "bag_topic") and not str(param.value).strip():
+                return SetParametersResult(successful=False, reason=f"{param.name} must not be empty")
+        return SetParametersResult(successful=True)
+
+    def _apply(self, parameters: Sequence[Parameter]) -> None:
+        names = {p.name for p in parameters}
+        if "frame_id" in names:
+            self.frame_id = str(self.get_parameter("frame_id").value)
+        if names & set(SOURCE_PARAMETERS) and not self._external_source:
+            self._restart.set()  # the publishing thread reopens the source
+
+    def _on_geometry(self, model: CameraModel) -> None:
+        self.get_logger().info(f"camera model updated: fx={model.fx:g} fy={model.fy:g} theta={model.theta:g} d={model.d:g}")
+
+    def _make_source(self) -> FrameSource:
+        param = {name: self.get_parameter(name).value for name in SOURCE_PARAMETERS}
+        kind = str(param["source"])
+        clock_ns = self._now_ns
+        if kind == "v4l2":
+            return make_source("v4l2", device=param["device"], width=param["width"], height=param["height"],
+                               fps=param["fps"], exposure=param["exposure"], clock_ns=clock_ns,
+                               log=self.get_logger().info)
+        if kind == "video":
+            return make_source("video", path=param["video_path"], rate=param["rate"], loop=param["loop"],
+                               clock_ns=clock_ns)
+        if kind == "bag":
+            return make_source("bag", path=param["bag_path"], topic=param["bag_topic"], rate=param["rate"],
+                               loop=param["loop"], clock_ns=clock_ns)
+        return make_source("sim", scene=param["scene"], seed=param["seed"], rate=param["rate"],
+                           loop=param["loop"], clock_ns=clock_ns)
+
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    # ------------------------------------------------------------------ publishing thread
+    def start(self) -> None:
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name="touchroller-camera-publish", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        self._close_source()
+
+    def destroy_node(self) -> None:
+        self.stop()
+        super().destroy_node()
+
+    @property
+    def finished(self) -> bool:
+        """A finite source (file, bag, scene) has delivered all its frames."""
+        return self.source is not None and _stats(self.source).finished
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if not self._opened or self._restart.is_set():
+                if not self._open_source():
+                    self._stop.wait(1.0)
+                    continue
+            try:
+                frame = self.source.read(timeout=0.1)
+            except Exception as exc:  # noqa: BLE001 - a bad frame is one log line; the node keeps running
+                self.malformed += 1
+                self._log_error(f"camera source failed to deliver a frame: {type(exc).__name__}: {exc}")
+                self._stop.wait(0.01)
+                continue
+            if frame is None:
+                if self.finished and not self._finished_logged:
+                    self._finished_logged = True
+                    self.get_logger().info(f"source finished after {self.published} frames: {self.source.info}")
+                continue
+            self.publish_frame(frame.image, frame.stamp_ns)
+
+    def _open_source(self) -> bool:
+        self._restart.clear()
+        self._close_source()
+        try:
+            source = self.source if self._external_source else self._make_source()
+            source.open()
+        except Exception as exc:  # noqa: BLE001 - a bad path/device is one log line; retried after a change
+            self._log_error(f"cannot open camera source: {exc}")
+            if not self._external_source:
+                with self._lock:
+                    self.source = None
+            return False
+        with self._lock:
+            self.source = source
+            self._opened = True
+        self._finished_logged = False
+        self.diagnostics.hardware_id = source.info
+        self.get_logger().info(f"streaming from {source.info}")
+        return True
+
+    def _close_source(self) -> None:
+        with self._lock:
+            source = self.source
+            if source is None or not self._opened:
+                return
+            self._opened = False
+            stats = _stats(source)
+            self._closed_stats.dropped += stats.dropped
+            self._closed_stats.reconnects += stats.reconnects
+            if not self._external_source:
+                self.source = None
+        try:
+            source.close()
+        except Exception as exc:  # noqa: BLE001
+            self._log_error(f"closing the camera source failed: {exc}")
+
+    def publish_frame(self, image: Any, stamp_ns: int) -> bool:
+        """Publish one bgr8 frame and its CameraInfo; a malformed image is logged and skipped."""
+        try:
+            fill_image(self._image_msg, as_bgr8(image), stamp_ns, self.frame_id, encoding="bgr8")
+        except (ValueError, AttributeError, TypeError) as exc:
+            self.malformed += 1
+            self._log_error(f"dropping a malformed camera frame: {exc}")
+            return False
+        self.image_pub.publish(self._image_msg)
+        self.info_pub.publish(camera_info_from_model(self.geometry.model, stamp_ns, self.frame_id))
+        self.published += 1
+        self.rate_meter.tick()
+        self.lag.add((self._now_ns() - stamp_ns) * 1e-9)
+        return True
+
+    def _log_error(self, message: str) -> None:
+        now = time.monotonic()
+        if now - self._last_error_log >= 1.0:  # throttled: one line a second at most
+            self._last_error_log = now
+            self.get_logger().error(message)
+
+    # ------------------------------------------------------------------ diagnostics
+    def _diagnostic_status(self) -> Status:
+        with self._lock:
+            source = self.source
+            stats = _stats(source) if source is not None else SourceStats()
+            info = source.info if source is not None else "none"
+        lag_median, lag_max = self.lag.summary()
+        rate = self.rate_meter.rate()
+        values = {
+            "source": info,
+            "frame_rate_hz": rate,
+            "lag_median_ms": lag_median * 1e3,
+            "lag_max_ms": lag_max * 1e3,
+            "published": self.published,
+            "captured": stats.captured,
+            "dropped": stats.dropped + self._closed_stats.dropped,
+            "malformed": self.malformed,
+            "reconnects": stats.reconnects + self._closed_stats.reconnects,
+            "connected": stats.connected,
+            "finished": stats.finished,
+        }
+        if stats.last_error:
+            values["last_error"] = stats.last_error
+        if source is None or (not stats.connected and not stats.finished):
+            return Status(ERROR, f"camera not available: {stats.last_error or 'no source'}", values)
+        if stats.finished:
+            return Status(OK, "source finished", values)
+        if rate == 0.0:
+            return Status(WARN, "no frames", values)
+        return Status(OK, "streaming", values)
+
+
+def _stats(source: Any) -> SourceStats:
+    stats = getattr(source, "stats", None)
+    return stats if isinstance(stats, SourceStats) else SourceStats(connected=True)
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = CameraNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
