@@ -1,0 +1,181 @@
+"""The sweep node in a real rclpy context: explicit start, limits, progress, faults, diagnostics."""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_msgs.msg import Float32  # noqa: E402
+
+from touchroller_driver.arm import ArmLimits, SimulatedArm, SweepPhase  # noqa: E402
+from touchroller_driver.sweep_node import (  # noqa: E402
+    PROGRESS_TOPIC,
+    TCP_POSE_TOPIC,
+    SweepNode,
+    rotation_vector_to_quaternion,
+    trigger_service_type,
+)
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
+
+START = [0.4, 0.0, 0.2, math.pi, 0.0, 0.0]
+SPEEDUP = 10.0  # the simulated arm's clock runs 10x faster than wall time to keep tests short
+OVERRIDES = [
+    Parameter("sweep.length", value=0.02),
+    Parameter("sweep.speed", value=0.02),
+    Parameter("sweep.approach_speed", value=0.01),
+    Parameter("sweep.start_pose", value=START),
+]
+
+
+def fast_clock() -> float:
+    return time.monotonic() * SPEEDUP
+
+
+class Harness:
+    """The node under test plus a probe node that calls its services and records its topics."""
+
+    def __init__(self, context, arm=None, overrides=OVERRIDES) -> None:
+        self.node = SweepNode(arm=arm, context=context, parameter_overrides=list(overrides))
+        self.probe = Node("probe", context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.probe)
+        self.poses: list[PoseStamped] = []
+        self.progress: list[float] = []
+        self.diagnostics: list[DiagnosticArray] = []
+        self.probe.create_subscription(PoseStamped, TCP_POSE_TOPIC, self.poses.append, 50)
+        self.probe.create_subscription(Float32, PROGRESS_TOPIC, lambda m: self.progress.append(m.data), 50)
+        self.probe.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
+        service_type, self.is_trigger = trigger_service_type()
+        self.service_type = service_type
+        self.clients = {name: self.probe.create_client(service_type, f"/touchroller_sweep/{name}")
+                        for name in ("start", "stop")}
+
+    def call(self, spin_until, name: str):
+        client = self.clients[name]
+        assert spin_until(self.executor, client.service_is_ready, timeout=10.0)
+        future = client.call_async(self.service_type.Request())
+        assert spin_until(self.executor, future.done, timeout=10.0)
+        return future.result()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.probe.destroy_node()
+
+
+@pytest.fixture
+def harness_factory(ros_context):
+    made = []
+
+    def make(**kwargs) -> Harness:
+        harness = Harness(ros_context, **kwargs)
+        made.append(harness)
+        return harness
+
+    yield make
+    for harness in made:
+        harness.close()
+
+
+def sim_arm(**kwargs) -> SimulatedArm:
+    return SimulatedArm(START, clock=fast_clock, **kwargs)
+
+
+def test_no_motion_without_start(harness_factory, spin_until):
+    arm = sim_arm()
+    h = harness_factory(arm=arm)
+    assert spin_until(h.executor, lambda: len(h.poses) >= 5, timeout=10.0)
+    assert not arm.is_moving()
+    assert h.node.status.phase is SweepPhase.IDLE
+    last = h.poses[-1].pose.position
+    assert (last.x, last.y, last.z) == pytest.approx(START[:3])
+    assert all(p == 0.0 for p in h.progress)
+
+
+def test_start_service_runs_the_whole_sweep(harness_factory, spin_until):
+    arm = sim_arm()
+    h = harness_factory(arm=arm)
+    response = h.call(spin_until, "start")
+    assert response.success
+    assert spin_until(h.executor, h.node.finished.is_set, timeout=20.0)
+    assert h.node.status.phase is SweepPhase.DONE
+    assert spin_until(h.executor, lambda: h.progress and h.progress[-1] == 1.0, timeout=5.0)
+    rolling = [p for p in h.progress if 0.0 < p < 1.0]
+    assert rolling and rolling == sorted(rolling)
+    end = h.poses[-1]
+    assert end.header.frame_id == "base"
+    assert end.pose.position.x == pytest.approx(START[0] + 0.02, abs=1e-9)
+    assert end.pose.position.z == pytest.approx(START[2], abs=1e-9)
+    # Once done, a second start runs again (from where the arm is, via the start pose).
+    assert h.call(spin_until, "start").success
+
+
+def test_start_is_refused_while_a_sweep_runs_and_stop_halts(harness_factory, spin_until):
+    arm = sim_arm()
+    h = harness_factory(arm=arm)
+    assert h.call(spin_until, "start").success
+    assert not h.call(spin_until, "start").success
+    assert h.call(spin_until, "stop").success
+    assert h.node.finished.wait(2.0)
+    assert h.node.status.phase is SweepPhase.STOPPED
+    assert not arm.is_moving()
+
+
+def test_parameters_beyond_the_arm_limits_are_rejected(harness_factory):
+    h = harness_factory(arm=sim_arm(limits=ArmLimits(max_speed=0.05, max_accel=0.5)))
+    result = h.node.set_parameters([Parameter("sweep.speed", value=0.08)])[0]
+    assert not result.successful and "speed" in result.reason
+    assert h.node.get_parameter("sweep.speed").value == pytest.approx(0.02)
+    result = h.node.set_parameters([Parameter("sweep.start_pose", value=[0.4, 0.0, 0.2])])[0]
+    assert not result.successful
+    assert h.node.set_parameters([Parameter("sweep.speed", value=0.04)])[0].successful
+    assert h.node.settings["sweep.speed"] == pytest.approx(0.04)
+    assert not h.node.set_parameters([Parameter("arm.max_speed", value=1.0)])[0].successful  # read-only
+
+
+def test_fault_stops_the_sweep_and_shows_in_diagnostics(harness_factory, spin_until):
+    arm = sim_arm()
+    h = harness_factory(arm=arm)
+    assert h.call(spin_until, "start").success
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.SWEEPING, timeout=10.0)
+    arm.inject_fault("protective stop")
+    assert spin_until(h.executor, h.node.finished.is_set, timeout=5.0)
+    assert h.node.status.phase is SweepPhase.FAULT
+
+    def error_reported() -> bool:
+        return any(s.level == b"\x02" and "protective stop" in s.message
+                   for array in h.diagnostics for s in array.status)
+
+    assert spin_until(h.executor, error_reported, timeout=5.0)
+    response = h.call(spin_until, "start")
+    assert not response.success
+
+
+def test_unreachable_robot_is_a_fault_not_a_crash(harness_factory, spin_until):
+    overrides = [*OVERRIDES, Parameter("use_sim", value=False), Parameter("robot_ip", value="127.0.0.213")]
+    h = harness_factory(overrides=overrides)
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.FAULT, timeout=10.0)
+    assert "cannot connect" in h.node.status.message
+    response = h.call(spin_until, "start")
+    assert not response.success
+    if h.is_trigger:
+        assert "127.0.0.213" in response.message
+
+
+def test_rotation_vector_to_quaternion():
+    assert rotation_vector_to_quaternion([0, 0, 0]) == (0.0, 0.0, 0.0, 1.0)
+    q = rotation_vector_to_quaternion([math.pi, 0, 0])
+    np.testing.assert_allclose(q, [1.0, 0.0, 0.0, 0.0], atol=1e-12)
+    q = rotation_vector_to_quaternion([0, 0, math.pi / 2])
+    np.testing.assert_allclose(q, [0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)])

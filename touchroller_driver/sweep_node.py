@@ -1,0 +1,347 @@
+"""The sweep node: rolls the sensor over a surface with an arm (UR5 via ur_rtde, or simulated).
+
+Safety: the arm moves only after `~/start` is called; every segment of the sweep is checked
+against `arm.max_speed`/`arm.max_accel` (read-only at run time) before the first command; all arm
+calls happen on one worker thread; a fault (protective/emergency stop, lost connection, refused
+command) stops the sweep and shows as ERROR on `/diagnostics`. Publishes the TCP pose
+(`/touchroller/tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
+(`/touchroller/sweep_progress`, std_msgs/Float32, 0..1) at `publish_rate`.
+
+Services `~/start` and `~/stop` are std_srvs/Trigger where std_srvs is installed (any ROS 2
+install); without it (our pip-only venv) they fall back to lifecycle_msgs/ChangeState, whose
+empty request triggers and whose response carries `success` (see docs/graph_and_launch.md).
+"""
+from __future__ import annotations
+
+import math
+import queue
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float32
+
+from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
+from touchroller_bringup.ros_params import declare
+from touchroller_driver.arm import (
+    Arm,
+    ArmError,
+    ArmLimits,
+    SimulatedArm,
+    SweepPhase,
+    SweepSequencer,
+    SweepStatus,
+    plan_sweep,
+)
+
+NODE_NAME = "touchroller_sweep"
+TCP_POSE_TOPIC = "/touchroller/tcp_pose"
+PROGRESS_TOPIC = "/touchroller/sweep_progress"
+DEFAULT_START_POSE = [0.4, 0.0, 0.2, math.pi, 0.0, 0.0]
+COMMAND_TIMEOUT_S = 5.0
+
+# Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
+SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
+                    "sweep.start_pose", "sweep.direction", "sweep.retract")
+
+
+def trigger_service_type() -> tuple[type, bool]:
+    """(service type, is std_srvs/Trigger): Trigger when std_srvs is installed, else lifecycle ChangeState."""
+    try:
+        from std_srvs.srv import Trigger
+    except ImportError:
+        from lifecycle_msgs.srv import ChangeState
+
+        return ChangeState, False
+    return Trigger, True
+
+
+def rotation_vector_to_quaternion(rotation: Sequence[float]) -> tuple[float, float, float, float]:
+    """UR rotation vector (axis * angle) -> quaternion (x, y, z, w)."""
+    vector = np.asarray(rotation, dtype=np.float64)
+    angle = float(np.linalg.norm(vector))
+    if angle < 1e-12:
+        return 0.0, 0.0, 0.0, 1.0
+    axis = vector / angle * math.sin(angle / 2.0)
+    return float(axis[0]), float(axis[1]), float(axis[2]), math.cos(angle / 2.0)
+
+
+@dataclass
+class _Command:
+    name: str
+    done: threading.Event
+    success: bool = False
+    message: str = ""
+
+
+class SweepNode(Node):
+    """Thin ROS shell around `SweepSequencer` and an `Arm`; pass `arm=` to supply one (e.g. a shared
+    SimulatedArm that also drives the simulated camera in `touchroller scan`)."""
+
+    def __init__(self, *, arm: Arm | None = None, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self._declare_parameters()
+        self.settings = {name: self.get_parameter(name).value for name in SWEEP_PARAMETERS}
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self.limits = self._limits_from_parameters()
+        if arm is not None:  # a supplied arm keeps its own limits; the stricter of the two apply here
+            self.limits = ArmLimits(max_speed=min(self.limits.max_speed, arm.limits.max_speed),
+                                    max_accel=min(self.limits.max_accel, arm.limits.max_accel))
+        self.arm: Arm = arm if arm is not None else self._make_arm()
+        self.sequencer = SweepSequencer(self.arm)
+        self.finished = threading.Event()  # set when a started sweep ends (done, stopped or fault)
+        self._state_lock = threading.Lock()
+        self._status = SweepStatus(SweepPhase.IDLE, None, 0.0, "waiting for ~/start")
+        self._connection_error: str | None = None
+        self._last_pose: np.ndarray | None = None
+        self._commands: queue.Queue[_Command] = queue.Queue()
+        self._shutdown = threading.Event()
+
+        base_frame = self.get_parameter("base_frame").value
+        self._frame_id = str(base_frame)
+        self._pose_pub = self.create_publisher(PoseStamped, TCP_POSE_TOPIC, 10)
+        self._progress_pub = self.create_publisher(Float32, PROGRESS_TOPIC, 10)
+        service_type, self._is_trigger = trigger_service_type()
+        self._start_srv = self.create_service(service_type, "~/start", self._on_start)
+        self._stop_srv = self.create_service(service_type, "~/stop", self._on_stop)
+        hardware = "simulated arm" if isinstance(self.arm, SimulatedArm) else f"UR at {self.get_parameter('robot_ip').value}"
+        self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: sweep", hardware_id=hardware)
+        self.diagnostics.add(self._diagnostic_status)
+
+        self._worker = threading.Thread(target=self._run_worker, name="sweep-arm", daemon=True)
+        self._worker.start()
+
+    # -- parameters ----------------------------------------------------------------------------
+    def _declare_parameters(self) -> None:
+        declare(self, "use_sim", True, "Use the simulated arm instead of a UR5 (read at start-up)", read_only=True)
+        declare(self, "robot_ip", "192.168.1.10", "IP address of the UR controller (ur_rtde)", read_only=True)
+        declare(self, "arm.max_speed", 0.1, "Hard limit on any commanded tool speed, m/s", min=1e-4, max=1.0,
+                read_only=True)
+        declare(self, "arm.max_accel", 0.5, "Hard limit on any commanded tool acceleration, m/s^2",
+                min=1e-3, max=5.0, read_only=True)
+        declare(self, "sweep.length", 0.11, "Length of the roll along sweep.direction, m", min=0.0, max=1.0)
+        declare(self, "sweep.speed", 0.011, "Roll speed, m/s (paper: 11 cm in 10 s)", min=1e-4, max=1.0)
+        declare(self, "sweep.accel", 0.1, "Acceleration of every move, m/s^2", min=1e-3, max=5.0)
+        declare(self, "sweep.depth", 0.001, "How far the roller is pressed into the surface, m", min=0.0, max=0.01)
+        declare(self, "sweep.approach_speed", 0.005, "Speed to the start pose, pressing and lifting, m/s",
+                min=1e-4, max=1.0)
+        declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
+                "TCP pose [x, y, z, rx, ry, rz] (base frame, m, rotation vector) where the roller just "
+                "touches the surface at the start of the sweep")
+        declare(self, "sweep.direction", [1.0, 0.0, 0.0], "Rolling direction in the base frame (horizontal)")
+        declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
+        declare(self, "cylinder.radius", 0.05, "Radius r of the membrane surface, metres (simulated roll)",
+                min=0.001, max=1.0)
+        declare(self, "publish_rate", 50.0, "Rate of TCP pose and progress messages, Hz", min=1.0, max=500.0,
+                read_only=True)
+        declare(self, "base_frame", "base", "Frame of the published TCP pose (the UR base)", read_only=True)
+
+    def _validate_parameters(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        candidate = dict(self.settings)
+        candidate.update({p.name: p.value for p in parameters if p.name in SWEEP_PARAMETERS})
+        try:
+            self._plan_from(candidate)
+        except (ArmError, ValueError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters: Sequence[Parameter]) -> None:
+        self.settings.update({p.name: p.value for p in parameters if p.name in SWEEP_PARAMETERS})
+
+    def _limits_from_parameters(self) -> ArmLimits:
+        return ArmLimits(max_speed=float(self.get_parameter("arm.max_speed").value),
+                         max_accel=float(self.get_parameter("arm.max_accel").value))
+
+    def _plan_from(self, settings: dict[str, Any]):
+        plan = plan_sweep(
+            list(settings["sweep.start_pose"]), length=float(settings["sweep.length"]),
+            speed=float(settings["sweep.speed"]), accel=float(settings["sweep.accel"]),
+            depth=float(settings["sweep.depth"]), direction=list(settings["sweep.direction"]),
+            approach_speed=float(settings["sweep.approach_speed"]), retract=bool(settings["sweep.retract"]))
+        for segment in plan.segments:
+            self.limits.check(segment.target, segment.speed, segment.accel)
+        return plan
+
+    def _make_arm(self) -> Arm:
+        if self.get_parameter("use_sim").value:
+            return SimulatedArm(list(self.settings["sweep.start_pose"]), limits=self.limits,
+                                rolling_direction=list(self.settings["sweep.direction"]),
+                                radius=float(self.get_parameter("cylinder.radius").value))
+        from touchroller_driver.ur5 import UR5Arm
+
+        return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits)
+
+    # -- services (executor thread): hand the request to the worker and wait for its answer ----
+    def _on_start(self, request: Any, response: Any) -> Any:
+        return self._answer(response, self._submit("start"))
+
+    def _on_stop(self, request: Any, response: Any) -> Any:
+        return self._answer(response, self._submit("stop"))
+
+    def _submit(self, name: str) -> _Command:
+        command = _Command(name, threading.Event())
+        self._commands.put(command)
+        if not command.done.wait(COMMAND_TIMEOUT_S):
+            command.success, command.message = False, f"the arm thread did not answer {name} in time"
+        return command
+
+    def _answer(self, response: Any, command: _Command) -> Any:
+        response.success = command.success
+        if self._is_trigger:
+            response.message = command.message
+        if command.success:  # two call sites: rclpy fixes a call site's severity on first use
+            self.get_logger().info(f"{command.name}: {command.message}")
+        else:
+            self.get_logger().error(f"{command.name} refused: {command.message}")
+        return response
+
+    def request_start(self) -> tuple[bool, str]:
+        """The same as calling `~/start` (for in-process callers)."""
+        command = self._submit("start")
+        return command.success, command.message
+
+    def request_stop(self) -> tuple[bool, str]:
+        command = self._submit("stop")
+        return command.success, command.message
+
+    # -- the worker thread: the only thread that talks to the arm ----------------------------
+    def _connect(self) -> None:
+        try:
+            self.arm.connect()
+        except ArmError as exc:
+            self._connection_error = str(exc)
+            self._set_status(SweepStatus(SweepPhase.FAULT, None, 0.0, str(exc)))
+            self.get_logger().error(str(exc))
+        else:
+            self._connection_error = None
+
+    def _run_worker(self) -> None:
+        self._connect()
+        period = 1.0 / float(self.get_parameter("publish_rate").value)
+        while not self._shutdown.is_set():
+            try:
+                command = self._commands.get(timeout=period)
+            except queue.Empty:
+                command = None
+            was_active = self.sequencer.active
+            if command is not None:
+                self._execute(command)
+            self._step(was_active or self.sequencer.active)
+        self._release_arm()
+
+    def _execute(self, command: _Command) -> None:
+        try:
+            if command.name == "start":
+                if self._connection_error is not None:
+                    self._connect()  # try again: the robot may have come up since
+                    if self._connection_error is not None:
+                        raise ArmError(self._connection_error)
+                plan = self._plan_from(dict(self.settings))
+                self.sequencer.start(plan)
+                self.finished.clear()
+                command.success = True
+                command.message = (f"sweep started: {plan.length:.4g} m at {self.settings['sweep.speed']:.4g} m/s, "
+                                   f"depth {self.settings['sweep.depth']:.4g} m")
+            else:
+                self.sequencer.stop()
+                command.success, command.message = True, "arm stopped"
+        except (ArmError, ValueError) as exc:
+            command.success, command.message = False, str(exc)
+        finally:
+            command.done.set()
+
+    def _step(self, was_active: bool) -> None:
+        if self._connection_error is not None:
+            return
+        try:
+            status = self.sequencer.poll()
+            pose = self.arm.tcp_pose()
+        except (ArmError, RuntimeError) as exc:  # e.g. the connection dropped mid-call
+            self.sequencer.stop(str(exc))
+            status = SweepStatus(SweepPhase.FAULT, self.sequencer.status.segment,
+                                 self.sequencer.status.roll_progress, str(exc))
+            pose = None
+        self._set_status(status)
+        if pose is not None:
+            self._publish(pose, status.roll_progress)
+        if was_active and not self.sequencer.active:
+            self.finished.set()
+            if status.phase is SweepPhase.FAULT:
+                self.get_logger().error(f"sweep fault: {status.message}")
+            else:
+                self.get_logger().info(f"sweep {status.phase.value}: {status.message}")
+
+    def _publish(self, pose: np.ndarray, progress: float) -> None:
+        with self._state_lock:
+            self._last_pose = pose
+        message = PoseStamped()
+        message.header.stamp = self.get_clock().now().to_msg()
+        message.header.frame_id = self._frame_id
+        message.pose.position.x, message.pose.position.y, message.pose.position.z = (float(v) for v in pose[:3])
+        q = rotation_vector_to_quaternion(pose[3:])
+        o = message.pose.orientation
+        o.x, o.y, o.z, o.w = q
+        self._pose_pub.publish(message)
+        self._progress_pub.publish(Float32(data=float(progress)))
+
+    def _release_arm(self) -> None:
+        try:
+            self.arm.stop()
+            self.arm.disconnect()
+        except (ArmError, RuntimeError) as exc:
+            self.get_logger().warning(f"releasing the arm: {exc}")
+
+    # -- state for diagnostics and in-process callers -------------------------------------------
+    def _set_status(self, status: SweepStatus) -> None:
+        with self._state_lock:
+            self._status = status
+
+    @property
+    def status(self) -> SweepStatus:
+        with self._state_lock:
+            return self._status
+
+    def _diagnostic_status(self) -> Status:
+        status = self.status
+        with self._state_lock:
+            pose = self._last_pose
+        level = {SweepPhase.FAULT: ERROR, SweepPhase.STOPPED: WARN}.get(status.phase, OK)
+        values: dict[str, Any] = {"phase": status.phase.value, "segment": status.segment or "",
+                                  "roll_progress": status.roll_progress,
+                                  "sweep_speed_m_s": float(self.settings["sweep.speed"]),
+                                  "sweep_length_m": float(self.settings["sweep.length"])}
+        if pose is not None:
+            values.update({f"tcp_{k}": float(v) for k, v in zip(("x", "y", "z", "rx", "ry", "rz"), pose, strict=True)})
+        return Status(level, status.message or status.phase.value, values)
+
+    def destroy_node(self) -> None:
+        self._shutdown.set()
+        if self._worker.is_alive():
+            self._worker.join(timeout=COMMAND_TIMEOUT_S)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = SweepNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
