@@ -1,0 +1,83 @@
+"""Localisation of detected contacts on the cylinder, and the Table II evaluation."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from touchroller_perception.contacts import Contact
+from touchroller_perception.geometry import CameraModel
+from touchroller_perception.localisation import (
+    TABLE_II_CAMERA,
+    ErrorSources,
+    localise,
+    membrane_radius,
+    sensitivities,
+    table_ii,
+    table_ii_markdown,
+    true_tap_point,
+)
+
+# Half-size camera keeps the rendered Table II fast in tests.
+SMALL_CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, distortion=(-0.2, 0, 0, 0, 0),
+                           width=320, height=240, theta=0.02, d=0.002)
+
+
+def _contact(u, v):
+    return Contact(u=float(u), v=float(v), area=100.0, confidence=1.0, peak_snr=20.0)
+
+
+def test_localise_inverts_the_projection_and_gives_a_covariance():
+    camera = TABLE_II_CAMERA.replace(theta=0.05, d=0.003)
+    truth = camera.surface_point(np.array([-0.02, 0.0, 0.03]), np.array([0.3, -0.1, 0.0]))
+    uv, ok = camera.project(truth)
+    assert ok.all()
+    located = localise(camera, [_contact(u, v) for u, v in uv], pixel_sigma=0.5)
+    for loc, point in zip(located, truth, strict=True):
+        assert loc.valid
+        np.testing.assert_allclose(loc.point, point, atol=1e-9)
+        eig = np.linalg.eigvalsh(loc.covariance)
+        assert eig.min() > -1e-15 and 0 < eig.max() < (1e-3) ** 2   # sub-mm for half a pixel
+    # a pixel far outside the image maps nowhere: NaN and invalid, never a wrong point
+    [outside] = localise(camera, [_contact(1e6, 1e6)])
+    assert not outside.valid and np.isnan(outside.point).all()
+    assert localise(camera, []) == []
+
+
+def test_sensitivities_match_the_geometry_at_the_centre():
+    camera = CameraModel()
+    s = sensitivities(camera, camera.surface_point(0.0, 0.0))
+    assert s["mm_per_deg_theta"] == pytest.approx(50.0 * math.pi / 180, rel=1e-3)   # r * 1 deg
+    assert s["mm_per_mm_d"] == pytest.approx(0.0, abs=1e-3)      # the ray is along z there
+    assert s["mm_per_px_u"] == pytest.approx(0.1, rel=1e-3)      # r / fx
+    assert s["mm_per_mm_radius"] == pytest.approx(1.0, rel=1e-3)
+    off = sensitivities(camera, camera.surface_point(0.02, 0.3))
+    assert off["mm_per_mm_d"] > 0.1
+    # v = fy tan(alpha): on x = 0 one pixel is r cos^2(alpha) / fy of arc
+    assert sensitivities(camera, camera.surface_point(0.0, 0.3))["mm_per_px_v"] == pytest.approx(0.1 * math.cos(0.3) ** 2, rel=1e-3)
+
+
+def test_uneven_membrane_moves_the_true_point_by_at_most_the_amplitude():
+    camera = CameraModel()
+    x, alpha = np.meshgrid(np.linspace(-0.05, 0.05, 21), np.linspace(-0.6, 0.6, 21))
+    radius = membrane_radius(camera, x, alpha, 0.5e-3)
+    assert np.abs(radius - camera.radius).max() <= 0.5e-3 + 1e-12
+    assert np.ptp(radius) > 0.5e-3
+    p = true_tap_point(camera, 0.01, 0.2, 0.0)
+    np.testing.assert_allclose(np.hypot(p[1], p[2]), camera.radius)
+
+
+def test_table_ii_exact_calibration_is_sub_quarter_millimetre():
+    conditions = {"exact": ErrorSources(), "paper_detector": ErrorSources(detector="paper"),
+                  "theta_1deg": ErrorSources(theta_error=math.radians(1.0))}
+    result = table_ii(taps=1, camera=SMALL_CAMERA, conditions=conditions)
+    summary = result["summary"]
+    assert summary["exact"]["detected"] == 15
+    assert summary["exact"]["mean_mm"] < 0.25
+    # the naive centroid sits on the lit side; a 1 degree calibration error costs ~r * 1 deg
+    assert summary["paper_detector"]["mean_mm"] > 2 * summary["exact"]["mean_mm"]
+    assert summary["theta_1deg"]["mean_mm"] == pytest.approx(0.87, abs=0.25)
+    text = table_ii_markdown(result, command="pytest")
+    assert text.count("| pi/6 |") == 3 + 3          # error table rows + sensitivity rows
+    assert "2.63 ± 0.74" in text
