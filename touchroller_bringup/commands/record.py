@@ -1,15 +1,77 @@
-"""`touchroller record`: placeholder until issue 7 lands."""
+"""`touchroller record --out BAG [--storage sqlite3|mcap] [--topics T ...] [--duration S]`.
+
+Like `ros2 bag record`: raw subscriptions into a rosbag2 folder with the publishers' QoS in its
+metadata. Ctrl-C (or SIGTERM) stops it; what had arrived is written and the bag is finalised.
+"""
 from __future__ import annotations
 
 import argparse
+import signal
+import time
 
 from touchroller_bringup.errors import UserError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("record", help="(not implemented yet: issue 7)")
+    parser = subparsers.add_parser(
+        "record", help="record ROS topics to a rosbag2 folder (sqlite3 or MCAP)",
+        description="Record topics (all but /rosout and /parameter_events unless --topics) until Ctrl-C or --duration.")
+    parser.add_argument("--out", "-o", required=True, help="new bag folder to write")
+    parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="storage plugin")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="topics to record (default: all)")
+    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     parser.set_defaults(func=run)
 
 
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def drain(executor, count, quiet_s: float = 0.2, max_s: float = 2.0) -> None:
+    """Spin until `count()` has not grown for `quiet_s` (messages already in flight get recorded)."""
+    deadline = time.monotonic() + max_s
+    last, quiet_since = count(), time.monotonic()
+    while time.monotonic() < deadline and time.monotonic() - quiet_since < quiet_s:
+        executor.spin_once(timeout_sec=0.02)
+        if count() != last:
+            last, quiet_since = count(), time.monotonic()
+
+
 def run(args: argparse.Namespace) -> int:
-    raise UserError("'touchroller record' is not implemented yet (issue 7)")
+    if args.duration is not None and not args.duration > 0:
+        raise UserError(f"--duration must be positive, got {args.duration}")
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from touchroller_bringup.recorder import Recorder
+
+    context = Context()
+    # Our own Ctrl-C handling: rclpy's handler would shut the context down before the drain.
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    previous_term = signal.signal(signal.SIGTERM, _raise_interrupt)
+    recorder = None
+    try:
+        recorder = Recorder(args.out, topics=args.topics, storage=args.storage, context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(recorder)
+        deadline = None if args.duration is None else time.monotonic() + args.duration
+        print(f"recording to {args.out} ({args.storage}); Ctrl-C to stop", flush=True)
+        try:
+            while deadline is None or time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.1)
+        except KeyboardInterrupt:
+            pass
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the bag short
+        drain(executor, lambda: recorder.message_count)
+        recorder.close()
+        counts = ", ".join(f"{topic}: {n}" for topic, n in sorted(recorder.counts.items())) or "no topics seen"
+        print(f"recorded {recorder.written} messages to {args.out} ({counts})")
+        return 0
+    finally:
+        if recorder is not None:
+            recorder.destroy_node()
+        signal.signal(signal.SIGTERM, previous_term)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        context.try_shutdown()

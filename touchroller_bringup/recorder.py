@@ -1,0 +1,236 @@
+"""Record ROS topics into a rosbag2 folder (sqlite3 or MCAP) like `ros2 bag record`, without rosbag2_py.
+
+`Recorder` is a node: it discovers the wanted topics, subscribes with `raw=True` (serialized CDR,
+never deserialised), and hands each message to a writer thread that owns the `rosbags` Writer,
+so callbacks stay short and nothing is dropped while the disk is busy. The offered QoS profiles
+of the publishers are stored in the bag's metadata, so `touchroller replay` (and `ros2 bag play`)
+can publish with them again. `close()` drains what is in flight and finalises the bag: stopping
+with Ctrl-C loses nothing that had arrived.
+"""
+from __future__ import annotations
+
+import importlib
+import queue
+import threading
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from touchroller_bringup.errors import UserError
+
+#: Topics left out of "record everything" (ros2 bag record -a leaves out hidden topics; these are noise).
+EXCLUDED_BY_DEFAULT = ("/rosout", "/parameter_events")
+INFINITE_SEC, INFINITE_NSEC = 2147483647, 4294967295  # how rosbag2 writes RMW_DURATION_INFINITE
+_INFINITE_NS = 2**63 - 1
+
+
+def message_class(msgtype: str) -> Any:
+    """`sensor_msgs/msg/Image` -> the rclpy message class; None when its package is not installed."""
+    try:
+        package, kind, name = msgtype.split("/")
+        return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    except (ValueError, ImportError, AttributeError):
+        return None
+
+
+def _duration_to_qos_time(duration: Duration) -> Any:
+    from rosbags.interfaces import QosTime
+
+    nanoseconds = duration.nanoseconds
+    if nanoseconds >= _INFINITE_NS:
+        return QosTime(INFINITE_SEC, INFINITE_NSEC)
+    return QosTime(*divmod(int(nanoseconds), 1_000_000_000))
+
+
+def qos_time_to_duration(value: Any) -> Duration:
+    if (value.sec, value.nsec) == (INFINITE_SEC, INFINITE_NSEC) or value.sec >= INFINITE_SEC:
+        return Duration(nanoseconds=_INFINITE_NS)
+    return Duration(seconds=value.sec, nanoseconds=value.nsec)
+
+
+def to_bag_qos(profile: QoSProfile) -> Any:
+    """An rclpy QoSProfile as a rosbags Qos (enum values are rmw's in both)."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability
+
+    return Qos(
+        history=QosHistory(int(profile.history)),
+        depth=int(profile.depth),
+        reliability=QosReliability(int(profile.reliability)),
+        durability=QosDurability(int(profile.durability)),
+        deadline=_duration_to_qos_time(profile.deadline),
+        lifespan=_duration_to_qos_time(profile.lifespan),
+        liveliness=QosLiveliness(int(profile.liveliness)),
+        liveliness_lease_duration=_duration_to_qos_time(profile.liveliness_lease_duration),
+        avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions),
+    )
+
+
+def subscription_qos(offered: Sequence[QoSProfile], depth: int = 100) -> QoSProfile:
+    """Adapt to the publishers like rosbag2: reliable / transient local only when every publisher offers it."""
+    reliable = bool(offered) and all(p.reliability == ReliabilityPolicy.RELIABLE for p in offered)
+    latched = bool(offered) and all(p.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in offered)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )
+
+
+class _BagWriter(threading.Thread):
+    """Owns the rosbags Writer; every call on it happens on this thread, in arrival order."""
+
+    def __init__(self, path: Path, storage: str) -> None:
+        super().__init__(name="touchroller-bag-writer", daemon=True)
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import Stores, get_typestore
+
+        plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
+        if plugin is None:
+            raise UserError(f"unknown bag storage {storage!r} (use sqlite3 or mcap)")
+        if path.exists():
+            raise UserError(f"bag {path} already exists")
+        self._typestore = get_typestore(Stores.ROS2_KILTED)
+        self._writer = Writer(path, version=9, storage_plugin=plugin)
+        self._opened = threading.Event()
+        self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self._connections: dict[str, Any] = {}
+        self.written = 0
+        self.error: str | None = None
+
+    def start(self) -> None:
+        """Start the thread and open the bag on it (sqlite objects must stay on one thread)."""
+        super().start()
+        self._opened.wait()
+        if self.error is not None:
+            self.join()
+            raise UserError(f"cannot write bag: {self.error}")
+
+    def add_topic(self, topic: str, msgtype: str, offered: list[Any]) -> None:
+        self._queue.put(("topic", topic, msgtype, offered))
+
+    def write(self, topic: str, stamp_ns: int, data: bytes) -> None:
+        self._queue.put(("message", topic, stamp_ns, data))
+
+    def finish(self) -> None:
+        self._queue.put(None)
+        self.join()
+
+    def run(self) -> None:
+        try:
+            self._writer.open()
+        except Exception as exc:  # noqa: BLE001 - reported by start() as one line
+            self.error = f"{type(exc).__name__}: {exc}"
+            return
+        finally:
+            self._opened.set()
+        try:
+            while (item := self._queue.get()) is not None:
+                if self.error is not None:
+                    continue  # keep draining so producers never block; the error is reported
+                try:
+                    self._handle(item)
+                except Exception as exc:  # noqa: BLE001 - e.g. disk full: report once, stop writing
+                    self.error = f"{type(exc).__name__}: {exc}"
+        finally:
+            self._writer.close()
+
+    def _handle(self, item: tuple[Any, ...]) -> None:
+        if item[0] == "topic":
+            _, topic, msgtype, offered = item
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=self._typestore, offered_qos_profiles=offered)
+        else:
+            _, topic, stamp_ns, data = item
+            self._writer.write(self._connections[topic], stamp_ns, data)
+            self.written += 1
+
+
+class Recorder(Node):
+    """Records `topics` (all but /rosout and /parameter_events when None) to a new bag at `path`."""
+
+    def __init__(self, path: str | Path, *, topics: Iterable[str] | None = None, storage: str = "sqlite3",
+                 discovery_period: float = 0.2, node_name: str = "touchroller_recorder", **node_kwargs: Any) -> None:
+        self.path = Path(path)
+        self._writer = _BagWriter(self.path, storage)  # raises UserError before any node exists
+        super().__init__(node_name, **node_kwargs)
+        self.topics = None if topics is None else [t if t.startswith("/") else "/" + t for t in topics]
+        self.counts: dict[str, int] = {}
+        self._recorded_subscriptions: dict[str, Any] = {}
+        self._warned: set[str] = set()
+        self._lock = threading.Lock()
+        self._closed = False
+        self._writer.start()
+        self._discover()
+        self._timer = self.create_timer(discovery_period, self._discover)
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.counts.values())
+
+    @property
+    def written(self) -> int:
+        return self._writer.written
+
+    def _wanted(self, topic: str) -> bool:
+        if self.topics is None:
+            return topic not in EXCLUDED_BY_DEFAULT
+        return topic in self.topics
+
+    def _discover(self) -> None:
+        if self._closed:
+            return
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._recorded_subscriptions or not self._wanted(topic):
+                continue
+            offered = [info.qos_profile for info in self.get_publishers_info_by_topic(topic)]
+            if not offered:
+                continue  # only subscribers so far: wait for a publisher to learn its QoS
+            msgtype = types[0]
+            cls = message_class(msgtype)
+            if cls is None:
+                self._warn_once(topic, f"not recording {topic}: message type {msgtype} is not installed")
+                continue
+            self._writer.add_topic(topic, msgtype, [to_bag_qos(p) for p in offered])
+            self.counts[topic] = 0
+            self._recorded_subscriptions[topic] = self.create_subscription(
+                cls, topic, self._callback_for(topic), subscription_qos(offered), raw=True)
+            self.get_logger().info(f"recording {topic} ({msgtype})")
+
+    def _callback_for(self, topic: str):
+        def on_message(data: bytes) -> None:
+            stamp_ns = self.get_clock().now().nanoseconds  # receive time, as rosbag2 records
+            with self._lock:
+                if self._closed:
+                    return
+                self.counts[topic] += 1
+                self._writer.write(topic, stamp_ns, data)
+
+        return on_message
+
+    def _warn_once(self, key: str, message: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(message)
+
+    def close(self) -> None:
+        """Stop recording, write everything queued, finalise metadata. Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        self.destroy_timer(self._timer)
+        for subscription in self._recorded_subscriptions.values():
+            self.destroy_subscription(subscription)
+        self._writer.finish()
+        if self._writer.error:
+            raise UserError(f"writing bag {self.path} failed: {self._writer.error}")
+
+    def destroy_node(self) -> None:
+        try:
+            self.close()
+        finally:
+            super().destroy_node()
