@@ -1,0 +1,107 @@
+"""Numerical stability of the camera model in the hard cases, and what the code returns there.
+
+For each case: the share of image pixels that back-project validly, the worst round trip
+pixel -> point -> pixel (px) and point -> pixel -> point (m) over the valid ones, and what the
+invalid ones return. Also the back-projection cost per pixel.
+
+    .venv/bin/python bench/geometry_stability.py [--quick] [--json out.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from touchroller_perception.geometry import CameraModel
+
+CASES: list[tuple[str, dict]] = [
+    ("nominal (paper's sensor, no distortion)", {}),
+    ("theta = +60 deg", {"theta": math.radians(60)}),
+    ("theta = -60 deg", {"theta": math.radians(-60)}),
+    ("d = +0.9 r", {"d": 0.045}),
+    ("d = -0.9 r", {"d": -0.045}),
+    ("theta = 60 deg and d = 0.9 r", {"theta": math.radians(60), "d": 0.045}),
+    ("wide lens (fx = fy = 150 px): grazing rays leave through the tube's ends", {"fx": 150.0, "fy": 150.0}),
+    ("strong barrel distortion k1 = -0.9 (folds inside the image)", {"distortion": (-0.9, 0.0, 0.0, 0.0, 0.0)}),
+    ("strong distortion with tangential terms",
+     {"distortion": (-0.45, 0.25, 0.004, -0.004, -0.05), "theta": 0.3, "d": 0.02}),
+]
+
+
+def evaluate_case(model: CameraModel, step: int) -> dict:
+    u, v = np.meshgrid(np.arange(0, model.width, step, dtype=np.float64),
+                       np.arange(0, model.height, step, dtype=np.float64))
+    uv = np.stack([u, v], axis=-1).reshape(-1, 2)
+    start = time.perf_counter()
+    points, valid = model.back_project(uv)
+    seconds = time.perf_counter() - start
+    uv_back, valid_back = model.project(points[valid])
+    points_again, valid_again = model.back_project(uv_back)
+    invalid_points = points[~valid]
+    return {
+        "pixels": int(len(uv)),
+        "valid_fraction": float(valid.mean()),
+        "round_trip_px": float(np.max(np.abs(uv_back - uv[valid]))) if valid.any() else None,
+        "round_trip_m": float(np.max(np.linalg.norm(points_again - points[valid], axis=-1))) if valid.any() else None,
+        "on_cylinder_m": float(np.max(np.abs(np.hypot(points[valid, 1], points[valid, 2]) - model.radius)))
+        if valid.any() else None,
+        "reprojected_valid": bool(valid_back.all() and valid_again.all()),
+        "invalid_return": "NaN point, valid=False" if np.isnan(invalid_points).all() else "FINITE (bug)",
+        "us_per_pixel": 1e6 * seconds / len(uv),
+    }
+
+
+def non_finite_inputs() -> dict:
+    model = CameraModel(distortion=(-0.2, 0.05, 0.0, 0.0, 0.0))
+    points, valid = model.back_project([[np.nan, 1.0], [np.inf, 1.0], [1.0, -np.inf], [320.0, 240.0]])
+    return {"inputs": "NaN, +inf, -inf, finite", "valid": valid.tolist(),
+            "all_invalid_are_nan": bool(np.isnan(points[~valid]).all())}
+
+
+def run(quick: bool = False) -> dict:
+    step = 8 if quick else 2
+    cases = []
+    for name, changes in CASES:
+        result = evaluate_case(CameraModel(**changes), step)
+        result["case"] = name
+        cases.append(result)
+    return {"cases": cases, "non_finite": non_finite_inputs(), "grid_step_px": step}
+
+
+def to_markdown(result: dict) -> str:
+    lines = [
+        "| case | valid pixels | worst px→3D→px (px) | worst 3D→px→3D (m) | off the cylinder (m) | invalid pixels return | µs/pixel |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for c in result["cases"]:
+        def fmt(x):
+            return "—" if x is None else f"{x:.1e}"
+        lines.append(f"| {c['case']} | {100 * c['valid_fraction']:.1f}% | {fmt(c['round_trip_px'])} | "
+                     f"{fmt(c['round_trip_m'])} | {fmt(c['on_cylinder_m'])} | {c['invalid_return']} | "
+                     f"{c['us_per_pixel']:.2f} |")
+    nf = result["non_finite"]
+    lines.append("")
+    lines.append(f"Non-finite pixels ({nf['inputs']}): valid = {nf['valid']}; the invalid ones are NaN: "
+                 f"{nf['all_invalid_are_nan']}. Grid: every {result['grid_step_px']} px of a 640x480 image.")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args(argv)
+    result = run(quick=args.quick)
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+    print(to_markdown(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
