@@ -1,15 +1,64 @@
-"""`touchroller replay`: placeholder until issue 7 lands."""
+"""`touchroller replay BAG [--rate F] [--loop] [--topics T ...] [--delay S]`.
+
+Like `ros2 bag play`: serialized messages at their recorded timing (scaled by --rate) with the
+recorded QoS. Ends when the bag ends (never with --loop) or on Ctrl-C.
+"""
 from __future__ import annotations
 
 import argparse
+import time
 
 from touchroller_bringup.errors import UserError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("replay", help="(not implemented yet: issue 7)")
+    parser = subparsers.add_parser(
+        "replay", help="play a rosbag2 folder back at its recorded timing",
+        description="Publish a bag's messages at their recorded timing with the recorded QoS.")
+    parser.add_argument("bag", help="rosbag2 folder (sqlite3 or MCAP)")
+    parser.add_argument("--rate", type=float, default=1.0, help="playback rate factor (default 1.0)")
+    parser.add_argument("--loop", action="store_true", help="play again from the start at the end")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
+    parser.add_argument("--delay", type=float, default=0.0, metavar="S",
+                        help="wait S seconds before playing (lets subscribers connect)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    raise UserError("'touchroller replay' is not implemented yet (issue 7)")
+    if not args.rate > 0:
+        raise UserError(f"--rate must be positive, got {args.rate}")
+    if args.delay < 0:
+        raise UserError(f"--delay must not be negative, got {args.delay}")
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from touchroller_bringup.replayer import Replayer
+
+    context = Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    replayer = None
+    try:
+        replayer = Replayer(args.bag, rate=args.rate, loop=args.loop, topics=args.topics, context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(replayer)
+        print(f"replaying {args.bag} ({', '.join(replayer.topics) or 'no playable topics'}) at rate {args.rate:g}",
+              flush=True)
+        started = time.monotonic()
+        try:
+            while time.monotonic() - started < args.delay:
+                executor.spin_once(timeout_sec=0.05)
+            replayer.start()
+            while not replayer.finished:
+                executor.spin_once(timeout_sec=0.05)
+        except KeyboardInterrupt:
+            replayer.stop()
+        if replayer.error:
+            raise UserError(replayer.error)
+        print(f"replayed {replayer.published} messages in {time.monotonic() - started:.1f} s")
+        return 0
+    finally:
+        if replayer is not None:
+            replayer.destroy_node()
+        context.try_shutdown()
