@@ -30,5 +30,10 @@ def config_path(*parts: str) -> Path:
     return share_dir() / "config" / Path(*parts)
 
 
+def checkout_dir() -> Path:
+    """The source checkout this code runs from (holds bench/, docs/); meaningful only in a checkout."""
+    return _CHECKOUT
+
+
 def launch_path(name: str) -> Path:
     return share_dir() / "launch" / name
