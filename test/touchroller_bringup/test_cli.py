@@ -1,0 +1,57 @@
+"""The `touchroller` command's contract: subcommands listed, bad input is one line and a non-zero exit."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from touchroller_bringup import cli
+from touchroller_bringup.errors import UserError
+
+
+def test_help_lists_every_subcommand(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    for name in cli.COMMANDS:
+        assert name in out
+
+
+def test_unknown_subcommand_and_missing_arguments_are_one_line(capsys):
+    for argv in (["frobnicate"], []):
+        with pytest.raises(SystemExit) as info:
+            cli.main(argv)
+        assert info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("touchroller")
+
+
+def test_user_errors_and_unexpected_errors_never_show_a_traceback(monkeypatch, capsys):
+    def boom(_args):
+        raise UserError("the bag is empty")
+
+    def crash(_args):
+        raise RuntimeError("something deep")
+
+    for func, code, text in ((boom, 2, "the bag is empty"), (crash, 1, "RuntimeError: something deep")):
+        parser = cli.build_parser()
+        monkeypatch.setattr(cli, "build_parser", lambda parser=parser, func=func: _with_func(parser, func))
+        assert cli.main(["bench", "--list"]) == code
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and text in err and "Traceback" not in err
+
+
+def _with_func(parser, func):
+    parser.set_defaults(func=func)
+    for action in parser._subparsers._group_actions:
+        for sub in action.choices.values():
+            sub.set_defaults(func=func)
+    return parser
+
+
+def test_console_script_runs_as_a_process():
+    result = subprocess.run([sys.executable, "-m", "touchroller_bringup.cli", "bench", "--list"],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and "geometry_stability" in result.stdout
