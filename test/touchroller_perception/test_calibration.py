@@ -1,0 +1,275 @@
+"""Calibration library: intrinsics, theta/d from the hemisphere frame, and degenerate input."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from touchroller_perception import calibration as cal
+from touchroller_perception.geometry import CameraModel
+
+TRUE_CAMERA = CameraModel(fx=512.0, fy=508.0, cx=322.0, cy=236.0,
+                          distortion=(-0.08, 0.03, 0.0005, -0.0004, 0.0), theta=math.radians(2.0), d=0.0012)
+BOARD = cal.Chessboard(columns=6, rows=6, square=0.01)
+FRAME = cal.HemisphereFrame()
+
+
+# --------------------------------------------------------------------------- synthetic renderings
+_RAYS: dict[CameraModel, np.ndarray] = {}
+
+
+def _rays(camera: CameraModel, supersample: int = 2) -> np.ndarray:
+    """Undistorted normalised rays (H*s, W*s, 3) of sub-pixel samples, cached per camera."""
+    if camera not in _RAYS:
+        s = supersample
+        offsets = (np.arange(s) + 0.5) / s - 0.5
+        us = (np.arange(camera.width)[:, None] + offsets[None, :]).ravel()
+        vs = (np.arange(camera.height)[:, None] + offsets[None, :]).ravel()
+        uu, vv = np.meshgrid(us, vs)
+        xn, yn, _ = camera.undistort_normalised(np.stack([uu, vv], axis=-1))
+        _RAYS[camera] = np.stack([xn, yn, np.ones_like(xn)], axis=-1)
+    return _RAYS[camera]
+
+
+def render_chessboard(camera: CameraModel, board: cal.Chessboard, rvec, tvec, supersample: int = 2) -> np.ndarray:
+    """The board (with one white square of margin) seen through `camera`, pose board->camera."""
+    rays = _rays(camera, supersample)
+    rotation = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0]
+    t = np.asarray(tvec, dtype=np.float64)
+    normal = rotation[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = (normal @ t) / (rays @ normal)
+        local = (s[..., None] * rays - t) @ rotation
+    bx, by = local[..., 0] / board.square, local[..., 1] / board.square
+    inside = (bx >= -1) & (bx < board.columns) & (by >= -1) & (by < board.rows) & (s > 0)
+    dark = ((np.floor(bx) + np.floor(by)) % 2 == 0) & inside
+    value = np.where(dark, 30.0, 220.0)
+    value[~np.isfinite(s)] = 220.0
+    h, w = camera.height, camera.width
+    image = value.reshape(h, supersample, w, supersample).mean(axis=(1, 3))
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+def chessboard_views(camera: CameraModel, count: int, seed: int = 0, tilt_deg: float = 30.0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    images = []
+    for _ in range(count):
+        angles = np.radians(rng.uniform(-tilt_deg, tilt_deg, 3) * np.array([1, 1, 0.5]))
+        rvec = cv2.Rodrigues(cv2.Rodrigues(angles)[0])[0].ravel()
+        rotation = cv2.Rodrigues(rvec)[0]
+        centre = np.array([(BOARD.columns - 1) / 2, (BOARD.rows - 1) / 2, 0]) * BOARD.square
+        target = np.array([rng.uniform(-0.04, 0.04), rng.uniform(-0.03, 0.03), rng.uniform(0.12, 0.16)])
+        images.append(render_chessboard(camera, BOARD, rvec, target - rotation @ centre))
+    return images
+
+
+def render_hemispheres(camera: CameraModel, frame: cal.HemisphereFrame, *, seed: int = 0, noise: float = 1.5,
+                       shift_px: tuple[float, float] = (0.0, 0.0), points: np.ndarray | None = None,
+                       smear_px: float = 0.0) -> np.ndarray:
+    """A gel background with shaded imprints (lit on one side, dark on the other, per colour) at the
+    projections of the frame's imprint centres."""
+    rng = np.random.default_rng(seed)
+    h, w = camera.height, camera.width
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    base = 120.0 + 20.0 * np.exp(-((uu - w / 2) ** 2 + (vv - h / 2) ** 2) / (2 * 300.0**2))
+    image = np.repeat(base[..., None], 3, axis=2)
+    pts = frame.reference_points(camera.radius) if points is None else points
+    uv, _ = camera.project(pts)
+    sigma = 0.5 * camera.fx * 0.8 * frame.hemisphere_radius / (camera.radius + camera.d)
+    lights = [(1.0, 0.0), (-0.5, 0.866), (-0.5, -0.866)]
+    for cu, cv_ in uv + np.asarray(shift_px):
+        du, dv = uu - cu, vv - cv_
+        g = np.exp(-(du**2 + dv**2) / (2 * sigma**2))
+        for c, (lu, lv) in enumerate(lights):
+            image[..., c] += 60.0 * (du * lu + dv * lv) / sigma * g
+    if smear_px > 0:
+        kernel = np.ones((int(smear_px), 1), np.float32) / int(smear_px)
+        image = cv2.filter2D(image, -1, kernel)
+    image += rng.normal(0, noise, image.shape)
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------- intrinsics
+@pytest.fixture(scope="module")
+def chessboards() -> list[np.ndarray]:
+    return chessboard_views(TRUE_CAMERA, 12, seed=1)
+
+
+def test_intrinsics_recover_the_camera(chessboards):
+    result = cal.calibrate_intrinsics(chessboards, BOARD)
+    cam = result.camera
+    assert result.rms < 0.2
+    # the renderer's hard-edged squares bias corners by ~0.1 px; errors must match the reported sigma
+    for name in ("fx", "fy", "cx", "cy"):
+        assert abs(getattr(cam, name) - getattr(TRUE_CAMERA, name)) < 3 * result.sigma[name] < 3.0, name
+    assert abs(cam.distortion[0] - TRUE_CAMERA.distortion[0]) < 0.02
+    assert len(result.per_view_rms) == 12 and not result.rejected
+    uv_true, _ = TRUE_CAMERA.replace(theta=0.0, d=0.0).project([0.02, 0.012, 0.05])
+    uv_est, _ = cam.replace(theta=0.0, d=0.0).project([0.02, 0.012, 0.05])
+    assert np.linalg.norm(uv_true - uv_est) < 2.0
+
+
+def test_intrinsics_reject_a_bad_view(chessboards):
+    bad = chessboard_views(TRUE_CAMERA.replace(fx=560.0, fy=560.0, distortion=(0.2, 0, 0, 0, 0)), 1, seed=7)[0]
+    result = cal.calibrate_intrinsics([*chessboards[:6], bad], BOARD)
+    assert 6 in result.rejected and "reprojection" in result.rejected[6]
+    assert abs(result.camera.fx - TRUE_CAMERA.fx) < 1.5
+
+
+def test_intrinsics_single_view_is_an_error(chessboards):
+    with pytest.raises(cal.CalibrationError, match="single"):
+        cal.calibrate_intrinsics(chessboards[:1], BOARD)
+
+
+def test_intrinsics_blurred_frames_are_named(chessboards):
+    blurred = [cv2.GaussianBlur(img, (0, 0), 4.0) for img in chessboards[:4]]
+    with pytest.raises(cal.CalibrationError, match="blurred"):
+        cal.calibrate_intrinsics(blurred, BOARD)
+
+
+def test_intrinsics_without_a_board_name_what_is_missing():
+    empty = [np.full((480, 640), 128, np.uint8)] * 4
+    with pytest.raises(cal.CalibrationError, match="no 6x6 chessboard found"):
+        cal.calibrate_intrinsics(empty, BOARD)
+
+
+def test_intrinsics_parallel_views_cannot_fix_the_focal_length():
+    images = []
+    for shift in (-0.01, 0.0, 0.01):
+        images.append(render_chessboard(TRUE_CAMERA, BOARD, [0.0, 0.0, 0.0], [shift - 0.025, -0.025, 0.15]))
+    with pytest.raises(cal.CalibrationError, match="focal length|disagree"):
+        cal.calibrate_intrinsics(images, BOARD)
+
+
+# --------------------------------------------------------------------------- extrinsics
+def test_hemisphere_reference_points_lie_on_the_membrane():
+    points = FRAME.reference_points(0.05)
+    assert points.shape == (10, 3)
+    assert np.allclose(np.hypot(points[:, 1], points[:, 2]), 0.05)
+    assert np.all(np.diff(points[:5, 0]) > 0) and points[5, 1] > points[0, 1]
+
+
+def test_imprints_found_at_subpixel_positions_despite_one_sided_shading():
+    image = render_hemispheres(TRUE_CAMERA, FRAME, seed=3)
+    found = cal.find_imprints(image, FRAME)
+    truth, _ = TRUE_CAMERA.project(FRAME.reference_points(TRUE_CAMERA.radius))
+    assert found.reason is None
+    assert np.max(np.linalg.norm(found.centres - truth, axis=1)) < 0.15
+
+
+def test_extrinsics_recover_theta_and_d():
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(6)]
+    prior = TRUE_CAMERA.replace(theta=0.0, d=0.0)
+    result = cal.calibrate_extrinsics(images, prior, FRAME)
+    assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
+    assert abs(result.d - TRUE_CAMERA.d) < 0.05e-3
+    assert result.rms < 0.2 and len(result.views) == 6
+    assert result.camera.fx == prior.fx and result.camera.theta == result.theta
+    # the truth has no neglected terms: the full pose agrees with the two-parameter one
+    assert abs(result.neglected["gamma_deg"]) < 0.2
+    assert abs(result.neglected["tx_mm"]) < 0.1
+    assert result.neglected["model_error_centre_mm"] < 0.1
+
+
+def test_extrinsics_report_a_neglected_yaw():
+    """A camera yawed by 1.5 deg about z: the two-parameter fit is worse and the report shows gamma."""
+    points = FRAME.reference_points(TRUE_CAMERA.radius)
+    yaw = cal.full_pose_rotation(TRUE_CAMERA.theta, 0.0, math.radians(1.5))
+    # render by moving the points so that the paper's camera sees what a yawed camera would
+    moved = (TRUE_CAMERA.R.T @ (yaw @ points.T)).T
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s, points=moved) for s in range(4)]
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME, max_view_rms=5.0)
+    assert abs(result.neglected["gamma_deg"] - 1.5) < 0.1
+    assert result.neglected["full_rms_px"] < 0.3 < result.rms
+
+
+def test_extrinsics_reject_an_outlier_view():
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(5)]
+    images.append(render_hemispheres(TRUE_CAMERA, FRAME, seed=9, shift_px=(0.0, 12.0)))   # frame slipped
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME)
+    assert 5 in result.rejected and "outlier" in result.rejected[5]
+    assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
+
+
+def test_extrinsics_single_view_is_an_error():
+    with pytest.raises(cal.CalibrationError, match="single"):
+        cal.calibrate_extrinsics([render_hemispheres(TRUE_CAMERA, FRAME)], TRUE_CAMERA, FRAME)
+
+
+def test_extrinsics_too_few_imprints_is_named():
+    small = cal.HemisphereFrame(rows=2, columns=3)
+    images = [render_hemispheres(TRUE_CAMERA, small, seed=s) for s in range(3)]
+    with pytest.raises(cal.CalibrationError, match="too few imprints: found 6"):
+        cal.calibrate_extrinsics(images, TRUE_CAMERA, FRAME)
+
+
+def test_extrinsics_collinear_imprints_are_named():
+    line = np.stack([np.linspace(-0.02, 0.02, 10), np.zeros(10), np.full(10, 0.05)], axis=-1)
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s, points=line) for s in range(3)]
+    with pytest.raises(cal.CalibrationError, match="collinear"):
+        cal.calibrate_extrinsics(images, TRUE_CAMERA, FRAME)
+
+
+def test_a_one_row_frame_is_collinear():
+    with pytest.raises(cal.CalibrationError, match="collinear"):
+        cal.HemisphereFrame(rows=1, columns=5)
+
+
+def test_extrinsics_blurred_frames_are_named():
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s, smear_px=25) for s in range(3)]
+    with pytest.raises(cal.CalibrationError, match="blurred"):
+        cal.calibrate_extrinsics(images, TRUE_CAMERA, FRAME)
+
+
+def test_extrinsics_with_a_no_contact_reference_frame():
+    reference = render_hemispheres(TRUE_CAMERA, FRAME, points=np.empty((0, 3)), noise=0.0)
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(3)]
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME, reference=reference)
+    assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
+
+
+@settings(max_examples=15, deadline=None)
+@given(theta=st.floats(-5.0, 5.0), d=st.floats(-3e-3, 3e-3), gamma=st.floats(-3.0, 3.0),
+       beta=st.floats(-3.0, 3.0), t=st.tuples(*[st.floats(-2e-3, 2e-3)] * 2))
+def test_solve_view_recovers_exact_poses(theta, d, gamma, beta, t):
+    """Noise-free correspondences: the full pose comes back exactly; with beta = gamma = t = 0 so does (theta, d)."""
+    points = FRAME.reference_points(0.05)
+    camera = TRUE_CAMERA.replace(theta=0.0, d=0.0)
+    rotation = cal.full_pose_rotation(math.radians(theta), math.radians(beta), math.radians(gamma))
+    translation = np.array([t[0], t[1], d])
+    uv, _ = cv2.projectPoints(points, cv2.Rodrigues(rotation)[0], translation, camera.K, np.array(camera.distortion))
+    view = cal.solve_view(camera, points, uv.reshape(-1, 2))
+    assert view.full_rms < 1e-3
+    assert math.degrees(view.full_theta) == pytest.approx(theta, abs=1e-3)
+    assert math.degrees(view.gamma) == pytest.approx(gamma, abs=1e-3)
+    assert view.t[2] == pytest.approx(d, abs=1e-6)
+    exact = camera.replace(theta=math.radians(theta), d=d)
+    uv2, _ = exact.project(points)
+    view2 = cal.solve_view(camera, points, uv2)
+    assert view2.rms < 1e-6
+    assert math.degrees(view2.theta) == pytest.approx(theta, abs=1e-6)
+    assert view2.d == pytest.approx(d, abs=1e-9)
+
+
+# --------------------------------------------------------------------------- outputs
+def test_written_calibration_round_trips(tmp_path):
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(3)]
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME)
+    path = tmp_path / "cal.yaml"
+    cal.write_calibration(str(path), result.camera, extrinsics=result)
+    loaded = CameraModel.from_yaml(path)
+    assert loaded.theta == pytest.approx(result.theta) and loaded.d == pytest.approx(result.d)
+    params = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
+    assert params["calibration.sigma.theta"] > 0
+
+
+def test_camera_info_fields():
+    info = cal.camera_info_fields(TRUE_CAMERA)
+    assert info["k"][0] == TRUE_CAMERA.fx and info["k"][5] == TRUE_CAMERA.cy
+    assert info["p"][2] == TRUE_CAMERA.cx and info["p"][3] == 0.0
+    assert info["d"] == list(TRUE_CAMERA.distortion) and info["distortion_model"] == "plumb_bob"
