@@ -1,0 +1,117 @@
+"""The perception node on a real rclpy context: synthetic frames in, PointStamped contacts out."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytestmark = pytest.mark.ros
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
+from touchroller_perception.geometry import CameraModel  # noqa: E402
+from touchroller_perception.localisation import TapRenderer  # noqa: E402
+
+CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
+
+
+@pytest.fixture
+def graph(ros_context):
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Empty
+
+    from touchroller_perception.perception_node import IMAGE_TOPIC, PerceptionNode
+
+    overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
+    overrides += [Parameter("reference.frames", value=3), Parameter("map.publish_rate", value=0.0)]
+    node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
+    helper = rclpy_node("perception_test_helper", ros_context)
+    received: list = []
+    helper.create_subscription(PointStamped, "/touchroller/contacts", received.append, 10)
+    image_pub = helper.create_publisher(Image, IMAGE_TOPIC, 10)
+    recapture_pub = helper.create_publisher(Empty, "/perception_node/recapture_reference", 10)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(helper)
+    yield node, executor, image_pub, recapture_pub, received
+    executor.shutdown()
+    node.destroy_node()
+    helper.destroy_node()
+
+
+def rclpy_node(name, context):
+    from rclpy.node import Node
+
+    return Node(name, context=context)
+
+
+def send(executor, spin_until, node, publisher, msg) -> None:
+    """Publish one frame and spin until the node has taken it (the image QoS keeps only the newest)."""
+    before = node.received
+    assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, timeout=10.0)
+    publisher.publish(msg)
+    assert spin_until(executor, lambda: node.received > before, timeout=10.0)
+
+
+def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until):
+    from touchroller_driver.image_conversion import array_to_image
+
+    node, executor, image_pub, recapture_pub, received = graph
+    renderer = TapRenderer(CAMERA, seed=1)
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        send(executor, spin_until, node, image_pub, array_to_image(renderer.render([], rng), 1_000 + i))
+    assert node.detector.reference_ready and received == []
+
+    truth = CAMERA.surface_point(0.012, 0.15)
+    uv, _ = CAMERA.project(truth)
+    frame = renderer.render([uv], rng)
+    stamp_ns = 1_700_000_000_123_456_789
+    send(executor, spin_until, node, image_pub, array_to_image(frame, stamp_ns))
+    assert spin_until(executor, lambda: len(received) == 1, timeout=5.0)
+    point = received[0]
+    assert point.header.frame_id == "touchroller_cylinder"
+    assert point.header.stamp.sec * 1_000_000_000 + point.header.stamp.nanosec == stamp_ns
+    located = np.array([point.point.x, point.point.y, point.point.z])
+    assert np.linalg.norm(located - truth) < 0.3e-3
+
+    # the calibration node sets theta at run time: the same pixel now maps elsewhere
+    theta = 0.05
+    assert node.set_parameters([Parameter("extrinsics.theta", value=theta)])[0].successful
+    assert node.camera.theta == theta
+    send(executor, spin_until, node, image_pub, array_to_image(frame, stamp_ns + 1))
+    assert spin_until(executor, lambda: len(received) == 2, timeout=5.0)
+    moved = np.array([received[1].point.x, received[1].point.y, received[1].point.z])
+    expected, _ = CAMERA.replace(theta=theta).back_project(uv)
+    assert np.linalg.norm(moved - expected) < 0.3e-3
+    assert np.linalg.norm(moved - located) == pytest.approx(CAMERA.radius * theta, rel=0.1)
+    # an invalid combination is refused with a reason, the model stays as it was
+    result = node.set_parameters([Parameter("extrinsics.d", value=0.2)])[0]
+    assert not result.successful and node.camera.d == 0.0
+
+    # a malformed image is logged and counted; the node keeps detecting
+    bad = array_to_image(frame, stamp_ns + 2)
+    bad.step = 7
+    send(executor, spin_until, node, image_pub, bad)
+    assert node.malformed == 1
+    send(executor, spin_until, node, image_pub, array_to_image(frame, stamp_ns + 3))
+    assert spin_until(executor, lambda: len(received) == 3, timeout=5.0)
+
+    # recapturing the reference: the next 3 frames are the new background
+    recapture_pub.publish(__import__("std_msgs.msg", fromlist=["Empty"]).Empty())
+    assert spin_until(executor, lambda: not node.detector.reference_ready, timeout=5.0)
+
+
+def test_detector_parameters_are_validated_and_applied(graph):
+    node = graph[0]
+    assert not node.set_parameters([Parameter("contacts.method", value="magic")])[0].successful
+    assert node.set_parameters([Parameter("contacts.method", value="paper")])[0].successful
+    assert node.detector.config.method == "paper"
+    assert node.set_parameters([Parameter("contacts.threshold_sigma", value=4.0)])[0].successful
+    assert math.isclose(node.detector.config.threshold_sigma, 4.0)
+    # out of the declared range: rclpy refuses it
+    assert not node.set_parameters([Parameter("contacts.downscale", value=64)])[0].successful

@@ -1,0 +1,303 @@
+"""The TouchRoller perception node: images -> contacts on the cylinder, and the stitched tactile map.
+
+Thin ROS shell around `touchroller_perception.contacts` (detection), `.localisation`
+(back-projection through the calibrated camera model) and `.stitching` (the map, imported lazily):
+
+* subscribes `/touchroller/image_raw` (sensor-data QoS, keep-last depth 1: a slow consumer skips
+  stale frames instead of queueing them);
+* publishes one `geometry_msgs/PointStamped` per contact on `/touchroller/contacts`, frame
+  `touchroller_cylinder`, stamped with the source image's stamp;
+* publishes the map on `/touchroller/map` (transient local, reliable, depth 1) at `map.publish_rate` Hz;
+* `~/recapture_reference` re-captures the no-contact reference from the next `reference.frames`
+  frames: a `std_srvs/Trigger` service when std_srvs is installed, else a `std_msgs/Empty` topic;
+* `/diagnostics`: frame rate, processing time, contacts/s, drops, malformed frames.
+
+Geometry parameters (DESIGN.md names) are declared by `touchroller_bringup.ros_params` and can be
+set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`).
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import rclpy
+import rclpy.executors
+from geometry_msgs.msg import PointStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
+
+from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, LagWindow, RateMeter, Status
+from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_driver.image_conversion import image_to_array
+from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
+from touchroller_perception.geometry import CameraModel
+from touchroller_perception.localisation import localise
+
+IMAGE_TOPIC = "/touchroller/image_raw"
+CONTACTS_TOPIC = "/touchroller/contacts"
+MAP_TOPIC = "/touchroller/map"
+CYLINDER_FRAME = "touchroller_cylinder"
+
+IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+MAP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+# parameter name -> (DetectorConfig field, description, min, max)
+DETECTOR_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
+    "contacts.method": ("method", f"Detector: {' or '.join(METHODS)} (the paper's grey/threshold/moments)",
+                        None, None),
+    "contacts.threshold_sigma": ("threshold_sigma", "Threshold in multiples of the reference's measured noise",
+                                 0.5, 100.0),
+    "contacts.min_threshold": ("min_threshold", "Lowest threshold on the colour distance, grey levels", 0.0, 255.0),
+    "contacts.downscale": ("downscale", "Candidate search on a 1/downscale image (refined at full size)", 1, 16),
+    "contacts.min_area": ("min_area", "Smallest contact, pixels above threshold (full resolution)", 0.0, 1e6),
+    "contacts.max_contacts": ("max_contacts", "Most contacts reported per frame", 1, 1000),
+    "contacts.paper_threshold": ("paper_threshold", "Fixed grey threshold of the paper's pipeline", 0.0, 255.0),
+}
+
+
+class PerceptionNode(Node):
+    def __init__(self, node_name: str = "perception_node", **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self._declare_parameters()
+        self.geometry = GeometryParameters(self, on_change=self._on_geometry)
+        self.camera: CameraModel = self.geometry.model
+        self.add_on_set_parameters_callback(self._validate)
+        self.add_post_set_parameters_callback(self._apply)
+        self.detector = ContactDetector(self._detector_config(), int(self.get_parameter("reference.frames").value))
+        self.pixel_sigma = float(self.get_parameter("contacts.pixel_sigma").value)
+        self.frame_id = str(self.get_parameter("contacts.frame_id").value)
+        self.stitcher: Any = None
+        self._stitch_error_logged = False
+        self._map_dirty = False
+        self._map_timer = None
+
+        self.frames = RateMeter()
+        self.contact_rate = RateMeter()
+        self.processing = LagWindow(200)
+        self.received = 0
+        self.malformed = 0
+        self.dropped = 0
+        self.published_contacts = 0
+        self.unmapped_contacts = 0
+        self._last_sequence: int | None = None
+
+        self.contacts_pub = self.create_publisher(PointStamped, CONTACTS_TOPIC, 10)
+        self.map_pub = self.create_publisher(Image, MAP_TOPIC, MAP_QOS)
+        if _has_message_info():
+            self.image_sub = self.create_subscription(Image, IMAGE_TOPIC, self._on_image_with_info, IMAGE_QOS)
+        else:  # Humble: no MessageInfo, so no drop count
+            self.image_sub = self.create_subscription(Image, IMAGE_TOPIC, self._on_image, IMAGE_QOS)
+        self._create_recapture_interface()
+        self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+        self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: perception")
+        self.diagnostics.add(self._diagnostic_status)
+
+    # ------------------------------------------------------------------ parameters
+    def _declare_parameters(self) -> None:
+        defaults = DetectorConfig()
+        for name, (field, description, lo, hi) in DETECTOR_PARAMETERS.items():
+            declare(self, name, getattr(defaults, field), description, min=lo, max=hi)
+        declare(self, "contacts.pixel_sigma", 0.3, "Std of a detected centre, pixels (for the covariance)",
+                min=0.0, max=100.0)
+        declare(self, "contacts.frame_id", CYLINDER_FRAME, "frame_id of the published contact points")
+        declare(self, "reference.frames", 5, "No-contact frames averaged into the reference", min=1, max=1000)
+        declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
+                min=0.0, max=100.0)
+
+    def _detector_config(self, overrides: dict[str, Any] | None = None) -> DetectorConfig:
+        values = {name: self.get_parameter(name).value for name in DETECTOR_PARAMETERS}
+        values.update(overrides or {})
+        return DetectorConfig(**{DETECTOR_PARAMETERS[name][0]: value for name, value in values.items()})
+
+    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        changes = {p.name: p.value for p in parameters if p.name in DETECTOR_PARAMETERS}
+        if changes:
+            try:
+                self._detector_config(changes)
+            except (TypeError, ValueError) as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        for p in parameters:
+            if p.name == "contacts.frame_id" and not str(p.value).strip():
+                return SetParametersResult(successful=False, reason="contacts.frame_id must not be empty")
+        return SetParametersResult(successful=True)
+
+    def _apply(self, parameters: Sequence[Parameter]) -> None:
+        names = {p.name for p in parameters}
+        if names & set(DETECTOR_PARAMETERS):
+            self.detector.config = self._detector_config()
+        if "reference.frames" in names:
+            self.detector.reference_frames = int(self.get_parameter("reference.frames").value)
+        if "contacts.pixel_sigma" in names:
+            self.pixel_sigma = float(self.get_parameter("contacts.pixel_sigma").value)
+        if "contacts.frame_id" in names:
+            self.frame_id = str(self.get_parameter("contacts.frame_id").value)
+        if "map.publish_rate" in names:
+            self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+
+    def _on_geometry(self, model: CameraModel) -> None:
+        self.camera = model
+        if self.stitcher is not None:
+            self.stitcher = None   # the map's band and scale follow the camera: start a new map
+        self.get_logger().info(f"camera model updated: theta={model.theta:g} rad, d={model.d:g} m")
+
+    # ------------------------------------------------------------------ reference
+    def _create_recapture_interface(self) -> None:
+        try:
+            from std_srvs.srv import Trigger
+        except ImportError:
+            from std_msgs.msg import Empty
+
+            self.recapture_sub = self.create_subscription(
+                Empty, "~/recapture_reference", lambda _msg: self.recapture_reference(), 10)
+            self.get_logger().info("std_srvs not installed: recapture the reference by publishing "
+                                   "std_msgs/Empty on ~/recapture_reference")
+            return
+
+        def serve(_request: Any, response: Any) -> Any:
+            self.recapture_reference()
+            response.success = True
+            response.message = f"capturing the reference from the next {self.detector.reference_frames} frames"
+            return response
+
+        self.recapture_srv = self.create_service(Trigger, "~/recapture_reference", serve)
+
+    def recapture_reference(self) -> None:
+        self.detector.recapture()
+        self.get_logger().info(f"recapturing the no-contact reference ({self.detector.reference_frames} frames)")
+
+    # ------------------------------------------------------------------ images
+    def _on_image_with_info(self, msg: Image, info: Any) -> None:
+        sequence = info.get("publication_sequence_number") if isinstance(info, dict) else None
+        if sequence:
+            if self._last_sequence is not None and sequence > self._last_sequence + 1:
+                self.dropped += sequence - self._last_sequence - 1
+            self._last_sequence = sequence
+        self._on_image(msg)
+
+    def _on_image(self, msg: Image) -> None:
+        start = time.perf_counter()
+        self.received += 1
+        self.frames.tick()
+        try:
+            image = image_to_array(msg)
+        except ValueError as exc:
+            self.malformed += 1
+            self.get_logger().warning(f"dropping malformed image: {exc}", throttle_duration_sec=5.0)
+            return
+        try:
+            contacts = self.detector.process(image)
+        except ValueError as exc:   # e.g. the resolution changed: the old reference is useless
+            self.malformed += 1
+            self.get_logger().warning(f"{exc}: recapturing the reference", throttle_duration_sec=5.0)
+            self.detector.recapture()
+            return
+        if contacts:
+            self._publish_contacts(msg, contacts)
+        self._push_map(image, msg)
+        self.processing.add(time.perf_counter() - start)
+
+    def _publish_contacts(self, msg: Image, contacts: list) -> None:
+        for located in localise(self.camera, contacts, pixel_sigma=self.pixel_sigma):
+            if not located.valid:
+                self.unmapped_contacts += 1
+                continue
+            point = PointStamped()
+            point.header.stamp = msg.header.stamp
+            point.header.frame_id = self.frame_id
+            point.point.x, point.point.y, point.point.z = (float(c) for c in located.point)
+            self.contacts_pub.publish(point)
+            self.published_contacts += 1
+            self.contact_rate.tick()
+
+    # ------------------------------------------------------------------ map
+    def _set_map_rate(self, rate_hz: float) -> None:
+        if self._map_timer is not None:
+            self.destroy_timer(self._map_timer)
+            self._map_timer = None
+        if rate_hz > 0:
+            self._map_timer = self.create_timer(1.0 / rate_hz, self.publish_map)
+
+    def _push_map(self, image: np.ndarray, msg: Image) -> None:
+        if self._map_timer is None:
+            return
+        try:
+            if self.stitcher is None:
+                from touchroller_perception.stitching import Stitcher  # optional: another module's library
+
+                self.stitcher = Stitcher(camera=self.camera)
+            stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            self.stitcher.push(image, stamp_ns)
+            self._map_dirty = True
+        except Exception as exc:  # noqa: BLE001 - the map is optional; contacts must keep flowing
+            if not self._stitch_error_logged:
+                self._stitch_error_logged = True
+                self.get_logger().error(f"tactile map disabled: {type(exc).__name__}: {exc}")
+            self._set_map_rate(0.0)
+
+    def publish_map(self) -> None:
+        if self.stitcher is None or not self._map_dirty:
+            return
+        from touchroller_driver.image_conversion import array_to_image
+
+        try:
+            tactile_map = self.stitcher.map_image()
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().warning(f"map not available: {exc}", throttle_duration_sec=10.0)
+            return
+        if tactile_map.dtype != np.uint8:
+            tactile_map = np.clip(tactile_map, 0, 255).astype(np.uint8)
+        self.map_pub.publish(array_to_image(tactile_map, self.get_clock().now().nanoseconds, frame_id=CYLINDER_FRAME))
+        self._map_dirty = False
+
+    # ------------------------------------------------------------------ diagnostics
+    def _diagnostic_status(self) -> Status:
+        median_s, max_s = self.processing.summary()
+        values = {
+            "frame_rate_hz": self.frames.rate(),
+            "processing_ms_median": median_s * 1e3 if math.isfinite(median_s) else float("nan"),
+            "processing_ms_max": max_s * 1e3 if math.isfinite(max_s) else float("nan"),
+            "contacts_per_s": self.contact_rate.rate(),
+            "contacts_total": self.published_contacts,
+            "contacts_unmapped": self.unmapped_contacts,
+            "frames_received": self.received,
+            "frames_dropped": self.dropped,
+            "frames_malformed": self.malformed,
+            "reference_ready": self.detector.reference_ready,
+            "reference_noise_std": self.detector.reference.noise_std if self.detector.reference else float("nan"),
+            "method": self.detector.config.method,
+        }
+        if self.received == 0:
+            return Status(WARN, "no images received", values)
+        if not self.detector.reference_ready:
+            return Status(WARN, "capturing the no-contact reference", values)
+        return Status(OK, "detecting contacts", values)
+
+
+def _has_message_info() -> bool:
+    import rclpy.subscription
+
+    return hasattr(rclpy.subscription, "MessageInfo")
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = PerceptionNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
