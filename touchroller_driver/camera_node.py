@@ -196,7 +196,11 @@ class CameraNode(Node):
             if frame is None:
                 if self.finished and not self._finished_logged:
                     self._finished_logged = True
-                    self.get_logger().info(f"source finished after {self.published} frames: {self.source.info}")
+                    error = _stats(self.source).last_error
+                    if error:
+                        self.get_logger().error(f"source stopped after {self.published} frames: {error}")
+                    else:
+                        self.get_logger().info(f"source finished after {self.published} frames: {self.source.info}")
                 continue
             self.publish_frame(frame.image, frame.stamp_ns)
 
@@ -283,6 +287,8 @@ class CameraNode(Node):
         if source is None or (not stats.connected and not stats.finished):
             return Status(ERROR, f"camera not available: {stats.last_error or 'no source'}", values)
         if stats.finished:
+            if stats.last_error:
+                return Status(ERROR, f"source stopped: {stats.last_error}", values)
             return Status(OK, "source finished", values)
         if rate == 0.0:
             return Status(WARN, "no frames", values)

@@ -587,7 +587,7 @@ class BagSource:
         try:
             record = next(self._records, None)
         except Exception as exc:  # noqa: BLE001 - a truncated bag ends the source with one clear line
-            self.stats.last_error = f"{type(exc).__name__}: {exc}".splitlines()[0]
+            self.stats.last_error = (str(exc).splitlines() or [type(exc).__name__])[0]
             record = None
             self.loop = False
         if record is None and self.loop and self._seq > 0:
