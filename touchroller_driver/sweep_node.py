@@ -5,7 +5,7 @@ against `arm.max_speed`/`arm.max_accel` (read-only at run time) before the first
 calls happen on one worker thread; a fault (protective/emergency stop, lost connection, refused
 command) stops the sweep and shows as ERROR on `/diagnostics`. Publishes the TCP pose
 (`/touchroller/tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
-(`/touchroller/sweep_progress`, std_msgs/Float32, 0..1) at `publish_rate`.
+(`/touchroller/sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`.
 
 Services `~/start` and `~/stop` are std_srvs/Trigger where std_srvs is installed (any ROS 2
 install); without it (our pip-only venv) they fall back to lifecycle_msgs/ChangeState, whose
@@ -107,7 +107,7 @@ class SweepNode(Node):
         self._commands: queue.Queue[_Command] = queue.Queue()
         self._shutdown = threading.Event()
 
-        base_frame = self.get_parameter("base_frame").value
+        base_frame = self.get_parameter("arm.base_frame").value
         self._frame_id = str(base_frame)
         self._pose_pub = self.create_publisher(PoseStamped, TCP_POSE_TOPIC, 10)
         self._progress_pub = self.create_publisher(Float32, PROGRESS_TOPIC, 10)
@@ -142,9 +142,9 @@ class SweepNode(Node):
         declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
         declare(self, "cylinder.radius", 0.05, "Radius r of the membrane surface, metres (simulated roll)",
                 min=0.001, max=1.0)
-        declare(self, "publish_rate", 50.0, "Rate of TCP pose and progress messages, Hz", min=1.0, max=500.0,
+        declare(self, "sweep.publish_rate", 50.0, "Rate of TCP pose and progress messages, Hz", min=1.0, max=500.0,
                 read_only=True)
-        declare(self, "base_frame", "base", "Frame of the published TCP pose (the UR base)", read_only=True)
+        declare(self, "arm.base_frame", "base", "Frame of the published TCP pose (the UR base)", read_only=True)
 
     def _validate_parameters(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         candidate = dict(self.settings)
@@ -227,7 +227,7 @@ class SweepNode(Node):
 
     def _run_worker(self) -> None:
         self._connect()
-        period = 1.0 / float(self.get_parameter("publish_rate").value)
+        period = 1.0 / float(self.get_parameter("sweep.publish_rate").value)
         while not self._shutdown.is_set():
             try:
                 command = self._commands.get(timeout=period)

@@ -1,0 +1,32 @@
+"""The scan graph: camera, perception and sweep (UR5 or simulated).
+`ros2 launch touchroller_bringup scan.launch.py use_sim:=false robot_ip:=192.168.1.10 camera_device:=/dev/v4l/by-id/...`
+
+Nodes, parameters and remappings come from `touchroller_bringup.graph` (the one definition,
+shared with `touchroller scan`); this file only declares its arguments and builds launch_ros Nodes.
+"""
+# ruff: noqa: I001  (the repository's launch/ folder makes ruff take `launch` for first-party)
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+from touchroller_bringup import graph
+
+LAUNCH = "scan"
+
+
+def _nodes(context, *args, **kwargs):
+    values = {arg.name: LaunchConfiguration(arg.name).perform(context) for arg in graph.LAUNCH_ARGUMENTS[LAUNCH]}
+    return [Node(**spec.launch_kwargs()) for spec in graph.build_graph(LAUNCH, values).nodes]
+
+
+def generate_launch_description():
+    arguments = []
+    for arg in graph.LAUNCH_ARGUMENTS[LAUNCH]:
+        options = {"description": arg.description}
+        if arg.default is not None:
+            options["default_value"] = arg.default
+        if arg.choices is not None:
+            options["choices"] = list(arg.choices)
+        arguments.append(DeclareLaunchArgument(arg.name, **options))
+    return LaunchDescription([*arguments, OpaqueFunction(function=_nodes)])

@@ -1,0 +1,137 @@
+"""The graph module: arguments, nodes, parameter precedence, and in-process instantiation."""
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+from touchroller_bringup import graph
+from touchroller_bringup.graph import GraphError, NodeSpec, build_graph, resolve_arguments
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def console_scripts() -> dict[str, str]:
+    """name -> 'module:function' from setup.py's entry points (parsed, not executed)."""
+    tree = ast.parse((ROOT / "setup.py").read_text())
+    scripts = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            match = re.fullmatch(r"\s*(\w+)\s*=\s*([\w.]+:\w+)\s*", node.value)
+            if match:
+                scripts[match.group(1)] = match.group(2)
+    return scripts
+
+
+def all_graphs(tmp_path: Path) -> list[graph.Graph]:
+    return [build_graph("scan"), build_graph("scan", {"use_sim": "false"}), build_graph("calibrate"),
+            build_graph("replay", {"bag": str(tmp_path)})]
+
+
+def test_every_node_has_a_console_script_in_its_module(tmp_path):
+    scripts = console_scripts()
+    for g in all_graphs(tmp_path):
+        names = [spec.name for spec in g.nodes]
+        assert len(set(names)) == len(names), names
+        for spec in g.nodes:
+            assert spec.package == "touchroller_bringup"
+            assert scripts[spec.executable].split(":")[0] == spec.target.split(":")[0]
+
+
+def test_scan_graph_defaults_are_simulated():
+    g = build_graph("scan")
+    assert g.keys == ("camera", "perception", "sweep")
+    assert g.node("camera").parameters == {"source": "sim", "scene": "surface_mapping"}
+    assert g.node("sweep").parameters == {"use_sim": True}
+    files = g.node("sweep").params_files
+    assert [Path(f).name for f in files] == ["touchroller.yaml", "scan.yaml"]
+
+
+def test_scan_graph_with_hardware_arguments():
+    g = build_graph("scan", {"use_sim": "False", "camera_device": "/dev/v4l/by-id/cam", "robot_ip": "10.0.0.2",
+                             "sweep_speed": "0.02", "sweep_length": "0.05"})
+    assert g.node("camera").parameters == {"source": "v4l2", "device": "/dev/v4l/by-id/cam"}
+    assert g.node("sweep").parameters == {"use_sim": False, "robot_ip": "10.0.0.2", "sweep.speed": 0.02,
+                                          "sweep.length": 0.05}
+
+
+def test_user_files_follow_the_defaults(tmp_path):
+    params, calibration = tmp_path / "p.yaml", tmp_path / "c.yaml"
+    params.write_text("/**:\n  ros__parameters: {}\n")
+    calibration.write_text("/**:\n  ros__parameters: {}\n")
+    g = build_graph("calibrate", {"params_file": str(params), "calibration_file": str(calibration)})
+    for spec in g.nodes:
+        assert spec.params_files[-2:] == (str(params.resolve()), str(calibration.resolve()))
+
+
+@pytest.mark.parametrize(("launch", "values", "message"), [
+    ("scan", {"use_sim": "maybe"}, "use_sim"),
+    ("scan", {"sweep_speed": "-0.1"}, "sweep_speed"),
+    ("scan", {"sweep_length": "fast"}, "not a number"),
+    ("scan", {"sweep_speed": "nan"}, "sweep_speed"),
+    ("scan", {"robot": "1.2.3.4"}, "unknown scan argument"),
+    ("scan", {"params_file": "/nonexistent/p.yaml"}, "does not exist"),
+    ("replay", {}, "bag is required"),
+    ("replay", {"bag": "b", "rate": "-1"}, "rate"),
+    ("nope", {}, "unknown launch"),
+])
+def test_bad_arguments_are_one_clear_error(launch, values, message):
+    with pytest.raises(GraphError, match=message) as info:
+        build_graph(launch, values)
+    assert "\n" not in str(info.value)
+
+
+def test_resolve_arguments_fills_defaults():
+    args = resolve_arguments("replay", {"bag": "x"})
+    assert args == {"bag": "x", "rate": "1.0", "loop": "false", "params_file": "", "calibration_file": ""}
+
+
+def test_missing_node_module_is_a_clear_error():
+    spec = NodeSpec("ghost", "ghost_node", "ghost", "touchroller_perception.no_such_node:Ghost")
+    with pytest.raises(GraphError, match="ghost node"):
+        spec.load_class()
+    spec = NodeSpec("ghost", "ghost_node", "ghost", "touchroller_driver.arm:NoSuchClass")
+    with pytest.raises(GraphError, match="does not exist"):
+        spec.load_class()
+
+
+@pytest.mark.ros
+def test_node_kwargs_apply_name_files_and_overrides_like_launch(ros_context, tmp_path):
+    from rclpy.node import Node
+
+    first, second = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    first.write_text("/**:\n  ros__parameters:\n    alpha: 1.0\n    beta: 'one'\n    gamma: 1\n")
+    second.write_text("/**:\n  ros__parameters:\n    alpha: 2.0\n")
+    spec = NodeSpec("probe", "probe_node", "renamed_probe", "x:Y", parameters={"beta": "graph"},
+                    remappings=(("/in", "/remapped_in"),), params_files=(str(first), str(second)))
+
+    class Probe(Node):
+        def __init__(self, **node_kwargs):
+            super().__init__("probe", **node_kwargs)
+            for name, default in (("alpha", 0.0), ("beta", ""), ("gamma", 0)):
+                self.declare_parameter(name, default)
+
+    node = Probe(context=ros_context, **spec.node_kwargs({"gamma": 3}))
+    try:
+        assert node.get_name() == "renamed_probe"
+        assert node.get_parameter("alpha").value == 2.0     # later file wins
+        assert node.get_parameter("beta").value == "graph"  # graph parameters over files
+        assert node.get_parameter("gamma").value == 3       # user overrides over everything
+        assert node.resolve_topic_name("/in") == "/remapped_in"
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.ros
+def test_sweep_node_from_the_graph_reads_the_scan_defaults(ros_context):
+    spec = build_graph("scan", {"sweep_speed": "0.02"}).node("sweep")
+    node = spec.load_class()(context=ros_context, **spec.node_kwargs())
+    try:
+        assert node.get_name() == "touchroller_sweep"
+        assert node.get_parameter("sweep.speed").value == pytest.approx(0.02)   # argument
+        assert node.get_parameter("sweep.length").value == pytest.approx(0.11)  # config/scan.yaml
+        assert node.get_parameter("cylinder.radius").value == pytest.approx(0.05)  # config/touchroller.yaml
+    finally:
+        node.destroy_node()

@@ -1,0 +1,245 @@
+"""The ONE definition of the TouchRoller node graph: nodes, parameters, remappings, launch arguments.
+
+Three consumers read it and nothing else:
+- `launch/{scan,calibrate,replay}.launch.py` declare `LAUNCH_ARGUMENTS[<launch>]` and turn
+  `build_graph(<launch>, values)` into launch_ros `Node` actions (`NodeSpec.launch_kwargs`);
+- `touchroller scan` instantiates the same `NodeSpec`s in one process (`NodeSpec.node_kwargs`,
+  `NodeSpec.load_class`), passing params files exactly as launch_ros would (`--params-file`, then
+  the graph's own parameters, then the user's `name:=value` overrides, later ones winning);
+- the tests compare the two.
+
+Parameter files always start with the package defaults (`config/touchroller.yaml`, `config/scan.yaml`),
+then `params_file`, then `calibration_file`, so a calibration overrides the defaults. Arguments left
+empty (`""`) leave the value to the params files. No rclpy or launch import here.
+"""
+from __future__ import annotations
+
+import importlib
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from touchroller_bringup.paths import config_path
+
+PACKAGE = "touchroller_bringup"
+DEFAULT_PARAMS_FILES = ("touchroller.yaml", "scan.yaml")  # under config/
+
+
+class GraphError(ValueError):
+    """A launch argument or graph description is invalid (reported as one line)."""
+
+
+@dataclass(frozen=True)
+class LaunchArgument:
+    name: str
+    default: str | None  # None: required
+    description: str
+    choices: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of the graph: what launch_ros needs, and what an in-process runner needs."""
+
+    key: str          # short role name: camera, perception, sweep, calibration
+    executable: str   # console script in setup.py
+    name: str         # ROS node name
+    target: str       # "module:Class" of the rclpy Node subclass (takes **node_kwargs)
+    parameters: Mapping[str, Any] = field(default_factory=dict)  # on top of the params files
+    remappings: tuple[tuple[str, str], ...] = ()
+    params_files: tuple[str, ...] = ()
+    package: str = PACKAGE
+
+    def launch_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for `launch_ros.actions.Node`."""
+        return {
+            "package": self.package,
+            "executable": self.executable,
+            "name": self.name,
+            "parameters": [*self.params_files, dict(self.parameters)],
+            "remappings": list(self.remappings),
+            "output": "screen",
+        }
+
+    def node_kwargs(self, overrides: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """`rclpy.node.Node` keyword arguments with the same effect as `launch_kwargs` in a launch."""
+        from rclpy.parameter import Parameter
+
+        cli_args = ["--ros-args", "-r", f"__node:={self.name}"]
+        for path in self.params_files:
+            cli_args += ["--params-file", str(path)]
+        for source, target in self.remappings:
+            cli_args += ["-r", f"{source}:={target}"]
+        values = {**self.parameters, **(overrides or {})}
+        return {"cli_args": cli_args,
+                "parameter_overrides": [Parameter(name, value=value) for name, value in values.items()]}
+
+    def load_class(self) -> type:
+        """The node class; GraphError (one line) if its module has not landed or fails to import."""
+        module_name, _, class_name = self.target.partition(":")
+        try:
+            module = importlib.import_module(module_name)
+        except ImportError as exc:
+            raise GraphError(f"the {self.key} node ({self.target}) is not available: {exc}") from exc
+        try:
+            return getattr(module, class_name)
+        except AttributeError:
+            raise GraphError(f"the {self.key} node class {self.target} does not exist") from None
+
+
+@dataclass(frozen=True)
+class Graph:
+    launch: str
+    nodes: tuple[NodeSpec, ...]
+    arguments: Mapping[str, str]
+
+    def node(self, key: str) -> NodeSpec:
+        for spec in self.nodes:
+            if spec.key == key:
+                return spec
+        raise KeyError(key)
+
+    @property
+    def keys(self) -> tuple[str, ...]:
+        return tuple(spec.key for spec in self.nodes)
+
+
+_BOOL = ("true", "false")
+_COMMON = (
+    LaunchArgument("params_file", "", "Extra ROS 2 params YAML (/**: ros__parameters:) applied to every "
+                   "node after the package defaults (config/touchroller.yaml, config/scan.yaml)"),
+    LaunchArgument("calibration_file", "", "Calibration YAML (camera.*, extrinsics.*) applied after "
+                   "params_file; empty: the geometry in the params files"),
+)
+LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
+    "scan": (
+        LaunchArgument("use_sim", "true", "Simulated sensor and arm (true) or a V4L2 camera and a UR5 (false)",
+                       _BOOL),
+        LaunchArgument("camera_device", "", "V4L2 device when use_sim is false: an index or a stable "
+                       "/dev/v4l/by-id/... path; empty: the params files (default 0)"),
+        LaunchArgument("robot_ip", "", "UR controller IP (ur_rtde) when use_sim is false; empty: the params files"),
+        *_COMMON,
+        LaunchArgument("sweep_speed", "", "Roll speed in m/s; empty: the params files (0.011, the paper's 10 s)"),
+        LaunchArgument("sweep_length", "", "Roll length in m; empty: the params files (0.11)"),
+        LaunchArgument("scene", "surface_mapping", "Simulator scene when use_sim is true"),
+    ),
+    "calibrate": (
+        LaunchArgument("use_sim", "true", "Simulated calibration scene (true) or a V4L2 camera (false)", _BOOL),
+        LaunchArgument("camera_device", "", "V4L2 device when use_sim is false; empty: the params files"),
+        *_COMMON,
+        LaunchArgument("output_file", "touchroller_calibration.yaml",
+                       "Where the calibration node writes the solved calibration YAML"),
+        LaunchArgument("scene", "calibration_hemispheres", "Simulator scene when use_sim is true"),
+    ),
+    "replay": (
+        LaunchArgument("bag", None, "rosbag2 folder (sqlite3 or MCAP) with /touchroller/image_raw"),
+        LaunchArgument("rate", "1.0", "Playback rate: 1 real time, 0 as fast as possible"),
+        LaunchArgument("loop", "false", "Restart the recording at its end", _BOOL),
+        *_COMMON,
+    ),
+}
+
+CAMERA = ("camera_node", "touchroller_camera", "touchroller_driver.camera_node:CameraNode")
+PERCEPTION = ("perception_node", "touchroller_perception", "touchroller_perception.perception_node:PerceptionNode")
+SWEEP = ("sweep_node", "touchroller_sweep", "touchroller_driver.sweep_node:SweepNode")
+CALIBRATION = ("calibration_node", "touchroller_calibration",
+               "touchroller_perception.calibration_node:CalibrationNode")
+
+
+def resolve_arguments(launch: str, values: Mapping[str, str] | None = None) -> dict[str, str]:
+    """All of `launch`'s arguments as strings: given values over defaults; GraphError on unknown,
+    missing or out-of-choice values."""
+    if launch not in LAUNCH_ARGUMENTS:
+        raise GraphError(f"unknown launch {launch!r}; expected one of {', '.join(LAUNCH_ARGUMENTS)}")
+    declared = {arg.name: arg for arg in LAUNCH_ARGUMENTS[launch]}
+    values = dict(values or {})
+    unknown = sorted(set(values) - set(declared))
+    if unknown:
+        raise GraphError(f"unknown {launch} argument(s) {', '.join(unknown)}; "
+                         f"expected one of {', '.join(declared)}")
+    resolved = {}
+    for name, arg in declared.items():
+        value = str(values.get(name, arg.default if arg.default is not None else "")).strip()
+        if arg.default is None and not value:
+            raise GraphError(f"{launch}: argument {name} is required ({arg.description})")
+        if arg.choices is not None and value.lower() not in arg.choices:
+            raise GraphError(f"{launch}: {name}:={value} must be one of {', '.join(arg.choices)}")
+        resolved[name] = value.lower() if arg.choices is not None else value
+    return resolved
+
+
+def _positive_float(launch: str, name: str, text: str, *, allow_zero: bool = False) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise GraphError(f"{launch}: {name}:={text} is not a number") from None
+    if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
+        raise GraphError(f"{launch}: {name}:={text} must be a finite number {'>=' if allow_zero else '>'} 0")
+    return value
+
+
+def _config_file(name: str) -> Path:
+    try:
+        return config_path(name)
+    except OSError:  # ament_index without AMENT_PREFIX_PATH (plain venv): the source checkout's config/
+        return Path(__file__).resolve().parent.parent / "config" / name
+
+
+def _params_files(args: Mapping[str, str]) -> tuple[str, ...]:
+    files = [str(_config_file(name)) for name in DEFAULT_PARAMS_FILES if _config_file(name).is_file()]
+    for key in ("params_file", "calibration_file"):
+        if args.get(key):
+            path = Path(args[key]).expanduser()
+            if not path.is_file():
+                raise GraphError(f"{key}:={args[key]} does not exist")
+            files.append(str(path.resolve()))
+    return tuple(files)
+
+
+def _device(text: str) -> str:
+    return text  # the camera node takes an index or a path as a string
+
+
+def build_graph(launch: str, values: Mapping[str, str] | None = None) -> Graph:
+    """The nodes of `launch` ("scan", "calibrate", "replay") for these launch-argument values."""
+    args = resolve_arguments(launch, values)
+    files = _params_files(args)
+    use_sim = args.get("use_sim") == "true"
+
+    def spec(role: tuple[str, str, str], key: str, parameters: Mapping[str, Any],
+             remappings: Sequence[tuple[str, str]] = ()) -> NodeSpec:
+        executable, name, target = role
+        return NodeSpec(key, executable, name, target, dict(parameters), tuple(remappings), files)
+
+    def camera_parameters() -> dict[str, Any]:
+        if use_sim:
+            return {"source": "sim", "scene": args["scene"]}
+        params: dict[str, Any] = {"source": "v4l2"}
+        if args.get("camera_device"):
+            params["device"] = _device(args["camera_device"])
+        return params
+
+    if launch == "scan":
+        sweep: dict[str, Any] = {"use_sim": use_sim}
+        if args["robot_ip"]:
+            sweep["robot_ip"] = args["robot_ip"]
+        if args["sweep_speed"]:
+            sweep["sweep.speed"] = _positive_float(launch, "sweep_speed", args["sweep_speed"])
+        if args["sweep_length"]:
+            sweep["sweep.length"] = _positive_float(launch, "sweep_length", args["sweep_length"])
+        nodes = (spec(CAMERA, "camera", camera_parameters()),
+                 spec(PERCEPTION, "perception", {}),
+                 spec(SWEEP, "sweep", sweep))
+    elif launch == "calibrate":
+        nodes = (spec(CAMERA, "camera", camera_parameters()),
+                 spec(PERCEPTION, "perception", {}),
+                 spec(CALIBRATION, "calibration", {"output_path": args["output_file"],
+                                                   "perception_node": PERCEPTION[1]}))
+    else:  # replay: a recording through the camera node into perception
+        camera = {"source": "bag", "bag_path": args["bag"],
+                  "rate": _positive_float(launch, "rate", args["rate"], allow_zero=True),
+                  "loop": args["loop"] == "true"}
+        nodes = (spec(CAMERA, "camera", camera), spec(PERCEPTION, "perception", {}))
+    return Graph(launch, nodes, args)
