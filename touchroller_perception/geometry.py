@@ -347,15 +347,15 @@ def _undistort(xd: FloatArray, yd: FloatArray, dist: tuple[float, ...]):
 
 
 def _fold_radius2(k1: float, k2: float, p1: float, p2: float, k3: float) -> float:
-    """Smallest s = r^2 > 0 where d/dr [r (1 + k1 r^2 + k2 r^4 + k3 r^6)] = 0, i.e. the radial fold."""
-    coefficients = [7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]      # 7 k3 s^3 + 5 k2 s^2 + 3 k1 s + 1
-    while coefficients and coefficients[0] == 0.0:
-        coefficients.pop(0)
-    if len(coefficients) <= 1:
-        return math.inf
-    roots = np.roots(coefficients)
-    positive = [r.real for r in roots if abs(r.imag) < 1e-12 * max(1.0, abs(r)) and r.real > 0]
-    return min(positive) if positive else math.inf
+    """Smallest s = r^2 > 0 where d/dr [r (1 + k1 r^2 + k2 r^4 + k3 r^6)] = 0, i.e. the radial fold.
+
+    1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3 = 0 is solved for w = 1/s, where it is monic
+    (w^3 + 3 k1 w^2 + 5 k2 w + 7 k3 = 0), so tiny or denormal coefficients cannot overflow;
+    the smallest positive s is 1 / (largest positive real w).
+    """
+    roots = np.roots([1.0, 3.0 * k1, 5.0 * k2, 7.0 * k3])
+    positive = [r.real for r in roots if abs(r.imag) <= 1e-12 * max(1.0, abs(r)) and r.real > 0]
+    return 1.0 / max(positive) if positive else math.inf
 
 
 # --------------------------------------------------------------------------- YAML helpers

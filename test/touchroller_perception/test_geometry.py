@@ -209,3 +209,13 @@ def test_covariance_matches_monte_carlo():
 def test_unknown_calibration_parameter_is_refused():
     with pytest.raises(ValueError, match="unknown calibration parameter"):
         CameraModel().contact_covariance([[1.0, 2.0]], calibration_sigma={"phi": 1.0})
+
+
+@pytest.mark.parametrize("dist, fold", [
+    ((0.0, 5e-324, 0.0, 0.0, 0.0), math.inf),          # denormal coefficient found by hypothesis
+    ((-0.9, 0.0, 0.0, 0.0, 0.0), 1 / 2.7),
+    ((0.0, -0.2, 0.0, 0.0, 0.0), 1.0),                 # 1 - 1.0 s^2 = 0
+    ((0.1, 0.01, 0.0, 0.0, 0.0), math.inf),
+])
+def test_distortion_fold_radius(dist, fold):
+    assert CameraModel(distortion=dist).max_undistorted_radius2 == pytest.approx(fold)
