@@ -1,15 +1,110 @@
-"""`touchroller contacts`: placeholder until issue 4 lands."""
+"""`touchroller contacts BAG --out contacts.csv`: the contacts in a recording, one CSV row per contact.
+
+Columns: stamp_ns,u,v,x,y,z (DESIGN.md; x y z in metres in touchroller_cylinder, `nan` without
+`--params`), then area (px), confidence (0..1), peak_snr, and the covariance diagonal var_x,
+var_y, var_z (m^2, from `--pixel-sigma` through the camera model). The no-contact reference is the
+mean of the first `--reference-frames` frames; they produce no rows.
+"""
 from __future__ import annotations
 
 import argparse
+import csv
+import math
+from pathlib import Path
 
 from touchroller_bringup.errors import UserError
 
+COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z", "area", "confidence", "peak_snr", "var_x", "var_y", "var_z")
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("contacts", help="(not implemented yet: issue 4)")
+    parser = subparsers.add_parser(
+        "contacts", help="detect contacts in a recording and write them as CSV",
+        description="Detect contacts in the images of a rosbag2 recording (sqlite3 or MCAP) and write "
+                    "one CSV row per contact: " + ",".join(COLUMNS) + ".")
+    parser.add_argument("bag", help="rosbag2 folder")
+    parser.add_argument("--out", required=True, help="CSV file to write")
+    parser.add_argument("--params", help="calibration YAML (ROS 2 params file); without it x, y, z are nan")
+    parser.add_argument("--topic", default="/touchroller/image_raw", help="image topic (default: %(default)s)")
+    parser.add_argument("--reference-frames", type=int, default=5,
+                        help="no-contact frames at the start that form the reference (default: %(default)s)")
+    parser.add_argument("--method", choices=("colour", "paper"), default="colour",
+                        help="colour-aware detector, or the paper's grey/threshold/moments pipeline")
+    parser.add_argument("--threshold-sigma", type=float, default=None,
+                        help="threshold in multiples of the reference noise (default: the detector's)")
+    parser.add_argument("--pixel-sigma", type=float, default=0.3,
+                        help="std of a detected centre in pixels, for the covariance (default: %(default)s)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    raise UserError("'touchroller contacts' is not implemented yet (issue 4)")
+    from touchroller_bringup.bags import read_images
+    from touchroller_perception.contacts import ContactDetector, DetectorConfig
+    from touchroller_perception.localisation import localise
+
+    if args.reference_frames < 1:
+        raise UserError(f"--reference-frames must be at least 1, got {args.reference_frames}")
+    if not (args.pixel_sigma >= 0 and math.isfinite(args.pixel_sigma)):
+        raise UserError(f"--pixel-sigma must be a finite number >= 0, got {args.pixel_sigma}")
+    camera = _load_camera(args.params) if args.params else None
+    changes = {"method": args.method}
+    if args.threshold_sigma is not None:
+        changes["threshold_sigma"] = args.threshold_sigma
+    try:
+        config = DetectorConfig(**changes)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    detector = ContactDetector(config, reference_frames=args.reference_frames)
+    out = Path(args.out)
+    if out.is_dir():
+        raise UserError(f"--out {out} is a directory; give a CSV file name")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    frames = rows = 0
+    with open(out, "w", newline="", encoding="utf-8") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(COLUMNS)
+        for record in read_images(args.bag, args.topic):
+            frames += 1
+            try:
+                contacts = detector.process(record.image)
+            except ValueError as exc:
+                raise UserError(f"frame at stamp {record.stamp_ns}: {exc}") from None
+            for row in _rows(record.stamp_ns, contacts or [], camera, args.pixel_sigma, localise):
+                writer.writerow(row)
+                rows += 1
+    if frames < args.reference_frames:
+        raise UserError(f"{args.bag} has {frames} image(s) on {args.topic}; the reference needs "
+                        f"{args.reference_frames} (--reference-frames)")
+    where = "pixels and cylinder points" if camera else "pixels only (no --params: x y z are nan)"
+    print(f"{rows} contacts in {frames - args.reference_frames} frames after a {args.reference_frames}-frame "
+          f"reference -> {out} ({where})")
+    return 0
+
+
+def _load_camera(path: str):
+    from touchroller_perception.geometry import CameraModel
+
+    if not Path(path).is_file():
+        raise UserError(f"no such calibration file: {path}")
+    try:
+        return CameraModel.from_yaml(path)
+    except Exception as exc:  # noqa: BLE001 - YAML, type and range errors all mean a bad file
+        raise UserError(f"cannot read calibration {path}: {type(exc).__name__}: {exc}") from None
+
+
+def _rows(stamp_ns: int, contacts, camera, pixel_sigma: float, localise):
+    if camera is None:
+        for c in contacts:
+            yield (stamp_ns, _f(c.u), _f(c.v), "nan", "nan", "nan", _f(c.area), _f(c.confidence),
+                   _f(c.peak_snr), "nan", "nan", "nan")
+        return
+    for loc in localise(camera, contacts, pixel_sigma=pixel_sigma):
+        c = loc.contact
+        var = [loc.covariance[i, i] for i in range(3)]
+        yield (stamp_ns, _f(c.u), _f(c.v), *(_f(p, "%.9g") for p in loc.point), _f(c.area),
+               _f(c.confidence), _f(c.peak_snr), *(_f(v, "%.6g") for v in var))
+
+
+def _f(value: float, fmt: str = "%.4f") -> str:
+    value = float(value)
+    return fmt % value if math.isfinite(value) else "nan"

@@ -1,0 +1,74 @@
+"""`touchroller contacts`: a recorded bag with known taps -> CSV rows with the right stamps and points."""
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from touchroller_bringup.cli import main
+from touchroller_perception.geometry import CameraModel
+from touchroller_perception.localisation import TapRenderer
+
+CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240, theta=0.03, d=0.001)
+
+
+@pytest.fixture
+def tapped_bag(bag_factory):
+    renderer = TapRenderer(CAMERA, seed=3)
+    rng = np.random.default_rng(1)
+    truth = CAMERA.surface_point(np.array([-0.01, 0.015]), np.array([0.1, -0.2]))
+    uv, _ = CAMERA.project(truth)
+    records = [(1_000_000 * i, renderer.render([], rng)) for i in range(5)]
+    records += [(1_000_000 * 5, renderer.render([], rng)),            # no contact: no row
+                (1_000_000 * 6, renderer.render([uv[0]], rng)),
+                (1_000_000 * 7, renderer.render(uv, rng))]           # two contacts at once
+    return bag_factory(records), truth
+
+
+def _read(path):
+    with open(path, newline="") as stream:
+        return list(csv.DictReader(stream))
+
+
+def test_contacts_csv_with_calibration(tapped_bag, tmp_path, capsys):
+    bag, truth = tapped_bag
+    params = tmp_path / "cal.yaml"
+    CAMERA.to_yaml(params)
+    out = tmp_path / "out" / "contacts.csv"
+    assert main(["contacts", str(bag), "--params", str(params), "--out", str(out)]) == 0
+    rows = _read(out)
+    assert list(rows[0])[:6] == ["stamp_ns", "u", "v", "x", "y", "z"]
+    assert [int(r["stamp_ns"]) for r in rows] == [6_000_000, 7_000_000, 7_000_000]
+    for row in rows:
+        point = np.array([float(row[k]) for k in "xyz"])
+        assert min(np.linalg.norm(point - t) for t in truth) < 0.3e-3
+        assert 0 < float(row["var_x"]) < 1e-6
+    assert "3 contacts" in capsys.readouterr().out
+
+
+def test_contacts_without_calibration_give_nan_points(tapped_bag, tmp_path):
+    bag, _ = tapped_bag
+    out = tmp_path / "contacts.csv"
+    assert main(["contacts", str(bag), "--out", str(out), "--method", "paper"]) == 0
+    rows = _read(out)
+    assert rows and all(r["x"] == "nan" and r["z"] == "nan" for r in rows)
+    assert all(float(r["u"]) > 0 for r in rows)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--params", "/nonexistent.yaml"], "no such calibration file"),
+    (["--reference-frames", "50"], "the reference needs 50"),
+    (["--reference-frames", "0"], "at least 1"),
+    (["--topic", "/other"], "no topic /other"),
+])
+def test_bad_input_is_one_line(tapped_bag, tmp_path, capsys, extra, message):
+    bag, _ = tapped_bag
+    code = main(["contacts", str(bag), "--out", str(tmp_path / "c.csv"), *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_missing_bag_is_one_line(tmp_path, capsys):
+    assert main(["contacts", str(tmp_path / "nope"), "--out", str(tmp_path / "c.csv")]) == 2
+    assert "no such bag" in capsys.readouterr().err
