@@ -1,0 +1,226 @@
+"""Scenes: YAML files under `config/scenes/` naming the surface, the motion, the camera and the effects.
+
+A scene is a nested mapping. `load_scene(name_or_path, **overrides)` reads it, applies a named
+variant (`variant="fast"`) and then dotted overrides (`**{"motion.duration": 5.0}`, or the
+keyword-friendly `motion__duration=5.0`), validates it and returns a `Scene`.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from touchroller_perception.geometry import CameraModel
+
+#: Effects a scene may list; the contact geometry and the membrane shading are always rendered.
+EFFECTS = ("background", "vignetting", "noise", "blur", "compression", "dropped_frames")
+MOTION_KINDS = ("roll", "taps", "hemispheres", "chessboard")
+
+_DEFAULT_EFFECT_PARAMS: dict[str, dict[str, Any]] = {
+    "background": {"illumination": 0.12, "led_falloff": 0.25, "specks": 60, "speck_radius_px": [1.0, 3.0]},
+    "vignetting": {"strength": 0.35},
+    "noise": {"sigma": 2.0},
+    "blur": {},
+    "compression": {"quality": 85},
+    "dropped_frames": {"probability": 0.02},
+}
+
+_DEFAULT_SENSOR: dict[str, Any] = {
+    "elastomer_thickness": 2.0e-3,   # m (not stated in the paper; a typical GelSight-like gel)
+    "lowpass_sigma": 1.5e-4,         # m: how much the membrane smooths the relief (empirical, see docs)
+    "thickness_variation": 0.0,      # m: amplitude of the membrane radius error along x and alpha
+    "light_elevation_deg": 35.0,
+    "light_azimuths_deg": [330.0, 210.0, 90.0],   # B, G, R lights in the membrane's tangent plane
+    "ambient": 0.25,
+    "light_gain": 0.85,
+    "exposure_scale": 0.72,          # DN = 255 * scale * shading
+}
+
+
+def config_file(*parts: str) -> Path:
+    """`touchroller_bringup.paths.config_path`, falling back to the source checkout when the ament
+    index is unusable (AMENT_PREFIX_PATH unset makes ament_index_python raise OSError)."""
+    from touchroller_bringup.paths import config_path
+
+    try:
+        return config_path(*parts)
+    except OSError:
+        import touchroller_bringup
+
+        return Path(touchroller_bringup.__file__).resolve().parent.parent / "config" / Path(*parts)
+
+
+def _default_camera() -> dict[str, Any]:
+    path = config_file("touchroller.yaml")
+    return CameraModel.from_yaml(path).to_params() if path.is_file() else CameraModel().to_params()
+
+
+@dataclass
+class Scene:
+    """A validated scene. `data` is the full nested mapping (after variants and overrides)."""
+
+    name: str
+    data: dict[str, Any]
+    path: Path | None = None
+
+    @property
+    def fps(self) -> float:
+        return float(self.data["fps"])
+
+    @property
+    def exposure(self) -> float:
+        return float(self.data["exposure"])
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        return tuple(self.data["effects"])
+
+    @property
+    def motion(self) -> dict[str, Any]:
+        return self.data["motion"]
+
+    @property
+    def surface(self) -> dict[str, Any]:
+        return self.data.get("surface") or {"kind": "flat"}
+
+    @property
+    def sensor(self) -> dict[str, Any]:
+        return self.data["sensor"]
+
+    @property
+    def camera(self) -> CameraModel:
+        """The true camera of the simulated sensor."""
+        return CameraModel.from_params(self.data["camera"])
+
+    @property
+    def paper_camera(self) -> CameraModel:
+        """The camera as a flawed calibration would report it (truth + `calibration_error`)."""
+        err = self.data.get("calibration_error") or {}
+        cam = self.camera
+        return cam.replace(theta=cam.theta + float(err.get("theta", 0.0)), d=cam.d + float(err.get("d", 0.0)))
+
+    def effect_params(self, effect: str) -> dict[str, Any]:
+        params = dict(_DEFAULT_EFFECT_PARAMS.get(effect, {}))
+        params.update((self.data.get("effect_params") or {}).get(effect) or {})
+        return params
+
+    @property
+    def duration(self) -> float:
+        """Seconds of the scene's own motion (frames are captured over [0, duration])."""
+        from touchroller_driver.sim.scenarios import scene_duration
+
+        return scene_duration(self)
+
+
+def load_scene(name_or_path: str | Path, variant: str | None = None, **overrides: Any) -> Scene:
+    """A scene by name (a file in `config/scenes/`) or by path, with a variant and dotted overrides."""
+    path = _resolve(name_or_path)
+    try:
+        with open(path, encoding="utf-8") as stream:
+            data = yaml.safe_load(stream)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"scene {path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"scene {path}: expected a mapping at the top level")
+    data = copy.deepcopy(data)
+    variant = variant if variant is not None else overrides.pop("variant", None) or data.get("variant")
+    if variant is not None:
+        variants = data.get("variants") or {}
+        if variant not in variants:
+            raise ValueError(f"scene {path.stem}: unknown variant {variant!r} (has: {', '.join(variants) or 'none'})")
+        for key, value in (variants[variant] or {}).items():
+            set_dotted(data, key, value)
+        data["variant"] = variant
+    for key, value in overrides.items():
+        set_dotted(data, key.replace("__", "."), value)
+    data = _with_defaults(data)
+    scene = Scene(name=str(data.get("name") or path.stem), data=data, path=path)
+    validate(scene)
+    return scene
+
+
+def available_scenes() -> list[str]:
+    return sorted(p.stem for p in config_file("scenes").glob("*.yaml"))
+
+
+def set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
+    """`set_dotted(d, "motion.duration", 5)` sets d["motion"]["duration"], creating mappings on the way."""
+    parts = key.split(".")
+    node = data
+    for part in parts[:-1]:
+        child = node.get(part)
+        if not isinstance(child, dict):
+            child = {}
+            node[part] = child
+        node = child
+    node[parts[-1]] = value
+
+
+def _resolve(name_or_path: str | Path) -> Path:
+    candidate = Path(name_or_path)
+    if candidate.suffix in (".yaml", ".yml") and candidate.is_file():
+        return candidate
+    named = config_file("scenes", f"{name_or_path}.yaml")
+    if named.is_file():
+        return named
+    raise ValueError(f"no scene {str(name_or_path)!r} (known: {', '.join(available_scenes()) or 'none'})")
+
+
+def _with_defaults(data: dict[str, Any]) -> dict[str, Any]:
+    camera = _default_camera()
+    camera.update(_flatten_camera(data.get("camera") or {}))
+    data["camera"] = camera
+    sensor = dict(_DEFAULT_SENSOR)
+    sensor.update(data.get("sensor") or {})
+    data["sensor"] = sensor
+    data.setdefault("fps", 30.0)
+    data.setdefault("exposure", 0.02)
+    data.setdefault("effects", [])
+    data.setdefault("effect_params", {})
+    data.setdefault("calibration_error", {"theta": 0.0, "d": 0.0})
+    data.setdefault("start_stamp_ns", 1_700_000_000_000_000_000)
+    return data
+
+
+def _flatten_camera(camera: Mapping[str, Any]) -> dict[str, Any]:
+    """Accept DESIGN.md names (`camera.fx`, `extrinsics.theta`) or nested mappings."""
+    flat: dict[str, Any] = {}
+    for key, value in camera.items():
+        if isinstance(value, Mapping):
+            for inner, v in _flatten_camera(value).items():
+                flat[f"{key}.{inner}"] = v
+        else:
+            flat[key] = value
+    return flat
+
+
+def validate(scene: Scene) -> None:
+    d = scene.data
+    where = f"scene {scene.name}"
+    unknown = [e for e in d["effects"] if e not in EFFECTS]
+    if unknown:
+        raise ValueError(f"{where}: unknown effects {unknown} (known: {', '.join(EFFECTS)})")
+    for key in ("fps", "exposure"):
+        value = d[key]
+        if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+            raise ValueError(f"{where}: {key} must be a finite number >= 0, got {value!r}")
+    if d["fps"] <= 0:
+        raise ValueError(f"{where}: fps must be > 0")
+    if d["exposure"] * d["fps"] > 1.0 + 1e-9:
+        raise ValueError(f"{where}: exposure {d['exposure']} s is longer than a frame at {d['fps']} fps")
+    kind = (d.get("motion") or {}).get("kind")
+    if kind not in MOTION_KINDS:
+        raise ValueError(f"{where}: motion.kind must be one of {', '.join(MOTION_KINDS)}, got {kind!r}")
+    scene.camera  # noqa: B018 - raises ValueError on a bad camera block
+    p = scene.effect_params("dropped_frames")["probability"]
+    if not 0.0 <= float(p) < 1.0:
+        raise ValueError(f"{where}: dropped_frames.probability must be in [0, 1), got {p}")
+    if not 1 <= int(scene.effect_params("compression")["quality"]) <= 100:
+        raise ValueError(f"{where}: compression.quality must be in 1..100")
+    if float(scene.effect_params("noise")["sigma"]) < 0:
+        raise ValueError(f"{where}: noise.sigma must be >= 0")
