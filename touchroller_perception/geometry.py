@@ -211,7 +211,8 @@ class CameraModel:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(b >= 0, 2.0 * c0 / (-b - root), (-b + root) / (2.0 * a))
         points = origin + t[..., None] * direction
-        valid = valid & np.isfinite(t) & (np.abs(points[..., 0]) <= 0.5 * self.length)
+        # the ends are inclusive up to rounding, so a point at x = L/2 survives a round trip
+        valid = valid & np.isfinite(t) & (np.abs(points[..., 0]) <= 0.5 * self.length * (1 + 1e-12))
         points[~valid] = np.nan
         return points, valid
 
