@@ -127,13 +127,15 @@ class SimulatedArm:
 
     Its pose drives the simulated sensor through `roller_state(t)`: the roller rolls without slip along
     `rolling_direction` (base frame), so roll angle = travel / radius; it touches the surface at
-    `surface_z`, so depth = surface_z - z. `stop()` halts instantly (an idealisation); `inject_fault`
+    `surface_z`, so depth = surface_z - z. The start pose sits at (`x_along_origin`, `travel_origin`)
+    of the simulated surface. `stop()` halts instantly (an idealisation); `inject_fault`
     stands in for a protective stop.
     """
 
     def __init__(self, start_pose: ArrayLike = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0), *,
                  limits: ArmLimits | None = None, surface_z: float | None = None,
                  rolling_direction: Sequence[float] = (1.0, 0.0, 0.0), radius: float = 0.05,
+                 travel_origin: float = 0.0, x_along_origin: float = 0.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.limits = limits or ArmLimits()
         self.origin = as_pose(start_pose)
@@ -148,6 +150,9 @@ class SimulatedArm:
         if not (math.isfinite(radius) and radius > 0):
             raise ValueError(f"radius must be > 0, got {radius}")
         self.radius = float(radius)
+        # Where the start pose is over the simulated surface (the scene's roll start and axial offset).
+        self.travel_origin = float(travel_origin)
+        self.x_along_origin = float(x_along_origin)
         self.clock = clock
         self._lock = threading.Lock()
         self._connected = False
@@ -223,8 +228,8 @@ class SimulatedArm:
         offset = pose[:3] - self.origin[:3]
         travel = float(offset @ self.rolling_direction)
         return RollerState(
-            x_along=float(offset @ self.axis_direction),
-            travel=travel,
+            x_along=self.x_along_origin + float(offset @ self.axis_direction),
+            travel=self.travel_origin + travel,
             roll=travel / self.radius,
             depth=self.surface_z - float(pose[2]),
             speed=float(velocity @ self.rolling_direction),

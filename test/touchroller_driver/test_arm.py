@@ -139,10 +139,10 @@ def test_fault_stops_motion_and_refuses_commands_until_reconnect():
 
 def test_roller_state_rolls_without_slip():
     try:
-        from touchroller_driver.sim import RollerState  # noqa: F401
+        from touchroller_driver.sim import RollerState
     except ImportError:
         pytest.skip("simulator (touchroller_driver.sim.RollerState) not landed yet")
-    arm, clock = make_arm(radius=0.05, rolling_direction=(1.0, 0.0, 0.0))
+    arm, clock = make_arm(radius=0.05, rolling_direction=(1.0, 0.0, 0.0), travel_origin=0.01, x_along_origin=0.002)
     arm.move_linear(np.array(START) + [0.0, 0.0, -0.001, 0, 0, 0], 0.01, 0.1)
     clock.t += 5.0
     pressed = arm.tcp_pose()
@@ -150,11 +150,12 @@ def test_roller_state_rolls_without_slip():
     t0 = clock.t
     state = arm.roller_state(t0 + 5.0)
     travel = TrapezoidProfile(0.11, 0.011, 0.1).position(5.0)
-    assert state.travel == pytest.approx(travel)
+    assert state.travel == pytest.approx(0.01 + travel)
     assert state.roll == pytest.approx(travel / 0.05)
     assert state.depth == pytest.approx(0.001)
     assert state.speed == pytest.approx(0.011)
-    assert state.x_along == pytest.approx(0.0, abs=1e-12)
+    assert state.x_along == pytest.approx(0.002, abs=1e-12)
+    assert isinstance(state, RollerState)
 
 
 @settings(max_examples=60, deadline=None)
