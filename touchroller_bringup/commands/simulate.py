@@ -1,15 +1,84 @@
-"""`touchroller simulate`: placeholder until issue 3 lands."""
+"""`touchroller simulate SCENE --out BAG`: render a scene to a rosbag2 recording plus its ground truth."""
 from __future__ import annotations
 
 import argparse
+import time
+from pathlib import Path
+from typing import Any
 
 from touchroller_bringup.errors import UserError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("simulate", help="(not implemented yet: issue 3)")
+    parser = subparsers.add_parser(
+        "simulate", help="render a simulated scene to a bag (+ ground truth)",
+        description="Render a scene from config/scenes (or a scene YAML path) to a rosbag2 recording of "
+                    "/touchroller/image_raw, with BAG/ground_truth.yaml, BAG/camera_truth.yaml and "
+                    "BAG/camera_paper.yaml. Deterministic for a seed.")
+    parser.add_argument("scene", help="scene name (e.g. surface_mapping) or path to a scene YAML")
+    parser.add_argument("--out", required=True, type=Path, help="output bag folder (must not exist)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3")
+    parser.add_argument("--variant", help="a variant the scene defines (e.g. slow, medium, fast, paper)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a scene value, dotted keys, YAML values (e.g. motion.duration=5)")
+    parser.add_argument("--topic", default="/touchroller/image_raw")
     parser.set_defaults(func=run)
 
 
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    import yaml
+
+    overrides: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise UserError(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            overrides[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError:
+            raise UserError(f"--set {key}: value {value!r} is not valid YAML") from None
+    return overrides
+
+
 def run(args: argparse.Namespace) -> int:
-    raise UserError("'touchroller simulate' is not implemented yet (issue 3)")
+    from touchroller_bringup.bags import write_images
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+    from touchroller_driver.sim.flat_sensor import compare
+    from touchroller_driver.sim.truth import write_ground_truth
+
+    if args.out.exists():
+        raise UserError(f"output {args.out} already exists")
+    overrides = parse_overrides(args.overrides)
+    try:
+        scene = load_scene(args.scene, variant=args.variant, **overrides)
+        sensor = SimulatedSensor(scene, seed=args.seed)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise UserError(f"scene {args.scene}: {exc}") from None
+    truths: list[dict[str, Any]] = []
+    started = time.perf_counter()
+
+    def records():
+        for frame in sensor.frames():
+            truths.append(frame.truth)
+            yield frame.stamp_ns, frame.image
+
+    count = write_images(args.out, records(), topic=args.topic, storage=args.storage)
+    all_times = _all_times(scene)
+    kept = {round(t["t"], 9) for t in truths}
+    dropped = [t for t in all_times if round(t, 9) not in kept]
+    extra = {}
+    if "comparison" in scene.data:
+        extra["comparison"] = compare(scene.data["comparison"], scene.motion)
+    write_ground_truth(args.out, sensor, truths, dropped, extra)
+    elapsed = time.perf_counter() - started
+    print(f"simulate: {scene.name}{'/' + scene.data['variant'] if scene.data.get('variant') else ''}: "
+          f"{count} frames ({len(dropped)} dropped) in {elapsed:.1f} s -> {args.out} "
+          f"(+ ground_truth.yaml, camera_truth.yaml, camera_paper.yaml)")
+    return 0
+
+
+def _all_times(scene) -> list[float]:
+    from touchroller_driver.sim.scenarios import frame_count
+
+    return [k / scene.fps for k in range(frame_count(scene))]

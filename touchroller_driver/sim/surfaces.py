@@ -56,12 +56,19 @@ class Surface:
 
     def sample(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:  # noqa: N803 - world coordinates
         """Bilinear heights at world points (0 outside the grid)."""
-        mx = ((np.asarray(X) - self.x0) / self.resolution - 0.5).astype(np.float32)
-        my = ((np.asarray(Y) - self.y0) / self.resolution - 0.5).astype(np.float32)
+        mx = ((np.asarray(X, np.float64) - self.x0) / self.resolution - 0.5).astype(np.float32)
+        my = ((np.asarray(Y, np.float64) - self.y0) / self.resolution - 0.5).astype(np.float32)
         shape = mx.shape
-        out = cv2.remap(self.height, mx.reshape(-1, 1), my.reshape(-1, 1), cv2.INTER_LINEAR,
+        n = mx.size
+        cols = 1024   # cv2.remap wants both sides < 32767: sample in rows of 1024 points
+        padded = -(-n // cols) * cols
+        flat_x = np.full(padded, -1e6, np.float32)
+        flat_y = np.full(padded, -1e6, np.float32)
+        flat_x[:n] = mx.ravel()
+        flat_y[:n] = my.ravel()
+        out = cv2.remap(self.height, flat_x.reshape(-1, cols), flat_y.reshape(-1, cols), cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-        return out.reshape(shape)
+        return out.ravel()[:n].reshape(shape)
 
 
 def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface:

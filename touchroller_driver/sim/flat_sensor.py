@@ -1,0 +1,66 @@
+"""Time to cover an area with a flat GelSight (press, lift, shift) versus one roll of the TouchRoller.
+
+Every arm move is a rest-to-rest trapezoid (`touchroller_driver.motion.TrapezoidProfile`) under the
+arm's speed and acceleration limits; presses end with a slow, force-limited approach and a dwell to
+settle and capture. The paper reports 49 presses and 196 s for the GelSight against 10 s for one roll
+(8 cm x 11 cm of fabric, UR5); its per-move speeds and dwell are not given, so ours are parameters.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from touchroller_driver.motion import TrapezoidProfile
+from touchroller_driver.sim.scenarios import roll_profile
+
+DEFAULTS: dict[str, Any] = {
+    "area": [0.08, 0.11], "flat_sensor": [0.012, 0.016], "overlap": 0.0, "lift": 0.01,
+    "press_travel": 0.002, "press_speed": 0.002, "dwell": 1.0, "arm_speed": 0.1, "arm_accel": 0.5,
+}
+
+
+def presses_needed(area: float, window: float, overlap: float) -> int:
+    """Presses along one side: windows of `window` with `overlap` (fraction) covering `area`."""
+    if window <= 0 or not 0 <= overlap < 1:
+        raise ValueError("flat sensor window must be > 0 and overlap in [0, 1)")
+    if area <= window:
+        return 1
+    return 1 + math.ceil((area - window) / (window * (1.0 - overlap)) - 1e-9)
+
+
+def compare(comparison: dict[str, Any] | None, motion: dict[str, Any]) -> dict[str, Any]:
+    """Timing of the flat sensor's raster of presses and of the roller's single roll (seconds)."""
+    p = dict(DEFAULTS)
+    p.update(comparison or {})
+    (width, length), (win_w, win_l) = p["area"], p["flat_sensor"]
+    nx = presses_needed(width, win_w, p["overlap"])
+    ny = presses_needed(length, win_l, p["overlap"])
+    v, a = float(p["arm_speed"]), float(p["arm_accel"])
+    lift, travel = float(p["lift"]), float(p["press_travel"])
+    descend = TrapezoidProfile(lift - travel, v, a).duration
+    approach = TrapezoidProfile(travel, float(p["press_speed"]), a).duration
+    retract = TrapezoidProfile(lift, v, a).duration
+    step_x = win_w * (1.0 - p["overlap"])
+    step_y = win_l * (1.0 - p["overlap"])
+    shift_in_row = TrapezoidProfile(step_x, v, a).duration
+    shift_row = TrapezoidProfile(step_y, v, a).duration
+    presses = nx * ny
+    press_cycle = descend + approach + float(p["dwell"]) + retract
+    shifts = (nx - 1) * ny * shift_in_row + (ny - 1) * shift_row    # boustrophedon raster
+    flat_total = presses * press_cycle + shifts
+    roll = roll_profile(motion)
+    # The roller is lowered once, rolls once and is lifted once.
+    roller_total = descend + approach + roll.duration + retract
+    return {
+        "flat_sensor": {
+            "presses": presses, "grid": [nx, ny], "press_cycle_s": press_cycle,
+            "descend_s": descend, "approach_s": approach, "dwell_s": float(p["dwell"]), "lift_s": retract,
+            "shift_in_row_s": shift_in_row, "shift_between_rows_s": shift_row, "total_s": flat_total,
+        },
+        "touchroller": {
+            "roll_s": roll.duration, "roll_peak_speed": roll.peak_velocity, "total_s": roller_total,
+        },
+        "speedup": flat_total / roller_total,
+        "paper": {"flat_presses": 49, "flat_total_s": 196.0, "touchroller_total_s": 10.0},
+        "parameters": p,
+    }
