@@ -48,6 +48,7 @@ class DetectorConfig:
     max_contacts: int = 32
     paper_threshold: float = 8.0      # grey levels, the paper's fixed binarisation
     paper_blur: int = 5               # Gaussian kernel size of the paper's pipeline (odd)
+    paper_min_area: float = 10.0      # px^2, smallest contour the paper's pipeline keeps
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -345,7 +346,7 @@ def detect_paper(image: np.ndarray, reference: NoContactReference | None,
     contacts = []
     for contour in contours:
         m = cv2.moments(contour)
-        if m["m00"] <= 0 or m["m00"] < cfg.min_area:
+        if m["m00"] <= 0 or m["m00"] < cfg.paper_min_area:
             continue
         contacts.append(Contact(u=m["m10"] / m["m00"], v=m["m01"] / m["m00"], area=float(m["m00"]),
                                 confidence=1.0, peak_snr=float("nan")))

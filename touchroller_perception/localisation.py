@@ -193,7 +193,7 @@ def sensitivities(camera: CameraModel, point: np.ndarray) -> dict[str, float]:
 
 # --------------------------------------------------------------------------- Table II
 def _detector_for(errors: ErrorSources, references: list[np.ndarray]) -> ContactDetector:
-    config = DetectorConfig(method="paper", paper_threshold=10.0) if errors.detector == "paper" else DetectorConfig()
+    config = DetectorConfig(method="paper") if errors.detector == "paper" else DetectorConfig()
     detector = ContactDetector(config)
     detector.set_reference(references)
     return detector
@@ -207,23 +207,31 @@ def _pick(contacts: list[Contact], expected_uv: np.ndarray, gate_px: float) -> C
     return best
 
 
-def table_ii(quick: bool = True, taps: int | None = None, seed: int = 0,
+def table_ii(quick: bool = True, taps: int | None = None, seed: int = 0, source: str = "auto",
              camera: CameraModel | None = None,
              conditions: Mapping[str, ErrorSources] | None = None) -> dict[str, Any]:
     """Reproduce Table II in simulation; returns a JSON-friendly dict (see `table_ii_markdown`).
 
-    `quick` uses 3 taps per cell, else 10 (the paper does not give its count).
+    `source`: ``"sim"`` renders the simulator's ``contact_localisation`` scene (its ``exact`` and
+    ``paper`` variants carry the error sources), ``"synthetic"`` the fallback `TapRenderer`, and
+    ``"auto"`` the simulator when it is installed. `quick` uses 3 taps per cell, else 10.
     """
-    start = time.perf_counter()
-    truth_camera = camera or TABLE_II_CAMERA
+    if source not in ("auto", "sim", "synthetic"):
+        raise ValueError(f"source must be auto, sim or synthetic, got {source!r}")
     taps = taps or (3 if quick else 10)
-    conditions = dict(conditions or CONDITIONS)
-    renderer = TapRenderer(truth_camera, seed=seed)
-    rng = np.random.default_rng(seed)
-    references = [renderer.render([], rng) for _ in range(5)]
-    rows: list[dict[str, Any]] = []
-    results: dict[str, np.ndarray] = {name: np.full((5, 3, taps), np.nan) for name in conditions}
-    detected: dict[str, int] = dict.fromkeys(conditions, 0)
+    if source != "synthetic" and camera is None and conditions is None:
+        try:
+            import touchroller_driver.sim  # noqa: F401
+        except ImportError:
+            if source == "sim":
+                raise
+        else:
+            return _table_ii_sim(taps, seed)
+    return _table_ii_synthetic(taps, seed, camera, conditions)
+
+
+def _empty_rows(truth_camera: CameraModel) -> list[dict[str, Any]]:
+    rows = []
     for i, alpha in enumerate(TABLE_II_ALPHAS):
         for j, fraction in enumerate(TABLE_II_FRACTIONS):
             x = (fraction - 0.5) * truth_camera.length
@@ -232,40 +240,137 @@ def table_ii(quick: bool = True, taps: int | None = None, seed: int = 0,
                          "paper_mean_mm": float(PAPER_TABLE_II_MEAN[i, j]),
                          "paper_std_mm": float(PAPER_TABLE_II_STD[i, j]),
                          "sensitivity": sensitivities(truth_camera, nominal)})
-    for name, errors in conditions.items():
-        calibrated = truth_camera.replace(theta=truth_camera.theta + errors.theta_error,
-                                          d=truth_camera.d + errors.d_error)
-        detector = _detector_for(errors, references)
+    return rows
+
+
+def _cell_index(alpha: float, fraction: float) -> tuple[int, int]:
+    i = int(np.argmin([abs(alpha - a) for a in TABLE_II_ALPHAS]))
+    j = int(np.argmin([abs(fraction - f) for f in TABLE_II_FRACTIONS]))
+    return i, j
+
+
+def _summarise(rows: list[dict[str, Any]], errors: Mapping[str, list[list[list[float]]]],
+               expected: Mapping[str, int], described: Mapping[str, dict[str, Any]]) -> dict[str, Any]:
+    summary: dict[str, Any] = {}
+    for name, cells in errors.items():
+        means = np.full((5, 3), np.nan)
+        everything: list[float] = []
+        for r, row in enumerate(rows):
+            i, j = divmod(r, 3)
+            cell = np.asarray(cells[i][j], dtype=np.float64)
+            row[name] = {"mean_mm": float(cell.mean()) if cell.size else float("nan"),
+                         "std_mm": float(cell.std()) if cell.size else float("nan"), "n": int(cell.size)}
+            if cell.size:
+                means[i, j] = cell.mean()
+                everything.extend(cell.tolist())
+        summary[name] = {
+            "mean_mm": float(np.mean(everything)) if everything else float("nan"),
+            "max_cell_mean_mm": float(np.nanmax(means)) if np.isfinite(means).any() else float("nan"),
+            "centre_mean_mm": float(means[2, 1]), "detected": len(everything), "taps": int(expected[name]),
+            "errors": described[name],
+        }
+    summary["paper"] = {"mean_mm": float(PAPER_TABLE_II_MEAN.mean()), "centre_mean_mm": 2.63}
+    return summary
+
+
+def _new_cells() -> list[list[list[float]]]:
+    return [[[] for _ in TABLE_II_FRACTIONS] for _ in TABLE_II_ALPHAS]
+
+
+#: Simulator conditions: (scene variant, detector). The `paper` variant's error sizes are the scene's.
+SIM_CONDITIONS = {
+    "exact": ("exact", "colour"),
+    "paper_detector": ("exact", "paper"),
+    "error_sources": ("paper", "colour"),
+    "error_sources_paper_detector": ("paper", "paper"),
+}
+
+
+def _table_ii_sim(taps: int, seed: int) -> dict[str, Any]:
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+
+    start = time.perf_counter()
+    errors: dict[str, list[list[list[float]]]] = {}
+    expected: dict[str, int] = {}
+    described: dict[str, dict[str, Any]] = {}
+    rows: list[dict[str, Any]] | None = None
+    scene_info: dict[str, Any] = {}
+    for name, (variant, method) in SIM_CONDITIONS.items():
+        scene = load_scene("contact_localisation", variant=variant, **{"motion.repeats": taps})
+        sensor = SimulatedSensor(scene, seed=seed)
+        truth_camera, calibrated = scene.camera, scene.paper_camera
+        if rows is None:
+            rows = _empty_rows(truth_camera)
+        reference_count = int(scene.motion.get("reference_frames", 5))
+        config = DetectorConfig(method="paper") if method == "paper" else DetectorConfig()
+        detector = ContactDetector(config, reference_frames=reference_count)
+        cells, count = _new_cells(), 0
+        for frame in sensor.frames():
+            found = detector.process(frame.image)
+            if frame.truth.get("phase") != "tap":
+                continue
+            for truth in frame.truth["contacts"]:
+                pixel = np.asarray(truth["pixel"], dtype=np.float64)
+                if not np.isfinite(pixel).all() or not truth_camera.in_image(pixel, margin=5):
+                    continue
+                count += 1
+                contact = _pick(found or [], pixel, gate_px=25.0)
+                if contact is None:
+                    continue
+                point, valid = calibrated.back_project(np.array([contact.u, contact.v]))
+                if valid:
+                    i, j = _cell_index(truth["alpha"], truth["position_fraction"])
+                    cells[i][j].append(1e3 * float(np.linalg.norm(point - np.asarray(truth["point"]))))
+        errors[name], expected[name] = cells, count
+        cal_err = scene.data.get("calibration_error") or {}
+        described[name] = {"detector": method, "variant": variant,
+                           "theta_error": float(cal_err.get("theta", 0.0)), "d_error": float(cal_err.get("d", 0.0)),
+                           "thickness_amplitude": float(scene.sensor.get("thickness_variation", 0.0)),
+                           "noise_sigma": float(scene.effect_params("noise").get("sigma", 0.0))
+                           if "noise" in scene.effects else 0.0}
+        scene_info = {"camera": truth_camera.to_params(), "effects": list(scene.effects)}
+    assert rows is not None
+    summary = _summarise(rows, errors, expected, described)
+    return {"rows": rows, "summary": summary, "taps_per_cell": taps, "seed": seed,
+            "source": "touchroller_driver.sim scene contact_localisation (variants exact, paper)",
+            "camera": scene_info["camera"], "effects": scene_info["effects"],
+            "seconds": time.perf_counter() - start}
+
+
+def _table_ii_synthetic(taps: int, seed: int, camera: CameraModel | None,
+                        conditions: Mapping[str, ErrorSources] | None) -> dict[str, Any]:
+    start = time.perf_counter()
+    truth_camera = camera or TABLE_II_CAMERA
+    conditions = dict(conditions or CONDITIONS)
+    renderer = TapRenderer(truth_camera, seed=seed)
+    rng = np.random.default_rng(seed)
+    references = [renderer.render([], rng) for _ in range(5)]
+    rows = _empty_rows(truth_camera)
+    errors: dict[str, list[list[list[float]]]] = {}
+    expected: dict[str, int] = {}
+    for name, sources in conditions.items():
+        calibrated = truth_camera.replace(theta=truth_camera.theta + sources.theta_error,
+                                          d=truth_camera.d + sources.d_error)
+        detector = _detector_for(sources, references)
+        cells, count = _new_cells(), 0
         for i, alpha in enumerate(TABLE_II_ALPHAS):
             for j, fraction in enumerate(TABLE_II_FRACTIONS):
                 x = (fraction - 0.5) * truth_camera.length
-                truth = true_tap_point(truth_camera, x, alpha, errors.thickness_amplitude)
+                truth = true_tap_point(truth_camera, x, alpha, sources.thickness_amplitude)
                 uv, ok = truth_camera.project(truth)
                 if not ok or not truth_camera.in_image(uv, margin=10):
                     continue
-                for k in range(taps):
-                    frame = renderer.render([uv], rng)
-                    contact = _pick(detector.detect(frame), uv, gate_px=40.0)
+                for _ in range(taps):
+                    count += 1
+                    contact = _pick(detector.detect(renderer.render([uv], rng)), uv, gate_px=40.0)
                     if contact is None:
                         continue
                     point, valid = calibrated.back_project(np.array([contact.u, contact.v]))
                     if valid:
-                        results[name][i, j, k] = 1e3 * float(np.linalg.norm(point - truth))
-                        detected[name] += 1
-    summary: dict[str, Any] = {}
-    for name, errors in results.items():
-        cell_mean = np.nanmean(errors, axis=2) if np.isfinite(errors).any() else np.full((5, 3), np.nan)
-        for r, row in enumerate(rows):
-            i, j = divmod(r, 3)
-            cell = errors[i, j][np.isfinite(errors[i, j])]
-            row[name] = {"mean_mm": float(cell.mean()) if cell.size else float("nan"),
-                         "std_mm": float(cell.std()) if cell.size else float("nan"), "n": int(cell.size)}
-        summary[name] = {
-            "mean_mm": float(np.nanmean(errors)), "max_cell_mean_mm": float(np.nanmax(cell_mean)),
-            "centre_mean_mm": float(cell_mean[2, 1]), "detected": detected[name],
-            "taps": int(errors.size), "errors": dataclasses.asdict(conditions[name]),
-        }
-    summary["paper"] = {"mean_mm": float(PAPER_TABLE_II_MEAN.mean()), "centre_mean_mm": 2.63}
+                        cells[i][j].append(1e3 * float(np.linalg.norm(point - truth)))
+        errors[name], expected[name] = cells, count
+    described = {name: dataclasses.asdict(sources) for name, sources in conditions.items()}
+    summary = _summarise(rows, errors, expected, described)
     return {"rows": rows, "summary": summary, "taps_per_cell": taps, "seed": seed,
             "source": "touchroller_perception.localisation.TapRenderer",
             "camera": truth_camera.to_params(), "rendering": dataclasses.asdict(renderer.settings),
@@ -311,18 +416,22 @@ def table_ii_markdown(result: Mapping[str, Any], command: str = "") -> str:
 
 def _describe(errors: Mapping[str, Any]) -> str:
     parts = [f"detector `{errors['detector']}`"]
+    if errors.get("variant"):
+        parts.append(f"scene variant `{errors['variant']}`")
     if errors["theta_error"]:
         parts.append(f"theta error {math.degrees(errors['theta_error']):.2f} deg")
     if errors["d_error"]:
         parts.append(f"d error {errors['d_error'] * 1e3:.2f} mm")
     if errors["thickness_amplitude"]:
         parts.append(f"elastomer thickness ±{errors['thickness_amplitude'] * 1e3:.2f} mm")
-    if len(parts) == 1:
-        parts.append("exact calibration, sensor noise only")
+    if errors.get("noise_sigma"):
+        parts.append(f"sensor noise std {errors['noise_sigma']:g} grey levels")
+    if not (errors["theta_error"] or errors["d_error"] or errors["thickness_amplitude"]):
+        parts.append("exact calibration, uniform elastomer")
     return ", ".join(parts)
 
 
-def write_table_ii(path: str | Path, quick: bool = False, command: str = "") -> dict[str, Any]:
-    result = table_ii(quick=quick)
+def write_table_ii(path: str | Path, quick: bool = False, command: str = "", source: str = "auto") -> dict[str, Any]:
+    result = table_ii(quick=quick, source=source)
     Path(path).write_text(table_ii_markdown(result, command), encoding="utf-8")
     return result

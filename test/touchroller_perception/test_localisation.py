@@ -81,3 +81,15 @@ def test_table_ii_exact_calibration_is_sub_quarter_millimetre():
     text = table_ii_markdown(result, command="pytest")
     assert text.count("| pi/6 |") == 3 + 3          # error table rows + sensitivity rows
     assert "2.63 ± 0.74" in text
+
+
+def test_table_ii_on_the_simulator_scene():
+    pytest.importorskip("touchroller_driver.sim")
+    result = table_ii(taps=1, source="sim")
+    summary = result["summary"]
+    assert "contact_localisation" in result["source"]
+    assert summary["exact"]["detected"] == summary["exact"]["taps"] > 0
+    assert summary["exact"]["mean_mm"] < 0.25
+    # the scene's paper variant: 1 deg of theta alone costs ~0.87 mm, so the error must show it
+    assert summary["error_sources"]["mean_mm"] > 0.5
+    assert summary["paper_detector"]["mean_mm"] > 5 * summary["exact"]["mean_mm"]
