@@ -1,15 +1,25 @@
-"""`touchroller report`: placeholder until issue 8 lands."""
+"""`touchroller report [--quick] [--out docs/RESULTS.md]`: regenerate the evidence report."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from touchroller_bringup.errors import UserError
+from touchroller_bringup.paths import checkout_dir
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("report", help="(not implemented yet: issue 8)")
+    parser = subparsers.add_parser(
+        "report", help="regenerate docs/RESULTS.md: the paper's tables, what accuracy costs in time, speed figures",
+        description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="CI-sized runs (minutes); the default is the full run")
+    parser.add_argument("--out", type=Path, default=None, help="report file (default: docs/RESULTS.md in the checkout)")
+    parser.add_argument("--only", nargs="+", default=(), metavar="SECTION", help="only these sections")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    raise UserError("'touchroller report' is not implemented yet (issue 8)")
+    from touchroller_bringup.report import build_report
+
+    out = args.out or checkout_dir() / "docs" / "RESULTS.md"
+    build_report(out, quick=args.quick, only=tuple(args.only))
+    return 0
