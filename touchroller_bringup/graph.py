@@ -187,14 +187,15 @@ def _config_file(name: str) -> Path:
         return Path(__file__).resolve().parent.parent / "config" / name
 
 
-def _params_files(args: Mapping[str, str]) -> tuple[str, ...]:
+def _params_files(args: Mapping[str, str], extra: Sequence[str | Path] = ()) -> tuple[str, ...]:
     files = [str(_config_file(name)) for name in DEFAULT_PARAMS_FILES if _config_file(name).is_file()]
-    for key in ("params_file", "calibration_file"):
-        if args.get(key):
-            path = Path(args[key]).expanduser()
-            if not path.is_file():
-                raise GraphError(f"{key}:={args[key]} does not exist")
-            files.append(str(path.resolve()))
+    given = [("params file", p) for p in extra]
+    given += [(key, args[key]) for key in ("params_file", "calibration_file") if args.get(key)]
+    for what, name in given:
+        path = Path(name).expanduser()
+        if not path.is_file():
+            raise GraphError(f"{what} {name} does not exist")
+        files.append(str(path.resolve()))
     return tuple(files)
 
 
@@ -202,10 +203,15 @@ def _device(text: str) -> str:
     return text  # the camera node takes an index or a path as a string
 
 
-def build_graph(launch: str, values: Mapping[str, str] | None = None) -> Graph:
-    """The nodes of `launch` ("scan", "calibrate", "replay") for these launch-argument values."""
+def build_graph(launch: str, values: Mapping[str, str] | None = None,
+                extra_params_files: Sequence[str | Path] = ()) -> Graph:
+    """The nodes of `launch` ("scan", "calibrate", "replay") for these launch-argument values.
+
+    `extra_params_files` (e.g. `touchroller scan a.yaml b.yaml`) come after the package defaults and
+    before `params_file` and `calibration_file`.
+    """
     args = resolve_arguments(launch, values)
-    files = _params_files(args)
+    files = _params_files(args, extra_params_files)
     use_sim = args.get("use_sim") == "true"
 
     def spec(role: tuple[str, str, str], key: str, parameters: Mapping[str, Any],

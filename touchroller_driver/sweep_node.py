@@ -132,7 +132,7 @@ class SweepNode(Node):
         declare(self, "sweep.length", 0.11, "Length of the roll along sweep.direction, m", min=0.0, max=1.0)
         declare(self, "sweep.speed", 0.011, "Roll speed, m/s (paper: 11 cm in 10 s)", min=1e-4, max=1.0)
         declare(self, "sweep.accel", 0.1, "Acceleration of every move, m/s^2", min=1e-3, max=5.0)
-        declare(self, "sweep.depth", 0.001, "How far the roller is pressed into the surface, m", min=0.0, max=0.01)
+        declare(self, "sweep.depth", 0.0005, "How far the roller is pressed into the surface, m", min=0.0, max=0.01)
         declare(self, "sweep.approach_speed", 0.005, "Speed to the start pose, pressing and lifting, m/s",
                 min=1e-4, max=1.0)
         declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),

@@ -72,7 +72,7 @@ def test_user_files_follow_the_defaults(tmp_path):
     ("scan", {"sweep_length": "fast"}, "not a number"),
     ("scan", {"sweep_speed": "nan"}, "sweep_speed"),
     ("scan", {"robot": "1.2.3.4"}, "unknown scan argument"),
-    ("scan", {"params_file": "/nonexistent/p.yaml"}, "does not exist"),
+    ("scan", {"params_file": "/nonexistent/p.yaml"}, "params_file /nonexistent/p.yaml does not exist"),
     ("replay", {}, "bag is required"),
     ("replay", {"bag": "b", "rate": "-1"}, "rate"),
     ("nope", {}, "unknown launch"),

@@ -1,15 +1,88 @@
-"""`touchroller scan`: placeholder until issue 7 lands."""
+"""`touchroller scan [params.yaml ...] [name:=value ...] [--out DIR]`: the scan graph in one process.
+
+`name:=value` sets a launch argument of scan.launch.py when `name` is one (use_sim, camera_device,
+robot_ip, params_file, calibration_file, sweep_speed, sweep_length, scene), else a ROS parameter on
+every node of the graph that declares it (e.g. `sweep.depth:=0.0008`, `map.publish_rate:=5.0`).
+With no arguments: the simulated sensor and arm over the built-in `surface_mapping` scene.
+"""
 from __future__ import annotations
 
 import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
 
 from touchroller_bringup.errors import UserError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("scan", help="(not implemented yet: issue 7)")
+    parser = subparsers.add_parser(
+        "scan", help="run the whole graph (camera, perception, sweep) in one process; write map, contacts, report",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    parser.add_argument("items", nargs="*", metavar="PARAMS.yaml | name:=value",
+                        help="params files (applied after config/touchroller.yaml and config/scan.yaml, in order) "
+                             "and launch arguments or parameter overrides")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="output folder (default: scan_output/<UTC timestamp>/)")
+    parser.add_argument("--seed", type=int, default=0, help="simulator random seed (use_sim:=true)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
     parser.set_defaults(func=run)
 
 
+def parse_items(items: list[str]) -> tuple[list[Path], dict[str, str], dict[str, Any]]:
+    """Split CLI items into params files, launch arguments and parameter overrides."""
+    from touchroller_bringup.graph import LAUNCH_ARGUMENTS
+
+    launch_names = {arg.name for arg in LAUNCH_ARGUMENTS["scan"]}
+    files: list[Path] = []
+    arguments: dict[str, str] = {}
+    overrides: dict[str, Any] = {}
+    for item in items:
+        if ":=" in item:
+            name, _, text = item.partition(":=")
+            name = name.strip()
+            if not name:
+                raise UserError(f"{item!r}: expected name:=value")
+            if name in launch_names:
+                arguments[name] = text
+            else:
+                overrides[name] = _parse_value(name, text)
+        else:
+            path = Path(item)
+            if not path.is_file():
+                raise UserError(f"{item}: not a params file (and not name:=value)")
+            files.append(path)
+    return files, arguments, overrides
+
+
+def _parse_value(name: str, text: str) -> Any:
+    """YAML scalars and lists, as `ros2 run ... -p name:=value` reads them."""
+    try:
+        value = yaml.safe_load(text) if text.strip() else ""
+    except yaml.YAMLError as exc:
+        raise UserError(f"{name}:={text}: not a YAML value ({' '.join(str(exc).split())})") from None
+    if isinstance(value, dict) or value is None:
+        raise UserError(f"{name}:={text}: expected a number, string, boolean or list")
+    if isinstance(value, list) and value and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                  for v in value):
+        if any(isinstance(v, float) for v in value):
+            value = [float(v) for v in value]  # ROS double arrays: [1, 0.5] means [1.0, 0.5]
+    return value
+
+
 def run(args: argparse.Namespace) -> int:
-    raise UserError("'touchroller scan' is not implemented yet (issue 7)")
+    from touchroller_bringup.scan import ScanOptions, run_scan
+
+    files, arguments, overrides = parse_items(args.items)
+    out = args.out or Path("scan_output") / time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    progress = None if args.quiet else (lambda line: print(line, flush=True))
+    result = run_scan(ScanOptions(out_dir=out, arguments=arguments, params_files=files, overrides=overrides,
+                                  seed=args.seed, progress=progress))
+    map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
+    print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
+          f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")
+    if not result.ok:
+        raise UserError(f"the sweep ended in {result.outcome}: {result.message} (outputs in {result.out_dir}/)")
+    return 0

@@ -1,0 +1,375 @@
+"""`touchroller scan` in one process: the scan graph of `graph.py` on a multi-threaded executor.
+
+The same nodes, names, params files and overrides as `scan.launch.py`. With `use_sim` (the default)
+one `SimulatedArm` is shared: the sweep node moves it, and the camera node's simulated source renders
+the state it reports at each capture time, so the images follow the sweep exactly. The runner waits
+for the perception node's no-contact reference, calls the sweep node's `~/start` service (the same
+call a user makes), prints progress, and when the sweep ends writes to the output folder:
+
+- `map.png`: the last tactile map published on `/touchroller/map`;
+- `contacts.csv`: every `/touchroller/contacts` point, columns of `touchroller contacts`
+  (u, v re-projected through the perception node's camera model; area/confidence/peak_snr are not
+  carried by PointStamped and are `nan`);
+- `report.md`: duration, frames, contacts, map size, skipped/dropped frames, the sweep's outcome.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from touchroller_bringup.errors import UserError
+from touchroller_bringup.graph import Graph, GraphError, build_graph
+
+IMAGE_TOPIC = "/touchroller/image_raw"
+CONTACTS_TOPIC = "/touchroller/contacts"
+MAP_TOPIC = "/touchroller/map"
+PROGRESS_TOPIC = "/touchroller/sweep_progress"
+
+
+@dataclass
+class ScanOptions:
+    out_dir: Path
+    arguments: Mapping[str, str] = field(default_factory=dict)   # scan launch arguments (use_sim, ...)
+    params_files: Sequence[Path] = ()
+    overrides: Mapping[str, Any] = field(default_factory=dict)   # ROS parameters for every node declaring them
+    reference_timeout_s: float = 30.0
+    seed: int = 0
+    progress: Callable[[str], None] | None = print
+
+
+@dataclass
+class ScanResult:
+    out_dir: Path
+    outcome: str            # done, stopped, fault, timeout
+    message: str
+    duration_s: float
+    frames_published: int
+    frames_processed: int
+    frames_dropped: int
+    frames_malformed: int
+    contacts: int
+    map_shape: tuple[int, ...] | None
+    files: dict[str, Path]
+
+    @property
+    def ok(self) -> bool:
+        return self.outcome == "done"
+
+
+@dataclass
+class _Collected:
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    frames: int = 0
+    contacts: list[tuple[int, float, float, float]] = field(default_factory=list)
+    map_msg: Any = None
+    progress: float = 0.0
+
+
+def run_scan(options: ScanOptions) -> ScanResult:
+    """Run the scan graph until the sweep ends; write map, contacts and report to `options.out_dir`."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import MultiThreadedExecutor
+
+    try:
+        graph = build_graph("scan", options.arguments, options.params_files)
+        classes = {spec.key: spec.load_class() for spec in graph.nodes}
+    except GraphError as exc:
+        raise UserError(str(exc)) from None
+    say = options.progress or (lambda _text: None)
+    out_dir = Path(options.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    context = Context()
+    rclpy.init(context=context)
+    nodes: list[Any] = []
+    executor = MultiThreadedExecutor(num_threads=4, context=context)
+    spinner: threading.Thread | None = None
+    try:
+        sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
+        probe, collected, start_client = _make_probe(context, nodes)
+        for node in nodes:
+            executor.add_node(node)
+        spinner = threading.Thread(target=executor.spin, name="scan-executor", daemon=True)
+        spinner.start()
+        say(f"scan: graph up ({', '.join(n.get_name() for n in nodes[:-1])}); "
+            f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
+        _wait_for_reference(perception, sweep, collected, options.reference_timeout_s)
+        started = time.monotonic()
+        _call_start(start_client, sweep)
+        outcome, message = _follow_sweep(sweep, collected, say)
+        duration = time.monotonic() - started
+        time.sleep(0.3)  # let the last frames through perception
+        _flush_map(perception, collected)
+        return _write_outputs(out_dir, graph, perception, collected, outcome, message, duration)
+    except KeyboardInterrupt:
+        for node in nodes:
+            if hasattr(node, "request_stop"):
+                node.request_stop()
+        raise
+    finally:
+        executor.shutdown(timeout_sec=2.0)
+        for node in reversed(nodes):
+            node.destroy_node()
+        if spinner is not None:
+            spinner.join(timeout=2.0)
+        context.try_shutdown()
+
+
+# -- building the graph ---------------------------------------------------------------------------
+
+def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options: ScanOptions,
+                nodes: list[Any]) -> tuple[Any, Any, Any]:
+    from rclpy.exceptions import ParameterException
+
+    def create(key: str, **extra: Any) -> Any:
+        spec = graph.node(key)
+        try:
+            node = classes[key](context=context, **extra, **spec.node_kwargs(options.overrides))
+        except ParameterException as exc:
+            raise UserError(f"{spec.name}: {exc}") from None
+        nodes.append(node)
+        return node
+
+    sweep = create("sweep")
+    if graph.arguments["use_sim"] == "true":
+        from touchroller_driver.sim import SimulatedSensor, load_scene
+        from touchroller_driver.sim.scenarios import roll_extent
+        from touchroller_driver.sources import SimulatedSource
+
+        try:
+            scene = load_scene(graph.arguments["scene"])
+        except (OSError, ValueError, KeyError) as exc:
+            raise UserError(f"scene {graph.arguments['scene']!r}: {exc}") from None
+        sensor = SimulatedSensor(scene, seed=options.seed)
+        arm = sweep.arm
+        arm.travel_origin, _, arm.x_along_origin = roll_extent(scene)
+        source = SimulatedSource(sensor, clock=arm.clock, state_at=arm.roller_state)
+        camera = create("camera", source=source)
+    else:
+        camera = create("camera")
+    perception = create("perception")
+    _check_overrides(options.overrides, nodes)
+    return sweep, camera, perception
+
+
+def _check_overrides(overrides: Mapping[str, Any], nodes: Sequence[Any]) -> None:
+    unknown = [name for name in overrides if not any(node.has_parameter(name) for node in nodes)]
+    if unknown:
+        raise UserError(f"no node of the scan graph has parameter(s) {', '.join(unknown)}")
+
+
+def _make_probe(context: Any, nodes: list[Any]) -> tuple[Any, _Collected, Any]:
+    from geometry_msgs.msg import PointStamped
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Float32
+
+    from touchroller_driver.sweep_node import trigger_service_type
+
+    probe = Node("touchroller_scan", context=context)
+    nodes.append(probe)
+    collected = _Collected()
+
+    def on_frame(_raw: bytes) -> None:
+        with collected.lock:
+            collected.frames += 1
+
+    def on_contact(msg: PointStamped) -> None:
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        with collected.lock:
+            collected.contacts.append((stamp_ns, msg.point.x, msg.point.y, msg.point.z))
+
+    def on_map(msg: Image) -> None:
+        with collected.lock:
+            collected.map_msg = msg
+
+    def on_progress(msg: Float32) -> None:
+        collected.progress = float(msg.data)
+
+    reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    probe.create_subscription(Image, IMAGE_TOPIC, on_frame, reliable, raw=True)  # count only: no decoding
+    probe.create_subscription(PointStamped, CONTACTS_TOPIC, on_contact, QoSProfile(depth=1000))
+    probe.create_subscription(Image, MAP_TOPIC, on_map, latched)
+    probe.create_subscription(Float32, PROGRESS_TOPIC, on_progress, 10)
+    service_type, _ = trigger_service_type()
+    start_client = probe.create_client(service_type, "/touchroller_sweep/start")
+    return probe, collected, start_client
+
+
+# -- running ----------------------------------------------------------------------------------------
+
+def _wait_for_reference(perception: Any, sweep: Any, collected: _Collected, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = sweep.status
+        if status.phase.value == "fault":
+            raise UserError(f"arm: {status.message}")
+        detector = getattr(perception, "detector", None)
+        ready = detector.reference_ready if detector is not None else collected.frames >= 5
+        if ready:
+            return
+        time.sleep(0.05)
+    raise UserError(f"no usable camera frames within {timeout:.0f} s ({collected.frames} received)")
+
+
+def _call_start(client: Any, sweep: Any) -> None:
+    if not client.wait_for_service(timeout_sec=5.0):
+        raise UserError("the sweep node's ~/start service is not available")
+    future = client.call_async(client.srv_type.Request())
+    deadline = time.monotonic() + 10.0
+    while not future.done() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    if not future.done():
+        raise UserError("the sweep node did not answer ~/start")
+    response = future.result()
+    if not response.success:
+        raise UserError(f"sweep refused to start: {getattr(response, 'message', '') or sweep.status.message}")
+
+
+def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None]) -> tuple[str, str]:
+    plan = sweep.sequencer.plan
+    durations = 0.0
+    if plan is not None:
+        from touchroller_driver.motion import TrapezoidProfile
+
+        position = np.asarray(sweep.arm.tcp_pose(), dtype=np.float64)
+        for segment in plan.segments:
+            distance = float(np.linalg.norm(segment.target[:3] - position[:3]))
+            durations += TrapezoidProfile(distance, segment.speed, segment.accel).duration
+            position = segment.target
+    deadline = time.monotonic() + 2.0 * durations + 20.0
+    last_report = 0.0
+    while not sweep.finished.wait(0.1):
+        now = time.monotonic()
+        if now > deadline:
+            sweep.request_stop()
+            return "timeout", f"the sweep did not end within {2.0 * durations + 20.0:.0f} s; stopped"
+        if now - last_report >= 1.0:
+            last_report = now
+            status = sweep.status
+            with collected.lock:
+                frames, contacts = collected.frames, len(collected.contacts)
+            say(f"scan: {status.phase.value:8s} {100.0 * status.roll_progress:5.1f}%  "
+                f"{frames} frames, {contacts} contacts")
+    status = sweep.status
+    say(f"scan: sweep {status.phase.value}: {status.message}")
+    return status.phase.value, status.message
+
+
+def _flush_map(perception: Any, collected: _Collected) -> None:
+    publish = getattr(perception, "publish_map", None)
+    if publish is None:
+        return
+    before = collected.map_msg
+    publish()
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        with collected.lock:
+            if collected.map_msg is not None and collected.map_msg is not before:
+                return
+        time.sleep(0.02)
+
+
+# -- outputs ----------------------------------------------------------------------------------------
+
+def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Collected, outcome: str,
+                   message: str, duration: float) -> ScanResult:
+    import cv2
+
+    from touchroller_driver.image_conversion import image_to_array
+
+    files: dict[str, Path] = {}
+    with collected.lock:
+        contacts = list(collected.contacts)
+        map_msg = collected.map_msg
+        frames = collected.frames
+    map_shape = None
+    if map_msg is not None:
+        tactile_map = image_to_array(map_msg)
+        map_shape = tuple(int(n) for n in tactile_map.shape)
+        files["map"] = out_dir / "map.png"
+        if not cv2.imwrite(str(files["map"]), tactile_map):
+            raise UserError(f"cannot write {files['map']}")
+    files["contacts"] = out_dir / "contacts.csv"
+    _write_contacts(files["contacts"], contacts, getattr(perception, "camera", None),
+                    float(_parameter(perception, "contacts.pixel_sigma", 0.3)))
+    processed = int(getattr(perception, "received", 0))
+    result = ScanResult(out_dir, outcome, message, duration, frames, processed,
+                        int(getattr(perception, "dropped", 0)), int(getattr(perception, "malformed", 0)),
+                        len(contacts), map_shape, files)
+    files["report"] = out_dir / "report.md"
+    files["report"].write_text(_report(result, graph), encoding="utf-8")
+    return result
+
+
+def _parameter(node: Any, name: str, default: Any) -> Any:
+    return node.get_parameter(name).value if node.has_parameter(name) else default
+
+
+def _write_contacts(path: Path, contacts: Sequence[tuple[int, float, float, float]], camera: Any,
+                    pixel_sigma: float) -> None:
+    from touchroller_bringup.commands.contacts import COLUMNS
+
+    points = np.array([c[1:] for c in contacts], dtype=np.float64).reshape(-1, 3)
+    if camera is not None and len(points):
+        uv, valid = camera.project(points)
+        uv = np.where(valid[:, None], uv, np.nan)
+        covariance = camera.contact_covariance(uv, pixel_sigma=pixel_sigma)
+        variances = np.diagonal(covariance, axis1=-2, axis2=-1)
+    else:
+        uv = np.full((len(points), 2), np.nan)
+        variances = np.full((len(points), 3), np.nan)
+    with open(path, "w", newline="", encoding="utf-8") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(COLUMNS)
+        for (stamp_ns, *_), (u, v), point, var in zip(contacts, uv, points, variances, strict=True):
+            row = [stamp_ns, _f(u), _f(v), *(_f(p, "%.9g") for p in point), "nan", "nan", "nan",
+                   *(_f(x, "%.6g") for x in var)]
+            writer.writerow(row[:len(COLUMNS)])
+
+
+def _f(value: float, fmt: str = "%.4f") -> str:
+    value = float(value)
+    return fmt % value if math.isfinite(value) else "nan"
+
+
+def _report(result: ScanResult, graph: Graph) -> str:
+    skipped = max(result.frames_published - result.frames_processed, 0)
+    rate = result.frames_published / result.duration_s if result.duration_s > 0 else float("nan")
+    lines = [
+        "# TouchRoller scan report",
+        "",
+        f"- outcome: **{result.outcome}** ({result.message})",
+        f"- sweep duration: {result.duration_s:.2f} s (from ~/start to the end of the sweep)",
+        f"- frames published by the camera: {result.frames_published} ({rate:.1f} Hz)",
+        f"- frames processed by perception: {result.frames_processed} ({skipped} not processed: its "
+        f"keep-last depth-1 queue skips stale frames when it is busy); publication-sequence gaps it "
+        f"counted as dropped: {result.frames_dropped}; malformed: {result.frames_malformed}",
+        f"- contacts: {result.contacts}",
+        f"- map: {'x'.join(str(n) for n in result.map_shape) + ' px' if result.map_shape else 'none published'}",
+        "",
+        "## Graph",
+        "",
+        "| node | parameters from the graph |",
+        "|---|---|",
+        *(f"| {spec.name} | {', '.join(f'{k}={v}' for k, v in spec.parameters.items()) or '-'} |"
+          for spec in graph.nodes),
+        "",
+        f"Launch arguments: {', '.join(f'{k}:={v}' for k, v in graph.arguments.items() if v)}",
+        "",
+        "Params files, in order: " + ", ".join(f"`{f}`" for f in graph.nodes[0].params_files),
+        "",
+    ]
+    return "\n".join(lines)
