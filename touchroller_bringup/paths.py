@@ -17,7 +17,7 @@ def share_dir() -> Path:
     else:
         try:
             return Path(get_package_share_directory(PACKAGE))
-        except (PackageNotFoundError, ValueError, LookupError):
+        except (PackageNotFoundError, LookupError, ValueError, OSError):  # OSError: AMENT_PREFIX_PATH unset
             pass
     prefix_share = Path(sys.prefix) / "share" / PACKAGE
     if (prefix_share / "config").is_dir():
