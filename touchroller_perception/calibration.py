@@ -82,11 +82,12 @@ def _image_size(images: Sequence[np.ndarray]) -> tuple[int, int]:
 # =========================================================================== intrinsics
 @dataclasses.dataclass(frozen=True)
 class Chessboard:
-    """A planar chessboard: `columns` x `rows` INNER corners (a 7x7-square board has 6x6), square in m."""
+    """A planar chessboard: `columns` x `rows` INNER corners (OpenCV's convention), square side in m.
+    Defaults: the simulator's `calibration_chessboard` (7x7 inner corners, 12 mm squares)."""
 
-    columns: int = 6
-    rows: int = 6
-    square: float = 0.01
+    columns: int = 7
+    rows: int = 7
+    square: float = 0.012
 
     def __post_init__(self) -> None:
         if self.columns < 2 or self.rows < 2:
@@ -299,18 +300,18 @@ class HemisphereFrame:
     """The paper's 3D-printed frame: `rows` x `columns` hemispheres on a flat plate.
 
     Columns run along the roller axis (x), rows across it (y, the rolling direction); `pitch_x`
-    and `pitch_y` are centre distances in metres. The frame is centred below the axis
-    (`offset_x`, `offset_y` move it if your jig does not). Defaults: 2 rows x 5 columns,
-    8 mm x 6 mm pitch, 1 mm hemispheres (the paper gives the layout and radius, not the pitch).
+    and `pitch_y` are centre distances in metres. The plate lies under the roller, the hemispheres
+    pressed `press_depth` into the membrane at y = 0. Defaults match the simulator's
+    `calibration_hemispheres` scene: 2 rows x 5 columns, 10 mm x 8 mm pitch, 1 mm hemispheres
+    (the paper gives the layout and the radius, not the pitch).
     """
 
     rows: int = 2
     columns: int = 5
-    pitch_x: float = 0.008
-    pitch_y: float = 0.006
+    pitch_x: float = 0.010
+    pitch_y: float = 0.008
     hemisphere_radius: float = 0.001
-    offset_x: float = 0.0
-    offset_y: float = 0.0
+    press_depth: float = 0.0005
 
     def __post_init__(self) -> None:
         if self.rows < 1 or self.columns < 1 or self.rows * self.columns < 4:
@@ -318,23 +319,39 @@ class HemisphereFrame:
         if self.rows < 2 or self.columns < 2:
             raise CalibrationError(f"the frame's {self.rows}x{self.columns} hemispheres are collinear: "
                                    "the pose solve needs at least 2 rows and 2 columns")
-        if not (self.pitch_x > 0 and self.pitch_y > 0):
-            raise CalibrationError(f"frame pitches must be positive, got {self.pitch_x}, {self.pitch_y}")
+        if not (self.pitch_x > 0 and self.pitch_y > 0 and self.hemisphere_radius > 0):
+            raise CalibrationError(f"frame pitches and hemisphere radius must be positive, got "
+                                   f"{self.pitch_x}, {self.pitch_y}, {self.hemisphere_radius}")
 
     @property
     def count(self) -> int:
         return self.rows * self.columns
 
-    def reference_points(self, radius: float) -> FloatArray:
-        """Imprint centres (rows*columns, 3) in the cylinder frame, row-major: rows by increasing y,
-        columns by increasing x. A hemisphere at (x, y) presses the membrane point above it."""
-        x = (np.arange(self.columns) - 0.5 * (self.columns - 1)) * self.pitch_x + self.offset_x
-        y = (np.arange(self.rows) - 0.5 * (self.rows - 1)) * self.pitch_y + self.offset_y
-        if np.max(np.abs(y)) >= radius:
+    def layout(self) -> FloatArray:
+        """Hemisphere centres (rows*columns, 2) on the plate, row-major: rows by increasing y,
+        columns by increasing x, centred on the frame's middle."""
+        x = (np.arange(self.columns) - 0.5 * (self.columns - 1)) * self.pitch_x
+        y = (np.arange(self.rows) - 0.5 * (self.rows - 1)) * self.pitch_y
+        yy, xx = np.meshgrid(y, x, indexing="ij")
+        return np.stack([xx.ravel(), yy.ravel()], axis=-1)
+
+    def reference_points(self, radius: float, shift_x: float = 0.0, shift_y: float = 0.0,
+                         yaw: float = 0.0) -> FloatArray:
+        """Imprint centres (rows*columns, 3) in the cylinder frame for the frame placed at
+        (shift_x, shift_y) with `yaw` (rad, about z) relative to the centre below the axis.
+
+        A sphere pressed into a cylinder touches it on the line from the axis to the sphere's
+        centre, so the imprint centre is the membrane point at alpha = atan2(y, plate_z)."""
+        layout = self.layout()
+        c, s = math.cos(yaw), math.sin(yaw)
+        x = shift_x + c * layout[:, 0] - s * layout[:, 1]
+        y = shift_y + s * layout[:, 0] + c * layout[:, 1]
+        plate_z = radius + self.hemisphere_radius - self.press_depth
+        if np.max(np.abs(y)) >= 0.5 * radius:
             raise CalibrationError(f"frame rows at |y| = {np.max(np.abs(y)) * 1e3:.1f} mm do not fit under a "
                                    f"roller of radius {radius * 1e3:.1f} mm")
-        yy, xx = np.meshgrid(y, x, indexing="ij")
-        return np.stack([xx, yy, np.sqrt(radius**2 - yy**2)], axis=-1).reshape(-1, 3)
+        alpha = np.arctan2(y, plate_z)
+        return np.stack([x, radius * np.sin(alpha), radius * np.cos(alpha)], axis=-1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -343,6 +360,7 @@ class ImprintDetection:
     elongation: float                # median ratio of the blobs' principal axes (1 = round)
     found: int                       # blobs found
     reason: str | None
+    strengths: FloatArray | None = None   # integrated change of each imprint, frame order
 
 
 def find_imprints(
@@ -405,8 +423,11 @@ def find_imprints(
         return ImprintDetection(None, elongation, found,
                                 f"blurred: imprints smeared {elongation:.1f}:1 (> {max_elongation:.1f}:1); hold the roller still")
     centres = np.array([[b[1], b[2]] for b in blobs])
-    ordered, reason = _order_grid(centres, frame.rows, frame.columns, min_spread)
-    return ImprintDetection(ordered, elongation, found, reason)
+    order, reason = _order_grid(centres, frame.rows, frame.columns, min_spread)
+    if order is None:
+        return ImprintDetection(None, elongation, found, reason)
+    strengths = np.array([b[0] for b in blobs])[order]
+    return ImprintDetection(centres[order], elongation, found, None, strengths)
 
 
 def _change_magnitude(image: np.ndarray, reference: np.ndarray | None) -> NDArray[np.float32]:
@@ -432,8 +453,9 @@ def _change_magnitude(image: np.ndarray, reference: np.ndarray | None) -> NDArra
     return np.abs(array - background).sum(axis=2)
 
 
-def _order_grid(centres: FloatArray, rows: int, columns: int, min_spread: float) -> tuple[FloatArray | None, str | None]:
-    """Order blob centres row-major (rows by increasing v, columns by increasing u) using the
+def _order_grid(centres: FloatArray, rows: int, columns: int,
+                min_spread: float) -> tuple[NDArray[np.intp] | None, str | None]:
+    """The permutation ordering blob centres row-major (rows by increasing v, columns by increasing u) using the
     cloud's principal axes, so a tilted frame still sorts correctly."""
     mean = centres.mean(axis=0)
     _, singular, vt = np.linalg.svd(centres - mean, full_matrices=False)
@@ -457,7 +479,7 @@ def _order_grid(centres: FloatArray, rows: int, columns: int, min_spread: float)
         gap = np.min(row_values[1:].min(axis=1) - row_values[:-1].max(axis=1))
         if gap <= 0:
             return None, "imprints do not form the frame's grid (rows overlap)"
-    return centres[np.asarray(ordered)], None
+    return np.asarray(ordered), None
 
 
 # =========================================================================== pose per view
@@ -467,19 +489,26 @@ class ViewPose:
     theta: float            # rad, two-parameter model
     d: float                # m, two-parameter model
     rms: float              # px, two-parameter model
-    full_theta: float       # rad, full pose R = Rx(theta) Ry(beta) Rz(gamma)
+    shift_x: float          # m, the frame's placement along the axis (nuisance, solved per image)
+    yaw: float              # rad, the frame's yaw about z (nuisance, solved per image)
+    full_theta: float       # rad, full pose R = Rx(theta) Ry(beta) Rz(gamma) of the nominal frame
     beta: float             # rad
     gamma: float            # rad
     t: tuple[float, float, float]   # m, full pose translation (tx, ty, tz)
     full_rms: float         # px
     rvec: tuple[float, float, float]
+    row_strengths: tuple[float, float] = (math.nan, math.nan)   # summed imprint strength of the -y, +y rows
+    row_asymmetry: float = math.nan     # (S+ - S-) / median over the views of (S+ + S-); 0 when centred
+    frame_shift_y: float = math.nan     # m, the frame's shift along y implied by the row balance
 
     def as_dict(self) -> dict[str, float]:
         return {"index": self.index, "theta_deg": math.degrees(self.theta), "d_mm": self.d * 1e3,
-                "rms_px": self.rms, "full_theta_deg": math.degrees(self.full_theta),
+                "rms_px": self.rms, "frame_shift_x_mm": self.shift_x * 1e3, "frame_yaw_deg": math.degrees(self.yaw),
+                "full_theta_deg": math.degrees(self.full_theta),
                 "beta_deg": math.degrees(self.beta), "gamma_deg": math.degrees(self.gamma),
                 "tx_mm": self.t[0] * 1e3, "ty_mm": self.t[1] * 1e3, "tz_mm": self.t[2] * 1e3,
-                "full_rms_px": self.full_rms}
+                "full_rms_px": self.full_rms, "row_asymmetry": self.row_asymmetry,
+                "frame_shift_y_mm": self.frame_shift_y * 1e3}
 
 
 def full_pose_rotation(theta: float, beta: float, gamma: float) -> FloatArray:
@@ -487,26 +516,34 @@ def full_pose_rotation(theta: float, beta: float, gamma: float) -> FloatArray:
     return Rotation.from_euler("XYZ", [theta, beta, gamma]).as_matrix().T
 
 
-def solve_view(camera: CameraModel, object_points: FloatArray, image_points: FloatArray, index: int = 0) -> ViewPose:
-    """Two-parameter (theta, d) least squares and the full iterative PnP pose for one image."""
-    object_points = np.asarray(object_points, dtype=np.float64)
+def solve_view(camera: CameraModel, frame: HemisphereFrame, image_points: FloatArray, index: int = 0,
+               solve_placement: bool = True) -> ViewPose:
+    """One image: the paper's (theta, d) by least squares on the reprojection error, with the
+    frame's axial shift and yaw as nuisance unknowns (a frame is never placed exactly; both are
+    separable from theta and d, unlike a shift along y, which looks like theta), and the full
+    iterative PnP pose of the nominal frame for the terms the paper neglects."""
     image_points = np.asarray(image_points, dtype=np.float64)
+    nominal = frame.reference_points(camera.radius)
 
     def residual(params: FloatArray) -> FloatArray:
-        theta, d = params
+        theta, d, shift_x, yaw = params if solve_placement else (*params, 0.0, 0.0)
         if abs(d) >= 0.99 * camera.radius:
             return np.full(image_points.size, 1e6)
-        uv, valid = camera.replace(theta=theta, d=d).project(object_points)
+        points = frame.reference_points(camera.radius, shift_x, 0.0, yaw)
+        uv, valid = camera.replace(theta=theta, d=d).project(points)
         return np.where(valid[:, None], uv - image_points, 1e6).ravel()
 
-    start = np.array([camera.theta, camera.d])
-    fit = least_squares(residual, start, method="lm", x_scale=[1e-2, 1e-3], xtol=1e-14, ftol=1e-14)
-    theta, d = (float(v) for v in fit.x)
-    rms = float(np.sqrt(np.mean(fit.fun.reshape(-1, 2) ** 2) * 2))
-
+    start = np.array([camera.theta, camera.d, 0.0, 0.0] if solve_placement else [camera.theta, camera.d])
+    scale = np.array([1e-2, 1e-3, 1e-3, 1e-2][:start.size])
+    fit = least_squares(residual, start, method="lm", x_scale=scale, xtol=1e-14, ftol=1e-14)
+    theta, d = float(fit.x[0]), float(fit.x[1])
+    shift_x, yaw = (float(fit.x[2]), float(fit.x[3])) if solve_placement else (0.0, 0.0)
+    rms = float(np.sqrt(np.mean(np.sum(fit.fun.reshape(-1, 2) ** 2, axis=1))))
+    object_points = nominal
     fitted = camera.replace(theta=theta, d=d)
     rvec0, _ = cv2.Rodrigues(fitted.R)
     tvec0 = fitted.t.reshape(3, 1).copy()
+    # start the full pose from the two-parameter one (planar PnP has a mirror solution)
     dist = np.asarray(camera.distortion, dtype=np.float64)
     ok, rvec, tvec = cv2.solvePnP(object_points, image_points, camera.K, dist, rvec0.copy(), tvec0,
                                   useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
@@ -519,7 +556,8 @@ def solve_view(camera: CameraModel, object_points: FloatArray, image_points: Flo
     full_rms = float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image_points) ** 2, axis=1))))
     rotation = cv2.Rodrigues(rvec)[0]
     full_theta, beta, gamma = Rotation.from_matrix(rotation.T).as_euler("XYZ")
-    return ViewPose(index=index, theta=theta, d=d, rms=rms, full_theta=float(full_theta), beta=float(beta),
+    return ViewPose(index=index, theta=theta, d=d, rms=rms, shift_x=shift_x, yaw=yaw,
+                    full_theta=float(full_theta), beta=float(beta),
                     gamma=float(gamma), t=tuple(float(v) for v in tvec.ravel()), full_rms=full_rms,
                     rvec=tuple(float(v) for v in rvec.ravel()))
 
@@ -572,6 +610,9 @@ def calibrate_extrinsics(
     min_views: int = 2,
     max_view_rms: float = 1.0,
     outlier_sigma: float = 4.0,
+    solve_placement: bool = True,
+    balance_rows: bool = True,
+    skip_empty: bool = True,
     **detect_options: Any,
 ) -> ExtrinsicsResult:
     """theta and d from hemisphere-frame images (the paper's averaging, with outlier rejection).
@@ -579,23 +620,31 @@ def calibrate_extrinsics(
     `camera` carries the intrinsics (from `calibrate_intrinsics`) and the prior theta, d used to
     start the solves. A view is rejected when its imprints are not all found, are collinear or
     smeared, its reprojection RMS exceeds `max_view_rms` px, or its theta or d lies more than
-    `outlier_sigma` robust standard deviations from the median of the views.
+    `outlier_sigma` robust standard deviations from the median of the views. Images without
+    any imprint (between presses) are skipped when `skip_empty`. With `balance_rows`, each view's
+    theta is corrected for the frame's shift along y measured by the rows' imprint strengths
+    (see `_row_balance`); the paper's plain mean stays in `neglected["theta_plain_mean_deg"]`.
     """
     frame = frame or HemisphereFrame()
     images = list(images)
     if not images:
         raise CalibrationError("no hemisphere-frame images given")
     _image_size(images)
-    object_points = frame.reference_points(camera.radius)
+    frame.reference_points(camera.radius)       # fails early if the frame does not fit the roller
     rejected: dict[int, str] = {}
     views: list[ViewPose] = []
+    empty = 0
     for index, image in enumerate(images):
         detection = find_imprints(image, frame, reference=reference, **detect_options)
+        if detection.found == 0 and skip_empty:
+            empty += 1          # a frame between presses, not a view
+            continue
         if detection.centres is None:
             rejected[index] = str(detection.reason)
             continue
         try:
-            view = solve_view(camera, object_points, detection.centres, index)
+            view = solve_view(camera, frame, detection.centres, index, solve_placement)
+            view = dataclasses.replace(view, row_strengths=_row_strengths(detection.strengths, frame))
         except CalibrationError as exc:
             rejected[index] = str(exc)
             continue
@@ -603,8 +652,10 @@ def calibrate_extrinsics(
             rejected[index] = f"reprojection RMS {view.rms:.2f} px (limit {max_view_rms:.2f})"
             continue
         views.append(view)
-    _require_views(len(views), min_views, len(images), rejected, "hemisphere-frame")
-
+    total = len(images) - empty
+    if total == 0:
+        raise CalibrationError(f"no imprints found in any of the {len(images)} hemisphere-frame images")
+    _require_views(len(views), min_views, total, rejected, "hemisphere-frame")
     keep = _inliers(np.array([v.theta for v in views]), outlier_sigma, math.radians(0.01)) & \
         _inliers(np.array([v.d for v in views]), outlier_sigma, 5e-6)
     for view, ok in zip(views, keep, strict=True):
@@ -612,18 +663,82 @@ def calibrate_extrinsics(
             rejected[view.index] = (f"outlier: theta {math.degrees(view.theta):.3f}°, d {view.d * 1e3:.3f} mm "
                                     "far from the other views")
     views = [v for v, ok in zip(views, keep, strict=True) if ok]
-    _require_views(len(views), min_views, len(images), rejected, "hemisphere-frame")
+    _require_views(len(views), min_views, total, rejected, "hemisphere-frame")
 
-    thetas = np.array([v.theta for v in views])
+    plain_theta = float(np.mean([v.theta for v in views]))
+    views = _with_row_asymmetry(views)
+    balance = _row_balance(views, frame, camera.radius) if balance_rows else None
+    if balance is not None:
+        slope, keep = balance
+        for view, ok in zip(views, keep, strict=True):
+            if not ok:
+                rejected[view.index] = (f"outlier: theta {math.degrees(view.theta):.3f}° off the row-balance fit")
+        plate_z = camera.radius + frame.hemisphere_radius - frame.press_depth
+        views = [dataclasses.replace(v, frame_shift_y=-slope * v.row_asymmetry * plate_z)
+                 for v, ok in zip(views, keep, strict=True) if ok]
+        _require_views(len(views), min_views, total, rejected, "hemisphere-frame")
+    # theta of each view with its frame shift along y taken out (that shift turns the picture like theta does)
+    thetas = np.array([v.theta + (slope * v.row_asymmetry if balance is not None else 0.0) for v in views])
     ds = np.array([v.d for v in views])
     theta, d = float(thetas.mean()), float(ds.mean())
     result_camera = camera.replace(theta=theta, d=d)
+    neglected = _neglected_terms(result_camera, views)
+    neglected["theta_plain_mean_deg"] = math.degrees(plain_theta)
+    neglected["row_balance_slope_deg"] = math.degrees(slope) if balance is not None else math.nan
     return ExtrinsicsResult(
         camera=result_camera, theta=theta, d=d,
         theta_std=float(thetas.std(ddof=1)) if len(views) > 1 else math.nan,
         d_std=float(ds.std(ddof=1)) if len(views) > 1 else math.nan,
-        views=views, rejected=rejected, image_count=len(images),
-        neglected=_neglected_terms(result_camera, views))
+        views=views, rejected=rejected, image_count=total, neglected=neglected)
+
+
+def _row_strengths(strengths: FloatArray | None, frame: HemisphereFrame) -> tuple[float, float]:
+    """Summed imprint strengths of the rows at -y and at +y."""
+    if strengths is None:
+        return (math.nan, math.nan)
+    y = frame.layout()[:, 1]
+    return float(strengths[y < -1e-12].sum()), float(strengths[y > 1e-12].sum())
+
+
+def _with_row_asymmetry(views: Sequence[ViewPose]) -> list[ViewPose]:
+    """The strength difference of the rows is close to linear in the frame's shift whatever the
+    press depth (a ratio is not: it falls with depth), so normalise by one common scale only."""
+    sums = [a + b for a, b in (v.row_strengths for v in views)]
+    scale = float(np.median(sums)) if sums and np.all(np.isfinite(sums)) else math.nan
+    return [dataclasses.replace(v, row_asymmetry=(v.row_strengths[1] - v.row_strengths[0]) / scale)
+            for v in views]
+
+
+def _row_balance(views: Sequence[ViewPose], frame: HemisphereFrame, radius: float,
+                 min_asymmetry_spread: float = 0.05, outlier_sigma: float = 4.0,
+                 ) -> tuple[float, NDArray[np.bool_]] | None:
+    """Fit theta_i = theta + slope * a_i over the views (a_i: row asymmetry).
+
+    A frame shifted by s along y turns the picture like a rotation theta of s / plate_z, and no
+    pose solve can tell them apart. But the row nearer the contact line presses deeper and leaves
+    the stronger imprint, so the rows' strength asymmetry a_i measures the shift: a_i = 0 for a
+    centred frame (by symmetry), and theta at a = 0 is the camera's. The slope comes from the
+    views' own scatter (no model of imprint strength needed); it must be negative (the +y row is
+    stronger when the frame moved towards -y, which lowers theta_i). Returns None, i.e. the
+    paper's plain mean, when the views do not vary enough in a to fit a slope.
+    """
+    a = np.array([v.row_asymmetry for v in views])
+    theta = np.array([v.theta for v in views])
+    if len(views) < 3 or not np.all(np.isfinite(a)) or np.ptp(a) < min_asymmetry_spread:
+        return None
+    keep = np.ones(len(views), dtype=bool)
+    for _ in range(2):
+        slope, intercept = np.polyfit(a[keep], theta[keep], 1)
+        residual = theta - (intercept + slope * a)
+        scale = max(1.4826 * float(np.median(np.abs(residual[keep]))), math.radians(0.02))
+        new_keep = np.abs(residual) <= outlier_sigma * scale
+        if new_keep.sum() < 3 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    slope = float(np.polyfit(a[keep], theta[keep], 1)[0])
+    if slope >= 0:
+        return None
+    return -slope, keep
 
 
 def _inliers(values: FloatArray, k: float, floor: float) -> NDArray[np.bool_]:

@@ -70,7 +70,7 @@ def chessboard_views(camera: CameraModel, count: int, seed: int = 0, tilt_deg: f
 
 def render_hemispheres(camera: CameraModel, frame: cal.HemisphereFrame, *, seed: int = 0, noise: float = 1.5,
                        shift_px: tuple[float, float] = (0.0, 0.0), points: np.ndarray | None = None,
-                       smear_px: float = 0.0) -> np.ndarray:
+                       smear_px: float = 0.0, strength: np.ndarray | None = None) -> np.ndarray:
     """A gel background with shaded imprints (lit on one side, dark on the other, per colour) at the
     projections of the frame's imprint centres."""
     rng = np.random.default_rng(seed)
@@ -82,9 +82,10 @@ def render_hemispheres(camera: CameraModel, frame: cal.HemisphereFrame, *, seed:
     uv, _ = camera.project(pts)
     sigma = 0.5 * camera.fx * 0.8 * frame.hemisphere_radius / (camera.radius + camera.d)
     lights = [(1.0, 0.0), (-0.5, 0.866), (-0.5, -0.866)]
-    for cu, cv_ in uv + np.asarray(shift_px):
+    gains = np.ones(len(uv)) if strength is None else np.asarray(strength)
+    for (cu, cv_), gain in zip(uv + np.asarray(shift_px), gains, strict=True):
         du, dv = uu - cu, vv - cv_
-        g = np.exp(-(du**2 + dv**2) / (2 * sigma**2))
+        g = gain * np.exp(-(du**2 + dv**2) / (2 * sigma**2))
         for c, (lu, lv) in enumerate(lights):
             image[..., c] += 60.0 * (du * lu + dv * lv) / sigma * g
     if smear_px > 0:
@@ -177,15 +178,41 @@ def test_extrinsics_recover_theta_and_d():
 
 
 def test_extrinsics_report_a_neglected_yaw():
-    """A camera yawed by 1.5 deg about z: the two-parameter fit is worse and the report shows gamma."""
+    """A camera yawed by 1.5 deg about z: the full pose reports gamma, the two-parameter fit takes it
+    as the frame's yaw (the two cannot be told apart) and theta and d stay right."""
     points = FRAME.reference_points(TRUE_CAMERA.radius)
     yaw = cal.full_pose_rotation(TRUE_CAMERA.theta, 0.0, math.radians(1.5))
     # render by moving the points so that the paper's camera sees what a yawed camera would
     moved = (TRUE_CAMERA.R.T @ (yaw @ points.T)).T
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s, points=moved) for s in range(4)]
-    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME, max_view_rms=5.0)
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME)
     assert abs(result.neglected["gamma_deg"] - 1.5) < 0.1
-    assert result.neglected["full_rms_px"] < 0.3 < result.rms
+    assert all(abs(math.degrees(v.yaw) + 1.5) < 0.1 for v in result.views)
+    assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
+    assert abs(result.d - TRUE_CAMERA.d) < 0.05e-3
+    assert result.rms < 0.2
+    # without the frame's placement among the unknowns, the paper's two parameters cannot fit
+    plain = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME,
+                                     solve_placement=False, max_view_rms=10.0)
+    assert plain.rms > 1.0
+
+
+def test_row_balance_removes_the_frame_shift_along_y():
+    """Frames shifted along y turn the picture like theta; the deeper (nearer) row leaves the stronger
+    imprint, which the row balance uses to take the shift out."""
+    images = []
+    for k, shift in enumerate((-1.2e-3, -0.6e-3, 0.0, 0.4e-3, 1.0e-3, 1.4e-3)):
+        layout = FRAME.layout()
+        points = FRAME.reference_points(TRUE_CAMERA.radius, shift_y=shift)
+        plate_z = TRUE_CAMERA.radius + FRAME.hemisphere_radius - FRAME.press_depth
+        depth = FRAME.press_depth - (layout[:, 1] + shift) ** 2 / (2 * plate_z)
+        images.append(render_hemispheres(TRUE_CAMERA, FRAME, seed=k, points=points, strength=depth / FRAME.press_depth))
+    prior = TRUE_CAMERA.replace(theta=0.0, d=0.0)
+    result = cal.calibrate_extrinsics(images, prior, FRAME)
+    plain = cal.calibrate_extrinsics(images, prior, FRAME, balance_rows=False)
+    assert abs(math.degrees(plain.theta - TRUE_CAMERA.theta)) > 0.15      # mean shift 0.17 mm = 0.19 deg
+    assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.05
+    assert result.neglected["row_balance_slope_deg"] > 0
 
 
 def test_extrinsics_reject_an_outlier_view():
@@ -243,17 +270,18 @@ def test_solve_view_recovers_exact_poses(theta, d, gamma, beta, t):
     rotation = cal.full_pose_rotation(math.radians(theta), math.radians(beta), math.radians(gamma))
     translation = np.array([t[0], t[1], d])
     uv, _ = cv2.projectPoints(points, cv2.Rodrigues(rotation)[0], translation, camera.K, np.array(camera.distortion))
-    view = cal.solve_view(camera, points, uv.reshape(-1, 2))
+    view = cal.solve_view(camera, FRAME, uv.reshape(-1, 2))
     assert view.full_rms < 1e-3
     assert math.degrees(view.full_theta) == pytest.approx(theta, abs=1e-3)
     assert math.degrees(view.gamma) == pytest.approx(gamma, abs=1e-3)
     assert view.t[2] == pytest.approx(d, abs=1e-6)
     exact = camera.replace(theta=math.radians(theta), d=d)
     uv2, _ = exact.project(points)
-    view2 = cal.solve_view(camera, points, uv2)
+    view2 = cal.solve_view(camera, FRAME, uv2)
     assert view2.rms < 1e-6
     assert math.degrees(view2.theta) == pytest.approx(theta, abs=1e-6)
     assert view2.d == pytest.approx(d, abs=1e-9)
+    assert abs(view2.shift_x) < 1e-9 and abs(view2.yaw) < 1e-7
 
 
 # --------------------------------------------------------------------------- outputs
