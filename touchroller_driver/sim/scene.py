@@ -217,6 +217,10 @@ def validate(scene: Scene) -> None:
     if kind not in MOTION_KINDS:
         raise ValueError(f"{where}: motion.kind must be one of {', '.join(MOTION_KINDS)}, got {kind!r}")
     scene.camera  # noqa: B018 - raises ValueError on a bad camera block
+    if kind == "roll":
+        from touchroller_driver.sim.scenarios import roll_profile
+
+        roll_profile(scene.motion)   # raises ValueError if the move is infeasible
     p = scene.effect_params("dropped_frames")["probability"]
     if not 0.0 <= float(p) < 1.0:
         raise ValueError(f"{where}: dropped_frames.probability must be in [0, 1), got {p}")

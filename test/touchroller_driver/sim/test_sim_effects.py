@@ -1,0 +1,187 @@
+"""Composition of effects, determinism, scenes and the scene loader."""
+import hashlib
+
+import numpy as np
+import pytest
+
+from touchroller_driver.sim import (
+    EFFECTS,
+    RollerState,
+    SimulatedSensor,
+    available_scenes,
+    effects,
+    load_scene,
+)
+
+SMALL = {"surface.width": 0.07, "surface.length": 0.03, "surface.resolution": 1e-4, "motion.length": 0.03,
+         "motion.duration": 0.3, "motion.accel": 2.0}
+
+
+def _sensor(effect_list, seed=0, **extra):
+    overrides = dict(SMALL)
+    overrides.update(extra)
+    return SimulatedSensor(load_scene("surface_mapping", effects=effect_list, **overrides), seed=seed)
+
+
+STATE = RollerState(travel=0.012, depth=5e-4, speed=0.03)
+
+
+def _digest(frames):
+    h = hashlib.sha256()
+    for f in frames:
+        h.update(str(f.stamp_ns).encode())
+        h.update(f.image.tobytes())
+    return h.hexdigest()
+
+
+def test_deterministic_for_a_seed():
+    all_effects = list(EFFECTS)
+    a = _digest(_sensor(all_effects, seed=7).frames())
+    b = _digest(_sensor(all_effects, seed=7).frames())
+    c = _digest(_sensor(all_effects, seed=8).frames())
+    assert a == b
+    assert a != c
+
+
+class _Counter:
+    def __init__(self, fn):
+        self.fn, self.calls = fn, 0
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        return self.fn(*args, **kwargs)
+
+
+@pytest.mark.parametrize("effect, function", [
+    ("noise", "add_noise"), ("blur", "motion_blur"), ("compression", "compress"),
+    ("background", "gel_background"), ("vignetting", "vignetting"), ("dropped_frames", "frame_dropped"),
+])
+def test_effect_left_out_is_never_called(monkeypatch, effect, function):
+    counter = _Counter(getattr(effects, function))
+    monkeypatch.setattr(effects, function, counter)
+    with_it = _sensor([effect])
+    list(with_it.frames())
+    assert counter.calls > 0
+    counter.calls = 0
+    others = [e for e in EFFECTS if e != effect]
+    without = _sensor(others)
+    list(without.frames())
+    assert counter.calls == 0
+    assert effect not in without.pipeline or effect in ("background", "vignetting")
+
+
+def test_noise_signature_disappears_without_noise():
+    noisy = _sensor(["noise"])
+    assert not np.array_equal(noisy.render(STATE), noisy.render(STATE))
+    clean = _sensor([])
+    first = clean.render(STATE)
+    assert np.array_equal(first, clean.render(STATE))
+    # without noise (and without background) the rows the contact cannot reach are one flat colour
+    assert (first[:20].reshape(-1, 3) == first[0, 0]).all()
+    diff = noisy.render(STATE).astype(float) - first
+    assert 1.0 < diff[:20].std() < 4.0       # sigma = 2 DN in the scene
+
+
+def test_blur_signature_disappears_without_blur():
+    sharp = _sensor([])
+    blurred = _sensor(["blur"])
+    moving = RollerState(travel=0.012, depth=5e-4, speed=0.05)
+    still = RollerState(travel=0.012, depth=5e-4, speed=0.0)
+    assert np.array_equal(sharp.render(moving), sharp.render(still))       # speed does not matter
+    assert not np.array_equal(blurred.render(moving), blurred.render(still))
+    # blur lowers the relief's high-frequency energy along v
+    b = blurred.render_layers(moving)["relief"]
+    s = sharp.render_layers(moving)["relief"]
+    assert np.abs(np.diff(b, axis=0)).sum() < 0.7 * np.abs(np.diff(s, axis=0)).sum()
+
+
+def test_background_and_vignetting_signatures():
+    plain = _sensor([]).render(RollerState(depth=-0.01))
+    assert np.ptp(plain.reshape(-1, 3), axis=0).max() == 0          # a uniform membrane
+    background = _sensor(["background"]).render(RollerState(depth=-0.01))
+    assert np.ptp(background.reshape(-1, 3), axis=0).max() > 30      # uneven light and specks
+    vignetted = _sensor(["vignetting"]).render(RollerState(depth=-0.01)).astype(float)
+    assert vignetted[0, 0].sum() < 0.9 * vignetted[240, 320].sum()   # corners darker than the centre
+
+
+def test_dropped_frames_are_skipped_and_counted():
+    full = list(_sensor([]).frames())
+    sensor = _sensor(["dropped_frames"], **{"effect_params.dropped_frames.probability": 0.3})
+    kept = list(sensor.frames())
+    assert 0 < len(kept) < len(full)
+    assert sensor.counts["dropped_frames"] == len(full) - len(kept)
+    assert {f.stamp_ns for f in kept} <= {f.stamp_ns for f in full}
+
+
+def test_compression_changes_pixels_a_little():
+    raw = _sensor([]).render(STATE).astype(int)
+    jpeg = _sensor(["compression"]).render(STATE).astype(int)
+    assert 0 < np.abs(raw - jpeg).mean() < 3
+
+
+def test_roll_frames_follow_the_trapezoid():
+    sensor = _sensor([])
+    frames = list(sensor.frames())
+    assert len(frames) == int(0.3 * 30) + 1
+    travel = [f.truth["state"]["travel"] for f in frames]
+    assert travel[0] == 0.0 and travel[-1] == pytest.approx(0.03)
+    assert np.all(np.diff(travel) > 0)
+    stamps = np.diff([f.stamp_ns for f in frames])
+    assert np.all(stamps == pytest.approx(1e9 / 30, abs=1))
+    assert frames[-1].truth["state"]["roll"] == pytest.approx(0.03 / 0.05)
+
+
+def test_all_scenes_load_and_render(tmp_path):
+    names = available_scenes()
+    for required in ("surface_mapping", "contact_localisation", "calibration_chessboard",
+                     "calibration_hemispheres", "flat_sensor_comparison"):
+        assert required in names
+    for variant in ("slow", "medium", "fast"):
+        scene = load_scene("surface_mapping", variant=variant)
+        assert scene.duration == {"slow": 15.0, "medium": 10.0, "fast": 5.0}[variant]
+    shared = [load_scene(n).camera for n in ("contact_localisation", "calibration_chessboard",
+                                             "calibration_hemispheres")]
+    assert shared[0] == shared[1] == shared[2]     # one simulated unit for calibration and contacts
+
+
+def test_chessboard_corners_in_view():
+    sensor = SimulatedSensor(load_scene("calibration_chessboard", effects=[], **{"motion.views": 4}), seed=0)
+    frames = list(sensor.frames())
+    assert len(frames) == 4
+    for frame in frames:
+        corners = np.array(frame.truth["board"]["corners_px"])
+        assert corners.shape == (49, 2)
+        assert sensor.camera.in_image(corners, margin=5).all()
+        # an inner corner: the four pixels diagonally around it alternate dark/bright
+        u, v = np.round(corners[24]).astype(int)
+        grey = frame.image[:, :, 0].astype(int)
+        a, b = grey[v - 3, u - 3] + grey[v + 3, u + 3], grey[v - 3, u + 3] + grey[v + 3, u - 3]
+        assert abs(a - b) > 150
+
+
+def test_bad_scenes_are_clear_errors(tmp_path):
+    with pytest.raises(ValueError, match="no scene"):
+        load_scene("no_such_scene")
+    with pytest.raises(ValueError, match="unknown effects"):
+        load_scene("surface_mapping", effects=["sparkles"])
+    with pytest.raises(ValueError, match="unknown variant"):
+        load_scene("surface_mapping", variant="warp_speed")
+    with pytest.raises(ValueError, match="cannot be covered"):
+        load_scene("surface_mapping", **{"motion.duration": 0.5})
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: [unclosed\n")
+    with pytest.raises(ValueError, match="not valid YAML"):
+        load_scene(bad)
+
+
+def test_flat_sensor_comparison_counts_the_papers_presses():
+    from touchroller_driver.sim.flat_sensor import compare, presses_needed
+
+    scene = load_scene("flat_sensor_comparison")
+    result = compare(scene.data["comparison"], scene.motion)
+    assert result["flat_sensor"]["presses"] == 49
+    assert result["touchroller"]["roll_s"] == pytest.approx(10.0)
+    assert result["flat_sensor"]["total_s"] > 49 * result["flat_sensor"]["dwell_s"]
+    assert result["speedup"] > 5
+    assert presses_needed(0.08, 0.012, 0.0) == 7 and presses_needed(0.11, 0.016, 0.0) == 7
+    assert presses_needed(0.08, 0.012, 0.5) == 13
