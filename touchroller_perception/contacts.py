@@ -242,6 +242,11 @@ class ContactDetector:
         return self.reference
 
 
+def _squared_norm(image: np.ndarray) -> np.ndarray:
+    """Per-pixel squared colour distance of an HxWxC float32 difference (a gemv, ~7x faster than einsum)."""
+    return (image * image) @ np.ones(image.shape[2], np.float32)
+
+
 def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConfig) -> list[Contact]:
     s = int(cfg.downscale)
     full = np.atleast_3d(frame)
@@ -251,34 +256,37 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
     ref_small, ref_small_noise = ref.small(s)
     small = np.atleast_3d(_downscale(full, s)).astype(np.float32) - ref_small
     small = np.atleast_3d(_blur(small, cfg.blur_sigma))
-    score = np.sqrt(np.einsum("ijk,ijk->ij", small, small))
     small_noise = ref_small_noise * _blur_noise_factor(cfg.blur_sigma)
     small_threshold = max(cfg.min_threshold, cfg.threshold_sigma * small_noise)
-    above = score > small_threshold
+    above = _squared_norm(small) > small_threshold**2
     if not above.any():
         return []
     mask = above.astype(np.uint8)
     if cfg.close_size > 1:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (cfg.close_size, cfg.close_size))
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    # area counts only pixels above threshold: closing must not turn scattered noise into a blob
-    signal_area = np.bincount(labels[above], minlength=count)
-    order = np.argsort(-signal_area[1:]) + 1
+    # contours are ~10x cheaper than connectedComponentsWithStats on this small mask
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    candidates = []
+    for contour in contours:
+        x0, y0, w, h = cv2.boundingRect(contour)
+        region = np.zeros((h, w), np.uint8)
+        cv2.drawContours(region, [contour], -1, 1, thickness=-1, offset=(-x0, -y0))
+        # area counts only pixels above threshold: closing must not turn scattered noise into a blob
+        signal_area = int(np.count_nonzero(above[y0:y0 + h, x0:x0 + w] & region.astype(bool)))
+        if signal_area * s * s >= cfg.min_area:
+            candidates.append((signal_area, x0, y0, w, h, region))
+    candidates.sort(key=lambda c: -c[0])
     # 2) refine each candidate at full resolution in its window
     full_sigma = cfg.refine_blur_sigma
     full_noise = ref.noise_std * _blur_noise_factor(full_sigma)
     full_threshold = max(cfg.min_threshold, cfg.threshold_sigma * full_noise)
     height, width = full.shape[:2]
     contacts: list[Contact] = []
-    for label in order:
-        x0, y0, w, h, _ = stats[label]
-        if signal_area[label] * s * s < cfg.min_area:
-            continue
+    for _, x0, y0, w, h, region in candidates:
         margin = 2 * s
         u0, v0 = max(0, x0 * s - margin), max(0, y0 * s - margin)
         u1, v1 = min(width, (x0 + w) * s + margin), min(height, (y0 + h) * s + margin)
-        region = (labels[y0:y0 + h, x0:x0 + w] == label).astype(np.uint8)
         region_full = np.zeros((v1 - v0, u1 - u0), np.uint8)
         up = cv2.resize(region, (w * s, h * s), interpolation=cv2.INTER_NEAREST)
         ry, rx = y0 * s - v0, x0 * s - u0
@@ -301,32 +309,32 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
 
 def _refine(diff: np.ndarray, region: np.ndarray, threshold: float, noise: float):
     """Colour-aware centre of one blob in its window: (u, v, area px, peak distance) or None."""
-    score = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+    score = np.sqrt(_squared_norm(diff))
     inside = region & (score > threshold)
     npix = int(inside.sum())
     if npix == 0:
         return None
     ys, xs = np.nonzero(inside)
-    values = diff[ys, xs]                       # (n, C) signed changes
-    total = 0.0
-    acc_u = acc_v = 0.0
-    for c in range(values.shape[1]):
-        pos = np.maximum(values[:, c], 0.0)
-        neg = np.maximum(-values[:, c], 0.0)
-        mp, mn = float(pos.sum()), float(neg.sum())
-        weight = min(mp, mn)
-        # a lobe must carry real signal, not just the noise that leaks through the mask
-        if weight <= 0 or weight < 0.1 * max(mp, mn) or weight < 3.0 * noise * math.sqrt(npix):
-            continue
-        mid_u = 0.5 * (float(pos @ xs) / mp + float(neg @ xs) / mn)
-        mid_v = 0.5 * (float(pos @ ys) / mp + float(neg @ ys) / mn)
-        acc_u += weight * mid_u
-        acc_v += weight * mid_v
-        total += weight
-    if total > 0:
-        return acc_u / total, acc_v / total, npix, float(score[ys, xs].max())
-    w = score[ys, xs].astype(np.float64)
-    return float(w @ xs / w.sum()), float(w @ ys / w.sum()), npix, float(w.max())
+    coords = np.stack([xs, ys], axis=1).astype(np.float64)     # (n, 2); float64 keeps matmul on BLAS
+    values = diff[ys, xs].astype(np.float64)                    # (n, C) signed changes
+    pos = np.maximum(values, 0.0)
+    neg = np.maximum(-values, 0.0)
+    mass_pos, mass_neg = pos.sum(axis=0), neg.sum(axis=0)       # (C,)
+    weight = np.minimum(mass_pos, mass_neg)
+    # a channel counts when both lobes carry real signal, not just noise leaking through the mask
+    bipolar = (weight > 0.1 * np.maximum(mass_pos, mass_neg)) & (weight > 3.0 * noise * math.sqrt(npix))
+    peak = float(score[ys, xs].max())
+    if bipolar.any():
+        with np.errstate(invalid="ignore", divide="ignore"):
+            centre_pos = (pos.T @ coords) / mass_pos[:, None]     # (C, 2) lobe centroids
+            centre_neg = (neg.T @ coords) / mass_neg[:, None]
+        midpoints = 0.5 * (centre_pos + centre_neg)
+        w = np.where(bipolar, weight, 0.0)
+        u, v = (w @ np.where(bipolar[:, None], midpoints, 0.0)) / w.sum()
+        return float(u), float(v), npix, peak
+    magnitude = score[ys, xs].astype(np.float64)
+    u, v = magnitude @ coords / magnitude.sum()
+    return float(u), float(v), npix, peak
 
 
 def detect_paper(image: np.ndarray, reference: NoContactReference | None,

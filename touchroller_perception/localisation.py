@@ -70,13 +70,20 @@ class LocalisedContact:
 
 
 def localise(camera: CameraModel, contacts: Sequence[Contact], pixel_sigma: float = 0.3,
-             calibration_sigma: Mapping[str, float] | None = None) -> list[LocalisedContact]:
-    """Back-project contact centres onto the membrane; covariance from pixel (and calibration) noise."""
+             calibration_sigma: Mapping[str, float] | None = None,
+             covariance: bool = True) -> list[LocalisedContact]:
+    """Back-project contact centres onto the membrane; covariance from pixel (and calibration) noise.
+
+    `covariance=False` skips the (finite-difference, ~4x dearer) covariance: NaN matrices.
+    """
     if not contacts:
         return []
     uv = np.array([[c.u, c.v] for c in contacts], dtype=np.float64)
     points, valid = camera.back_project(uv)
-    covariance = camera.contact_covariance(uv, pixel_sigma=pixel_sigma, calibration_sigma=calibration_sigma)
+    if covariance:
+        covariance = camera.contact_covariance(uv, pixel_sigma=pixel_sigma, calibration_sigma=calibration_sigma)
+    else:
+        covariance = np.full((len(contacts), 3, 3), np.nan)
     return [LocalisedContact(c, points[i], covariance[i], bool(valid[i])) for i, c in enumerate(contacts)]
 
 

@@ -72,7 +72,6 @@ class PerceptionNode(Node):
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         self.detector = ContactDetector(self._detector_config(), int(self.get_parameter("reference.frames").value))
-        self.pixel_sigma = float(self.get_parameter("contacts.pixel_sigma").value)
         self.frame_id = str(self.get_parameter("contacts.frame_id").value)
         self.stitcher: Any = None
         self._stitch_error_logged = False
@@ -105,8 +104,6 @@ class PerceptionNode(Node):
         defaults = DetectorConfig()
         for name, (field, description, lo, hi) in DETECTOR_PARAMETERS.items():
             declare(self, name, getattr(defaults, field), description, min=lo, max=hi)
-        declare(self, "contacts.pixel_sigma", 0.3, "Std of a detected centre, pixels (for the covariance)",
-                min=0.0, max=100.0)
         declare(self, "contacts.frame_id", CYLINDER_FRAME, "frame_id of the published contact points")
         declare(self, "reference.frames", 5, "No-contact frames averaged into the reference", min=1, max=1000)
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
@@ -135,8 +132,6 @@ class PerceptionNode(Node):
             self.detector.config = self._detector_config()
         if "reference.frames" in names:
             self.detector.reference_frames = int(self.get_parameter("reference.frames").value)
-        if "contacts.pixel_sigma" in names:
-            self.pixel_sigma = float(self.get_parameter("contacts.pixel_sigma").value)
         if "contacts.frame_id" in names:
             self.frame_id = str(self.get_parameter("contacts.frame_id").value)
         if "map.publish_rate" in names:
@@ -205,7 +200,8 @@ class PerceptionNode(Node):
         self.processing.add(time.perf_counter() - start)
 
     def _publish_contacts(self, msg: Image, contacts: list) -> None:
-        for located in localise(self.camera, contacts, pixel_sigma=self.pixel_sigma):
+        # PointStamped carries no covariance, so it is not computed here
+        for located in localise(self.camera, contacts, covariance=False):
             if not located.valid:
                 self.unmapped_contacts += 1
                 continue
