@@ -81,8 +81,9 @@ class NodeSpec:
         module_name, _, class_name = self.target.partition(":")
         try:
             module = importlib.import_module(module_name)
-        except ImportError as exc:
-            raise GraphError(f"the {self.key} node ({self.target}) is not available: {exc}") from exc
+        except (ImportError, SyntaxError) as exc:  # not landed, or broken mid-edit: one line either way
+            raise GraphError(f"the {self.key} node ({self.target}) is not available: "
+                             f"{type(exc).__name__}: {exc}") from exc
         try:
             return getattr(module, class_name)
         except AttributeError:

@@ -235,7 +235,8 @@ def _call_start(client: Any, sweep: Any) -> None:
         raise UserError("the sweep node did not answer ~/start")
     response = future.result()
     if not response.success:
-        raise UserError(f"sweep refused to start: {getattr(response, 'message', '') or sweep.status.message}")
+        message = getattr(response, "message", "") or (sweep.last_answer or ("", False, ""))[2]
+        raise UserError(f"sweep refused to start: {message or sweep.status.message}")
 
 
 def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None]) -> tuple[str, str]:

@@ -106,6 +106,7 @@ class SweepNode(Node):
         self._last_pose: np.ndarray | None = None
         self._commands: queue.Queue[_Command] = queue.Queue()
         self._shutdown = threading.Event()
+        self.last_answer: tuple[str, bool, str] | None = None  # (service, success, message) of the last call
 
         base_frame = self.get_parameter("arm.base_frame").value
         self._frame_id = str(base_frame)
@@ -196,6 +197,7 @@ class SweepNode(Node):
         return command
 
     def _answer(self, response: Any, command: _Command) -> Any:
+        self.last_answer = (command.name, command.success, command.message)  # ChangeState has no message field
         response.success = command.success
         if self._is_trigger:
             response.message = command.message

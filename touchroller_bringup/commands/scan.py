@@ -21,6 +21,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "scan", help="run the whole graph (camera, perception, sweep) in one process; write map, contacts, report",
         description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    _add_options(parser)
+    # Options may follow the items (`touchroller scan a.yaml --out X k:=v`): argparse cannot mix a '*'
+    # positional with later options, so the rest is taken whole and re-parsed intermixed in run().
+    parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    parser.set_defaults(func=run)
+
+
+def _add_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("items", nargs="*", metavar="PARAMS.yaml | name:=value",
                         help="params files (applied after config/touchroller.yaml and config/scan.yaml, in order) "
                              "and launch arguments or parameter overrides")
@@ -28,7 +36,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="output folder (default: scan_output/<UTC timestamp>/)")
     parser.add_argument("--seed", type=int, default=0, help="simulator random seed (use_sim:=true)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
-    parser.set_defaults(func=run)
+
+
+class _RestParser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:
+        raise UserError(f"scan: {message}")
+
+
+def _reparse(args: argparse.Namespace) -> argparse.Namespace:
+    rest = _RestParser(prog="touchroller scan", add_help=False)
+    _add_options(rest)
+    parsed = rest.parse_intermixed_args(list(args.items) + list(args.rest))
+    parsed.out = parsed.out or args.out
+    parsed.seed = parsed.seed or args.seed
+    parsed.quiet = parsed.quiet or args.quiet
+    return parsed
 
 
 def parse_items(items: list[str]) -> tuple[list[Path], dict[str, str], dict[str, Any]]:
@@ -75,6 +97,7 @@ def _parse_value(name: str, text: str) -> Any:
 def run(args: argparse.Namespace) -> int:
     from touchroller_bringup.scan import ScanOptions, run_scan
 
+    args = _reparse(args)
     files, arguments, overrides = parse_items(args.items)
     out = args.out or Path("scan_output") / time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     progress = None if args.quiet else (lambda line: print(line, flush=True))

@@ -1,0 +1,125 @@
+"""`touchroller scan`: argument parsing, a short simulated scan end to end, and its clear failures."""
+from __future__ import annotations
+
+import csv
+import itertools
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from touchroller_bringup import graph
+from touchroller_bringup.cli import main
+from touchroller_bringup.commands.scan import parse_items
+from touchroller_bringup.errors import UserError
+
+SHORT = ["sweep_length:=0.01", "sweep_speed:=0.02", "--quiet"]
+_DOMAINS = itertools.count(150 + os.getpid() % 40)
+
+
+@pytest.fixture
+def isolated_ros(monkeypatch):
+    """The CLI makes its own rclpy context: give it a private DDS domain on localhost."""
+    pytest.importorskip("rclpy")
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(next(_DOMAINS) % 230))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+def test_parse_items_splits_files_arguments_and_overrides(tmp_path):
+    params = tmp_path / "p.yaml"
+    params.write_text("/**:\n  ros__parameters: {}\n")
+    files, arguments, overrides = parse_items(
+        [str(params), "use_sim:=false", "robot_ip:=10.0.0.2", "sweep.depth:=0.0008", "contacts.method:=paper",
+         "sweep.start_pose:=[0.4, 0, 0.2, 3.14, 0, 0]", "sweep.retract:=false", "contacts.max_contacts:=3"])
+    assert files == [params]
+    assert arguments == {"use_sim": "false", "robot_ip": "10.0.0.2"}
+    assert overrides == {"sweep.depth": 0.0008, "contacts.method": "paper",
+                         "sweep.start_pose": [0.4, 0.0, 0.2, 3.14, 0.0, 0.0], "sweep.retract": False,
+                         "contacts.max_contacts": 3}
+    assert all(isinstance(v, float) for v in overrides["sweep.start_pose"])
+
+
+@pytest.mark.parametrize("item", ["missing.yaml", ":=3", "a:={b: 1}", "a:=[1, 2"])
+def test_parse_items_rejects_nonsense(item):
+    with pytest.raises(UserError):
+        parse_items([item])
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_short_simulated_scan_writes_map_contacts_and_report(isolated_ros, tmp_path, capsys):
+    out = tmp_path / "scan"
+    assert main(["scan", *SHORT, "--out", str(out)]) == 0
+    summary = capsys.readouterr().out
+    assert "scan done" in summary and str(out) in summary
+
+    tactile_map = cv2.imread(str(out / "map.png"), cv2.IMREAD_UNCHANGED)
+    assert tactile_map is not None and tactile_map.shape[0] > 0 and tactile_map.std() > 0
+
+    from touchroller_bringup.commands.contacts import COLUMNS
+
+    with open(out / "contacts.csv", newline="") as stream:
+        rows = list(csv.reader(stream))
+    assert tuple(rows[0]) == COLUMNS
+    assert len(rows) > 1, "the pressed fabric produces contacts"
+    values = np.array([[float(x) for x in row[:6]] for row in rows[1:]])
+    stamps, uv, xyz = values[:, 0], values[:, 1:3], values[:, 3:6]
+    assert np.all(np.diff(stamps) >= 0) and np.all(stamps > 0)
+    radius = np.hypot(xyz[:, 1], xyz[:, 2])
+    np.testing.assert_allclose(radius, 0.05, atol=1e-6)          # on the cylinder (config/touchroller.yaml)
+    assert np.all((uv[:, 0] >= -1) & (uv[:, 0] <= 640) & (uv[:, 1] >= -1) & (uv[:, 1] <= 480))
+
+    report = (out / "report.md").read_text()
+    assert "**done**" in report and f"contacts: {len(rows) - 1}" in report
+    assert f"map: {tactile_map.shape[0]}x{tactile_map.shape[1]}" in report
+
+
+@pytest.mark.ros
+def test_unknown_parameter_is_one_line(isolated_ros, tmp_path, capsys):
+    assert main(["scan", *SHORT, "sweep.sped:=0.01", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "sweep.sped" in err and "\n" not in err
+
+
+@pytest.mark.ros
+def test_speed_beyond_the_arm_limit_is_refused_before_motion(isolated_ros, tmp_path, capsys):
+    assert main(["scan", "sweep_speed:=0.5", "--quiet", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "speed 0.5" in err and "\n" not in err
+
+
+@pytest.mark.ros
+def test_missing_node_is_one_clear_line(isolated_ros, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(graph, "PERCEPTION", ("perception_node", "touchroller_perception",
+                                              "touchroller_perception.not_landed_yet:PerceptionNode"))
+    assert main(["scan", *SHORT, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "perception node" in err and "not available" in err and "\n" not in err
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(60)
+def test_unreachable_robot_fails_with_the_arm_error(isolated_ros, tmp_path, capsys):
+    result = main(["scan", "use_sim:=false", "robot_ip:=127.0.0.213", "camera_device:=/nonexistent/video99",
+                   "--quiet", "--out", str(tmp_path / "x")])
+    assert result == 2
+    err = capsys.readouterr().err.strip()
+    assert "cannot connect" in err and "127.0.0.213" in err and "\n" not in err
+
+
+def test_default_output_folder_is_timestamped(monkeypatch, tmp_path):
+    from touchroller_bringup import scan as scan_module
+
+    seen = {}
+
+    def fake_run(options):
+        seen["out"] = options.out_dir
+        raise UserError("stop here")
+
+    monkeypatch.setattr(scan_module, "run_scan", fake_run)
+    monkeypatch.chdir(tmp_path)
+    assert main(["scan", "--quiet"]) == 2
+    out = Path(seen["out"])
+    assert out.parent == Path("scan_output") and len(out.name) == len("20260101-120000")
