@@ -88,6 +88,17 @@ class TruthMap:
 _LIGHT_ORDER = ("blue", "green", "red")   # bgr8 channel order
 
 
+def lowpass_sigma(sensor: dict[str, Any]) -> float:
+    """Gaussian sigma (m) by which the membrane smooths the relief; grows with the gel's thickness."""
+    value = sensor.get("lowpass_sigma", "auto")
+    if value == "auto" or value is None:
+        value = float(sensor["lowpass_per_thickness"]) * float(sensor["elastomer_thickness"])
+    value = float(value)
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"sensor.lowpass_sigma must be a finite number >= 0, got {value}")
+    return value
+
+
 class SimulatedSensor:
     """Renders the scene's camera images. `camera` is the true camera model of the simulated unit."""
 
@@ -101,7 +112,7 @@ class SimulatedSensor:
         self.effects = tuple(e for e in scene.effects)
         self.counts: dict[str, int] = {}
         s = scene.sensor
-        self._lowpass = float(s["lowpass_sigma"])
+        self._lowpass = lowpass_sigma(s)
         self.surface: Surface = make_surface(scene.surface, self._rng_surface)
         self._relief = self.surface.lowpassed(self._lowpass)
         self._relief_max = self._relief.max_height
@@ -180,6 +191,8 @@ class SimulatedSensor:
             if step.state is not None:
                 truth["state"] = step.state.as_dict(self.camera.radius)
                 truth["pose"] = self.roller_pose(step.state)
+                if step.state.depth > 0:
+                    truth["band"] = self.band_truth(step.state.depth)
             yield Frame(stamp_ns, image, truth)
 
     def roller_pose(self, state: RollerState) -> list[float]:
@@ -187,6 +200,17 @@ class SimulatedSensor:
         plane, metres), roll angle (rad)."""
         roll = state.travel / self.camera.radius if state.roll is None else state.roll
         return [state.x_along, state.travel, self.camera.radius - state.depth, roll]
+
+    def band_truth(self, depth: float) -> dict[str, float]:
+        """The flat-contact band at penetration `depth`: half-width (m, 2D geometry sqrt(2 r d - d^2)),
+        edge angles, and the image rows of its edges and centre line at x = 0 (nominal radius)."""
+        r = self.camera.radius
+        half = math.sqrt(max(2 * r * depth - depth * depth, 0.0))
+        edge = math.asin(min(half / r, 1.0))
+        pts = self.camera.surface_point(np.zeros(3), np.array([-edge, 0.0, edge]))
+        uv, _ = self.camera.project(pts)
+        return {"half_width_m": half, "alpha_edge": edge, "v_top": float(uv[0, 1]),
+                "v_centre": float(uv[1, 1]), "v_bottom": float(uv[2, 1])}
 
     def contact_row(self) -> float:
         """Image row v of the contact line (x=0 on the membrane's lowest point)."""
@@ -321,6 +345,10 @@ class SimulatedSensor:
     def _render(self, state: RollerState, keep_layers: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
         if self._board is not None:
             raise ValueError("the chessboard scene shows a board to the bare camera; use frames()")
+        values = (state.x_along, state.travel, state.depth, state.speed)
+        if not all(math.isfinite(v) for v in values) or not all(
+                math.isfinite(c) for i in state.indenters for c in (*i.centre, i.radius)):
+            raise ValueError(f"RollerState has non-finite values: {state}")
         image = self._static.copy()
         layers: dict[str, Any] = {}
         region = self._indentation(state, layers if keep_layers else None)

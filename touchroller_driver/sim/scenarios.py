@@ -54,8 +54,11 @@ def roll_extent(scene: Scene) -> tuple[float, float, float]:
     """(travel at start, travel at end, x_along) of a roll scene (surface extent otherwise)."""
     m = scene.motion
     if m.get("kind") == "roll":
-        start = float(m.get("start", 0.0))
-        end = start + float(m.get("direction", 1)) * float(m.get("length", 0.11))
+        direction = 1.0 if float(m.get("direction", 1)) >= 0 else -1.0
+        length = float(m.get("length", 0.11))
+        # rolling backwards starts at the far end of the surface unless told otherwise
+        start = float(m["start"]) if m.get("start") is not None else (0.0 if direction > 0 else length)
+        end = start + direction * length
         return start, end, float(m.get("x_along", 0.0))
     s = scene.surface
     return 0.0, float(s.get("length", 0.11)), 0.0

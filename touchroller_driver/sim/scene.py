@@ -32,7 +32,8 @@ _DEFAULT_EFFECT_PARAMS: dict[str, dict[str, Any]] = {
 
 _DEFAULT_SENSOR: dict[str, Any] = {
     "elastomer_thickness": 2.0e-3,   # m (not stated in the paper; a typical GelSight-like gel)
-    "lowpass_sigma": 1.5e-4,         # m: how much the membrane smooths the relief (empirical, see docs)
+    "lowpass_sigma": "auto",         # m, or "auto" = lowpass_per_thickness * elastomer_thickness
+    "lowpass_per_thickness": 0.075,  # empirical: 2 mm of gel -> 0.15 mm Gaussian (see docs/simulator.md)
     "thickness_variation": 0.0,      # m: amplitude of the membrane radius error along x and alpha
     "light_elevation_deg": 35.0,
     "light_azimuths_deg": [330.0, 210.0, 90.0],   # B, G, R lights in the membrane's tangent plane

@@ -4,6 +4,8 @@ import math
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from touchroller_driver.sim import RollerState, SimulatedSensor, load_scene
 
@@ -173,3 +175,59 @@ def test_paper_variant_has_a_calibration_error():
     scene = load_scene("contact_localisation", variant="paper")
     assert scene.paper_camera.theta - scene.camera.theta == pytest.approx(math.radians(1.0), rel=1e-4)
     assert scene.paper_camera.d - scene.camera.d == pytest.approx(5e-4)
+
+
+# --------------------------------------------------------------------------- properties
+@settings(max_examples=12, deadline=None)
+@given(depth=st.floats(1e-4, 1.5e-3), theta=st.floats(-0.05, 0.05), d=st.floats(-3e-3, 3e-3),
+       k1=st.floats(-0.15, 0.05), fy=st.floats(380.0, 600.0))
+def test_band_truth_matches_rendered_band_for_any_camera(depth, theta, d, k1, fy):
+    sensor = _flat_sensor(**{"extrinsics.theta": theta, "extrinsics.d": d, "camera.fy": fy,
+                             "camera.distortion": [k1, 0.0, 0.0, 0.0, 0.0]})
+    layers = sensor.render_layers(RollerState(travel=0.02, depth=depth))
+    column = int(round(sensor.camera.cx))
+    band = np.flatnonzero(layers["indentation"][:, column] > 0)
+    truth = sensor.band_truth(depth)
+    if not (0 <= truth["v_top"] and truth["v_bottom"] <= sensor.camera.height - 1):
+        return   # band leaves the image: nothing to compare at this column
+    assert band[0] == pytest.approx(truth["v_top"], abs=1.0)
+    assert band[-1] == pytest.approx(truth["v_bottom"], abs=1.0)
+    image = layers["image"]
+    assert image.dtype == np.uint8 and image.shape == (480, 640, 3)
+    assert np.all(layers["indentation"] >= 0) and np.isfinite(layers["indentation"]).all()
+
+
+@pytest.mark.parametrize("bad", [
+    RollerState(travel=math.nan), RollerState(depth=math.inf), RollerState(speed=-math.inf),
+])
+def test_non_finite_states_are_rejected(bad):
+    sensor = _flat_sensor()
+    with pytest.raises(ValueError, match="non-finite"):
+        sensor.render(bad)
+
+
+def test_reverse_roll_starts_at_the_far_end():
+    scene = load_scene("surface_mapping", variant="reverse", **{"surface.resolution": 2e-4})
+    sensor = SimulatedSensor(scene, seed=0)
+    from touchroller_driver.sim.scenarios import timeline
+
+    steps = list(timeline(scene, sensor))
+    assert steps[0].state.travel == pytest.approx(0.11)
+    assert steps[-1].state.travel == pytest.approx(0.0, abs=1e-9)
+    assert all(s.state.speed <= 0 for s in steps)
+
+
+def test_thicker_gel_smooths_more():
+    from touchroller_driver.sim.render import lowpass_sigma
+
+    thin = lowpass_sigma({"lowpass_sigma": "auto", "lowpass_per_thickness": 0.075, "elastomer_thickness": 1e-3})
+    thick = lowpass_sigma({"lowpass_sigma": "auto", "lowpass_per_thickness": 0.075, "elastomer_thickness": 4e-3})
+    assert thick == pytest.approx(4 * thin)
+    relief = {}
+    for t in (1e-3, 4e-3):
+        scene = load_scene("surface_mapping", effects=[], **{"sensor.elastomer_thickness": t,
+                                                            "surface.width": 0.07, "surface.length": 0.03,
+                                                            "surface.resolution": 5e-5})
+        sensor = SimulatedSensor(scene, seed=0)
+        relief[t] = sensor.render_layers(RollerState(travel=0.015, depth=5e-4))["relief"]
+    assert np.abs(np.diff(relief[4e-3], axis=1)).sum() < 0.5 * np.abs(np.diff(relief[1e-3], axis=1)).sum()
