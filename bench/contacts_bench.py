@@ -2,8 +2,9 @@
 
 Frames: the simulator's contact_localisation scene (no-contact frames and taps with 3 contacts) and
 surface_mapping scene (a contact band across the image), or the fallback TapRenderer when the
-simulator is not installed. Per frame: `ContactDetector.detect` then `localise` (back-projection;
-PointStamped has no covariance, so the node does not compute it), as the perception node does. OpenCV is limited to one thread.
+simulator is not installed. Per frame: `ContactDetector.detect` then `localise` through the
+per-pixel `SurfaceLookup` (PointStamped has no covariance, so the node does not compute it), as
+the perception node does. OpenCV is limited to one thread.
 
 Goal (issue 4): <= 1 ms median per frame. Results: bench/results/contacts_bench.md.
 """
@@ -23,7 +24,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from touchroller_perception.contacts import ContactDetector, DetectorConfig  # noqa: E402
-from touchroller_perception.localisation import TABLE_II_CAMERA, TapRenderer, localise  # noqa: E402
+from touchroller_perception.localisation import (  # noqa: E402
+    TABLE_II_CAMERA,
+    SurfaceLookup,
+    TapRenderer,
+    localise,
+)
 
 RESULTS = ROOT / "bench" / "results" / "contacts_bench.md"
 
@@ -75,12 +81,13 @@ def time_workload(references, frames, camera, config: DetectorConfig, repeats: i
     detector = ContactDetector(config)
     detector.set_reference(references)
     detector.detect(frames[0])   # warm caches (downscaled reference)
+    lookup = SurfaceLookup(camera)   # built once per camera model, as in the node
     times, counts = [], []
     for _ in range(repeats):
         for frame in frames:
             start = time.perf_counter()
             contacts = detector.detect(frame)
-            localise(camera, contacts, covariance=False)   # what the perception node does
+            localise(camera, contacts, covariance=False, lookup=lookup)   # what the perception node does
             times.append(time.perf_counter() - start)
             counts.append(len(contacts))
     t = np.array(times) * 1e3

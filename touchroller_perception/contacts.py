@@ -43,6 +43,7 @@ class DetectorConfig:
     downscale: int = 4                # candidate search on a 1/downscale image
     blur_sigma: float = 1.0           # px of the downscaled image (candidate search)
     refine_blur_sigma: float = 1.5    # px at full resolution (centre refinement)
+    refine_max_pixels: int = 20000    # larger candidate windows are centred on the downscaled image
     close_size: int = 3               # morphological closing (downscaled px): merges lit and shaded lobes
     min_area: float = 64.0            # px^2 at full resolution (pixels above threshold); smaller is noise
     max_contacts: int = 32
@@ -287,6 +288,21 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
         margin = 2 * s
         u0, v0 = max(0, x0 * s - margin), max(0, y0 * s - margin)
         u1, v1 = min(width, (x0 + w) * s + margin), min(height, (y0 + h) * s + margin)
+        touches = u0 == 0 or v0 == 0 or u1 == width or v1 == height
+        if (u1 - u0) * (v1 - v0) > cfg.refine_max_pixels:
+            # a large blob (a contact band, a big object): its centre is already well defined on the
+            # downscaled difference, and refining tens of thousands of pixels would cost milliseconds
+            found = _refine(small[y0:y0 + h, x0:x0 + w], region.astype(bool), small_threshold, small_noise)
+            if found is None:
+                continue
+            cu, cv_, npix, peak = found
+            offset = (s - 1) / 2.0     # centre of small pixel i is full pixel i * s + (s - 1) / 2
+            confidence = max(0.0, 1.0 - small_threshold / peak) * (0.5 if touches else 1.0)
+            contacts.append(Contact(u=(cu + x0) * s + offset, v=(cv_ + y0) * s + offset, area=float(npix * s * s),
+                                    confidence=float(confidence), peak_snr=float(peak / max(small_noise, 1e-12))))
+            if len(contacts) >= cfg.max_contacts:
+                break
+            continue
         region_full = np.zeros((v1 - v0, u1 - u0), np.uint8)
         up = cv2.resize(region, (w * s, h * s), interpolation=cv2.INTER_NEAREST)
         ry, rx = y0 * s - v0, x0 * s - u0
@@ -298,7 +314,6 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
         if found is None:
             continue
         cu, cv_, npix, peak = found
-        touches = u0 == 0 or v0 == 0 or u1 == width or v1 == height
         confidence = max(0.0, 1.0 - full_threshold / peak) * (0.5 if touches else 1.0)
         contacts.append(Contact(u=cu + u0, v=cv_ + v0, area=float(npix), confidence=float(confidence),
                                 peak_snr=float(peak / max(full_noise, 1e-12))))

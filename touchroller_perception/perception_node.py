@@ -37,7 +37,7 @@ from touchroller_bringup.ros_params import GeometryParameters, declare
 from touchroller_driver.image_conversion import image_to_array
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
-from touchroller_perception.localisation import localise
+from touchroller_perception.localisation import SurfaceLookup, localise
 
 IMAGE_TOPIC = "/touchroller/image_raw"
 CONTACTS_TOPIC = "/touchroller/contacts"
@@ -69,6 +69,7 @@ class PerceptionNode(Node):
         self._declare_parameters()
         self.geometry = GeometryParameters(self, on_change=self._on_geometry)
         self.camera: CameraModel = self.geometry.model
+        self.lookup = SurfaceLookup(self.camera)   # per-pixel back-projection: microseconds per contact
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         self.detector = ContactDetector(self._detector_config(), int(self.get_parameter("reference.frames").value))
@@ -138,6 +139,7 @@ class PerceptionNode(Node):
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
 
     def _on_geometry(self, model: CameraModel) -> None:
+        self.lookup = SurfaceLookup(model)
         self.camera = model
         if self.stitcher is not None:
             self.stitcher = None   # the map's band and scale follow the camera: start a new map
@@ -201,7 +203,7 @@ class PerceptionNode(Node):
 
     def _publish_contacts(self, msg: Image, contacts: list) -> None:
         # PointStamped carries no covariance, so it is not computed here
-        for located in localise(self.camera, contacts, covariance=False):
+        for located in localise(self.lookup.camera, contacts, covariance=False, lookup=self.lookup):
             if not located.valid:
                 self.unmapped_contacts += 1
                 continue

@@ -165,3 +165,14 @@ def _shared_detector() -> ContactDetector:
     if not _DETECTOR:
         _DETECTOR.append(detector())
     return _DETECTOR[0]
+
+
+def test_large_blobs_are_centred_on_the_downscaled_image():
+    truth = (160.0, 120.0)
+    frame = render([truth], radius=40.0, amplitude=60.0, seed=4)
+    fine = detector(refine_max_pixels=10**9).detect(frame)
+    coarse = detector(refine_max_pixels=1000).detect(frame)
+    assert len(fine) == len(coarse) == 1
+    assert math.hypot(fine[0].u - truth[0], fine[0].v - truth[1]) < 0.3
+    assert math.hypot(coarse[0].u - truth[0], coarse[0].v - truth[1]) < 1.0
+    assert coarse[0].area == pytest.approx(fine[0].area, rel=0.2)

@@ -93,3 +93,30 @@ def test_table_ii_on_the_simulator_scene():
     # the scene's paper variant: 1 deg of theta alone costs ~0.87 mm, so the error must show it
     assert summary["error_sources"]["mean_mm"] > 0.5
     assert summary["paper_detector"]["mean_mm"] > 5 * summary["exact"]["mean_mm"]
+
+
+def test_surface_lookup_matches_the_exact_back_projection():
+    from touchroller_perception.localisation import SurfaceLookup
+
+    camera = SMALL_CAMERA
+    lookup = SurfaceLookup(camera)
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([0, 0], [camera.width - 1, camera.height - 1], size=(500, 2))
+    uv = np.vstack([uv, [[-3.0, 5.0], [camera.width - 0.7, 10.0], [np.nan, 1.0], [1e6, 1e6]]])
+    exact, exact_ok = camera.back_project(uv)
+    fast, fast_ok = lookup.back_project(uv)
+    np.testing.assert_array_equal(fast_ok, exact_ok)
+    # this half-size wide-angle camera is the hard case (4x the curvature per pixel): 50 um at the corners
+    assert np.nanmax(np.linalg.norm(fast - exact, axis=1)) < 5e-5
+    np.testing.assert_allclose(np.hypot(fast[fast_ok, 1], fast[fast_ok, 2]), camera.radius)
+    contacts = [_contact(u, v) for u, v in uv[:3]]
+    via_lookup = localise(camera, contacts, covariance=False, lookup=lookup)
+    assert all(np.isnan(c.covariance).all() for c in via_lookup)
+    with pytest.raises(ValueError, match="another camera"):
+        localise(camera.replace(theta=0.1), contacts, lookup=lookup)
+    # a 640x480 wide-angle camera: sub-micrometre typically, tens of um only in the extreme corners
+    sensor = TABLE_II_CAMERA.replace(theta=0.03, d=0.0015)
+    uv = rng.uniform([0, 0], [sensor.width - 1, sensor.height - 1], size=(500, 2))
+    fast, _ = SurfaceLookup(sensor).back_project(uv)
+    error = np.linalg.norm(fast - sensor.back_project(uv)[0], axis=1)
+    assert np.nanmedian(error) < 1e-7 and np.nanmax(error) < 3e-5
