@@ -168,3 +168,142 @@ def test_progress_follows_the_measured_tcp(connected_arm):
     arm.disconnect()
     control.stopScript.assert_called_once_with()
     receive.disconnect.assert_called_once_with()
+
+
+# -- the real rtde_receive against a minimal RTDE server on loopback --------------------------------
+# The server runs in a subprocess: ur_rtde's pybind constructors hold the GIL while connecting, so a
+# server thread in this interpreter could never answer. It speaks RTDE v2: protocol version, controller
+# version, output recipe setup (answering each requested variable with its RTDE type), start, then data
+# packages at 100 Hz carrying a TCP pose and safety status bits that stdin commands change.
+FAKE_RTDE_SERVER = r'''
+import socket, struct, sys, threading, time
+HOST = sys.argv[1]
+FORMATS = {"DOUBLE": "d", "UINT64": "Q", "INT32": "i", "UINT32": "I", "VECTOR6D": "6d", "VECTOR3D": "3d",
+           "VECTOR6INT32": "6i"}
+NAMED = {"timestamp": "DOUBLE", "actual_digital_input_bits": "UINT64", "actual_digital_output_bits": "UINT64",
+         "robot_mode": "INT32", "safety_mode": "INT32", "joint_mode": "VECTOR6INT32", "runtime_state": "UINT32",
+         "robot_status_bits": "UINT32", "safety_status_bits": "UINT32", "actual_tool_accelerometer": "VECTOR3D",
+         "payload_cog": "VECTOR3D", "actual_execution_time": "DOUBLE", "speed_scaling": "DOUBLE",
+         "target_speed_fraction": "DOUBLE", "actual_momentum": "DOUBLE", "actual_main_voltage": "DOUBLE",
+         "actual_robot_voltage": "DOUBLE", "actual_robot_current": "DOUBLE", "payload": "DOUBLE"}
+def kind(name):
+    if name in NAMED: return NAMED[name]
+    if name.startswith("output_int_register"): return "INT32"
+    if name.startswith(("output_double_register", "standard_analog")): return "DOUBLE"
+    return "VECTOR6D"
+state = {"pose": [0.0] * 6, "safety_bits": 1}
+def commands():
+    for line in sys.stdin:
+        words = line.split()
+        if words[:1] == ["protective"]: state["safety_bits"] = 1 | 4
+        if words[:1] == ["pose"]: state["pose"] = [float(x) for x in words[1:7]]
+threading.Thread(target=commands, daemon=True).start()
+server = socket.socket(); server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+server.bind((HOST, 30004)); server.listen(1)
+print("listening", flush=True)
+conn, _ = server.accept()
+lock = threading.Lock()
+def send(t, payload):
+    with lock: conn.sendall(struct.pack(">HB", len(payload) + 3, ord(t)) + payload)
+def exact(n):
+    data = b""
+    while len(data) < n:
+        chunk = conn.recv(n - len(data))
+        if not chunk: raise EOFError
+        data += chunk
+    return data
+names = []
+def stream():
+    while True:
+        package = b"\x01"
+        for name in names:
+            fmt = FORMATS[kind(name)]
+            count = int(fmt[:-1] or 1)
+            values = {"actual_TCP_pose": state["pose"], "safety_status_bits": [state["safety_bits"]],
+                      "timestamp": [time.monotonic()]}.get(name, [0] * count)
+            package += struct.pack(">" + fmt, *values)
+        try: send("U", package)
+        except OSError: return
+        time.sleep(0.01)
+try:
+    while True:
+        size, kind_byte = struct.unpack(">HB", exact(3))
+        payload, command = exact(size - 3), chr(kind_byte)
+        if command == "V": send("V", b"\x01")
+        elif command == "v": send("v", struct.pack(">IIII", 5, 15, 0, 0))
+        elif command == "O":
+            names = [n for n in payload[8:].decode().split(",") if n]
+            send("O", b"\x01" + ",".join(kind(n) for n in names).encode())
+        elif command == "S":
+            send("S", b"\x01"); threading.Thread(target=stream, daemon=True).start()
+        elif command == "P": send("P", b"\x01")
+except (EOFError, OSError):
+    pass
+'''
+
+
+@pytest.fixture
+def fake_rtde_server():
+    """(host, send_command) of a fake RTDE server on a free 127.0.0.x:30004."""
+    import os
+    import subprocess
+    import sys
+
+    for attempt in range(10):
+        host = f"127.0.0.{100 + (os.getpid() + 17 * attempt) % 150}"
+        server = subprocess.Popen([sys.executable, "-u", "-c", FAKE_RTDE_SERVER, host], stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        if server.stdout.readline().strip() == "listening":
+            break
+        server.wait(timeout=5)
+    else:
+        pytest.skip("no free loopback address for the fake RTDE server")
+
+    def command(line: str) -> None:
+        server.stdin.write(line + "\n")
+        server.stdin.flush()
+
+    try:
+        yield host, command
+    finally:
+        server.kill()
+        server.wait(timeout=5)
+
+
+def _wait_for(predicate, timeout: float = 3.0) -> bool:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+@pytest.mark.timeout(30)
+def test_real_rtde_receive_reads_pose_and_protective_stop(fake_rtde_server, monkeypatch):
+    host, command = fake_rtde_server
+    control = mock.create_autospec(rtde_control.RTDEControlInterface, instance=True)
+    control.isConnected.return_value = True
+    control.isPoseWithinSafetyLimits.return_value = True
+    control.moveL.return_value = True
+    monkeypatch.setattr(rtde_control, "RTDEControlInterface", lambda h, f: control)  # receive stays real
+    arm = ur5.UR5Arm(host)
+    arm.connect()
+    try:
+        assert isinstance(arm._receive, rtde_receive.RTDEReceiveInterface)
+        command("pose 0.41 -0.02 0.205 3.1 0.05 -0.01")
+        assert _wait_for(lambda: arm.tcp_pose()[0] == pytest.approx(0.41))
+        np.testing.assert_allclose(arm.tcp_pose(), [0.41, -0.02, 0.205, 3.1, 0.05, -0.01])
+        assert arm.fault() is None
+        arm.move_linear([0.45, -0.02, 0.205, 3.1, 0.05, -0.01], 0.01, 0.1)
+        command("protective")
+        assert _wait_for(lambda: arm.fault() is not None)
+        assert "protective stop" in arm.fault()
+        control.moveL.reset_mock()
+        with pytest.raises(ArmError, match="protective stop"):
+            arm.move_linear(POSE, 0.01, 0.1)
+        control.moveL.assert_not_called()
+    finally:
+        arm.disconnect()
