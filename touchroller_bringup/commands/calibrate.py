@@ -1,15 +1,207 @@
-"""`touchroller calibrate`: placeholder until issue 6 lands."""
+"""`touchroller calibrate intrinsics|extrinsics INPUT --out CAL.yaml`: the paper's two-step calibration.
+
+INPUT is a rosbag2 recording (topic `/touchroller/image_raw` unless `--topic`), an image folder
+(png/jpg/bmp/tif, sorted by name) or one image file. The output is a DESIGN.md parameters file
+(`/**: ros__parameters:`) that `touchroller contacts --params` and the nodes read.
+
+    touchroller calibrate intrinsics chessboard_bag --out cal.yaml
+    touchroller calibrate extrinsics hemispheres_bag --params cal.yaml --out cal.yaml
+"""
 from __future__ import annotations
 
 import argparse
+import math
+from pathlib import Path
+from typing import Any
 
 from touchroller_bringup.errors import UserError
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("calibrate", help="(not implemented yet: issue 6)")
-    parser.set_defaults(func=run)
+    parser = subparsers.add_parser(
+        "calibrate", help="calibrate intrinsics (chessboard) or theta and d (hemisphere frame)",
+        description="The paper's calibration, scripted: intrinsics and distortion from chessboard views "
+                    "(Zhang), then theta and d from the roller pressed on the 2x5 hemisphere frame.")
+    steps = parser.add_subparsers(dest="step", metavar="STEP", parser_class=type(parser))
+    steps.required = True
+
+    intr = steps.add_parser("intrinsics", help="fx, fy, cx, cy and the 5 distortion coefficients",
+                            description="Zhang's method on chessboard views, with per-view errors and "
+                                        "rejection of bad or blurred views.")
+    _common(intr)
+    intr.add_argument("--board", default="7x7", metavar="COLSxROWS",
+                      help="inner corners of the chessboard (default 7x7)")
+    intr.add_argument("--square", type=float, default=0.012, help="square side in m (default 0.012)")
+    intr.add_argument("--params", type=Path,
+                      help="parameters file whose cylinder and extrinsics values are kept (default: built-in)")
+    intr.add_argument("--max-view-rms", type=float, default=1.0,
+                      help="reject views whose reprojection RMS exceeds this (px) and 3x the median")
+    intr.set_defaults(func=run_intrinsics)
+
+    extr = steps.add_parser("extrinsics", help="theta and d from hemisphere-frame presses",
+                            description="theta and d from images of the roller pressed on the hemisphere "
+                                        "frame: imprint centres, a per-image pose solve, mean and spread, "
+                                        "outlier rejection, and the terms the paper's model neglects.")
+    _common(extr)
+    extr.add_argument("--params", type=Path, required=True,
+                      help="parameters file with the intrinsics (from 'touchroller calibrate intrinsics')")
+    extr.add_argument("--frame", default="2x5", metavar="ROWSxCOLS",
+                      help="hemispheres across x along the axis (default 2x5)")
+    extr.add_argument("--pitch", type=float, nargs=2, default=(0.010, 0.008), metavar=("X", "Y"),
+                      help="centre distances along the axis and across it, m (default 0.010 0.008)")
+    extr.add_argument("--hemisphere-radius", type=float, default=0.001, help="m (default 0.001)")
+    extr.add_argument("--press-depth", type=float, default=0.0005, help="m, at the contact line (default 0.0005)")
+    extr.add_argument("--reference-frames", type=int, default=None,
+                      help="no-contact frames at the start of the input used as reference "
+                           "(default 5 for a bag, 0 for images)")
+    extr.add_argument("--reference", type=Path, help="a no-contact reference image instead")
+    extr.add_argument("--no-row-balance", action="store_true",
+                      help="plain mean of theta (the paper) without the frame-shift correction")
+    extr.add_argument("--max-view-rms", type=float, default=1.0, help="reject views above this RMS (px)")
+    extr.set_defaults(func=run_extrinsics)
 
 
-def run(args: argparse.Namespace) -> int:
-    raise UserError("'touchroller calibrate' is not implemented yet (issue 6)")
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", type=Path, help="rosbag2 folder, image folder or image file")
+    parser.add_argument("--out", required=True, type=Path, help="calibration YAML to write")
+    parser.add_argument("--topic", default="/touchroller/image_raw", help="image topic in a bag")
+    parser.add_argument("--report", type=Path, help="also write the full report (per view) as YAML")
+
+
+def load_images(path: Path, topic: str) -> tuple[list[Any], bool]:
+    """The images of a bag, a folder or a file; and whether it was a bag."""
+    import cv2
+
+    if not path.exists():
+        raise UserError(f"no such input: {path}")
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not files:
+            raise UserError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}) and no rosbag2 metadata.yaml")
+        return [_read_image(f, cv2) for f in files], False
+    if path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES:
+        return [_read_image(path, cv2)], False
+    from touchroller_bringup.bags import read_images
+
+    images = [record.image for record in read_images(path, topic)]
+    if not images:
+        raise UserError(f"bag {path} has no images on {topic}")
+    return images, True
+
+
+def _read_image(path: Path, cv2) -> Any:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise UserError(f"cannot read image {path}")
+    return image
+
+
+def _load_camera(path: Path | None):
+    from touchroller_perception.geometry import CameraModel
+
+    if path is None:
+        return CameraModel()
+    if not path.exists():
+        raise UserError(f"no such parameters file: {path}")
+    try:
+        return CameraModel.from_yaml(path)
+    except (ValueError, TypeError, OSError) as exc:
+        raise UserError(f"{path}: {exc}") from None
+
+
+def _grid(text: str, what: str) -> tuple[int, int]:
+    a, sep, b = text.lower().partition("x")
+    try:
+        if not sep:
+            raise ValueError
+        return int(a), int(b)
+    except ValueError:
+        raise UserError(f"{what} must look like 7x7, got {text!r}") from None
+
+
+def run_intrinsics(args: argparse.Namespace) -> int:
+    from touchroller_perception import calibration as cal
+
+    columns, rows = _grid(args.board, "--board")
+    prior = _load_camera(args.params)
+    images, _ = load_images(args.input, args.topic)
+    try:
+        board = cal.Chessboard(columns=columns, rows=rows, square=args.square)
+        result = cal.calibrate_intrinsics(images, board, prior=prior, max_view_rms=args.max_view_rms)
+    except cal.CalibrationError as exc:
+        raise UserError(f"calibrate intrinsics: {exc}") from None
+    _write(args, result.camera, intrinsics=result)
+    print(result.summary())
+    for index, reason in sorted(result.rejected.items()):
+        print(f"  rejected image {index}: {reason}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def run_extrinsics(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from touchroller_perception import calibration as cal
+
+    rows, columns = _grid(args.frame, "--frame")
+    camera = _load_camera(args.params)
+    images, is_bag = load_images(args.input, args.topic)
+    reference = None
+    if args.reference is not None:
+        import cv2
+
+        reference = _read_image(args.reference, cv2)
+    else:
+        count = (5 if is_bag else 0) if args.reference_frames is None else args.reference_frames
+        if count < 0 or count >= len(images):
+            raise UserError(f"--reference-frames {count}: the input has {len(images)} images")
+        if count:
+            reference = np.median(np.stack(images[:count]), axis=0).astype(np.uint8)
+            images = images[count:]
+    try:
+        frame = cal.HemisphereFrame(rows=rows, columns=columns, pitch_x=args.pitch[0], pitch_y=args.pitch[1],
+                                    hemisphere_radius=args.hemisphere_radius, press_depth=args.press_depth)
+        result = cal.calibrate_extrinsics(images, camera, frame, reference=reference,
+                                          balance_rows=not args.no_row_balance, max_view_rms=args.max_view_rms)
+    except cal.CalibrationError as exc:
+        raise UserError(f"calibrate extrinsics: {exc}") from None
+    _write(args, result.camera, extrinsics=result)
+    print(result.summary())
+    if not args.no_row_balance:
+        plain = result.neglected["theta_plain_mean_deg"]
+        print(f"  paper's plain mean theta = {plain:.4f}° (row balance moved it by "
+              f"{math.degrees(result.theta) - plain:+.4f}°)")
+    for index, reason in sorted(result.rejected.items()):
+        print(f"  rejected image {index}: {reason}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _write(args: argparse.Namespace, camera, intrinsics=None, extrinsics=None) -> None:
+    import yaml
+
+    from touchroller_perception import calibration as cal
+
+    try:
+        keep = cal.read_calibration_extras(str(args.params)) if getattr(args, "params", None) else {}
+        cal.write_calibration(str(args.out), camera, intrinsics=intrinsics, extrinsics=extrinsics, keep=keep)
+        if args.report is not None:
+            report = {"intrinsics": intrinsics.to_dict() if intrinsics else None,
+                      "extrinsics": extrinsics.to_dict() if extrinsics else None}
+            with open(args.report, "w", encoding="utf-8") as stream:
+                yaml.safe_dump(_plain(report), stream, sort_keys=False)
+    except OSError as exc:
+        raise UserError(f"cannot write {exc.filename}: {exc.strerror}") from None
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars and tuples -> YAML-safe Python values."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if hasattr(value, "item"):
+        return value.item()
+    return value

@@ -1,0 +1,87 @@
+"""`touchroller calibrate intrinsics|extrinsics` on simulated bags and image folders."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from touchroller_bringup.cli import main
+from touchroller_perception.geometry import CameraModel
+
+sim = pytest.importorskip("touchroller_driver.sim")
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    chess = sim.SimulatedSensor(sim.load_scene("calibration_chessboard", **{"motion.views": 12}), seed=3)
+    hemi = sim.SimulatedSensor(sim.load_scene("calibration_hemispheres", **{"motion.presses": 6}), seed=3)
+    return ([(f.stamp_ns, f.image) for f in chess.frames()], [(f.stamp_ns, f.image) for f in hemi.frames()],
+            hemi.camera)
+
+
+def test_calibrate_bags_end_to_end(scenes, bag_factory, tmp_path, capsys):
+    chess, hemi, truth = scenes
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", "intrinsics", str(bag_factory(chess)), "--out", str(out)]) == 0
+    assert "intrinsics from 12/12 views" in capsys.readouterr().out
+    intrinsics = CameraModel.from_yaml(out)
+    assert abs(intrinsics.fx - truth.fx) < 1.5
+    report = tmp_path / "report.yaml"
+    assert main(["calibrate", "extrinsics", str(bag_factory(hemi, "mcap")), "--params", str(out),
+                 "--out", str(out), "--report", str(report)]) == 0
+    assert "extrinsics from 6/6 images" in capsys.readouterr().out
+    result = CameraModel.from_yaml(out)
+    assert result.fx == pytest.approx(intrinsics.fx)                 # intrinsics carried over
+    assert abs(math.degrees(result.theta - truth.theta)) < 0.15
+    assert abs(result.d - truth.d) < 0.1e-3
+    params = yaml.safe_load(out.read_text())["/**"]["ros__parameters"]
+    assert "calibration.sigma.fx" in params and "calibration.sigma.theta" in params
+    views = yaml.safe_load(report.read_text())["extrinsics"]["views"]
+    assert len(views) == 6 and all(v["rms_px"] < 0.3 for v in views)
+
+
+def test_calibrate_image_folder_with_reference(scenes, tmp_path, capsys):
+    _, hemi, truth = scenes
+    folder = tmp_path / "presses"
+    folder.mkdir()
+    for k, (_, image) in enumerate(hemi[5:]):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), image)
+    reference = tmp_path / "reference.png"
+    cv2.imwrite(str(reference), np.median([img for _, img in hemi[:5]], axis=0).astype(np.uint8))
+    params = tmp_path / "truth.yaml"
+    truth.replace(theta=0.0, d=0.0).to_yaml(params)
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", "extrinsics", str(folder), "--params", str(params), "--reference", str(reference),
+                 "--out", str(out)]) == 0
+    assert abs(math.degrees(CameraModel.from_yaml(out).theta - truth.theta)) < 0.1
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["calibrate", "intrinsics", "/nonexistent", "--out", "x.yaml"], "no such input"),
+    (["calibrate", "intrinsics", "{empty}", "--out", "x.yaml"], "no images"),
+    (["calibrate", "intrinsics", "{blank}", "--out", "x.yaml"], "single chessboard image"),
+    (["calibrate", "intrinsics", "{blank}", "--board", "7by7", "--out", "x.yaml"], "--board must look like"),
+    (["calibrate", "extrinsics", "{blank}", "--out", "x.yaml"], "required"),
+])
+def test_calibrate_errors_are_one_line(argv, message, tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))
+    argv = [a.format(empty=empty, blank=blank) for a in argv]
+    with pytest.raises(SystemExit) if message == "required" else _nothing():
+        code = main(argv)
+        assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err and "Traceback" not in err
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
