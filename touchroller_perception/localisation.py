@@ -262,7 +262,8 @@ def table_ii(quick: bool = True, taps: int | None = None, seed: int = 0, source:
 
     `source`: ``"sim"`` renders the simulator's ``contact_localisation`` scene (its ``exact`` and
     ``paper`` variants carry the error sources), ``"synthetic"`` the fallback `TapRenderer`, and
-    ``"auto"`` the simulator when it is installed. `quick` uses 3 taps per cell, else 10.
+    ``"auto"`` the simulator when it is installed. `quick` uses 3 taps per cell and the four main
+    conditions, else 10 taps and also each error source alone.
     """
     if source not in ("auto", "sim", "synthetic"):
         raise ValueError(f"source must be auto, sim or synthetic, got {source!r}")
@@ -274,7 +275,7 @@ def table_ii(quick: bool = True, taps: int | None = None, seed: int = 0, source:
             if source == "sim":
                 raise
         else:
-            return _table_ii_sim(taps, seed)
+            return _table_ii_sim(taps, seed, QUICK_SIM_CONDITIONS if quick else tuple(SIM_CONDITIONS))
     return _table_ii_synthetic(taps, seed, camera, conditions)
 
 
@@ -325,16 +326,23 @@ def _new_cells() -> list[list[list[float]]]:
     return [[[] for _ in TABLE_II_FRACTIONS] for _ in TABLE_II_ALPHAS]
 
 
-#: Simulator conditions: (scene variant, detector). The `paper` variant's error sizes are the scene's.
-SIM_CONDITIONS = {
-    "exact": ("exact", "colour"),
-    "paper_detector": ("exact", "paper"),
-    "error_sources": ("paper", "colour"),
-    "error_sources_paper_detector": ("paper", "paper"),
+#: Simulator conditions: name -> (scene variant, scene overrides, detector). The `paper` variant's
+#: error sizes are the scene's (1 deg, 0.5 mm, +-0.3 mm thickness, noise 3); the single-source rows
+#: apply one of them at a time to the exact variant, to split the error budget.
+SIM_CONDITIONS: dict[str, tuple[str, dict[str, Any], str]] = {
+    "exact": ("exact", {}, "colour"),
+    "paper_detector": ("exact", {}, "paper"),
+    "theta_only": ("exact", {"calibration_error.theta": math.radians(1.0)}, "colour"),
+    "d_only": ("exact", {"calibration_error.d": 0.5e-3}, "colour"),
+    "thickness_only": ("exact", {"sensor.thickness_variation": 0.3e-3}, "colour"),
+    "noise_only": ("exact", {"effect_params.noise.sigma": 3.0}, "colour"),
+    "error_sources": ("paper", {}, "colour"),
+    "error_sources_paper_detector": ("paper", {}, "paper"),
 }
+QUICK_SIM_CONDITIONS = ("exact", "paper_detector", "error_sources", "error_sources_paper_detector")
 
 
-def _table_ii_sim(taps: int, seed: int) -> dict[str, Any]:
+def _table_ii_sim(taps: int, seed: int, names: Sequence[str]) -> dict[str, Any]:
     from touchroller_driver.sim import SimulatedSensor, load_scene
 
     start = time.perf_counter()
@@ -343,8 +351,9 @@ def _table_ii_sim(taps: int, seed: int) -> dict[str, Any]:
     described: dict[str, dict[str, Any]] = {}
     rows: list[dict[str, Any]] | None = None
     scene_info: dict[str, Any] = {}
-    for name, (variant, method) in SIM_CONDITIONS.items():
-        scene = load_scene("contact_localisation", variant=variant, **{"motion.repeats": taps})
+    for name in names:
+        variant, overrides, method = SIM_CONDITIONS[name]
+        scene = load_scene("contact_localisation", variant=variant, **{"motion.repeats": taps, **overrides})
         sensor = SimulatedSensor(scene, seed=seed)
         truth_camera, calibrated = scene.camera, scene.paper_camera
         if rows is None:
@@ -371,7 +380,8 @@ def _table_ii_sim(taps: int, seed: int) -> dict[str, Any]:
                     cells[i][j].append(1e3 * float(np.linalg.norm(point - np.asarray(truth["point"]))))
         errors[name], expected[name] = cells, count
         cal_err = scene.data.get("calibration_error") or {}
-        described[name] = {"detector": method, "variant": variant,
+        described[name] = {"detector": method, "variant": variant + (" + " + ", ".join(
+                               f"{k}={v:g}" for k, v in overrides.items()) if overrides else ""),
                            "theta_error": float(cal_err.get("theta", 0.0)), "d_error": float(cal_err.get("d", 0.0)),
                            "thickness_amplitude": float(scene.sensor.get("thickness_variation", 0.0)),
                            "noise_sigma": float(scene.effect_params("noise").get("sigma", 0.0))
@@ -483,3 +493,64 @@ def write_table_ii(path: str | Path, quick: bool = False, command: str = "", sou
     result = table_ii(quick=quick, source=source)
     Path(path).write_text(table_ii_markdown(result, command), encoding="utf-8")
     return result
+
+
+#: Calibration parameters `explain_paper_table` fits, with bounds (rad, m, px).
+PAPER_FIT_BOUNDS = {"theta": (-0.5, 0.5), "d": (-0.03, 0.03), "cx": (-100.0, 100.0), "cy": (-100.0, 100.0)}
+
+
+def explain_paper_table(camera: CameraModel, names: Sequence[str] = ("theta", "d", "cx", "cy"),
+                        starts: int = 20, seed: int = 0) -> dict[str, Any]:
+    """Which calibration errors would reproduce the paper's 15 cell means with a perfect detector?
+
+    Least-squares fit (scipy, multi-start, bounded) of offsets of `names` between the true camera
+    and the one used for back-projection, to the paper's Table II means. A diagnostic, not a claim:
+    a few parameters fitted to 15 numbers; the residual says how much the pattern is left unexplained.
+    """
+    from scipy.optimize import least_squares
+
+    points = np.array([camera.surface_point((f - 0.5) * camera.length, a)
+                       for a in TABLE_II_ALPHAS for f in TABLE_II_FRACTIONS])
+    pixels, seen = camera.project(points)
+    if not seen.all():
+        raise ValueError("the camera does not see all 15 Table II cells")
+    target = PAPER_TABLE_II_MEAN.ravel()
+    lower = np.array([PAPER_FIT_BOUNDS[n][0] for n in names])
+    upper = np.array([PAPER_FIT_BOUNDS[n][1] for n in names])
+
+    def errors_mm(offsets: np.ndarray) -> np.ndarray:
+        model = camera.replace(**{n: getattr(camera, n) + float(v) for n, v in zip(names, offsets, strict=True)})
+        located, ok = model.back_project(pixels)
+        return np.where(ok, 1e3 * np.linalg.norm(located - points, axis=1), 100.0)
+
+    rng = np.random.default_rng(seed)
+    best = None
+    for _ in range(starts):
+        start = rng.uniform(lower, upper) * 0.2
+        fit = least_squares(lambda p: errors_mm(p) - target, start, bounds=(lower, upper))
+        if best is None or fit.cost < best.cost:
+            best = fit
+    predicted = errors_mm(best.x)
+    return {"offsets": {n: float(v) for n, v in zip(names, best.x, strict=True)},
+            "at_bound": [n for n, v, lo, hi in zip(names, best.x, lower, upper, strict=True)
+                         if min(v - lo, hi - v) < 1e-3 * (hi - lo)],
+            "predicted_mm": predicted.reshape(5, 3).tolist(),
+            "rms_residual_mm": float(np.sqrt(np.mean((predicted - target) ** 2)))}
+
+
+def explain_markdown(fit: Mapping[str, Any]) -> str:
+    offsets = fit["offsets"]
+    parts = []
+    for name, value in offsets.items():
+        parts.append(f"{name} {math.degrees(value):+.2f} deg" if name == "theta" else
+                     f"{name} {value * 1e3:+.2f} mm" if name == "d" else f"{name} {value:+.1f} px")
+    lines = ["## What would explain the paper's numbers", "",
+             "Least-squares fit of calibration offsets (true camera vs the one used to back-project) to the "
+             "paper's 15 cell means, with a perfect detector: " + ", ".join(parts)
+             + f"; RMS residual {fit['rms_residual_mm']:.2f} mm"
+             + (f" (at the fit's bound: {', '.join(fit['at_bound'])})" if fit["at_bound"] else "") + ".", "",
+             "| angle | 1/4 L fit (paper) | 1/2 L fit (paper) | 3/4 L fit (paper) |", "|---|---|---|---|"]
+    for i, label in enumerate(TABLE_II_ALPHA_LABELS):
+        cells = [f"{fit['predicted_mm'][i][j]:.2f} ({PAPER_TABLE_II_MEAN[i, j]:.2f})" for j in range(3)]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

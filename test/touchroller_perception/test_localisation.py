@@ -120,3 +120,26 @@ def test_surface_lookup_matches_the_exact_back_projection():
     fast, _ = SurfaceLookup(sensor).back_project(uv)
     error = np.linalg.norm(fast - sensor.back_project(uv)[0], axis=1)
     assert np.nanmedian(error) < 1e-7 and np.nanmax(error) < 3e-5
+
+
+def test_explain_paper_table_recovers_a_known_calibration_error():
+    import touchroller_perception.localisation as loc
+
+    camera = TABLE_II_CAMERA
+    # make the "paper" table the errors of a known theta/d offset, then fit it back
+    truth = {"theta": math.radians(1.5), "d": 4e-3}
+    points = np.array([camera.surface_point((f - 0.5) * camera.length, a)
+                       for a in loc.TABLE_II_ALPHAS for f in loc.TABLE_II_FRACTIONS])
+    located, _ = camera.replace(theta=camera.theta + truth["theta"], d=camera.d + truth["d"]).back_project(
+        camera.project(points)[0])
+    synthetic = (1e3 * np.linalg.norm(located - points, axis=1)).reshape(5, 3)
+    original = loc.PAPER_TABLE_II_MEAN
+    try:
+        loc.PAPER_TABLE_II_MEAN = synthetic
+        fit = loc.explain_paper_table(camera, names=("theta", "d"), starts=5)
+    finally:
+        loc.PAPER_TABLE_II_MEAN = original
+    assert fit["rms_residual_mm"] < 1e-3
+    assert fit["offsets"]["theta"] == pytest.approx(truth["theta"], rel=1e-2)
+    assert fit["offsets"]["d"] == pytest.approx(truth["d"], rel=1e-2)
+    assert "What would explain" in loc.explain_markdown(fit)
