@@ -245,7 +245,8 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None])
     if plan is not None:
         from touchroller_driver.motion import TrapezoidProfile
 
-        position = np.asarray(sweep.arm.tcp_pose(), dtype=np.float64)
+        position = sweep.last_pose  # not sweep.arm.tcp_pose(): only the sweep node's thread calls the arm
+        position = plan.segments[0].target if position is None else position
         for segment in plan.segments:
             distance = float(np.linalg.norm(segment.target[:3] - position[:3]))
             durations += TrapezoidProfile(distance, segment.speed, segment.accel).duration

@@ -313,6 +313,12 @@ class SweepNode(Node):
         with self._state_lock:
             return self._status
 
+    @property
+    def last_pose(self) -> np.ndarray | None:
+        """The TCP pose last read by the arm thread (other threads must not call the arm)."""
+        with self._state_lock:
+            return None if self._last_pose is None else self._last_pose.copy()
+
     def _diagnostic_status(self) -> Status:
         status = self.status
         with self._state_lock:

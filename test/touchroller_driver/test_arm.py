@@ -272,3 +272,34 @@ def test_stop_request_ends_the_sweep_in_stopped():
     with pytest.raises(ArmError):  # a faulted arm cannot start a new sweep
         arm.inject_fault("estop")
         sequencer.start(plan_sweep(START, length=0.1, speed=0.01, accel=0.1, depth=0.0))
+
+
+@pytest.mark.slow
+def test_the_arm_pose_drives_the_simulated_sensor():
+    """Touching (depth 0) only the fabric's relief prints; pressed by `depth`, a band 2 sqrt(2 r depth) wide."""
+    try:
+        from touchroller_driver.sim import RollerState, SimulatedSensor, load_scene
+    except ImportError:
+        pytest.skip("simulator not landed yet")
+    sensor = SimulatedSensor(load_scene("surface_mapping", effects=[]), seed=0)
+    arm, clock = make_arm(radius=sensor.camera.radius, travel_origin=0.02)
+    lifted = sensor.render(RollerState(travel=0.02, depth=-1e-3)).astype(np.float64)
+
+    def band_rows(state) -> int:
+        return int((np.abs(sensor.render(state).astype(np.float64) - lifted).mean(axis=(1, 2)) > 1.0).sum())
+
+    depth = 5e-4
+    touching = band_rows(arm.roller_state())
+    arm.move_linear(np.array(START) - [0, 0, depth, 0, 0, 0], 0.005, 0.1)
+    clock.t += 10.0
+    state = arm.roller_state()
+    assert state.depth == pytest.approx(depth) and state.travel == pytest.approx(0.02)
+    pressed = band_rows(state)
+    metres_per_px = sensor.camera.radius / sensor.camera.fy  # at the contact line, theta = d = 0
+    relief = float(sensor.scene.surface["relief"])  # the fabric's peaks press in deeper than its base plane
+
+    def band(penetration: float) -> float:
+        return 2.0 * math.sqrt(2.0 * sensor.camera.radius * penetration) / metres_per_px
+
+    assert 0.95 * band(depth) <= pressed <= 1.05 * band(depth + relief)
+    assert touching < 0.6 * pressed, (touching, pressed)
