@@ -115,3 +115,43 @@ def test_detector_parameters_are_validated_and_applied(graph):
     assert math.isclose(node.detector.config.threshold_sigma, 4.0)
     # out of the declared range: rclpy refuses it
     assert not node.set_parameters([Parameter("contacts.downscale", value=64)])[0].successful
+
+
+def test_tactile_map_is_published_latched(ros_context, spin_until):
+    pytest.importorskip("touchroller_perception.stitching")
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    from touchroller_driver.image_conversion import array_to_image, image_to_array
+    from touchroller_perception.perception_node import IMAGE_TOPIC, MAP_TOPIC, PerceptionNode
+
+    overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
+    overrides += [Parameter("reference.frames", value=2), Parameter("map.publish_rate", value=50.0)]
+    node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
+    helper = rclpy_node("map_test_helper", ros_context)
+    image_pub = helper.create_publisher(Image, IMAGE_TOPIC, 10)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(helper)
+    try:
+        rng = np.random.default_rng(0)
+        texture = rng.integers(0, 255, (CAMERA.height * 3, CAMERA.width, 3), dtype=np.uint8)
+        for k in range(6):   # the surface slides along v by 4 px a frame
+            frame = np.ascontiguousarray(texture[4 * k:4 * k + CAMERA.height])
+            send(executor, spin_until, node, image_pub, array_to_image(frame, 1_000_000 * (k + 1)))
+        assert spin_until(executor, lambda: node.stitcher is not None and not node._map_dirty, timeout=5.0)
+        # a subscriber that joins late still gets the last map (transient local)
+        maps: list = []
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        helper.create_subscription(Image, MAP_TOPIC, maps.append, latched)
+        assert spin_until(executor, lambda: len(maps) >= 1, timeout=5.0)
+        tactile_map = image_to_array(maps[0])
+        assert tactile_map.size > 0 and maps[0].header.frame_id == "touchroller_cylinder"
+        # 0 Hz disables the map
+        assert node.set_parameters([Parameter("map.publish_rate", value=0.0)])[0].successful
+        assert node._map_timer is None
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        helper.destroy_node()
