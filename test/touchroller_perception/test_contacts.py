@@ -176,3 +176,24 @@ def test_large_blobs_are_centred_on_the_downscaled_image():
     assert math.hypot(fine[0].u - truth[0], fine[0].v - truth[1]) < 0.3
     assert math.hypot(coarse[0].u - truth[0], coarse[0].v - truth[1]) < 1.0
     assert coarse[0].area == pytest.approx(fine[0].area, rel=0.2)
+
+
+def test_simulated_taps_of_the_three_stick_solid():
+    sim = pytest.importorskip("touchroller_driver.sim")
+    sensor = sim.SimulatedSensor(sim.load_scene("contact_localisation", **{"motion.repeats": 1}), seed=2)
+    det = ContactDetector(DetectorConfig(), reference_frames=5)
+    taps = 0
+    for frame in sensor.frames():
+        contacts = det.process(frame.image)
+        phase = frame.truth.get("phase")
+        if phase == "reference":
+            assert contacts is None
+        elif phase == "tap":
+            taps += 1
+            truth = [c["pixel"] for c in frame.truth["contacts"]]
+            assert len(contacts) == len(truth) == 3
+            for u, v in truth:
+                assert min(math.hypot(c.u - u, c.v - v) for c in contacts) < 0.3
+        else:
+            assert contacts == []        # between taps: no false positives
+    assert taps > 0
