@@ -117,10 +117,10 @@ def run_scan(options: ScanOptions) -> ScanResult:
         raise
     finally:
         executor.shutdown(timeout_sec=2.0)
-        for node in reversed(nodes):
-            node.destroy_node()
         if spinner is not None:
             spinner.join(timeout=2.0)
+        for node in reversed(nodes):
+            node.destroy_node()
         context.try_shutdown()
 
 
