@@ -135,3 +135,30 @@ def test_sweep_node_from_the_graph_reads_the_scan_defaults(ros_context):
         assert node.get_parameter("cylinder.radius").value == pytest.approx(0.05)  # config/touchroller.yaml
     finally:
         node.destroy_node()
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize(("launch", "values"), [
+    ("scan", {"use_sim": "false", "camera_device": "/nonexistent/video9", "robot_ip": "127.0.0.213",
+              "sweep_speed": "0.02", "sweep_length": "0.05"}),
+    ("replay", {"bag": "/nonexistent/bag", "rate": "2.0", "loop": "true"}),
+    ("calibrate", {"use_sim": "false", "output_file": "/tmp/never_written.yaml"}),
+])
+def test_every_graph_parameter_is_declared_by_its_node(ros_context, launch, values):
+    """The graph's parameter names and types agree with the nodes that exist (missing ones are skipped)."""
+    checked = 0
+    for spec in build_graph(launch, values).nodes:
+        try:
+            cls = spec.load_class()
+        except GraphError:
+            continue  # that node has not landed yet
+        node = cls(context=ros_context, **spec.node_kwargs())
+        try:
+            assert node.get_name() == spec.name
+            for name, value in spec.parameters.items():
+                assert node.has_parameter(name), f"{spec.name} does not declare {name}"
+                assert node.get_parameter(name).value == value
+                checked += 1
+        finally:
+            node.destroy_node()
+    assert checked > 0
