@@ -72,3 +72,20 @@ def test_bad_input_is_one_line(tapped_bag, tmp_path, capsys, extra, message):
 def test_missing_bag_is_one_line(tmp_path, capsys):
     assert main(["contacts", str(tmp_path / "nope"), "--out", str(tmp_path / "c.csv")]) == 2
     assert "no such bag" in capsys.readouterr().err
+
+
+def test_simulated_taps_end_to_end(bag_factory, tmp_path):
+    sim = pytest.importorskip("touchroller_driver.sim")
+    sensor = sim.SimulatedSensor(sim.load_scene("contact_localisation", **{"motion.repeats": 1}), seed=1)
+    frames = list(sensor.frames())
+    bag = bag_factory([(f.stamp_ns, f.image) for f in frames])
+    truth = {f.stamp_ns: [np.asarray(c["point"]) for c in f.truth["contacts"]] for f in frames}
+    params = tmp_path / "truth.yaml"
+    sensor.camera.to_yaml(params)
+    out = tmp_path / "contacts.csv"
+    assert main(["contacts", str(bag), "--params", str(params), "--out", str(out)]) == 0
+    rows = _read(out)
+    assert len(rows) == sum(len(points) for points in truth.values()) > 0
+    errors = [min(np.linalg.norm(np.array([float(r[k]) for k in "xyz"]) - p) for p in truth[int(r["stamp_ns"])])
+              for r in rows]
+    assert np.mean(errors) < 0.25e-3      # the goal with exact calibration
