@@ -8,8 +8,9 @@ command) stops the sweep and shows as ERROR on `/diagnostics`. Publishes the TCP
 (`/touchroller/sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`.
 
 Services `~/start` and `~/stop` are std_srvs/Trigger where std_srvs is installed (any ROS 2
-install); without it (our pip-only venv) they fall back to lifecycle_msgs/ChangeState, whose
-empty request triggers and whose response carries `success` (see docs/graph_and_launch.md).
+install); without it (our pip-only venv) they fall back to diagnostic_msgs/AddDiagnostics, whose
+response has the same `success` and `message` fields (its request string is ignored), as the
+calibration node does: `ros2 service call /touchroller_sweep/start diagnostic_msgs/srv/AddDiagnostics {}`.
 """
 from __future__ import annotations
 
@@ -54,13 +55,14 @@ SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth",
 
 
 def trigger_service_type() -> tuple[type, bool]:
-    """(service type, is std_srvs/Trigger): Trigger when std_srvs is installed, else lifecycle ChangeState."""
+    """(service type, is std_srvs/Trigger): Trigger when std_srvs is installed, else
+    diagnostic_msgs/AddDiagnostics (same response fields: success, message)."""
     try:
         from std_srvs.srv import Trigger
     except ImportError:
-        from lifecycle_msgs.srv import ChangeState
+        from diagnostic_msgs.srv import AddDiagnostics
 
-        return ChangeState, False
+        return AddDiagnostics, False
     return Trigger, True
 
 
@@ -112,7 +114,7 @@ class SweepNode(Node):
         self._frame_id = str(base_frame)
         self._pose_pub = self.create_publisher(PoseStamped, TCP_POSE_TOPIC, 10)
         self._progress_pub = self.create_publisher(Float32, PROGRESS_TOPIC, 10)
-        service_type, self._is_trigger = trigger_service_type()
+        service_type, _ = trigger_service_type()
         self._start_srv = self.create_service(service_type, "~/start", self._on_start)
         self._stop_srv = self.create_service(service_type, "~/stop", self._on_stop)
         hardware = "simulated arm" if isinstance(self.arm, SimulatedArm) else f"UR at {self.get_parameter('robot_ip').value}"
@@ -197,10 +199,9 @@ class SweepNode(Node):
         return command
 
     def _answer(self, response: Any, command: _Command) -> Any:
-        self.last_answer = (command.name, command.success, command.message)  # ChangeState has no message field
+        self.last_answer = (command.name, command.success, command.message)
         response.success = command.success
-        if self._is_trigger:
-            response.message = command.message
+        response.message = command.message
         if command.success:  # two call sites: rclpy fixes a call site's severity on first use
             self.get_logger().info(f"{command.name}: {command.message}")
         else:
