@@ -659,27 +659,25 @@ def calibrate_extrinsics(
     if total == 0:
         raise CalibrationError(f"no imprints found in any of the {len(images)} hemisphere-frame images")
     _require_views(len(views), min_views, total, rejected, "hemisphere-frame")
-    keep = _inliers(np.array([v.theta for v in views]), outlier_sigma, math.radians(0.01)) & \
-        _inliers(np.array([v.d for v in views]), outlier_sigma, 5e-6)
+    views = _with_row_asymmetry(views)
+    balance = _row_balance(views, outlier_sigma) if balance_rows else None
+    d_ok = _inliers(np.array([v.d for v in views]), outlier_sigma, 5e-6)
+    if balance is None:     # the paper's plain mean: theta outliers against the other views
+        keep = d_ok & _inliers(np.array([v.theta for v in views]), outlier_sigma, math.radians(0.01))
+        why = "far from the other views"
+    else:                   # theta outliers against the row-balance line
+        slope, theta_ok = balance
+        keep = d_ok & theta_ok
+        why = "off the row-balance fit"
     for view, ok in zip(views, keep, strict=True):
         if not ok:
-            rejected[view.index] = (f"outlier: theta {math.degrees(view.theta):.3f}°, d {view.d * 1e3:.3f} mm "
-                                    "far from the other views")
+            rejected[view.index] = f"outlier: theta {math.degrees(view.theta):.3f}°, d {view.d * 1e3:.3f} mm {why}"
     views = [v for v, ok in zip(views, keep, strict=True) if ok]
     _require_views(len(views), min_views, total, rejected, "hemisphere-frame")
-
     plain_theta = float(np.mean([v.theta for v in views]))
-    views = _with_row_asymmetry(views)
-    balance = _row_balance(views, frame, camera.radius) if balance_rows else None
     if balance is not None:
-        slope, keep = balance
-        for view, ok in zip(views, keep, strict=True):
-            if not ok:
-                rejected[view.index] = (f"outlier: theta {math.degrees(view.theta):.3f}° off the row-balance fit")
         plate_z = camera.radius + frame.hemisphere_radius - frame.press_depth
-        views = [dataclasses.replace(v, frame_shift_y=-slope * v.row_asymmetry * plate_z)
-                 for v, ok in zip(views, keep, strict=True) if ok]
-        _require_views(len(views), min_views, total, rejected, "hemisphere-frame")
+        views = [dataclasses.replace(v, frame_shift_y=-slope * v.row_asymmetry * plate_z) for v in views]
     # theta of each view with its frame shift along y taken out (that shift turns the picture like theta does)
     thetas = np.array([v.theta + (slope * v.row_asymmetry if balance is not None else 0.0) for v in views])
     ds = np.array([v.d for v in views])
@@ -712,32 +710,31 @@ def _with_row_asymmetry(views: Sequence[ViewPose]) -> list[ViewPose]:
             for v in views]
 
 
-def _row_balance(views: Sequence[ViewPose], frame: HemisphereFrame, radius: float,
-                 min_asymmetry_spread: float = 0.05, outlier_sigma: float = 4.0,
-                 ) -> tuple[float, NDArray[np.bool_]] | None:
-    """Fit theta_i = theta + slope * a_i over the views (a_i: row asymmetry).
+def _row_balance(views: Sequence[ViewPose], outlier_sigma: float = 4.0,
+                 min_asymmetry_spread: float = 0.05) -> tuple[float, NDArray[np.bool_]] | None:
+    """Fit theta_i = theta + s * a_i over the views (a_i: row asymmetry); returns (-s, inliers).
 
-    A frame shifted by s along y turns the picture like a rotation theta of s / plate_z, and no
+    A frame shifted by e along y turns the picture like a rotation theta of e / plate_z, and no
     pose solve can tell them apart. But the row nearer the contact line presses deeper and leaves
     the stronger imprint, so the rows' strength asymmetry a_i measures the shift: a_i = 0 for a
     centred frame (by symmetry), and theta at a = 0 is the camera's. The slope comes from the
-    views' own scatter (no model of imprint strength needed); it must be negative (the +y row is
+    views' own scatter (no model of imprint strength needed): a robust Theil-Sen line, outliers
+    by their residual, then least squares on the inliers. It must be negative (the +y row is
     stronger when the frame moved towards -y, which lowers theta_i). Returns None, i.e. the
     paper's plain mean, when the views do not vary enough in a to fit a slope.
     """
+    from scipy.stats import theilslopes
+
     a = np.array([v.row_asymmetry for v in views])
     theta = np.array([v.theta for v in views])
     if len(views) < 3 or not np.all(np.isfinite(a)) or np.ptp(a) < min_asymmetry_spread:
         return None
-    keep = np.ones(len(views), dtype=bool)
-    for _ in range(2):
-        slope, intercept = np.polyfit(a[keep], theta[keep], 1)
-        residual = theta - (intercept + slope * a)
-        scale = max(1.4826 * float(np.median(np.abs(residual[keep]))), math.radians(0.02))
-        new_keep = np.abs(residual) <= outlier_sigma * scale
-        if new_keep.sum() < 3 or np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
+    slope, intercept = theilslopes(theta, a)[:2]
+    residual = theta - (intercept + slope * a)
+    scale = max(1.4826 * float(np.median(np.abs(residual))), math.radians(0.05))
+    keep = np.abs(residual) <= outlier_sigma * scale
+    if keep.sum() < 3 or np.ptp(a[keep]) < min_asymmetry_spread:
+        return None
     slope = float(np.polyfit(a[keep], theta[keep], 1)[0])
     if slope >= 0:
         return None

@@ -1,0 +1,130 @@
+"""The calibration node on a real rclpy context: capture simulated presses, solve, and check that the
+perception node, the YAML file and /touchroller/camera_info all receive the calibration."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+pytest.importorskip("rclpy")
+pytestmark = pytest.mark.ros
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
+sim = pytest.importorskip("touchroller_driver.sim")
+
+
+@pytest.fixture(scope="module")
+def presses():
+    sensor = sim.SimulatedSensor(sim.load_scene("calibration_hemispheres", **{"motion.presses": 4}), seed=2)
+    frames = list(sensor.frames())
+    references = [f for f in frames if f.truth.get("phase") == "reference"][:3]
+    pressed = [f for f in frames if f.truth.get("phase") == "press"]
+    return sensor.camera, references, pressed
+
+
+@pytest.fixture
+def graph(ros_context, presses, tmp_path):
+    from rclpy.node import Node
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from touchroller_perception.calibration_node import CAMERA_INFO_QOS, CAMERA_INFO_TOPIC, CalibrationNode
+    from touchroller_perception.perception_node import PerceptionNode
+
+    truth = presses[0]
+    start = truth.replace(theta=0.0, d=0.0)
+    geometry = [Parameter(n, value=v) for n, v in start.to_params().items()]
+    perception = PerceptionNode("touchroller_perception", context=ros_context,
+                                parameter_overrides=[*geometry, Parameter("map.publish_rate", value=0.0)])
+    node = CalibrationNode(context=ros_context, parameter_overrides=[
+        *geometry, Parameter("output_path", value=str(tmp_path / "cal.yaml"))])
+    helper = Node("calibration_test_helper", context=ros_context)
+    infos: list = []
+    helper.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, infos.append, CAMERA_INFO_QOS)
+    image_pub = helper.create_publisher(Image, "/touchroller/image_raw", 10)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (perception, node, helper):
+        executor.add_node(n)
+    yield node, perception, helper, executor, image_pub, infos
+    executor.shutdown()
+    for n in (perception, node, helper):
+        n.destroy_node()
+
+
+def call(executor, spin_until, helper, name: str) -> object:
+    from touchroller_perception.calibration_node import TriggerService
+
+    client = helper.create_client(TriggerService, f"/touchroller_calibration/{name}")
+    assert spin_until(executor, client.service_is_ready, timeout=10.0)
+    future = client.call_async(TriggerService.Request())
+    assert spin_until(executor, future.done, timeout=30.0)
+    helper.destroy_client(client)
+    return future.result()
+
+
+def show(executor, spin_until, node, image_pub, frame) -> None:
+    from touchroller_driver.image_conversion import array_to_image
+
+    assert spin_until(executor, lambda: image_pub.get_subscription_count() > 0, timeout=10.0)
+    image_pub.publish(array_to_image(frame.image, frame.stamp_ns))
+    assert spin_until(executor, lambda: node.latest is not None and node.latest[0] == frame.stamp_ns, timeout=10.0)
+
+
+def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
+    from touchroller_perception.geometry import CameraModel
+
+    node, perception, helper, executor, image_pub, infos = graph
+    truth, references, pressed = presses
+    assert spin_until(executor, lambda: len(infos) >= 1, timeout=10.0)     # the start-up camera info
+
+    failed = call(executor, spin_until, helper, "solve")
+    assert not failed.success and "nothing captured" in failed.message
+    assert not call(executor, spin_until, helper, "capture").success     # no image yet
+
+    node.set_parameters([Parameter("target", value="reference")])
+    for frame in references:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    again = call(executor, spin_until, helper, "capture")
+    assert not again.success and "no new image" in again.message
+
+    node.set_parameters([Parameter("target", value="hemispheres")])
+    for frame in pressed:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    assert len(node.captures["hemispheres"]) == 4 and len(node.captures["reference"]) == 3
+
+    solved = call(executor, spin_until, helper, "solve")
+    assert solved.success, solved.message
+    assert "extrinsics from 4/4 images" in solved.message
+    assert spin_until(executor, lambda: node.remote_result is not None, timeout=10.0)
+    assert node.remote_result.successful
+    model = perception.geometry.model
+    assert abs(math.degrees(model.theta - truth.theta)) < 0.15
+    assert abs(model.d - truth.d) < 0.05e-3
+    written = CameraModel.from_yaml(tmp_path / "cal.yaml")
+    assert written.theta == pytest.approx(model.theta) and written.d == pytest.approx(model.d)
+    assert node.geometry.model.theta == pytest.approx(model.theta)
+    assert spin_until(executor, lambda: len(infos) >= 2, timeout=10.0)
+    assert infos[-1].k[0] == pytest.approx(truth.fx) and infos[-1].distortion_model == "plumb_bob"
+
+    assert call(executor, spin_until, helper, "reset").success
+    assert not any(node.captures.values())
+
+
+def test_rejects_an_unknown_target(graph):
+    node = graph[0]
+    result = node.set_parameters([Parameter("target", value="teapot")])[0]
+    assert not result.successful and "target must be one of" in result.reason
+
+
+def test_missing_perception_node_is_reported(graph, presses, spin_until):
+    node, _, helper, executor, image_pub, _ = graph
+    truth, references, pressed = presses
+    node.set_parameters([Parameter("perception_node", value="nobody_here")])
+    for frame in pressed[:3]:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    solved = call(executor, spin_until, helper, "solve")
+    assert solved.success and "/nobody_here/set_parameters_atomically is not available" in solved.message

@@ -1,0 +1,268 @@
+"""The TouchRoller calibration node: capture frames on request, solve, and hand the result over.
+
+Thin ROS shell around `touchroller_perception.calibration`:
+
+* subscribes `image_topic` (default `/touchroller/image_raw`) and keeps the latest frame;
+* `~/capture` stores the latest frame (a new one each time) as a view of the current `target`:
+  `chessboard` (intrinsics), `hemispheres` (theta and d) or `reference` (a no-contact frame,
+  subtracted from the hemisphere images);
+* `~/solve` calibrates from what was captured (intrinsics first if there are chessboard views, then
+  theta and d), sets the result on the running perception node through
+  `/<perception_node>/set_parameters_atomically`, writes the calibration YAML to `output_path`,
+  updates its own geometry parameters and publishes `sensor_msgs/CameraInfo` on
+  `/touchroller/camera_info` (transient local, so late subscribers get it);
+* `~/reset` drops all captured frames.
+
+The services are `std_srvs/srv/Trigger` when std_srvs is installed. Without it (our pip-only
+venv) they are `diagnostic_msgs/srv/AddDiagnostics`, whose response has the same `success` and
+`message` fields; its request string is ignored:
+`ros2 service call /touchroller_calibration/solve diagnostic_msgs/srv/AddDiagnostics {}`.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+import rclpy.executors
+from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.srv import SetParametersAtomically
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+
+from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_driver.image_conversion import image_to_array
+from touchroller_perception import calibration as cal
+from touchroller_perception.geometry import CameraModel
+
+try:
+    from std_srvs.srv import Trigger as TriggerService
+except ImportError:     # same response fields (success, message); see the module docstring
+    from diagnostic_msgs.srv import AddDiagnostics as TriggerService
+
+CAMERA_INFO_TOPIC = "/touchroller/camera_info"
+CAMERA_FRAME = "touchroller_camera"
+TARGETS = ("chessboard", "hemispheres", "reference")
+CAMERA_INFO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+# parameter -> (default, description, min, max)
+SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
+    "image_topic": ("/touchroller/image_raw", "Image topic the captures are taken from", None, None),
+    "target": ("hemispheres", f"What ~/capture stores: {', '.join(TARGETS)}", None, None),
+    "perception_node": ("touchroller_perception", "Node whose geometry parameters ~/solve sets ('' = none)",
+                        None, None),
+    "output_path": ("touchroller_calibration.yaml", "Calibration YAML written by ~/solve ('' = none)", None, None),
+    "board.columns": (7, "Chessboard inner corners along a row", 2, 100),
+    "board.rows": (7, "Chessboard inner corners along a column", 2, 100),
+    "board.square": (0.012, "Chessboard square side, m", 1e-4, 1.0),
+    "frame.rows": (2, "Hemisphere frame rows (across the roller axis)", 2, 100),
+    "frame.columns": (5, "Hemisphere frame columns (along the roller axis)", 2, 100),
+    "frame.pitch_x": (0.010, "Hemisphere centre distance along the axis, m", 1e-4, 0.1),
+    "frame.pitch_y": (0.008, "Hemisphere centre distance across the axis, m", 1e-4, 0.1),
+    "frame.hemisphere_radius": (0.001, "Hemisphere radius, m", 1e-5, 0.01),
+    "frame.press_depth": (0.0005, "Depth the hemispheres press into the membrane at the contact line, m",
+                          0.0, 0.01),
+    "row_balance": (True, "Correct each press for the frame's shift along y from the rows' imprint strengths",
+                    None, None),
+}
+
+
+class CalibrationNode(Node):
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("touchroller_calibration", **node_kwargs)
+        self.geometry = GeometryParameters(self)
+        for name, (default, description, lo, hi) in SETTINGS.items():
+            declare(self, name, default, description, min=lo, max=hi)
+        self.add_on_set_parameters_callback(self._validate)
+        self.add_post_set_parameters_callback(self._apply)
+
+        self.captures: dict[str, list[np.ndarray]] = {t: [] for t in TARGETS}
+        self.latest: tuple[int, np.ndarray] | None = None
+        self._captured_stamps: set[int] = set()
+        self.last_result: str = ""
+        self.remote_result: SetParametersResult | None = None
+
+        self.info_pub = self.create_publisher(CameraInfo, CAMERA_INFO_TOPIC, CAMERA_INFO_QOS)
+        self.image_sub = None
+        self._subscribe(str(self.get_parameter("image_topic").value))
+        self.create_service(TriggerService, "~/capture", self._service(self.capture))
+        self.create_service(TriggerService, "~/solve", self._service(self.solve))
+        self.create_service(TriggerService, "~/reset", self._service(self.reset))
+        self._remote_client = None
+        self.publish_camera_info(self.geometry.model)
+
+    # ------------------------------------------------------------------ parameters
+    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        for p in parameters:
+            if p.name == "target" and p.value not in TARGETS:
+                return SetParametersResult(successful=False, reason=f"target must be one of {', '.join(TARGETS)}")
+            if p.name == "image_topic" and not str(p.value).strip():
+                return SetParametersResult(successful=False, reason="image_topic must not be empty")
+        return SetParametersResult(successful=True)
+
+    def _apply(self, parameters: Sequence[Parameter]) -> None:
+        for p in parameters:
+            if p.name == "image_topic":
+                self._subscribe(str(p.value))
+            elif p.name == "perception_node":
+                self._remote_client = None
+
+    def _subscribe(self, topic: str) -> None:
+        if self.image_sub is not None:
+            self.destroy_subscription(self.image_sub)
+        # sensor-data QoS (best effort, depth 5) matches reliable and best-effort publishers
+        self.image_sub = self.create_subscription(Image, topic, self._on_image, qos_profile_sensor_data)
+
+    def _frame(self) -> cal.HemisphereFrame:
+        g = self.get_parameter
+        return cal.HemisphereFrame(rows=g("frame.rows").value, columns=g("frame.columns").value,
+                                   pitch_x=g("frame.pitch_x").value, pitch_y=g("frame.pitch_y").value,
+                                   hemisphere_radius=g("frame.hemisphere_radius").value,
+                                   press_depth=g("frame.press_depth").value)
+
+    def _board(self) -> cal.Chessboard:
+        g = self.get_parameter
+        return cal.Chessboard(columns=g("board.columns").value, rows=g("board.rows").value,
+                              square=g("board.square").value)
+
+    # ------------------------------------------------------------------ images and services
+    def _on_image(self, msg: Image) -> None:
+        try:
+            image = image_to_array(msg)
+        except ValueError as exc:
+            self.get_logger().warning(f"dropping malformed image: {exc}", throttle_duration_sec=5.0)
+            return
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        self.latest = (stamp, np.array(image, copy=True))
+
+    def _service(self, action: Callable[[], tuple[bool, str]]) -> Callable[[Any, Any], Any]:
+        def serve(_request: Any, response: Any) -> Any:
+            response.success, response.message = action()
+            if response.success:
+                self.get_logger().info(response.message)
+            else:
+                self.get_logger().warning(response.message)
+            return response
+        return serve
+
+    def capture(self) -> tuple[bool, str]:
+        target = str(self.get_parameter("target").value)
+        topic = self.get_parameter("image_topic").value
+        if self.latest is None:
+            return False, f"no image received on {topic} yet"
+        stamp, image = self.latest
+        if stamp in self._captured_stamps:
+            return False, f"no new image on {topic} since the last capture"
+        self._captured_stamps.add(stamp)
+        self.captures[target].append(image)
+        return True, f"captured {target} image {len(self.captures[target])}"
+
+    def reset(self) -> tuple[bool, str]:
+        for frames in self.captures.values():
+            frames.clear()
+        self._captured_stamps.clear()
+        return True, "dropped all captured images"
+
+    def solve(self) -> tuple[bool, str]:
+        chessboards, presses = self.captures["chessboard"], self.captures["hemispheres"]
+        if not chessboards and not presses:
+            return False, ("nothing captured: set target to 'chessboard' or 'hemispheres' and call ~/capture "
+                           "once per view")
+        camera = self.geometry.model
+        intrinsics = extrinsics = None
+        try:
+            if chessboards:
+                intrinsics = cal.calibrate_intrinsics(chessboards, self._board(), prior=camera)
+                camera = intrinsics.camera
+            if presses:
+                references = self.captures["reference"]
+                reference = np.median(np.stack(references), axis=0).astype(np.uint8) if references else None
+                extrinsics = cal.calibrate_extrinsics(presses, camera, self._frame(), reference=reference,
+                                                      balance_rows=bool(self.get_parameter("row_balance").value))
+                camera = extrinsics.camera
+        except cal.CalibrationError as exc:
+            return False, f"calibration failed: {exc}"
+        notes = [r.summary() for r in (intrinsics, extrinsics) if r is not None]
+        notes.append(self._write(camera, intrinsics, extrinsics))
+        notes.append(self._send(camera, intrinsics is not None))
+        self.set_parameters([Parameter(name, value=value) for name, value in _changed(camera, intrinsics is not None)])
+        self.publish_camera_info(camera)
+        self.last_result = "; ".join(n for n in notes if n)
+        return True, self.last_result
+
+    # ------------------------------------------------------------------ outputs
+    def _write(self, camera: CameraModel, intrinsics: Any, extrinsics: Any) -> str:
+        path = str(self.get_parameter("output_path").value)
+        if not path:
+            return ""
+        try:
+            keep = cal.read_calibration_extras(path) if intrinsics is None and Path(path).exists() else {}
+            cal.write_calibration(path, camera, intrinsics=intrinsics, extrinsics=extrinsics, keep=keep)
+        except (OSError, ValueError) as exc:
+            return f"could not write {path}: {exc}"
+        return f"wrote {path}"
+
+    def _send(self, camera: CameraModel, with_intrinsics: bool) -> str:
+        name = str(self.get_parameter("perception_node").value).strip("/")
+        if not name:
+            return ""
+        service = f"/{name}/set_parameters_atomically"
+        if self._remote_client is None or self._remote_client.srv_name != service:
+            self._remote_client = self.create_client(SetParametersAtomically, service)
+        if not self._remote_client.service_is_ready():
+            return f"{service} is not available: parameters not set on /{name}"
+        request = SetParametersAtomically.Request()
+        request.parameters = [Parameter(n, value=v).to_parameter_msg() for n, v in _changed(camera, with_intrinsics)]
+        self.remote_result = None
+        future = self._remote_client.call_async(request)
+        future.add_done_callback(lambda f: self._on_remote_result(f, name))
+        return f"setting {len(request.parameters)} parameters on /{name}"
+
+    def _on_remote_result(self, future: Any, name: str) -> None:
+        response = future.result()
+        self.remote_result = response.result if response is not None else SetParametersResult(
+            successful=False, reason="no response")
+        if self.remote_result.successful:
+            self.get_logger().info(f"/{name} accepted the calibration")
+        else:
+            self.get_logger().error(f"/{name} rejected the calibration: {self.remote_result.reason}")
+
+    def publish_camera_info(self, camera: CameraModel) -> None:
+        msg = CameraInfo()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = CAMERA_FRAME
+        for field, value in cal.camera_info_fields(camera).items():
+            setattr(msg, field, value)
+        self.info_pub.publish(msg)
+
+
+def _changed(camera: CameraModel, with_intrinsics: bool) -> list[tuple[str, Any]]:
+    params = camera.to_params()
+    names = ["extrinsics.theta", "extrinsics.d"]
+    if with_intrinsics:
+        names += ["camera.fx", "camera.fy", "camera.cx", "camera.cy", "camera.distortion",
+                  "camera.width", "camera.height"]
+    return [(n, [float(v) for v in params[n]] if n == "camera.distortion" else params[n]) for n in names
+            if not (isinstance(params[n], float) and not math.isfinite(params[n]))]
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = CalibrationNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
