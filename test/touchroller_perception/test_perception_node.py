@@ -101,6 +101,22 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
     send(executor, spin_until, node, image_pub, array_to_image(frame, stamp_ns + 3))
     assert spin_until(executor, lambda: len(received) == 3, timeout=5.0)
 
+    # diagnostics: counts of what happened, published on /diagnostics
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from touchroller_bringup.ros_diagnostics import OK, status_values
+
+    status = node._diagnostic_status()
+    assert status.level == OK
+    assert status.values["frames_malformed"] == 1 and status.values["contacts_total"] == 3
+    assert status.values["frames_received"] == 3 + 4
+    arrays: list = []
+    helper = [n for n in executor.get_nodes() if n is not node][0]
+    helper.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
+    assert spin_until(executor, lambda: any("perception" in s.name for a in arrays for s in a.status), timeout=5.0)
+    mine = [s for a in arrays for s in a.status if "perception" in s.name][0]
+    assert float(status_values(mine)["processing_ms_median"]) > 0
+
     # recapturing the reference: the next 3 frames are the new background
     recapture_pub.publish(__import__("std_msgs.msg", fromlist=["Empty"]).Empty())
     assert spin_until(executor, lambda: not node.detector.reference_ready, timeout=5.0)
