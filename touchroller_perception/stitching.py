@@ -1,0 +1,761 @@
+"""Stitching the contact bands of a rolling TouchRoller into one tactile map (issue 5).
+
+Two methods share one incremental API (`Stitcher.push` per frame, `Stitcher.map_image` at any time):
+
+* ``"paper"`` — the paper's method, kept for comparison: a 70-row patch centred in the image, the
+  integer shift in [-search, search] minimising the mean absolute error to the previous patch, patches
+  pasted at their integer offsets (the newest wins).
+* ``"default"`` — subpixel keyframe registration:
+  - the band is resampled to surface coordinates through the camera model when one is given (rows
+    uniform in membrane y, columns uniform in x), so a roll is a pure translation across the whole band
+    whatever theta, d and the lens distortion;
+  - what does not move with the surface (gel background, LED shading, vignetting, dust) is divided out
+    with a flat field: the band's mean over frames, in which the moving texture averages away (running
+    while live; from all frames in a second pass offline);
+  - registration runs on a high-passed band with columns binned (speed): an integer SAD search around a
+    prediction — the caller's motion prior (arm speed) or recent velocity times the stamp interval, so
+    dropped or duplicated frames and speed changes are followed — widened to the full range when the
+    match is poor, then a Lucas–Kanade refinement of the row shift and of a lateral (axial) shift;
+  - drift is held down by registering against a keyframe kept until the overlap gets small: errors add
+    up once per keyframe, not once per frame, and subpixel bias does not scale with the frame rate;
+  - textureless stretches (an indistinct minimum, or much less texture energy than usual) fall back on
+    the motion prior, flagged in `StitchStep.used_prior`;
+  - every frame is splatted into the map at its subpixel position with weights tapered across the
+    band, so seams blend and noise averages out without blurring detail.
+
+Sign convention: ``shift_px`` is how far the surface content moved down the image (+v) since the
+previous frame. The map keeps the first frame's orientation; its rows run along the rolling direction.
+No rclpy here.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+
+if TYPE_CHECKING:  # the geometry module is only needed when a camera model is passed
+    from touchroller_perception.geometry import CameraModel
+
+METHODS = ("default", "paper")
+DEFAULT_FRAME_NS = 33_333_333  # 30 fps when frames carry no usable stamps
+_TEXTURELESS_FRACTION = 0.5  # moving texture below this share of the usual counts as textureless
+_STATIC_FRACTION = 0.3  # an image shift below this share of the arm's is taken as seeing only static things
+_VELOCITY_FRAMES = 5  # confident shifts whose median predicts the next
+_FLAT_FIELD_MEMORY = 300  # frames the live flat field averages over
+
+
+@dataclass(frozen=True)
+class StitchStep:
+    """What one `Stitcher.push` found.
+
+    shift_px: surface motion along the image rows (v) since the previous frame, map pixels.
+    confidence: 0..1, how distinct the registration minimum was (0 = textureless / no overlap).
+    used_prior: the shift came from the motion prior (arm speed or recent velocity), not the image.
+    lateral_px: motion along the axis (u) since the previous frame, pixels.
+    position_px: cumulative shift since the first frame.
+    """
+
+    shift_px: float
+    confidence: float
+    used_prior: bool
+    lateral_px: float = 0.0
+    position_px: float = 0.0
+
+
+class _Canvas:
+    """A growable weighted-average accumulator: rows x cols float32 sums and weights."""
+
+    def __init__(self, cols: int, rows: int = 1024) -> None:
+        self.sum = np.zeros((rows, cols), np.float32)
+        self.weight = np.zeros((rows, cols), np.float32)
+        self.origin_row = rows // 2  # canvas row of map row 0
+        self.origin_col = 0
+        self.row_min = math.inf
+        self.row_max = -math.inf
+        self.col_min = math.inf
+        self.col_max = -math.inf
+
+    def _ensure(self, top: int, left: int, height: int, width: int) -> None:
+        rows, cols = self.sum.shape
+        grow_top = max(0, -(top + self.origin_row))
+        grow_bottom = max(0, top + self.origin_row + height - rows)
+        grow_left = max(0, -(left + self.origin_col))
+        grow_right = max(0, left + self.origin_col + width - cols)
+        if not (grow_top or grow_bottom or grow_left or grow_right):
+            return
+        # Grow geometrically so that a long scan reallocates O(log n) times.
+        pad_t = max(grow_top, rows // 2) if grow_top else 0
+        pad_b = max(grow_bottom, rows // 2) if grow_bottom else 0
+        pad_l = max(grow_left, 32) if grow_left else 0
+        pad_r = max(grow_right, 32) if grow_right else 0
+        pads = ((pad_t, pad_b), (pad_l, pad_r))
+        self.sum = np.pad(self.sum, pads)
+        self.weight = np.pad(self.weight, pads)
+        self.origin_row += pad_t
+        self.origin_col += pad_l
+
+    def add(self, patch: np.ndarray, weights: np.ndarray, top: float, left: float, *, subpixel: bool) -> None:
+        """Splat `patch` (weighted by `weights`) with its top-left corner at map (top, left)."""
+        h, w = patch.shape
+        if subpixel:
+            itop, ileft = math.floor(top), math.floor(left)
+            frac_r, frac_c = top - itop, left - ileft
+            shift = np.float32([[1, 0, frac_c], [0, 1, frac_r]])
+            size = (w + 1, h + 1)
+            weighted = cv2.warpAffine(patch * weights, shift, size, flags=cv2.INTER_LINEAR,
+                                      borderMode=cv2.BORDER_CONSTANT)
+            wts = cv2.warpAffine(weights, shift, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            h, w = h + 1, w + 1
+        else:
+            itop, ileft = round(top), round(left)
+            weighted, wts = patch * weights, weights
+        self._ensure(itop, ileft, h, w)
+        r0, c0 = itop + self.origin_row, ileft + self.origin_col
+        self.sum[r0:r0 + h, c0:c0 + w] += weighted
+        self.weight[r0:r0 + h, c0:c0 + w] += wts
+        self._extend(itop, ileft, h, w)
+
+    def sample(self, top: float, left: float, height: int, width: int,
+               min_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+        """The map's average at map (top, left) + (height, width), subpixel; and where it is known."""
+        itop, ileft = math.floor(top), math.floor(left)
+        r0, c0 = itop + self.origin_row, ileft + self.origin_col
+        rows, cols = self.sum.shape
+        if r0 < 0 or c0 < 0 or r0 + height + 1 > rows or c0 + width + 1 > cols:
+            self._ensure(itop, ileft, height + 1, width + 1)
+            r0, c0 = itop + self.origin_row, ileft + self.origin_col
+        s = self.sum[r0:r0 + height + 1, c0:c0 + width + 1]
+        w = self.weight[r0:r0 + height + 1, c0:c0 + width + 1]
+        shift = np.float32([[1, 0, -(left - ileft)], [0, 1, -(top - itop)]])
+        s = cv2.warpAffine(s, shift, (width, height), flags=cv2.INTER_LINEAR)
+        w = cv2.warpAffine(w, shift, (width, height), flags=cv2.INTER_LINEAR)
+        known = w > min_weight
+        return np.divide(s, w, out=np.zeros_like(s), where=known), known
+
+    def paste(self, patch: np.ndarray, top: int, left: int) -> None:
+        """Overwrite (the paper's stitching: the newest patch wins)."""
+        h, w = patch.shape
+        self._ensure(top, left, h, w)
+        r0, c0 = top + self.origin_row, left + self.origin_col
+        self.sum[r0:r0 + h, c0:c0 + w] = patch
+        self.weight[r0:r0 + h, c0:c0 + w] = 1.0
+        self._extend(top, left, h, w)
+
+    def _extend(self, top: int, left: int, h: int, w: int) -> None:
+        self.row_min = min(self.row_min, top)
+        self.row_max = max(self.row_max, top + h)
+        self.col_min = min(self.col_min, left)
+        self.col_max = max(self.col_max, left + w)
+
+    def _window(self) -> tuple[slice, slice]:
+        r0, r1 = int(self.row_min) + self.origin_row, int(self.row_max) + self.origin_row
+        c0, c1 = int(self.col_min) + self.origin_col, int(self.col_max) + self.origin_col
+        return slice(r0, r1), slice(c0, c1)
+
+    def coverage(self, min_weight: float) -> np.ndarray:
+        if self.row_min == math.inf:
+            return np.zeros((0, self.sum.shape[1]), bool)
+        return self.weight[self._window()] > min_weight
+
+    def image(self, min_weight: float = 1e-3) -> np.ndarray:
+        if self.row_min == math.inf:
+            return np.zeros((0, self.sum.shape[1]), np.uint8)
+        window = self._window()
+        s, w = self.sum[window], self.weight[window]
+        out = np.divide(s, w, out=np.zeros_like(s), where=w > min_weight)
+        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+
+def _to_grey(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 2:
+        grey = image
+    elif image.ndim == 3 and image.shape[2] == 3:
+        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    elif image.ndim == 3 and image.shape[2] == 4:
+        grey = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    elif image.ndim == 3 and image.shape[2] == 1:
+        grey = image[:, :, 0]
+    else:
+        raise ValueError(f"expected an HxW, HxWx3 or HxWx4 image, got shape {image.shape}")
+    if grey.dtype == np.uint16:
+        grey = (grey >> 8).astype(np.uint8)
+    return grey
+
+
+class _BandSampler:
+    """Cuts the band out of a frame as float32 grey: a plain row crop, or a resampling of the membrane
+    around the contact line onto a grid uniform in membrane y (rows) and x (columns)."""
+
+    def __init__(self, shape: tuple[int, int], band_rows: int, camera: CameraModel | None,
+                 centre_row: float | None, rectify: bool) -> None:
+        height, width = shape
+        if band_rows < 8 or band_rows > height:
+            raise ValueError(f"band_rows must be in [8, {height}] for {height}-row images, got {band_rows}")
+        self.rows, self.cols = band_rows, width
+        self.maps: tuple[np.ndarray, np.ndarray] | None = None
+        self.mm_per_px: float | None = None  # along the rows (rolling direction)
+        self.mm_per_px_cols: float | None = None
+        if camera is not None:
+            self._from_camera(camera, shape, band_rows, rectify)
+            return
+        centre = (height - 1) / 2.0 if centre_row is None else float(centre_row)
+        self._crop(centre, height)
+
+    def _crop(self, centre: float, height: int) -> None:
+        self.row0 = int(np.clip(round(centre - (self.rows - 1) / 2.0), 0, height - self.rows))
+        self.src_rows = (self.row0, self.row0 + self.rows)
+
+    def _from_camera(self, camera: CameraModel, shape: tuple[int, int], band_rows: int, rectify: bool) -> None:
+        height, width = shape
+        if (camera.width, camera.height) != (width, height):
+            raise ValueError(f"camera model is {camera.width}x{camera.height} but the images are {width}x{height}")
+        r = float(camera.radius)
+        eps = 1e-5
+        uv, valid = camera.project(np.stack([camera.surface_point(0.0, 0.0), camera.surface_point(0.0, eps),
+                                             camera.surface_point(eps * r, 0.0)]))
+        if not np.all(valid):
+            raise ValueError("the camera model does not see the contact line (check theta and d)")
+        m_per_row = eps * r / float(np.hypot(*(uv[1] - uv[0])))  # membrane metres per image row
+        m_per_col = eps * r / float(np.hypot(*(uv[2] - uv[0])))
+        self.mm_per_px, self.mm_per_px_cols = m_per_row * 1e3, m_per_col * 1e3
+        centre_u, centre_v = uv[0]
+        if not rectify:
+            self._crop(centre_v, height)
+            return
+        ys = (np.arange(band_rows) - (band_rows - 1) / 2.0) * m_per_row
+        if np.abs(ys).max() >= r:
+            raise ValueError("band_rows reaches round the whole tube")
+        xs = (np.arange(width) - centre_u) * m_per_col
+        xx, aa = np.meshgrid(xs, np.arcsin(ys / r))
+        uv, valid = camera.project(camera.surface_point(xx, aa))
+        if not valid.any():
+            raise ValueError("the rectified band falls outside the image")
+        v = uv[..., 1]
+        v0 = int(np.clip(math.floor(np.nanmin(v)) - 1, 0, height - 1))
+        v1 = int(np.clip(math.ceil(np.nanmax(v)) + 2, v0 + 1, height))
+        self.src_rows = (v0, v1)
+        self.row0 = int(round(centre_v - (band_rows - 1) / 2.0))
+        map_x = np.where(valid, uv[..., 0], -10.0).astype(np.float32)
+        map_y = np.where(valid, v - v0, -10.0).astype(np.float32)
+        self.maps = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        v0, v1 = self.src_rows
+        grey = _to_grey(image[v0:v1])
+        if self.maps is not None:
+            grey = cv2.remap(grey, self.maps[0], self.maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return grey.astype(np.float32)
+
+
+def _highpass(image: np.ndarray, size: int) -> np.ndarray:
+    return image - cv2.blur(image, (size, size), borderType=cv2.BORDER_REFLECT)
+
+
+def _taper(n: int) -> np.ndarray:
+    """Weights across the band: highest at the contact line, small but non-zero at the edges."""
+    t = (np.arange(n) + 0.5) / n
+    return (0.05 + np.sin(np.pi * t) ** 2).astype(np.float32)
+
+
+def estimate_flat_field(bands: Iterable[np.ndarray]) -> np.ndarray:
+    """The static part of the bands (gel background, shading, dust): their mean over frames, see
+    `flat_field_from_mean`."""
+    total, count = None, 0
+    for band in bands:
+        total = band.astype(np.float64) if total is None else total + band
+        count += 1
+    if total is None:
+        raise ValueError("no frames to estimate a flat field from")
+    return flat_field_from_mean((total / count).astype(np.float32))
+
+
+def flat_field_from_mean(mean: np.ndarray, sigma_cols: float = 15.0) -> np.ndarray:
+    """The static part of a band from its mean over frames.
+
+    Texture moving along the rows averages away in the mean, except texture that is constant along
+    the roll (yarns parallel to the rolling direction): it stays as a fine column pattern. Static
+    illumination varies slowly across columns, dust is local, so the mean's column profile is kept
+    only at low spatial frequency; the fine part belongs to the surface and is left in the map.
+    """
+    mean = np.maximum(np.asarray(mean, np.float32), 1.0)
+    profile = mean.mean(axis=0, keepdims=True)
+    smooth = cv2.GaussianBlur(profile, (0, 0), sigmaX=sigma_cols, sigmaY=1e-3, borderType=cv2.BORDER_REFLECT)
+    return mean * (smooth / profile)
+
+
+class Stitcher:
+    """Incremental stitcher: `push` each frame, read `map_image()` whenever needed.
+
+    Keyword parameters:
+      band_rows: rows of the band cut around the contact line (the paper: 70).
+      search: largest |shift| per frame searched, pixels (the paper: 25).
+      camera: a `CameraModel`; locates the contact line, gives mm per pixel, and (with `rectify`)
+        resamples the band to membrane coordinates. Without it the band is centred on `centre_row`
+        (default: the image's middle row) and the scale is unknown.
+      subpixel: subpixel registration and placement (default method).
+      keyframes: register against a keyframe (less drift) rather than the previous frame.
+      keyframe_overlap: a new keyframe is taken when the overlap with the current one drops below this.
+      motion_prior: predict each shift (prior_px, else recent velocity) and search near it first.
+      local_search: half-width of that first search, pixels.
+      background: divide out a flat field (the band's mean over frames): what does not move with the
+        surface. `flat_field` passes one in (e.g. from `estimate_flat_field` over a whole recording).
+      lateral: also track a shift along the axis (u).
+      column_bin: columns averaged together for registration (speed; rows are never binned).
+      highpass: box size of the high-pass filter that removes residual shading before registration.
+      min_confidence: below this the motion prior is used instead of the image.
+    """
+
+    def __init__(self, method: str = "default", *, band_rows: int = 70, search: int = 25,
+                 camera: CameraModel | None = None, centre_row: float | None = None, rectify: bool = True,
+                 subpixel: bool = True, keyframes: bool = True, keyframe_overlap: float = 0.6,
+                 motion_prior: bool = True, local_search: int = 3, background: bool = True,
+                 flat_field: np.ndarray | None = None, lateral: bool = True, column_bin: int = 4,
+                 highpass: int = 9, min_confidence: float = 0.15) -> None:
+        if method not in METHODS:
+            raise ValueError(f"unknown stitching method {method!r}; choose from {', '.join(METHODS)}")
+        if search < 1:
+            raise ValueError(f"search must be >= 1 pixel, got {search}")
+        if column_bin < 1:
+            raise ValueError(f"column_bin must be >= 1, got {column_bin}")
+        if not 0.0 < keyframe_overlap < 1.0:
+            raise ValueError(f"keyframe_overlap must be in (0, 1), got {keyframe_overlap}")
+        self.method = method
+        self.band_rows = int(band_rows)
+        self.search = int(search)
+        self.camera = camera
+        self.centre_row = centre_row
+        self.rectify = bool(rectify) and method == "default"
+        self.subpixel = bool(subpixel)
+        self.keyframes = bool(keyframes)
+        self.keyframe_overlap = float(keyframe_overlap)
+        self.motion_prior = bool(motion_prior)
+        self.local_search = max(2, int(local_search))
+        self.background = bool(background)
+        self.lateral = bool(lateral)
+        self.column_bin = int(column_bin)
+        self.highpass = int(highpass) | 1
+        self.min_confidence = float(min_confidence)
+        self.shifts: list[float] = []
+        self.steps: list[StitchStep] = []
+        self._fixed_flat_field = None if flat_field is None else np.asarray(flat_field, np.float32)
+        self._shape: tuple[int, int] | None = None
+        self._sampler: _BandSampler | None = None
+        self._canvas: _Canvas | None = None
+        self._weights: np.ndarray | None = None
+        self._position = 0.0  # cumulative row shift
+        self._lateral_pos = 0.0  # cumulative column shift
+        self._last_stamp: int | None = None
+        # Recent confident shifts per nanosecond of stamp and per frame; their median is the velocity,
+        # so one bad registration does not steer the prediction.
+        self._recent_ns: deque[float] = deque(maxlen=_VELOCITY_FRAMES)
+        self._recent_frame: deque[float] = deque(maxlen=_VELOCITY_FRAMES)
+        self._prev: np.ndarray | None = None  # paper: the previous patch
+        self._key: np.ndarray | None = None  # default: keyframe features (binned) and full resolution
+        self._key_full: np.ndarray | None = None
+        self._key_pos = (0.0, 0.0)
+        self._flat_sum: np.ndarray | None = None  # live flat field: running sum and count
+        self._flat_count = 0
+        self._flat_field: np.ndarray | None = None
+        self._travel = 0.0
+        self._typical_energy: float | None = None  # mean |feature| while tracking confidently
+
+    # -- public ------------------------------------------------------------------------------------
+    @property
+    def mm_per_px(self) -> float | None:
+        """Surface millimetres per map row at the contact line (None without a camera model)."""
+        return None if self._sampler is None else self._sampler.mm_per_px
+
+    def pixels_per_metre(self, image_shape: tuple[int, int] | None = None) -> float | None:
+        """Map rows per metre of rolled surface: multiply an arm speed (m/s) by the frame interval (s)
+        and this to get `prior_px`. None without a camera model."""
+        if self._sampler is None and image_shape is not None:
+            self._setup(tuple(image_shape[:2]))
+        if self._sampler is None or self._sampler.mm_per_px is None:
+            return None
+        return 1e3 / self._sampler.mm_per_px
+
+    def band(self, image: np.ndarray) -> np.ndarray:
+        """The float32 grey band this stitcher registers, cut (or resampled) from a full frame."""
+        image = np.asarray(image)
+        if image.ndim < 2 or image.size == 0:
+            raise ValueError(f"expected a non-empty image, got shape {image.shape}")
+        shape = tuple(image.shape[:2])
+        if self._shape is None:
+            self._setup(shape)
+        elif shape != self._shape:
+            raise ValueError(f"frame size changed from {self._shape} to {shape}")
+        return self._sampler(image)
+
+    def push(self, image: np.ndarray, stamp_ns: int, prior_px: float | None = None) -> StitchStep:
+        """Register one frame against what came before and add it to the map.
+
+        prior_px: the expected shift for this frame if known (e.g. arm speed x interval x pixels_per_metre).
+        """
+        return self.push_band(self.band(image), stamp_ns, prior_px)
+
+    def push_band(self, band: np.ndarray, stamp_ns: int, prior_px: float | None = None) -> StitchStep:
+        """`push` for a band already cut with `band()` (lets a caller make two passes over a recording)."""
+        if self._sampler is None:
+            raise ValueError("call band() or push() with a full frame first")
+        if band.shape != (self._sampler.rows, self._sampler.cols):
+            raise ValueError(f"band shape {band.shape} differs from {(self._sampler.rows, self._sampler.cols)}")
+        if prior_px is not None and not math.isfinite(prior_px):
+            prior_px = None
+        stamp_ns = int(stamp_ns)
+        dt = None if self._last_stamp is None else stamp_ns - self._last_stamp
+        if self.method == "paper":
+            step = self._push_paper(band)
+        else:
+            step = self._push_default(band, dt, prior_px)
+        self._last_stamp = stamp_ns
+        self.shifts.append(step.shift_px)
+        self.steps.append(step)
+        return step
+
+    def map_image(self, mm_per_px: float | None = None) -> np.ndarray:
+        """The map so far as uint8 grey at camera pixel scale, or resampled to `mm_per_px` (needs a camera)."""
+        if self._canvas is None:
+            return np.zeros((0, 0), np.uint8)
+        image = self._canvas.image()
+        if mm_per_px is None:
+            return image
+        if not (mm_per_px > 0 and math.isfinite(mm_per_px)):
+            raise ValueError(f"mm_per_px must be a positive number, got {mm_per_px}")
+        if self._sampler.mm_per_px is None:
+            raise ValueError("a metric map needs a camera model (geometry) to know mm per pixel")
+        row_mm, col_mm = self._sampler.mm_per_px, self._sampler.mm_per_px_cols
+        h, w = image.shape
+        size = (max(1, round(w * col_mm / mm_per_px)), max(1, round(h * row_mm / mm_per_px)))
+        shrink = row_mm < mm_per_px
+        return cv2.resize(image, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_CUBIC)
+
+    def map_coverage(self, min_weight: float = 0.05) -> np.ndarray:
+        """Boolean mask, same shape as `map_image()`: pixels that enough frames contributed to."""
+        if self._canvas is None:
+            return np.zeros((0, 0), bool)
+        return self._canvas.coverage(min_weight)
+
+    # -- setup -------------------------------------------------------------------------------------
+    def _setup(self, shape: tuple[int, int]) -> None:
+        rows = self.band_rows
+        if self.method == "paper":  # the paper crops the image centre; a camera only gives the scale
+            sampler = _BandSampler(shape, rows, None, self.centre_row, False)
+            if self.camera is not None:
+                scaled = _BandSampler(shape, rows, self.camera, None, False)
+                sampler.mm_per_px, sampler.mm_per_px_cols = scaled.mm_per_px, scaled.mm_per_px_cols
+        else:
+            sampler = _BandSampler(shape, rows, self.camera, self.centre_row, self.rectify)
+        if self._fixed_flat_field is not None and self._fixed_flat_field.shape != (rows, shape[1]):
+            raise ValueError(f"flat_field shape {self._fixed_flat_field.shape} differs from the band's "
+                             f"{(rows, shape[1])}")
+        self._shape = shape
+        self._sampler = sampler
+        self._canvas = _Canvas(shape[1])
+        self._weights = np.repeat(_taper(rows)[:, None], shape[1], axis=1)
+
+    # -- the paper's method ------------------------------------------------------------------------
+    def _push_paper(self, band: np.ndarray) -> StitchStep:
+        shift, confidence = 0.0, 0.0
+        if self._prev is not None:
+            costs = _sad_costs(band, self._prev, range(-self.search, self.search + 1), min_overlap=1)
+            best = int(np.nanargmin(costs))
+            shift = float(best - self.search)
+            confidence = _confidence(costs, best)
+        self._position += shift
+        self._prev = band
+        self._canvas.paste(band, round(self._sampler.row0 - self._position), 0)
+        return StitchStep(shift, confidence, False, 0.0, self._position)
+
+    # -- the default method ------------------------------------------------------------------------
+    def _flatten(self, band: np.ndarray) -> np.ndarray:
+        """Divide out what does not move with the surface (multiplicative shading, dust)."""
+        if not self.background:
+            return band
+        field = self._fixed_flat_field
+        if field is None:
+            if self._flat_sum is None:
+                self._flat_sum = np.zeros_like(band)
+            if self._flat_count >= _FLAT_FIELD_MEMORY:  # a running mean: follows slowly changing light
+                self._flat_sum *= (_FLAT_FIELD_MEMORY - 1) / _FLAT_FIELD_MEMORY
+                self._flat_count -= 1
+            self._flat_sum += band
+            self._flat_count += 1
+            # Until the texture has moved well past the band, the mean still holds texture.
+            if self._travel < 2 * self.band_rows or self._flat_count < 10:
+                return band
+            if self._flat_field is None or self._flat_count % 10 == 0:  # refreshed every few frames (cost)
+                self._flat_field = flat_field_from_mean(self._flat_sum / self._flat_count)
+            field = self._flat_field
+        level = float(field.mean())
+        return band * (level / np.maximum(field, 1.0))
+
+    def _bin(self, image: np.ndarray) -> np.ndarray:
+        """Columns averaged in groups of `column_bin` (rows untouched)."""
+        if self.column_bin == 1:
+            return image
+        w = image.shape[1] // self.column_bin
+        return cv2.resize(image[:, :w * self.column_bin], (w, image.shape[0]), interpolation=cv2.INTER_AREA)
+
+    def _predict(self, dt: int | None, prior_px: float | None) -> float | None:
+        """Expected shift of this frame: the caller's prior, else recent velocity times the frame interval."""
+        if not self.motion_prior:
+            return None
+        if prior_px is not None:
+            return float(prior_px)
+        if dt == 0:
+            return 0.0  # a duplicated frame (same stamp) has not moved
+        if dt is not None and dt > 0 and self._recent_ns:
+            return float(np.median(self._recent_ns)) * dt  # a dropped frame doubles dt and the prediction
+        return float(np.median(self._recent_frame)) if self._recent_frame else None
+
+    def _push_default(self, band: np.ndarray, dt: int | None, prior_px: float | None) -> StitchStep:
+        # Lateral shifts are read from the unflattened band: the flat field keeps some texture, which
+        # would hold a column profile in place; high-pass already removes the smooth shading.
+        full = _highpass(band, self.highpass)
+        flat = self._flatten(band)
+        if flat is not band:
+            band = flat
+            feats = self._bin(_highpass(band, self.highpass))
+        else:
+            feats = self._bin(full)
+        energy = float(cv2.norm(feats, cv2.NORM_L1)) / feats.size
+        if self._key is None:
+            self._key, self._key_full = feats, full
+            self._key_pos = (self._position, self._lateral_pos)
+            self._add_to_map(band)
+            return StitchStep(0.0, 0.0, False, 0.0, self._position)
+        predicted = self._predict(dt, prior_px)
+        key_row, key_col = self._key_pos
+        pred_rel = None if predicted is None else self._position + predicted - key_row
+        rel, confidence = self._register(feats, self._key, pred_rel, self._position - key_row)
+        lat = self._lateral_pos - key_col
+        if self.lateral and rel is not None:
+            lat = _lateral_shift(full, self._key_full, rel, lat)
+        if self._typical_energy is not None:  # far less texture than usual: a textureless stretch
+            confidence *= float(np.clip(energy / (_TEXTURELESS_FRACTION * self._typical_energy), 0.0, 1.0))
+        confident = rel is not None and confidence >= self.min_confidence
+        if confident and prior_px is not None and self.motion_prior and abs(prior_px) >= 1.0:
+            # The arm says we roll but the image says we stand still: the image sees only what does
+            # not move with the surface (a textureless stretch over a dusty gel). Believe the arm.
+            image_shift = key_row + rel - self._position
+            confident = abs(image_shift) >= _STATIC_FRACTION * abs(prior_px)
+        if not confident:  # trust the motion prior, or stand still when there is none
+            rel = self._position + (predicted or 0.0) - key_row
+            lat = self._lateral_pos - key_col
+        shift = key_row + rel - self._position
+        lateral = key_col + lat - self._lateral_pos if self.lateral else 0.0
+        self._position += shift
+        self._lateral_pos += lateral
+        self._travel += abs(shift)
+        if confident:
+            self._update_velocity(shift, dt)
+            self._typical_energy = energy if self._typical_energy is None else (
+                0.9 * self._typical_energy + 0.1 * energy)
+        self._add_to_map(band)
+        overlap = 1.0 - abs(rel) / self.band_rows
+        if not self.keyframes or overlap < self.keyframe_overlap or not confident:
+            self._key, self._key_full = feats, full
+            self._key_pos = (self._position, self._lateral_pos)
+        return StitchStep(shift, confidence, not confident and predicted is not None, lateral, self._position)
+
+    def _update_velocity(self, shift: float, dt: int | None) -> None:
+        self._recent_frame.append(shift)
+        if dt is not None and dt > 0:
+            self._recent_ns.append(shift / dt)
+
+    def _add_to_map(self, band: np.ndarray) -> None:
+        top = self._sampler.row0 - self._position
+        self._canvas.add(band, self._weights, top, -self._lateral_pos, subpixel=self.subpixel)
+
+    def _register(self, feats: np.ndarray, key: np.ndarray, predicted: float | None,
+                  current: float) -> tuple[float | None, float]:
+        """Row shift of `feats` relative to `key` and a confidence.
+
+        `predicted` is the expected shift relative to the key (None: unknown), `current` the previous
+        frame's shift relative to the key; the wide search covers current ± search.
+        """
+        h = feats.shape[0]
+        max_rel = int(h * 0.75)  # keep at least a quarter of the band overlapping
+        wide = np.arange(max(round(current) - self.search, -max_rel), min(round(current) + self.search, max_rel) + 1)
+        local = wide
+        if predicted is not None:
+            centre = round(predicted)
+            local = np.arange(max(centre - self.local_search, -max_rel), min(centre + self.local_search, max_rel) + 1)
+        candidates, costs, best = _search(feats, key, local)
+        if local is not wide and (best < 0 or best in (0, len(costs) - 1)
+                                  or _confidence(costs, best) < self.min_confidence):
+            # The prediction was off (speed change, a dropped frame): search the whole range.
+            candidates, costs, best = _search(feats, key, wide)
+        if best < 0:
+            return None, 0.0
+        confidence = _confidence(costs, best)
+        rel = float(candidates[best])
+        if self.subpixel:
+            rel = _lucas_kanade_rows(feats, key, rel + _parabola(costs, best))
+        return rel, confidence
+
+
+def _search(cur: np.ndarray, key: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    if candidates.size == 0:
+        return candidates, np.zeros(0), -1
+    costs = _ncc_costs(cur, key, candidates, min_overlap=cur.shape[0] // 4)
+    best = int(np.nanargmin(costs)) if np.isfinite(costs).any() else -1
+    return candidates, costs, best
+
+
+def _sad_costs(cur: np.ndarray, prev: np.ndarray, shifts: Iterable[int], min_overlap: int) -> np.ndarray:
+    """Mean |cur(i) - prev(i - d)| over the overlapping rows, for each integer d (NaN if too little overlap)."""
+    h = cur.shape[0]
+    out = []
+    for d in shifts:
+        d = int(d)
+        a0, a1 = max(0, d), min(h, h + d)
+        if a1 - a0 < min_overlap:
+            out.append(np.nan)
+            continue
+        out.append(float(cv2.norm(cur[a0:a1], prev[a0 - d:a1 - d], cv2.NORM_L1)) / ((a1 - a0) * cur.shape[1]))
+    return np.asarray(out, np.float64)
+
+
+def _ncc_costs(cur: np.ndarray, key: np.ndarray, shifts: Iterable[int], min_overlap: int) -> np.ndarray:
+    """1 - normalised cross-correlation of cur(i) and key(i - d) over the overlapping rows, for each d.
+
+    Unlike a mean absolute difference, this does not favour the shifts whose overlap leaves out the
+    textured rows of one image (a band half in a textureless stretch), and it is ~1 everywhere when
+    either side has no texture. Features are high-passed, so their mean is ~0.
+    """
+    h = cur.shape[0]
+    cur_sq = np.concatenate([[0.0], np.cumsum(np.einsum("ij,ij->i", cur, cur, dtype=np.float64))])
+    key_sq = np.concatenate([[0.0], np.cumsum(np.einsum("ij,ij->i", key, key, dtype=np.float64))])
+    out = []
+    for d in shifts:
+        d = int(d)
+        a0, a1 = max(0, d), min(h, h + d)
+        if a1 - a0 < min_overlap:
+            out.append(np.nan)
+            continue
+        den = math.sqrt((cur_sq[a1] - cur_sq[a0]) * (key_sq[a1 - d] - key_sq[a0 - d]))
+        num = float(np.vdot(cur[a0:a1], key[a0 - d:a1 - d]))
+        out.append(1.0 - num / den if den > 1e-12 else 1.0)
+    return np.asarray(out, np.float64)
+
+
+def _confidence(costs: np.ndarray, best: int) -> float:
+    """How distinct the minimum is: 1 - min / (median cost away from it); 0 when the curve is flat."""
+    c = costs[best]
+    idx = np.arange(len(costs))
+    away = costs[(np.abs(idx - best) >= 2) & np.isfinite(costs)]
+    if away.size == 0 or not np.isfinite(c):
+        return 0.0
+    ref = float(np.median(away))
+    if ref <= 1e-9:
+        return 0.0
+    return float(np.clip(1.0 - c / ref, 0.0, 1.0))
+
+
+def _parabola(costs: np.ndarray, best: int) -> float:
+    if best <= 0 or best >= len(costs) - 1:
+        return 0.0
+    a, b, c = costs[best - 1], costs[best], costs[best + 1]
+    if not (np.isfinite(a) and np.isfinite(c)):
+        return 0.0
+    den = a - 2 * b + c
+    if den <= 1e-12:
+        return 0.0
+    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+
+
+def _lucas_kanade_rows(cur: np.ndarray, key: np.ndarray, rel: float, iterations: int = 2) -> float:
+    """Refine cur(i) = key(i - rel) by Gauss-Newton on the overlapping rows (removes pixel locking)."""
+    h, w = cur.shape
+    for _ in range(iterations):
+        base = math.floor(rel)
+        frac = rel - base
+        a0, a1 = max(0, base + 1) + 1, min(h, h + base) - 1  # rows where key(i - base - 1) is defined
+        if a1 - a0 < 4:
+            break
+        # key(i - rel) by linear interpolation between rows i - base and i - base - 1
+        k0 = key[a0 - base - 1:a1 - base + 1]  # rows (a0-1 .. a1) - base
+        k1 = key[a0 - base - 2:a1 - base]  # one row earlier
+        warped = (1.0 - frac) * k0 + frac * k1
+        gy = 0.5 * (warped[2:] - warped[:-2])
+        resid = cur[a0:a1] - warped[1:-1]
+        den = float(np.vdot(gy, gy))
+        if den <= 1e-9:
+            break
+        # cur = key(i - rel - d) ~ warped(i) - d * gy  =>  d = -sum(gy r) / sum(gy^2)
+        step = float(np.clip(-np.vdot(gy, resid) / den, -1.0, 1.0))
+        rel += step
+        if abs(step) < 1e-3:
+            break
+    return rel
+
+
+def _lateral_shift(cur: np.ndarray, key: np.ndarray, rel: float, guess: float, iterations: int = 3) -> float:
+    """Column shift of cur relative to key, from column profiles over the overlapping rows.
+
+    Averaging the rows keeps what runs along the roll (yarns, ridges), which is what shows a sideways
+    shift, at full column resolution and 1-D cost.
+    """
+    h, w = cur.shape
+    d = round(rel)
+    a0, a1 = max(0, d), min(h, h + d)
+    if a1 - a0 < 4:
+        return guess
+    p_cur = cur[a0:a1].mean(axis=0, dtype=np.float64)
+    p_key = key[a0 - d:a1 - d].mean(axis=0, dtype=np.float64)
+    cols = np.arange(w, dtype=np.float64)
+    lat = guess
+    margin = 8
+    for _ in range(iterations):
+        if abs(lat) > w / 4:
+            return guess
+        warped = np.interp(cols - lat, cols, p_key)
+        g = np.gradient(warped)
+        sl = slice(margin + int(abs(lat)), w - margin - int(abs(lat)))
+        den = float(g[sl] @ g[sl])
+        if den <= 1e-9:
+            return guess
+        step = float(np.clip(-(g[sl] @ (p_cur[sl] - warped[sl])) / den, -1.0, 1.0))
+        lat += step
+        if abs(step) < 1e-3:
+            break
+    return lat
+
+
+def stitch(images: Iterable[np.ndarray], method: str = "default", *, stamps: Sequence[int] | None = None,
+           priors: Sequence[float | None] | None = None, two_pass: bool = True,
+           **kwargs: Any) -> tuple[np.ndarray, list[StitchStep]]:
+    """Stitch a sequence of frames; returns (uint8 map, one StitchStep per frame).
+
+    Without `stamps` frames are taken as 30 fps. With `two_pass` (default method, background on) the
+    flat field is estimated from all frames first, as an offline tool can; a recording too short for
+    the texture to average out of it is stitched with the live estimate instead. Keywords go to `Stitcher`.
+    """
+    probe = Stitcher(method, **kwargs)
+    bands = [probe.band(image) for image in images]
+    if not bands:
+        return probe.map_image(), []
+
+    def run(flat_field: np.ndarray | None) -> Stitcher:
+        stitcher = Stitcher(method, **kwargs)
+        stitcher._setup(probe._shape)
+        if flat_field is not None:
+            stitcher._fixed_flat_field = flat_field
+        for i, band in enumerate(bands):
+            stamp = stamps[i] if stamps is not None else i * DEFAULT_FRAME_NS
+            stitcher.push_band(band, stamp, priors[i] if priors is not None else None)
+        return stitcher
+
+    flat = None
+    if two_pass and method == "default" and probe.background and kwargs.get("flat_field") is None:
+        flat = estimate_flat_field(bands)
+    stitcher = run(flat)
+    if flat is not None and abs(stitcher._position) < 2 * stitcher.band_rows:
+        stitcher = run(None)
+    return stitcher.map_image(), list(stitcher.steps)
