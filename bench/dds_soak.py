@@ -1,0 +1,137 @@
+"""Soak: 20 000 frames through the real graph without memory growth.
+
+Camera node -> perception node -> contact probe, 640x480 bgr8 at `--fps` (default 100 Hz) for
+`--frames` frames. The resident set size (VmRSS) of the process holding the nodes is sampled every
+1000 frames (with two processes: the perception process and the camera process separately).
+Growth is measured from the sample after `--warmup` frames (allocators and caches settle) to the
+end, with a least-squares slope per 1000 frames. Results: bench/results/dds_soak.md.
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import dds_latency as common  # noqa: E402
+
+
+def rss_mb(pid: int | None = None) -> float:
+    status = Path(f"/proc/{pid or os.getpid()}/status").read_text()
+    line = next(x for x in status.splitlines() if x.startswith("VmRSS:"))
+    return int(line.split()[1]) / 1024.0
+
+
+def run_child(processes: int, transport: str, frames: int, fps: float) -> dict:
+    common.use_transport(transport)
+    references, contacts = common.synthetic_frames()
+    source = common.MemorySource(references, contacts, fps=fps, count=frames, record=False)
+    graph = common.Graph(processes=processes, record=False)
+    samples: list[tuple[int, float, float | None]] = []
+    next_sample = [0]
+
+    def monitor() -> None:
+        if source.seq >= next_sample[0]:
+            child = rss_mb(graph.child.pid) if graph.child is not None else None
+            samples.append((source.seq, rss_mb(), child))
+            next_sample[0] += 1000
+
+    started = time.monotonic()
+    try:
+        graph.run_camera(source, timeout_s=frames / fps * 3 + 120, monitor=monitor)
+        time.sleep(1.2)
+        gc.collect()
+        samples.append((source.seq, rss_mb(), rss_mb(graph.child.pid) if graph.child is not None else None))
+        contacts_received = graph.probe.count
+        recent = np.array(graph.probe.recent_ms)
+        perception = dict(graph.probe.perception_status)
+    finally:
+        graph.close()
+    return {"frames": source.seq, "contacts": contacts_received, "seconds": time.monotonic() - started,
+            "samples": samples, "recent_latency": common.summarise(recent),
+            "perception_dropped": perception.get("frames_dropped", "?"),
+            "perception_received": perception.get("frames_received", "?")}
+
+
+def growth(samples: list[tuple[int, float]], warmup: int) -> tuple[float, float, float]:
+    """(RSS after warm-up, RSS at the end, least-squares slope in MB per 1000 frames after warm-up)."""
+    settled = [(f, m) for f, m in samples if f >= warmup] or samples[-2:]
+    frames = np.array([f for f, _ in settled], float)
+    mb = np.array([m for _, m in settled], float)
+    slope = float(np.polyfit(frames / 1000.0, mb, 1)[0]) if len(settled) >= 2 else float("nan")
+    return float(mb[0]), float(mb[-1]), slope
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="2000 frames instead of 20 000")
+    parser.add_argument("--frames", type=int, default=20000)
+    parser.add_argument("--fps", type=float, default=100.0)
+    parser.add_argument("--warmup", type=int, default=2000)
+    parser.add_argument("--processes", type=int, nargs="+", choices=(1, 2), default=[1, 2])
+    parser.add_argument("--transport", choices=tuple(common.TRANSPORTS), default="shm")
+    parser.add_argument("--out", default=str(common.RESULTS / "dds_soak.md"))
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    frames = 2000 if args.quick else args.frames
+    warmup = min(args.warmup, frames // 4)
+    if args.child:
+        print(json.dumps(run_child(args.processes[0], args.transport, frames, args.fps)), flush=True)
+        return 0
+    command = "python bench/dds_soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    lines = [
+        "# Soak: frames through the graph without memory growth",
+        "",
+        f"Command: `{command.strip()}`  ",
+        f"Machine: {common.machine()}  ",
+        f"Date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}  ",
+        f"{frames} frames of 640x480 bgr8 at {args.fps:g} Hz, transport {args.transport}; VmRSS sampled every "
+        f"1000 frames; growth measured after {warmup} frames of warm-up.",
+        "",
+        "Pass: less than 0.1 MB per 1000 frames after warm-up (a leak of one VGA frame per 1000 frames would "
+        "be 0.9 MB per 1000).",
+        "",
+        "| processes | process | frames | contacts | RSS after warm-up (MB) | RSS at end (MB) | slope (MB/1000 frames) "
+        "| result |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    details = []
+    for processes in args.processes:
+        result = subprocess.run(
+            [sys.executable, __file__, "--child", "--processes", str(processes), "--transport", args.transport,
+             "--frames", str(frames), "--fps", str(args.fps)],
+            capture_output=True, text=True, timeout=3600)
+        line = next((x for x in reversed(result.stdout.splitlines()) if x.startswith("{")), None)
+        if line is None:
+            print(result.stderr[-2000:], file=sys.stderr)
+            return 1
+        r = json.loads(line)
+        series = {"camera + probe" if processes == 2 else "all nodes": [(f, m) for f, m, _ in r["samples"]]}
+        if processes == 2:
+            series["perception"] = [(f, c) for f, _, c in r["samples"]]
+        for name, samples in series.items():
+            start, end, slope = growth(samples, warmup)
+            ok = slope < 0.1
+            lines.append(f"| {processes} | {name} | {r['frames']} | {r['contacts']} | {start:.1f} | {end:.1f} | "
+                         f"{slope:+.4f} | {'met' if ok else 'NOT met'} |")
+            print(lines[-1], flush=True)
+        details.append(f"- {processes} process(es): {r['seconds']:.0f} s; perception drops "
+                       f"{r['perception_dropped']} of {r['perception_received']} received; latency of the last "
+                       f"2000 contacts p50 {r['recent_latency']['p50']:.2f} ms, p99 {r['recent_latency']['p99']:.2f} ms; "
+                       f"RSS samples (frames: MB) "
+                       + ", ".join(f"{f}: {m:.1f}" + (f"/{c:.1f}" if c is not None else "") for f, m, c in r["samples"]))
+    lines += ["", *details, ""]
+    Path(args.out).write_text("\n".join(lines))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
