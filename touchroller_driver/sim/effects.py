@@ -28,7 +28,7 @@ def gel_background(height: int, width: int, rng: np.random.Generator, *, illumin
     v = np.linspace(-1.0, 1.0, height, dtype=np.float32)[:, None, None]
     u = np.linspace(-1.0, 1.0, width, dtype=np.float32)[None, :, None]
     # Each colour's LED is on a different side: the fall-off direction rotates with the channel.
-    angles = np.array([math.radians(a) for a in (330.0, 210.0, 90.0)], dtype=np.float32)
+    angles = np.array([math.radians(a) for a in (200.0, 80.0, 320.0)], dtype=np.float32)
     ramp = u * np.cos(angles)[None, None, :] + v * np.sin(angles)[None, None, :]
     gain = (1.0 + illumination * field) * (1.0 + 0.5 * led_falloff * ramp)
     offset = np.zeros((height, width, 3), np.float32)

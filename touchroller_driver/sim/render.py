@@ -79,6 +79,8 @@ class TruthMap:
 
     image: np.ndarray           # uint8 grey, 0..255 = 0..max relief
     height: np.ndarray          # float32 metres
+    tactile: np.ndarray         # uint8 grey: the relief as the sensor shades it (ideal, flat press,
+                                # no blur/noise/background), like for like with a stitched grey map
     mm_per_px_rows: float       # along the rolling direction
     mm_per_px_cols: float       # along the roller axis (at the contact line)
     y_start: float              # world Y of row 0's centre (m)
@@ -244,7 +246,11 @@ class SimulatedSensor:
         height = surf.sample(X, Y).astype(np.float32)
         top = max(self.surface.max_height, 1e-12)
         image = np.clip(np.rint(height / top * 255.0), 0, 255).astype(np.uint8)
-        return TruthMap(image, height, mpp_v * 1e3, mpp_u * 1e3, y_lo, x_cols)
+        gy, gx = np.gradient(height.astype(np.float64), mpp_v, x_cols, axis=(0, 1)) if min(height.shape) > 1 \
+            else (np.zeros_like(height), np.zeros_like(height))
+        shaded = self._shade_slopes(gx.astype(np.float32), gy.astype(np.float32))
+        tactile = cv2.cvtColor(cv2.convertScaleAbs(shaded), cv2.COLOR_BGR2GRAY)
+        return TruthMap(image, height, tactile, mpp_v * 1e3, mpp_u * 1e3, y_lo, x_cols)
 
     # ------------------------------------------------------------------ precomputation
     def _build_maps(self) -> None:
@@ -462,6 +468,10 @@ class SimulatedSensor:
         gx *= self._sobel_ku[v0:v1]
         gy = cv2.Sobel(D, cv2.CV_32F, 0, 1, ksize=3)
         gy *= self._sobel_kv[v0:v1]
+        return self._shade_slopes(gx, gy)
+
+    def _shade_slopes(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+        """Slopes of the membrane towards the camera (dD/dx, dD/ds, float32, consumed) -> bgr DN."""
         # unit normal facing the camera: (-gx, -gy, 1) / sqrt(1 + gx^2 + gy^2)
         inv = cv2.magnitude(gx, gy)
         cv2.multiply(inv, inv, dst=inv)

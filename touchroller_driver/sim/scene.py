@@ -35,10 +35,13 @@ _DEFAULT_SENSOR: dict[str, Any] = {
     "lowpass_sigma": "auto",         # m, or "auto" = lowpass_per_thickness * elastomer_thickness
     "lowpass_per_thickness": 0.075,  # empirical: 2 mm of gel -> 0.15 mm Gaussian (see docs/simulator.md)
     "thickness_variation": 0.0,      # m: amplitude of the membrane radius error along x and alpha
-    "light_elevation_deg": 35.0,
-    "light_azimuths_deg": [330.0, 210.0, 90.0],   # B, G, R lights in the membrane's tangent plane
-    "ambient": 0.25,
-    "light_gain": 0.85,
+    "light_elevation_deg": 25.0,
+    # B, G, R lights 120 deg apart in the membrane's tangent plane (0 deg = +x along the axis, 90 deg =
+    # +v around it); green, which dominates a grey conversion, lights diagonally so grey images keep
+    # slopes in both directions (a symmetric layout would cancel them in grey).
+    "light_azimuths_deg": [200.0, 80.0, 320.0],
+    "ambient": 0.2,
+    "light_gain": 1.2,
     "exposure_scale": 0.72,          # DN = 255 * scale * shading
 }
 

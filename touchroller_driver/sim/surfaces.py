@@ -130,7 +130,7 @@ def fabric(pattern: str, rows: int, cols: int, resolution: float, pitch: float,
         unit = _weave(Xw, Yw, pitch, rng, twill=(pattern == "twill"), irregularity=irregularity)
     fibres = _smooth_noise(rows, cols, max(1.0, 0.06 * pitch / resolution), rng)
     wrinkles = _smooth_noise(rows, cols, 12e-3 / resolution, rng)
-    unit = unit * (0.85 + 0.15 * irregularity * fibres) + 0.15 * irregularity * (wrinkles + 1.0)
+    unit = unit * (0.85 + 0.15 * irregularity * fibres) + 0.08 * irregularity * (wrinkles + 1.0)
     unit -= unit.min()
     top = unit.max()
     return (unit / top if top > 0 else unit).astype(np.float32)

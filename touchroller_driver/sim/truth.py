@@ -4,8 +4,9 @@ BAG/ground_truth.yaml: scene (after variants/overrides), seed, true and "paper" 
 parameter names), per-frame truth (stamp, time, roller state and pose, contacts with 3D points in
 `touchroller_cylinder` and pixels, board poses), dropped frames, and scene-specific extras.
 BAG/camera_truth.yaml and BAG/camera_paper.yaml: ROS 2 params files for `--params`.
-BAG/ground_truth_surface.npy (relief, metres, full surface grid) and ground_truth_surface.png (the
-surface at camera pixel scale along the roll, `SimulatedSensor.surface_map_truth`) for roll scenes.
+BAG/ground_truth_surface.npy (relief, metres, full surface grid), ground_truth_surface.png (the
+surface height at camera pixel scale along the roll, `SimulatedSensor.surface_map_truth`) and
+ground_truth_tactile.png (the same relief as the sensor's shading renders it, grey) for roll scenes.
 """
 from __future__ import annotations
 
@@ -71,10 +72,13 @@ def write_ground_truth(out_dir: str | Path, sensor: SimulatedSensor, frames: lis
         np.save(out / "ground_truth_surface.npy", sensor.surface.height)
         truth_map = sensor.surface_map_truth()
         cv2.imwrite(str(out / "ground_truth_surface.png"), truth_map.image)
+        cv2.imwrite(str(out / "ground_truth_tactile.png"), truth_map.tactile)
+        written["tactile_png"] = out / "ground_truth_tactile.png"
         written["surface_npy"] = out / "ground_truth_surface.npy"
         written["surface_png"] = out / "ground_truth_surface.png"
         document["surface_map"] = {
-            "file": "ground_truth_surface.png", "rows": "world Y increasing (rolling direction)",
+            "file": "ground_truth_surface.png", "tactile_file": "ground_truth_tactile.png",
+            "rows": "world Y increasing (rolling direction)",
             "mm_per_px_rows": truth_map.mm_per_px_rows, "mm_per_px_cols": truth_map.mm_per_px_cols,
             "y_start": truth_map.y_start, "x_first_column": float(truth_map.x_of_column[0]),
             "x_last_column": float(truth_map.x_of_column[-1]), "grey_255_is_height_m": sensor.surface.max_height,

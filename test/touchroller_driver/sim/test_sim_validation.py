@@ -231,3 +231,18 @@ def test_thicker_gel_smooths_more():
         sensor = SimulatedSensor(scene, seed=0)
         relief[t] = sensor.render_layers(RollerState(travel=0.015, depth=5e-4))["relief"]
     assert np.abs(np.diff(relief[4e-3], axis=1)).sum() < 0.5 * np.abs(np.diff(relief[1e-3], axis=1)).sum()
+
+
+def test_tactile_truth_is_what_the_contact_line_shows():
+    scene = load_scene("surface_mapping", **{"surface.width": 0.07, "surface.length": 0.03,
+                                             "surface.resolution": 5e-5, "effects": []})
+    sensor = SimulatedSensor(scene, seed=5)
+    truth = sensor.surface_map_truth(0.0, 0.03)
+    row = int(round(sensor.contact_row()))
+    travel = 0.0151
+    image = sensor.render(RollerState(travel=travel, depth=5e-4))
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)[row - 3:row + 4].astype(float)
+    k = int(round((travel - truth.y_start) / (truth.mm_per_px_rows * 1e-3)))
+    expected = truth.tactile[k - 3:k + 4].astype(float)
+    assert np.corrcoef(grey.ravel(), expected.ravel())[0, 1] > 0.9
+    assert np.corrcoef(grey.ravel(), truth.tactile[k + 40:k + 47].astype(float).ravel())[0, 1] < 0.5
