@@ -87,7 +87,7 @@ class PerceptionNode(Node):
         self.dropped = 0
         self.published_contacts = 0
         self.unmapped_contacts = 0
-        self._last_sequence: int | None = None
+        self._last_sequence: dict[Any, int] = {}   # per publisher: several cameras may share the topic
 
         self.contacts_pub = self.create_publisher(PointStamped, CONTACTS_TOPIC, 10)
         self.map_pub = self.create_publisher(Image, MAP_TOPIC, MAP_QOS)
@@ -174,9 +174,12 @@ class PerceptionNode(Node):
     def _on_image_with_info(self, msg: Image, info: Any) -> None:
         sequence = info.get("publication_sequence_number") if isinstance(info, dict) else None
         if sequence:
-            if self._last_sequence is not None and sequence > self._last_sequence + 1:
-                self.dropped += sequence - self._last_sequence - 1
-            self._last_sequence = sequence
+            gid = info.get("publisher_gid")
+            publisher = tuple(gid.get("data", ())) if isinstance(gid, dict) else None
+            last = self._last_sequence.get(publisher)
+            if last is not None and sequence > last + 1:
+                self.dropped += sequence - last - 1
+            self._last_sequence[publisher] = sequence
         self._on_image(msg)
 
     def _on_image(self, msg: Image) -> None:

@@ -171,3 +171,20 @@ def test_tactile_map_is_published_latched(ros_context, spin_until):
         executor.shutdown()
         node.destroy_node()
         helper.destroy_node()
+
+
+def test_a_busy_node_skips_stale_frames_and_counts_them(graph, spin_until):
+    from touchroller_driver.image_conversion import array_to_image
+    from touchroller_perception.perception_node import _has_message_info
+
+    node, executor, image_pub, _, _ = graph
+    assert spin_until(executor, lambda: image_pub.get_subscription_count() > 0, timeout=10.0)
+    frame = TapRenderer(CAMERA, seed=1).render([], np.random.default_rng(0))
+    send(executor, spin_until, node, image_pub, array_to_image(frame, 999))   # the sequence baseline
+    for k in range(8):           # published while the node is not spinning: only the newest is kept
+        image_pub.publish(array_to_image(frame, 1000 + k))
+    assert spin_until(executor, lambda: node.received >= 2, timeout=5.0)
+    spin_until(executor, lambda: False, timeout=0.3)
+    assert node.received < 1 + 8
+    if _has_message_info():
+        assert node.received + node.dropped == 1 + 8
