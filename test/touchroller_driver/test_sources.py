@@ -346,3 +346,24 @@ def test_bag_source_missing_bag_and_unknown_kind_are_clear_errors(tmp_path):
         BagSource(tmp_path / "missing").open()
     with pytest.raises(SourceError, match="unknown camera source 'usb'"):
         make_source("usb")
+
+
+def test_simulated_source_with_the_real_simulator_bound_to_an_arm_state():
+    sim = pytest.importorskip("touchroller_driver.sim")
+    sensor = sim.SimulatedSensor(sim.load_scene("surface_mapping"), seed=0)
+    arm_clock = iter([0.5, 0.6])
+
+    def state_at(t):
+        return sim.RollerState(travel=0.02 * t, depth=5e-4, speed=0.02, t=t)
+
+    rendered = []
+    render = sensor.render
+    sensor.render = lambda state: rendered.append(state) or render(state)
+    source = make_source("sim", sensor=sensor, clock=lambda: next(arm_clock), state_at=state_at, rate=0.0)
+    source.open()
+    frame = source.read(1.0)
+    assert frame.image.shape == (sensor.camera.height, sensor.camera.width, 3) and frame.image.dtype == np.uint8
+    assert frame.image.std() > 0  # a rendered gel, not a blank frame
+    source.read(1.0)
+    assert [state.t for state in rendered] == [0.5, 0.6]  # the arm's state at each capture time
+    assert rendered[1].travel > rendered[0].travel
