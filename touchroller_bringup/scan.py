@@ -58,6 +58,7 @@ class ScanResult:
     contacts: int
     map_shape: tuple[int, ...] | None
     files: dict[str, Path]
+    sweep: str = ""         # what the sweep node answered to ~/start (length, speed, depth)
 
     @property
     def ok(self) -> bool:
@@ -109,7 +110,8 @@ def run_scan(options: ScanOptions) -> ScanResult:
         duration = time.monotonic() - started
         time.sleep(0.3)  # let the last frames through perception
         _flush_map(perception, collected)
-        return _write_outputs(out_dir, graph, perception, collected, outcome, message, duration)
+        answer = sweep.last_answer[2] if sweep.last_answer else ""
+        return _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer)
     except KeyboardInterrupt:
         for node in nodes:
             if hasattr(node, "request_stop"):
@@ -287,7 +289,7 @@ def _flush_map(perception: Any, collected: _Collected) -> None:
 # -- outputs ----------------------------------------------------------------------------------------
 
 def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Collected, outcome: str,
-                   message: str, duration: float) -> ScanResult:
+                   message: str, duration: float, sweep_answer: str) -> ScanResult:
     import cv2
 
     from touchroller_driver.image_conversion import image_to_array
@@ -310,7 +312,7 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     processed = int(getattr(perception, "received", 0))
     result = ScanResult(out_dir, outcome, message, duration, frames, processed,
                         int(getattr(perception, "dropped", 0)), int(getattr(perception, "malformed", 0)),
-                        len(contacts), map_shape, files)
+                        len(contacts), map_shape, files, sweep_answer)
     files["report"] = out_dir / "report.md"
     files["report"].write_text(_report(result, graph), encoding="utf-8")
     return result
@@ -354,6 +356,7 @@ def _report(result: ScanResult, graph: Graph) -> str:
         "# TouchRoller scan report",
         "",
         f"- outcome: **{result.outcome}** ({result.message})",
+        f"- {result.sweep or 'sweep'}; {'simulated' if graph.arguments['use_sim'] == 'true' else 'UR5'} arm",
         f"- sweep duration: {result.duration_s:.2f} s (from ~/start to the end of the sweep)",
         f"- frames published by the camera: {result.frames_published} ({rate:.1f} Hz)",
         f"- frames processed by perception: {result.frames_processed} ({skipped} not processed: its "
