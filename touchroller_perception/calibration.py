@@ -590,7 +590,10 @@ class ExtrinsicsResult:
                 f"(full pose {n['full_rms_px']:.3f} px); neglected: beta {n['beta_deg']:.3f}°, "
                 f"gamma {n['gamma_deg']:.3f}°, tx {n['tx_mm']:.3f} mm, ty {n['ty_mm']:.3f} mm; "
                 f"two-parameter model differs from the full pose by {n['model_error_centre_mm']:.3f} mm "
-                f"in the contact band (max {n['model_error_max_mm']:.3f} mm over the image)")
+                f"in the contact band (max {n['model_error_max_mm']:.3f} mm over the image)"
+                + ("" if math.isfinite(n["row_balance_slope_deg"]) else
+                   "; row balance NOT applied (presses too alike to fit it): theta includes the frame's "
+                   "placement error along y (1 mm = 1.1°); move the frame between 5 or more presses"))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -679,11 +682,12 @@ def calibrate_extrinsics(
         plate_z = camera.radius + frame.hemisphere_radius - frame.press_depth
         views = [dataclasses.replace(v, frame_shift_y=-slope * v.row_asymmetry * plate_z) for v in views]
     # theta of each view with its frame shift along y taken out (that shift turns the picture like theta does)
-    thetas = np.array([v.theta + (slope * v.row_asymmetry if balance is not None else 0.0) for v in views])
+    shifts = [slope * v.row_asymmetry if balance is not None else 0.0 for v in views]
+    thetas = np.array([v.theta for v in views]) + np.array(shifts)
     ds = np.array([v.d for v in views])
     theta, d = float(thetas.mean()), float(ds.mean())
     result_camera = camera.replace(theta=theta, d=d)
-    neglected = _neglected_terms(result_camera, views)
+    neglected = _neglected_terms(result_camera, views, shifts)
     neglected["theta_plain_mean_deg"] = math.degrees(plain_theta)
     neglected["row_balance_slope_deg"] = math.degrees(slope) if balance is not None else math.nan
     return ExtrinsicsResult(
@@ -747,13 +751,16 @@ def _inliers(values: FloatArray, k: float, floor: float) -> NDArray[np.bool_]:
     return np.abs(values - median) <= k * scale
 
 
-def _neglected_terms(camera: CameraModel, views: Sequence[ViewPose]) -> dict[str, float]:
+def _neglected_terms(camera: CameraModel, views: Sequence[ViewPose], theta_shift: Sequence[float]) -> dict[str, float]:
+    """Mean and spread of the full poses. `theta_shift` (per view, rad) takes the frame's shift
+    along y out of the full pose's theta as the row balance did for the two-parameter theta, so
+    the comparison of the two models is about the camera, not the frame's placement."""
     beta = np.array([v.beta for v in views])
     gamma = np.array([v.gamma for v in views])
     t = np.array([v.t for v in views])
-    full_theta = np.array([v.full_theta for v in views])
+    full_theta = np.array([v.full_theta for v in views]) + np.asarray(theta_shift, dtype=np.float64)
     ddof = 1 if len(views) > 1 else 0
-    rotation = Rotation.from_rotvec(np.array([v.rvec for v in views])).mean().as_matrix()
+    rotation = full_pose_rotation(float(full_theta.mean()), float(beta.mean()), float(gamma.mean()))
     error_centre, error_max = model_error_mm(camera, rotation, t.mean(axis=0))
     return {
         "full_theta_deg": math.degrees(full_theta.mean()), "full_theta_std_deg": math.degrees(full_theta.std(ddof=ddof)),

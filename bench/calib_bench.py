@@ -1,0 +1,315 @@
+"""Calibration accuracy against the number of images and against solve time, on the simulator's scenes.
+
+Scenes: `calibration_chessboard` (intrinsics) and `calibration_hemispheres` (theta, d), whose truth
+camera is the one of `contact_localisation` (fx = fy = 380 px, theta = 2 deg, d = 1.5 mm, barrel
+distortion). Each seed renders its own views and presses (the frame's pose jitters between presses:
++-1.5 mm in x and y, +-2 deg yaw; the first press is centred).
+
+Tables:
+A. intrinsics against the number of chessboard views (errors vs truth, reprojection RMS, solve time);
+B. theta and d against the number of presses, with the true intrinsics (ours with the row balance,
+   and the paper's plain mean of theta);
+C. the whole calibration: 20 chessboard views + 10 presses per seed (goals: theta within 0.1 deg,
+   d within 0.05 mm, reprojection RMS <= 0.2 px, the whole solve < 2 s);
+D. end to end: contacts of the `contact_localisation` scene located with that calibration;
+E. the terms the paper's model neglects, as reported by one calibration.
+
+`run(quick)` returns the figures as a dict; `python bench/calib_bench.py [--quick]` also writes
+bench/results/calib_bench.md (and .json).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from touchroller_perception import calibration as cal  # noqa: E402
+from touchroller_perception.geometry import CameraModel  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results" / "calib_bench"
+GOALS = {"theta_deg": 0.1, "d_mm": 0.05, "rms_px": 0.2, "solve_s": 2.0}
+
+
+def machine() -> str:
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return (f"nproc {len(os.sched_getaffinity(0))} (of {os.cpu_count()}), {cpu}, Python {platform.python_version()}, "
+            f"OpenCV {cv2.__version__}, numpy {np.__version__}")
+
+
+# --------------------------------------------------------------------------- rendering
+def chessboard_views(seed: int, views: int, sensor_overrides: dict[str, Any]) -> tuple[list[np.ndarray], CameraModel]:
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+
+    sensor = SimulatedSensor(load_scene("calibration_chessboard", **{"motion.views": views, **sensor_overrides}),
+                             seed=seed)
+    return [f.image for f in sensor.frames()], sensor.camera
+
+
+def hemisphere_presses(seed: int, presses: int, sensor_overrides: dict[str, Any]):
+    """(reference image, press images, true camera)."""
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+
+    sensor = SimulatedSensor(load_scene("calibration_hemispheres", **{"motion.presses": presses, **sensor_overrides}),
+                             seed=1000 + seed)
+    frames = list(sensor.frames())
+    references = [f.image for f in frames if f.truth.get("phase") == "reference"]
+    pressed = [f.image for f in frames if f.truth.get("phase") == "press"]
+    return np.median(np.stack(references), axis=0).astype(np.uint8), pressed, sensor.camera
+
+
+# --------------------------------------------------------------------------- measurements
+def timed(function, *args, **kwargs):
+    start = time.perf_counter()
+    result = function(*args, **kwargs)
+    return result, time.perf_counter() - start
+
+
+def stats(values) -> dict[str, float]:
+    v = np.abs(np.asarray(values, dtype=np.float64))
+    return {"rms": float(np.sqrt(np.mean(v**2))), "max": float(v.max()), "n": int(v.size)}
+
+
+def intrinsics_vs_views(seeds: list[int], counts: list[int]) -> list[dict[str, Any]]:
+    rows = []
+    rendered = {s: chessboard_views(s, max(counts), {}) for s in seeds}
+    for n in counts:
+        errors: dict[str, list[float]] = {k: [] for k in ("fx", "fy", "cx", "cy")}
+        rms, seconds, rejected = [], [], 0
+        for s in seeds:
+            images, truth = rendered[s]
+            result, dt = timed(cal.calibrate_intrinsics, images[:n])
+            for k in errors:
+                errors[k].append(getattr(result.camera, k) - getattr(truth, k))
+            rms.append(result.rms)
+            seconds.append(dt)
+            rejected += len(result.rejected)
+        rows.append({"views": n, **{f"{k}_err_px": stats(v) for k, v in errors.items()},
+                     "reprojection_rms_px": float(np.mean(rms)), "solve_s_median": float(np.median(seconds)),
+                     "rejected_views": rejected})
+    return rows
+
+
+def extrinsics_vs_presses(seeds: list[int], counts: list[int]) -> list[dict[str, Any]]:
+    rows = []
+    rendered = {s: hemisphere_presses(s, max(counts), {}) for s in seeds}
+    for m in counts:
+        theta, plain, d, rms, seconds = [], [], [], [], []
+        for s in seeds:
+            reference, presses, truth = rendered[s]
+            start = truth.replace(theta=0.0, d=0.0)
+            result, dt = timed(cal.calibrate_extrinsics, presses[:m], start, reference=reference)
+            theta.append(math.degrees(result.theta - truth.theta))
+            plain.append(result.neglected["theta_plain_mean_deg"] - math.degrees(truth.theta))
+            d.append(1e3 * (result.d - truth.d))
+            rms.append(result.rms)
+            seconds.append(dt)
+        rows.append({"presses": m, "theta_err_deg": stats(theta), "paper_plain_mean_theta_err_deg": stats(plain),
+                     "d_err_mm": stats(d), "reprojection_rms_px": float(np.mean(rms)),
+                     "solve_s_median": float(np.median(seconds))})
+    return rows
+
+
+def full_calibration(seed: int, views: int, presses: int, sensor_overrides: dict[str, Any]) -> dict[str, Any]:
+    images, truth = chessboard_views(seed, views, sensor_overrides)
+    reference, pressed, _ = hemisphere_presses(seed, presses, sensor_overrides)
+    start = time.perf_counter()
+    intrinsics = cal.calibrate_intrinsics(images)
+    extrinsics = cal.calibrate_extrinsics(pressed, intrinsics.camera.replace(theta=0.0, d=0.0), reference=reference)
+    seconds = time.perf_counter() - start
+    return {"seed": seed, "camera": extrinsics.camera, "truth": truth, "seconds": seconds,
+            "theta_err_deg": math.degrees(extrinsics.theta - truth.theta),
+            "paper_plain_mean_theta_err_deg": extrinsics.neglected["theta_plain_mean_deg"] - math.degrees(truth.theta),
+            "d_err_mm": 1e3 * (extrinsics.d - truth.d), "fx_err_px": intrinsics.camera.fx - truth.fx,
+            "intrinsics_rms_px": intrinsics.rms, "extrinsics_rms_px": extrinsics.rms,
+            "theta_std_deg": math.degrees(extrinsics.theta_std), "d_std_mm": 1e3 * extrinsics.d_std,
+            "neglected": extrinsics.neglected, "rejected": len(intrinsics.rejected) + len(extrinsics.rejected)}
+
+
+def contact_errors(cameras: dict[str, CameraModel], variant: str, seed: int, repeats: int) -> dict[str, dict[str, float]]:
+    """Locate the contact_localisation taps (colour detector of touchroller_perception.contacts)
+    through each camera model; errors in mm against the true membrane points."""
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+    from touchroller_perception.contacts import ContactDetector
+
+    scene = load_scene("contact_localisation", variant=variant, **{"motion.repeats": repeats})
+    sensor = SimulatedSensor(scene, seed=seed)
+    detector = ContactDetector(reference_frames=int(scene.motion.get("reference_frames", 5)))
+    errors: dict[str, list[float]] = {name: [] for name in cameras}
+    missed = 0
+    for frame in sensor.frames():
+        found = detector.process(frame.image) or []
+        if frame.truth.get("phase") != "tap":
+            continue
+        for truth in frame.truth["contacts"]:
+            pixel = np.asarray(truth["pixel"], dtype=np.float64)
+            if not np.isfinite(pixel).all() or not sensor.camera.in_image(pixel, margin=5):
+                continue
+            best = min(found, key=lambda c: math.hypot(c.u - pixel[0], c.v - pixel[1]), default=None)
+            if best is None or math.hypot(best.u - pixel[0], best.v - pixel[1]) > 25.0:
+                missed += 1
+                continue
+            for name, camera in cameras.items():
+                point, valid = camera.back_project(np.array([best.u, best.v]))
+                if valid:
+                    errors[name].append(1e3 * float(np.linalg.norm(point - np.asarray(truth["point"]))))
+    out = {}
+    for name, values in errors.items():
+        v = np.asarray(values)
+        out[name] = {"mean_mm": float(v.mean()), "std_mm": float(v.std()), "max_mm": float(v.max()), "n": int(v.size)}
+    out["missed"] = {"n": missed}
+    return out
+
+
+def run(quick: bool = False) -> dict[str, Any]:
+    seeds = list(range(3 if quick else 10))
+    result: dict[str, Any] = {"quick": quick, "seeds": len(seeds), "machine": machine(), "goals": GOALS}
+    result["intrinsics_vs_views"] = intrinsics_vs_views(seeds, [5, 10, 20] if quick else [5, 10, 20, 40])
+    result["extrinsics_vs_presses"] = extrinsics_vs_presses(seeds, [2, 5, 10] if quick else [2, 3, 5, 10, 20])
+
+    runs = [full_calibration(s, 20, 10, {}) for s in seeds]
+    result["full"] = {
+        "runs": [{k: v for k, v in r.items() if k not in ("camera", "truth", "neglected")} for r in runs],
+        "theta_err_deg": stats([r["theta_err_deg"] for r in runs]),
+        "paper_plain_mean_theta_err_deg": stats([r["paper_plain_mean_theta_err_deg"] for r in runs]),
+        "d_err_mm": stats([r["d_err_mm"] for r in runs]),
+        "intrinsics_rms_px": stats([r["intrinsics_rms_px"] for r in runs]),
+        "extrinsics_rms_px": stats([r["extrinsics_rms_px"] for r in runs]),
+        "solve_s": {"median": float(np.median([r["seconds"] for r in runs])),
+                    "max": float(np.max([r["seconds"] for r in runs]))},
+        "within_goals": sum(abs(r["theta_err_deg"]) <= GOALS["theta_deg"] and abs(r["d_err_mm"]) <= GOALS["d_mm"]
+                            for r in runs),
+    }
+    result["neglected_example"] = {k: float(v) for k, v in runs[0]["neglected"].items()}
+
+    truth = runs[0]["truth"]
+    cameras = {"truth": truth, "ours (seed 0)": runs[0]["camera"],
+               "uncalibrated (theta = d = 0)": truth.replace(theta=0.0, d=0.0),
+               "paper-sized error (1 deg, 0.5 mm)": truth.replace(theta=truth.theta + math.radians(1.0),
+                                                                  d=truth.d + 0.5e-3)}
+    result["contacts"] = {"exact sensor": contact_errors(cameras, "exact", 0, 1 if quick else 3)}
+    return result
+
+
+# --------------------------------------------------------------------------- report
+def markdown(result: dict[str, Any], command: str) -> str:
+    g = result["goals"]
+    full = result["full"]
+    lines = [
+        "# Calibration benchmark (issue 6)", "",
+        f"Command: `{command}`  ",
+        f"Machine: {result['machine']} — measured while the machine was shared by several engineers, so "
+        "times are upper bounds.  ",
+        f"Seeds: {result['seeds']} (each renders its own chessboard views and hemisphere presses).", "",
+        "Scenes: `calibration_chessboard` (7x7 inner corners, 12 mm squares, 14-26 cm, tilts to 35°) and "
+        "`calibration_hemispheres` (2x5 hemispheres, 1 mm radius, 10 x 8 mm pitch, frame jittered ±1.5 mm in x "
+        "and y and ±2° in yaw between presses); truth camera fx = fy = 380 px, theta = 2°, d = 1.5 mm.", "",
+        "## C. The whole calibration: 20 chessboard views + 10 presses", "",
+        "| goal | measured (RMS over seeds) | worst seed | met |", "|---|---|---|---|",
+        f"| theta within {g['theta_deg']}° | {full['theta_err_deg']['rms']:.3f}° | {full['theta_err_deg']['max']:.3f}° "
+        f"| {'yes' if full['theta_err_deg']['max'] <= g['theta_deg'] else 'no'} |",
+        f"| d within {g['d_mm']} mm | {full['d_err_mm']['rms']:.3f} mm | {full['d_err_mm']['max']:.3f} mm "
+        f"| {'yes' if full['d_err_mm']['max'] <= g['d_mm'] else 'no'} |",
+        f"| reprojection RMS ≤ {g['rms_px']} px (intrinsics / extrinsics) | {full['intrinsics_rms_px']['rms']:.3f} / "
+        f"{full['extrinsics_rms_px']['rms']:.3f} px | {full['intrinsics_rms_px']['max']:.3f} / "
+        f"{full['extrinsics_rms_px']['max']:.3f} px | "
+        f"{'yes' if max(full['intrinsics_rms_px']['max'], full['extrinsics_rms_px']['max']) <= g['rms_px'] else 'no'} |",
+        f"| whole solve < {g['solve_s']} s | median {full['solve_s']['median']:.2f} s | {full['solve_s']['max']:.2f} s "
+        f"| {'yes' if full['solve_s']['max'] < g['solve_s'] else 'no'} |",
+        "",
+        f"Seeds with both theta and d within the goals: {full['within_goals']} of {result['seeds']}. "
+        f"The paper's plain mean of theta (no row balance) is off by {full['paper_plain_mean_theta_err_deg']['rms']:.3f}° "
+        f"RMS (worst {full['paper_plain_mean_theta_err_deg']['max']:.3f}°): a frame shifted by e along y turns the "
+        "picture exactly like theta does (e / 50.5 mm rad), which no pose solve can separate; the row balance "
+        "measures the shift from the two rows' imprint strengths.", "",
+        "| seed | theta err (°) | plain-mean theta err (°) | d err (mm) | fx err (px) | RMS intr / extr (px) | solve (s) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in full["runs"]:
+        lines.append(f"| {r['seed']} | {r['theta_err_deg']:+.4f} | {r['paper_plain_mean_theta_err_deg']:+.4f} | "
+                     f"{r['d_err_mm']:+.4f} | {r['fx_err_px']:+.3f} | {r['intrinsics_rms_px']:.3f} / "
+                     f"{r['extrinsics_rms_px']:.3f} | {r['seconds']:.2f} |")
+    lines += ["", "## A. Intrinsics against the number of chessboard views", "",
+              "| views | fx err RMS / max (px) | cx err RMS / max (px) | cy err RMS / max (px) | reprojection RMS (px) "
+              "| solve median (s) |", "|---|---|---|---|---|---|"]
+    for r in result["intrinsics_vs_views"]:
+        lines.append(f"| {r['views']} | {r['fx_err_px']['rms']:.3f} / {r['fx_err_px']['max']:.3f} | "
+                     f"{r['cx_err_px']['rms']:.3f} / {r['cx_err_px']['max']:.3f} | "
+                     f"{r['cy_err_px']['rms']:.3f} / {r['cy_err_px']['max']:.3f} | {r['reprojection_rms_px']:.3f} | "
+                     f"{r['solve_s_median']:.3f} |")
+    lines += ["", "d scales with the focal length (d + r = f x pitch / pixel pitch): 1 px of fx error at 380 px is "
+              "0.14 mm of d, so d's accuracy is bought with chessboard views.", "",
+              "## B. theta and d against the number of presses (true intrinsics)", "",
+              "| presses | theta err RMS / max (°) | paper's plain mean: theta err RMS / max (°) | d err RMS / max (mm) "
+              "| reprojection RMS (px) | solve median (s) |", "|---|---|---|---|---|---|"]
+    for r in result["extrinsics_vs_presses"]:
+        lines.append(f"| {r['presses']} | {r['theta_err_deg']['rms']:.3f} / {r['theta_err_deg']['max']:.3f} | "
+                     f"{r['paper_plain_mean_theta_err_deg']['rms']:.3f} / {r['paper_plain_mean_theta_err_deg']['max']:.3f} | "
+                     f"{r['d_err_mm']['rms']:.4f} / {r['d_err_mm']['max']:.4f} | {r['reprojection_rms_px']:.3f} | "
+                     f"{r['solve_s_median']:.3f} |")
+    lines += ["", "With 2 presses the row balance has too little spread to fit its slope and falls back to the plain "
+              "mean (the first press is the scene's centred one).", "",
+              "## D. End to end: contacts located with the calibration", "",
+              "`contact_localisation` (exact sensor), colour detector of `touchroller_perception.contacts`, "
+              "back-projected through each camera model; error = distance to the true membrane point. "
+              "The paper reports 2.63 mm at the centre and 7.66 mm on average.", "",
+              "| camera model | mean (mm) | std (mm) | max (mm) | contacts |", "|---|---|---|---|---|"]
+    for condition, table in result["contacts"].items():
+        for name, row in table.items():
+            if name == "missed":
+                continue
+            lines.append(f"| {name} ({condition}) | {row['mean_mm']:.3f} | {row['std_mm']:.3f} | {row['max_mm']:.3f} "
+                         f"| {row['n']} |")
+    n = result["neglected_example"]
+    lines += ["", "## E. What the paper's two-parameter model neglects (seed 0)", "",
+              "Full iterative PnP pose of the nominal frame, R = Rx(theta) Ry(beta) Rz(gamma), t = (tx, ty, tz); "
+              "mean ± std over the presses. gamma and tx include the frame's yaw and axial placement, which vary "
+              "between presses; for a narrow frame theta and ty, and beta and tx, nearly trade off.", "",
+              "| term | mean | std |", "|---|---|---|",
+              f"| theta (full pose) | {n['full_theta_deg']:.3f}° | {n['full_theta_std_deg']:.3f}° |",
+              f"| beta (about y) | {n['beta_deg']:.3f}° | {n['beta_std_deg']:.3f}° |",
+              f"| gamma (about z) | {n['gamma_deg']:.3f}° | {n['gamma_std_deg']:.3f}° |",
+              f"| tx | {n['tx_mm']:.3f} mm | {n['tx_std_mm']:.3f} mm |",
+              f"| ty | {n['ty_mm']:.3f} mm | {n['ty_std_mm']:.3f} mm |",
+              f"| tz (d) | {n['tz_mm']:.3f} mm | {n['tz_std_mm']:.3f} mm |", "",
+              f"Reprojection RMS: full pose {n['full_rms_px']:.3f} px. The two models' back-projections differ by "
+              f"{n['model_error_centre_mm']:.3f} mm on average in the central contact band and by at most "
+              f"{n['model_error_max_mm']:.3f} mm over the image: for this build the two-parameter model is good "
+              "enough when that is below the contact error you need.", ""]
+    return "\n".join(lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="3 seeds and fewer image counts")
+    args = parser.parse_args()
+    command = "python bench/calib_bench.py" + (" --quick" if args.quick else "")
+    result = run(quick=args.quick)
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    suffix = "_quick" if args.quick else ""
+    Path(f"{RESULTS}{suffix}.md").write_text(markdown(result, command), encoding="utf-8")
+    Path(f"{RESULTS}{suffix}.json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    print(markdown(result, command))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
