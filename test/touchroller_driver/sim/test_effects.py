@@ -1,4 +1,4 @@
-"""Composition of effects, determinism, scenes and the scene loader."""
+"""Effects: each one's signature and its function calls disappear when a scene leaves it out; determinism."""
 import hashlib
 
 import numpy as np
@@ -8,7 +8,6 @@ from touchroller_driver.sim import (
     EFFECTS,
     RollerState,
     SimulatedSensor,
-    available_scenes,
     effects,
     load_scene,
 )
@@ -32,7 +31,6 @@ def _digest(frames):
         h.update(str(f.stamp_ns).encode())
         h.update(f.image.tobytes())
     return h.hexdigest()
-
 
 def test_deterministic_for_a_seed():
     all_effects = list(EFFECTS)
@@ -117,71 +115,3 @@ def test_compression_changes_pixels_a_little():
     raw = _sensor([]).render(STATE).astype(int)
     jpeg = _sensor(["compression"]).render(STATE).astype(int)
     assert 0 < np.abs(raw - jpeg).mean() < 3
-
-
-def test_roll_frames_follow_the_trapezoid():
-    sensor = _sensor([])
-    frames = list(sensor.frames())
-    assert len(frames) == int(0.3 * 30) + 1
-    travel = [f.truth["state"]["travel"] for f in frames]
-    assert travel[0] == 0.0 and travel[-1] == pytest.approx(0.03)
-    assert np.all(np.diff(travel) > 0)
-    stamps = np.diff([f.stamp_ns for f in frames])
-    assert np.all(stamps == pytest.approx(1e9 / 30, abs=1))
-    assert frames[-1].truth["state"]["roll"] == pytest.approx(0.03 / 0.05)
-
-
-def test_all_scenes_load_and_render(tmp_path):
-    names = available_scenes()
-    for required in ("surface_mapping", "contact_localisation", "calibration_chessboard",
-                     "calibration_hemispheres", "flat_sensor_comparison"):
-        assert required in names
-    for variant in ("slow", "medium", "fast"):
-        scene = load_scene("surface_mapping", variant=variant)
-        assert scene.duration == {"slow": 15.0, "medium": 10.0, "fast": 5.0}[variant]
-    shared = [load_scene(n).camera for n in ("contact_localisation", "calibration_chessboard",
-                                             "calibration_hemispheres")]
-    assert shared[0] == shared[1] == shared[2]     # one simulated unit for calibration and contacts
-
-
-def test_chessboard_corners_in_view():
-    sensor = SimulatedSensor(load_scene("calibration_chessboard", effects=[], **{"motion.views": 4}), seed=0)
-    frames = list(sensor.frames())
-    assert len(frames) == 4
-    for frame in frames:
-        corners = np.array(frame.truth["board"]["corners_px"])
-        assert corners.shape == (49, 2)
-        assert sensor.camera.in_image(corners, margin=5).all()
-        # an inner corner: the four pixels diagonally around it alternate dark/bright
-        u, v = np.round(corners[24]).astype(int)
-        grey = frame.image[:, :, 0].astype(int)
-        a, b = grey[v - 3, u - 3] + grey[v + 3, u + 3], grey[v - 3, u + 3] + grey[v + 3, u - 3]
-        assert abs(a - b) > 150
-
-
-def test_bad_scenes_are_clear_errors(tmp_path):
-    with pytest.raises(ValueError, match="no scene"):
-        load_scene("no_such_scene")
-    with pytest.raises(ValueError, match="unknown effects"):
-        load_scene("surface_mapping", effects=["sparkles"])
-    with pytest.raises(ValueError, match="unknown variant"):
-        load_scene("surface_mapping", variant="warp_speed")
-    with pytest.raises(ValueError, match="cannot be covered"):
-        load_scene("surface_mapping", **{"motion.duration": 0.5})
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("name: [unclosed\n")
-    with pytest.raises(ValueError, match="not valid YAML"):
-        load_scene(bad)
-
-
-def test_flat_sensor_comparison_counts_the_papers_presses():
-    from touchroller_driver.sim.flat_sensor import compare, presses_needed
-
-    scene = load_scene("flat_sensor_comparison")
-    result = compare(scene.data["comparison"], scene.motion)
-    assert result["flat_sensor"]["presses"] == 49
-    assert result["touchroller"]["roll_s"] == pytest.approx(10.0)
-    assert result["flat_sensor"]["total_s"] > 49 * result["flat_sensor"]["dwell_s"]
-    assert result["speedup"] > 5
-    assert presses_needed(0.08, 0.012, 0.0) == 7 and presses_needed(0.11, 0.016, 0.0) == 7
-    assert presses_needed(0.08, 0.012, 0.5) == 13

@@ -1,4 +1,4 @@
-"""Validation of the simulator's physics against theory: band width, blur length, contact positions."""
+"""Rendering validated against theory: band width, blur length, contact positions, surface truth."""
 import math
 
 import cv2
@@ -204,17 +204,6 @@ def test_non_finite_states_are_rejected(bad):
     sensor = _flat_sensor()
     with pytest.raises(ValueError, match="non-finite"):
         sensor.render(bad)
-
-
-def test_reverse_roll_starts_at_the_far_end():
-    scene = load_scene("surface_mapping", variant="reverse", **{"surface.resolution": 2e-4})
-    sensor = SimulatedSensor(scene, seed=0)
-    from touchroller_driver.sim.scenarios import timeline
-
-    steps = list(timeline(scene, sensor))
-    assert steps[0].state.travel == pytest.approx(0.11)
-    assert steps[-1].state.travel == pytest.approx(0.0, abs=1e-9)
-    assert all(s.state.speed <= 0 for s in steps)
 
 
 def test_thicker_gel_smooths_more():
