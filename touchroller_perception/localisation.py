@@ -445,7 +445,7 @@ def table_ii_markdown(result: Mapping[str, Any], command: str = "") -> str:
               f"Camera: `{dict(result['camera'])}`.", ""]
     for name in names:
         lines.append(f"- **{name}**: {_describe(result['summary'][name]['errors'])}")
-    lines += ["", "## Euclidean error, mm (mean ± std per cell)", "",
+    lines += ["", "### Euclidean error, mm (mean ± std per cell)", "",
               "| angle | position | paper | " + " | ".join(names) + " |",
               "|---|---|---|" + "---|" * len(names)]
     for row in result["rows"]:
@@ -462,7 +462,7 @@ def table_ii_markdown(result: Mapping[str, Any], command: str = "") -> str:
                  + " | ".join(f"{summary[n]['max_cell_mean_mm']:.3f}" for n in names) + " |")
     lines.append("| taps detected | - | " + " | ".join(f"{summary[n]['detected']}/{summary[n]['taps']}"
                                                        for n in names) + " |")
-    lines += ["", "## Sensitivity of the localised point to each error source", "",
+    lines += ["", "### Sensitivity of the localised point to each error source", "",
               "| angle | position | mm per deg theta | mm per mm d | mm per px u | mm per px v | mm per mm radius |",
               "|---|---|---|---|---|---|---|"]
     for row in result["rows"]:
@@ -544,7 +544,7 @@ def explain_markdown(fit: Mapping[str, Any]) -> str:
     for name, value in offsets.items():
         parts.append(f"{name} {math.degrees(value):+.2f} deg" if name == "theta" else
                      f"{name} {value * 1e3:+.2f} mm" if name == "d" else f"{name} {value:+.1f} px")
-    lines = ["## What would explain the paper's numbers", "",
+    lines = ["### What would explain the paper's numbers", "",
              "Least-squares fit of calibration offsets (true camera vs the one used to back-project) to the "
              "paper's 15 cell means, with a perfect detector: " + ", ".join(parts)
              + f"; RMS residual {fit['rms_residual_mm']:.2f} mm"
