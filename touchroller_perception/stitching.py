@@ -162,6 +162,19 @@ class _Canvas:
             return np.zeros((0, self.sum.shape[1]), bool)
         return self.weight[self._window()] > min_weight
 
+    def ratio_image(self, other: _Canvas, scale: float, min_weight: float = 1e-3) -> np.ndarray:
+        """scale * self.sum / other.sum as uint8 over this canvas's window (same placements)."""
+        if self.row_min == math.inf:
+            return np.zeros((0, self.sum.shape[1]), np.uint8)
+        window = self._window()
+        dr, dc = other.origin_row - self.origin_row, other.origin_col - self.origin_col
+        rows, cols = window
+        s = self.sum[window]
+        d = other.sum[rows.start + dr:rows.stop + dr, cols.start + dc:cols.stop + dc]
+        known = (self.weight[window] > min_weight) & (d > 1e-6)
+        out = np.divide(s * np.float32(scale), d, out=np.zeros_like(s), where=known)
+        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
     def image(self, min_weight: float = 1e-3) -> np.ndarray:
         if self.row_min == math.inf:
             return np.zeros((0, self.sum.shape[1]), np.uint8)
@@ -342,6 +355,7 @@ class Stitcher:
         self.min_confidence = float(min_confidence)
         self.shifts: list[float] = []
         self.steps: list[StitchStep] = []
+        self.stamps: list[int] = []
         self._fixed_flat_field = None if flat_field is None else np.asarray(flat_field, np.float32)
         self._shape: tuple[int, int] | None = None
         self._sampler: _BandSampler | None = None
@@ -361,6 +375,9 @@ class Stitcher:
         self._flat_sum: np.ndarray | None = None  # live flat field: running sum and count
         self._flat_count = 0
         self._flat_field: np.ndarray | None = None
+        self._shading: _Canvas | None = None  # sum of w * flat field, aligned with the map
+        self._level = 1.0  # the flat field's mean grey level
+        self._placements: list[tuple[float, float]] = []  # (top, left) of every band in the map
         self._travel = 0.0
         self._typical_energy: float | None = None  # mean |feature| while tracking confidently
 
@@ -413,6 +430,7 @@ class Stitcher:
         else:
             step = self._push_default(band, dt, prior_px)
         self._last_stamp = stamp_ns
+        self.stamps.append(stamp_ns)
         self.shifts.append(step.shift_px)
         self.steps.append(step)
         return step
@@ -421,7 +439,10 @@ class Stitcher:
         """The map so far as uint8 grey at camera pixel scale, or resampled to `mm_per_px` (needs a camera)."""
         if self._canvas is None:
             return np.zeros((0, 0), np.uint8)
-        image = self._canvas.image()
+        if self._shading is not None and self.method == "default":
+            image = self._canvas.ratio_image(self._shading, self._level)
+        else:
+            image = self._canvas.image()
         if mm_per_px is None:
             return image
         if not (mm_per_px > 0 and math.isfinite(mm_per_px)):
@@ -472,10 +493,12 @@ class Stitcher:
         return StitchStep(shift, confidence, False, 0.0, self._position)
 
     # -- the default method ------------------------------------------------------------------------
-    def _flatten(self, band: np.ndarray) -> np.ndarray:
-        """Divide out what does not move with the surface (multiplicative shading, dust)."""
+    def _flatten(self, band: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Divide out what does not move with the surface (multiplicative shading, dust).
+
+        Returns the flattened band and the flat field used (None while there is none yet)."""
         if not self.background:
-            return band
+            return band, None
         field = self._fixed_flat_field
         if field is None:
             if self._flat_sum is None:
@@ -487,12 +510,30 @@ class Stitcher:
             self._flat_count += 1
             # Until the texture has moved well past the band, the mean still holds texture.
             if self._travel < 2 * self.band_rows or self._flat_count < 10:
-                return band
+                return band, None
             if self._flat_field is None or self._flat_count % 10 == 0:  # refreshed every few frames (cost)
                 self._flat_field = flat_field_from_mean(self._flat_sum / self._flat_count)
             field = self._flat_field
-        level = float(field.mean())
-        return band * (level / np.maximum(field, 1.0))
+        return band * (float(field.mean()) / np.maximum(field, 1.0)), field
+
+    def _current_flat_field(self) -> np.ndarray | None:
+        if self._fixed_flat_field is not None:
+            return self._fixed_flat_field
+        if self._flat_count == 0:
+            return None
+        return flat_field_from_mean(self._flat_sum / self._flat_count)
+
+    def finalise(self) -> None:
+        """Re-weight the map with the final flat field (offline, after the last frame): the map is
+        sum(w * band) / sum(w * field) at each pixel, so early frames, stitched before the field was
+        known, are corrected exactly. Costs one accumulation per frame; the live map skips it."""
+        field = self._current_flat_field()
+        if self.method != "default" or not self.background or field is None or self._shading is None:
+            return
+        shading = _Canvas(self._shading.sum.shape[1])
+        for top, left in self._placements:
+            shading.add(field, self._weights, top, left, subpixel=self.subpixel)
+        self._shading, self._level = shading, float(field.mean())
 
     def _bin(self, image: np.ndarray) -> np.ndarray:
         """Columns averaged in groups of `column_bin` (rows untouched)."""
@@ -517,17 +558,13 @@ class Stitcher:
         # Lateral shifts are read from the unflattened band: the flat field keeps some texture, which
         # would hold a column profile in place; high-pass already removes the smooth shading.
         full = _highpass(band, self.highpass)
-        flat = self._flatten(band)
-        if flat is not band:
-            band = flat
-            feats = self._bin(_highpass(band, self.highpass))
-        else:
-            feats = self._bin(full)
+        flat, field = self._flatten(band)
+        feats = self._bin(full if field is None else _highpass(flat, self.highpass))
         energy = float(cv2.norm(feats, cv2.NORM_L1)) / feats.size
         if self._key is None:
             self._key, self._key_full = feats, full
             self._key_pos = (self._position, self._lateral_pos)
-            self._add_to_map(band)
+            self._add_to_map(band, field)
             return StitchStep(0.0, 0.0, False, 0.0, self._position)
         predicted = self._predict(dt, prior_px)
         key_row, key_col = self._key_pos
@@ -556,7 +593,7 @@ class Stitcher:
             self._update_velocity(shift, dt)
             self._typical_energy = energy if self._typical_energy is None else (
                 0.9 * self._typical_energy + 0.1 * energy)
-        self._add_to_map(band)
+        self._add_to_map(band, field)
         overlap = 1.0 - abs(rel) / self.band_rows
         if not self.keyframes or overlap < self.keyframe_overlap or not confident:
             self._key, self._key_full = feats, full
@@ -568,9 +605,20 @@ class Stitcher:
         if dt is not None and dt > 0:
             self._recent_ns.append(shift / dt)
 
-    def _add_to_map(self, band: np.ndarray) -> None:
-        top = self._sampler.row0 - self._position
-        self._canvas.add(band, self._weights, top, -self._lateral_pos, subpixel=self.subpixel)
+    def _add_to_map(self, band: np.ndarray, field: np.ndarray | None) -> None:
+        """Accumulate the raw band; with a background model also the flat field at the same place, so
+        the map is sum(w * band) / sum(w * field): the static gain divides out pixel by pixel."""
+        top, left = self._sampler.row0 - self._position, -self._lateral_pos
+        self._canvas.add(band, self._weights, top, left, subpixel=self.subpixel)
+        if not self.background:
+            return
+        if self._shading is None:
+            self._shading = _Canvas(band.shape[1])
+        if field is None:  # not known yet: a flat guess, corrected by finalise()
+            field = np.full_like(band, float(band.mean()))
+        self._shading.add(field, self._weights, top, left, subpixel=self.subpixel)
+        self._level = float(field.mean())
+        self._placements.append((top, left))
 
     def _register(self, feats: np.ndarray, key: np.ndarray, predicted: float | None,
                   current: float) -> tuple[float | None, float]:
@@ -758,4 +806,5 @@ def stitch(images: Iterable[np.ndarray], method: str = "default", *, stamps: Seq
     stitcher = run(flat)
     if flat is not None and abs(stitcher._position) < 2 * stitcher.band_rows:
         stitcher = run(None)
+    stitcher.finalise()
     return stitcher.map_image(), list(stitcher.steps)

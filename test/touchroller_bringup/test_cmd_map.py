@@ -1,0 +1,99 @@
+"""`touchroller map`: a short simulated roll recorded to a bag -> a map of the right length."""
+from __future__ import annotations
+
+import csv
+
+import cv2
+import numpy as np
+import pytest
+
+from touchroller_bringup.cli import main
+
+TRAVEL = 0.02  # m rolled
+MM_PER_PX = 0.1  # the default camera at the contact line
+
+
+@pytest.fixture(scope="module")
+def simulated_roll():
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+
+    scene = load_scene("surface_mapping", variant="fast", **{"motion.length": TRAVEL, "motion.duration": 1.5, "motion.accel": 0.1})
+    sensor = SimulatedSensor(scene, seed=4)
+    frames = list(sensor.frames())
+    travel = np.array([f.truth["state"]["travel"] for f in frames])
+    return [(f.stamp_ns, f.image) for f in frames], travel
+
+
+@pytest.fixture
+def roll_bag(simulated_roll, bag_factory):
+    records, travel = simulated_roll
+    return bag_factory(records), travel
+
+
+def test_map_of_a_simulated_roll(roll_bag, tmp_path, capsys):
+    bag, travel = roll_bag
+    out, steps = tmp_path / "maps" / "map.png", tmp_path / "steps.csv"
+    assert main(["map", str(bag), "--out", str(out), "--steps", str(steps)]) == 0
+    image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert image.ndim == 2 and image.dtype == np.uint8
+    true_px = (travel[-1] - travel[0]) * 1e3 / MM_PER_PX
+    assert image.shape[0] == pytest.approx(true_px + 70, abs=3)
+    with open(steps, newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert len(rows) == len(travel)
+    position = np.array([float(r["position_px"]) for r in rows])
+    # the surface moves up the image as the roller travels forward
+    assert np.max(np.abs(-position - (travel - travel[0]) * 1e3 / MM_PER_PX)) < 1.0
+    assert f"{len(travel)} frames" in capsys.readouterr().out
+
+
+def test_paper_method_and_metric_scale(roll_bag, tmp_path):
+    bag, travel = roll_bag
+    native, metric = tmp_path / "paper.png", tmp_path / "metric.png"
+    assert main(["map", str(bag), "--out", str(native), "--method", "paper"]) == 0
+    assert main(["map", str(bag), "--out", str(metric), "--metric", "0.2"]) == 0
+    a, b = cv2.imread(str(native), 0), cv2.imread(str(metric), 0)
+    assert a is not None and b.shape[1] == pytest.approx(640 / 2, abs=2)
+    assert b.shape[0] == pytest.approx(((travel[-1] - travel[0]) * 1e3 / MM_PER_PX + 70) / 2, abs=3)
+
+
+def test_mcap_bag(simulated_roll, bag_factory, tmp_path):
+    records, _ = simulated_roll
+    bag = bag_factory(records[:12], storage="mcap")
+    out = tmp_path / "m.png"
+    assert main(["map", str(bag), "--out", str(out)]) == 0
+    assert cv2.imread(str(out), 0).shape[1] >= 640
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--out", "{tmp}/map.xyz"], "unknown image format"),
+    (["--out", "{tmp}"], "is a directory"),
+    (["--out", "{tmp}/m.png", "--metric", "-1"], "positive number"),
+    (["--out", "{tmp}/m.png", "--params", "/nonexistent.yaml"], "no such calibration file"),
+    (["--out", "{tmp}/m.png", "--topic", "/nope"], "no topic /nope"),
+    (["--out", "{tmp}/m.png", "--band-rows", "2"], "--band-rows"),
+])
+def test_bad_input_is_one_line(roll_bag, tmp_path, capsys, extra, message):
+    bag, _ = roll_bag
+    argv = ["map", str(bag)] + [a.replace("{tmp}", str(tmp_path)) for a in extra]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_missing_bag(tmp_path, capsys):
+    assert main(["map", str(tmp_path / "none"), "--out", str(tmp_path / "m.png")]) == 2
+    assert "no such bag" in capsys.readouterr().err
+
+
+def test_other_image_size_without_calibration(bag_factory, tmp_path):
+    rng = np.random.default_rng(0)
+    tex = cv2.GaussianBlur(rng.normal(size=(400, 200)).astype(np.float32), (0, 0), 1.5)
+    tex = np.clip(128 + 300 * tex, 0, 255).astype(np.uint8)
+    records = [(i * 33_000_000, tex[200 - 3 * i:320 - 3 * i]) for i in range(30)]  # mono8, 120x200
+    out = tmp_path / "small.png"
+    assert main(["map", str(bag_factory(records)), "--out", str(out), "--steps", str(tmp_path / "s.csv")]) == 0
+    with open(tmp_path / "s.csv", newline="") as stream:
+        shifts = [float(r["shift_px"]) for r in csv.DictReader(stream)][1:]
+    assert np.allclose(shifts, 3.0, atol=0.1)
+    assert main(["map", str(bag_factory(records)), "--out", str(out), "--metric"]) == 2
