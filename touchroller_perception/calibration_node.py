@@ -159,9 +159,31 @@ class CalibrationNode(Node):
         stamp, image = self.latest
         if stamp in self._captured_stamps:
             return False, f"no new image on {topic} since the last capture"
+        problem = self._check(target, image)
+        if problem:
+            return False, f"not captured: {problem}"
         self._captured_stamps.add(stamp)
         self.captures[target].append(image)
         return True, f"captured {target} image {len(self.captures[target])}"
+
+    def _check(self, target: str, image: np.ndarray) -> str | None:
+        """Why the frame is useless as a view of `target` (checked at capture, so the user can press
+        again at once), or None."""
+        try:
+            if target == "chessboard":
+                return cal.find_chessboard(image, self._board()).reason
+            if target == "hemispheres":
+                detection = cal.find_imprints(image, self._frame(), reference=self._reference())
+                if detection.found == 0:
+                    return "no imprints: is the roller pressed on the frame?"
+                return detection.reason
+        except cal.CalibrationError as exc:
+            return str(exc)
+        return None
+
+    def _reference(self) -> np.ndarray | None:
+        references = self.captures["reference"]
+        return np.median(np.stack(references), axis=0).astype(np.uint8) if references else None
 
     def reset(self) -> tuple[bool, str]:
         for frames in self.captures.values():
@@ -181,9 +203,7 @@ class CalibrationNode(Node):
                 intrinsics = cal.calibrate_intrinsics(chessboards, self._board(), prior=camera)
                 camera = intrinsics.camera
             if presses:
-                references = self.captures["reference"]
-                reference = np.median(np.stack(references), axis=0).astype(np.uint8) if references else None
-                extrinsics = cal.calibrate_extrinsics(presses, camera, self._frame(), reference=reference,
+                extrinsics = cal.calibrate_extrinsics(presses, camera, self._frame(), reference=self._reference(),
                                                       balance_rows=bool(self.get_parameter("row_balance").value))
                 camera = extrinsics.camera
         except cal.CalibrationError as exc:

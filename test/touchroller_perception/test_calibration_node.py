@@ -90,6 +90,9 @@ def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
     assert not again.success and "no new image" in again.message
 
     node.set_parameters([Parameter("target", value="hemispheres")])
+    show(executor, spin_until, node, image_pub, sim.Frame(references[0].stamp_ns + 1, references[0].image))
+    empty = call(executor, spin_until, helper, "capture")      # checked at capture: nothing pressed
+    assert not empty.success and "no imprints" in empty.message
     for frame in pressed:
         show(executor, spin_until, node, image_pub, frame)
         assert call(executor, spin_until, helper, "capture").success
@@ -122,8 +125,13 @@ def test_rejects_an_unknown_target(graph):
 def test_missing_perception_node_is_reported(graph, presses, spin_until):
     node, _, helper, executor, image_pub, _ = graph
     truth, references, pressed = presses
-    node.set_parameters([Parameter("perception_node", value="nobody_here")])
-    for frame in pressed[:3]:
+    node.set_parameters([Parameter("target", value="chessboard")])
+    show(executor, spin_until, node, image_pub, pressed[0])
+    no_board = call(executor, spin_until, helper, "capture")
+    assert not no_board.success and "no 7x7 chessboard found" in no_board.message
+    node.set_parameters([Parameter("target", value="hemispheres"),
+                         Parameter("perception_node", value="nobody_here")])
+    for frame in pressed[1:4]:
         show(executor, spin_until, node, image_pub, frame)
         assert call(executor, spin_until, helper, "capture").success
     solved = call(executor, spin_until, helper, "solve")
