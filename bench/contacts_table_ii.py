@@ -45,6 +45,77 @@ def to_markdown(result: dict[str, Any]) -> str:
     return text + "\n" + explain_markdown(result["paper_fit"])
 
 
+def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
+    """Per-cell error beside the paper's (log scale), and one simulated tap with the two detectors' centres."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = result["table_ii"]["rows"]
+    names = [n for n in ("exact", "paper_detector", "error_sources") if n in rows[0]]
+    labels = [f"{r['alpha']}\n{r['fraction']:g}L" for r in rows]
+    x = np.arange(len(rows))
+    width = 0.8 / (len(names) + 1)
+    fig, ax = plt.subplots(figsize=(11, 4))
+    ax.bar(x - 0.4 + width / 2, [r["paper_mean_mm"] for r in rows], width, label="paper (hardware)", color="0.6")
+    for k, name in enumerate(names, start=1):
+        ax.bar(x - 0.4 + width / 2 + k * width, [max(r[name]["mean_mm"], 1e-4) for r in rows], width, label=name)
+    ax.set_yscale("log")
+    ax.set_ylabel("Euclidean error, mm")
+    ax.set_xticks(x, labels, fontsize=7)
+    ax.axhline(0.25, color="k", lw=0.8, ls="--", label="goal 0.25 mm")
+    ax.legend(fontsize=7, ncol=5)
+    ax.set_title("Table II cells: central angle x axial position")
+    fig.tight_layout()
+    paths = [out_dir / "contacts_table_ii_cells.png"]
+    fig.savefig(paths[0], dpi=110)
+    plt.close(fig)
+    example = _detection_example()
+    if example is not None:
+        crop, marks = example
+        fig, ax = plt.subplots(figsize=(4.2, 4.2))
+        ax.imshow(crop[..., ::-1], interpolation="nearest")
+        for (u, v), style, label in marks:
+            ax.plot(u, v, style, ms=10, mew=2, label=label)
+        ax.legend(fontsize=7, loc="lower left")
+        ax.set_title("one simulated tap (crop, 1 px = 1 px)", fontsize=9)
+        ax.axis("off")
+        fig.tight_layout()
+        paths.append(out_dir / "contacts_detection_example.png")
+        fig.savefig(paths[1], dpi=110)
+        plt.close(fig)
+    return paths
+
+
+def _detection_example():
+    try:
+        from touchroller_driver.sim import SimulatedSensor, load_scene
+    except ImportError:
+        return None
+    from touchroller_perception.contacts import ContactDetector, DetectorConfig
+
+    frames = list(SimulatedSensor(load_scene("contact_localisation", **{"motion.repeats": 1}), seed=0).frames())
+    references = [f.image for f in frames if f.truth.get("phase") == "reference"]
+    tap = next(f for f in frames if f.truth.get("phase") == "tap")
+    u, v = tap.truth["contacts"][0]["pixel"]
+    marks = [((u, v), "w+", "truth")]
+    for method, style in (("colour", "cx"), ("paper", "m1")):
+        detector = ContactDetector(DetectorConfig(method=method))
+        detector.set_reference(references)
+        found = detector.detect(tap.image)
+        if found:
+            best = min(found, key=lambda c: (c.u - u) ** 2 + (c.v - v) ** 2)
+            marks.append(((best.u, best.v), style, f"{method} detector"))
+    half = 24
+    u0, v0 = int(round(u)) - half, int(round(v)) - half
+    crop = tap.image[max(v0, 0):v0 + 2 * half, max(u0, 0):u0 + 2 * half]
+    return crop, [((mu - max(u0, 0), mv - max(v0, 0)), style, label) for (mu, mv), style, label in marks]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 taps per cell, main conditions only")
@@ -56,6 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     out.write_text("# Contact localisation: the paper's Table II in simulation\n\n" + to_markdown(result),
                    encoding="utf-8")
     out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    for figure in figures(result, out.parent):
+        print(f"wrote {figure}")
     summary = result["table_ii"]["summary"]
     print(f"exact calibration: mean {summary['exact']['mean_mm']:.4f} mm, worst cell "
           f"{summary['exact']['max_cell_mean_mm']:.4f} mm (goal <= 0.25 mm); wrote {out}")
