@@ -13,8 +13,8 @@ from touchroller_perception.localisation import TapRenderer
 CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240, theta=0.03, d=0.001)
 
 
-@pytest.fixture
-def tapped_bag(bag_factory):
+@pytest.fixture(params=["sqlite3", "mcap"])
+def tapped_bag(bag_factory, request):
     renderer = TapRenderer(CAMERA, seed=3)
     rng = np.random.default_rng(1)
     truth = CAMERA.surface_point(np.array([-0.01, 0.015]), np.array([0.1, -0.2]))
@@ -23,7 +23,7 @@ def tapped_bag(bag_factory):
     records += [(1_000_000 * 5, renderer.render([], rng)),            # no contact: no row
                 (1_000_000 * 6, renderer.render([uv[0]], rng)),
                 (1_000_000 * 7, renderer.render(uv, rng))]           # two contacts at once
-    return bag_factory(records), truth
+    return bag_factory(records, storage=request.param), truth
 
 
 def _read(path):
