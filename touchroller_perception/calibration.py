@@ -47,6 +47,8 @@ from touchroller_perception.geometry import CameraModel
 FloatArray = NDArray[np.float64]
 
 DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
+#: `calibrate_intrinsics(distortion=...)` -> cv2.calibrateCamera flags
+DISTORTION_MODELS = {"full": 0, "radial": cv2.CALIB_ZERO_TANGENT_DIST}
 
 
 class CalibrationError(ValueError):
@@ -194,6 +196,7 @@ def calibrate_intrinsics(
     max_edge_width: float = 4.0,
     max_relative_focal_sigma: float = 0.005,
     min_tilt_spread_deg: float = 10.0,
+    distortion: str = "full",
 ) -> IntrinsicsResult:
     """Zhang's calibration (cv2.calibrateCameraExtended) with view rejection.
 
@@ -202,10 +205,15 @@ def calibrate_intrinsics(
     `outlier_factor` times the median view, judged leave-one-out (worst first, one at a time).
     Raises `CalibrationError` with fewer than `min_views` usable views, or when the views do not
     fix the focal length (board normals all within `min_tilt_spread_deg`, or sigma_f/f above
-    `max_relative_focal_sigma`).
+    `max_relative_focal_sigma`). `distortion`: ``"full"`` fits all 5 coefficients (the default);
+    ``"radial"`` holds the tangential p1 = p2 = 0, which roughly halves the principal point's error
+    when the lens has no measurable tangential distortion (check `sigma` of p1, p2 in a full fit).
     """
     board = board or Chessboard()
     prior = prior or CameraModel()
+    if distortion not in DISTORTION_MODELS:
+        raise CalibrationError(f"distortion must be one of {', '.join(DISTORTION_MODELS)}, got {distortion!r}")
+    flags = DISTORTION_MODELS[distortion]
     images = list(images)
     if not images:
         raise CalibrationError("no chessboard images given")
@@ -221,14 +229,14 @@ def calibrate_intrinsics(
     _require_views(len(corners), min_views, len(images), rejected, "chessboard")
 
     object_points = board.object_points()
-    fit = _zhang(object_points, [corners[i] for i in sorted(corners)], (width, height))
+    fit = _zhang(object_points, [corners[i] for i in sorted(corners)], (width, height), flags)
     while len(corners) > min_views:
         # leave-one-out on the worst view: a bad view drags the joint fit towards itself, so judge
         # it by how well the model fitted WITHOUT it predicts it
         indices = sorted(corners)
         worst = indices[int(np.argmax(fit["per_view"]))]
         rest = [i for i in indices if i != worst]
-        refit = _zhang(object_points, [corners[i] for i in rest], (width, height))
+        refit = _zhang(object_points, [corners[i] for i in rest], (width, height), flags)
         predicted = _view_rms(object_points, corners[worst], refit["K"], refit["dist"])
         limit = max(max_view_rms, outlier_factor * float(np.median(refit["per_view"])))
         if predicted <= limit:
@@ -255,11 +263,12 @@ def calibrate_intrinsics(
                             sigma=sigma, image_count=len(images))
 
 
-def _zhang(object_points: np.ndarray, image_points: list[FloatArray], size: tuple[int, int]) -> dict[str, Any]:
+def _zhang(object_points: np.ndarray, image_points: list[FloatArray], size: tuple[int, int],
+           flags: int = 0) -> dict[str, Any]:
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     rms, k_matrix, dist, rvecs, _, std_intr, _, per_view = cv2.calibrateCameraExtended(
         [object_points] * len(image_points), [p.astype(np.float32).reshape(-1, 1, 2) for p in image_points],
-        size, None, None, flags=0, criteria=criteria)
+        size, None, None, flags=flags, criteria=criteria)
     std = np.asarray(std_intr, dtype=np.float64).ravel()
     names = ("fx", "fy", "cx", "cy", *DISTORTION_NAMES)
     sigma = {name: (float(std[i]) if i < std.size and math.isfinite(std[i]) else math.inf)

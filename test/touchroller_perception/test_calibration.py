@@ -301,3 +301,13 @@ def test_camera_info_fields():
     assert info["k"][0] == TRUE_CAMERA.fx and info["k"][5] == TRUE_CAMERA.cy
     assert info["p"][2] == TRUE_CAMERA.cx and info["p"][3] == 0.0
     assert info["d"] == list(TRUE_CAMERA.distortion) and info["distortion_model"] == "plumb_bob"
+
+
+def test_intrinsics_radial_model_holds_the_tangential_terms(chessboards):
+    camera = TRUE_CAMERA.replace(distortion=(-0.08, 0.03, 0.0, 0.0, 0.0))
+    images = chessboard_views(camera, 8, seed=4)
+    result = cal.calibrate_intrinsics(images, BOARD, distortion="radial")
+    assert result.camera.distortion[2] == 0.0 and result.camera.distortion[3] == 0.0
+    assert abs(result.camera.fx - camera.fx) < 3 * result.sigma["fx"] + 0.5
+    with pytest.raises(cal.CalibrationError, match="distortion must be one of"):
+        cal.calibrate_intrinsics(chessboards, BOARD, distortion="fisheye")

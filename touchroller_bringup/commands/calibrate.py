@@ -38,6 +38,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="parameters file whose cylinder and extrinsics values are kept (default: built-in)")
     intr.add_argument("--max-view-rms", type=float, default=1.0,
                       help="reject views whose reprojection RMS exceeds this (px) and 3x the median")
+    intr.add_argument("--distortion", choices=("full", "radial"), default="full",
+                      help="full: k1, k2, p1, p2, k3 (default); radial: tangential p1 = p2 = 0")
     intr.set_defaults(func=run_intrinsics)
 
     extr = steps.add_parser("extrinsics", help="theta and d from hemisphere-frame presses",
@@ -129,7 +131,8 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     images, _ = load_images(args.input, args.topic)
     try:
         board = cal.Chessboard(columns=columns, rows=rows, square=args.square)
-        result = cal.calibrate_intrinsics(images, board, prior=prior, max_view_rms=args.max_view_rms)
+        result = cal.calibrate_intrinsics(images, board, prior=prior, max_view_rms=args.max_view_rms,
+                                          distortion=args.distortion)
     except cal.CalibrationError as exc:
         raise UserError(f"calibrate intrinsics: {exc}") from None
     _write(args, result.camera, intrinsics=result)
