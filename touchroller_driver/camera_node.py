@@ -202,7 +202,12 @@ class CameraNode(Node):
                     else:
                         self.get_logger().info(f"source finished after {self.published} frames: {self.source.info}")
                 continue
-            self.publish_frame(frame.image, frame.stamp_ns)
+            try:
+                self.publish_frame(frame.image, frame.stamp_ns)
+            except Exception as exc:  # noqa: BLE001 - e.g. the context was shut down by Ctrl-C
+                if not self.context.ok():
+                    break
+                self._log_error(f"publishing failed: {type(exc).__name__}: {exc}")
 
     def _open_source(self) -> bool:
         self._restart.clear()
