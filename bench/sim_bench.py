@@ -15,7 +15,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -53,8 +52,16 @@ def _time_render(sensor: SimulatedSensor, states: list, repeats: int) -> np.ndar
     return per_frame.min(axis=0)   # the least-disturbed run of each frame (shared machine)
 
 
+def _loadavg() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "unknown"
+
+
 def run(quick: bool = False) -> dict:
     cv2.setNumThreads(1)
+    load_before = _loadavg()
     variant = "medium"
     repeats = 1 if quick else 3
     stride = 10 if quick else 1
@@ -90,6 +97,7 @@ def run(quick: bool = False) -> dict:
                     "opencv": cv2.__version__, "numpy": np.__version__,
                     "cv2_threads": cv2.getNumThreads()},
         "quick": quick,
+        "loadavg_before_after": [load_before, _loadavg()],
     }
 
 
@@ -106,7 +114,8 @@ def write(result: dict, command: str) -> Path:
         f"OpenCV {result['machine']['opencv']} pinned to {result['machine']['cv2_threads']} thread(s), "
         f"numpy {result['machine']['numpy']}, Python {result['machine']['python']}.  ",
         "Measured while the machine was shared with other engineers' jobs (per-frame minimum over "
-        "repeats is reported to reduce that noise; the lead re-runs this at the end).",
+        "repeats is reported to reduce that noise; the lead re-runs this at the end). "
+        f"Load average before/after: {result['loadavg_before_after'][0]} / {result['loadavg_before_after'][1]}.",
         "",
         f"Scene {result['scene']} ({result['image']}), the scene's own 10 s roll; each row renders every "
         f"frame of the roll with only the listed effects.",
@@ -142,11 +151,6 @@ def main() -> int:
     result = run(quick=args.quick)
     path = write(result, command)
     print(path.read_text())
-    try:
-        load = subprocess.run(["cat", "/proc/loadavg"], capture_output=True, text=True).stdout.strip()
-        print(f"load average while measuring: {load}")
-    except OSError:
-        pass
     return 0
 
 

@@ -235,3 +235,13 @@ def test_tactile_truth_is_what_the_contact_line_shows():
     expected = truth.tactile[k - 3:k + 4].astype(float)
     assert np.corrcoef(grey.ravel(), expected.ravel())[0, 1] > 0.9
     assert np.corrcoef(grey.ravel(), truth.tactile[k + 40:k + 47].astype(float).ravel())[0, 1] < 0.5
+
+
+def test_pixels_past_the_tube_ends_are_dark():
+    sensor = SimulatedSensor(load_scene("surface_mapping", **dict(SMALL_FLAT, **{"camera.cylinder.length": 0.04})),
+                             seed=0)
+    image = sensor.render(RollerState(travel=0.02, depth=5e-4))
+    pts, ok = sensor.camera.back_project(np.array([[5.0, 240.0], [320.0, 240.0]]))
+    assert not ok[0] and ok[1]
+    assert image[240, 5].max() == 0 and image[240, 320].min() > 50
+    assert not np.isnan(sensor.render_layers(RollerState(travel=0.02, depth=5e-4))["indentation"]).any()
