@@ -282,7 +282,7 @@ class Segment:
 
 @dataclass(frozen=True)
 class SweepPlan:
-    """Linear moves: to the start pose (touching), press in by `depth`, roll `length`, lift off."""
+    """Linear moves: above the start pose, press in by `depth`, roll `length`, lift off."""
 
     segments: tuple[Segment, ...]
     sweep_index: int  # which segment is the roll
@@ -291,10 +291,11 @@ class SweepPlan:
 
 def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: float, depth: float,
                direction: Sequence[float] = (1.0, 0.0, 0.0), approach_speed: float | None = None,
-               retract: bool = True) -> SweepPlan:
-    """The moves of one sweep. `start_pose` is where the roller just touches the surface (z up)."""
+               retract: bool = True, clearance: float = 0.0) -> SweepPlan:
+    """The moves of one sweep. `start_pose` is where the roller just touches the surface (z up); the
+    roller approaches it from `clearance` above and lifts back to that height at the end."""
     start = as_pose(start_pose)
-    for name, value in (("length", length), ("depth", depth)):
+    for name, value in (("length", length), ("depth", depth), ("clearance", clearance)):
         if not (math.isfinite(value) and value >= 0):
             raise ArmLimitError(f"sweep {name} must be a finite number >= 0, got {value}")
     heading = np.asarray(direction, dtype=np.float64).reshape(-1)
@@ -305,12 +306,13 @@ def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: flo
         raise ArmLimitError("sweep direction must have a horizontal component")
     heading /= np.linalg.norm(heading)
     slow = min(speed, approach_speed) if approach_speed is not None else speed
-    pressed = start - np.array([0.0, 0.0, depth, 0.0, 0.0, 0.0])
+    up = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    pressed = start - depth * up
     end = pressed + np.concatenate([length * heading, np.zeros(3)])
-    segments = [Segment("to_start", start, slow, accel), Segment("press", pressed, slow, accel),
+    segments = [Segment("to_start", start + clearance * up, slow, accel), Segment("press", pressed, slow, accel),
                 Segment("sweep", end, speed, accel)]
     if retract:
-        segments.append(Segment("lift", end + np.array([0.0, 0.0, depth, 0.0, 0.0, 0.0]), slow, accel))
+        segments.append(Segment("lift", end + (depth + clearance) * up, slow, accel))
     return SweepPlan(tuple(segments), sweep_index=2, length=float(length))
 
 

@@ -51,7 +51,7 @@ COMMAND_TIMEOUT_S = 5.0
 
 # Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
 SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
-                    "sweep.start_pose", "sweep.direction", "sweep.retract")
+                    "sweep.start_pose", "sweep.direction", "sweep.retract", "sweep.clearance")
 
 
 def trigger_service_type() -> tuple[type, bool]:
@@ -143,6 +143,8 @@ class SweepNode(Node):
                 "touches the surface at the start of the sweep")
         declare(self, "sweep.direction", [1.0, 0.0, 0.0], "Rolling direction in the base frame (horizontal)")
         declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
+        declare(self, "sweep.clearance", 0.002, "Height above the start pose the roller approaches from and "
+                "lifts back to, m", min=0.0, max=0.05)
         declare(self, "cylinder.radius", 0.05, "Radius r of the membrane surface, metres (simulated roll)",
                 min=0.001, max=1.0)
         declare(self, "sweep.publish_rate", 50.0, "Rate of TCP pose and progress messages, Hz", min=1.0, max=500.0,
@@ -170,14 +172,17 @@ class SweepNode(Node):
             list(settings["sweep.start_pose"]), length=float(settings["sweep.length"]),
             speed=float(settings["sweep.speed"]), accel=float(settings["sweep.accel"]),
             depth=float(settings["sweep.depth"]), direction=list(settings["sweep.direction"]),
-            approach_speed=float(settings["sweep.approach_speed"]), retract=bool(settings["sweep.retract"]))
+            approach_speed=float(settings["sweep.approach_speed"]), retract=bool(settings["sweep.retract"]),
+            clearance=float(settings["sweep.clearance"]))
         for segment in plan.segments:
             self.limits.check(segment.target, segment.speed, segment.accel)
         return plan
 
     def _make_arm(self) -> Arm:
         if self.get_parameter("use_sim").value:
-            return SimulatedArm(list(self.settings["sweep.start_pose"]), limits=self.limits,
+            touching = np.asarray(self.settings["sweep.start_pose"], dtype=np.float64)
+            hover = touching + [0.0, 0.0, float(self.settings["sweep.clearance"]), 0.0, 0.0, 0.0]
+            return SimulatedArm(hover, surface_z=float(touching[2]), limits=self.limits,
                                 rolling_direction=list(self.settings["sweep.direction"]),
                                 radius=float(self.get_parameter("cylinder.radius").value))
         from touchroller_driver.ur5 import UR5Arm

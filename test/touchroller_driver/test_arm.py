@@ -199,6 +199,16 @@ def run_sweep(arm: SimulatedArm, clock: FakeClock, plan, *, step: float = 0.05, 
     return sequencer, seen
 
 
+def test_plan_approaches_from_and_lifts_to_the_clearance():
+    plan = plan_sweep(START, length=0.1, speed=0.01, accel=0.1, depth=0.001, clearance=0.003)
+    hover, press, _, lift = (s.target for s in plan.segments)
+    assert hover[2] == pytest.approx(START[2] + 0.003)
+    assert press[2] == pytest.approx(START[2] - 0.001)
+    assert lift[2] == pytest.approx(START[2] + 0.003)
+    with pytest.raises(ArmLimitError):
+        plan_sweep(START, length=0.1, speed=0.01, accel=0.1, depth=0.001, clearance=-0.001)
+
+
 def test_plan_presses_rolls_and_lifts():
     plan = plan_sweep(START, length=0.11, speed=0.011, accel=0.1, depth=0.001, direction=(0, 2, 0))
     names = [s.name for s in plan.segments]
