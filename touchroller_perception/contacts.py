@@ -330,26 +330,27 @@ def _refine(diff: np.ndarray, region: np.ndarray, threshold: float, noise: float
     if npix == 0:
         return None
     ys, xs = np.nonzero(inside)
-    coords = np.stack([xs, ys], axis=1).astype(np.float64)     # (n, 2); float64 keeps matmul on BLAS
-    values = diff[ys, xs].astype(np.float64)                    # (n, C) signed changes
-    pos = np.maximum(values, 0.0)
-    neg = np.maximum(-values, 0.0)
-    mass_pos, mass_neg = pos.sum(axis=0), neg.sum(axis=0)       # (C,)
+    values = diff[ys, xs]                                       # (n, C) signed changes
+    channels = values.shape[1]
+    lobes = np.empty((values.shape[0], 2 * channels), np.float64)   # brightening | darkening
+    np.maximum(values, 0.0, out=lobes[:, :channels])
+    np.maximum(-values, 0.0, out=lobes[:, channels:])
+    mass = lobes.sum(axis=0)                                    # (2C,)
+    moments = np.array([xs, ys], dtype=np.float64) @ lobes     # (2, 2C); float64 keeps it on BLAS
+    mass_pos, mass_neg = mass[:channels], mass[channels:]
     weight = np.minimum(mass_pos, mass_neg)
     # a channel counts when both lobes carry real signal, not just noise leaking through the mask
     bipolar = (weight > 0.1 * np.maximum(mass_pos, mass_neg)) & (weight > 3.0 * noise * math.sqrt(npix))
     peak = float(score[ys, xs].max())
     if bipolar.any():
-        with np.errstate(invalid="ignore", divide="ignore"):
-            centre_pos = (pos.T @ coords) / mass_pos[:, None]     # (C, 2) lobe centroids
-            centre_neg = (neg.T @ coords) / mass_neg[:, None]
-        midpoints = 0.5 * (centre_pos + centre_neg)
-        w = np.where(bipolar, weight, 0.0)
-        u, v = (w @ np.where(bipolar[:, None], midpoints, 0.0)) / w.sum()
+        w = weight[bipolar]
+        centre_pos = moments[:, :channels][:, bipolar] / mass_pos[bipolar]      # (2, k) lobe centroids
+        centre_neg = moments[:, channels:][:, bipolar] / mass_neg[bipolar]
+        u, v = 0.5 * (centre_pos + centre_neg) @ w / w.sum()
         return float(u), float(v), npix, peak
     magnitude = score[ys, xs].astype(np.float64)
-    u, v = magnitude @ coords / magnitude.sum()
-    return float(u), float(v), npix, peak
+    total = magnitude.sum()
+    return float(magnitude @ xs / total), float(magnitude @ ys / total), npix, peak
 
 
 def detect_paper(image: np.ndarray, reference: NoContactReference | None,
