@@ -98,6 +98,13 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
     bad.step = 7
     send(executor, spin_until, node, image_pub, bad)
     assert node.malformed == 1
+    odd = array_to_image(frame, stamp_ns + 2)
+    odd.encoding = "32FC1"
+    send(executor, spin_until, node, image_pub, odd)
+    short = array_to_image(frame[:10], stamp_ns + 2)
+    short.height = CAMERA.height                     # claims more rows than its data holds
+    send(executor, spin_until, node, image_pub, short)
+    assert node.malformed == 3
     send(executor, spin_until, node, image_pub, array_to_image(frame, stamp_ns + 3))
     assert spin_until(executor, lambda: len(received) == 3, timeout=5.0)
 
@@ -108,8 +115,8 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
 
     status = node._diagnostic_status()
     assert status.level == OK
-    assert status.values["frames_malformed"] == 1 and status.values["contacts_total"] == 3
-    assert status.values["frames_received"] == 3 + 4
+    assert status.values["frames_malformed"] == 3 and status.values["contacts_total"] == 3
+    assert status.values["frames_received"] == 3 + 6
     arrays: list = []
     helper = [n for n in executor.get_nodes() if n is not node][0]
     helper.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
