@@ -72,7 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(run_child(args.processes[0], args.transport, seconds, args.delay_ms)), flush=True)
         return 0
     command = "python bench/dds_slow_consumer.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    bound_ms = 2 * args.delay_ms + 1000 / 60 + 15  # one frame in processing, one waiting, a frame period, slack
+    # Ideal: one frame in processing + one waiting + a frame period (~117 ms at 50 ms); allow 2x that for a
+    # loaded machine. Queueing instead grows without bound (~0.67 s of age per second of run).
+    bound_ms = 4 * args.delay_ms + 1000 / 60
     lines = [
         "# Slow consumer: stale frames are skipped, not queued",
         "",
@@ -82,8 +84,9 @@ def main(argv: list[str] | None = None) -> int:
         f"Camera at 60 Hz for {seconds:g} s; perception image callback slowed by {args.delay_ms:g} ms; "
         f"transport {args.transport}.",
         "",
-        f"Pass: latency max <= {bound_ms:.0f} ms (2 x delay + a frame period + 15 ms) and no growth from the "
-        "first to the last second. Queueing would instead add ~0.67 s of age per second of run.",
+        f"Pass: latency max <= {bound_ms:.0f} ms (4 x delay + a frame period; ideal is 2 x delay + a period) and "
+        "the last second's median no more than one delay above the first second's. Queueing would instead add "
+        "~0.67 s of age per second of run.",
         "",
         "| processes | frames sent | frames with a contact | p50 (ms) | p99 (ms) | max (ms) | first-second median | "
         "last-second median | result |",
