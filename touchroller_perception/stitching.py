@@ -68,20 +68,26 @@ class StitchStep:
 
 
 class _Canvas:
-    """A growable weighted-average accumulator: rows x cols float32 sums and weights."""
+    """A growable weighted-average accumulator for the map.
 
-    def __init__(self, cols: int, rows: int = 1024) -> None:
-        self.sum = np.zeros((rows, cols), np.float32)
-        self.weight = np.zeros((rows, cols), np.float32)
+    Layers of rows x cols float32 sums (layer 0: weighted bands; layer 1, with a background model:
+    the weighted flat field at the same places) and one weight per row. Bands are splatted at
+    subpixel positions by bilinear splatting (the adjoint of bilinear interpolation: no resampling
+    pass, no blur beyond the interpolation itself). Columns are reported where every band reached.
+    """
+
+    def __init__(self, cols: int, layers: int = 1, rows: int = 2048) -> None:
+        self.layers = [np.zeros((rows, cols), np.float32) for _ in range(layers)]
+        self.weight = np.zeros(rows, np.float32)
         self.origin_row = rows // 2  # canvas row of map row 0
-        self.origin_col = 0
+        self.origin_col = 16  # room for a little lateral wander before growing
         self.row_min = math.inf
         self.row_max = -math.inf
-        self.col_min = math.inf
-        self.col_max = -math.inf
+        self.col_lo = -math.inf  # columns covered by every band so far: [col_lo, col_hi)
+        self.col_hi = math.inf
 
     def _ensure(self, top: int, left: int, height: int, width: int) -> None:
-        rows, cols = self.sum.shape
+        rows, cols = self.layers[0].shape
         grow_top = max(0, -(top + self.origin_row))
         grow_bottom = max(0, top + self.origin_row + height - rows)
         grow_left = max(0, -(left + self.origin_col))
@@ -89,98 +95,85 @@ class _Canvas:
         if not (grow_top or grow_bottom or grow_left or grow_right):
             return
         # Grow geometrically so that a long scan reallocates O(log n) times.
-        pad_t = max(grow_top, rows // 2) if grow_top else 0
-        pad_b = max(grow_bottom, rows // 2) if grow_bottom else 0
+        pad_t = max(grow_top, rows) if grow_top else 0
+        pad_b = max(grow_bottom, rows) if grow_bottom else 0
         pad_l = max(grow_left, 32) if grow_left else 0
         pad_r = max(grow_right, 32) if grow_right else 0
-        pads = ((pad_t, pad_b), (pad_l, pad_r))
-        self.sum = np.pad(self.sum, pads)
-        self.weight = np.pad(self.weight, pads)
+        self.layers = [np.pad(layer, ((pad_t, pad_b), (pad_l, pad_r))) for layer in self.layers]
+        self.weight = np.pad(self.weight, (pad_t, pad_b))
         self.origin_row += pad_t
         self.origin_col += pad_l
 
-    def add(self, patch: np.ndarray, weights: np.ndarray, top: float, left: float, *, subpixel: bool) -> None:
-        """Splat `patch` (weighted by `weights`) with its top-left corner at map (top, left)."""
-        h, w = patch.shape
+    def add(self, patches: Sequence[np.ndarray | None], row_weights: np.ndarray, top: float, left: float,
+            *, subpixel: bool) -> None:
+        """Add weighted patches (already multiplied by their row weights) with the top-left corner at
+        map (top, left); `None` leaves a layer alone."""
+        h, w = next(p for p in patches if p is not None).shape
         if subpixel:
             itop, ileft = math.floor(top), math.floor(left)
-            frac_r, frac_c = top - itop, left - ileft
-            shift = np.float32([[1, 0, frac_c], [0, 1, frac_r]])
-            size = (w + 1, h + 1)
-            weighted = cv2.warpAffine(patch * weights, shift, size, flags=cv2.INTER_LINEAR,
-                                      borderMode=cv2.BORDER_CONSTANT)
-            wts = cv2.warpAffine(weights, shift, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            h, w = h + 1, w + 1
+            fr, fc = top - itop, left - ileft
         else:
-            itop, ileft = round(top), round(left)
-            weighted, wts = patch * weights, weights
-        self._ensure(itop, ileft, h, w)
+            itop, ileft, fr, fc = round(top), round(left), 0.0, 0.0
+        self._ensure(itop, ileft, h + 1, w + 1)
         r0, c0 = itop + self.origin_row, ileft + self.origin_col
-        self.sum[r0:r0 + h, c0:c0 + w] += weighted
-        self.weight[r0:r0 + h, c0:c0 + w] += wts
-        self._extend(itop, ileft, h, w)
-
-    def sample(self, top: float, left: float, height: int, width: int,
-               min_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-        """The map's average at map (top, left) + (height, width), subpixel; and where it is known."""
-        itop, ileft = math.floor(top), math.floor(left)
-        r0, c0 = itop + self.origin_row, ileft + self.origin_col
-        rows, cols = self.sum.shape
-        if r0 < 0 or c0 < 0 or r0 + height + 1 > rows or c0 + width + 1 > cols:
-            self._ensure(itop, ileft, height + 1, width + 1)
-            r0, c0 = itop + self.origin_row, ileft + self.origin_col
-        s = self.sum[r0:r0 + height + 1, c0:c0 + width + 1]
-        w = self.weight[r0:r0 + height + 1, c0:c0 + width + 1]
-        shift = np.float32([[1, 0, -(left - ileft)], [0, 1, -(top - itop)]])
-        s = cv2.warpAffine(s, shift, (width, height), flags=cv2.INTER_LINEAR)
-        w = cv2.warpAffine(w, shift, (width, height), flags=cv2.INTER_LINEAR)
-        known = w > min_weight
-        return np.divide(s, w, out=np.zeros_like(s), where=known), known
+        terms = [(0, 0, (1 - fr) * (1 - fc)), (1, 0, fr * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 1, fr * fc)]
+        for layer, patch in zip(self.layers, patches, strict=True):
+            if patch is None:
+                continue
+            for dr, dc, share in terms:
+                if share > 1e-6:
+                    view = layer[r0 + dr:r0 + dr + h, c0 + dc:c0 + dc + w]
+                    cv2.scaleAdd(patch, share, view, dst=view)
+        self.weight[r0:r0 + h] += (1 - fr) * row_weights
+        if fr > 1e-6:
+            self.weight[r0 + 1:r0 + 1 + h] += fr * row_weights
+        self._extend(itop, h + (fr > 1e-6), ileft + (fc > 1e-6), ileft + w)
 
     def paste(self, patch: np.ndarray, top: int, left: int) -> None:
-        """Overwrite (the paper's stitching: the newest patch wins)."""
+        """Overwrite layer 0 (the paper's stitching: the newest patch wins)."""
         h, w = patch.shape
         self._ensure(top, left, h, w)
         r0, c0 = top + self.origin_row, left + self.origin_col
-        self.sum[r0:r0 + h, c0:c0 + w] = patch
-        self.weight[r0:r0 + h, c0:c0 + w] = 1.0
-        self._extend(top, left, h, w)
+        self.layers[0][r0:r0 + h, c0:c0 + w] = patch
+        self.weight[r0:r0 + h] = 1.0
+        self._extend(top, h, left, left + w)
 
-    def _extend(self, top: int, left: int, h: int, w: int) -> None:
+    def _extend(self, top: int, h: int, col_lo: int, col_hi: int) -> None:
         self.row_min = min(self.row_min, top)
         self.row_max = max(self.row_max, top + h)
-        self.col_min = min(self.col_min, left)
-        self.col_max = max(self.col_max, left + w)
+        self.col_lo = max(self.col_lo, col_lo)
+        self.col_hi = min(self.col_hi, col_hi)
 
-    def _window(self) -> tuple[slice, slice]:
+    def clear_layer(self, index: int) -> None:
+        self.layers[index][:] = 0.0
+
+    def _window(self) -> tuple[slice, slice] | None:
+        if self.row_min == math.inf or self.col_hi <= self.col_lo:
+            return None
         r0, r1 = int(self.row_min) + self.origin_row, int(self.row_max) + self.origin_row
-        c0, c1 = int(self.col_min) + self.origin_col, int(self.col_max) + self.origin_col
+        c0, c1 = int(self.col_lo) + self.origin_col, int(self.col_hi) + self.origin_col
         return slice(r0, r1), slice(c0, c1)
 
     def coverage(self, min_weight: float) -> np.ndarray:
-        if self.row_min == math.inf:
-            return np.zeros((0, self.sum.shape[1]), bool)
-        return self.weight[self._window()] > min_weight
-
-    def ratio_image(self, other: _Canvas, scale: float, min_weight: float = 1e-3) -> np.ndarray:
-        """scale * self.sum / other.sum as uint8 over this canvas's window (same placements)."""
-        if self.row_min == math.inf:
-            return np.zeros((0, self.sum.shape[1]), np.uint8)
         window = self._window()
-        dr, dc = other.origin_row - self.origin_row, other.origin_col - self.origin_col
-        rows, cols = window
-        s = self.sum[window]
-        d = other.sum[rows.start + dr:rows.stop + dr, cols.start + dc:cols.stop + dc]
-        known = (self.weight[window] > min_weight) & (d > 1e-6)
-        out = np.divide(s * np.float32(scale), d, out=np.zeros_like(s), where=known)
-        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+        if window is None:
+            return np.zeros((0, 0), bool)
+        rows = self.weight[window[0]] > min_weight
+        return np.repeat(rows[:, None], window[1].stop - window[1].start, axis=1)
 
-    def image(self, min_weight: float = 1e-3) -> np.ndarray:
-        if self.row_min == math.inf:
-            return np.zeros((0, self.sum.shape[1]), np.uint8)
+    def image(self, scale: float | None = None, min_weight: float = 1e-3) -> np.ndarray:
+        """uint8 map: layer 0 / row weight, or `scale` * layer 0 / layer 1 (flat-field corrected)."""
         window = self._window()
-        s, w = self.sum[window], self.weight[window]
-        out = np.divide(s, w, out=np.zeros_like(s), where=w > min_weight)
+        if window is None:
+            return np.zeros((0, 0), np.uint8)
+        s = self.layers[0][window]
+        if scale is None:
+            w = self.weight[window[0]][:, None]
+            out = np.divide(s, w, out=np.zeros_like(s), where=w > min_weight)
+        else:
+            d = self.layers[1][window]
+            known = (self.weight[window[0]][:, None] > min_weight) & (d > 1e-6)
+            out = np.divide(s * np.float32(scale), d, out=np.zeros_like(s), where=known)
         return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
@@ -265,8 +258,8 @@ class _BandSampler:
         return grey.astype(np.float32)
 
 
-def _highpass(image: np.ndarray, size: int) -> np.ndarray:
-    return image - cv2.blur(image, (size, size), borderType=cv2.BORDER_REFLECT)
+def _highpass(image: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    return image - cv2.blur(image, (cols, rows), borderType=cv2.BORDER_REFLECT)
 
 
 def _taper(n: int) -> np.ndarray:
@@ -375,8 +368,12 @@ class Stitcher:
         self._flat_sum: np.ndarray | None = None  # live flat field: running sum and count
         self._flat_count = 0
         self._flat_field: np.ndarray | None = None
-        self._shading: _Canvas | None = None  # sum of w * flat field, aligned with the map
         self._level = 1.0  # the flat field's mean grey level
+        self._gain: np.ndarray | None = None  # level / flat field, and the field it was made from
+        self._gain_of: np.ndarray | None = None
+        self._field_level = 1.0
+        self._weighted_field: np.ndarray | None = None  # weights x the flat field in use (map layer 1)
+        self._weighted_field_of: np.ndarray | None = None  # ... and the field it was made from
         self._placements: list[tuple[float, float]] = []  # (top, left) of every band in the map
         self._travel = 0.0
         self._typical_energy: float | None = None  # mean |feature| while tracking confidently
@@ -439,10 +436,8 @@ class Stitcher:
         """The map so far as uint8 grey at camera pixel scale, or resampled to `mm_per_px` (needs a camera)."""
         if self._canvas is None:
             return np.zeros((0, 0), np.uint8)
-        if self._shading is not None and self.method == "default":
-            image = self._canvas.ratio_image(self._shading, self._level)
-        else:
-            image = self._canvas.image()
+        shaded = self.method == "default" and self.background
+        image = self._canvas.image(self._level if shaded else None)
         if mm_per_px is None:
             return image
         if not (mm_per_px > 0 and math.isfinite(mm_per_px)):
@@ -476,8 +471,9 @@ class Stitcher:
                              f"{(rows, shape[1])}")
         self._shape = shape
         self._sampler = sampler
-        self._canvas = _Canvas(shape[1])
-        self._weights = np.repeat(_taper(rows)[:, None], shape[1], axis=1)
+        self._canvas = _Canvas(shape[1], layers=2 if self.background and self.method == "default" else 1)
+        self._weights = _taper(rows)
+        self._column_weights = self._weights[:, None]
 
     # -- the paper's method ------------------------------------------------------------------------
     def _push_paper(self, band: np.ndarray) -> StitchStep:
@@ -514,7 +510,10 @@ class Stitcher:
             if self._flat_field is None or self._flat_count % 10 == 0:  # refreshed every few frames (cost)
                 self._flat_field = flat_field_from_mean(self._flat_sum / self._flat_count)
             field = self._flat_field
-        return band * (float(field.mean()) / np.maximum(field, 1.0)), field
+        if self._gain_of is not field:  # the field changes every few frames at most
+            self._field_level = float(field.mean())
+            self._gain, self._gain_of = self._field_level / np.maximum(field, 1.0), field
+        return band * self._gain, field
 
     def _current_flat_field(self) -> np.ndarray | None:
         if self._fixed_flat_field is not None:
@@ -528,12 +527,13 @@ class Stitcher:
         sum(w * band) / sum(w * field) at each pixel, so early frames, stitched before the field was
         known, are corrected exactly. Costs one accumulation per frame; the live map skips it."""
         field = self._current_flat_field()
-        if self.method != "default" or not self.background or field is None or self._shading is None:
+        if self.method != "default" or not self.background or field is None or self._canvas is None:
             return
-        shading = _Canvas(self._shading.sum.shape[1])
+        weighted = field * self._column_weights
+        self._canvas.clear_layer(1)
         for top, left in self._placements:
-            shading.add(field, self._weights, top, left, subpixel=self.subpixel)
-        self._shading, self._level = shading, float(field.mean())
+            self._canvas.add((None, weighted), np.zeros_like(self._weights), top, left, subpixel=self.subpixel)
+        self._level = float(field.mean())
 
     def _bin(self, image: np.ndarray) -> np.ndarray:
         """Columns averaged in groups of `column_bin` (rows untouched)."""
@@ -557,9 +557,12 @@ class Stitcher:
     def _push_default(self, band: np.ndarray, dt: int | None, prior_px: float | None) -> StitchStep:
         # Lateral shifts are read from the unflattened band: the flat field keeps some texture, which
         # would hold a column profile in place; high-pass already removes the smooth shading.
-        full = _highpass(band, self.highpass)
+        # Registration features: the flattened band, columns binned, high-passed (residual shading off).
+        # Lateral shifts are read from the raw band: the flat field keeps a little texture, which would
+        # hold a column profile in place, and its smooth shading is high-passed away in 1-D.
+        full = band
         flat, field = self._flatten(band)
-        feats = self._bin(full if field is None else _highpass(flat, self.highpass))
+        feats = _highpass(self._bin(flat), self.highpass, max(1, self.highpass // self.column_bin) | 1)
         energy = float(cv2.norm(feats, cv2.NORM_L1)) / feats.size
         if self._key is None:
             self._key, self._key_full = feats, full
@@ -572,9 +575,9 @@ class Stitcher:
         rel, confidence = self._register(feats, self._key, pred_rel, self._position - key_row)
         lat = self._lateral_pos - key_col
         if self.lateral and rel is not None:
-            lat = _lateral_shift(full, self._key_full, rel, lat)
+            lat = _lateral_shift(full, self._key_full, rel, lat, self.highpass)
         if self._typical_energy is not None:  # far less texture than usual: a textureless stretch
-            confidence *= float(np.clip(energy / (_TEXTURELESS_FRACTION * self._typical_energy), 0.0, 1.0))
+            confidence *= min(1.0, energy / (_TEXTURELESS_FRACTION * self._typical_energy))
         confident = rel is not None and confidence >= self.min_confidence
         if confident and prior_px is not None and self.motion_prior and abs(prior_px) >= 1.0:
             # The arm says we roll but the image says we stand still: the image sees only what does
@@ -609,15 +612,19 @@ class Stitcher:
         """Accumulate the raw band; with a background model also the flat field at the same place, so
         the map is sum(w * band) / sum(w * field): the static gain divides out pixel by pixel."""
         top, left = self._sampler.row0 - self._position, -self._lateral_pos
-        self._canvas.add(band, self._weights, top, left, subpixel=self.subpixel)
+        weighted_band = band * self._column_weights
         if not self.background:
+            self._canvas.add((weighted_band,), self._weights, top, left, subpixel=self.subpixel)
             return
-        if self._shading is None:
-            self._shading = _Canvas(band.shape[1])
         if field is None:  # not known yet: a flat guess, corrected by finalise()
             field = np.full_like(band, float(band.mean()))
-        self._shading.add(field, self._weights, top, left, subpixel=self.subpixel)
-        self._level = float(field.mean())
+            weighted_field = field * self._column_weights
+        else:
+            if self._weighted_field_of is not field:
+                self._weighted_field, self._weighted_field_of = field * self._column_weights, field
+            weighted_field = self._weighted_field
+        self._canvas.add((weighted_band, weighted_field), self._weights, top, left, subpixel=self.subpixel)
+        self._level = self._field_level if self._gain_of is field else float(field.mean())
         self._placements.append((top, left))
 
     def _register(self, feats: np.ndarray, key: np.ndarray, predicted: float | None,
@@ -703,7 +710,7 @@ def _confidence(costs: np.ndarray, best: int) -> float:
     ref = float(np.median(away))
     if ref <= 1e-9:
         return 0.0
-    return float(np.clip(1.0 - c / ref, 0.0, 1.0))
+    return min(1.0, max(0.0, 1.0 - float(c) / ref))
 
 
 def _parabola(costs: np.ndarray, best: int) -> float:
@@ -715,7 +722,7 @@ def _parabola(costs: np.ndarray, best: int) -> float:
     den = a - 2 * b + c
     if den <= 1e-12:
         return 0.0
-    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+    return min(0.5, max(-0.5, 0.5 * float(a - c) / float(den)))
 
 
 def _lucas_kanade_rows(cur: np.ndarray, key: np.ndarray, rel: float, iterations: int = 2) -> float:
@@ -737,14 +744,20 @@ def _lucas_kanade_rows(cur: np.ndarray, key: np.ndarray, rel: float, iterations:
         if den <= 1e-9:
             break
         # cur = key(i - rel - d) ~ warped(i) - d * gy  =>  d = -sum(gy r) / sum(gy^2)
-        step = float(np.clip(-np.vdot(gy, resid) / den, -1.0, 1.0))
+        step = min(1.0, max(-1.0, -float(np.vdot(gy, resid)) / den))
         rel += step
         if abs(step) < 1e-3:
             break
     return rel
 
 
-def _lateral_shift(cur: np.ndarray, key: np.ndarray, rel: float, guess: float, iterations: int = 3) -> float:
+def _highpass_1d(profile: np.ndarray, size: int) -> np.ndarray:
+    kernel = np.full(size, 1.0 / size)
+    return profile - np.convolve(np.pad(profile, size // 2, mode="reflect"), kernel, mode="valid")
+
+
+def _lateral_shift(cur: np.ndarray, key: np.ndarray, rel: float, guess: float, highpass: int,
+                   iterations: int = 3) -> float:
     """Column shift of cur relative to key, from column profiles over the overlapping rows.
 
     Averaging the rows keeps what runs along the roll (yarns, ridges), which is what shows a sideways
@@ -755,8 +768,8 @@ def _lateral_shift(cur: np.ndarray, key: np.ndarray, rel: float, guess: float, i
     a0, a1 = max(0, d), min(h, h + d)
     if a1 - a0 < 4:
         return guess
-    p_cur = cur[a0:a1].mean(axis=0, dtype=np.float64)
-    p_key = key[a0 - d:a1 - d].mean(axis=0, dtype=np.float64)
+    p_cur = _highpass_1d(cur[a0:a1].mean(axis=0, dtype=np.float64), highpass)
+    p_key = _highpass_1d(key[a0 - d:a1 - d].mean(axis=0, dtype=np.float64), highpass)
     cols = np.arange(w, dtype=np.float64)
     lat = guess
     margin = 8
@@ -769,7 +782,7 @@ def _lateral_shift(cur: np.ndarray, key: np.ndarray, rel: float, guess: float, i
         den = float(g[sl] @ g[sl])
         if den <= 1e-9:
             return guess
-        step = float(np.clip(-(g[sl] @ (p_cur[sl] - warped[sl])) / den, -1.0, 1.0))
+        step = min(1.0, max(-1.0, -float(g[sl] @ (p_cur[sl] - warped[sl])) / den))
         lat += step
         if abs(step) < 1e-3:
             break
