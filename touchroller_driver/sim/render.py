@@ -120,6 +120,7 @@ class SimulatedSensor:
         self._relief_max = self._relief.max_height
         self._thickness_variation = float(s.get("thickness_variation", 0.0))
         self._thickness_phase = self._rng_thickness.uniform(0.0, 2 * math.pi, size=2)
+        self._mpp_contact: tuple[float, float] | None = None
         self._build_maps()
         self._build_lights(s)
         self._build_static()
@@ -221,9 +222,11 @@ class SimulatedSensor:
 
     def metres_per_px_at_contact(self) -> tuple[float, float]:
         """(along u = axis, along v = rolling direction) metres per pixel at the contact line."""
-        row = int(np.clip(round(self.contact_row()), 0, self.camera.height - 1))
-        col = int(np.clip(round(self.camera.cx), 0, self.camera.width - 1))
-        return float(self._mpp_u[row, col]), float(self._mpp_v[row, col])
+        if self._mpp_contact is None:
+            row = int(np.clip(round(self.contact_row()), 0, self.camera.height - 1))
+            col = int(np.clip(round(self.camera.cx), 0, self.camera.width - 1))
+            self._mpp_contact = (float(self._mpp_u[row, col]), float(self._mpp_v[row, col]))
+        return self._mpp_contact
 
     def surface_map_truth(self, travel_start: float | None = None, travel_end: float | None = None,
                           x_along: float | None = None, lowpassed: bool = True) -> TruthMap:

@@ -177,7 +177,11 @@ def _resolve(name_or_path: str | Path) -> Path:
 
 def _with_defaults(data: dict[str, Any]) -> dict[str, Any]:
     camera = _default_camera()
-    camera.update(_flatten_camera(data.get("camera") or {}))
+    given = _flatten_camera(data.get("camera") or {})
+    for block in ("extrinsics", "cylinder"):     # `--set extrinsics.theta=...` lands at the top level
+        if isinstance(data.get(block), Mapping):
+            given.update({f"{block}.{k}": v for k, v in data.pop(block).items()})
+    camera.update(_camera_names(given))
     data["camera"] = camera
     sensor = dict(_DEFAULT_SENSOR)
     sensor.update(data.get("sensor") or {})
@@ -201,6 +205,20 @@ def _flatten_camera(camera: Mapping[str, Any]) -> dict[str, Any]:
         else:
             flat[key] = value
     return flat
+
+
+def _camera_names(given: Mapping[str, Any]) -> dict[str, Any]:
+    """DESIGN.md parameter names for a camera block; bare field names (fx, theta, ...) are accepted."""
+    from touchroller_perception.geometry import PARAMETER_NAMES
+
+    by_field = {name.split(".")[-1]: name for name in PARAMETER_NAMES}
+    out = {}
+    for key, value in given.items():
+        name = key if key in PARAMETER_NAMES else by_field.get(key) if "." not in key else None
+        if name is None:
+            raise ValueError(f"unknown camera parameter {key!r} (expected one of {', '.join(PARAMETER_NAMES)})")
+        out[name] = value
+    return out
 
 
 def validate(scene: Scene) -> None:

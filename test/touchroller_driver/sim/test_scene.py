@@ -30,3 +30,15 @@ def test_bad_scenes_are_clear_errors(tmp_path):
     bad.write_text("name: [unclosed\n")
     with pytest.raises(ValueError, match="not valid YAML"):
         load_scene(bad)
+
+
+def test_camera_overrides_by_any_natural_name():
+    assert load_scene("surface_mapping", **{"camera.fx": 400}).camera.fx == 400
+    assert load_scene("surface_mapping", **{"camera.camera.fy": 410}).camera.fy == 410
+    assert load_scene("surface_mapping", **{"extrinsics.theta": 0.1}).camera.theta == 0.1
+    assert load_scene("surface_mapping", **{"camera.extrinsics.d": 0.001}).camera.d == 0.001
+    assert load_scene("surface_mapping", **{"cylinder.length": 0.04}).camera.length == 0.04
+    with pytest.raises(ValueError, match="unknown camera parameter"):
+        load_scene("surface_mapping", **{"camera.fz": 1.0})
+    with pytest.raises(ValueError, match="outside the tube"):
+        load_scene("surface_mapping", **{"extrinsics.d": 0.2})
