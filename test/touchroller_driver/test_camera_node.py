@@ -209,3 +209,22 @@ def test_image_publisher_is_reliable_and_qos_can_be_overridden(ros_context, spin
         listener.destroy_node()
     finally:
         camera.destroy_node()
+
+
+def test_sim_source_by_parameters_publishes_rendered_frames(ros_context, spin_until):
+    pytest.importorskip("touchroller_driver.sim")
+    listener, camera, executor = make_graph(
+        ros_context, parameter_overrides=[Parameter("source", value="sim"),
+                                          Parameter("scene", value="surface_mapping"),
+                                          Parameter("rate", value=0.0)])
+    try:
+        wait_for_subscription(camera, spin_until, executor)
+        camera.start()
+        assert spin_until(executor, lambda: len(listener.images) >= 2, timeout=30)
+        msg = listener.images[0]
+        assert (msg.encoding, msg.height, msg.width) == ("bgr8", 480, 640)
+        assert image_to_array(msg).std() > 0
+        assert "sim" in camera.source.info
+    finally:
+        executor.shutdown()
+        camera.destroy_node()
