@@ -132,12 +132,19 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
                 nodes: list[Any]) -> tuple[Any, Any, Any]:
     from rclpy.exceptions import ParameterException
 
+    overrides = dict(options.overrides)
+
     def create(key: str, **extra: Any) -> Any:
         spec = graph.node(key)
-        try:
-            node = classes[key](context=context, **extra, **spec.node_kwargs(options.overrides))
-        except ParameterException as exc:
-            raise UserError(f"{spec.name}: {exc}") from None
+        while True:
+            try:
+                node = classes[key](context=context, **extra, **spec.node_kwargs(overrides))
+                break
+            except (ParameterException, ValueError) as exc:  # bad parameter types or values
+                name = _integer_for_double(exc, overrides)
+                if name is None:
+                    raise UserError(f"cannot start node {spec.name}: {' '.join(str(exc).split())}") from None
+                overrides[name] = float(overrides[name])  # `speed:=1` means 1.0, as ros2 param set would not
         nodes.append(node)
         return node
 
@@ -161,6 +168,17 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
     perception = create("perception")
     _check_overrides(options.overrides, nodes)
     return sweep, camera, perception
+
+
+def _integer_for_double(exc: Exception, overrides: Mapping[str, Any]) -> str | None:
+    """The override that was an integer where the node declared a double, if that is what failed."""
+    text = str(exc)
+    if "of type 'INTEGER', expecting type 'DOUBLE'" not in text:
+        return None
+    for name, value in overrides.items():
+        if f"parameter '{name}'" in text and isinstance(value, int) and not isinstance(value, bool):
+            return name
+    return None
 
 
 def _check_overrides(overrides: Mapping[str, Any], nodes: Sequence[Any]) -> None:

@@ -40,6 +40,7 @@ from touchroller_driver.arm import (
     SweepPhase,
     SweepSequencer,
     SweepStatus,
+    as_pose,
     plan_sweep,
 )
 
@@ -180,7 +181,7 @@ class SweepNode(Node):
 
     def _make_arm(self) -> Arm:
         if self.get_parameter("use_sim").value:
-            touching = np.asarray(self.settings["sweep.start_pose"], dtype=np.float64)
+            touching = as_pose(self.settings["sweep.start_pose"])
             hover = touching + [0.0, 0.0, float(self.settings["sweep.clearance"]), 0.0, 0.0, 0.0]
             return SimulatedArm(hover, surface_z=float(touching[2]), limits=self.limits,
                                 rolling_direction=list(self.settings["sweep.direction"]),
@@ -236,7 +237,7 @@ class SweepNode(Node):
     def _run_worker(self) -> None:
         self._connect()
         period = 1.0 / float(self.get_parameter("sweep.publish_rate").value)
-        while not self._shutdown.is_set():
+        while not self._shutdown.is_set() and self.context.ok():  # Ctrl-C shuts the context down first
             try:
                 command = self._commands.get(timeout=period)
             except queue.Empty:
@@ -299,8 +300,12 @@ class SweepNode(Node):
         q = rotation_vector_to_quaternion(pose[3:])
         o = message.pose.orientation
         o.x, o.y, o.z, o.w = q
-        self._pose_pub.publish(message)
-        self._progress_pub.publish(Float32(data=float(progress)))
+        try:
+            self._pose_pub.publish(message)
+            self._progress_pub.publish(Float32(data=float(progress)))
+        except Exception:  # noqa: BLE001 - the context went down between the check and the publish
+            if self.context.ok():
+                raise
 
     def _release_arm(self) -> None:
         try:
@@ -339,9 +344,12 @@ class SweepNode(Node):
         return Status(level, status.message or status.phase.value, values)
 
     def destroy_node(self) -> None:
-        self._shutdown.set()
-        if self._worker.is_alive():
-            self._worker.join(timeout=COMMAND_TIMEOUT_S)
+        # Also called by the context's cleanup on a node whose __init__ failed half-way.
+        if hasattr(self, "_shutdown"):
+            self._shutdown.set()
+        worker = getattr(self, "_worker", None)
+        if worker is not None and worker.is_alive():
+            worker.join(timeout=COMMAND_TIMEOUT_S)
         super().destroy_node()
 
 

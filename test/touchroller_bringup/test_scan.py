@@ -125,3 +125,18 @@ def test_default_output_folder_is_timestamped(monkeypatch, tmp_path):
     assert main(["scan", "--quiet"]) == 2
     out = Path(seen["out"])
     assert out.parent == Path("scan_output") and len(out.name) == len("20260101-120000")
+
+
+@pytest.mark.ros
+def test_bad_parameter_value_names_the_node(isolated_ros, tmp_path, capsys):
+    assert main(["scan", "sweep.start_pose:=[0.4, 0, 0.2]", "--quiet", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("touchroller: error: cannot start node touchroller_sweep") and "6 values" in err
+
+
+@pytest.mark.ros
+def test_an_integer_for_a_double_parameter_is_taken_as_a_double(isolated_ros, tmp_path, capsys):
+    # sweep.speed:=1 reaches the node as 1.0 (and is then refused by the arm limit, before any motion)
+    assert main(["scan", "sweep.speed:=1", "--quiet", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "speed 1.0 m/s outside" in err
