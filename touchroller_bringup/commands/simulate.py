@@ -69,7 +69,13 @@ def run(args: argparse.Namespace) -> int:
     dropped = [t for t in all_times if round(t, 9) not in kept]
     extra = {}
     if "comparison" in scene.data:
+        import cv2
+
+        from touchroller_driver.sim.flat_sensor import flat_press_mosaic
+
         extra["comparison"] = compare(scene.data["comparison"], scene.motion)
+        cv2.imwrite(str(args.out / "flat_sensor_presses.png"), flat_press_mosaic(sensor, scene.data["comparison"]))
+        extra["comparison"]["presses_image"] = "flat_sensor_presses.png"
     write_ground_truth(args.out, sensor, truths, dropped, extra)
     elapsed = time.perf_counter() - started
     print(f"simulate: {scene.name}{'/' + scene.data['variant'] if scene.data.get('variant') else ''}: "

@@ -64,3 +64,37 @@ def compare(comparison: dict[str, Any] | None, motion: dict[str, Any]) -> dict[s
         "paper": {"flat_presses": 49, "flat_total_s": 196.0, "touchroller_total_s": 10.0},
         "parameters": p,
     }
+
+
+def flat_press_mosaic(sensor: Any, comparison: dict[str, Any] | None = None, depth: float = 3e-4,
+                      mm_per_px: float = 0.1) -> Any:
+    """What the flat sensor's presses see, tiled in raster order (bgr8), at `mm_per_px`.
+
+    Each press is a flat gel pressed `depth` into the (gel-low-passed) relief under its window: the
+    gel plane sits `depth` below the highest point in the window, D = max(0, h - (h_top - depth)),
+    shaded with the roller's own lights so the two sensors are compared like for like.
+    """
+    import cv2
+    import numpy as np
+
+    p = dict(DEFAULTS)
+    p.update(comparison or {})
+    (width, length), (win_w, win_l) = p["area"], p["flat_sensor"]
+    nx = presses_needed(width, win_w, p["overlap"])
+    ny = presses_needed(length, win_l, p["overlap"])
+    step = mm_per_px * 1e-3
+    cols, rows = round(win_w / step), round(win_l / step)
+    mosaic = np.zeros((ny * rows, nx * cols, 3), np.uint8)
+    relief = sensor._relief
+    x_start = relief.x0 + 0.5 * (relief.width - width)
+    for j in range(ny):
+        for i in range(nx):
+            x0 = x_start + i * win_w * (1.0 - p["overlap"])
+            y0 = relief.y0 + j * win_l * (1.0 - p["overlap"])
+            X, Y = np.meshgrid(x0 + (np.arange(cols) + 0.5) * step, y0 + (np.arange(rows) + 0.5) * step)
+            h = relief.sample(X, Y).astype(np.float64)
+            D = np.maximum(h - (h.max() - depth), 0.0)
+            gy, gx = np.gradient(D, step, step)
+            tile = sensor._shade_slopes(gx.astype(np.float32), gy.astype(np.float32))
+            mosaic[j * rows:(j + 1) * rows, i * cols:(i + 1) * cols] = cv2.convertScaleAbs(tile)
+    return mosaic
