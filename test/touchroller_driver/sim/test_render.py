@@ -1,4 +1,5 @@
 """Rendering validated against theory: band width, blur length, contact positions, surface truth."""
+import functools
 import math
 
 import cv2
@@ -245,3 +246,33 @@ def test_pixels_past_the_tube_ends_are_dark():
     assert not ok[0] and ok[1]
     assert image[240, 5].max() == 0 and image[240, 320].min() > 50
     assert not np.isnan(sensor.render_layers(RollerState(travel=0.02, depth=5e-4))["indentation"]).any()
+
+
+@settings(max_examples=25, deadline=None)
+@given(travel=st.floats(-0.05, 0.2), x_along=st.floats(-0.05, 0.05), depth=st.floats(-0.01, 3e-3),
+       speed=st.floats(-0.2, 0.2))
+def test_any_finite_state_renders_a_valid_frame(travel, x_along, depth, speed):
+    sensor = _fabric_sensor()
+    state = RollerState(travel=travel, x_along=x_along, depth=depth, speed=speed)
+    layers = sensor.render_layers(state)
+    assert layers["image"].shape == (480, 640, 3) and layers["image"].dtype == np.uint8
+    assert np.isfinite(layers["indentation"]).all() and (layers["indentation"] >= 0).all()
+    if depth + sensor.surface.max_height <= 0:
+        assert np.array_equal(layers["image"], sensor._static)
+
+
+@functools.cache
+def _fabric_sensor():
+    return SimulatedSensor(load_scene("surface_mapping", effects=["blur", "background"],
+                                      **{"surface.width": 0.07, "surface.length": 0.03,
+                                         "surface.resolution": 1e-4}), seed=0)
+
+
+def test_other_image_sizes():
+    sensor = SimulatedSensor(load_scene("surface_mapping", **dict(SMALL_FLAT, **{
+        "camera.width": 320, "camera.height": 240, "camera.fx": 250, "camera.fy": 250,
+        "camera.cx": 159.5, "camera.cy": 119.5})), seed=0)
+    image = sensor.render(RollerState(travel=0.02, depth=5e-4))
+    assert image.shape == (240, 320, 3)
+    _, mpp_v = sensor.metres_per_px_at_contact()
+    assert mpp_v == pytest.approx(2e-4, rel=0.01)
