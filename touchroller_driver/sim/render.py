@@ -167,6 +167,14 @@ class SimulatedSensor:
         """The bgr8 image for a roller state."""
         return self._render(state)[0]
 
+    def capture(self, state: RollerState) -> np.ndarray | None:
+        """Like a camera read: the image, or None when the scene's `dropped_frames` effect drops it."""
+        if "dropped_frames" in self.effects and effects.frame_dropped(
+                self._rng_frames, float(self.scene.effect_params("dropped_frames")["probability"])):
+            self.counts["dropped_frames"] = self.counts.get("dropped_frames", 0) + 1
+            return None
+        return self.render(state)
+
     def render_layers(self, state: RollerState) -> dict[str, Any]:
         """The image plus its intermediate layers (full-size indentation and relief, m) for validation."""
         image, layers = self._render(state, keep_layers=True)

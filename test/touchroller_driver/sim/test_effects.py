@@ -115,3 +115,12 @@ def test_compression_changes_pixels_a_little():
     raw = _sensor([]).render(STATE).astype(int)
     jpeg = _sensor(["compression"]).render(STATE).astype(int)
     assert 0 < np.abs(raw - jpeg).mean() < 3
+
+
+def test_capture_drops_like_a_camera():
+    lossy = _sensor(["dropped_frames"], **{"effect_params.dropped_frames.probability": 0.5})
+    results = [lossy.capture(STATE) for _ in range(40)]
+    dropped = sum(r is None for r in results)
+    assert 5 < dropped < 35 and lossy.counts["dropped_frames"] == dropped
+    clean = _sensor([])
+    assert all(clean.capture(STATE) is not None for _ in range(10))
