@@ -65,13 +65,14 @@ def run(quick: bool = False) -> dict:
     variant = "medium"
     repeats = 1 if quick else 3
     stride = 10 if quick else 1
-    configs: list[tuple[str, list[str]]] = [("core only (contact + shading)", [])]
-    configs += [(f"+ {effect}", [effect]) for effect in EFFECTS]
+    configs: list[tuple[str, list[str], dict]] = [("core only (contact + shading)", [], {})]
+    configs += [(f"+ {effect}", [effect], {}) for effect in EFFECTS]
+    configs += [("+ noise with shot noise (noise.shot = 0.5)", ["noise"], {"effect_params.noise.shot": 0.5})]
     default_effects = list(load_scene("surface_mapping").effects)
-    configs += [(f"scene default {default_effects}", default_effects), ("all effects", list(EFFECTS))]
+    configs += [(f"scene default {default_effects}", default_effects, {}), ("all effects", list(EFFECTS), {})]
     rows = []
-    for label, effects in configs:
-        scene = load_scene("surface_mapping", variant=variant, effects=effects)
+    for label, effects, overrides in configs:
+        scene = load_scene("surface_mapping", variant=variant, effects=effects, **overrides)
         t0 = time.perf_counter()
         sensor = SimulatedSensor(scene, seed=0)
         init = time.perf_counter() - t0

@@ -90,17 +90,35 @@ class NoiseBank:
     frames that happen to overlap in the bank, which a random offset makes rare).
     """
 
-    def __init__(self, shape: tuple[int, ...], sigma: float, rng: np.random.Generator, frames: int = 3) -> None:
+    def __init__(self, shape: tuple[int, ...], sigma: float, rng: np.random.Generator, frames: int = 3,
+                 shot_dn_per_electron: float = 0.0) -> None:
         self.shape = shape
         self.size = int(np.prod(shape))
+        self.rng = rng
+        self.sigma = float(sigma)
+        self.shot = float(shot_dn_per_electron)
+        if self.shot > 0:   # signal-dependent: keep unit normals, scale per pixel per frame
+            self.unit = rng.standard_normal(self.size * frames).astype(np.float32)
+            return
         noise = np.rint(rng.standard_normal(self.size * frames) * sigma)
         self.positive = np.clip(noise, 0, 255).astype(np.uint8)
         self.negative = np.clip(-noise, 0, 255).astype(np.uint8)
-        self.rng = rng
 
 
 def add_noise(image: np.ndarray, bank: NoiseBank) -> np.ndarray:
-    """Saturating uint8 image + noise from the bank (in place)."""
+    """Saturating uint8 image + noise from the bank (in place).
+
+    Read noise only: sigma DN. With `shot_dn_per_electron` = g > 0, photon shot noise is added:
+    variance sigma^2 + g * signal (DN^2), i.e. Poisson statistics of signal / g electrons.
+    """
+    if bank.shot > 0:
+        start = int(bank.rng.integers(0, bank.unit.size - bank.size + 1))
+        unit = bank.unit[start:start + bank.size].reshape(bank.shape)
+        signal = image.astype(np.float32)
+        std = cv2.sqrt(signal * np.float32(bank.shot) + np.float32(bank.sigma**2))
+        noisy = cv2.add(signal, cv2.multiply(unit, std))
+        np.copyto(image, cv2.convertScaleAbs(np.maximum(noisy, 0.0)))
+        return image
     start = int(bank.rng.integers(0, bank.positive.size - bank.size + 1))
     pos = bank.positive[start:start + bank.size].reshape(bank.shape)
     neg = bank.negative[start:start + bank.size].reshape(bank.shape)

@@ -125,9 +125,11 @@ class SimulatedSensor:
         self._build_lights(s)
         self._build_static()
         self._noise: effects.NoiseBank | None = None
-        if "noise" in self.effects and float(scene.effect_params("noise")["sigma"]) > 0:
-            self._noise = effects.NoiseBank((self.camera.height, self.camera.width, 3),
-                                            float(scene.effect_params("noise")["sigma"]), self._rng_noise)
+        if "noise" in self.effects and (float(scene.effect_params("noise")["sigma"]) > 0
+                                        or float(scene.effect_params("noise")["shot"]) > 0):
+            params = scene.effect_params("noise")
+            self._noise = effects.NoiseBank((self.camera.height, self.camera.width, 3), float(params["sigma"]),
+                                            self._rng_noise, shot_dn_per_electron=float(params.get("shot", 0.0)))
         self._board = None
         if scene.motion.get("kind") == "chessboard":
             from touchroller_driver.sim.chessboard import ChessboardRenderer

@@ -24,7 +24,7 @@ MOTION_KINDS = ("roll", "taps", "hemispheres", "chessboard")
 _DEFAULT_EFFECT_PARAMS: dict[str, dict[str, Any]] = {
     "background": {"illumination": 0.12, "led_falloff": 0.25, "specks": 60, "speck_radius_px": [1.0, 3.0]},
     "vignetting": {"strength": 0.35},
-    "noise": {"sigma": 2.0},
+    "noise": {"sigma": 2.0, "shot": 0.0},   # read noise (DN); shot: DN per electron (0 = off)
     "blur": {},
     "compression": {"quality": 85},
     "dropped_frames": {"probability": 0.02},
@@ -248,5 +248,5 @@ def validate(scene: Scene) -> None:
         raise ValueError(f"{where}: dropped_frames.probability must be in [0, 1), got {p}")
     if not 1 <= int(scene.effect_params("compression")["quality"]) <= 100:
         raise ValueError(f"{where}: compression.quality must be in 1..100")
-    if float(scene.effect_params("noise")["sigma"]) < 0:
-        raise ValueError(f"{where}: noise.sigma must be >= 0")
+    if float(scene.effect_params("noise")["sigma"]) < 0 or float(scene.effect_params("noise")["shot"]) < 0:
+        raise ValueError(f"{where}: noise.sigma and noise.shot must be >= 0")

@@ -124,3 +124,17 @@ def test_capture_drops_like_a_camera():
     assert 5 < dropped < 35 and lossy.counts["dropped_frames"] == dropped
     clean = _sensor([])
     assert all(clean.capture(STATE) is not None for _ in range(10))
+
+
+def test_shot_noise_grows_with_signal():
+    sensor = _sensor(["noise", "background"], **{"effect_params.noise.sigma": 1.0,
+                                                 "effect_params.noise.shot": 0.5})
+    clean = _sensor(["background"]).render(RollerState(depth=-0.01)).astype(float)
+    noisy = np.stack([sensor.render(RollerState(depth=-0.01)).astype(float) for _ in range(6)])
+    residual = (noisy - clean).reshape(6, -1)
+    signal = clean.reshape(-1)
+    dark, bright = signal < np.percentile(signal, 10), signal > np.percentile(signal, 90)
+    var_dark, var_bright = residual[:, dark].var(), residual[:, bright].var()
+    expected = lambda s: 1.0 + 0.5 * s  # noqa: E731 - variance model sigma^2 + g * signal
+    assert var_bright > var_dark
+    assert var_bright == pytest.approx(expected(signal[bright].mean()), rel=0.15)
