@@ -311,3 +311,16 @@ def test_intrinsics_radial_model_holds_the_tangential_terms(chessboards):
     assert abs(result.camera.fx - camera.fx) < 3 * result.sigma["fx"] + 0.5
     with pytest.raises(cal.CalibrationError, match="distortion must be one of"):
         cal.calibrate_intrinsics(chessboards, BOARD, distortion="fisheye")
+
+
+@settings(max_examples=30, deadline=None)
+@given(angle=st.floats(-8.0, 8.0), shift=st.tuples(st.floats(-50, 50), st.floats(-30, 30)),
+       seed=st.integers(0, 10_000), scale=st.floats(0.5, 2.0))
+def test_grid_order_ignores_detection_order_and_small_rotations(angle, shift, seed, scale):
+    layout = FRAME.layout() / FRAME.pitch_x * 40.0 * scale          # pixels, row-major like the frame
+    c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
+    pixels = layout @ np.array([[c, s], [-s, c]]) + np.array([320.0, 240.0]) + np.asarray(shift)
+    permutation = np.random.default_rng(seed).permutation(len(pixels))
+    order, reason = cal._order_grid(pixels[permutation], FRAME.rows, FRAME.columns, 0.08)
+    assert reason is None
+    assert np.array_equal(pixels[permutation][order], pixels)

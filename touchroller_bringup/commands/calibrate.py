@@ -163,6 +163,9 @@ def run_extrinsics(args: argparse.Namespace) -> int:
         if count:
             reference = np.median(np.stack(images[:count]), axis=0).astype(np.uint8)
             images = images[count:]
+    if reference is None:
+        print("note: no no-contact reference (--reference or --reference-frames): the imprint background is "
+              "estimated per image, which is less precise and can mistake specks for imprints")
     try:
         frame = cal.HemisphereFrame(rows=rows, columns=columns, pitch_x=args.pitch[0], pitch_y=args.pitch[1],
                                     hemisphere_radius=args.hemisphere_radius, press_depth=args.press_depth)
