@@ -43,10 +43,13 @@ SOURCE_PARAMETERS = (
     "source", "device", "width", "height", "fps", "exposure", "video_path", "bag_path", "bag_topic",
     "scene", "seed", "rate", "loop",
 )
-IMAGE_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
+
+
+def image_qos() -> QoSProfile:
+    """Reliable keep-last 5 (REP 2003). A new object per publisher: QoS overrides modify it in place."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
 
 
 def camera_info_from_model(model: CameraModel, stamp_ns: int, frame_id: str) -> CameraInfo:
@@ -77,6 +80,7 @@ class CameraNode(Node):
         self._external_source = source is not None
         self.source: FrameSource | None = source
         self._opened = False
+        self._open_error = ""
         self._restart = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -91,8 +95,8 @@ class CameraNode(Node):
         self._closed_stats = SourceStats()  # drops etc. of sources closed by a restart
 
         overrides = QoSOverridingOptions.with_default_policies()
-        self.image_pub = self.create_publisher(Image, IMAGE_TOPIC, IMAGE_QOS, qos_overriding_options=overrides)
-        self.info_pub = self.create_publisher(CameraInfo, CAMERA_INFO_TOPIC, IMAGE_QOS,
+        self.image_pub = self.create_publisher(Image, IMAGE_TOPIC, image_qos(), qos_overriding_options=overrides)
+        self.info_pub = self.create_publisher(CameraInfo, CAMERA_INFO_TOPIC, image_qos(),
                                               qos_overriding_options=overrides)
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: camera", hardware_id="")
         self.diagnostics.add(self._diagnostic_status)
@@ -181,11 +185,14 @@ class CameraNode(Node):
         return self.source is not None and _stats(self.source).finished
 
     def _run(self) -> None:
+        needs_open = True
         while not self._stop.is_set():
-            if not self._opened or self._restart.is_set():
-                if not self._open_source():
-                    self._stop.wait(1.0)
-                    continue
+            if needs_open or self._restart.is_set():
+                needs_open = False
+                self._open_source()
+            if not self._opened:  # opening failed (logged once): wait for a parameter change
+                self._restart.wait(0.2)
+                continue
             try:
                 frame = self.source.read(timeout=0.1)
             except Exception as exc:  # noqa: BLE001 - a bad frame is one log line; the node keeps running
@@ -216,7 +223,8 @@ class CameraNode(Node):
             source = self.source if self._external_source else self._make_source()
             source.open()
         except Exception as exc:  # noqa: BLE001 - a bad path/device is one log line; retried after a change
-            self._log_error(f"cannot open camera source: {exc}")
+            self._open_error = f"cannot open camera source: {exc}"
+            self.get_logger().error(self._open_error)
             if not self._external_source:
                 with self._lock:
                     self.source = None
@@ -224,6 +232,7 @@ class CameraNode(Node):
         with self._lock:
             self.source = source
             self._opened = True
+            self._open_error = ""
         self._finished_logged = False
         self.diagnostics.hardware_id = source.info
         self.get_logger().info(f"streaming from {source.info}")
@@ -290,7 +299,8 @@ class CameraNode(Node):
         if stats.last_error:
             values["last_error"] = stats.last_error
         if source is None or (not stats.connected and not stats.finished):
-            return Status(ERROR, f"camera not available: {stats.last_error or 'no source'}", values)
+            reason = stats.last_error or self._open_error or "no source"
+            return Status(ERROR, f"camera not available: {reason}", values)
         if stats.finished:
             if stats.last_error:
                 return Status(ERROR, f"source stopped: {stats.last_error}", values)

@@ -209,6 +209,13 @@ def test_image_publisher_is_reliable_and_qos_can_be_overridden(ros_context, spin
         listener.destroy_node()
     finally:
         camera.destroy_node()
+    # the override applied to that node only: the next one is reliable again
+    camera = CameraNode(context=ros_context, source=ListSource([]), autostart=False)
+    try:
+        info = camera.get_publishers_info_by_topic(IMAGE_TOPIC)
+        assert info[0].qos_profile.reliability == ReliabilityPolicy.RELIABLE
+    finally:
+        camera.destroy_node()
 
 
 def test_sim_source_by_parameters_publishes_rendered_frames(ros_context, spin_until):
