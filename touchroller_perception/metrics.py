@@ -92,7 +92,7 @@ def align_affine_3pt(image: ArrayLike, reference: ArrayLike,
     return warped, valid, matrix
 
 
-def _valid_box(mask: np.ndarray) -> tuple[slice, slice] | None:
+def valid_box(mask: np.ndarray) -> tuple[slice, slice] | None:
     """A large axis-aligned box of valid pixels: the bounding box, trimmed greedily at the edge with
     the largest share of invalid pixels until none is left."""
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
@@ -154,7 +154,7 @@ def compare_to_truth(map_image: ArrayLike, truth: ArrayLike, *, valid: ArrayLike
     if mask.shape != m.shape:
         raise ValueError(f"valid mask shape {mask.shape} differs from the map's {m.shape}")
     mask &= np.isfinite(m)
-    box = _valid_box(mask)
+    box = valid_box(mask)
     if box is None:
         raise ValueError("the map has no valid pixels")
     m = m[box]
@@ -173,7 +173,7 @@ def compare_to_truth(map_image: ArrayLike, truth: ArrayLike, *, valid: ArrayLike
     size = (t.shape[1], t.shape[0])
     warped = cv2.warpAffine(m.astype(np.float32), shift, size, flags=cv2.INTER_LINEAR)
     inside = cv2.warpAffine(np.ones(m.shape, np.float32), shift, size, flags=cv2.INTER_LINEAR) > 0.999
-    box = _valid_box(inside)
+    box = valid_box(inside)
     if box is None:
         raise ValueError("map and truth do not overlap")
     a, b = warped[box].astype(np.float64), t[box]

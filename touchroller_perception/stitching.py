@@ -30,6 +30,7 @@ No rclpy here.
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -248,7 +249,7 @@ class _BandSampler:
         self.row0 = int(round(centre_v - (band_rows - 1) / 2.0))
         map_x = np.where(valid, uv[..., 0], -10.0).astype(np.float32)
         map_y = np.where(valid, v - v0, -10.0).astype(np.float32)
-        self.maps = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
+        self.maps = (map_x, map_y)  # float maps: as fast as fixed-point ones here, and exact
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         v0, v1 = self.src_rows
@@ -314,6 +315,8 @@ class Stitcher:
       column_bin: columns averaged together for registration (speed; rows are never binned).
       highpass: box size of the high-pass filter that removes residual shading before registration.
       min_confidence: below this the motion prior is used instead of the image.
+      live_map: keep the flat-field correction of the map current frame by frame (for `map_image` while
+        stitching); an offline caller that calls `finalise()` at the end can turn it off and save time.
     """
 
     def __init__(self, method: str = "default", *, band_rows: int = 70, search: int = 25,
@@ -321,7 +324,7 @@ class Stitcher:
                  subpixel: bool = True, keyframes: bool = True, keyframe_overlap: float = 0.6,
                  motion_prior: bool = True, local_search: int = 3, background: bool = True,
                  flat_field: np.ndarray | None = None, lateral: bool = True, column_bin: int = 4,
-                 highpass: int = 9, min_confidence: float = 0.15) -> None:
+                 highpass: int = 9, min_confidence: float = 0.15, live_map: bool = True) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown stitching method {method!r}; choose from {', '.join(METHODS)}")
         if search < 1:
@@ -346,6 +349,7 @@ class Stitcher:
         self.column_bin = int(column_bin)
         self.highpass = int(highpass) | 1
         self.min_confidence = float(min_confidence)
+        self.live_map = bool(live_map)
         self.shifts: list[float] = []
         self.steps: list[StitchStep] = []
         self.stamps: list[int] = []
@@ -551,8 +555,8 @@ class Stitcher:
         if dt == 0:
             return 0.0  # a duplicated frame (same stamp) has not moved
         if dt is not None and dt > 0 and self._recent_ns:
-            return float(np.median(self._recent_ns)) * dt  # a dropped frame doubles dt and the prediction
-        return float(np.median(self._recent_frame)) if self._recent_frame else None
+            return statistics.median(self._recent_ns) * dt  # a dropped frame doubles dt and the prediction
+        return statistics.median(self._recent_frame) if self._recent_frame else None
 
     def _push_default(self, band: np.ndarray, dt: int | None, prior_px: float | None) -> StitchStep:
         # Lateral shifts are read from the unflattened band: the flat field keeps some texture, which
@@ -616,6 +620,10 @@ class Stitcher:
         if not self.background:
             self._canvas.add((weighted_band,), self._weights, top, left, subpixel=self.subpixel)
             return
+        self._placements.append((top, left))
+        if not self.live_map:  # finalise() fills the flat-field layer
+            self._canvas.add((weighted_band, None), self._weights, top, left, subpixel=self.subpixel)
+            return
         if field is None:  # not known yet: a flat guess, corrected by finalise()
             field = np.full_like(band, float(band.mean()))
             weighted_field = field * self._column_weights
@@ -625,7 +633,6 @@ class Stitcher:
             weighted_field = self._weighted_field
         self._canvas.add((weighted_band, weighted_field), self._weights, top, left, subpixel=self.subpixel)
         self._level = self._field_level if self._gain_of is field else float(field.mean())
-        self._placements.append((top, left))
 
     def _register(self, feats: np.ndarray, key: np.ndarray, predicted: float | None,
                   current: float) -> tuple[float | None, float]:
@@ -702,15 +709,14 @@ def _ncc_costs(cur: np.ndarray, key: np.ndarray, shifts: Iterable[int], min_over
 
 def _confidence(costs: np.ndarray, best: int) -> float:
     """How distinct the minimum is: 1 - min / (median cost away from it); 0 when the curve is flat."""
-    c = costs[best]
-    idx = np.arange(len(costs))
-    away = costs[(np.abs(idx - best) >= 2) & np.isfinite(costs)]
-    if away.size == 0 or not np.isfinite(c):
+    c = float(costs[best])
+    away = sorted(float(v) for i, v in enumerate(costs) if abs(i - best) >= 2 and v == v)
+    if not away or c != c:
         return 0.0
-    ref = float(np.median(away))
+    ref = away[len(away) // 2]
     if ref <= 1e-9:
         return 0.0
-    return min(1.0, max(0.0, 1.0 - float(c) / ref))
+    return min(1.0, max(0.0, 1.0 - c / ref))
 
 
 def _parabola(costs: np.ndarray, best: int) -> float:
@@ -751,9 +757,10 @@ def _lucas_kanade_rows(cur: np.ndarray, key: np.ndarray, rel: float, iterations:
     return rel
 
 
-def _highpass_1d(profile: np.ndarray, size: int) -> np.ndarray:
-    kernel = np.full(size, 1.0 / size)
-    return profile - np.convolve(np.pad(profile, size // 2, mode="reflect"), kernel, mode="valid")
+def _profile(rows: np.ndarray, highpass: int) -> np.ndarray:
+    """Column profile (mean over rows), high-passed in 1-D so smooth shading does not count."""
+    profile = cv2.reduce(rows, 0, cv2.REDUCE_AVG)
+    return (profile - cv2.blur(profile, (highpass, 1), borderType=cv2.BORDER_REFLECT))[0].astype(np.float64)
 
 
 def _lateral_shift(cur: np.ndarray, key: np.ndarray, rel: float, guess: float, highpass: int,
@@ -768,21 +775,25 @@ def _lateral_shift(cur: np.ndarray, key: np.ndarray, rel: float, guess: float, h
     a0, a1 = max(0, d), min(h, h + d)
     if a1 - a0 < 4:
         return guess
-    p_cur = _highpass_1d(cur[a0:a1].mean(axis=0, dtype=np.float64), highpass)
-    p_key = _highpass_1d(key[a0 - d:a1 - d].mean(axis=0, dtype=np.float64), highpass)
-    cols = np.arange(w, dtype=np.float64)
+    p_cur = _profile(cur[a0:a1], highpass)
+    p_key = _profile(key[a0 - d:a1 - d], highpass)
     lat = guess
     margin = 8
     for _ in range(iterations):
         if abs(lat) > w / 4:
             return guess
-        warped = np.interp(cols - lat, cols, p_key)
-        g = np.gradient(warped)
-        sl = slice(margin + int(abs(lat)), w - margin - int(abs(lat)))
-        den = float(g[sl] @ g[sl])
+        # key profile shifted by lat (linear interpolation) over columns [lo, hi), and its slope
+        k = math.floor(lat)
+        f = lat - k
+        lo, hi = margin + abs(k) + 1, w - margin - abs(k) - 1
+        base = p_key[lo - k - 1:hi - k + 1]
+        before = p_key[lo - k - 2:hi - k]
+        warped = (1.0 - f) * base + f * before  # columns lo-1 .. hi
+        g = 0.5 * (warped[2:] - warped[:-2])
+        den = float(g @ g)
         if den <= 1e-9:
             return guess
-        step = min(1.0, max(-1.0, -float(g[sl] @ (p_cur[sl] - warped[sl])) / den))
+        step = min(1.0, max(-1.0, -float(g @ (p_cur[lo:hi] - warped[1:-1])) / den))
         lat += step
         if abs(step) < 1e-3:
             break
