@@ -257,8 +257,11 @@ def calibrate_intrinsics(
         raise CalibrationError(
             f"the chessboard views are nearly parallel (board normals within {spread:.1f}° of each other, "
             f"need {min_tilt_spread_deg:.0f}°): the focal length is undetermined; tilt the board between views")
-    camera = prior.replace(fx=k_matrix[0, 0], fy=k_matrix[1, 1], cx=k_matrix[0, 2], cy=k_matrix[1, 2],
-                           distortion=tuple(float(k) for k in dist), width=width, height=height)
+    try:
+        camera = prior.replace(fx=k_matrix[0, 0], fy=k_matrix[1, 1], cx=k_matrix[0, 2], cy=k_matrix[1, 2],
+                               distortion=tuple(float(k) for k in dist), width=width, height=height)
+    except ValueError as exc:
+        raise CalibrationError(f"the intrinsics found are not a valid camera model: {exc}") from None
     return IntrinsicsResult(camera=camera, rms=fit["rms"], per_view_rms=per_view, rejected=rejected,
                             sigma=sigma, image_count=len(images))
 
@@ -266,9 +269,15 @@ def calibrate_intrinsics(
 def _zhang(object_points: np.ndarray, image_points: list[FloatArray], size: tuple[int, int],
            flags: int = 0) -> dict[str, Any]:
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    rms, k_matrix, dist, rvecs, _, std_intr, _, per_view = cv2.calibrateCameraExtended(
-        [object_points] * len(image_points), [p.astype(np.float32).reshape(-1, 1, 2) for p in image_points],
-        size, None, None, flags=flags, criteria=criteria)
+    try:
+        rms, k_matrix, dist, rvecs, _, std_intr, _, per_view = cv2.calibrateCameraExtended(
+            [object_points] * len(image_points), [p.astype(np.float32).reshape(-1, 1, 2) for p in image_points],
+            size, None, None, flags=flags, criteria=criteria)
+    except cv2.error as exc:
+        message = str(exc).strip().splitlines()[-1] if str(exc).strip() else "OpenCV error"
+        raise CalibrationError(f"Zhang's solve failed on these views: {message}") from None
+    if not (math.isfinite(rms) and np.all(np.isfinite(k_matrix)) and np.all(np.isfinite(dist))):
+        raise CalibrationError("Zhang's solve did not converge on these views (non-finite result)")
     std = np.asarray(std_intr, dtype=np.float64).ravel()
     names = ("fx", "fy", "cx", "cy", *DISTORTION_NAMES)
     sigma = {name: (float(std[i]) if i < std.size and math.isfinite(std[i]) else math.inf)
