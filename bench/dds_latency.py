@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "bench" / "results"
 
 WIDTH, HEIGHT = 640, 480
-REFERENCE_FRAMES = 10  # no-contact frames first (the perception node's reference uses the first 5)
+REFERENCE_FRAMES = 30  # no-contact frames first: the perception node takes its reference from the first 5 it gets
 
 
 # ------------------------------------------------------------------ frames
@@ -387,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
         f"perception map.publish_rate={args.map_rate:g} Hz, {seconds:g} s per run",
         "",
         "Latency = probe receive time - image capture stamp (the contact carries the image stamp). "
-        "Frames: 640x480 bgr8, synthetic gel with one contact each after 10 reference frames. "
+        "Frames: 640x480 bgr8, synthetic gel with one contact each after 30 no-contact frames. "
         "'missed' = contact frames for which no contact arrived (a drop anywhere in the graph); "
         "'perception drops' = gaps in the publication sequence seen by the perception node "
         "(its /diagnostics, includes the reference frames). Transport 'default' = Fast DDS built-ins; "

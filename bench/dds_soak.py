@@ -29,11 +29,11 @@ def rss_mb(pid: int | None = None) -> float:
     return int(line.split()[1]) / 1024.0
 
 
-def run_child(processes: int, transport: str, frames: int, fps: float) -> dict:
+def run_child(processes: int, transport: str, frames: int, fps: float, map_rate: float) -> dict:
     common.use_transport(transport)
     references, contacts = common.synthetic_frames()
     source = common.MemorySource(references, contacts, fps=fps, count=frames, record=False)
-    graph = common.Graph(processes=processes, record=False)
+    graph = common.Graph(processes=processes, record=False, map_rate=map_rate)
     samples: list[tuple[int, float, float | None]] = []
     next_sample = [0]
 
@@ -77,13 +77,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=2000)
     parser.add_argument("--processes", type=int, nargs="+", choices=(1, 2), default=[1, 2])
     parser.add_argument("--transport", choices=tuple(common.TRANSPORTS), default="shm")
+    parser.add_argument("--map-rates", type=float, nargs="+", default=[1.0, 0.0],
+                        help="perception map.publish_rate values to run (0 disables the stitched map)")
     parser.add_argument("--out", default=str(common.RESULTS / "dds_soak.md"))
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     frames = 2000 if args.quick else args.frames
     warmup = min(args.warmup, frames // 4)
     if args.child:
-        print(json.dumps(run_child(args.processes[0], args.transport, frames, args.fps)), flush=True)
+        print(json.dumps(run_child(args.processes[0], args.transport, frames, args.fps, args.map_rates[0])), flush=True)
         return 0
     command = "python bench/dds_soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
@@ -98,15 +100,18 @@ def main(argv: list[str] | None = None) -> int:
         "Pass: less than 0.1 MB per 1000 frames after warm-up (a leak of one VGA frame per 1000 frames would "
         "be 0.9 MB per 1000).",
         "",
-        "| processes | process | frames | contacts | RSS after warm-up (MB) | RSS at end (MB) | slope (MB/1000 frames) "
-        "| result |",
-        "|---|---|---|---|---|---|---|---|",
+        "The perception node's map (map.publish_rate > 0) stitches every frame; runs with the map disabled "
+        "(map.publish_rate 0) separate the stitcher's memory from the rest of the graph.",
+        "",
+        "| map rate | processes | process | frames | contacts | RSS after warm-up (MB) | RSS at end (MB) | "
+        "slope (MB/1000 frames) | result |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     details = []
-    for processes in args.processes:
+    for map_rate, processes in [(m, p) for m in args.map_rates for p in args.processes]:
         result = subprocess.run(
             [sys.executable, __file__, "--child", "--processes", str(processes), "--transport", args.transport,
-             "--frames", str(frames), "--fps", str(args.fps)],
+             "--frames", str(frames), "--fps", str(args.fps), "--map-rates", str(map_rate)],
             capture_output=True, text=True, timeout=3600)
         line = next((x for x in reversed(result.stdout.splitlines()) if x.startswith("{")), None)
         if line is None:
@@ -119,10 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         for name, samples in series.items():
             start, end, slope = growth(samples, warmup)
             ok = slope < 0.1
-            lines.append(f"| {processes} | {name} | {r['frames']} | {r['contacts']} | {start:.1f} | {end:.1f} | "
+            lines.append(f"| {map_rate:g} | {processes} | {name} | {r['frames']} | {r['contacts']} | {start:.1f} | {end:.1f} | "
                          f"{slope:+.4f} | {'met' if ok else 'NOT met'} |")
             print(lines[-1], flush=True)
-        details.append(f"- {processes} process(es): {r['seconds']:.0f} s; perception drops "
+        details.append(f"- map rate {map_rate:g}, {processes} process(es): {r['seconds']:.0f} s; perception drops "
                        f"{r['perception_dropped']} of {r['perception_received']} received; latency of the last "
                        f"2000 contacts p50 {r['recent_latency']['p50']:.2f} ms, p99 {r['recent_latency']['p99']:.2f} ms; "
                        f"RSS samples (frames: MB) "
