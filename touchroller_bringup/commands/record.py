@@ -1,12 +1,14 @@
 """`touchroller record --out BAG [--storage sqlite3|mcap] [--topics T ...] [--duration S]`.
 
 Like `ros2 bag record`: raw subscriptions into a rosbag2 folder with the publishers' QoS in its
-metadata. Ctrl-C (or SIGTERM) stops it; what had arrived is written and the bag is finalised.
+metadata. Ctrl-C (or SIGTERM) stops it between callbacks; what had arrived is written and the bag is finalised
+(a second Ctrl-C during that short drain changes nothing).
 """
 from __future__ import annotations
 
 import argparse
 import signal
+import threading
 import time
 
 from touchroller_bringup.errors import UserError
@@ -21,10 +23,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="topics to record (default: all)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     parser.set_defaults(func=run)
-
-
-def _raise_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
 
 
 def drain(executor, count, quiet_s: float = 0.2, max_s: float = 2.0) -> None:
@@ -48,9 +46,11 @@ def run(args: argparse.Namespace) -> int:
     from touchroller_bringup.recorder import Recorder
 
     context = Context()
-    # Our own Ctrl-C handling: rclpy's handler would shut the context down before the drain.
+    # Our own Ctrl-C handling: rclpy's handler would shut the context down before the drain, and a
+    # KeyboardInterrupt could land inside a callback. A flag stops the loop between callbacks instead.
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    previous_term = signal.signal(signal.SIGTERM, _raise_interrupt)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda signum, frame: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     recorder = None
     try:
         recorder = Recorder(args.out, topics=args.topics, storage=args.storage, context=context)
@@ -58,12 +58,8 @@ def run(args: argparse.Namespace) -> int:
         executor.add_node(recorder)
         deadline = None if args.duration is None else time.monotonic() + args.duration
         print(f"recording to {args.out} ({args.storage}); Ctrl-C to stop", flush=True)
-        try:
-            while deadline is None or time.monotonic() < deadline:
-                executor.spin_once(timeout_sec=0.1)
-        except KeyboardInterrupt:
-            pass
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the bag short
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            executor.spin_once(timeout_sec=0.1)
         drain(executor, lambda: recorder.message_count)
         recorder.close()
         counts = ", ".join(f"{topic}: {n}" for topic, n in sorted(recorder.counts.items())) or "no topics seen"
@@ -72,6 +68,6 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if recorder is not None:
             recorder.destroy_node()
-        signal.signal(signal.SIGTERM, previous_term)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         context.try_shutdown()
