@@ -44,6 +44,7 @@ class DetectorConfig:
     blur_sigma: float = 1.0           # px of the downscaled image (candidate search)
     refine_blur_sigma: float = 1.5    # px at full resolution (centre refinement)
     refine_max_pixels: int = 20000    # larger candidate windows are centred on the downscaled image
+    compensate_illumination: bool = True   # fit a per-channel gain and offset to the reference each frame
     close_size: int = 3               # morphological closing (downscaled px): merges lit and shaded lobes
     min_area: float = 64.0            # px^2 at full resolution (pixels above threshold); smaller is noise
     max_contacts: int = 32
@@ -194,6 +195,7 @@ class ContactDetector:
         self.reference_frames = int(reference_frames)
         self.reference: NoContactReference | None = None
         self._pending: list[np.ndarray] = []
+        self.illumination = IlluminationState()
 
     # ------------------------------------------------------------------ reference
     def recapture(self, reference_frames: int | None = None) -> None:
@@ -203,10 +205,12 @@ class ContactDetector:
             self.reference_frames = int(reference_frames)
         self.reference = None
         self._pending = []
+        self.illumination = IlluminationState()
 
     def set_reference(self, frames: Iterable[np.ndarray]) -> None:
         self.reference = NoContactReference(list(frames))
         self._pending = []
+        self.illumination = IlluminationState()
 
     @property
     def reference_ready(self) -> bool:
@@ -235,7 +239,7 @@ class ContactDetector:
         frame = np.asarray(image)
         if np.atleast_3d(frame).shape != ref.shape:
             raise ValueError(f"image shape {frame.shape} does not match the reference {ref.shape}; recapture")
-        return _detect_colour(frame, ref, self.config)
+        return _detect_colour(frame, ref, self.config, self.illumination)
 
     def _require_reference(self) -> NoContactReference:
         if self.reference is None:
@@ -244,22 +248,79 @@ class ContactDetector:
 
 
 def _squared_norm(image: np.ndarray) -> np.ndarray:
-    """Per-pixel squared colour distance of an HxWxC float32 difference (a gemv, ~7x faster than einsum)."""
-    return (image * image) @ np.ones(image.shape[2], np.float32)
+    """Per-pixel squared colour distance of an HxWxC difference.
+
+    Plain elementwise numpy on purpose: BLAS (einsum/matmul) is either slow for this layout or
+    multi-threaded, and OpenBLAS threads collapse on a loaded machine.
+    """
+    out = image[:, :, 0] * image[:, :, 0]
+    for c in range(1, image.shape[2]):
+        out += image[:, :, c] * image[:, :, c]
+    return out
 
 
-def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConfig) -> list[Contact]:
+@dataclasses.dataclass
+class IlluminationState:
+    """The last illumination fit (gain, offset per channel) and how many frames ago it was made.
+
+    Drift is slow, so the fit (~0.5 ms) is refreshed every `refit_every` frames, and at once when
+    a large part of the image exceeds the threshold (a sudden exposure change).
+    """
+
+    gain: np.ndarray | None = None
+    offset: np.ndarray | None = None
+    expected_small: np.ndarray | None = None   # the downscaled reference under that gain and offset
+    age: int = 0
+    refit_every: int = 8
+    flood_fraction: float = 0.2
+
+    def due(self) -> bool:
+        return self.gain is None or self.age >= self.refit_every
+
+    def fit(self, frame: np.ndarray, reference: np.ndarray, noise: float, threshold: float) -> None:
+        self.gain, self.offset = _illumination(frame, reference, noise, threshold)
+        self.expected_small = _affine(reference, self.gain, self.offset)
+        self.age = 0
+
+
+def _affine(image: np.ndarray, gain: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """image * gain + offset per channel. OpenCV's per-channel scalars: numpy broadcasting over a
+    last axis of 3 runs ~4x slower."""
+    pad = (0.0,) * (4 - image.shape[2])
+    scaled = cv2.multiply(image, tuple(float(g) for g in gain) + pad)
+    return np.atleast_3d(cv2.add(scaled, tuple(float(o) for o in offset) + pad))
+
+
+def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConfig,
+                   illumination: IlluminationState | None = None) -> list[Contact]:
     s = int(cfg.downscale)
     full = np.atleast_3d(frame)
     if full.dtype.kind == "f" and not np.isfinite(full).all():
         raise ValueError("image contains non-finite values")
     # 1) candidates on the downscaled colour distance
     ref_small, ref_small_noise = ref.small(s)
-    small = np.atleast_3d(_downscale(full, s)).astype(np.float32) - ref_small
-    small = np.atleast_3d(_blur(small, cfg.blur_sigma))
+    small_frame = np.atleast_3d(_downscale(full, s)).astype(np.float32)
     small_noise = ref_small_noise * _blur_noise_factor(cfg.blur_sigma)
     small_threshold = max(cfg.min_threshold, cfg.threshold_sigma * small_noise)
-    above = _squared_norm(small) > small_threshold**2
+    state: IlluminationState | None = None
+    expected_small = ref_small
+    if cfg.compensate_illumination:
+        state = illumination if illumination is not None else IlluminationState()
+        unblurred_threshold = max(cfg.min_threshold, cfg.threshold_sigma * ref_small_noise)
+        fitted_now = state.due()
+        if fitted_now:
+            state.fit(small_frame, ref_small, ref_small_noise, unblurred_threshold)
+        state.age += 1
+        expected_small = state.expected_small
+    small = _blur(small_frame - expected_small, cfg.blur_sigma)
+    above = _squared_norm(np.atleast_3d(small)) > small_threshold**2
+    if state is not None and not fitted_now and above.mean() > state.flood_fraction:
+        # much of the image changed at once: an exposure step rather than contacts; refit now
+        state.fit(small_frame, ref_small, ref_small_noise, unblurred_threshold)
+        state.age = 1
+        small = _blur(small_frame - state.expected_small, cfg.blur_sigma)
+        above = _squared_norm(np.atleast_3d(small)) > small_threshold**2
+    small = np.atleast_3d(small)
     if not above.any():
         return []
     mask = above.astype(np.uint8)
@@ -296,9 +357,9 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
             if found is None:
                 continue
             cu, cv_, npix, peak = found
-            offset = (s - 1) / 2.0     # centre of small pixel i is full pixel i * s + (s - 1) / 2
+            centre_shift = (s - 1) / 2.0     # centre of small pixel i is full pixel i * s + (s - 1) / 2
             confidence = max(0.0, 1.0 - small_threshold / peak) * (0.5 if touches else 1.0)
-            contacts.append(Contact(u=(cu + x0) * s + offset, v=(cv_ + y0) * s + offset, area=float(npix * s * s),
+            contacts.append(Contact(u=(cu + x0) * s + centre_shift, v=(cv_ + y0) * s + centre_shift, area=float(npix * s * s),
                                     confidence=float(confidence), peak_snr=float(peak / max(small_noise, 1e-12))))
             if len(contacts) >= cfg.max_contacts:
                 break
@@ -308,7 +369,10 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
         ry, rx = y0 * s - v0, x0 * s - u0
         region_full[ry:ry + h * s, rx:rx + w * s] = up[: v1 - v0 - ry, : u1 - u0 - rx]
         region_full = cv2.dilate(region_full, np.ones((s + 1, s + 1), np.uint8))
-        diff = full[v0:v1, u0:u1].astype(np.float32) - ref.mean[v0:v1, u0:u1]
+        expected = ref.mean[v0:v1, u0:u1]
+        if state is not None:
+            expected = _affine(expected, state.gain, state.offset)
+        diff = full[v0:v1, u0:u1].astype(np.float32) - expected
         diff = np.atleast_3d(_blur(diff, full_sigma))
         found = _refine(diff, region_full.astype(bool), full_threshold, full_noise)
         if found is None:
@@ -320,6 +384,40 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
         if len(contacts) >= cfg.max_contacts:
             break
     return contacts
+
+
+def _illumination(frame: np.ndarray, reference: np.ndarray, noise: float,
+                  threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel gain and offset taking the reference to the frame, fitted on the background.
+
+    LED drift or auto exposure changes the whole image by a few grey levels, which a threshold of
+    a few noise std would report as one image-wide contact. The fit must not see the contacts: a
+    median offset (subsampled) gives a first difference, whatever exceeds the threshold there is
+    masked with a wide margin (a dent's faint tails correlate with the background's shading), and
+    gain and offset are fitted by least squares on the remaining pixels.
+    """
+    frame, reference = frame[::2, ::2], reference[::2, ::2]     # a quarter of the pixels is plenty
+    channels = frame.shape[2]
+    gain = np.ones(channels, np.float32)
+    shift = np.array([np.median(frame[::3, ::3, c] - reference[::3, ::3, c]) for c in range(channels)],
+                     dtype=np.float32)
+    contact = (_squared_norm(frame - reference - shift) > threshold**2).astype(np.uint8)
+    background = cv2.dilate(contact, np.ones((5, 5), np.uint8)) == 0
+    background &= (np.abs(frame - reference - shift) < 4.0 * noise + 2.0).all(axis=2)
+    count = int(background.sum())
+    if count < max(16, background.size // 4):     # mostly "contact": keep the robust offset only
+        return gain, shift
+    offset = np.zeros(channels, np.float32)
+    for c in range(channels):
+        fi = frame[:, :, c][background].astype(np.float64)
+        ri = reference[:, :, c][background].astype(np.float64)
+        r_mean, f_mean = ri.sum() / count, fi.sum() / count
+        r_centred = ri - r_mean
+        variance = float((r_centred * r_centred).sum())
+        g = float((r_centred * (fi - f_mean)).sum()) / variance if variance > 1e-6 * count else 1.0
+        gain[c] = min(max(g, 0.5), 2.0)      # beyond this it is not drift: let the detector see it
+        offset[c] = f_mean - gain[c] * r_mean
+    return gain, offset
 
 
 def _refine(diff: np.ndarray, region: np.ndarray, threshold: float, noise: float):
@@ -336,7 +434,9 @@ def _refine(diff: np.ndarray, region: np.ndarray, threshold: float, noise: float
     np.maximum(values, 0.0, out=lobes[:, :channels])
     np.maximum(-values, 0.0, out=lobes[:, channels:])
     mass = lobes.sum(axis=0)                                    # (2C,)
-    moments = np.array([xs, ys], dtype=np.float64) @ lobes     # (2, 2C); float64 keeps it on BLAS
+    x = xs.astype(np.float64)[:, None]
+    y = ys.astype(np.float64)[:, None]
+    moments = np.stack([(lobes * x).sum(axis=0), (lobes * y).sum(axis=0)])   # (2, 2C), no BLAS
     mass_pos, mass_neg = mass[:channels], mass[channels:]
     weight = np.minimum(mass_pos, mass_neg)
     # a channel counts when both lobes carry real signal, not just noise leaking through the mask
@@ -346,11 +446,11 @@ def _refine(diff: np.ndarray, region: np.ndarray, threshold: float, noise: float
         w = weight[bipolar]
         centre_pos = moments[:, :channels][:, bipolar] / mass_pos[bipolar]      # (2, k) lobe centroids
         centre_neg = moments[:, channels:][:, bipolar] / mass_neg[bipolar]
-        u, v = 0.5 * (centre_pos + centre_neg) @ w / w.sum()
+        u, v = (0.5 * (centre_pos + centre_neg) * w).sum(axis=1) / w.sum()
         return float(u), float(v), npix, peak
     magnitude = score[ys, xs].astype(np.float64)
     total = magnitude.sum()
-    return float(magnitude @ xs / total), float(magnitude @ ys / total), npix, peak
+    return float((magnitude * x[:, 0]).sum() / total), float((magnitude * y[:, 0]).sum() / total), npix, peak
 
 
 def detect_paper(image: np.ndarray, reference: NoContactReference | None,
