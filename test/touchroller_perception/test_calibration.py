@@ -83,11 +83,14 @@ def render_hemispheres(camera: CameraModel, frame: cal.HemisphereFrame, *, seed:
     sigma = 0.5 * camera.fx * 0.8 * frame.hemisphere_radius / (camera.radius + camera.d)
     lights = [(1.0, 0.0), (-0.5, 0.866), (-0.5, -0.866)]
     gains = np.ones(len(uv)) if strength is None else np.asarray(strength)
+    half = int(6 * sigma) + 2
     for (cu, cv_), gain in zip(uv + np.asarray(shift_px), gains, strict=True):
-        du, dv = uu - cu, vv - cv_
+        u0, v0 = max(int(cu) - half, 0), max(int(cv_) - half, 0)
+        window = (slice(v0, min(int(cv_) + half, h)), slice(u0, min(int(cu) + half, w)))
+        du, dv = uu[window] - cu, vv[window] - cv_
         g = gain * np.exp(-(du**2 + dv**2) / (2 * sigma**2))
         for c, (lu, lv) in enumerate(lights):
-            image[..., c] += 60.0 * (du * lu + dv * lv) / sigma * g
+            image[window + (c,)] += 60.0 * (du * lu + dv * lv) / sigma * g
     if smear_px > 0:
         kernel = np.ones((int(smear_px), 1), np.float32) / int(smear_px)
         image = cv2.filter2D(image, -1, kernel)
@@ -304,11 +307,10 @@ def test_camera_info_fields():
 
 
 def test_intrinsics_radial_model_holds_the_tangential_terms(chessboards):
-    camera = TRUE_CAMERA.replace(distortion=(-0.08, 0.03, 0.0, 0.0, 0.0))
-    images = chessboard_views(camera, 8, seed=4)
-    result = cal.calibrate_intrinsics(images, BOARD, distortion="radial")
+    result = cal.calibrate_intrinsics(chessboards, BOARD, distortion="radial")
     assert result.camera.distortion[2] == 0.0 and result.camera.distortion[3] == 0.0
-    assert abs(result.camera.fx - camera.fx) < 3 * result.sigma["fx"] + 0.5
+    # the true lens has a little tangential distortion, which the radial model has to absorb
+    assert abs(result.camera.fx - TRUE_CAMERA.fx) < 3 * result.sigma["fx"] + 1.0
     with pytest.raises(cal.CalibrationError, match="distortion must be one of"):
         cal.calibrate_intrinsics(chessboards, BOARD, distortion="fisheye")
 
