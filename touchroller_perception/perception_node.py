@@ -60,6 +60,9 @@ DETECTOR_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "contacts.min_area": ("min_area", "Smallest contact, pixels above threshold (full resolution)", 0.0, 1e6),
     "contacts.max_contacts": ("max_contacts", "Most contacts reported per frame", 1, 1000),
     "contacts.paper_threshold": ("paper_threshold", "Fixed grey threshold of the paper's pipeline", 0.0, 255.0),
+    "contacts.compensate_illumination": ("compensate_illumination",
+                                         "Fit a per-channel gain/offset to the reference (LED drift, exposure)",
+                                         None, None),
 }
 
 

@@ -136,6 +136,8 @@ def test_detector_parameters_are_validated_and_applied(graph):
     assert node.detector.config.method == "paper"
     assert node.set_parameters([Parameter("contacts.threshold_sigma", value=4.0)])[0].successful
     assert math.isclose(node.detector.config.threshold_sigma, 4.0)
+    assert node.set_parameters([Parameter("contacts.compensate_illumination", value=False)])[0].successful
+    assert node.detector.config.compensate_illumination is False
     # out of the declared range: rclpy refuses it
     assert not node.set_parameters([Parameter("contacts.downscale", value=64)])[0].successful
 
