@@ -559,8 +559,6 @@ class Stitcher:
         return statistics.median(self._recent_frame) if self._recent_frame else None
 
     def _push_default(self, band: np.ndarray, dt: int | None, prior_px: float | None) -> StitchStep:
-        # Lateral shifts are read from the unflattened band: the flat field keeps some texture, which
-        # would hold a column profile in place; high-pass already removes the smooth shading.
         # Registration features: the flattened band, columns binned, high-passed (residual shading off).
         # Lateral shifts are read from the raw band: the flat field keeps a little texture, which would
         # hold a column profile in place, and its smooth shading is high-passed away in 1-D.
