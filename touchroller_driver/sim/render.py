@@ -121,6 +121,7 @@ class SimulatedSensor:
         self._thickness_variation = float(s.get("thickness_variation", 0.0))
         self._thickness_phase = self._rng_thickness.uniform(0.0, 2 * math.pi, size=2)
         self._mpp_contact: tuple[float, float] | None = None
+        self._band_cache: dict[float, dict[str, float]] = {}
         self._build_maps()
         self._build_lights(s)
         self._build_static()
@@ -217,13 +218,19 @@ class SimulatedSensor:
     def band_truth(self, depth: float) -> dict[str, float]:
         """The flat-contact band at penetration `depth`: half-width (m, 2D geometry sqrt(2 r d - d^2)),
         edge angles, and the image rows of its edges and centre line at x = 0 (nominal radius)."""
+        cached = self._band_cache.get(depth)
+        if cached is not None:
+            return dict(cached)
         r = self.camera.radius
         half = math.sqrt(max(2 * r * depth - depth * depth, 0.0))
         edge = math.asin(min(half / r, 1.0))
         pts = self.camera.surface_point(np.zeros(3), np.array([-edge, 0.0, edge]))
         uv, _ = self.camera.project(pts)
-        return {"half_width_m": half, "alpha_edge": edge, "v_top": float(uv[0, 1]),
+        band = {"half_width_m": half, "alpha_edge": edge, "v_top": float(uv[0, 1]),
                 "v_centre": float(uv[1, 1]), "v_bottom": float(uv[2, 1])}
+        if len(self._band_cache) < 4096:
+            self._band_cache[depth] = band
+        return dict(band)
 
     def contact_row(self) -> float:
         """Image row v of the contact line (x=0 on the membrane's lowest point)."""
