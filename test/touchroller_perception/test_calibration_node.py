@@ -136,3 +136,31 @@ def test_missing_perception_node_is_reported(graph, presses, spin_until):
         assert call(executor, spin_until, helper, "capture").success
     solved = call(executor, spin_until, helper, "solve")
     assert solved.success and "/nobody_here/set_parameters_atomically is not available" in solved.message
+
+
+def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, spin_until, tmp_path):
+    """Chessboard views and presses in one session: one solve sets intrinsics (incl. the distortion
+    array and the integer image size) and theta, d on the perception node in one atomic call."""
+    node, perception, helper, executor, image_pub, infos = graph
+    truth, references, pressed = presses
+    boards = sim.SimulatedSensor(sim.load_scene("calibration_chessboard", **{"motion.views": 8}), seed=5)
+    node.set_parameters([Parameter("target", value="chessboard")])
+    for frame in boards.frames():     # a later session: stamps after the presses' ones
+        show(executor, spin_until, node, image_pub, sim.Frame(frame.stamp_ns + 10**12, frame.image))
+        assert call(executor, spin_until, helper, "capture").success
+    node.set_parameters([Parameter("target", value="reference")])
+    show(executor, spin_until, node, image_pub, references[0])
+    assert call(executor, spin_until, helper, "capture").success
+    node.set_parameters([Parameter("target", value="hemispheres")])
+    for frame in pressed:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    solved = call(executor, spin_until, helper, "solve")
+    assert solved.success, solved.message
+    assert "intrinsics from 8/8 views" in solved.message and "setting 9 parameters" in solved.message
+    assert spin_until(executor, lambda: node.remote_result is not None, timeout=10.0)
+    assert node.remote_result.successful, node.remote_result.reason
+    model = perception.geometry.model
+    assert abs(model.fx - truth.fx) < 2.0 and abs(model.cy - truth.cy) < 3.0
+    assert model.distortion[0] == pytest.approx(truth.distortion[0], abs=0.02)
+    assert abs(math.degrees(model.theta - truth.theta)) < 0.5
