@@ -94,12 +94,13 @@ def run_scan(options: ScanOptions) -> ScanResult:
     nodes: list[Any] = []
     executor = MultiThreadedExecutor(num_threads=4, context=context)
     spinner: threading.Thread | None = None
+    stop_spinning = threading.Event()
     try:
         sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
         probe, collected, start_client = _make_probe(context, nodes)
         for node in nodes:
             executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, name="scan-executor", daemon=True)
+        spinner = threading.Thread(target=_spin, args=(executor, stop_spinning), name="scan-executor", daemon=True)
         spinner.start()
         say(f"scan: graph up ({', '.join(n.get_name() for n in nodes[:-1])}); "
             f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
@@ -118,12 +119,28 @@ def run_scan(options: ScanOptions) -> ScanResult:
                 node.request_stop()
         raise
     finally:
-        executor.shutdown(timeout_sec=2.0)
+        stop_spinning.set()
         if spinner is not None:
             spinner.join(timeout=2.0)
+        _drain(executor)
+        executor.shutdown(timeout_sec=2.0)
         for node in reversed(nodes):
             node.destroy_node()
         context.try_shutdown()
+
+
+def _spin(executor: Any, stop: threading.Event) -> None:
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=0.05)
+
+
+def _drain(executor: Any, timeout: float = 2.0) -> None:
+    """Let callbacks already handed to the thread pool finish before `shutdown` destroys the executor's
+    guard condition: rclpy's MultiThreadedExecutor.shutdown destroys it first, and a queued callback
+    then dies on it ("cannot use Destroyable because destruction was requested")."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(not f.done() for f in list(getattr(executor, "_futures", []))):
+        time.sleep(0.01)
 
 
 # -- building the graph ---------------------------------------------------------------------------
