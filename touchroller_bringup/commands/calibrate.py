@@ -50,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     extr.add_argument("--params", type=Path, required=True,
                       help="parameters file with the intrinsics (from 'touchroller calibrate intrinsics')")
     extr.add_argument("--frame", default="2x5", metavar="ROWSxCOLS",
-                      help="hemispheres across x along the axis (default 2x5)")
+                      help="hemisphere rows (across the axis) x columns (along it), default 2x5")
     extr.add_argument("--pitch", type=float, nargs=2, default=(0.010, 0.008), metavar=("X", "Y"),
                       help="centre distances along the axis and across it, m (default 0.010 0.008)")
     extr.add_argument("--hemisphere-radius", type=float, default=0.001, help="m (default 0.001)")
