@@ -828,6 +828,27 @@ def model_error_mm(camera: CameraModel, rotation: FloatArray, translation: Float
     return centre, float(distance[finite].max())
 
 
+def compare_cameras(a: CameraModel, b: CameraModel, band_px: float = 35.0, step: int = 4) -> dict[str, float]:
+    """How two calibrations differ: parameter differences (b - a) and how far apart they put the
+    back-projections of the same pixels on the membrane (mm): mean in the central contact band
+    |v - cy| <= band_px, and mean and max over the pixels both models can map."""
+    us, vs = np.meshgrid(np.arange(0, a.width, step, dtype=np.float64), np.arange(0, a.height, step, dtype=np.float64))
+    uv = np.stack([us, vs], axis=-1)
+    pa, va = a.back_project(uv)
+    pb, vb = b.back_project(uv)
+    both = va & vb
+    distance = 1e3 * np.linalg.norm(pa - pb, axis=-1)
+    band = both & (np.abs(vs - a.cy) <= band_px)
+    out = {f"d{name}_px": getattr(b, name) - getattr(a, name) for name in ("fx", "fy", "cx", "cy")}
+    out.update({"dtheta_deg": math.degrees(b.theta - a.theta), "dd_mm": 1e3 * (b.d - a.d),
+                "dradius_mm": 1e3 * (b.radius - a.radius),
+                "contact_band_mean_mm": float(distance[band].mean()) if band.any() else math.nan,
+                "image_mean_mm": float(distance[both].mean()) if both.any() else math.nan,
+                "image_max_mm": float(distance[both].max()) if both.any() else math.nan,
+                "mapped_fraction": float(both.mean())})
+    return out
+
+
 # =========================================================================== outputs
 def calibration_sigma(intrinsics: IntrinsicsResult | None, extrinsics: ExtrinsicsResult | None) -> dict[str, float]:
     """One-sigma uncertainties in `CameraModel.contact_covariance`'s names (theta in rad, d in m).

@@ -85,3 +85,15 @@ class _nothing:
 
     def __exit__(self, *exc):
         return False
+
+
+def test_calibrate_compare(tmp_path, capsys):
+    a, b = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    CameraModel().to_yaml(a)
+    CameraModel(d=0.001).to_yaml(b)
+    assert main(["calibrate", "compare", str(a), str(b)]) == 0
+    out = capsys.readouterr().out
+    assert "d +1.0000 mm" in out and "back-projections apart" in out
+    CameraModel(width=320, height=240, cx=159.5, cy=119.5).to_yaml(b)
+    assert main(["calibrate", "compare", str(a), str(b)]) == 2
+    assert "different image sizes" in capsys.readouterr().err

@@ -326,3 +326,12 @@ def test_grid_order_ignores_detection_order_and_small_rotations(angle, shift, se
     order, reason = cal._order_grid(pixels[permutation], FRAME.rows, FRAME.columns, 0.08)
     assert reason is None
     assert np.array_equal(pixels[permutation][order], pixels)
+
+
+def test_compare_cameras_measures_how_far_contacts_move():
+    same = cal.compare_cameras(TRUE_CAMERA, TRUE_CAMERA)
+    assert same["image_max_mm"] == 0.0 and same["dtheta_deg"] == 0.0
+    turned = cal.compare_cameras(TRUE_CAMERA, TRUE_CAMERA.replace(theta=TRUE_CAMERA.theta + math.radians(1.0)))
+    # a camera near the axis turned by 1 deg moves the seen membrane point by about r * 1 deg = 0.87 mm
+    assert turned["dtheta_deg"] == pytest.approx(1.0)
+    assert 0.75 < turned["contact_band_mean_mm"] < 1.0

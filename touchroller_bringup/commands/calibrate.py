@@ -6,6 +6,7 @@ INPUT is a rosbag2 recording (topic `/touchroller/image_raw` unless `--topic`), 
 
     touchroller calibrate intrinsics chessboard_bag --out cal.yaml
     touchroller calibrate extrinsics hemispheres_bag --params cal.yaml --out cal.yaml
+    touchroller calibrate compare hemispheres_bag/camera_truth.yaml cal.yaml
 """
 from __future__ import annotations
 
@@ -63,6 +64,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="plain mean of theta (the paper) without the frame-shift correction")
     extr.add_argument("--max-view-rms", type=float, default=1.0, help="reject views above this RMS (px)")
     extr.set_defaults(func=run_extrinsics)
+
+    compare = steps.add_parser("compare", help="how far apart two calibrations put contacts",
+                               description="Parameter differences (B - A) and the distance between the "
+                                           "two models' back-projections of the same pixels on the membrane; "
+                                           "e.g. a calibration against the simulator's BAG/camera_truth.yaml.")
+    compare.add_argument("a", type=Path, help="parameters file A (e.g. the reference or truth)")
+    compare.add_argument("b", type=Path, help="parameters file B (e.g. the new calibration)")
+    compare.set_defaults(func=run_compare)
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
@@ -182,6 +191,21 @@ def run_extrinsics(args: argparse.Namespace) -> int:
     for index, reason in sorted(result.rejected.items()):
         print(f"  rejected image {index}: {reason}")
     print(f"wrote {args.out}")
+    return 0
+
+
+def run_compare(args: argparse.Namespace) -> int:
+    from touchroller_perception.calibration import compare_cameras
+
+    a, b = _load_camera(args.a), _load_camera(args.b)
+    if (a.width, a.height) != (b.width, b.height):
+        raise UserError(f"the calibrations are for different image sizes: {a.width}x{a.height} and {b.width}x{b.height}")
+    diff = compare_cameras(a, b)
+    print(f"B - A: fx {diff['dfx_px']:+.3f} px, fy {diff['dfy_px']:+.3f} px, cx {diff['dcx_px']:+.3f} px, "
+          f"cy {diff['dcy_px']:+.3f} px, theta {diff['dtheta_deg']:+.4f}°, d {diff['dd_mm']:+.4f} mm")
+    print(f"back-projections apart: {diff['contact_band_mean_mm']:.3f} mm on average in the contact band, "
+          f"{diff['image_mean_mm']:.3f} mm on average and {diff['image_max_mm']:.3f} mm at most over the image "
+          f"({100 * diff['mapped_fraction']:.0f}% of the pixels map onto the membrane)")
     return 0
 
 
