@@ -113,7 +113,8 @@ def _blur_noise_factor(sigma: float) -> float:
 
 
 def _ksize(sigma: float) -> int:
-    return max(3, 2 * int(math.ceil(3.0 * sigma)) + 1)
+    # truncated at 2 sigma: 95% of the weight, and the kernel the noise factor is computed from
+    return max(3, 2 * int(math.ceil(2.0 * sigma)) + 1)
 
 
 def _blur(image: np.ndarray, sigma: float) -> np.ndarray:
