@@ -90,6 +90,7 @@ class Arm(Protocol):
     def is_moving(self) -> bool: ...
     def stop(self) -> None: ...
     def fault(self) -> str | None: ...
+    def keepalive(self) -> None: ...  # at >= 10 Hz while connected: a real arm stops when calls cease
     def disconnect(self) -> None: ...
 
 
@@ -205,6 +206,9 @@ class SimulatedArm:
     def fault(self) -> str | None:
         with self._lock:
             return self._fault
+
+    def keepalive(self) -> None:
+        """Nothing to keep alive: the simulation stops with the process."""
 
     # -- simulation ----------------------------------------------------------------------------
     def inject_fault(self, message: str = "protective stop") -> None:

@@ -148,7 +148,8 @@ class SweepNode(Node):
                 "lifts back to, m", min=0.0, max=0.05)
         declare(self, "cylinder.radius", 0.05, "Radius r of the membrane surface, metres (simulated roll)",
                 min=0.001, max=1.0)
-        declare(self, "sweep.publish_rate", 50.0, "Rate of TCP pose and progress messages, Hz", min=1.0, max=500.0,
+        declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose and progress messages, "
+                "watchdog kicks (>= 10 Hz), Hz", min=10.0, max=500.0,
                 read_only=True)
         declare(self, "arm.base_frame", "base", "Frame of the published TCP pose (the UR base)", read_only=True)
 
@@ -273,6 +274,7 @@ class SweepNode(Node):
         if self._connection_error is not None:
             return
         try:
+            self.arm.keepalive()
             status = self.sequencer.poll()
             pose = self.arm.tcp_pose()
         except (ArmError, RuntimeError) as exc:  # e.g. the connection dropped mid-call

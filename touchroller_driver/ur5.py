@@ -28,6 +28,8 @@ CONTROL_CALLS: dict[str, int] = {
     "isPoseWithinSafetyLimits": 1,
     "stopScript": 0,
     "disconnect": 0,
+    "setWatchdog": 1,  # minimum frequency
+    "kickWatchdog": 0,
 }
 RECEIVE_CALLS: dict[str, int] = {
     "getActualTCPPose": 0,
@@ -40,13 +42,14 @@ RECEIVE_CALLS: dict[str, int] = {
 CONSTRUCTOR_CALLS: dict[str, int] = {"RTDEControlInterface": 2, "RTDEReceiveInterface": 2}  # host, frequency
 
 STOP_DECELERATION = 0.5  # m/s^2: stopL's tool deceleration when the sweep is stopped
+WATCHDOG_HZ = 10.0  # the controller shuts our control script down if keepalive() stops coming this often
 
 
 class UR5Arm:
     """ur_rtde implementation of `touchroller_driver.arm.Arm`."""
 
     def __init__(self, robot_ip: str, *, limits: ArmLimits | None = None, frequency: float = -1.0,
-                 check_reachability: bool = True) -> None:
+                 check_reachability: bool = True, watchdog_hz: float = WATCHDOG_HZ) -> None:
         try:
             ipaddress.ip_address(robot_ip)
         except ValueError:
@@ -56,6 +59,7 @@ class UR5Arm:
         self.limits = limits or ArmLimits()
         self.frequency = float(frequency)
         self.check_reachability = check_reachability
+        self.watchdog_hz = float(watchdog_hz)  # 0 disables the watchdog
         self._control: Any = None
         self._receive: Any = None
         self._fault: str | None = None
@@ -78,7 +82,16 @@ class UR5Arm:
             message = f"cannot connect to the UR at {self.robot_ip}: {_one_line(exc)}"
             self._fault = message
             raise ArmError(message) from exc
+        if self.watchdog_hz > 0 and not self._control.setWatchdog(self.watchdog_hz):
+            self.disconnect()
+            self._fault = "the robot refused the communication watchdog"
+            raise ArmError(self._fault)
         self._fault = None
+
+    def keepalive(self) -> None:
+        """Kick the controller-side watchdog: if this process hangs or dies, the robot stops."""
+        if self._control is not None and self.watchdog_hz > 0:
+            self._control.kickWatchdog()
 
     def disconnect(self) -> None:
         control, receive = self._control, self._receive

@@ -178,3 +178,14 @@ def test_rotation_vector_to_quaternion():
     np.testing.assert_allclose(q, [1.0, 0.0, 0.0, 0.0], atol=1e-12)
     q = rotation_vector_to_quaternion([0, 0, math.pi / 2])
     np.testing.assert_allclose(q, [0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)])
+
+
+def test_the_arm_thread_keeps_the_arm_alive(harness_factory, spin_until):
+    class CountingArm(SimulatedArm):
+        kicks = 0
+
+        def keepalive(self) -> None:
+            CountingArm.kicks += 1
+
+    h = harness_factory(arm=CountingArm(START, clock=fast_clock))
+    assert spin_until(h.executor, lambda: CountingArm.kicks >= 10, timeout=5.0)  # 50 Hz loop, >= 10 Hz needed

@@ -115,11 +115,20 @@ def connected_arm(monkeypatch):
     receive.isEmergencyStopped.return_value = False
     receive.getSafetyMode.return_value = 1
     receive.getActualTCPPose.return_value = list(POSE)
+    control.setWatchdog.return_value = True
     monkeypatch.setattr(rtde_control, "RTDEControlInterface", lambda host, freq: control)
     monkeypatch.setattr(rtde_receive, "RTDEReceiveInterface", lambda host, freq: receive)
     arm = ur5.UR5Arm("127.0.0.1", limits=ArmLimits(max_speed=0.05, max_accel=0.5))
     arm.connect()
     return arm, control, receive
+
+
+def test_watchdog_is_armed_on_connect_and_kicked_by_keepalive(connected_arm):
+    arm, control, _ = connected_arm
+    control.setWatchdog.assert_called_once_with(ur5.WATCHDOG_HZ)
+    arm.keepalive()
+    arm.keepalive()
+    assert control.kickWatchdog.call_count == 2
 
 
 def test_limits_are_checked_before_moveL_is_sent(connected_arm):
@@ -288,6 +297,7 @@ def test_real_rtde_receive_reads_pose_and_protective_stop(fake_rtde_server, monk
     control.isConnected.return_value = True
     control.isPoseWithinSafetyLimits.return_value = True
     control.moveL.return_value = True
+    control.setWatchdog.return_value = True
     monkeypatch.setattr(rtde_control, "RTDEControlInterface", lambda h, f: control)  # receive stays real
     arm = ur5.UR5Arm(host)
     arm.connect()
