@@ -189,3 +189,24 @@ def test_the_arm_thread_keeps_the_arm_alive(harness_factory, spin_until):
 
     h = harness_factory(arm=CountingArm(START, clock=fast_clock))
     assert spin_until(h.executor, lambda: CountingArm.kicks >= 10, timeout=5.0)  # 50 Hz loop, >= 10 Hz needed
+
+
+def test_shutting_the_context_down_mid_sweep_stops_the_arm(ros_context):
+    """Ctrl-C under `ros2 run`: rclpy shuts the context down; the arm thread stops the arm and exits."""
+    arm = sim_arm()
+    node = SweepNode(arm=arm, context=ros_context, parameter_overrides=list(OVERRIDES))
+    try:
+        assert node.request_start()[0]
+        deadline = time.monotonic() + 10.0
+        while node.status.phase is not SweepPhase.SWEEPING and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert arm.is_moving()
+        ros_context.try_shutdown()
+        node._worker.join(timeout=5.0)
+        assert not node._worker.is_alive()
+        assert not arm.is_moving()
+        halted = arm.tcp_pose()
+        time.sleep(0.2)
+        np.testing.assert_allclose(arm.tcp_pose(), halted)
+    finally:
+        node.destroy_node()
