@@ -44,7 +44,7 @@ class DetectorConfig:
     blur_sigma: float = 1.0           # px of the downscaled image (candidate search)
     refine_blur_sigma: float = 1.5    # px at full resolution (centre refinement)
     refine_max_pixels: int = 20000    # larger candidate windows are centred on the downscaled image
-    compensate_illumination: bool = True   # fit a per-channel gain and offset to the reference each frame
+    compensate_illumination: bool = True   # per-channel gain/offset of frame vs reference (drift)
     close_size: int = 3               # morphological closing (downscaled px): merges lit and shaded lobes
     min_area: float = 64.0            # px^2 at full resolution (pixels above threshold); smaller is noise
     max_contacts: int = 32
@@ -238,6 +238,8 @@ class ContactDetector:
             return detect_paper(image, self.reference, self.config)
         ref = self._require_reference()
         frame = np.asarray(image)
+        if frame.ndim == 3 and frame.shape[2] == 4:
+            frame = np.ascontiguousarray(frame[:, :, :3])   # bgra: the reference dropped alpha too
         if np.atleast_3d(frame).shape != ref.shape:
             raise ValueError(f"image shape {frame.shape} does not match the reference {ref.shape}; recapture")
         return _detect_colour(frame, ref, self.config, self.illumination)

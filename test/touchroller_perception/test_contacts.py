@@ -218,3 +218,13 @@ def test_global_illumination_drift_is_not_a_contact(gain, offset):
     # without compensation the drift floods the image
     uncompensated = detector(compensate_illumination=False).detect(frame)
     assert len(uncompensated) != 1 or uncompensated[0].area > 10 * contact.area
+
+
+def test_bgra_frames_use_their_colour_channels():
+    def bgra(image):
+        return np.dstack([image, np.full(image.shape[:2], 255, np.uint8)])
+
+    det = ContactDetector(DetectorConfig())
+    det.set_reference([bgra(f) for f in references()])
+    [contact] = det.detect(bgra(render([(100.0, 80.0)], seed=6)))
+    assert math.hypot(contact.u - 100.0, contact.v - 80.0) < 0.5
