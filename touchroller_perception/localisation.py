@@ -4,7 +4,7 @@
 Eq. bigeq) onto the membrane and attaches a first-order covariance (pixel noise plus, if given,
 calibration uncertainty).
 
-`table_ii(quick)` reproduces the paper's contact-localisation protocol (Sec. V-B, Table II): a
+`table_ii(quick)` reproduces the paper's contact-localisation protocol (Sec. IV-B, Table II): a
 tip tapped at central angles -pi/6, -pi/12, 0, pi/12, pi/6 x axial positions 1/4, 1/2, 3/4 of the
 length, each tap rendered, detected and localised, under several error conditions:
 
@@ -12,7 +12,10 @@ length, each tap rendered, detected and localised, under several error condition
 * ``paper_detector``: true calibration, the paper's grey/threshold/moments pipeline;
 * ``error_sources``: the three sources the paper names, at stated sizes: calibration error
   (theta, d offsets), uneven elastomer thickness (radius varying along x and alpha), detection
-  noise; with our detector.
+  noise; with our detector (and with the paper's);
+* in the full run, each source alone (``theta_only``, ``d_only``, ``thickness_only``, ``noise_only``).
+
+`explain_paper_table` fits the calibration offsets that would reproduce the paper's own numbers.
 
 It also gives, per cell, the sensitivity of the localisation to each source (mm per degree of
 theta error, per mm of d error, per pixel along u and v, per mm of radius error), computed by
