@@ -67,6 +67,8 @@ DETECTOR_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
 
 
 class PerceptionNode(Node):
+    """Images -> contacts (PointStamped) and the tactile map; see the module docstring and docs/contacts.md."""
+
     def __init__(self, node_name: str = "perception_node", **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
         self._declare_parameters()
