@@ -181,15 +181,8 @@ def _positive_float(launch: str, name: str, text: str, *, allow_zero: bool = Fal
     return value
 
 
-def _config_file(name: str) -> Path:
-    try:
-        return config_path(name)
-    except OSError:  # ament_index without AMENT_PREFIX_PATH (plain venv): the source checkout's config/
-        return Path(__file__).resolve().parent.parent / "config" / name
-
-
 def _params_files(args: Mapping[str, str], extra: Sequence[str | Path] = ()) -> tuple[str, ...]:
-    files = [str(_config_file(name)) for name in DEFAULT_PARAMS_FILES if _config_file(name).is_file()]
+    files = [str(config_path(name)) for name in DEFAULT_PARAMS_FILES if config_path(name).is_file()]
     given = [("params file", p) for p in extra]
     given += [(key, args[key]) for key in ("params_file", "calibration_file") if args.get(key)]
     for what, name in given:
