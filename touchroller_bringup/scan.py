@@ -288,7 +288,8 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None])
             distance = float(np.linalg.norm(segment.target[:3] - position[:3]))
             durations += TrapezoidProfile(distance, segment.speed, segment.accel).duration
             position = segment.target
-    deadline = time.monotonic() + 2.0 * durations + 20.0
+    started = time.monotonic()
+    deadline = started + 2.0 * durations + 20.0
     last_report = 0.0
     while not sweep.finished.wait(0.1):
         now = time.monotonic()
@@ -300,8 +301,9 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None])
             status = sweep.status
             with collected.lock:
                 frames, contacts = collected.frames, len(collected.contacts)
-            say(f"scan: {status.phase.value:8s} {100.0 * status.roll_progress:5.1f}%  "
-                f"{frames} frames, {contacts} contacts")
+            rolled = f" ({100 * status.roll_progress * plan.length:.1f} of {100 * plan.length:.1f} cm)" if plan else ""
+            say(f"scan: {status.phase.value:8s} {100.0 * status.roll_progress:5.1f}%{rolled}  "
+                f"{frames} frames, {contacts} contacts, {now - started:4.1f} s")
     status = sweep.status
     say(f"scan: sweep {status.phase.value}: {status.message}")
     return status.phase.value, status.message
