@@ -10,7 +10,9 @@ call a user makes), prints progress, and when the sweep ends writes to the outpu
 - `contacts.csv`: every `/touchroller/contacts` point, columns of `touchroller contacts`
   (u, v re-projected through the perception node's camera model; area/confidence/peak_snr are not
   carried by PointStamped and are `nan`);
-- `report.md`: duration, frames, contacts, map size, skipped/dropped frames, the sweep's outcome.
+- `report.md`: duration, frames, contacts, map size, skipped/dropped frames, the sweep's outcome;
+- with `record`: `recording/`, a rosbag2 folder of the `/touchroller/*` topics and `/diagnostics`
+  (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
 """
 from __future__ import annotations
 
@@ -32,6 +34,8 @@ IMAGE_TOPIC = "/touchroller/image_raw"
 CONTACTS_TOPIC = "/touchroller/contacts"
 MAP_TOPIC = "/touchroller/map"
 PROGRESS_TOPIC = "/touchroller/sweep_progress"
+RECORDED_TOPICS = (IMAGE_TOPIC, "/touchroller/camera_info", CONTACTS_TOPIC, MAP_TOPIC, "/touchroller/tcp_pose",
+                   PROGRESS_TOPIC, "/diagnostics")
 
 
 @dataclass
@@ -43,6 +47,8 @@ class ScanOptions:
     reference_timeout_s: float = 30.0
     seed: int = 0
     progress: Callable[[str], None] | None = print
+    record: bool = False
+    storage: str = "sqlite3"
 
 
 @dataclass
@@ -59,6 +65,7 @@ class ScanResult:
     map_shape: tuple[int, ...] | None
     files: dict[str, Path]
     sweep: str = ""         # what the sweep node answered to ~/start (length, speed, depth)
+    recorded: dict[str, int] = field(default_factory=dict)  # topic -> messages in recording/
 
     @property
     def ok(self) -> bool:
@@ -98,6 +105,7 @@ def run_scan(options: ScanOptions) -> ScanResult:
     try:
         sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
         probe, collected, start_client = _make_probe(context, nodes)
+        recorder = _make_recorder(out_dir, options, context, nodes) if options.record else None
         for node in nodes:
             executor.add_node(node)
         spinner = threading.Thread(target=_spin, args=(executor, stop_spinning), name="scan-executor", daemon=True)
@@ -105,6 +113,8 @@ def run_scan(options: ScanOptions) -> ScanResult:
         say(f"scan: graph up ({', '.join(n.get_name() for n in nodes[:-1])}); "
             f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
         _wait_for_reference(perception, sweep, collected, options.reference_timeout_s)
+        if recorder is not None:
+            _wait_for_recorder(recorder, options.reference_timeout_s)
         started = time.monotonic()
         _call_start(start_client, sweep)
         outcome, message = _follow_sweep(sweep, collected, say)
@@ -112,7 +122,11 @@ def run_scan(options: ScanOptions) -> ScanResult:
         time.sleep(0.3)  # let the last frames through perception
         _flush_map(perception, collected)
         answer = sweep.last_answer[2] if sweep.last_answer else ""
-        return _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer)
+        recorded: dict[str, int] = {}
+        if recorder is not None:
+            recorder.close()  # drains and finalises the bag (UserError if writing failed)
+            recorded = dict(recorder.counts)
+        return _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer, recorded)
     except KeyboardInterrupt:
         for node in nodes:
             if hasattr(node, "request_stop"):
@@ -202,6 +216,26 @@ def _check_overrides(overrides: Mapping[str, Any], nodes: Sequence[Any]) -> None
     unknown = [name for name in overrides if not any(node.has_parameter(name) for node in nodes)]
     if unknown:
         raise UserError(f"no node of the scan graph has parameter(s) {', '.join(unknown)}")
+
+
+def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: list[Any]) -> Any:
+    from touchroller_bringup.recorder import Recorder
+
+    path = out_dir / "recording"
+    if path.exists():
+        raise UserError(f"{path} already exists; choose another --out")
+    recorder = Recorder(path, topics=RECORDED_TOPICS, storage=options.storage, context=context)
+    nodes.append(recorder)
+    return recorder
+
+
+def _wait_for_recorder(recorder: Any, timeout: float) -> None:
+    """The recorder subscribes once it has seen a publisher; start the sweep only after it has."""
+    deadline = time.monotonic() + timeout
+    while IMAGE_TOPIC not in recorder.counts:
+        if time.monotonic() > deadline:
+            raise UserError(f"the recorder did not find {IMAGE_TOPIC} within {timeout:.0f} s")
+        time.sleep(0.02)
 
 
 def _make_probe(context: Any, nodes: list[Any]) -> tuple[Any, _Collected, Any]:
@@ -326,7 +360,8 @@ def _flush_map(perception: Any, collected: _Collected) -> None:
 # -- outputs ----------------------------------------------------------------------------------------
 
 def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Collected, outcome: str,
-                   message: str, duration: float, sweep_answer: str) -> ScanResult:
+                   message: str, duration: float, sweep_answer: str,
+                   recorded: Mapping[str, int] | None = None) -> ScanResult:
     import cv2
 
     from touchroller_driver.image_conversion import image_to_array
@@ -349,7 +384,9 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     processed = int(getattr(perception, "received", 0))
     result = ScanResult(out_dir, outcome, message, duration, frames, processed,
                         int(getattr(perception, "dropped", 0)), int(getattr(perception, "malformed", 0)),
-                        len(contacts), map_shape, files, sweep_answer)
+                        len(contacts), map_shape, files, sweep_answer, dict(recorded or {}))
+    if recorded:
+        files["recording"] = out_dir / "recording"
     files["report"] = out_dir / "report.md"
     files["report"].write_text(_report(result, graph), encoding="utf-8")
     return result
@@ -401,6 +438,8 @@ def _report(result: ScanResult, graph: Graph) -> str:
         f"counted as dropped: {result.frames_dropped}; malformed: {result.frames_malformed}",
         f"- contacts: {result.contacts}",
         f"- map: {'x'.join(str(n) for n in result.map_shape) + ' px' if result.map_shape else 'none published'}",
+        *([f"- recording: `recording/` ({', '.join(f'{t} {n}' for t, n in result.recorded.items())})"]
+          if result.recorded else []),
         "",
         "## Graph",
         "",

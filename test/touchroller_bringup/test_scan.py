@@ -58,7 +58,7 @@ def test_parse_items_rejects_nonsense(item):
 @pytest.mark.timeout(120)
 def test_short_simulated_scan_writes_map_contacts_and_report(isolated_ros, tmp_path, capsys):
     out = tmp_path / "scan"
-    assert main(["scan", *SHORT, "--out", str(out)]) == 0
+    assert main(["scan", *SHORT, "--record", "--out", str(out)]) == 0
     summary = capsys.readouterr().out
     assert "scan done" in summary and str(out) in summary
 
@@ -83,6 +83,14 @@ def test_short_simulated_scan_writes_map_contacts_and_report(isolated_ros, tmp_p
     report = (out / "report.md").read_text()
     assert "**done**" in report and f"contacts: {len(rows) - 1}" in report
     assert f"map: {tactile_map.shape[0]}x{tactile_map.shape[1]}" in report
+
+    from touchroller_bringup.bags import read_images
+
+    recorded = list(read_images(out / "recording"))
+    published = int(report.split("frames published by the camera: ")[1].split()[0])
+    assert 0 < len(recorded) <= published
+    assert all(r.image.shape == (480, 640, 3) for r in recorded)
+    assert f"/touchroller/image_raw {len(recorded)}" in report
 
 
 @pytest.mark.ros

@@ -36,6 +36,10 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                         help="output folder (default: scan_output/<UTC timestamp>/)")
     parser.add_argument("--seed", type=int, default=0, help="simulator random seed (use_sim:=true)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    parser.add_argument("--record", action="store_true",
+                        help="also record the /touchroller topics to OUT/recording (rosbag2)")
+    parser.add_argument("--storage", choices=("sqlite3", "mcap"), default=None,
+                        help="storage of the --record bag (default sqlite3)")
 
 
 class _RestParser(argparse.ArgumentParser):
@@ -50,6 +54,8 @@ def _reparse(args: argparse.Namespace) -> argparse.Namespace:
     parsed.out = parsed.out or args.out
     parsed.seed = parsed.seed or args.seed
     parsed.quiet = parsed.quiet or args.quiet
+    parsed.record = parsed.record or args.record
+    parsed.storage = parsed.storage or args.storage or "sqlite3"
     return parsed
 
 
@@ -102,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or Path("scan_output") / time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     progress = None if args.quiet else (lambda line: print(line, flush=True))
     result = run_scan(ScanOptions(out_dir=out, arguments=arguments, params_files=files, overrides=overrides,
-                                  seed=args.seed, progress=progress))
+                                  seed=args.seed, progress=progress, record=args.record, storage=args.storage))
     map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
     print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
           f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")
