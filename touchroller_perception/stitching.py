@@ -260,7 +260,7 @@ class _BandSampler:
 
 
 def _highpass(image: np.ndarray, rows: int, cols: int) -> np.ndarray:
-    return image - cv2.blur(image, (cols, rows), borderType=cv2.BORDER_REFLECT)
+    return cv2.subtract(image, cv2.blur(image, (cols, rows), borderType=cv2.BORDER_REFLECT))
 
 
 def _taper(n: int) -> np.ndarray:
@@ -368,6 +368,7 @@ class Stitcher:
         self._prev: np.ndarray | None = None  # paper: the previous patch
         self._key: np.ndarray | None = None  # default: keyframe features (binned) and full resolution
         self._key_full: np.ndarray | None = None
+        self._key_energy: np.ndarray | None = None
         self._key_pos = (0.0, 0.0)
         self._flat_sum: np.ndarray | None = None  # live flat field: running sum and count
         self._flat_count = 0
@@ -477,7 +478,7 @@ class Stitcher:
         self._sampler = sampler
         self._canvas = _Canvas(shape[1], layers=2 if self.background and self.method == "default" else 1)
         self._weights = _taper(rows)
-        self._column_weights = self._weights[:, None]
+        self._column_weights = np.ascontiguousarray(np.repeat(self._weights[:, None], shape[1], axis=1))
 
     # -- the paper's method ------------------------------------------------------------------------
     def _push_paper(self, band: np.ndarray) -> StitchStep:
@@ -506,7 +507,7 @@ class Stitcher:
             if self._flat_count >= _FLAT_FIELD_MEMORY:  # a running mean: follows slowly changing light
                 self._flat_sum *= (_FLAT_FIELD_MEMORY - 1) / _FLAT_FIELD_MEMORY
                 self._flat_count -= 1
-            self._flat_sum += band
+            cv2.add(self._flat_sum, band, dst=self._flat_sum)
             self._flat_count += 1
             # Until the texture has moved well past the band, the mean still holds texture.
             if self._travel < 2 * self.band_rows or self._flat_count < 10:
@@ -517,7 +518,7 @@ class Stitcher:
         if self._gain_of is not field:  # the field changes every few frames at most
             self._field_level = float(field.mean())
             self._gain, self._gain_of = self._field_level / np.maximum(field, 1.0), field
-        return band * self._gain, field
+        return cv2.multiply(band, self._gain), field
 
     def _current_flat_field(self) -> np.ndarray | None:
         if self._fixed_flat_field is not None:
@@ -567,7 +568,7 @@ class Stitcher:
         feats = _highpass(self._bin(flat), self.highpass, max(1, self.highpass // self.column_bin) | 1)
         energy = float(cv2.norm(feats, cv2.NORM_L1)) / feats.size
         if self._key is None:
-            self._key, self._key_full = feats, full
+            self._key, self._key_full, self._key_energy = feats, full, _row_energy_cumsum(feats)
             self._key_pos = (self._position, self._lateral_pos)
             self._add_to_map(band, field)
             return StitchStep(0.0, 0.0, False, 0.0, self._position)
@@ -601,7 +602,7 @@ class Stitcher:
         self._add_to_map(band, field)
         overlap = 1.0 - abs(rel) / self.band_rows
         if not self.keyframes or overlap < self.keyframe_overlap or not confident:
-            self._key, self._key_full = feats, full
+            self._key, self._key_full, self._key_energy = feats, full, _row_energy_cumsum(feats)
             self._key_pos = (self._position, self._lateral_pos)
         return StitchStep(shift, confidence, not confident and predicted is not None, lateral, self._position)
 
@@ -614,7 +615,7 @@ class Stitcher:
         """Accumulate the raw band; with a background model also the flat field at the same place, so
         the map is sum(w * band) / sum(w * field): the static gain divides out pixel by pixel."""
         top, left = self._sampler.row0 - self._position, -self._lateral_pos
-        weighted_band = band * self._column_weights
+        weighted_band = cv2.multiply(band, self._column_weights)
         if not self.background:
             self._canvas.add((weighted_band,), self._weights, top, left, subpixel=self.subpixel)
             return
@@ -646,11 +647,12 @@ class Stitcher:
         if predicted is not None:
             centre = round(predicted)
             local = np.arange(max(centre - self.local_search, -max_rel), min(centre + self.local_search, max_rel) + 1)
-        candidates, costs, best = _search(feats, key, local)
+        key_sq = self._key_energy if key is self._key else None
+        candidates, costs, best = _search(feats, key, local, key_sq)
         if local is not wide and (best < 0 or best in (0, len(costs) - 1)
                                   or _confidence(costs, best) < self.min_confidence):
             # The prediction was off (speed change, a dropped frame): search the whole range.
-            candidates, costs, best = _search(feats, key, wide)
+            candidates, costs, best = _search(feats, key, wide, key_sq)
         if best < 0:
             return None, 0.0
         confidence = _confidence(costs, best)
@@ -660,10 +662,11 @@ class Stitcher:
         return rel, confidence
 
 
-def _search(cur: np.ndarray, key: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def _search(cur: np.ndarray, key: np.ndarray, candidates: np.ndarray,
+            key_sq: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     if candidates.size == 0:
         return candidates, np.zeros(0), -1
-    costs = _ncc_costs(cur, key, candidates, min_overlap=cur.shape[0] // 4)
+    costs = _ncc_costs(cur, key, candidates, min_overlap=cur.shape[0] // 4, key_sq=key_sq)
     best = int(np.nanargmin(costs)) if np.isfinite(costs).any() else -1
     return candidates, costs, best
 
@@ -682,7 +685,13 @@ def _sad_costs(cur: np.ndarray, prev: np.ndarray, shifts: Iterable[int], min_ove
     return np.asarray(out, np.float64)
 
 
-def _ncc_costs(cur: np.ndarray, key: np.ndarray, shifts: Iterable[int], min_overlap: int) -> np.ndarray:
+def _row_energy_cumsum(image: np.ndarray) -> np.ndarray:
+    """Cumulative sum of squared values per row, with a leading 0: energy of rows [a, b) in O(1)."""
+    return np.concatenate([[0.0], np.cumsum(np.einsum("ij,ij->i", image, image, dtype=np.float64))])
+
+
+def _ncc_costs(cur: np.ndarray, key: np.ndarray, shifts: Iterable[int], min_overlap: int,
+               key_sq: np.ndarray | None = None) -> np.ndarray:
     """1 - normalised cross-correlation of cur(i) and key(i - d) over the overlapping rows, for each d.
 
     Unlike a mean absolute difference, this does not favour the shifts whose overlap leaves out the
@@ -690,8 +699,8 @@ def _ncc_costs(cur: np.ndarray, key: np.ndarray, shifts: Iterable[int], min_over
     either side has no texture. Features are high-passed, so their mean is ~0.
     """
     h = cur.shape[0]
-    cur_sq = np.concatenate([[0.0], np.cumsum(np.einsum("ij,ij->i", cur, cur, dtype=np.float64))])
-    key_sq = np.concatenate([[0.0], np.cumsum(np.einsum("ij,ij->i", key, key, dtype=np.float64))])
+    cur_sq = _row_energy_cumsum(cur)
+    key_sq = _row_energy_cumsum(key) if key_sq is None else key_sq
     out = []
     for d in shifts:
         d = int(d)

@@ -9,9 +9,6 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-import queue
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 from touchroller_bringup.errors import UserError
@@ -60,25 +57,18 @@ def run(args: argparse.Namespace) -> int:
     if args.search < 1:
         raise UserError(f"--search must be at least 1 pixel, got {args.search}")
     camera = _load_camera(args.params)
-    holder: list = []
-
-    def bands():
-        """Runs in the reader thread: read, convert and cut the band (OpenCV releases the GIL)."""
-        for record in read_images(args.bag, args.topic):
-            if not holder:
-                holder.append(_make_stitcher(args, camera, record.image.shape))
-            try:
-                yield record.stamp_ns, holder[0].band(record.image)
-            except ValueError as exc:
-                raise UserError(f"frame at stamp {record.stamp_ns}: {exc}") from None
-
+    stitcher = None
     frames = 0
-    for stamp_ns, band in _prefetch(bands()):
-        holder[0].push_band(band, stamp_ns)
+    for record in read_images(args.bag, args.topic):
+        if stitcher is None:
+            stitcher = _make_stitcher(args, camera, record.image.shape)
+        try:
+            stitcher.push(record.image, record.stamp_ns)
+        except ValueError as exc:
+            raise UserError(f"frame at stamp {record.stamp_ns}: {exc}") from None
         frames += 1
-    if not holder:
+    if stitcher is None:
         raise UserError(f"{args.bag} has no images on {args.topic}")
-    stitcher = holder[0]
     stitcher.finalise()
     image = stitcher.map_image(args.metric)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -110,43 +100,6 @@ def _make_stitcher(args: argparse.Namespace, camera, shape):
         return Stitcher(args.method, band_rows=args.band_rows, search=args.search, camera=camera, live_map=False)
     except ValueError as exc:
         raise UserError(str(exc)) from None
-
-
-def _prefetch(items: Iterator, depth: int = 32) -> Iterator:
-    """Iterate `items` in a background thread, a few items ahead: reading and decoding the bag overlaps
-    with stitching. Errors in the thread are raised here; leaving early stops the thread."""
-    buffer: queue.Queue = queue.Queue(maxsize=depth)
-    stop = threading.Event()
-    done = object()
-
-    def worker() -> None:
-        try:
-            for item in items:
-                while not stop.is_set():
-                    try:
-                        buffer.put(item, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            buffer.put(done)
-        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which re-raises it
-            buffer.put(exc)
-
-    thread = threading.Thread(target=worker, name="touchroller-map-reader", daemon=True)
-    thread.start()
-    try:
-        while True:
-            item = buffer.get()
-            if item is done:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
-        thread.join(timeout=5.0)
 
 
 def _load_camera(path: str | None):
