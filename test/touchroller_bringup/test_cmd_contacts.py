@@ -61,6 +61,8 @@ def test_contacts_without_calibration_give_nan_points(tapped_bag, tmp_path):
     (["--reference-frames", "50"], "the reference needs 50"),
     (["--reference-frames", "0"], "at least 1"),
     (["--topic", "/other"], "no topic /other"),
+    (["--threshold-sigma", "-1"], "threshold_sigma must be positive"),
+    (["--pixel-sigma", "nan"], "--pixel-sigma"),
 ])
 def test_bad_input_is_one_line(tapped_bag, tmp_path, capsys, extra, message):
     bag, _ = tapped_bag
