@@ -403,6 +403,8 @@ class Stitcher:
         image = np.asarray(image)
         if image.ndim < 2 or image.size == 0:
             raise ValueError(f"expected a non-empty image, got shape {image.shape}")
+        if image.dtype.kind == "f" and not np.isfinite(image).all():
+            raise ValueError("the image has non-finite pixel values")
         shape = tuple(image.shape[:2])
         if self._shape is None:
             self._setup(shape)

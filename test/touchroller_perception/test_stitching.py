@@ -217,3 +217,42 @@ def test_flat_frames_give_zero_confidence_not_a_wrong_number():
     assert all(math.isfinite(s.shift_px) for s in steps)
     assert all(s.confidence < 0.15 for s in steps)
     assert all(s.shift_px == 0.0 for s in steps)
+
+
+def test_non_finite_frames_are_rejected():
+    image = np.full(SHAPE, 100.0, np.float32)
+    image[5, 5] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        Stitcher().push(image, 0)
+
+
+def test_finalise_divides_out_dust_and_shading_from_the_first_frame_on():
+    frames, pos, tex = roll(np.full(70, 2.5), noise=1.0)
+    live = Stitcher()
+    offline = Stitcher(live_map=False)
+    for k, f in enumerate(frames):
+        live.push(f, k * FRAME_NS)
+        offline.push(f, k * FRAME_NS)
+    live_map = compare_to_truth(live.map_image(), tex, valid=live.map_coverage())
+    offline.finalise()
+    live.finalise()
+    final = compare_to_truth(live.map_image(), tex, valid=live.map_coverage())
+    assert np.array_equal(live.map_image(), offline.map_image())  # same result without the live layer
+    assert final["ssim"] > 0.85
+    assert final["ssim"] >= live_map["ssim"] - 0.01
+
+
+def test_estimate_flat_field_keeps_stripes_along_the_roll_out_of_the_field():
+    rng = np.random.default_rng(0)
+    stripes = (10 * np.sin(np.arange(320) * 0.9)).astype(np.float32)  # constant along the roll
+    gain = gel_gain(3)[80:150]
+    bands = [gain * (128 + stripes + rng.normal(0, 5, (70, 320)).astype(np.float32)) for _ in range(50)]
+    from touchroller_perception.stitching import estimate_flat_field
+
+    field = estimate_flat_field(bands)
+    flattened = np.mean([b / field for b in bands], axis=0)
+    profile = flattened.mean(axis=0)
+    assert np.corrcoef(profile, stripes)[0, 1] > 0.9  # the surface's stripes survive
+    speck_rows, speck_cols = np.nonzero(gain < 0.5)
+    if speck_rows.size:  # dust divides out
+        assert np.std(flattened[speck_rows, speck_cols] / flattened.mean()) < 0.1
