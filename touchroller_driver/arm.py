@@ -76,6 +76,35 @@ def as_pose(pose: ArrayLike) -> np.ndarray:
     return array
 
 
+def roller_state_from_pose(pose: ArrayLike, velocity: ArrayLike, t: float, *, origin: ArrayLike,
+                           surface_z: float, rolling_direction: Sequence[float], radius: float,
+                           travel_origin: float = 0.0, x_along_origin: float = 0.0) -> RollerState:
+    """The simulated sensor's `RollerState` for a TCP pose (and linear velocity, m/s) in the base frame.
+
+    The roller rolls without slip along `rolling_direction` (horizontal, base frame) from `origin`,
+    which sits at (`x_along_origin`, `travel_origin`) of the simulated surface; its axis is horizontal
+    and perpendicular to the rolling direction; it touches the surface at z = `surface_z`. Usable by
+    anything that receives poses (e.g. a simulated camera following `/touchroller/tcp_pose`).
+    """
+    from touchroller_driver.sim import RollerState
+
+    heading = np.asarray(rolling_direction, dtype=np.float64)
+    heading = heading / np.linalg.norm(heading)
+    axis = np.cross((0.0, 0.0, 1.0), heading)
+    axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else np.array([0.0, 1.0, 0.0])
+    pose = np.asarray(pose, dtype=np.float64)
+    offset = pose[:3] - np.asarray(origin, dtype=np.float64)[:3]
+    travel = float(offset @ heading)
+    return RollerState(
+        x_along=x_along_origin + float(offset @ axis),
+        travel=travel_origin + travel,
+        roll=travel / radius,
+        depth=surface_z - float(pose[2]),
+        speed=float(np.asarray(velocity, dtype=np.float64)[:3] @ heading),
+        t=float(t),
+    )
+
+
 @runtime_checkable
 class Arm(Protocol):
     """What the sweep node needs from an arm. All calls come from one thread."""
@@ -223,22 +252,13 @@ class SimulatedArm:
 
     def roller_state(self, t: float | None = None) -> RollerState:
         """The simulated sensor's state at arm-clock time `t` (seconds; now if None)."""
-        from touchroller_driver.sim import RollerState
-
         t = self.clock() if t is None else float(t)
         with self._lock:
             pose = self._pose_locked(t)
             velocity = self._move.velocity(t) if self._move is not None else np.zeros(3)
-        offset = pose[:3] - self.origin[:3]
-        travel = float(offset @ self.rolling_direction)
-        return RollerState(
-            x_along=self.x_along_origin + float(offset @ self.axis_direction),
-            travel=self.travel_origin + travel,
-            roll=travel / self.radius,
-            depth=self.surface_z - float(pose[2]),
-            speed=float(velocity @ self.rolling_direction),
-            t=t,
-        )
+        return roller_state_from_pose(pose, velocity, t, origin=self.origin, surface_z=self.surface_z,
+                                      rolling_direction=self.rolling_direction, radius=self.radius,
+                                      travel_origin=self.travel_origin, x_along_origin=self.x_along_origin)
 
     # -- internals -----------------------------------------------------------------------------
     def _require_ready(self) -> None:

@@ -313,3 +313,19 @@ def test_the_arm_pose_drives_the_simulated_sensor():
 
     assert 0.95 * band(depth) <= pressed <= 1.05 * band(depth + relief)
     assert touching < 0.6 * pressed, (touching, pressed)
+
+
+def test_roller_state_from_pose_projects_onto_the_rolling_and_axis_directions():
+    try:
+        from touchroller_driver.arm import roller_state_from_pose
+    except ImportError:  # pragma: no cover
+        pytest.skip("simulator not landed yet")
+    pose = np.array(START) + [0.01, 0.02, -0.001, 0, 0, 0]
+    state = roller_state_from_pose(pose, [0.0, 0.005, 0.0], 3.0, origin=START, surface_z=START[2],
+                                   rolling_direction=(0.0, 2.0, 0.0), radius=0.05, travel_origin=0.1,
+                                   x_along_origin=0.004)
+    assert state.travel == pytest.approx(0.12)          # 0.1 + 0.02 along +y
+    assert state.x_along == pytest.approx(0.004 - 0.01)  # axis = z x y = -x
+    assert state.roll == pytest.approx(0.02 / 0.05)
+    assert state.depth == pytest.approx(0.001)
+    assert state.speed == pytest.approx(0.005) and state.t == 3.0
