@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from touchroller_driver.arm import ArmError, ArmLimits, as_pose
+from touchroller_driver.arm import ArmError, ArmLimits
 
 # Every ur_rtde call this module makes, with the positional arguments it passes (besides self).
 # test_ur5.py checks these against the installed module's pybind signatures.
@@ -187,4 +187,4 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-__all__ = ["UR5Arm", "CONTROL_CALLS", "RECEIVE_CALLS", "as_pose"]
+__all__ = ["CONSTRUCTOR_CALLS", "CONTROL_CALLS", "RECEIVE_CALLS", "UR5Arm"]
