@@ -14,6 +14,7 @@ polynomial, non-finite) come back as NaN with `valid == False`, never as a wrong
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -138,7 +139,7 @@ class CameraModel:
         """The pinhole in the cylinder frame: -R^T t = (0, d sin(theta), -d cos(theta))."""
         return np.array([0.0, self.d * math.sin(self.theta), -self.d * math.cos(self.theta)])
 
-    @property
+    @functools.cached_property
     def max_undistorted_radius2(self) -> float:
         """Squared normalised radius where the radial distortion folds back (inf if it never does)."""
         return _fold_radius2(*self.distortion)
@@ -355,8 +356,9 @@ def _fold_radius2(k1: float, k2: float, p1: float, p2: float, k3: float) -> floa
     the smallest positive s is 1 / (largest positive real w).
     """
     roots = np.roots([1.0, 3.0 * k1, 5.0 * k2, 7.0 * k3])
-    positive = [r.real for r in roots if abs(r.imag) <= 1e-12 * max(1.0, abs(r)) and r.real > 0]
-    return 1.0 / max(positive) if positive else math.inf
+    positive = [float(r.real) for r in roots if abs(r.imag) <= 1e-12 * max(1.0, abs(r)) and r.real > 0]
+    largest = max(positive, default=0.0)
+    return 1.0 / largest if largest > 1e-300 else math.inf    # a vanishing root: the fold is at infinity
 
 
 # --------------------------------------------------------------------------- YAML helpers

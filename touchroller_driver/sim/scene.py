@@ -15,6 +15,7 @@ from typing import Any
 
 import yaml
 
+from touchroller_bringup.paths import config_path
 from touchroller_perception.geometry import CameraModel
 
 #: Effects a scene may list; the contact geometry and the membrane shading are always rendered.
@@ -46,21 +47,8 @@ _DEFAULT_SENSOR: dict[str, Any] = {
 }
 
 
-def config_file(*parts: str) -> Path:
-    """`touchroller_bringup.paths.config_path`, falling back to the source checkout when the ament
-    index is unusable (AMENT_PREFIX_PATH unset makes ament_index_python raise OSError)."""
-    from touchroller_bringup.paths import config_path
-
-    try:
-        return config_path(*parts)
-    except OSError:
-        import touchroller_bringup
-
-        return Path(touchroller_bringup.__file__).resolve().parent.parent / "config" / Path(*parts)
-
-
 def _default_camera() -> dict[str, Any]:
-    path = config_file("touchroller.yaml")
+    path = config_path("touchroller.yaml")
     return CameraModel.from_yaml(path).to_params() if path.is_file() else CameraModel().to_params()
 
 
@@ -149,7 +137,7 @@ def load_scene(name_or_path: str | Path, variant: str | None = None, **overrides
 
 
 def available_scenes() -> list[str]:
-    return sorted(p.stem for p in config_file("scenes").glob("*.yaml"))
+    return sorted(p.stem for p in config_path("scenes").glob("*.yaml"))
 
 
 def set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
@@ -169,7 +157,7 @@ def _resolve(name_or_path: str | Path) -> Path:
     candidate = Path(name_or_path)
     if candidate.suffix in (".yaml", ".yml") and candidate.is_file():
         return candidate
-    named = config_file("scenes", f"{name_or_path}.yaml")
+    named = config_path("scenes", f"{name_or_path}.yaml")
     if named.is_file():
         return named
     raise ValueError(f"no scene {str(name_or_path)!r} (known: {', '.join(available_scenes()) or 'none'})")
