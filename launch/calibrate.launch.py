@@ -4,7 +4,6 @@
 Nodes, parameters and remappings come from `touchroller_bringup.graph` (the one definition,
 shared with `touchroller scan`); this file only declares its arguments and builds launch_ros Nodes.
 """
-# ruff: noqa: I001  (the repository's launch/ folder makes ruff take `launch` for first-party)
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
