@@ -248,6 +248,12 @@ class PerceptionNode(Node):
                 self.get_logger().error(f"tactile map disabled: {type(exc).__name__}: {exc}")
             self._set_map_rate(0.0)
 
+    def reset_map(self) -> None:
+        """Start a new map with the next frame (e.g. when the roll begins: frames of a roller standing
+        still would teach the stitcher a zero velocity that its static background then confirms)."""
+        self.stitcher = None
+        self._map_dirty = False
+
     def publish_map(self) -> None:
         if self.stitcher is None or not self._map_dirty:
             return
