@@ -337,6 +337,12 @@ def markdown(result: dict[str, Any], command: str) -> str:
     return "\n".join(lines)
 
 
+def to_markdown(result: dict[str, Any]) -> str:
+    """The report's section: the results file without its title."""
+    body = markdown(result, "touchroller report").split("\n", 2)[2]
+    return body.replace("\n## ", "\n### ")          # sub-sections of the report's section
+
+
 def seeds_of(result: dict[str, Any]) -> list[int]:
     return list(range(min(result["seeds"], 3 if result["quick"] else 5)))
 

@@ -105,17 +105,20 @@ def run(quick: bool = False) -> dict:
 def write(result: dict, command: str) -> Path:
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "sim_bench.json").write_text(json.dumps(result, indent=2))
+    path = RESULTS / "sim_bench.md"
+    path.write_text(f"# Simulator benchmark (`bench/sim_bench.py`)\n\nCommand: `{command}`  \n" + to_markdown(result))
+    return path
+
+
+def to_markdown(result: dict) -> str:
+    """The figures as Markdown (for the report and the results file)."""
     default = next(r for r in result["rows"] if r["config"].startswith("scene default"))
     status = "met" if default["fps"] >= result["goal_fps"] else "NOT met"
     lines = [
-        "# Simulator benchmark (`bench/sim_bench.py`)",
-        "",
-        f"Command: `{command}`  ",
         f"Machine: {result['machine']['nproc']} cores reported by the OS, {result['machine']['cpu']}; "
         f"OpenCV {result['machine']['opencv']} pinned to {result['machine']['cv2_threads']} thread(s), "
         f"numpy {result['machine']['numpy']}, Python {result['machine']['python']}.  ",
-        "Measured while the machine was shared with other engineers' jobs (per-frame minimum over "
-        "repeats is reported to reduce that noise; the lead re-runs this at the end). "
+        "Per-frame minimum over repeats is reported to reduce scheduling noise. "
         f"Load average before/after: {result['loadavg_before_after'][0]} / {result['loadavg_before_after'][1]}.",
         "",
         f"Scene {result['scene']} ({result['image']}), the scene's own 10 s roll; each row renders every "
@@ -139,9 +142,7 @@ def write(result: dict, command: str) -> Path:
         "over the contact rows per frame; noise is a pre-drawn bank sliced per frame (two saturating "
         "uint8 adds); compression is a JPEG encode+decode; dropped frames cost nothing per frame.",
     ]
-    path = RESULTS / "sim_bench.md"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return "\n".join(lines) + "\n"
 
 
 def main() -> int:

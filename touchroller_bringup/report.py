@@ -11,6 +11,7 @@ import importlib.util
 import os
 import platform
 import subprocess
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,13 +43,11 @@ SECTIONS: tuple[Section, ...] = (
     Section("calibration", "Calibration: accuracy against effort", "calib_bench",
             "theta, d and reprojection error against the number of calibration images and solve time, and the "
             "contact error that remains after calibrating on simulated frames."),
-    Section("coverage", "Coverage: a flat sensor by press–lift–shift against one roll", "sim_coverage",
+    Section("coverage", "Coverage: a flat sensor by press–lift–shift against one roll", "coverage",
             "Presses and seconds to cover 8 x 11 cm with a flat 1.6 x 1.2 cm sensor, timed from the arm's speed and "
             "acceleration limits, against one roll (the paper: 49 presses, 196 s vs 10 s)."),
     Section("simulator", "Simulator speed and the cost of each effect", "sim_bench",
             "Frames per second of the renderer for the mapping scene at 640x480 on one core, and each effect's cost."),
-    Section("dds", "Image → contact latency over DDS", "dds_latency",
-            "The real perception node over loopback Fast DDS: latency percentiles at 30 Hz and 60 Hz, drops."),
     Section("stability", "Numerical stability of the camera model", "geometry_stability",
             "The hard cases the property-based tests cover, and what the code returns there."),
 )
@@ -73,6 +72,7 @@ def _load(script: str) -> ModuleType:
     spec = importlib.util.spec_from_file_location(f"bench_{script}", path)
     assert spec and spec.loader
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module      # dataclasses in a bench script look their module up here
     spec.loader.exec_module(module)
     for name in ("run", "to_markdown"):
         if not callable(getattr(module, name, None)):

@@ -1,0 +1,41 @@
+"""The evidence report runs in quick mode and its tables are complete."""
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from touchroller_bringup.report import SECTIONS, build_report
+
+
+@pytest.mark.slow
+def test_quick_report_has_every_section_with_complete_tables(tmp_path):
+    out = tmp_path / "RESULTS.md"
+    results = build_report(out, quick=True, progress=lambda _line: None)
+    text = out.read_text()
+    assert set(results) == {s.key for s in SECTIONS}
+    assert "touchroller report --quick" in text and "Machine:" in text
+    for section in SECTIONS:
+        assert f"## {section.title}" in text, section.key
+    body = text.split("\n## ", 1)[1]
+    tables = re.findall(r"((?:^\|.*\|\n)+)", body, flags=re.MULTILINE)
+    assert len(tables) >= len(SECTIONS)
+    for table in tables:
+        rows = [row.strip("|").split("|") for row in table.strip().splitlines()]
+        header, data = rows[0], rows[2:]     # rows[1] is the |---| separator
+        assert data, f"table without rows: {header}"
+        assert all(len(row) == len(header) for row in data), f"ragged table: {header}"
+        assert all(cell.strip() for row in data for cell in row[:1]), f"row without a label: {header}"
+        assert not any(cell.strip().lower() in ("nan", "none", "") for row in data for cell in row[1:2]), header
+    # the paper's reference numbers stand beside ours
+    assert "7.66" in text and "2.63" in text          # Table II, paper
+    assert "196" in text and "49" in text             # coverage, paper
+    for figure in tmp_path.glob("*.png"):
+        assert figure.stat().st_size > 0
+
+
+def test_unknown_section_is_refused(tmp_path):
+    from touchroller_bringup.errors import UserError
+
+    with pytest.raises(UserError, match="unknown report section"):
+        build_report(tmp_path / "r.md", quick=True, only=("nope",))
