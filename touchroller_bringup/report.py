@@ -113,13 +113,13 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
             body += [f"![{figure.stem}]({figure.relative_to(out.parent).as_posix()})", ""]
         body += [f"*Section produced by `bench/{section.script}.py` in {seconds:.1f} s.*", ""]
     total = time.perf_counter() - started
-    mode = "--quick" if quick else ""
+    command = "touchroller report" + (" --quick" if quick else "")
     header = [
         "# TouchRoller ROS 2: results",
         "",
         "Every number below was produced by the command that wrote this file; nothing is typed in.",
         "",
-        f"- Command: `touchroller report {mode}`".rstrip() + f" (took {total:.0f} s, {'quick' if quick else 'full'} mode)",
+        f"- Command: `{command}` (took {total:.0f} s, {'quick' if quick else 'full'} mode)",
         f"- Machine: {machine_description()}",
         f"- Commit: {_commit()}",
         "",
