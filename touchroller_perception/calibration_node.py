@@ -26,8 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rclpy
-import rclpy.executors
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParametersAtomically
 from rclpy.node import Node
@@ -273,15 +271,9 @@ def _changed(camera: CameraModel, with_intrinsics: bool) -> list[tuple[str, Any]
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = CalibrationNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    from touchroller_bringup.ros_main import run_node
+
+    run_node(CalibrationNode, args)
 
 
 if __name__ == "__main__":

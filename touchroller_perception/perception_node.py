@@ -23,8 +23,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import rclpy
-import rclpy.executors
 from geometry_msgs.msg import PointStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -300,15 +298,9 @@ def _has_message_info() -> bool:
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = PerceptionNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    from touchroller_bringup.ros_main import run_node
+
+    run_node(PerceptionNode, args)
 
 
 if __name__ == "__main__":
