@@ -308,7 +308,7 @@ def measure_publish_path(frames: list[np.ndarray], repeats: int = 200) -> dict[s
 
 TRANSPORTS = {
     "default": None,  # rmw_fastrtps_cpp's built-in transports (UDPv4 + SHM with 512 KB segments)
-    "shm": ROOT / "bench" / "dds_fastdds_shm.xml",  # shared memory with segments that hold a whole image
+    "shm": ROOT / "config" / "fastdds_shm.xml",  # shared memory with segments that hold a whole image
 }
 
 
@@ -391,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
         "'missed' = contact frames for which no contact arrived (a drop anywhere in the graph); "
         "'perception drops' = gaps in the publication sequence seen by the perception node "
         "(its /diagnostics, includes the reference frames). Transport 'default' = Fast DDS built-ins; "
-        "'shm' = bench/dds_fastdds_shm.xml (shared memory, segments that hold a whole image). "
+        "'shm' = config/fastdds_shm.xml (shared memory, segments that hold a whole image). "
         "With 1 process, Fast DDS delivers intra-process and the transport does not matter.",
         "",
         "| transport | processes | rate (Hz) | frames | missed | perception drops | p50 (ms) | p99 (ms) | max (ms) | goal |",
