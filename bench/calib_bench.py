@@ -24,23 +24,21 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import RESULTS as RESULTS_DIR  # noqa: E402
+from _common import provenance, provenance_markdown  # noqa: E402
 
 from touchroller_perception import calibration as cal  # noqa: E402
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 
-RESULTS = ROOT / "bench" / "results" / "calib_bench"
+RESULTS = RESULTS_DIR / "calib_bench"
 GOALS = {"theta_deg": 0.1, "d_mm": 0.05, "rms_px": 0.2, "solve_s": 2.0}
 #: the contact_localisation scene's `paper` variant sensor flaws, applied to the calibration scenes
 SENSOR_FLAWS = {
@@ -48,19 +46,6 @@ SENSOR_FLAWS = {
     "elastomer thickness ±0.3 mm": {"sensor.thickness_variation": 3.0e-4},
     "both (the paper variant)": {"effect_params.noise.sigma": 3.0, "sensor.thickness_variation": 3.0e-4},
 }
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (f"nproc {len(os.sched_getaffinity(0))} (of {os.cpu_count()}), {cpu}, Python {platform.python_version()}, "
-            f"OpenCV {cv2.__version__}, numpy {np.__version__}")
 
 
 # --------------------------------------------------------------------------- rendering
@@ -189,7 +174,8 @@ def contact_errors(cameras: dict[str, CameraModel], variant: str, seed: int, rep
 
 def run(quick: bool = False) -> dict[str, Any]:
     seeds = list(range(3 if quick else 10))
-    result: dict[str, Any] = {"quick": quick, "seeds": len(seeds), "machine": machine(), "goals": GOALS}
+    result: dict[str, Any] = {"quick": quick, "seeds": len(seeds), "provenance": provenance("calib_bench", quick),
+                              "goals": GOALS}
     result["intrinsics_vs_views"] = intrinsics_vs_views(seeds, [5, 10, 20] if quick else [5, 10, 20, 40])
     result["extrinsics_vs_presses"] = extrinsics_vs_presses(seeds, [2, 5, 10] if quick else [2, 3, 5, 10, 20])
 
@@ -235,14 +221,12 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- report
-def markdown(result: dict[str, Any], command: str) -> str:
+def markdown(result: dict[str, Any]) -> str:
     g = result["goals"]
     full = result["full"]
     lines = [
         "# Calibration benchmark (issue 6)", "",
-        f"Command: `{command}`  ",
-        f"Machine: {result['machine']} — measured while the machine was shared by several engineers, so "
-        "times are upper bounds.  ",
+        provenance_markdown(result["provenance"]) + "  ",
         f"Seeds: {result['seeds']} (each renders its own chessboard views and hemisphere presses).", "",
         "Scenes: `calibration_chessboard` (7x7 inner corners, 12 mm squares, 14-26 cm, tilts to 35°) and "
         "`calibration_hemispheres` (2x5 hemispheres, 1 mm radius, 10 x 8 mm pitch, frame jittered ±1.5 mm in x "
@@ -339,7 +323,7 @@ def markdown(result: dict[str, Any], command: str) -> str:
 
 def to_markdown(result: dict[str, Any]) -> str:
     """The report's section: the results file without its title."""
-    body = markdown(result, "touchroller report").split("\n", 2)[2]
+    body = markdown(result).split("\n", 2)[2]
     return body.replace("\n## ", "\n### ")          # sub-sections of the report's section
 
 
@@ -351,13 +335,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 seeds and fewer image counts")
     args = parser.parse_args()
-    command = "python bench/calib_bench.py" + (" --quick" if args.quick else "")
     result = run(quick=args.quick)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if args.quick else ""
-    Path(f"{RESULTS}{suffix}.md").write_text(markdown(result, command), encoding="utf-8")
+    Path(f"{RESULTS}{suffix}.md").write_text(markdown(result), encoding="utf-8")
     Path(f"{RESULTS}{suffix}.json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
-    print(markdown(result, command))
+    print(markdown(result))
     return 0
 
 

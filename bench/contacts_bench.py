@@ -12,8 +12,6 @@ Goal (issue 4): <= 1 ms median per frame. Results: bench/results/contacts_bench.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -22,8 +20,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import RESULTS as RESULTS_DIR  # noqa: E402
+from _common import provenance, provenance_markdown  # noqa: E402
 
 from touchroller_perception.contacts import ContactDetector, DetectorConfig  # noqa: E402
 from touchroller_perception.localisation import (  # noqa: E402
@@ -33,7 +32,7 @@ from touchroller_perception.localisation import (  # noqa: E402
     localise,
 )
 
-RESULTS = ROOT / "bench" / "results" / "contacts_bench.md"
+RESULTS = RESULTS_DIR / "contacts_bench.md"
 
 #: Detector settings compared for accuracy against time on the tap frames.
 SETTINGS: dict[str, dict[str, Any]] = {
@@ -44,19 +43,6 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "colour, threshold 4 sigma": {"threshold_sigma": 4.0},
     "paper pipeline": {"method": "paper"},
 }
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (f"nproc {len(os.sched_getaffinity(0))} (of {os.cpu_count()}), {cpu}, Python {platform.python_version()}, "
-            f"OpenCV {cv2.__version__}, numpy {np.__version__}")
 
 
 def sim_workloads(frames_per_kind: int):
@@ -121,6 +107,7 @@ def time_workload(references, frames, truths, camera, lookup, config: DetectorCo
 
 
 def run(quick: bool = False) -> dict[str, Any]:
+    stamp = provenance("contacts_bench", quick)
     cv2.setNumThreads(1)
     frames_per_kind, repeats = (10, 3) if quick else (40, 10)
     try:
@@ -142,16 +129,13 @@ def run(quick: bool = False) -> dict[str, Any]:
         settings.append({"setting": label, **result})
         print(f"{label:45s} median {result['median_ms']:.3f} ms  error {result['error_mm']:.4f} mm  "
               f"missed {result['missed']}", flush=True)
-    return {"speed": speed, "settings": settings, "tap_frames": tap_name, "source": source, "machine": machine(),
-            "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "quick": quick}
+    return {"speed": speed, "settings": settings, "tap_frames": tap_name, "source": source, "quick": quick,
+            "provenance": stamp}
 
 
 def to_markdown(result: dict[str, Any]) -> str:
-    command = "python bench/contacts_bench.py" + (" --quick" if result["quick"] else "")
-    lines = [f"Command: `{command}` (cv2.setNumThreads(1)); frames: {result['source']}, 640x480 bgr8.",
-             f"Machine: {result['machine']}.",
-             f"Measured {result['measured']} while the machine was shared with other engineers' jobs "
-             "(timings are contended).", "",
+    lines = [provenance_markdown(result["provenance"]), "",
+             f"OpenCV on one thread (cv2.setNumThreads(1)); frames: {result['source']}, 640x480 bgr8.", "",
              "| workload | median ms | p90 ms | max ms | frames timed | contacts/frame |",
              "|---|---|---|---|---|---|"]
     for r in result["speed"]:

@@ -13,8 +13,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import RESULTS as RESULTS_DIR  # noqa: E402
+from _common import command  # noqa: E402
 
 from touchroller_perception.localisation import (  # noqa: E402
     TABLE_II_CAMERA,
@@ -24,7 +25,7 @@ from touchroller_perception.localisation import (  # noqa: E402
     table_ii_markdown,
 )
 
-RESULTS = ROOT / "bench" / "results" / "contacts_table_ii.md"
+RESULTS = RESULTS_DIR / "contacts_table_ii.md"
 
 
 def run(quick: bool = False) -> dict[str, Any]:
@@ -39,8 +40,7 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 def to_markdown(result: dict[str, Any]) -> str:
-    command = "python bench/contacts_table_ii.py" + (" --quick" if result["quick"] else "")
-    text = table_ii_markdown(result["table_ii"], command)
+    text = table_ii_markdown(result["table_ii"], command("contacts_table_ii", result["quick"]))
     text = text.split("\n", 2)[2] if text.startswith("# ") else text     # the caller gives the title
     return text + "\n" + explain_markdown(result["paper_fit"])
 

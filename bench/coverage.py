@@ -10,15 +10,20 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
-from touchroller_driver.sim import load_scene
-from touchroller_driver.sim.flat_sensor import compare
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import command  # noqa: E402
+
+from touchroller_driver.sim import load_scene  # noqa: E402
+from touchroller_driver.sim.flat_sensor import compare  # noqa: E402
 
 
 def run(quick: bool = False) -> dict[str, Any]:
     scene = load_scene("flat_sensor_comparison")
     result = compare(scene.data.get("comparison"), scene.motion)
+    result["command"] = command("coverage", quick)
     # what the flat sensor costs as its dwell (settle and capture) grows: the paper does not give it
     result["dwell_sweep"] = [
         {"dwell_s": dwell, "total_s": compare({**scene.data.get("comparison", {}), "dwell": dwell},
@@ -32,6 +37,8 @@ def to_markdown(result: dict[str, Any]) -> str:
     flat, roller, paper = result["flat_sensor"], result["touchroller"], result["paper"]
     p = result["parameters"]
     lines = [
+        f"Command: `{result['command']}` (arm times from the scene's limits, not measured, so no machine).",
+        "",
         "| | presses | time (s) | paper |",
         "|---|---|---|---|",
         f"| flat sensor {p['flat_sensor'][1] * 100:.1f} x {p['flat_sensor'][0] * 100:.1f} cm, press-lift-shift | "

@@ -17,7 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from touchroller_perception.geometry import CameraModel
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import provenance, provenance_markdown  # noqa: E402
+
+from touchroller_perception.geometry import CameraModel  # noqa: E402
 
 CASES: list[tuple[str, dict]] = [
     ("nominal (paper's sensor, no distortion)", {}),
@@ -64,17 +67,19 @@ def non_finite_inputs() -> dict:
 
 
 def run(quick: bool = False) -> dict:
+    stamp = provenance("geometry_stability", quick)
     step = 8 if quick else 2
     cases = []
     for name, changes in CASES:
         result = evaluate_case(CameraModel(**changes), step)
         result["case"] = name
         cases.append(result)
-    return {"cases": cases, "non_finite": non_finite_inputs(), "grid_step_px": step}
+    return {"cases": cases, "non_finite": non_finite_inputs(), "grid_step_px": step, "provenance": stamp}
 
 
 def to_markdown(result: dict) -> str:
     lines = [
+        provenance_markdown(result["provenance"]), "",
         "| case | valid pixels | worst px→3D→px (px) | worst 3D→px→3D (m) | off the cylinder (m) | invalid pixels return | µs/pixel |",
         "|---|---|---|---|---|---|---|",
     ]

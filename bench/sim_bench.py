@@ -14,7 +14,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -22,21 +21,13 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import RESULTS, loadavg, provenance, provenance_markdown  # noqa: E402
+
 from touchroller_driver.sim import EFFECTS, SimulatedSensor, load_scene  # noqa: E402
 from touchroller_driver.sim.scenarios import timeline  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
 GOAL_FPS = 200.0
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _time_render(sensor: SimulatedSensor, states: list, repeats: int) -> np.ndarray:
@@ -52,16 +43,9 @@ def _time_render(sensor: SimulatedSensor, states: list, repeats: int) -> np.ndar
     return per_frame.min(axis=0)   # the least-disturbed run of each frame (shared machine)
 
 
-def _loadavg() -> str:
-    try:
-        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-    except OSError:
-        return "unknown"
-
-
 def run(quick: bool = False) -> dict:
+    stamp = provenance("sim_bench", quick)
     cv2.setNumThreads(1)
-    load_before = _loadavg()
     variant = "medium"
     repeats = 1 if quick else 3
     stride = 10 if quick else 1
@@ -94,19 +78,16 @@ def run(quick: bool = False) -> dict:
         "scene": f"surface_mapping/{variant}", "image": "640x480 bgr8", "rows": rows,
         "frames_generator_fps": frames_fps, "frames_generator_count": count,
         "goal_fps": GOAL_FPS, "default_effects": default_effects,
-        "machine": {"nproc": os.cpu_count(), "cpu": _cpu_model(), "python": sys.version.split()[0],
-                    "opencv": cv2.__version__, "numpy": np.__version__,
-                    "cv2_threads": cv2.getNumThreads()},
-        "quick": quick,
-        "loadavg_before_after": [load_before, _loadavg()],
+        "provenance": stamp, "cv2_threads": cv2.getNumThreads(), "quick": quick,
+        "loadavg_before_after": [stamp["loadavg"], loadavg()],
     }
 
 
-def write(result: dict, command: str) -> Path:
+def write(result: dict) -> Path:
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "sim_bench.json").write_text(json.dumps(result, indent=2))
     path = RESULTS / "sim_bench.md"
-    path.write_text(f"# Simulator benchmark (`bench/sim_bench.py`)\n\nCommand: `{command}`  \n" + to_markdown(result))
+    path.write_text("# Simulator benchmark (`bench/sim_bench.py`)\n\n" + to_markdown(result))
     return path
 
 
@@ -115,10 +96,8 @@ def to_markdown(result: dict) -> str:
     default = next(r for r in result["rows"] if r["config"].startswith("scene default"))
     status = "met" if default["fps"] >= result["goal_fps"] else "NOT met"
     lines = [
-        f"Machine: {result['machine']['nproc']} cores reported by the OS, {result['machine']['cpu']}; "
-        f"OpenCV {result['machine']['opencv']} pinned to {result['machine']['cv2_threads']} thread(s), "
-        f"numpy {result['machine']['numpy']}, Python {result['machine']['python']}.  ",
-        "Per-frame minimum over repeats is reported to reduce scheduling noise. "
+        provenance_markdown(result["provenance"]) + "  ",
+        f"OpenCV pinned to {result['cv2_threads']} thread(s), BLAS to 1. Per-frame minimum over repeats is reported to reduce scheduling noise. "
         f"Load average before/after: {result['loadavg_before_after'][0]} / {result['loadavg_before_after'][1]}.",
         "",
         f"Scene {result['scene']} ({result['image']}), the scene's own 10 s roll; each row renders every "
@@ -149,9 +128,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="every 10th frame, one repeat")
     args = parser.parse_args()
-    command = ".venv/bin/python bench/sim_bench.py" + (" --quick" if args.quick else "")
     result = run(quick=args.quick)
-    path = write(result, command)
+    path = write(result)
     print(path.read_text())
     return 0
 

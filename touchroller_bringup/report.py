@@ -7,6 +7,7 @@ A section that fails makes the whole report fail: a report with a missing table 
 """
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import os
 import platform
@@ -54,6 +55,8 @@ SECTIONS: tuple[Section, ...] = (
 
 
 def machine_description() -> str:
+    """One line naming the machine a figure was measured on; every bench and the report use it
+    (benches through `bench/_common.py`)."""
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -62,13 +65,369 @@ def machine_description() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()} {platform.release()}"
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    libraries = []
+    for name, label in (("cv2", "OpenCV"), ("numpy", "numpy")):
+        try:
+            libraries.append(f"{label} {importlib.import_module(name).__version__}")
+        except ImportError:
+            pass
+    return ", ".join([cpu, f"nproc {usable} (of {os.cpu_count()})", f"Python {platform.python_version()}",
+                      *libraries, f"{platform.system()} {platform.release()}"])
+
+
+# --------------------------------------------------------------------------- goals at a glance
+#: a goal's figure from its section's result: (what was measured, met?); met is None when no verdict applies
+Measure = Callable[[dict], tuple[str, bool | None]]
+
+
+@dataclass(frozen=True)
+class Goal:
+    issue: int
+    text: str
+    section: str = ""             # the report section whose result holds the figure
+    measure: Measure | None = None
+    script: str = ""              # for goals the report does not run: bench/<script>.py and its result file
+    args: str = ""
+
+
+def _sim_fps(r: dict) -> tuple[str, bool]:
+    row = next(row for row in r["rows"] if row["config"].startswith("scene default"))
+    return f"{row['fps']:.0f} frames/s ({row['mean_ms']:.2f} ms/frame)", row["fps"] >= r["goal_fps"]
+
+
+def _table_ii(r: dict, name: str) -> dict:
+    return r["table_ii"]["summary"][name]
+
+
+def _contacts_speed(workload_start: str) -> Measure:
+    def measure(r: dict) -> tuple[str, bool]:
+        row = next(row for row in r["speed"] if row["workload"].startswith(workload_start))
+        return (f"{row['median_ms']:.3f} ms ({row['workload']}, {row['contacts_per_frame']:.1f} blobs/frame)",
+                row["median_ms"] <= 1.0)
+    return measure
+
+
+def _round_trip(r: dict) -> tuple[str, bool]:
+    worst = max(c["round_trip_m"] for c in r["cases"] if c["round_trip_m"] is not None)
+    return f"worst {worst:.1e} m over {len(r['cases'])} hard cases", worst < 1e-9
+
+
+def _invalid_is_nan(r: dict) -> tuple[str, bool]:
+    cases_ok = all(c["invalid_return"].startswith("NaN") for c in r["cases"])
+    nf = r["non_finite"]
+    inputs_ok = nf["all_invalid_are_nan"] and nf["valid"] == [False, False, False, True]
+    return (f"{'all' if cases_ok else 'NOT all'} invalid pixels NaN; non-finite inputs {nf['valid']}",
+            cases_ok and inputs_ok)
+
+
+def _ours(r: dict) -> list[dict]:
+    return [row for row in r["table_i"].values() if row["method"] == "default"]
+
+
+def _map_ssim(r: dict) -> tuple[str, bool]:
+    worst = {f"{row['duration']:.0f} s": min(row["ssim"]) for row in _ours(r)}
+    return " / ".join(f"{v:.3f} ({k})" for k, v in worst.items()), min(worst.values()) >= 0.85
+
+
+def _map_length(r: dict) -> tuple[str, bool]:
+    worst = max(max(abs(v) for v in row["length_error_percent"]) for row in _ours(r))
+    return f"largest {worst:.2f} %", worst <= 1.0
+
+
+def _map_command(r: dict) -> tuple[str, bool]:
+    c = r["command"]
+    return f"{c['command_fps']:.0f} frames/s ({c['frames']} frames, in-process)", c["command_fps"] >= 1000
+
+
+def _map_process(r: dict) -> tuple[str, bool | None]:
+    c = r["command"]
+    if not c.get("process_fps"):
+        return "not measured (no .venv/bin/touchroller)", None
+    return f"{c['process_fps']:.0f} frames/s (interpreter start included)", c["process_fps"] >= 1000
+
+
+def _map_read_ratio(r: dict) -> tuple[str, bool]:
+    c = r["command"]
+    ratio = c["command_s"] / c["read_s"]
+    return f"{ratio:.2f}x ({c['read_fps']:.0f} frames/s reading alone)", ratio <= 2.0
+
+
+def _map_live(r: dict) -> tuple[str, bool]:
+    live = r["live"]
+    return f"median {live['median_ms']:.3f} ms (p90 {live['p90_ms']:.3f} ms)", live["median_ms"] <= 1.0
+
+
+def _calib(key: str, unit: str, goal_key: str) -> Measure:
+    def measure(r: dict) -> tuple[str, bool]:
+        s = r["full"][key]
+        return (f"{s['rms']:.3f}{unit} RMS, worst seed {s['max']:.3f}{unit} ({r['seeds']} seeds)",
+                s["max"] <= r["goals"][goal_key])
+    return measure
+
+
+def _calib_rms(r: dict) -> tuple[str, bool]:
+    full = r["full"]
+    worst = max(full["intrinsics_rms_px"]["max"], full["extrinsics_rms_px"]["max"])
+    return (f"{full['intrinsics_rms_px']['rms']:.3f} / {full['extrinsics_rms_px']['rms']:.3f} px "
+            f"(intrinsics / extrinsics), worst {worst:.3f} px"), worst <= r["goals"]["rms_px"]
+
+
+def _calib_solve(r: dict) -> tuple[str, bool]:
+    s = r["full"]["solve_s"]
+    return f"median {s['median']:.2f} s, worst {s['max']:.2f} s", s["max"] < r["goals"]["solve_s"]
+
+
+def _calib_contacts(r: dict) -> tuple[str, bool]:
+    row = r["contacts"]["exact sensor"]["ours (seed 0)"]
+    paper = _PAPER_MEAN_MM
+    return (f"{row['mean_mm']:.3f} mm mean ({row['n']} contacts; read as <= a tenth of {paper} mm)",
+            row["mean_mm"] <= paper / 10)
+
+
+_PAPER_MEAN_MM = 7.66   # the paper's Table II mean, the issue's yardstick ("far below")
+
+
+def _dds(rate: float, check: str) -> Measure:
+    """From the DDS section's result (bench/dds_latency.py `run`): the best transport's run at `rate`."""
+    def measure(r: dict) -> tuple[str, bool]:
+        runs = [row for row in r["runs"] if float(row["fps"]) == rate]
+        if not runs:
+            raise KeyError(f"no run at {rate:g} Hz")
+        if check == "latency":
+            best = min(runs, key=lambda row: (row["p99_ms"], row["p50_ms"]))
+            return (f"p50 {best['p50_ms']:.2f} ms, p99 {best['p99_ms']:.2f} ms ({_dds_label(best)})",
+                    best["p50_ms"] <= 5.0 and best["p99_ms"] <= 15.0)
+        best = min(runs, key=lambda row: row["missed"])
+        return f"{best['missed']} of {best['frames']} frames missed ({_dds_label(best)})", best["missed"] == 0
+    return measure
+
+
+def _dds_label(row: dict) -> str:
+    return f"{row.get('transport', '?')} transport, {row.get('processes', '?')} process(es)"
+
+
+GOALS: tuple[Goal, ...] = (
+    Goal(3, "Simulator: >= 200 frames/s, mapping scene, 640x480, one core, default effects", "simulator", _sim_fps),
+    Goal(4, "Localisation error <= 0.25 mm mean with exact calibration (Table II in simulation)", "table_ii",
+         lambda r: (f"{_table_ii(r, 'exact')['mean_mm']:.3f} mm (worst cell "
+                    f"{_table_ii(r, 'exact')['max_cell_mean_mm']:.3f} mm)", _table_ii(r, "exact")["mean_mm"] <= 0.25)),
+    Goal(4, "Aim: sub-millimetre everywhere with the paper's error sources modelled (worst cell)", "table_ii",
+         lambda r: (f"{_table_ii(r, 'error_sources')['max_cell_mean_mm']:.3f} mm (mean "
+                    f"{_table_ii(r, 'error_sources')['mean_mm']:.3f} mm)",
+                    _table_ii(r, "error_sources")["max_cell_mean_mm"] < 1.0)),
+    Goal(4, "Detection + localisation <= 1 ms median per 640x480 frame, no contact", "contacts_speed",
+         _contacts_speed("no contact")),
+    Goal(4, "Detection + localisation <= 1 ms median per 640x480 frame, 3 contacts", "contacts_speed",
+         _contacts_speed("3 contacts")),
+    Goal(4, "Detection + localisation <= 1 ms median per 640x480 frame, rolling over fabric (stress case)",
+         "contacts_speed", _contacts_speed("rolling")),
+    Goal(4, "project(back_project(pixel)) round trip < 1e-9 m across the valid image", "stability", _round_trip),
+    Goal(4, "Invalid pixels return NaN + valid=False, never a wrong finite number", "stability", _invalid_is_nan),
+    Goal(5, "Map SSIM vs ground truth >= 0.85 at 15 s / 10 s / 5 s (worst seed)", "table_i", _map_ssim),
+    Goal(5, "Map length (drift) error <= 1 %", "table_i", _map_length),
+    Goal(5, "`touchroller map` >= 1000 frames/s as a whole command (in-process)", "table_i", _map_command),
+    Goal(5, "`touchroller map` >= 1000 frames/s as a new process", "table_i", _map_process),
+    Goal(5, "`touchroller map` within 2x of reading the bag alone", "table_i", _map_read_ratio),
+    Goal(5, "Live map update <= 1 ms per frame", "table_i", _map_live),
+    Goal(6, "Calibration: theta within 0.1 deg (20 chessboard + 10 hemisphere images)", "calibration",
+         _calib("theta_err_deg", "°", "theta_deg")),
+    Goal(6, "Calibration: d within 0.05 mm", "calibration", _calib("d_err_mm", " mm", "d_mm")),
+    Goal(6, "Calibration: reprojection RMS <= 0.2 px", "calibration", _calib_rms),
+    Goal(6, "Calibration: whole solve < 2 s for 20 chessboard + 10 hemisphere images", "calibration", _calib_solve),
+    Goal(6, "Contacts located with our calibration: far below the paper's 7.66 mm", "calibration", _calib_contacts),
+    Goal(7, "DDS image -> contact p50 <= 5 ms and p99 <= 15 ms at 30 Hz", "dds", _dds(30.0, "latency"),
+         script="dds_latency"),
+    Goal(7, "DDS: no drops at 60 Hz", "dds", _dds(60.0, "drops"), script="dds_latency"),
+    Goal(7, "A slow consumer skips stale frames instead of queueing them", script="dds_slow_consumer"),
+    Goal(7, "20 000-frame soak without memory growth", script="dds_soak"),
+)
+
+
+def _elsewhere(goal: Goal, out_dir: Path) -> str:
+    result_file = checkout_dir() / "bench" / "results" / f"{goal.script}.md"
+    command = " ".join(filter(None, [f".venv/bin/python bench/{goal.script}.py", goal.args]))
+    if not result_file.is_file():
+        return f"no result recorded yet (`{command}`)"
+    link = os.path.relpath(result_file, out_dir).replace(os.sep, "/")
+    return f"not run by the report: [{result_file.name}]({link}) (`{command}`)"
+
+
+def goals_markdown(results: dict[str, dict], out_dir: Path) -> str:
+    lines = ["| goal | issue | measured in this run | status |", "|---|---|---|---|"]
+    for goal in GOALS:
+        if goal.measure is not None and goal.section in results:
+            try:
+                measured, met = goal.measure(results[goal.section])
+                status = "—" if met is None else ("**met**" if met else "**NOT met**")
+            except (KeyError, StopIteration, TypeError, ValueError) as error:
+                measured, status = f"figure missing from the section's result ({type(error).__name__}: {error})", \
+                    "**not checked**"
+        elif goal.script:
+            measured, status = _elsewhere(goal, out_dir), "see the file"
+        else:
+            measured, status = f"section {goal.section!r} not run", "not checked"
+        lines.append(f"| {goal.text} | #{goal.issue} | {measured} | {status} |")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- settings per budget
+#: time budgets (tight, medium, generous); None = no limit. The medium ones are the issues' own goals
+#: (live map update and detection <= 1 ms per frame); calibration's generous one is issue 6's 2 s solve.
+MAP_BUDGETS_MS = (0.5, 1.0, None)
+CONTACT_BUDGETS_MS = (0.75, 1.0, None)
+CALIBRATION_BUDGETS_S = (0.1, 0.3, 2.0)
+BUDGET_NAMES = ("tight", "medium", "generous")
+SSIM_TIE = 0.005          # map SSIMs closer than this are a tie: the cheaper setting wins
+ERROR_TIE = 0.10          # contact errors within 10 % are a tie: the cheaper setting wins
+
+
+def _budget(name: str, limit: float | None, unit: str) -> str:
+    return f"{name}: {'no limit' if limit is None else f'<= {limit:g} {unit}'}"
+
+
+def _best_within(rows: list[dict], cost: str, limit: float | None, better: Callable[[dict], float],
+                 tie: Callable[[dict, dict], bool]) -> dict | None:
+    """The best row within the budget (`better` larger is better); a near-tie goes to the cheaper row."""
+    fits = [row for row in rows if limit is None or row[cost] <= limit]
+    if not fits:
+        return None
+    best = max(fits, key=better)
+    return min((row for row in fits if tie(row, best)), key=lambda row: row[cost])
+
+
+def _map_budget_rows(r: dict) -> list[str]:
+    lines = []
+    sweep = [row for row in r["sweep"] if abs(row["length_error_percent"]) <= 1.0]
+    for name, limit in zip(BUDGET_NAMES, MAP_BUDGETS_MS, strict=True):
+        pick = _best_within(sweep, "ms_per_frame", limit, lambda row: row["ssim"],
+                            lambda row, best: row["ssim"] >= best["ssim"] - SSIM_TIE)
+        if pick is None:
+            cheapest = min(r["sweep"], key=lambda row: row["ms_per_frame"])
+            lines.append(f"| map: compute per frame | {_budget(name, limit, 'ms/frame')} | nothing measured fits | "
+                         f"cheapest: {cheapest['setting']}, {cheapest['ms_per_frame']:.2f} ms, SSIM "
+                         f"{cheapest['ssim']:.3f} |")
+            continue
+        lines.append(f"| map: compute per frame | {_budget(name, limit, 'ms/frame')} | {pick['setting']} | "
+                     f"SSIM {pick['ssim']:.3f}, length error {pick['length_error_percent']:+.2f} %, "
+                     f"{pick['ms_per_frame']:.2f} ms/frame ({r['sweep_duration']:.0f} s scan) |")
+    durations = sorted({row["duration"] for row in r["table_i"].values()})
+    for name, limit in zip(BUDGET_NAMES, durations, strict=False):
+        rows = [row for row in r["scan_times"] if row["duration"] <= limit]
+        if not rows:
+            continue
+        at = [row for row in rows if row["duration"] == max(row["duration"] for row in rows)]
+        pick = max(at, key=lambda row: row["ssim"])
+        others = ", ".join(f"{row['method']} SSIM {row['ssim']:.3f}" for row in at if row is not pick)
+        lines.append(f"| map: scan time for 11 cm | {name}: {limit:g} s (the paper's speeds) | method "
+                     f"`{pick['method']}`, {pick['duration']:g} s roll | SSIM {pick['ssim']:.3f}, length error "
+                     f"{pick['length_error_percent']:+.2f} %, peak {pick['peak_px_per_frame']:.1f} px/frame"
+                     + (f"; {others}" if others else "") + " |")
+    return lines
+
+
+def _map_fastest_roll(r: dict) -> str:
+    good = [row for row in r["scan_times"] if row["ssim"] >= 0.85 and abs(row["length_error_percent"]) <= 1.0]
+    if not good:
+        return "No measured roll speed reaches SSIM >= 0.85 with <= 1 % length error."
+    fastest = min(good, key=lambda row: (row["duration"], -row["ssim"]))
+    slower = [row for row in r["scan_times"] if row["duration"] < fastest["duration"]]
+    beyond = (f"; at {max(row['duration'] for row in slower):g} s the best is SSIM "
+              f"{max(row['ssim'] for row in slower if row['duration'] == max(s['duration'] for s in slower)):.3f}"
+              if slower else "")
+    return (f"Fastest roll measured that keeps SSIM >= 0.85 and length error <= 1 %: {fastest['duration']:g} s for "
+            f"11 cm (peak {fastest['peak_px_per_frame']:.1f} px/frame, method `{fastest['method']}`, SSIM "
+            f"{fastest['ssim']:.3f}){beyond}.")
+
+
+def _contact_budget_rows(r: dict) -> list[str]:
+    lines = []
+    found = [row for row in r["settings"] if row["missed"] == 0 and row["error_mm"] == row["error_mm"]]
+    for name, limit in zip(BUDGET_NAMES, CONTACT_BUDGETS_MS, strict=True):
+        pick = _best_within(found, "median_ms", limit, lambda row: -row["error_mm"],
+                            lambda row, best: row["error_mm"] <= best["error_mm"] * (1 + ERROR_TIE))
+        if pick is None:
+            cheapest = min(r["settings"], key=lambda row: row["median_ms"])
+            lines.append(f"| contacts: detector per frame | {_budget(name, limit, 'ms/frame')} | nothing measured "
+                         f"fits | cheapest: {cheapest['setting']}, {cheapest['median_ms']:.3f} ms, "
+                         f"{cheapest['error_mm']:.4f} mm |")
+            continue
+        lines.append(f"| contacts: detector per frame | {_budget(name, limit, 'ms/frame')} | {pick['setting']} | "
+                     f"mean error {pick['error_mm']:.4f} mm, median {pick['median_ms']:.3f} ms, "
+                     f"{pick['matched']} found / {pick['missed']} missed |")
+    return lines
+
+
+def _calibration_budget_rows(r: dict) -> list[str]:
+    lines = []
+    views = [row for row in r["intrinsics_vs_views"] if row["distortion"] == "full"]
+    presses = r["extrinsics_vs_presses"]
+    goal = r["goals"]["theta_deg"]
+    pairs = [{"views": a, "presses": b, "solve_s": a["solve_s_median"] + b["solve_s_median"]}
+             for a in views for b in presses]
+    for name, limit in zip(BUDGET_NAMES, CALIBRATION_BUDGETS_S, strict=True):
+        fits = [p for p in pairs if p["solve_s"] <= limit]
+        if not fits:
+            cheapest = min(pairs, key=lambda p: p["solve_s"])
+            lines.append(f"| calibration: solve time | {_budget(name, limit, 's')} | nothing measured fits | "
+                         f"cheapest: {cheapest['views']['views']} views + {cheapest['presses']['presses']} presses, "
+                         f"{cheapest['solve_s']:.2f} s |")
+            continue
+        # theta's goal first (it depends on the presses), then the focal length (d follows it), then theta
+        pick = min(fits, key=lambda p: (p["presses"]["theta_err_deg"]["max"] > goal, p["views"]["fx_err_px"]["rms"],
+                                        p["presses"]["theta_err_deg"]["rms"], p["solve_s"]))
+        a, b = pick["views"], pick["presses"]
+        verdict = "within" if b["theta_err_deg"]["max"] <= goal else "NOT within"
+        lines.append(f"| calibration: solve time | {_budget(name, limit, 's')} | {a['views']} chessboard views + "
+                     f"{b['presses']} hemisphere presses | fx error {a['fx_err_px']['rms']:.3f} px RMS; theta error "
+                     f"{b['theta_err_deg']['rms']:.3f}° RMS, worst {b['theta_err_deg']['max']:.3f}° ({verdict} "
+                     f"{goal}°); d error {b['d_err_mm']['rms']:.4f} mm RMS with true intrinsics; solve "
+                     f"{pick['solve_s']:.2f} s |")
+    return lines
+
+
+def _calibration_effort_line(r: dict) -> str:
+    table = r["contacts"]["exact sensor"]
+    full = r["full"]
+    return (f"Contact error against calibration effort (`contact_localisation`, exact sensor): uncalibrated "
+            f"(theta = d = 0) {table['uncalibrated (theta = d = 0)']['mean_mm']:.3f} mm mean; calibrated with 20 "
+            f"views + 10 presses (solve {full['solve_s']['median']:.2f} s median) "
+            f"{table['ours (seed 0)']['mean_mm']:.3f} mm; the true camera {table['truth']['mean_mm']:.3f} mm.")
+
+
+def settings_markdown(results: dict[str, dict]) -> str:
+    """Which setting to pick for a tight, a medium and a generous time budget, from the sections' results."""
+    rows: list[str] = []
+    notes: list[str] = []
+    for key, build_rows, note in (("table_i", _map_budget_rows, _map_fastest_roll),
+                                  ("contacts_speed", _contact_budget_rows, None),
+                                  ("calibration", _calibration_budget_rows, _calibration_effort_line)):
+        if key not in results:
+            continue
+        try:
+            rows += build_rows(results[key])
+            if note is not None:
+                notes.append(note(results[key]))
+        except (KeyError, StopIteration, TypeError, ValueError) as error:
+            rows.append(f"| {key} | — | figure missing from the section's result | "
+                        f"{type(error).__name__}: {error} |")
+    if not rows:
+        return "No section with settings to compare was run."
+    lines = ["Picks are the best quality within the budget among the settings each section measured (a map needs "
+             "length error <= 1 %, a detector must find every contact); near-ties go to the cheaper setting. "
+             "Times are from this run, on the machine above.", "",
+             "| what | budget | pick | figures that justify it |", "|---|---|---|---|", *rows]
+    if notes:
+        lines += ["", *(f"- {note}" for note in notes)]
+    return "\n".join(lines)
 
 
 def _load(script: str) -> ModuleType:
     path = checkout_dir() / "bench" / f"{script}.py"
     if not path.is_file():
         raise UserError(f"report section needs {path.relative_to(checkout_dir())}, which is missing")
+    if str(path.parent) not in sys.path:
+        sys.path.insert(0, str(path.parent))      # bench scripts import their helpers (bench/_common.py)
     spec = importlib.util.spec_from_file_location(f"bench_{script}", path)
     assert spec and spec.loader
     module = importlib.util.module_from_spec(spec)
@@ -78,6 +437,14 @@ def _load(script: str) -> ModuleType:
         if not callable(getattr(module, name, None)):
             raise UserError(f"bench/{script}.py has no {name}() for the report")
     return module
+
+
+def loadavg() -> str:
+    """The 1, 5 and 15 minute load averages: above the core count, other jobs shared the machine."""
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "unknown"
 
 
 def _commit() -> str:
@@ -113,15 +480,28 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
             body += [f"![{figure.stem}]({figure.relative_to(out.parent).as_posix()})", ""]
         body += [f"*Section produced by `bench/{section.script}.py` in {seconds:.1f} s.*", ""]
     total = time.perf_counter() - started
-    command = "touchroller report" + (" --quick" if quick else "")
+    command = " ".join(["touchroller report", *(["--quick"] if quick else []), *(["--only", *only] if only else [])])
     header = [
         "# TouchRoller ROS 2: results",
         "",
-        "Every number below was produced by the command that wrote this file; nothing is typed in.",
+        "Every number below was produced by the command that wrote this file; nothing is typed in (the goals "
+        "are the issues').",
         "",
         f"- Command: `{command}` (took {total:.0f} s, {'quick' if quick else 'full'} mode)",
-        f"- Machine: {machine_description()}",
+        f"- Machine: {machine_description()}; load average after the run {loadavg()}",
         f"- Commit: {_commit()}",
+        "- Each section names the bench script and command that reproduce it alone.",
+        "",
+        "## Goals at a glance",
+        "",
+        "Every quantitative goal of issues 3-7, the figure this run measured for it, and whether it is met. "
+        "Speed figures were measured on the machine above.",
+        "",
+        goals_markdown(results, out.parent),
+        "",
+        "## Settings per budget",
+        "",
+        settings_markdown(results),
         "",
     ]
     out.write_text("\n".join(header + body), encoding="utf-8")

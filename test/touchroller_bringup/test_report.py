@@ -15,8 +15,19 @@ def test_quick_report_has_every_section_with_complete_tables(tmp_path):
     text = out.read_text()
     assert set(results) == {s.key for s in SECTIONS}
     assert "touchroller report --quick" in text and "Machine:" in text
+    sections = {}
     for section in SECTIONS:
         assert f"## {section.title}" in text, section.key
+        sections[section.key] = text.split(f"## {section.title}", 1)[1].split("\n## ", 1)[0]
+        assert "Command: `" in sections[section.key], f"{section.key} does not say how to reproduce it"
+    # the summary at the top is computed from every section's result, none missing
+    goals = text.split("## Goals at a glance", 1)[1].split("\n## ", 1)[0]
+    settings = text.split("## Settings per budget", 1)[1].split("\n## ", 1)[0]
+    assert "not checked" not in goals and "figure missing" not in goals + settings
+    assert goals.count("**met**") + goals.count("**NOT met**") >= 18
+    for what in ("map: compute per frame", "map: scan time", "contacts: detector", "calibration: solve time"):
+        assert [line.split("|")[2].strip().split(":")[0] for line in settings.splitlines()
+                if line.startswith(f"| {what}")] == ["tight", "medium", "generous"], what
     body = text.split("\n## ", 1)[1]
     tables = re.findall(r"((?:^\|.*\|\n)+)", body, flags=re.MULTILINE)
     assert len(tables) >= len(SECTIONS)

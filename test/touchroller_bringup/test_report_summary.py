@@ -1,0 +1,147 @@
+"""The report's top: goals at a glance and settings per budget, computed from the sections' results."""
+from __future__ import annotations
+
+import copy
+import re
+
+import pytest
+
+from touchroller_bringup import report
+
+
+def _sweep(setting: str, ms: float, ssim: float, length: float = 0.01) -> dict:
+    return {"setting": setting, "ms_per_frame": ms, "ssim": ssim, "length_error_percent": length,
+            "drift_percent": abs(length)}
+
+
+def _scan(duration: float, method: str, ssim: float, length: float = 0.02) -> dict:
+    return {"duration": duration, "method": method, "ssim": ssim, "length_error_percent": length,
+            "peak_px_per_frame": 40.0 / duration, "ms_per_frame": 0.5}
+
+
+def _table_i_row(duration: float, method: str, ssim: list[float], length: list[float]) -> dict:
+    return {"duration": duration, "method": method, "ssim": ssim, "length_error_percent": length}
+
+
+def _stats(rms: float, worst: float) -> dict:
+    return {"rms": rms, "max": worst, "n": 3}
+
+
+@pytest.fixture
+def results() -> dict[str, dict]:
+    table_i = {
+        "sweep_duration": 10.0,
+        "sweep": [_sweep("cheap", 0.3, 0.90), _sweep("good", 0.8, 0.970), _sweep("costly tie", 2.0, 0.972),
+                  _sweep("drifts", 0.4, 0.99, length=5.0)],
+        "table_i": {f"{d:g}/{m}": _table_i_row(d, m, [0.2 if m == "paper" else s], [3.0 if m == "paper" else 0.1])
+                    for d, s in ((15.0, 0.98), (10.0, 0.97), (5.0, 0.88)) for m in ("paper", "default")},
+        "scan_times": [_scan(d, m, s if m == "default" else 0.2) for d, s in ((4.0, 0.7), (5.0, 0.88), (10.0, 0.97),
+                                                                           (15.0, 0.98)) for m in ("paper", "default")],
+        "live": {"median_ms": 0.4, "p90_ms": 0.6},
+        "command": {"frames": 300, "command_fps": 1200.0, "process_fps": 900.0, "read_fps": 5000.0,
+                    "command_s": 0.25, "read_s": 0.06},
+    }
+    contacts = {
+        "speed": [{"workload": "no contact (gaps)", "median_ms": 0.2, "contacts_per_frame": 0.0},
+                  {"workload": "3 contacts (taps)", "median_ms": 0.9, "contacts_per_frame": 3.0},
+                  {"workload": "rolling over fabric", "median_ms": 2.0, "contacts_per_frame": 9.0}],
+        "settings": [{"setting": "paper", "median_ms": 0.9, "error_mm": 0.5, "matched": 30, "missed": 0},
+                     {"setting": "colour", "median_ms": 0.95, "error_mm": 0.004, "matched": 30, "missed": 0},
+                     {"setting": "colour fine", "median_ms": 1.5, "error_mm": 0.0039, "matched": 30, "missed": 0},
+                     {"setting": "misses", "median_ms": 0.95, "error_mm": 0.001, "matched": 20, "missed": 10}],
+    }
+    views = [{"views": n, "distortion": "full", "fx_err_px": _stats(fx, 2 * fx), "solve_s_median": s}
+             for n, fx, s in ((5, 0.35, 0.02), (10, 0.27, 0.045), (20, 0.17, 0.09), (40, 0.10, 0.19))]
+    presses = [{"presses": m, "theta_err_deg": _stats(t, 1.5 * t), "d_err_mm": _stats(0.01, 0.013),
+                "solve_s_median": s} for m, t, s in ((2, 0.47, 0.04), (3, 0.03, 0.06), (10, 0.02, 0.19))]
+    calibration = {
+        "seeds": 3, "goals": {"theta_deg": 0.1, "d_mm": 0.05, "rms_px": 0.2, "solve_s": 2.0},
+        "intrinsics_vs_views": views, "extrinsics_vs_presses": presses,
+        "full": {"theta_err_deg": _stats(0.04, 0.09), "d_err_mm": _stats(0.03, 0.04),
+                 "intrinsics_rms_px": _stats(0.07, 0.08), "extrinsics_rms_px": _stats(0.06, 0.1),
+                 "solve_s": {"median": 0.3, "max": 0.31}},
+        "contacts": {"exact sensor": {"truth": {"mean_mm": 0.004, "n": 50},
+                                      "ours (seed 0)": {"mean_mm": 0.065, "n": 50},
+                                      "uncalibrated (theta = d = 0)": {"mean_mm": 1.8, "n": 50}}},
+    }
+    simulator = {"goal_fps": 200.0, "rows": [{"config": "scene default [...]", "fps": 650.0, "mean_ms": 1.5}]}
+    table_ii = {"table_ii": {"summary": {"exact": {"mean_mm": 0.004, "max_cell_mean_mm": 0.007},
+                                         "error_sources": {"mean_mm": 0.89, "max_cell_mean_mm": 1.18}}}}
+    stability = {"cases": [{"round_trip_m": 1e-17, "invalid_return": "NaN point, valid=False"}],
+                 "non_finite": {"valid": [False, False, False, True], "all_invalid_are_nan": True}}
+    return {"table_i": table_i, "contacts_speed": contacts, "calibration": calibration, "simulator": simulator,
+            "table_ii": table_ii, "stability": stability}
+
+
+def _rows(markdown: str, first_cell: str) -> list[list[str]]:
+    return [[c.strip() for c in line.strip("|").split("|")] for line in markdown.splitlines()
+            if line.startswith(f"| {first_cell}")]
+
+
+def test_map_pick_is_the_best_quality_within_each_compute_budget(results):
+    rows = _rows(report.settings_markdown(results), "map: compute per frame")
+    picks = [row[2] for row in rows]
+    # tight (0.5 ms): "drifts" is cheaper and sharper but breaks the 1 % length goal; medium: "good";
+    # generous: "costly tie" is only 0.002 SSIM better, so the cheaper "good" wins
+    assert picks == ["cheap", "good", "good"]
+    assert "SSIM 0.970" in rows[1][3] and "0.80 ms/frame" in rows[1][3]
+
+
+def test_map_budget_follows_the_measurements(results):
+    results["table_i"]["sweep"][2]["ssim"] = 0.99         # now clearly better: the generous budget buys it
+    picks = [row[2] for row in _rows(report.settings_markdown(results), "map: compute per frame")]
+    assert picks == ["cheap", "good", "costly tie"]
+
+
+def test_scan_time_budgets_are_the_papers_speeds_and_name_the_fastest_good_roll(results):
+    text = report.settings_markdown(results)
+    rows = _rows(text, "map: scan time")
+    assert [row[1].split(":")[0] for row in rows] == ["tight", "medium", "generous"]
+    assert "5 s" in rows[0][1] and "SSIM 0.880" in rows[0][3] and "paper SSIM 0.200" in rows[0][3]
+    assert "Fastest roll measured that keeps SSIM >= 0.85 and length error <= 1 %: 5 s" in text
+
+
+def test_contact_pick_needs_every_contact_found_and_says_when_nothing_fits(results):
+    rows = _rows(report.settings_markdown(results), "contacts:")
+    assert rows[0][2] == "nothing measured fits" and "cheapest: paper" in rows[0][3]   # 0.75 ms
+    assert rows[1][2] == "colour"          # "misses" is more accurate on what it finds, but misses contacts
+    assert rows[2][2] == "colour"          # "colour fine" is within the 10 % tie and costs more
+
+
+def test_calibration_pick_meets_the_theta_goal_first(results):
+    rows = _rows(report.settings_markdown(results), "calibration:")
+    assert rows[0][2] == "5 chessboard views + 3 hemisphere presses"       # 0.08 s: 2 presses miss theta
+    assert "(within 0.1°)" in rows[0][3]
+    assert rows[2][2] == "40 chessboard views + 10 hemisphere presses"
+    text = report.settings_markdown(results)
+    assert "uncalibrated (theta = d = 0) 1.800 mm" in text and "0.065 mm" in text
+
+
+def test_goals_are_judged_from_the_results(results, tmp_path):
+    text = report.goals_markdown(results, tmp_path)
+    status = {row[0]: row[3] for row in _rows(text, "")[2:]}
+    assert status["Map length (drift) error <= 1 %"] == "**met**"
+    assert status["`touchroller map` >= 1000 frames/s as a new process"] == "**NOT met**"
+    assert status["`touchroller map` within 2x of reading the bag alone"] == "**NOT met**"    # 4.17x
+    assert status["Aim: sub-millimetre everywhere with the paper's error sources modelled (worst cell)"] == \
+        "**NOT met**"
+    worse = copy.deepcopy(results)
+    worse["table_i"]["table_i"]["5/default"]["ssim"] = [0.80]
+    status = {row[0]: row[3] for row in _rows(report.goals_markdown(worse, tmp_path), "")[2:]}
+    assert status["Map SSIM vs ground truth >= 0.85 at 15 s / 10 s / 5 s (worst seed)"] == "**NOT met**"
+
+
+def test_goals_without_a_section_link_their_bench_result(results, tmp_path):
+    text = report.goals_markdown(results, tmp_path)
+    soak = next(row for row in _rows(text, "20 000-frame soak"))
+    assert "bench/dds_soak.py" in soak[2]
+    dds = next(row for row in _rows(text, "DDS image -> contact"))
+    assert re.search(r"dds_latency", dds[2]) and dds[3] == "see the file"
+
+
+def test_a_changed_result_shows_as_unchecked_not_as_a_crash(results, tmp_path):
+    del results["table_i"]["live"]
+    del results["contacts_speed"]["settings"]
+    goals = report.goals_markdown(results, tmp_path)
+    assert "| Live map update <= 1 ms per frame | #5 | figure missing" in goals and "**not checked**" in goals
+    assert "figure missing from the section's result" in report.settings_markdown(results)
