@@ -253,7 +253,7 @@ def _make_probe(context: Any, nodes: list[Any]) -> tuple[Any, _Collected, Any]:
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float32
 
-    from touchroller_driver.sweep_node import trigger_service_type
+    from touchroller_bringup.ros_services import trigger_service_type
 
     probe = Node("touchroller_scan", context=context)
     nodes.append(probe)

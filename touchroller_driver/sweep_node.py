@@ -7,10 +7,9 @@ command) stops the sweep and shows as ERROR on `/diagnostics`. Publishes the TCP
 (`/touchroller/tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
 (`/touchroller/sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`.
 
-Services `~/start` and `~/stop` are std_srvs/Trigger where std_srvs is installed (any ROS 2
-install); without it (our pip-only venv) they fall back to diagnostic_msgs/AddDiagnostics, whose
-response has the same `success` and `message` fields (its request string is ignored), as the
-calibration node does: `ros2 service call /touchroller_sweep/start diagnostic_msgs/srv/AddDiagnostics {}`.
+Services `~/start` and `~/stop` are std_srvs/Trigger (`ros2 service call /touchroller_sweep/start
+std_srvs/srv/Trigger`); on an install without std_srvs, `touchroller_bringup.ros_services` falls back to
+diagnostic_msgs/AddDiagnostics (same `success` and `message` response fields).
 """
 from __future__ import annotations
 
@@ -30,6 +29,7 @@ from std_msgs.msg import Float32
 
 from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
 from touchroller_bringup.ros_params import declare
+from touchroller_bringup.ros_services import trigger_service_type
 from touchroller_driver.arm import (
     Arm,
     ArmError,
@@ -51,18 +51,6 @@ COMMAND_TIMEOUT_S = 5.0
 # Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
 SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
                     "sweep.start_pose", "sweep.direction", "sweep.retract", "sweep.clearance")
-
-
-def trigger_service_type() -> tuple[type, bool]:
-    """(service type, is std_srvs/Trigger): Trigger when std_srvs is installed, else
-    diagnostic_msgs/AddDiagnostics (same response fields: success, message)."""
-    try:
-        from std_srvs.srv import Trigger
-    except ImportError:
-        from diagnostic_msgs.srv import AddDiagnostics
-
-        return AddDiagnostics, False
-    return Trigger, True
 
 
 def rotation_vector_to_quaternion(rotation: Sequence[float]) -> tuple[float, float, float, float]:

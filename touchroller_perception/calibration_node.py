@@ -13,15 +13,14 @@ Thin ROS shell around `touchroller_perception.calibration`:
   `/touchroller/camera_info` (transient local, so late subscribers get it);
 * `~/reset` drops all captured frames.
 
-The services are `std_srvs/srv/Trigger` when std_srvs is installed. Without it (our pip-only
-venv) they are `diagnostic_msgs/srv/AddDiagnostics`, whose response has the same `success` and
-`message` fields; its request string is ignored:
-`ros2 service call /touchroller_calibration/solve diagnostic_msgs/srv/AddDiagnostics {}`.
+The services are `std_srvs/srv/Trigger` (`ros2 service call /touchroller_calibration/solve
+std_srvs/srv/Trigger`); on an install without std_srvs, `touchroller_bringup.ros_services` falls back
+to `diagnostic_msgs/srv/AddDiagnostics`, whose response has the same `success` and `message` fields.
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,14 +33,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import CameraInfo, Image
 
 from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_driver.image_conversion import image_to_array
 from touchroller_perception import calibration as cal
 from touchroller_perception.geometry import CameraModel
-
-try:
-    from std_srvs.srv import Trigger as TriggerService
-except ImportError:     # same response fields (success, message); see the module docstring
-    from diagnostic_msgs.srv import AddDiagnostics as TriggerService
 
 CAMERA_INFO_TOPIC = "/touchroller/camera_info"
 CAMERA_FRAME = "touchroller_camera"
@@ -89,9 +84,8 @@ class CalibrationNode(Node):
         self.info_pub = self.create_publisher(CameraInfo, CAMERA_INFO_TOPIC, CAMERA_INFO_QOS)
         self.image_sub = None
         self._subscribe(str(self.get_parameter("image_topic").value))
-        self.create_service(TriggerService, "~/capture", self._service(self.capture))
-        self.create_service(TriggerService, "~/solve", self._service(self.solve))
-        self.create_service(TriggerService, "~/reset", self._service(self.reset))
+        for name, action in (("capture", self.capture), ("solve", self.solve), ("reset", self.reset)):
+            create_trigger_service(self, f"~/{name}", action)
         self._remote_client = None
         self.publish_camera_info(self.geometry.model)
 
@@ -138,16 +132,6 @@ class CalibrationNode(Node):
             return
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.latest = (stamp, np.array(image, copy=True))
-
-    def _service(self, action: Callable[[], tuple[bool, str]]) -> Callable[[Any, Any], Any]:
-        def serve(_request: Any, response: Any) -> Any:
-            response.success, response.message = action()
-            if response.success:
-                self.get_logger().info(response.message)
-            else:
-                self.get_logger().warning(response.message)
-            return response
-        return serve
 
     def capture(self) -> tuple[bool, str]:
         target = str(self.get_parameter("target").value)

@@ -8,8 +8,8 @@ Thin ROS shell around `touchroller_perception.contacts` (detection), `.localisat
 * publishes one `geometry_msgs/PointStamped` per contact on `/touchroller/contacts`, frame
   `touchroller_cylinder`, stamped with the source image's stamp;
 * publishes the map on `/touchroller/map` (transient local, reliable, depth 1) at `map.publish_rate` Hz;
-* `~/recapture_reference` re-captures the no-contact reference from the next `reference.frames`
-  frames: a `std_srvs/Trigger` service when std_srvs is installed, else a `std_msgs/Empty` topic;
+* `~/recapture_reference` (std_srvs/Trigger; `touchroller_bringup.ros_services` has the fallback for
+  installs without std_srvs) re-captures the no-contact reference from the next `reference.frames` frames;
 * `/diagnostics`: frame rate, processing time, contacts/s, drops, malformed frames.
 
 Geometry parameters (DESIGN.md names) are declared by `touchroller_bringup.ros_params` and can be
@@ -32,6 +32,7 @@ from sensor_msgs.msg import Image
 
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, LagWindow, RateMeter, Status
 from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_driver.image_conversion import image_to_array
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
@@ -150,24 +151,11 @@ class PerceptionNode(Node):
 
     # ------------------------------------------------------------------ reference
     def _create_recapture_interface(self) -> None:
-        try:
-            from std_srvs.srv import Trigger
-        except ImportError:
-            from std_msgs.msg import Empty
-
-            self.recapture_sub = self.create_subscription(
-                Empty, "~/recapture_reference", lambda _msg: self.recapture_reference(), 10)
-            self.get_logger().info("std_srvs not installed: recapture the reference by publishing "
-                                   "std_msgs/Empty on ~/recapture_reference")
-            return
-
-        def serve(_request: Any, response: Any) -> Any:
+        def recapture() -> tuple[bool, str]:
             self.recapture_reference()
-            response.success = True
-            response.message = f"capturing the reference from the next {self.detector.reference_frames} frames"
-            return response
+            return True, f"capturing the reference from the next {self.detector.reference_frames} frames"
 
-        self.recapture_srv = self.create_service(Trigger, "~/recapture_reference", serve)
+        self.recapture_srv = create_trigger_service(self, "~/recapture_reference", recapture, log=False)
 
     def recapture_reference(self) -> None:
         self.detector.recapture()

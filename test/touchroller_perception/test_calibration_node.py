@@ -53,8 +53,9 @@ def graph(ros_context, presses, tmp_path):
 
 
 def call(executor, spin_until, helper, name: str) -> object:
-    from touchroller_perception.calibration_node import TriggerService
+    from touchroller_bringup.ros_services import trigger_service_type
 
+    TriggerService, _ = trigger_service_type()   # std_srvs/Trigger (AddDiagnostics without std_srvs)
     client = helper.create_client(TriggerService, f"/touchroller_calibration/{name}")
     assert spin_until(executor, client.service_is_ready, timeout=10.0)
     future = client.call_async(TriggerService.Request())

@@ -22,8 +22,8 @@ CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=2
 def graph(ros_context):
     from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import Image
-    from std_msgs.msg import Empty
 
+    from touchroller_bringup.ros_services import trigger_service_type
     from touchroller_perception.perception_node import IMAGE_TOPIC, PerceptionNode
 
     overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
@@ -33,11 +33,11 @@ def graph(ros_context):
     received: list = []
     helper.create_subscription(PointStamped, "/touchroller/contacts", received.append, 10)
     image_pub = helper.create_publisher(Image, IMAGE_TOPIC, 10)
-    recapture_pub = helper.create_publisher(Empty, "/perception_node/recapture_reference", 10)
+    recapture = helper.create_client(trigger_service_type()[0], "/perception_node/recapture_reference")
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
     executor.add_node(helper)
-    yield node, executor, image_pub, recapture_pub, received
+    yield node, executor, image_pub, recapture, received
     executor.shutdown()
     node.destroy_node()
     helper.destroy_node()
@@ -60,7 +60,7 @@ def send(executor, spin_until, node, publisher, msg) -> None:
 def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until):
     from touchroller_driver.image_conversion import array_to_image
 
-    node, executor, image_pub, recapture_pub, received = graph
+    node, executor, image_pub, recapture, received = graph
     renderer = TapRenderer(CAMERA, seed=1)
     rng = np.random.default_rng(0)
     for i in range(3):
@@ -125,8 +125,11 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
     assert float(status_values(mine)["processing_ms_median"]) > 0
 
     # recapturing the reference: the next 3 frames are the new background
-    recapture_pub.publish(__import__("std_msgs.msg", fromlist=["Empty"]).Empty())
-    assert spin_until(executor, lambda: not node.detector.reference_ready, timeout=5.0)
+    assert spin_until(executor, recapture.service_is_ready, timeout=10.0)
+    future = recapture.call_async(recapture.srv_type.Request())
+    assert spin_until(executor, future.done, timeout=5.0)
+    assert future.result().success and "3 frames" in future.result().message
+    assert not node.detector.reference_ready
 
 
 def test_detector_parameters_are_validated_and_applied(graph):
