@@ -327,6 +327,60 @@ def to_markdown(result: dict[str, Any]) -> str:
     return body.replace("\n## ", "\n### ")          # sub-sections of the report's section
 
 
+def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
+    """Accuracy against solve time (points labelled with the number of images), and contact error
+    against calibration effort."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.4))
+    ax = axes[0]
+    rows = [r for r in result["intrinsics_vs_views"] if r["distortion"] == "full"]
+    for key, label in (("fx_err_px", "fx"), ("cx_err_px", "cx"), ("cy_err_px", "cy")):
+        ax.plot([r["solve_s_median"] for r in rows], [r[key]["rms"] for r in rows], "o-", label=f"{label} error RMS")
+    for r in rows:
+        ax.annotate(f"{r['views']} views", (r["solve_s_median"], r["fx_err_px"]["rms"]), fontsize=8,
+                    xytext=(3, 3), textcoords="offset points")
+    ax.set_xlabel("intrinsics solve, median s")
+    ax.set_ylabel("error, px")
+    ax.set_title("Intrinsics against chessboard views", fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    ax = axes[1]
+    rows = result["extrinsics_vs_presses"]
+    times = [r["solve_s_median"] for r in rows]
+    ax.plot(times, [r["theta_err_deg"]["rms"] for r in rows], "o-", label="theta, ours (row balance)")
+    ax.plot(times, [r["paper_plain_mean_theta_err_deg"]["rms"] for r in rows], "s--", label="theta, paper's plain mean")
+    ax.axhline(result["goals"]["theta_deg"], color="k", lw=0.8, ls="--", label=f"goal {result['goals']['theta_deg']}°")
+    for r in rows:
+        ax.annotate(f"{r['presses']} presses", (r["solve_s_median"], r["theta_err_deg"]["rms"]), fontsize=8,
+                    xytext=(3, 3), textcoords="offset points")
+    ax.set_yscale("log")
+    ax.set_xlabel("theta and d solve, median s")
+    ax.set_ylabel("theta error RMS, degrees")
+    ax.set_title("theta against hemisphere presses (true intrinsics)", fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    ax = axes[2]
+    table = result["contacts"]["exact sensor"]
+    names = [n for n in table if n != "missed"]
+    ax.barh(np.arange(len(names)), [table[n]["mean_mm"] for n in names],
+            xerr=[table[n]["std_mm"] for n in names], color="tab:blue")
+    ax.set_yticks(np.arange(len(names)), names, fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("contact error, mean mm (log)")
+    ax.set_title("Contact error against calibration (exact sensor)", fontsize=10)
+    fig.tight_layout()
+    path = out_dir / "calib_bench.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path]
+
+
 def seeds_of(result: dict[str, Any]) -> list[int]:
     return list(range(min(result["seeds"], 3 if result["quick"] else 5)))
 
@@ -340,6 +394,8 @@ def main() -> int:
     suffix = "_quick" if args.quick else ""
     Path(f"{RESULTS}{suffix}.md").write_text(markdown(result), encoding="utf-8")
     Path(f"{RESULTS}{suffix}.json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    if not args.quick:
+        figures(result, RESULTS.parent)
     print(markdown(result))
     return 0
 

@@ -155,6 +155,44 @@ def to_markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
+    """Contact error against detector time per setting (the tap frames), beside the per-workload cost."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.2))
+    for i, r in enumerate(result["settings"], 1):
+        colour = "tab:red" if "paper" in r["setting"] else "tab:blue"
+        ax.scatter(r["median_ms"], max(r["error_mm"], 1e-4), color=colour, label=f"{i}: {r['setting']}")
+        ax.annotate(str(i), (r["median_ms"], max(r["error_mm"], 1e-4)), fontsize=8, xytext=(3, 3),
+                    textcoords="offset points")
+    ax.set_yscale("log")
+    ax.axvline(1.0, color="k", lw=0.8, ls="--")
+    ax.set_xlabel("detection + localisation, median ms per frame")
+    ax.set_ylabel("mean contact error, mm")
+    ax.set_title(f"Contact error against detector time ({result['tap_frames'].split(' (')[0]})", fontsize=10)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    names = [r["workload"].split(" (")[0] for r in result["speed"]]
+    y = np.arange(len(names))
+    bx.barh(y - 0.2, [r["median_ms"] for r in result["speed"]], 0.4, label="median")
+    bx.barh(y + 0.2, [r["p90_ms"] for r in result["speed"]], 0.4, label="p90")
+    bx.axvline(1.0, color="k", lw=0.8, ls="--", label="goal 1 ms (median)")
+    bx.set_yticks(y, names, fontsize=8)
+    bx.set_xlabel("ms per 640x480 frame (default detector)")
+    bx.set_title("Cost per workload", fontsize=10)
+    bx.legend(fontsize=7)
+    fig.tight_layout()
+    path = out_dir / "contacts_bench.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer frames and repeats")
@@ -164,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("# Contact detection + localisation time per frame\n\n" + to_markdown(result), encoding="utf-8")
+    for figure in figures(result, out.parent):
+        print(f"wrote {figure}")
     print(f"wrote {out}")
     return 0
 
