@@ -117,7 +117,7 @@ def simulate(duration: float, seed: int = 0, **overrides: Any) -> Roll:
 
 def stitch_roll(roll: Roll, method: str, settings: dict[str, Any], arm_prior: bool) -> tuple[Stitcher, float]:
     """Stitch frame by frame as the node/CLI do; returns the stitcher and the push time per frame (ms)."""
-    stitcher = Stitcher(method, camera=roll.camera, **settings)
+    stitcher = Stitcher(method, camera=roll.camera, history=None, **settings)
     px_per_m = 1e3 / roll.mm_per_px
     dt = np.diff(np.array(roll.stamps, dtype=np.float64), prepend=roll.stamps[0]) * 1e-9
     # the surface moves up the image (-v) as the roller travels forward

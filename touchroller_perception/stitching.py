@@ -46,8 +46,14 @@ METHODS = ("default", "paper")
 DEFAULT_FRAME_NS = 33_333_333  # 30 fps when frames carry no usable stamps
 _TEXTURELESS_FRACTION = 0.5  # moving texture below this share of the usual counts as textureless
 _STATIC_FRACTION = 0.3  # an image shift below this share of the arm's is taken as seeing only static things
+_WEAK_CONFIDENCE = 0.5  # below this a match that contradicts the recent velocity is not believed
 _VELOCITY_FRAMES = 5  # confident shifts whose median predicts the next
 _FLAT_FIELD_MEMORY = 300  # frames the live flat field averages over
+# 1 - NCC above this at the best shift: the keyframe no longer shows what the frame shows (contact
+# began or ended, a jump); registered rolls stay below ~0.3 even at 5 s with motion blur.
+_MISMATCH_COST = 0.5
+_STILL_PX = 1.0  # less motion than this (px) counts as standing still
+DEFAULT_HISTORY = 1000  # per-frame records a Stitcher keeps unless told otherwise
 
 
 @dataclass(frozen=True)
@@ -75,11 +81,16 @@ class _Canvas:
     the weighted flat field at the same places) and one weight per row. Bands are splatted at
     subpixel positions by bilinear splatting (the adjoint of bilinear interpolation: no resampling
     pass, no blur beyond the interpolation itself). Columns are reported where every band reached.
+
+    `placed[left]` holds, per canvas row, the total bilinear share of the bands whose integer corner
+    landed at that (row, left): enough to re-fill a layer with one patch at every place a band went
+    (`refill`, what `Stitcher.finalise` needs), in memory that grows with the map, not the frames.
     """
 
     def __init__(self, cols: int, layers: int = 1, rows: int = 2048) -> None:
         self.layers = [np.zeros((rows, cols), np.float32) for _ in range(layers)]
         self.weight = np.zeros(rows, np.float32)
+        self.placed: dict[int, np.ndarray] = {}
         self.origin_row = rows // 2  # canvas row of map row 0
         self.origin_col = 16  # room for a little lateral wander before growing
         self.row_min = math.inf
@@ -102,6 +113,7 @@ class _Canvas:
         pad_r = max(grow_right, 32) if grow_right else 0
         self.layers = [np.pad(layer, ((pad_t, pad_b), (pad_l, pad_r))) for layer in self.layers]
         self.weight = np.pad(self.weight, (pad_t, pad_b))
+        self.placed = {left: np.pad(shares, (pad_t, pad_b)) for left, shares in self.placed.items()}
         self.origin_row += pad_t
         self.origin_col += pad_l
 
@@ -118,6 +130,12 @@ class _Canvas:
         self._ensure(itop, ileft, h + 1, w + 1)
         r0, c0 = itop + self.origin_row, ileft + self.origin_col
         terms = [(0, 0, (1 - fr) * (1 - fc)), (1, 0, fr * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 1, fr * fc)]
+        for dr, dc, share in terms:
+            if share > 1e-6:
+                shares = self.placed.get(ileft + dc)
+                if shares is None:
+                    shares = self.placed[ileft + dc] = np.zeros(self.weight.shape[0])
+                shares[r0 + dr] += share
         for layer, patch in zip(self.layers, patches, strict=True):
             if patch is None:
                 continue
@@ -128,7 +146,10 @@ class _Canvas:
         self.weight[r0:r0 + h] += (1 - fr) * row_weights
         if fr > 1e-6:
             self.weight[r0 + 1:r0 + 1 + h] += fr * row_weights
-        self._extend(itop, h + (fr > 1e-6), ileft + (fc > 1e-6), ileft + w)
+        # The map's rows: those a band reached with a real share (a 1 % sliver of a row at the edge
+        # would show as a dark line).
+        first = itop + (fr > 0.95)
+        self._extend(first, itop + h + (fr > 0.05) - first, ileft + (fc > 1e-6), ileft + w)
 
     def paste(self, patch: np.ndarray, top: int, left: int) -> None:
         """Overwrite layer 0 (the paper's stitching: the newest patch wins)."""
@@ -145,8 +166,17 @@ class _Canvas:
         self.col_lo = max(self.col_lo, col_lo)
         self.col_hi = min(self.col_hi, col_hi)
 
-    def clear_layer(self, index: int) -> None:
-        self.layers[index][:] = 0.0
+    def refill(self, index: int, patch: np.ndarray) -> None:
+        """Layer `index` := `patch` added at every place a band went, with the bands' bilinear shares
+        (exactly what splatting `patch` along with every band would have given)."""
+        layer = self.layers[index]
+        layer[:] = 0.0
+        h, w = patch.shape
+        for left, shares in self.placed.items():
+            c0 = left + self.origin_col
+            for r0 in np.flatnonzero(shares):
+                view = layer[r0:r0 + h, c0:c0 + w]
+                cv2.scaleAdd(patch, float(shares[r0]), view, dst=view)
 
     def _window(self) -> tuple[slice, slice] | None:
         if self.row_min == math.inf or self.col_hi <= self.col_lo:
@@ -317,6 +347,13 @@ class Stitcher:
       min_confidence: below this the motion prior is used instead of the image.
       live_map: keep the flat-field correction of the map current frame by frame (for `map_image` while
         stitching); an offline caller that calls `finalise()` at the end can turn it off and save time.
+      history: how many per-frame records (`steps`, `stamps`, `shifts`) to keep, the newest; None keeps
+        all (offline evaluation). Bounded by default so a live stitcher's memory grows only with the map.
+
+    Standing still is not motion: frames before the roller first moves (an approach from above, a
+    press) do not enter the map except the last one, frames that did not move do not enter the
+    background model (they would imprint the surface on it), and a keyframe that no longer matches
+    the frame (contact began or ended) is replaced rather than trusted.
     """
 
     def __init__(self, method: str = "default", *, band_rows: int = 70, search: int = 25,
@@ -324,7 +361,8 @@ class Stitcher:
                  subpixel: bool = True, keyframes: bool = True, keyframe_overlap: float = 0.6,
                  motion_prior: bool = True, local_search: int = 3, background: bool = True,
                  flat_field: np.ndarray | None = None, lateral: bool = True, column_bin: int = 4,
-                 highpass: int = 9, min_confidence: float = 0.15, live_map: bool = True) -> None:
+                 highpass: int = 9, min_confidence: float = 0.15, live_map: bool = True,
+                 history: int | None = DEFAULT_HISTORY) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown stitching method {method!r}; choose from {', '.join(METHODS)}")
         if search < 1:
@@ -333,6 +371,8 @@ class Stitcher:
             raise ValueError(f"column_bin must be >= 1, got {column_bin}")
         if not 0.0 < keyframe_overlap < 1.0:
             raise ValueError(f"keyframe_overlap must be in (0, 1), got {keyframe_overlap}")
+        if history is not None and history < 1:
+            raise ValueError(f"history must be >= 1 frame or None (all), got {history}")
         self.method = method
         self.band_rows = int(band_rows)
         self.search = int(search)
@@ -350,9 +390,13 @@ class Stitcher:
         self.highpass = int(highpass) | 1
         self.min_confidence = float(min_confidence)
         self.live_map = bool(live_map)
-        self.shifts: list[float] = []
-        self.steps: list[StitchStep] = []
-        self.stamps: list[int] = []
+        self.history = history
+        # The newest `history` frames (all with None): a list offline, a ring buffer live.
+        self.shifts: list[float] | deque[float] = [] if history is None else deque(maxlen=history)
+        self.steps: list[StitchStep] | deque[StitchStep] = [] if history is None else deque(maxlen=history)
+        self.stamps: list[int] | deque[int] = [] if history is None else deque(maxlen=history)
+        self.frames = 0  # frames pushed, and how many of them took the motion prior
+        self.prior_frames = 0
         self._fixed_flat_field = None if flat_field is None else np.asarray(flat_field, np.float32)
         self._shape: tuple[int, int] | None = None
         self._sampler: _BandSampler | None = None
@@ -379,11 +423,20 @@ class Stitcher:
         self._field_level = 1.0
         self._weighted_field: np.ndarray | None = None  # weights x the flat field in use (map layer 1)
         self._weighted_field_of: np.ndarray | None = None  # ... and the field it was made from
-        self._placements: list[tuple[float, float]] = []  # (top, left) of every band in the map
+        self._flat_dirty = 0  # frames added to the running sum since the field was last computed
+        self._flat_row = 0.0  # position of the last frame added to it
+        self._moved = False  # has the roller moved since the first frame?
+        self._pending: tuple[np.ndarray, np.ndarray | None, float, float] | None = None  # latest still frame
+        self._splat_row = 0.0  # position of the last band added to the map
         self._travel = 0.0
         self._typical_energy: float | None = None  # mean |feature| while tracking confidently
 
     # -- public ------------------------------------------------------------------------------------
+    @property
+    def position_px(self) -> float:
+        """Cumulative shift since the first frame (the last step's `position_px`)."""
+        return self._position
+
     @property
     def mm_per_px(self) -> float | None:
         """Surface millimetres per map row at the contact line (None without a camera model)."""
@@ -434,6 +487,8 @@ class Stitcher:
         else:
             step = self._push_default(band, dt, prior_px)
         self._last_stamp = stamp_ns
+        self.frames += 1
+        self.prior_frames += step.used_prior
         self.stamps.append(stamp_ns)
         self.shifts.append(step.shift_px)
         self.steps.append(step)
@@ -444,7 +499,7 @@ class Stitcher:
         if self._canvas is None:
             return np.zeros((0, 0), np.uint8)
         shaded = self.method == "default" and self.background
-        image = self._canvas.image(self._level if shaded else None)
+        image = self._map_canvas().image(self._level if shaded else None)
         if mm_per_px is None:
             return image
         if not (mm_per_px > 0 and math.isfinite(mm_per_px)):
@@ -461,7 +516,15 @@ class Stitcher:
         """Boolean mask, same shape as `map_image()`: pixels that enough frames contributed to."""
         if self._canvas is None:
             return np.zeros((0, 0), bool)
-        return self._canvas.coverage(min_weight)
+        return self._map_canvas().coverage(min_weight)
+
+    def _map_canvas(self) -> _Canvas:
+        """The map's canvas; before the roller first moved, one holding just the latest frame."""
+        if self._pending is None:
+            return self._canvas
+        canvas = _Canvas(self._canvas.layers[0].shape[1], layers=len(self._canvas.layers), rows=4 * self.band_rows)
+        self._splat(canvas, *self._pending)
+        return canvas
 
     # -- setup -------------------------------------------------------------------------------------
     def _setup(self, shape: tuple[int, int]) -> None:
@@ -504,23 +567,34 @@ class Stitcher:
             return band, None
         field = self._fixed_flat_field
         if field is None:
-            if self._flat_sum is None:
-                self._flat_sum = np.zeros_like(band)
-            if self._flat_count >= _FLAT_FIELD_MEMORY:  # a running mean: follows slowly changing light
-                self._flat_sum *= (_FLAT_FIELD_MEMORY - 1) / _FLAT_FIELD_MEMORY
-                self._flat_count -= 1
-            cv2.add(self._flat_sum, band, dst=self._flat_sum)
-            self._flat_count += 1
             # Until the texture has moved well past the band, the mean still holds texture.
             if self._travel < 2 * self.band_rows or self._flat_count < 10:
                 return band, None
-            if self._flat_field is None or self._flat_count % 10 == 0:  # refreshed every few frames (cost)
+            if self._flat_field is None or self._flat_dirty >= 10:  # refreshed every few frames (cost)
                 self._flat_field = flat_field_from_mean(self._flat_sum / self._flat_count)
+                self._flat_dirty = 0
             field = self._flat_field
         if self._gain_of is not field:  # the field changes every few frames at most
             self._field_level = float(field.mean())
             self._gain, self._gain_of = self._field_level / np.maximum(field, 1.0), field
         return cv2.multiply(band, self._gain), field
+
+    def _learn_background(self, band: np.ndarray) -> None:
+        """Add a frame to the running mean of the live flat field, if the surface moved since the last
+        one added: the mean of frames at one place is the surface itself, not what stays still."""
+        if not self.background or self._fixed_flat_field is not None:
+            return
+        if abs(self._position - self._flat_row) < _STILL_PX:
+            return
+        self._flat_row = self._position
+        if self._flat_sum is None:
+            self._flat_sum = np.zeros_like(band)
+        if self._flat_count >= _FLAT_FIELD_MEMORY:  # a running mean: follows slowly changing light
+            self._flat_sum *= (_FLAT_FIELD_MEMORY - 1) / _FLAT_FIELD_MEMORY
+            self._flat_count -= 1
+        cv2.add(self._flat_sum, band, dst=self._flat_sum)
+        self._flat_count += 1
+        self._flat_dirty += 1
 
     def _current_flat_field(self) -> np.ndarray | None:
         if self._fixed_flat_field is not None:
@@ -532,14 +606,20 @@ class Stitcher:
     def finalise(self) -> None:
         """Re-weight the map with the final flat field (offline, after the last frame): the map is
         sum(w * band) / sum(w * field) at each pixel, so early frames, stitched before the field was
-        known, are corrected exactly. Costs one accumulation per frame; the live map skips it."""
-        field = self._current_flat_field()
-        if self.method != "default" or not self.background or field is None or self._canvas is None:
+        known, are corrected exactly. One patch per map row where bands landed (not per frame); the
+        live map skips it. Needs no per-frame history, so it works with a bounded `history`."""
+        if self.method != "default" or not self.background or self._canvas is None:
             return
-        weighted = field * self._column_weights
-        self._canvas.clear_layer(1)
-        for top, left in self._placements:
-            self._canvas.add((None, weighted), np.zeros_like(self._weights), top, left, subpixel=self.subpixel)
+        if self._pending is not None:  # the roller never moved: the map is the last frame
+            self._splat(self._canvas, *self._pending)
+            self._pending, self._moved = None, True
+        field = self._current_flat_field()
+        if field is None:  # nothing moved: nothing tells the static part from the surface
+            if self.live_map:
+                return  # the live layer already holds a flat guess per band
+            level = float(self._canvas.image().mean())  # layer 0 / row weight: the bands' mean grey
+            field = np.full((self.band_rows, self._shape[1]), max(level, 1.0), np.float32)
+        self._canvas.refill(1, field * self._column_weights)
         self._level = float(field.mean())
 
     def _bin(self, image: np.ndarray) -> np.ndarray:
@@ -558,8 +638,8 @@ class Stitcher:
         if dt == 0:
             return 0.0  # a duplicated frame (same stamp) has not moved
         if dt is not None and dt > 0 and self._recent_ns:
-            return statistics.median(self._recent_ns) * dt  # a dropped frame doubles dt and the prediction
-        return statistics.median(self._recent_frame) if self._recent_frame else None
+            return _velocity(self._recent_ns) * dt  # a dropped frame doubles dt and the prediction
+        return _velocity(self._recent_frame) if self._recent_frame else None
 
     def _push_default(self, band: np.ndarray, dt: int | None, prior_px: float | None) -> StitchStep:
         # Registration features: the flattened band, columns binned, high-passed (residual shading off).
@@ -572,23 +652,27 @@ class Stitcher:
         if self._key is None:
             self._key, self._key_full, self._key_energy = feats, full, _row_energy_cumsum(feats)
             self._key_pos = (self._position, self._lateral_pos)
-            self._add_to_map(band, field)
+            self._place(band, field, True)
             return StitchStep(0.0, 0.0, False, 0.0, self._position)
         predicted = self._predict(dt, prior_px)
         key_row, key_col = self._key_pos
         pred_rel = None if predicted is None else self._position + predicted - key_row
-        rel, confidence = self._register(feats, self._key, pred_rel, self._position - key_row)
+        rel, confidence, cost = self._register(feats, self._key, pred_rel, self._position - key_row)
         lat = self._lateral_pos - key_col
         if self.lateral and rel is not None:
             lat = _lateral_shift(full, self._key_full, rel, lat, self.highpass)
         if self._typical_energy is not None:  # far less texture than usual: a textureless stretch
             confidence *= min(1.0, energy / (_TEXTURELESS_FRACTION * self._typical_energy))
-        confident = rel is not None and confidence >= self.min_confidence
-        if confident and prior_px is not None and self.motion_prior and abs(prior_px) >= 1.0:
-            # The arm says we roll but the image says we stand still: the image sees only what does
-            # not move with the surface (a textureless stretch over a dusty gel). Believe the arm.
+        # A key that matches this frame this badly shows something else (a no-contact band before the
+        # roller touched, a jump): its shift means nothing, and the frame becomes the new key below.
+        confident = rel is not None and confidence >= self.min_confidence and cost <= _MISMATCH_COST
+        if confident and predicted is not None and abs(predicted) >= 1.0 and (
+                prior_px is not None or confidence < _WEAK_CONFIDENCE):
+            # The arm (or, on a weak match, the recent velocity) says we roll but the image says we
+            # stand still: the image sees only what does not move with the surface (a textureless
+            # stretch over a dusty gel). Believe the motion. A real stop decelerates over frames.
             image_shift = key_row + rel - self._position
-            confident = abs(image_shift) >= _STATIC_FRACTION * abs(prior_px)
+            confident = abs(image_shift) >= _STATIC_FRACTION * abs(predicted)
         if not confident:  # trust the motion prior, or stand still when there is none
             rel = self._position + (predicted or 0.0) - key_row
             lat = self._lateral_pos - key_col
@@ -601,7 +685,8 @@ class Stitcher:
             self._update_velocity(shift, dt)
             self._typical_energy = energy if self._typical_energy is None else (
                 0.9 * self._typical_energy + 0.1 * energy)
-        self._add_to_map(band, field)
+        self._place(band, field, confident)
+        self._learn_background(band)
         overlap = 1.0 - abs(rel) / self.band_rows
         if not self.keyframes or overlap < self.keyframe_overlap or not confident:
             self._key, self._key_full, self._key_energy = feats, full, _row_energy_cumsum(feats)
@@ -613,17 +698,36 @@ class Stitcher:
         if dt is not None and dt > 0:
             self._recent_ns.append(shift / dt)
 
-    def _add_to_map(self, band: np.ndarray, field: np.ndarray | None) -> None:
+    def _place(self, band: np.ndarray, field: np.ndarray | None, confident: bool) -> None:
+        """Add the band to the map at the current position, unless it adds nothing.
+
+        Until the roller first moves, only the latest frame is kept (pending): a lead-in of frames
+        standing still, touching nothing or being pressed, would otherwise all land on the first rows.
+        Later, a frame that registered nothing and did not move (lifted off at the end) is left out."""
+        if not self._moved:
+            if abs(self._position) < _STILL_PX:
+                self._pending = (band, field, self._position, self._lateral_pos)
+                return
+            self._moved = True
+            if self._pending is not None:
+                self._splat(self._canvas, *self._pending)
+                self._pending = None
+        elif not confident and abs(self._position - self._splat_row) < _STILL_PX:
+            return
+        self._splat(self._canvas, band, field, self._position, self._lateral_pos)
+        self._splat_row = self._position
+
+    def _splat(self, canvas: _Canvas, band: np.ndarray, field: np.ndarray | None, position: float,
+               lateral: float) -> None:
         """Accumulate the raw band; with a background model also the flat field at the same place, so
         the map is sum(w * band) / sum(w * field): the static gain divides out pixel by pixel."""
-        top, left = self._sampler.row0 - self._position, -self._lateral_pos
+        top, left = self._sampler.row0 - position, -lateral
         weighted_band = cv2.multiply(band, self._column_weights)
         if not self.background:
-            self._canvas.add((weighted_band,), self._weights, top, left, subpixel=self.subpixel)
+            canvas.add((weighted_band,), self._weights, top, left, subpixel=self.subpixel)
             return
-        self._placements.append((top, left))
         if not self.live_map:  # finalise() fills the flat-field layer
-            self._canvas.add((weighted_band, None), self._weights, top, left, subpixel=self.subpixel)
+            canvas.add((weighted_band, None), self._weights, top, left, subpixel=self.subpixel)
             return
         if field is None:  # not known yet: a flat guess, corrected by finalise()
             field = np.full_like(band, float(band.mean()))
@@ -632,18 +736,22 @@ class Stitcher:
             if self._weighted_field_of is not field:
                 self._weighted_field, self._weighted_field_of = field * self._column_weights, field
             weighted_field = self._weighted_field
-        self._canvas.add((weighted_band, weighted_field), self._weights, top, left, subpixel=self.subpixel)
+        canvas.add((weighted_band, weighted_field), self._weights, top, left, subpixel=self.subpixel)
         self._level = self._field_level if self._gain_of is field else float(field.mean())
 
     def _register(self, feats: np.ndarray, key: np.ndarray, predicted: float | None,
-                  current: float) -> tuple[float | None, float]:
-        """Row shift of `feats` relative to `key` and a confidence.
+                  current: float) -> tuple[float | None, float, float]:
+        """Row shift of `feats` relative to `key`, a confidence, and the cost (1 - NCC) there.
 
         `predicted` is the expected shift relative to the key (None: unknown), `current` the previous
         frame's shift relative to the key; the wide search covers current ± search.
         """
         h = feats.shape[0]
         max_rel = int(h * 0.75)  # keep at least a quarter of the band overlapping
+        if predicted is not None and abs(predicted) > max_rel:
+            # The prediction leaves no overlap with the key (a long gap in the stream, e.g. a camera
+            # stall): any match found would be a coincidence, mostly a wrong period of the weave.
+            return None, 0.0, math.inf
         wide = np.arange(max(round(current) - self.search, -max_rel), min(round(current) + self.search, max_rel) + 1)
         local = wide
         if predicted is not None:
@@ -656,12 +764,19 @@ class Stitcher:
             # The prediction was off (speed change, a dropped frame): search the whole range.
             candidates, costs, best = _search(feats, key, wide, key_sq)
         if best < 0:
-            return None, 0.0
+            return None, 0.0, math.inf
         confidence = _confidence(costs, best)
         rel = float(candidates[best])
         if self.subpixel:
             rel = _lucas_kanade_rows(feats, key, rel + _parabola(costs, best))
-        return rel, confidence
+        return rel, confidence, float(costs[best])
+
+
+def _velocity(recent: deque[float]) -> float:
+    """The median of the recent confident shifts (one bad registration does not steer it), or the
+    latest if slower: a roller slowing down to stop (before lifting off) is not carried on."""
+    median = statistics.median(recent)
+    return recent[-1] if abs(recent[-1]) < abs(median) else median
 
 
 def _search(cur: np.ndarray, key: np.ndarray, candidates: np.ndarray,

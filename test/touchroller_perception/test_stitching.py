@@ -256,3 +256,140 @@ def test_estimate_flat_field_keeps_stripes_along_the_roll_out_of_the_field():
     speck_rows, speck_cols = np.nonzero(gain < 0.5)
     if speck_rows.size:  # dust divides out
         assert np.std(flattened[speck_rows, speck_cols] / flattened.mean()) < 0.1
+
+
+# -- standing still: lead-ins, pauses, stalls (a scan starts by approaching the surface from above) --
+
+def lead_in(kind: str, n: int, seed: int = 0) -> list[np.ndarray]:
+    """Frames before the roll: the roller lifted off (only the gel's static background) or touching the
+    surface at the roll's first position without moving."""
+    if kind == "touching":
+        frames, _, _ = roll(np.zeros(n - 1), seed=seed)
+        return frames
+    h, w = SHAPE
+    rng = np.random.default_rng(seed + 7)
+    gain = gel_gain(seed + 1)  # the same gel as `roll`'s
+    return [np.clip(gain * 128 + rng.normal(0, 2.0, (h, w)), 0, 255).astype(np.uint8) for _ in range(n)]
+
+
+def stitch_live(frames, *, first_stamp=0, **kwargs):
+    stitcher = Stitcher(history=None, **kwargs)
+    steps = [stitcher.push(f, first_stamp + k * FRAME_NS) for k, f in enumerate(frames)]
+    return stitcher, steps
+
+
+@pytest.mark.parametrize("kind", ["lifted", "touching"])
+def test_a_lead_in_standing_still_does_not_freeze_the_map(kind):
+    frames, pos, tex = roll(np.full(70, 2.5), noise=1.0)
+    plain, _ = stitch_live(frames)
+    pre = lead_in(kind, 20)
+    led, steps = stitch_live(pre + frames)
+    rolled = steps[-1].position_px - steps[len(pre)].position_px
+    assert abs(rolled - pos[-1]) <= 0.01 * pos[-1]
+    assert led.map_image().shape[0] == pytest.approx(plain.map_image().shape[0], abs=2)
+    for stitcher in (plain, led):
+        stitcher.finalise()
+    quality = {name: compare_to_truth(s.map_image(), tex, valid=s.map_coverage())["ssim"]
+               for name, s in (("plain", plain), ("led", led))}
+    assert quality["led"] > 0.85
+    assert quality["led"] >= quality["plain"] - 0.03
+
+
+def test_lead_in_frames_do_not_enter_the_map_or_the_background():
+    frames, _, _ = roll(np.full(70, 2.5), noise=1.0)
+    led, _ = stitch_live(lead_in("lifted", 30) + frames)
+    plain, _ = stitch_live(frames)
+    assert led._flat_count <= plain._flat_count
+    led.finalise()
+    plain.finalise()
+    a, b = led.map_image(), plain.map_image()
+    assert a.shape[0] == pytest.approx(b.shape[0], abs=1)
+    # the first rows would be half grey (lifted-off frames averaged in) if the lead-in were splatted
+    assert rows_differ(a[:40], b[:40]) < 4.0
+
+
+def rows_differ(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean |a - b| over the columns both have, at the best of a few column offsets (the maps' left
+    edges may differ by a column of lateral jitter)."""
+    w = min(a.shape[1], b.shape[1]) - 4
+    return min(float(np.mean(np.abs(a[:, 2 + d:2 + d + w].astype(float) - b[:, 2:2 + w]))) for d in (-2, -1, 0, 1, 2))
+
+
+def test_a_map_before_the_roller_moves_shows_the_latest_frame():
+    stitcher = Stitcher()
+    for k, f in enumerate(lead_in("lifted", 5)):
+        stitcher.push(f, k * FRAME_NS)
+    frames, _, _ = roll(np.zeros(4))
+    for k, f in enumerate(frames):
+        stitcher.push(f, (5 + k) * FRAME_NS)
+    image = stitcher.map_image()
+    assert image.shape[0] == pytest.approx(70, abs=1)
+    assert stitcher.map_coverage().shape == image.shape
+    band = cv2.cvtColor(frames[-1], cv2.COLOR_GRAY2BGR) if frames[-1].ndim == 2 else frames[-1]
+    expected = stitcher.band(band)
+    assert np.corrcoef(image[5:-5].ravel(), expected[5:-5, :image.shape[1]].ravel())[0, 1] > 0.95
+    stitcher.finalise()
+    assert stitcher.map_image().shape == image.shape
+    assert np.mean(stitcher.map_image() == 0) < 0.01
+
+
+def test_a_roll_that_pauses_and_resumes():
+    shifts = np.r_[np.full(30, 2.5), np.linspace(2.5, 0, 6), np.zeros(25), np.linspace(0, 2.5, 6), np.full(30, 2.5)]
+    frames, pos, tex = roll(shifts, noise=1.0)
+    stitcher, steps = stitch_live(frames)
+    assert np.max(np.abs(estimated(steps) - pos)) < 0.5
+    assert abs(steps[-1].position_px - pos[-1]) <= 0.01 * pos[-1]
+    stitcher.finalise()
+    assert compare_to_truth(stitcher.map_image(), tex, valid=stitcher.map_coverage())["ssim"] > 0.85
+
+
+def test_a_long_gap_in_the_stream_follows_the_recent_velocity():
+    """A camera stall: 40 frames missing at 2.5 px/frame is 100 px, beyond any overlap with the key."""
+    frames, pos, _ = roll(np.full(120, 2.5), noise=1.0)
+    keep = [k for k in range(len(frames)) if not 50 <= k < 90]
+    stitcher = Stitcher(history=None)
+    steps = [stitcher.push(frames[k], k * FRAME_NS) for k in keep]
+    assert steps[50].used_prior  # the first frame after the gap: no overlap to register
+    assert abs(steps[-1].position_px - pos[keep[-1]]) <= 0.01 * pos[keep[-1]]
+
+
+def test_lifting_off_at_the_end_leaves_the_map_alone():
+    frames, pos, tex = roll(np.r_[np.full(60, 2.5), np.linspace(2.5, 0, 6)], noise=1.0)
+    plain, _ = stitch_live(frames)
+    lifted, steps = stitch_live(frames + lead_in("lifted", 15))
+    assert abs(steps[-1].position_px - pos[-1]) < 1.0
+    for stitcher in (plain, lifted):
+        stitcher.finalise()
+    a, b = lifted.map_image(), plain.map_image()
+    assert a.shape[0] == pytest.approx(b.shape[0], abs=2)
+    h = min(a.shape[0], b.shape[0])
+    assert rows_differ(a[h - 40:h], b[h - 40:h]) < 4.0
+
+
+@pytest.mark.parametrize("depth", [-0.002, 5e-4])
+def test_simulated_scan_with_a_lead_in_has_the_full_length(depth):
+    """The issue's repro: 20 frames of the simulated sensor lifted off (or touching) at the start, then
+    the roll; the map used to stay one band (~72 rows)."""
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+    from touchroller_driver.sim.render import RollerState
+
+    sensor = SimulatedSensor(load_scene("surface_mapping", **{"motion.length": 0.03, "motion.duration": 3.0}))
+    frames = list(sensor.frames())
+    travel = [f.truth["state"]["travel"] for f in frames]
+    pre = [sensor.render(RollerState(travel=travel[0], depth=depth)) for _ in range(20)]
+    true_px = (travel[-1] - travel[0]) * 1e3 / (sensor.metres_per_px_at_contact()[1] * 1e3)
+    results = {}
+    for name, lead in (("plain", []), ("led", pre)):
+        stitcher = Stitcher(camera=sensor.camera, history=None)
+        stamp0 = frames[0].stamp_ns - len(lead) * FRAME_NS
+        for k, image in enumerate(lead):
+            stitcher.push(image, stamp0 + k * FRAME_NS)
+        start = stitcher.position_px
+        for f in frames:
+            stitcher.push(f.image, f.stamp_ns)
+        stitcher.finalise()
+        rolled = abs(stitcher.position_px - start)
+        assert abs(rolled - true_px) <= 0.01 * true_px
+        truth = sensor.surface_map_truth().tactile
+        results[name] = compare_to_truth(stitcher.map_image(), truth, valid=stitcher.map_coverage())["ssim"]
+    assert results["led"] >= results["plain"] - 0.03

@@ -76,8 +76,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot write {out}")
     if args.steps:
         _write_steps(Path(args.steps), stitcher)
-    flagged = sum(step.used_prior for step in stitcher.steps)
-    travel = abs(stitcher.steps[-1].position_px)
+    flagged = stitcher.prior_frames
+    travel = abs(stitcher.position_px)
     scale = f", {travel * stitcher.mm_per_px:.1f} mm" if stitcher.mm_per_px else ""
     note = f"; {flagged} frame(s) without texture took the motion prior" if flagged else ""
     print(f"{frames} frames -> {out} ({image.shape[1]}x{image.shape[0]} px, travel {travel:.1f} px{scale}, "
@@ -97,7 +97,9 @@ def _make_stitcher(args: argparse.Namespace, camera, shape):
     if args.metric is not None and camera is None:
         raise UserError("--metric needs a camera model for these images (--params CAL.yaml)")
     try:
-        return Stitcher(args.method, band_rows=args.band_rows, search=args.search, camera=camera, live_map=False)
+        # Per-frame records only when --steps wants them: memory then does not grow with the bag.
+        return Stitcher(args.method, band_rows=args.band_rows, search=args.search, camera=camera, live_map=False,
+                        history=None if args.steps else 1)
     except ValueError as exc:
         raise UserError(str(exc)) from None
 
