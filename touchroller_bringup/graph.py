@@ -213,9 +213,9 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
         executable, name, target = role
         return NodeSpec(key, executable, name, target, dict(parameters), tuple(remappings), files)
 
-    def camera_parameters() -> dict[str, Any]:
-        if use_sim:
-            return {"source": "sim", "scene": args["scene"]}
+    def camera_parameters(follow_arm: bool = False) -> dict[str, Any]:
+        if use_sim:   # in scan, the simulated sensor follows the sweep node's arm (its tcp_pose)
+            return {"source": "sim", "scene": args["scene"], "sim.follow_arm": follow_arm}
         params: dict[str, Any] = {"source": "v4l2"}
         if args.get("camera_device"):
             params["device"] = _device(args["camera_device"])
@@ -229,7 +229,7 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
             sweep["sweep.speed"] = _positive_float(launch, "sweep_speed", args["sweep_speed"])
         if args["sweep_length"]:
             sweep["sweep.length"] = _positive_float(launch, "sweep_length", args["sweep_length"])
-        nodes = (spec(CAMERA, "camera", camera_parameters()),
+        nodes = (spec(CAMERA, "camera", camera_parameters(follow_arm=True)),
                  spec(PERCEPTION, "perception", {}),
                  spec(SWEEP, "sweep", sweep))
     elif launch == "calibrate":

@@ -105,6 +105,73 @@ def roller_state_from_pose(pose: ArrayLike, velocity: ArrayLike, t: float, *, or
     )
 
 
+DEFAULT_START_POSE = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0)  # the sweep's touching pose (UR base frame)
+
+
+def simulated_arm_origin(start_pose: ArrayLike, clearance: float) -> tuple[np.ndarray, float]:
+    """(rest pose, surface z) of the sweep node's simulated arm: it rests `clearance` above the start
+    pose, where the roller just touches the surface. One definition for the sweep node and for a
+    simulated camera that follows the arm's published poses."""
+    touching = as_pose(start_pose)
+    if not (math.isfinite(clearance) and clearance >= 0):
+        raise ArmLimitError(f"sweep clearance must be a finite number >= 0, got {clearance}")
+    return touching + np.array([0.0, 0.0, float(clearance), 0.0, 0.0, 0.0]), float(touching[2])
+
+
+class PoseFollower:
+    """The simulated sensor's `RollerState` from a stream of TCP poses (e.g. `/touchroller/tcp_pose`
+    published by a sweep node in another process): what a simulated camera needs to follow the arm.
+
+    `update(t, position)` takes each pose (t in seconds on the clock the camera also uses, e.g. the
+    ROS clock of the message stamps); the velocity is the difference of the last two poses. `state_at(t)`
+    extrapolates the last pose to the capture time by that velocity (at most `max_extrapolation` s,
+    so a stalled pose stream freezes the roller instead of running it away) and returns None before
+    the first pose. Thread-safe: poses arrive on the executor thread, frames render on the camera's.
+    """
+
+    def __init__(self, *, origin: ArrayLike, surface_z: float, rolling_direction: Sequence[float],
+                 radius: float, travel_origin: float = 0.0, x_along_origin: float = 0.0,
+                 max_extrapolation: float = 0.1) -> None:
+        if not (math.isfinite(radius) and radius > 0):
+            raise ValueError(f"radius must be > 0, got {radius}")
+        direction = np.asarray(rolling_direction, dtype=np.float64)
+        if direction.shape != (3,) or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) == 0:
+            raise ValueError(f"rolling_direction must be a non-zero 3-vector, got {rolling_direction}")
+        self._frame = {"origin": as_pose(origin), "surface_z": float(surface_z),
+                       "rolling_direction": direction, "radius": float(radius),
+                       "travel_origin": float(travel_origin), "x_along_origin": float(x_along_origin)}
+        self.max_extrapolation = float(max_extrapolation)
+        self._lock = threading.Lock()
+        self._last: tuple[float, np.ndarray] | None = None
+        self._velocity = np.zeros(3)
+        self.poses = 0
+
+    def update(self, t: float, position: ArrayLike) -> bool:
+        """Take one pose; False (ignored) if it is not newer than the last or not finite."""
+        xyz = np.asarray(position, dtype=np.float64).reshape(-1)[:3]
+        if xyz.shape != (3,) or not np.all(np.isfinite(xyz)) or not math.isfinite(t):
+            return False
+        with self._lock:
+            if self._last is not None:
+                t_last, xyz_last = self._last
+                if t <= t_last:
+                    return False
+                self._velocity = (xyz - xyz_last) / (t - t_last)
+            self._last = (float(t), xyz)
+            self.poses += 1
+        return True
+
+    def state_at(self, t: float) -> RollerState | None:
+        with self._lock:
+            if self._last is None:
+                return None
+            t_last, xyz = self._last
+            velocity = self._velocity.copy()
+        ahead = min(max(float(t) - t_last, 0.0), self.max_extrapolation)
+        pose = np.concatenate([xyz + velocity * ahead, self._frame["origin"][3:]])
+        return roller_state_from_pose(pose, velocity, t, **self._frame)
+
+
 @runtime_checkable
 class Arm(Protocol):
     """What the sweep node needs from an arm. All calls come from one thread."""
@@ -162,7 +229,7 @@ class SimulatedArm:
     stands in for a protective stop.
     """
 
-    def __init__(self, start_pose: ArrayLike = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0), *,
+    def __init__(self, start_pose: ArrayLike = DEFAULT_START_POSE, *,
                  limits: ArmLimits | None = None, surface_z: float | None = None,
                  rolling_direction: Sequence[float] = (1.0, 0.0, 0.0), radius: float = 0.05,
                  travel_origin: float = 0.0, x_along_origin: float = 0.0,

@@ -5,6 +5,14 @@ from the source and publishes it at once (no timer in the path, so no added late
 with the capture time. Images are always `bgr8`. Reliable QoS (REP 2003), overridable with
 `qos_overrides./touchroller/image_raw.publisher.*` parameters. `/diagnostics` carries the
 measured frame rate, publish lag (publish time - capture stamp) and drops.
+
+With `source=sim` and `sim.follow_arm`, the simulated sensor follows the arm of a sweep node running
+anywhere in the graph (e.g. another process under `ros2 launch`): the node subscribes
+`/touchroller/tcp_pose` and renders, at `fps`, the roller state of the latest pose extrapolated to the
+capture time (`touchroller_driver.arm.PoseFollower`). The arm's frame comes from the same parameters as
+the sweep node's simulated arm (`sweep.start_pose`, `sweep.clearance`, `sweep.direction`,
+`cylinder.radius`; config/scan.yaml sets them for every node) and the scene's roll start.
+No frames are published before the first pose.
 """
 from __future__ import annotations
 
@@ -13,6 +21,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -30,16 +39,18 @@ from touchroller_bringup.ros_diagnostics import (
     Status,
 )
 from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_driver.arm import DEFAULT_START_POSE, PoseFollower, simulated_arm_origin
 from touchroller_driver.image_conversion import fill_image
 from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
 from touchroller_perception.geometry import CameraModel
 
 IMAGE_TOPIC = "/touchroller/image_raw"
 CAMERA_INFO_TOPIC = "/touchroller/camera_info"
+TCP_POSE_TOPIC = "/touchroller/tcp_pose"
 #: Parameters that select or configure the source: changing one reopens it.
 SOURCE_PARAMETERS = (
     "source", "device", "width", "height", "fps", "exposure", "video_path", "bag_path", "bag_topic",
-    "scene", "seed", "rate", "loop",
+    "scene", "seed", "rate", "loop", "sim.follow_arm", "sweep.start_pose", "sweep.clearance", "sweep.direction",
 )
 
 
@@ -96,6 +107,9 @@ class CameraNode(Node):
         self.image_pub = self.create_publisher(Image, IMAGE_TOPIC, image_qos(), qos_overriding_options=overrides)
         self.info_pub = self.create_publisher(CameraInfo, CAMERA_INFO_TOPIC, image_qos(),
                                               qos_overriding_options=overrides)
+        self.follower: PoseFollower | None = None   # source=sim with sim.follow_arm: the arm's poses
+        self.pose_sub = None
+        self._subscribe_poses_if_following()
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: camera", hardware_id="")
         self.diagnostics.add(self._diagnostic_status)
         if autostart:
@@ -119,6 +133,15 @@ class CameraNode(Node):
                 min=0.0, max=100.0)
         declare(self, "loop", False, "Restart video/bag/sim sources at their end")
         declare(self, "frame_id", "touchroller_camera", "frame_id of published images and camera info")
+        declare(self, "sim.follow_arm", False, "source=sim: render the roller state of the arm's poses on "
+                f"{TCP_POSE_TOPIC} (a sweep node's simulated arm) instead of the scene's own motion")
+        # the sweep node's names, so the same params files place the arm identically for both
+        declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
+                "sim.follow_arm: the sweep's touching TCP pose [x, y, z, rx, ry, rz] (as the sweep node)")
+        declare(self, "sweep.clearance", 0.002, "sim.follow_arm: height above the start pose the arm rests at, "
+                "m (as the sweep node)", min=0.0, max=0.05)
+        declare(self, "sweep.direction", [1.0, 0.0, 0.0], "sim.follow_arm: rolling direction in the base "
+                "frame (as the sweep node)")
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         for param in parameters:
@@ -134,7 +157,39 @@ class CameraNode(Node):
         if "frame_id" in names:
             self.frame_id = str(self.get_parameter("frame_id").value)
         if names & set(SOURCE_PARAMETERS) and not self._external_source:
+            self._subscribe_poses_if_following()
             self._restart.set()  # the publishing thread reopens the source
+
+    # ------------------------------------------------------------------ following the arm (sim)
+    def _following(self) -> bool:
+        return (not self._external_source and str(self.get_parameter("source").value) == "sim"
+                and bool(self.get_parameter("sim.follow_arm").value))
+
+    def _subscribe_poses_if_following(self) -> None:
+        # Created here (executor or constructing thread), never from the publishing thread; kept once made.
+        if self.pose_sub is None and self._following():
+            self.pose_sub = self.create_subscription(PoseStamped, TCP_POSE_TOPIC, self._on_pose, 10)
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        follower = self.follower
+        if follower is not None:
+            stamp = msg.header.stamp
+            p = msg.pose.position
+            follower.update(stamp.sec + stamp.nanosec * 1e-9, (p.x, p.y, p.z))
+
+    def _make_follower(self, scene: Any) -> PoseFollower:
+        from touchroller_driver.sim.scenarios import roll_extent
+
+        rest, surface_z = simulated_arm_origin(list(self.get_parameter("sweep.start_pose").value),
+                                               float(self.get_parameter("sweep.clearance").value))
+        travel_origin, _, x_along_origin = roll_extent(scene)
+        return PoseFollower(origin=rest, surface_z=surface_z,
+                            rolling_direction=list(self.get_parameter("sweep.direction").value),
+                            radius=self.geometry.model.radius, travel_origin=travel_origin,
+                            x_along_origin=x_along_origin)
+
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
 
     def _on_geometry(self, model: CameraModel) -> None:
         self.get_logger().info(f"camera model updated: fx={model.fx:g} fy={model.fy:g} theta={model.theta:g} d={model.d:g}")
@@ -153,6 +208,16 @@ class CameraNode(Node):
         if kind == "bag":
             return make_source("bag", path=param["bag_path"], topic=param["bag_topic"], rate=param["rate"],
                                loop=param["loop"], clock_ns=clock_ns)
+        if self._following():
+            from touchroller_driver.sim import SimulatedSensor, load_scene  # lazy: heavy and optional
+
+            sensor = SimulatedSensor(load_scene(param["scene"]), seed=param["seed"])
+            follower = self._make_follower(sensor.scene)
+            source = make_source("sim", sensor=sensor, state_at=follower.state_at, clock=self._now_s,
+                                 fps=param["fps"], clock_ns=clock_ns)
+            self.follower = follower
+            return source
+        self.follower = None
         return make_source("sim", scene=param["scene"], seed=param["seed"], rate=param["rate"],
                            loop=param["loop"], clock_ns=clock_ns)
 

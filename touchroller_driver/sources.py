@@ -420,8 +420,9 @@ class VideoFileSource:
 class SimulatedSource:
     """The simulated sensor (`touchroller_driver.sim.SimulatedSensor`) as a camera.
 
-    Bound to an arm, pass `state_at(t) -> RollerState`: each frame renders the state the arm reports at
-    capture time `t = clock()` (seconds, the arm's clock), at `fps`. Standalone, it plays the scene's own
+    Bound to an arm, pass `state_at(t) -> RollerState | None`: each frame renders the state the arm
+    reports at capture time `t = clock()` (seconds, the arm's clock), at `fps`; None (the arm's state is
+    not known yet) delivers no frame. Standalone, it plays the scene's own
     motion (`sensor.frames()`) paced by the frames' stamps (`rate` 1.0 real time, 0 as fast as possible).
     Published stamps come from `clock_ns` at capture in both cases.
     """
@@ -476,8 +477,12 @@ class SimulatedSource:
         if not self._pacer.wait(self._seq / self.fps, timeout):
             return None
         stamp_ns = self._clock_ns()
-        image = as_bgr8(self.sensor.render(self.state_at(self.clock())))
-        return self._deliver(stamp_ns, image)
+        state = self.state_at(self.clock())
+        if state is None:   # the arm has not reported yet (e.g. no pose received): no frame
+            self._pacer.reset()   # and no burst of overdue frames once it does
+            time.sleep(min(timeout, 1.0 / self.fps))
+            return None
+        return self._deliver(stamp_ns, as_bgr8(self.sensor.render(state)))
 
     def _read_scene(self, timeout: float) -> Frame | None:
         if self._pending is None:

@@ -31,6 +31,7 @@ from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPubl
 from touchroller_bringup.ros_params import declare
 from touchroller_bringup.ros_services import trigger_service_type
 from touchroller_driver.arm import (
+    DEFAULT_START_POSE,
     Arm,
     ArmError,
     ArmLimits,
@@ -38,14 +39,13 @@ from touchroller_driver.arm import (
     SweepPhase,
     SweepSequencer,
     SweepStatus,
-    as_pose,
     plan_sweep,
+    simulated_arm_origin,
 )
 
 NODE_NAME = "touchroller_sweep"
 TCP_POSE_TOPIC = "/touchroller/tcp_pose"
 PROGRESS_TOPIC = "/touchroller/sweep_progress"
-DEFAULT_START_POSE = [0.4, 0.0, 0.2, math.pi, 0.0, 0.0]
 COMMAND_TIMEOUT_S = 5.0
 
 # Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
@@ -168,9 +168,9 @@ class SweepNode(Node):
 
     def _make_arm(self) -> Arm:
         if self.get_parameter("use_sim").value:
-            touching = as_pose(self.settings["sweep.start_pose"])
-            hover = touching + [0.0, 0.0, float(self.settings["sweep.clearance"]), 0.0, 0.0, 0.0]
-            return SimulatedArm(hover, surface_z=float(touching[2]), limits=self.limits,
+            rest, surface_z = simulated_arm_origin(self.settings["sweep.start_pose"],
+                                                   float(self.settings["sweep.clearance"]))
+            return SimulatedArm(rest, surface_z=surface_z, limits=self.limits,
                                 rolling_direction=list(self.settings["sweep.direction"]),
                                 radius=float(self.get_parameter("cylinder.radius").value))
         from touchroller_driver.ur5 import UR5Arm

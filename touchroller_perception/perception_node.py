@@ -3,8 +3,9 @@
 Thin ROS shell around `touchroller_perception.contacts` (detection), `.localisation`
 (back-projection through the calibrated camera model) and `.stitching` (the map, imported lazily):
 
-* subscribes `/touchroller/image_raw` (sensor-data QoS, keep-last depth 1: a slow consumer skips
-  stale frames instead of queueing them);
+* subscribes `/touchroller/image_raw` (best effort, keep-last depth 1: a slow consumer skips
+  stale frames instead of queueing them; overridable at start-up with the read-only parameters
+  `qos_overrides./touchroller/image_raw.subscription.{history,depth,reliability}`);
 * publishes one `geometry_msgs/PointStamped` per contact on `/touchroller/contacts`, frame
   `touchroller_cylinder`, stamped with the source image's stamp;
 * publishes the map on `/touchroller/map` (transient local, reliable, depth 1) at `map.publish_rate` Hz;
@@ -28,6 +29,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
 
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, LagWindow, RateMeter, Status
@@ -43,8 +45,17 @@ CONTACTS_TOPIC = "/touchroller/contacts"
 MAP_TOPIC = "/touchroller/map"
 CYLINDER_FRAME = "touchroller_cylinder"
 
-IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
-                       durability=DurabilityPolicy.VOLATILE)
+
+
+def image_qos() -> QoSProfile:
+    """Keep-last 1, best effort: a busy node skips stale frames instead of queueing them (and matches
+    reliable and best-effort publishers). A new object per subscription: QoS overrides
+    (`qos_overrides./touchroller/image_raw.subscription.{history,depth,reliability}`) modify it in place."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+IMAGE_QOS = image_qos()   # the default, for readers; the node subscribes with a fresh image_qos()
 MAP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -95,10 +106,11 @@ class PerceptionNode(Node):
 
         self.contacts_pub = self.create_publisher(PointStamped, CONTACTS_TOPIC, 10)
         self.map_pub = self.create_publisher(Image, MAP_TOPIC, MAP_QOS)
-        if _has_message_info():
-            self.image_sub = self.create_subscription(Image, IMAGE_TOPIC, self._on_image_with_info, IMAGE_QOS)
-        else:  # Humble: no MessageInfo, so no drop count
-            self.image_sub = self.create_subscription(Image, IMAGE_TOPIC, self._on_image, IMAGE_QOS)
+        # Humble has no MessageInfo, so no drop count there
+        on_image = self._on_image_with_info if _has_message_info() else self._on_image
+        self.image_sub = self.create_subscription(
+            Image, IMAGE_TOPIC, on_image, image_qos(),
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._create_recapture_interface()
         self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: perception")

@@ -43,8 +43,10 @@ def test_every_node_has_a_console_script_in_its_module(tmp_path):
 def test_scan_graph_defaults_are_simulated():
     g = build_graph("scan")
     assert g.keys == ("camera", "perception", "sweep")
-    assert g.node("camera").parameters == {"source": "sim", "scene": "surface_mapping"}
+    # separate processes under ros2 launch: the simulated camera follows the sweep node's arm (tcp_pose)
+    assert g.node("camera").parameters == {"source": "sim", "scene": "surface_mapping", "sim.follow_arm": True}
     assert g.node("sweep").parameters == {"use_sim": True}
+    assert build_graph("calibrate").node("camera").parameters["sim.follow_arm"] is False
     files = g.node("sweep").params_files
     assert [Path(f).name for f in files] == ["touchroller.yaml", "scan.yaml"]
 

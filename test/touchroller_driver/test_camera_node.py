@@ -235,3 +235,74 @@ def test_sim_source_by_parameters_publishes_rendered_frames(ros_context, spin_un
     finally:
         executor.shutdown()
         camera.destroy_node()
+
+
+@pytest.mark.timeout(120)
+def test_sim_camera_follows_a_sweep_node_through_tcp_pose(ros_context, spin_until):
+    """Scan graph as separate nodes (as ros2 launch runs them): only /touchroller/tcp_pose couples the
+    sweep node's simulated arm and the simulated camera; the frames roll with the arm and stitch into
+    a map of the commanded length."""
+    from geometry_msgs.msg import PoseStamped
+
+    from touchroller_bringup.graph import build_graph
+    from touchroller_bringup.ros_services import trigger_service_type
+    from touchroller_driver.sweep_node import TCP_POSE_TOPIC, SweepNode
+    from touchroller_perception.stitching import stitch
+
+    length, speed = 0.01, 0.01                      # 1 cm in 1 s: ~30 frames, ~3 px of roll per frame
+    graph = build_graph("scan", {"sweep_length": str(length), "sweep_speed": str(speed)})
+    camera = CameraNode(context=ros_context, **graph.node("camera").node_kwargs())
+    sweep = SweepNode(context=ros_context, **graph.node("sweep").node_kwargs())
+    listener = Listener(ros_context, qos=QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+    poses: list = []
+    listener.node.create_subscription(PoseStamped, TCP_POSE_TOPIC, poses.append, 200)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (camera, sweep, listener.node):
+        executor.add_node(node)
+    try:
+        assert camera.get_parameter("sim.follow_arm").value and camera.pose_sub is not None
+        # the roller rests at (or above) the surface, unpressed: frames arrive once poses do, barely changing
+        assert spin_until(executor, lambda: len(listener.images) >= 5, timeout=20.0)
+        assert camera.follower.poses > 0
+        resting = [coarse(image_to_array(m)) for m in listener.images[-3:]]
+        rest_change = np.mean(np.abs(resting[-1] - resting[-2]))
+        clearance = float(sweep.get_parameter("sweep.clearance").value)   # the arm rests that high
+        assert camera.follower.state_at(camera._now_s()).depth == pytest.approx(-clearance, abs=1e-9)
+
+        service_type, _ = trigger_service_type()
+        client = listener.node.create_client(service_type, "/touchroller_sweep/start")
+        assert spin_until(executor, client.service_is_ready, timeout=10.0)
+        future = client.call_async(service_type.Request())
+        assert spin_until(executor, future.done, timeout=10.0) and future.result().success
+        assert spin_until(executor, sweep.finished.is_set, timeout=30.0)
+        assert sweep.status.phase.value == "done"
+        spin_until(executor, lambda: False, timeout=0.3)   # the last frames
+    finally:
+        executor.shutdown()
+        for node in (camera, sweep, listener.node):
+            node.destroy_node()
+
+    frames = [(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, image_to_array(m))
+              for m in listener.images]
+    # the frames of the roll: while the arm's poses are pressed in and moving along x
+    start = sweep.get_parameter("sweep.start_pose").value
+    depth = float(sweep.get_parameter("sweep.depth").value)
+    pressed = [p.header.stamp.sec * 1_000_000_000 + p.header.stamp.nanosec for p in poses
+               if p.pose.position.z < start[2] - 0.9 * depth and start[0] + 1e-3 < p.pose.position.x < start[0] + length]
+    rolling = [(stamp, image) for stamp, image in frames if pressed and pressed[0] <= stamp <= pressed[-1]]
+    assert len(rolling) >= 15, len(rolling)     # ~1 s of roll at 30 Hz
+    # over the roll the surface under the band has moved on by ~100 px: far more than frame noise
+    roll_change = np.mean(np.abs(coarse(rolling[-1][1]) - coarse(rolling[0][1])))
+    assert roll_change > 5 * rest_change, (roll_change, rest_change)
+
+    tactile_map, _ = stitch([image for _, image in frames], stamps=[stamp for stamp, _ in frames],
+                            camera=camera.geometry.model)
+    rolled_px = length / (camera.geometry.model.radius / camera.geometry.model.fy)
+    # one band (the stitcher's 70 rows) + the roll (100 px at r / fy = 0.1 mm per pixel); measured: 171 rows
+    assert abs(tactile_map.shape[0] - (70 + rolled_px)) <= 0.1 * rolled_px, (tactile_map.shape, rolled_px)
+
+
+def coarse(image: np.ndarray) -> np.ndarray:
+    """Grey, 8x smaller: the sensor noise averages out, the image content stays."""
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float64)
+    return cv2.resize(grey, (grey.shape[1] // 8, grey.shape[0] // 8), interpolation=cv2.INTER_AREA)

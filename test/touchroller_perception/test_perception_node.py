@@ -200,3 +200,38 @@ def test_a_busy_node_skips_stale_frames_and_counts_them(graph, spin_until):
     assert node.received < 1 + 8
     if _has_message_info():
         assert node.received + node.dropped == 1 + 8
+
+
+def test_image_subscription_qos_defaults_and_overrides(ros_context, spin_until):
+    from rclpy.qos import HistoryPolicy, ReliabilityPolicy
+
+    from touchroller_perception.perception_node import IMAGE_TOPIC, PerceptionNode
+
+    prefix = f"qos_overrides.{IMAGE_TOPIC}.subscription"
+    default = PerceptionNode("perception_default", context=ros_context,
+                             parameter_overrides=[Parameter("map.publish_rate", value=0.0)])
+    overridden = PerceptionNode("perception_overridden", context=ros_context, parameter_overrides=[
+        Parameter("map.publish_rate", value=0.0), Parameter(f"{prefix}.depth", value=3),
+        Parameter(f"{prefix}.reliability", value="reliable")])
+    probe = rclpy_node("qos_probe", ros_context)
+    try:
+        assert (default.image_sub.qos_profile.depth, default.image_sub.qos_profile.reliability) == \
+            (1, ReliabilityPolicy.BEST_EFFORT)
+        assert default.get_parameter(f"{prefix}.depth").value == 1
+        assert overridden.image_sub.qos_profile.depth == 3
+        assert overridden.image_sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+        assert overridden.image_sub.qos_profile.history == HistoryPolicy.KEEP_LAST
+        # what the middleware was given, as another node sees the graph
+        def endpoints():
+            return {info.node_name: info.qos_profile for info in probe.get_subscriptions_info_by_topic(IMAGE_TOPIC)}
+
+        assert spin_until(probe, lambda: {"perception_default", "perception_overridden"} <= set(endpoints()),
+                          timeout=10.0)
+        seen = endpoints()
+        assert seen["perception_overridden"].reliability == ReliabilityPolicy.RELIABLE
+        assert seen["perception_default"].reliability == ReliabilityPolicy.BEST_EFFORT
+        # read-only: fixed at start-up, as rclpy's QoS overrides are
+        assert not overridden.set_parameters([Parameter(f"{prefix}.depth", value=5)])[0].successful
+    finally:
+        for node in (default, overridden, probe):
+            node.destroy_node()
