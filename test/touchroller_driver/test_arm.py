@@ -329,3 +329,43 @@ def test_roller_state_from_pose_projects_onto_the_rolling_and_axis_directions():
     assert state.roll == pytest.approx(0.02 / 0.05)
     assert state.depth == pytest.approx(0.001)
     assert state.speed == pytest.approx(0.005) and state.t == 3.0
+
+
+def test_pose_follower_matches_the_simulated_arm_it_follows():
+    """A follower fed the arm's poses at 50 Hz gives the arm's own roller state, also between poses."""
+    pytest.importorskip("touchroller_driver.sim")
+    from touchroller_driver.arm import PoseFollower, simulated_arm_origin
+
+    clock = FakeClock()
+    rest, surface_z = simulated_arm_origin(START, 0.002)
+    arm = SimulatedArm(rest, surface_z=surface_z, clock=clock, radius=0.05, travel_origin=0.01, x_along_origin=0.002)
+    arm.connect()
+    follower = PoseFollower(origin=rest, surface_z=surface_z, rolling_direction=(1.0, 0.0, 0.0), radius=0.05,
+                            travel_origin=0.01, x_along_origin=0.002)
+    assert follower.state_at(0.0) is None                      # nothing before the first pose
+    arm.move_linear(np.array(START) + [0.02, 0, -0.0005, 0, 0, 0], 0.01, 0.1)
+    for k in range(60):                                        # 1.2 s of poses at 50 Hz
+        clock.t = 100.0 + 0.02 * k
+        assert follower.update(clock.t, arm.tcp_pose()[:3])
+    t = clock.t + 0.007                                        # a frame between two poses
+    mine, truth = follower.state_at(t), arm.roller_state(t)
+    assert mine.travel == pytest.approx(truth.travel, abs=1e-6)
+    assert mine.depth == pytest.approx(truth.depth, abs=1e-6)
+    assert mine.x_along == pytest.approx(truth.x_along, abs=1e-9)
+    assert mine.speed == pytest.approx(truth.speed, abs=1e-3) and mine.speed > 0
+    # a stalled pose stream freezes the roller after max_extrapolation instead of running it away
+    assert follower.state_at(t + 10.0).travel == pytest.approx(follower.state_at(t + 0.1).travel)
+    # stale, repeated and non-finite poses are ignored
+    assert not follower.update(clock.t, arm.tcp_pose()[:3])
+    assert not follower.update(clock.t + 0.01, [np.nan, 0.0, 0.2])
+    assert follower.poses == 60
+
+
+def test_simulated_arm_origin_rests_above_the_touching_pose():
+    from touchroller_driver.arm import ArmLimitError, simulated_arm_origin
+
+    rest, surface_z = simulated_arm_origin(START, 0.003)
+    assert surface_z == START[2] and rest[2] == pytest.approx(START[2] + 0.003)
+    np.testing.assert_allclose(rest[[0, 1, 3, 4, 5]], np.array(START)[[0, 1, 3, 4, 5]])
+    with pytest.raises(ArmLimitError):
+        simulated_arm_origin(START, -0.001)

@@ -292,6 +292,21 @@ def test_simulated_source_renders_the_arm_state_at_capture_time():
     assert "bound to arm" in source.info
 
 
+def test_simulated_source_bound_to_an_unknown_arm_state_waits_without_a_burst_after():
+    """state_at -> None (e.g. no tcp_pose yet): no frame; once the state is known, frames come at fps
+    from then on, not a burst of the frames that were 'due' while waiting."""
+    sensor = FakeSensor()
+    known = {"state": None}
+    source = SimulatedSource(sensor, clock=lambda: 1.0, state_at=lambda t: known["state"], fps=10.0)
+    source.open()
+    assert [source.read(0.05) for _ in range(4)] == [None] * 4     # 0.2 s+ with nothing to render
+    assert sensor.rendered == [] and source.stats.captured == 0
+    known["state"] = 2.0
+    first = source.read(0.05)
+    assert first is not None and first.seq == 0 and sensor.rendered == [2.0]
+    assert source.read(0.01) is None            # the next frame is due 0.1 s later, not at once
+
+
 def test_simulated_source_plays_the_scene_motion_standalone_and_loops():
     source = make_source("sim", sensor=FakeSensor(3), rate=0.0, loop=True)
     source.open()
