@@ -3,6 +3,7 @@ background (shading, dust specks), with noise, blur, textureless stretches and f
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import cv2
 import numpy as np
@@ -393,3 +394,53 @@ def test_simulated_scan_with_a_lead_in_has_the_full_length(depth):
         truth = sensor.surface_map_truth().tactile
         results[name] = compare_to_truth(stitcher.map_image(), truth, valid=stitcher.map_coverage())["ssim"]
     assert results["led"] >= results["plain"] - 0.03
+
+
+@pytest.mark.parametrize("speed", [2.6, -2.6])
+def test_finalise_on_a_live_stitcher_is_at_least_as_good_as_the_live_map(speed):
+    """Fed frame by frame as the perception node does (lead-in, a map longer than the canvas's first
+    allocation in either direction, bounded history), then finalised: nothing is lost or zeroed."""
+    frames, pos, tex = roll(np.full(420, speed), noise=1.0)
+    stitcher = Stitcher(history=50)
+    for k, f in enumerate(lead_in("lifted", 10) + frames):
+        stitcher.push(f, k * FRAME_NS)
+    live, covered = stitcher.map_image(), stitcher.map_coverage()
+    assert live.shape[0] > 1100
+    stitcher.finalise()
+    final = stitcher.map_image()
+    assert final.shape == live.shape
+    assert np.array_equal(stitcher.map_coverage(), covered)
+    assert np.mean(final[covered] == 0) < 1e-3
+    scores = [compare_to_truth(image, tex, valid=covered)["ssim"] for image in (live, final)]
+    assert scores[1] >= scores[0] - 0.005
+    assert scores[1] > 0.85
+
+
+def history_size(stitcher: Stitcher) -> int:
+    """Entries the stitcher keeps besides the map itself: per-frame records, the placement histogram
+    and any other list or deque attribute."""
+    size = sum(len(v) for v in vars(stitcher).values() if isinstance(v, (list, deque)))
+    canvas = stitcher._canvas
+    return size + sum(shares.size for shares in canvas.placed.values()) + canvas.weight.size
+
+
+def test_live_history_is_bounded():
+    frames, _, _ = roll(np.full(40, 2.5), noise=1.0)
+    still = frames[-1]
+    bounded, unbounded = Stitcher(history=25), Stitcher(history=None)
+    sizes = {}
+    for k in range(400):  # a short roll, then standing still: the map stops growing, so must the rest
+        image = frames[k] if k < len(frames) else still
+        for stitcher in (bounded, unbounded):
+            stitcher.push(image, k * FRAME_NS)
+        if k in (100, 399):
+            sizes[k] = (history_size(bounded), history_size(unbounded))
+    assert sizes[399][0] == sizes[100][0]
+    assert sizes[399][1] > sizes[100][1]  # offline: every frame kept
+    assert len(bounded.steps) == len(bounded.stamps) == len(bounded.shifts) == 25
+    assert bounded.frames == len(unbounded.steps) == 400
+    assert list(bounded.steps) == unbounded.steps[-25:]
+    assert bounded.position_px == unbounded.steps[-1].position_px
+    assert Stitcher().history is not None  # what the perception node constructs is bounded
+    with pytest.raises(ValueError, match="history"):
+        Stitcher(history=0)
