@@ -2,10 +2,11 @@
 `ros2 launch touchroller_bringup replay.launch.py bag:=recording/ rate:=1.0`
 
 Nodes, parameters and remappings come from `touchroller_bringup.graph` (the one definition,
-shared with `touchroller scan`); this file only declares its arguments and builds launch_ros Nodes.
+shared with `touchroller scan`); this file only declares its arguments and builds launch_ros Nodes
+(after the environment the graph asks for: `fastdds_profile:=shm` selects the shared-memory Fast DDS profile).
 """
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -16,7 +17,10 @@ LAUNCH = "replay"
 
 def _nodes(context, *args, **kwargs):
     values = {arg.name: LaunchConfiguration(arg.name).perform(context) for arg in graph.LAUNCH_ARGUMENTS[LAUNCH]}
-    return [Node(**spec.launch_kwargs()) for spec in graph.build_graph(LAUNCH, values).nodes]
+    built = graph.build_graph(LAUNCH, values)
+    # the environment first (e.g. fastdds_profile:=shm), so every node's process starts with it
+    environment = [SetEnvironmentVariable(name, value) for name, value in built.environment.items()]
+    return [*environment, *(Node(**spec.launch_kwargs()) for spec in built.nodes)]
 
 
 def generate_launch_description():

@@ -2,7 +2,8 @@
 
 Three consumers read it and nothing else:
 - `launch/{scan,calibrate,replay}.launch.py` declare `LAUNCH_ARGUMENTS[<launch>]` and turn
-  `build_graph(<launch>, values)` into launch_ros `Node` actions (`NodeSpec.launch_kwargs`);
+  `build_graph(<launch>, values)` into `SetEnvironmentVariable` actions (`Graph.environment`, e.g. the
+  Fast DDS profile) followed by launch_ros `Node` actions (`NodeSpec.launch_kwargs`);
 - `touchroller scan` instantiates the same `NodeSpec`s in one process (`NodeSpec.node_kwargs`,
   `NodeSpec.load_class`), passing params files exactly as launch_ros would (`--params-file`, then
   the graph's own parameters, then the user's `name:=value` overrides, later ones winning);
@@ -25,6 +26,9 @@ from touchroller_bringup.paths import config_path
 
 PACKAGE = "touchroller_bringup"
 DEFAULT_PARAMS_FILES = ("touchroller.yaml", "scan.yaml")  # under config/
+FASTDDS_PROFILES = {"shm": "fastdds_shm.xml"}  # fastdds_profile:=<name> -> config/<file>
+# Fast DDS 3 (Kilted) reads the first, Fast DDS 2 (Humble, Jazzy) the second; other RMWs ignore both.
+FASTDDS_ENVIRONMENT = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE")
 
 
 class GraphError(ValueError):
@@ -95,6 +99,7 @@ class Graph:
     launch: str
     nodes: tuple[NodeSpec, ...]
     arguments: Mapping[str, str]
+    environment: Mapping[str, str] = field(default_factory=dict)  # set for every node's process
 
     def node(self, key: str) -> NodeSpec:
         for spec in self.nodes:
@@ -113,6 +118,9 @@ _COMMON = (
                    "node after the package defaults (config/touchroller.yaml, config/scan.yaml)"),
     LaunchArgument("calibration_file", "", "Calibration YAML (camera.*, extrinsics.*) applied after "
                    "params_file; empty: the geometry in the params files"),
+    LaunchArgument("fastdds_profile", "", "Fast DDS XML profile for every node (sets FASTDDS_/"
+                   "FASTRTPS_DEFAULT_PROFILES_FILE): 'shm' = the shipped config/fastdds_shm.xml (shared "
+                   "memory sized for whole images, this host only), or a path; empty: the environment's"),
 )
 LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
     "scan": (
@@ -193,6 +201,17 @@ def _params_files(args: Mapping[str, str], extra: Sequence[str | Path] = ()) -> 
     return tuple(files)
 
 
+def _environment(args: Mapping[str, str]) -> dict[str, str]:
+    choice = args.get("fastdds_profile", "")
+    if not choice:
+        return {}
+    path = config_path(FASTDDS_PROFILES[choice]) if choice in FASTDDS_PROFILES else Path(choice).expanduser()
+    if not path.is_file():
+        raise GraphError(f"fastdds_profile {choice}: {path} does not exist "
+                         f"(give {' or '.join(FASTDDS_PROFILES)} or the path of a Fast DDS XML profile)")
+    return dict.fromkeys(FASTDDS_ENVIRONMENT, str(path.resolve()))
+
+
 def _device(text: str) -> str:
     return text  # the camera node takes an index or a path as a string
 
@@ -242,4 +261,4 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
                   "rate": _positive_float(launch, "rate", args["rate"], allow_zero=True),
                   "loop": args["loop"] == "true"}
         nodes = (spec(CAMERA, "camera", camera), spec(PERCEPTION, "perception", {}))
-    return Graph(launch, nodes, args)
+    return Graph(launch, nodes, args, _environment(args))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import sys
 import threading
 import time
@@ -103,8 +104,18 @@ def run_scan(options: ScanOptions) -> ScanResult:
     # keeps 30 Hz with every frame processed.
     switch_interval = sys.getswitchinterval()
     sys.setswitchinterval(min(switch_interval, 0.0005))
+    # fastdds_profile:=...: the graph's own messages go intra-process (one participant), so the profile
+    # only shapes how other processes (ros2 topic echo, rviz, a recorder elsewhere) reach this one; and
+    # Fast DDS reads it when the process creates its first participant (normally this run's).
+    saved_environment = {name: os.environ.get(name) for name in graph.environment}
+    os.environ.update(graph.environment)
     context = Context()
-    rclpy.init(context=context)
+    try:
+        rclpy.init(context=context)
+    except BaseException:
+        sys.setswitchinterval(switch_interval)
+        _restore_environment(saved_environment)
+        raise
     nodes: list[Any] = []
     executor = MultiThreadedExecutor(num_threads=4, context=context)
     spinner: threading.Thread | None = None
@@ -149,6 +160,15 @@ def run_scan(options: ScanOptions) -> ScanResult:
             node.destroy_node()
         context.try_shutdown()
         sys.setswitchinterval(switch_interval)
+        _restore_environment(saved_environment)
+
+
+def _restore_environment(saved: Mapping[str, str | None]) -> None:
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
 
 
 def _spin(executor: Any, stop: threading.Event) -> None:

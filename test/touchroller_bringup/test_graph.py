@@ -87,7 +87,24 @@ def test_bad_arguments_are_one_clear_error(launch, values, message):
 
 def test_resolve_arguments_fills_defaults():
     args = resolve_arguments("replay", {"bag": "x"})
-    assert args == {"bag": "x", "rate": "1.0", "loop": "false", "params_file": "", "calibration_file": ""}
+    assert args == {"bag": "x", "rate": "1.0", "loop": "false", "params_file": "", "calibration_file": "",
+                    "fastdds_profile": ""}
+
+
+def test_fastdds_profile_sets_the_environment_of_every_launch(tmp_path):
+    shipped = Path(__file__).resolve().parents[2] / "config" / "fastdds_shm.xml"
+    assert shipped.is_file()
+    for launch, required in (("scan", {}), ("calibrate", {}), ("replay", {"bag": "b"})):
+        assert build_graph(launch, required).environment == {}           # the environment's own profile
+        environment = build_graph(launch, {**required, "fastdds_profile": "shm"}).environment
+        assert set(environment) == {"FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE"}
+        assert {Path(p).name for p in environment.values()} == {"fastdds_shm.xml"}
+        assert all(Path(p).is_file() for p in environment.values())
+    mine = tmp_path / "my_profile.xml"
+    mine.write_text("<dds/>")
+    assert set(build_graph("scan", {"fastdds_profile": str(mine)}).environment.values()) == {str(mine)}
+    with pytest.raises(GraphError, match="fastdds_profile"):
+        build_graph("scan", {"fastdds_profile": str(tmp_path / "missing.xml")})
 
 
 def test_missing_node_module_is_a_clear_error():

@@ -68,6 +68,7 @@ def _stub_modules(monkeypatch):
     modules["launch"].LaunchDescription = type("LaunchDescription", (_Recorder,), {})
     modules["launch.actions"].DeclareLaunchArgument = type("DeclareLaunchArgument", (_Recorder,), {})
     modules["launch.actions"].OpaqueFunction = type("OpaqueFunction", (_Recorder,), {})
+    modules["launch.actions"].SetEnvironmentVariable = type("SetEnvironmentVariable", (_Recorder,), {})
     modules["launch.substitutions"].LaunchConfiguration = LaunchConfiguration
     modules["launch_ros.actions"].Node = type("Node", (_Recorder,), {})
     for name, module in modules.items():
@@ -88,7 +89,7 @@ def _example_values(launch: str, tmp_path: Path) -> dict[str, str]:
     params.write_text("/**:\n  ros__parameters:\n    sweep.depth: 0.002\n")
     calibration = tmp_path / "cal.yaml"
     calibration.write_text("/**:\n  ros__parameters:\n    extrinsics.theta: 0.01\n")
-    values = {"params_file": str(params), "calibration_file": str(calibration)}
+    values = {"params_file": str(params), "calibration_file": str(calibration), "fastdds_profile": "shm"}
     if launch == "scan":
         values |= {"use_sim": "false", "camera_device": "/dev/v4l/by-id/usb-cam", "robot_ip": "127.0.0.1",
                    "sweep_speed": "0.02", "sweep_length": "0.08", "scene": "surface_mapping"}
@@ -116,9 +117,15 @@ def test_stubbed_launch_matches_the_graph(path, monkeypatch, tmp_path):
     opaque = [a for a in actions if type(a).__name__ == "OpaqueFunction"]
     assert len(opaque) == 1
     values = _example_values(launch, tmp_path)
-    nodes = opaque[0].kwargs["function"](FakeContext(values))
-    expected = graph.build_graph(launch, values).nodes
-    assert [n.kwargs for n in nodes] == [spec.launch_kwargs() for spec in expected]
+    built = opaque[0].kwargs["function"](FakeContext(values))
+    expected = graph.build_graph(launch, values)
+    # the environment (the Fast DDS profile) is set before any node starts
+    environment = [a for a in built if type(a).__name__ == "SetEnvironmentVariable"]
+    assert built[:len(environment)] == environment
+    assert {a.args[0]: a.args[1] for a in environment} == expected.environment
+    assert set(expected.environment) == set(graph.FASTDDS_ENVIRONMENT)
+    nodes = built[len(environment):]
+    assert [n.kwargs for n in nodes] == [spec.launch_kwargs() for spec in expected.nodes]
     for node in nodes:  # the user's files come after the defaults, in order
         assert node.kwargs["parameters"][-3:-1] == [str(Path(values["params_file"]).resolve()),
                                                     str(Path(values["calibration_file"]).resolve())]
@@ -142,5 +149,7 @@ def test_with_real_launch_where_installed(path):
     for arg in graph.LAUNCH_ARGUMENTS[launch]:
         context.launch_configurations[arg.name] = arg.default if arg.default is not None else "/tmp/bag"
     opaque = next(a for a in description.entities if isinstance(a, OpaqueFunction))
-    nodes = opaque.execute(context)
+    from launch_ros.actions import Node
+
+    nodes = [a for a in opaque.execute(context) if isinstance(a, Node)]
     assert len(nodes) == len(graph.build_graph(launch, dict(context.launch_configurations)).nodes)

@@ -155,3 +155,25 @@ def test_an_integer_for_a_double_parameter_is_taken_as_a_double(isolated_ros, tm
     assert main(["scan", "sweep.speed:=1", "--quiet", "--out", str(tmp_path / "x")]) == 2
     err = error_text(capsys.readouterr().err)
     assert "speed 1.0 m/s outside" in err
+
+
+def test_fastdds_profile_is_in_the_environment_when_rclpy_starts_and_restored_after(isolated_ros, tmp_path,
+                                                                                    monkeypatch, capsys):
+    import rclpy
+
+    profile = tmp_path / "profile.xml"
+    profile.write_text('<?xml version="1.0"?><dds xmlns="http://www.eprosima.com"><profiles/></dds>\n')
+    monkeypatch.setenv("FASTRTPS_DEFAULT_PROFILES_FILE", "/the/users/own.xml")
+    monkeypatch.delenv("FASTDDS_DEFAULT_PROFILES_FILE", raising=False)
+    seen = {}
+
+    def init_and_stop(**_kwargs):   # before any participant exists: record what Fast DDS would read
+        seen.update({name: os.environ.get(name) for name in graph.FASTDDS_ENVIRONMENT})
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rclpy, "init", init_and_stop)
+    assert main(["scan", *SHORT, f"fastdds_profile:={profile}", "--out", str(tmp_path / "out")]) != 0
+    assert "interrupted" in capsys.readouterr().err
+    assert seen == dict.fromkeys(graph.FASTDDS_ENVIRONMENT, str(profile.resolve()))
+    assert os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/the/users/own.xml"
+    assert "FASTDDS_DEFAULT_PROFILES_FILE" not in os.environ
