@@ -181,3 +181,55 @@ def test_every_graph_parameter_is_declared_by_its_node(ros_context, launch, valu
         finally:
             node.destroy_node()
     assert checked > 0
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(90)
+def test_replay_graph_gives_the_contacts_of_touchroller_contacts(ros_context, spin_until, bag_factory, tmp_path):
+    """What replay.launch.py runs (camera node on the bag -> perception node), in one context: the
+    contacts equal `touchroller contacts` on the same bag with the same geometry."""
+    import csv
+
+    import numpy as np
+    from geometry_msgs.msg import PointStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from touchroller_bringup.cli import main
+    from touchroller_bringup.paths import config_path
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.localisation import TapRenderer
+
+    camera_model = CameraModel.from_yaml(config_path("touchroller.yaml"))
+    renderer = TapRenderer(camera_model, seed=3)
+    rng = np.random.default_rng(3)
+    taps = [[]] * 5 + [[(200.0 + 20 * k, 180.0 + 8 * k)] for k in range(8)]   # 5 reference frames, 8 taps
+    bag = bag_factory([(1_700_000_000_000_000_000 + 33_000_000 * i, renderer.render(pixels, rng))
+                       for i, pixels in enumerate(taps)])
+    csv_path = tmp_path / "contacts.csv"
+    assert main(["contacts", str(bag), "--params", str(config_path("touchroller.yaml")), "--out", str(csv_path)]) == 0
+    with open(csv_path, newline="") as stream:
+        expected = [(int(r["stamp_ns"]), float(r["x"]), float(r["y"]), float(r["z"])) for r in csv.DictReader(stream)]
+    assert len(expected) == 8
+
+    g = build_graph("replay", {"bag": str(bag), "rate": "0.5"})    # half speed: perception sees every frame
+    classes = {spec.key: spec.load_class() for spec in g.nodes}
+    nodes = [classes[spec.key](context=ros_context, **spec.node_kwargs()) for spec in g.nodes]
+    probe = Node("replay_probe", context=ros_context)
+    received: list = []
+    probe.create_subscription(PointStamped, "/touchroller/contacts", received.append, 100)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (*nodes, probe):
+        executor.add_node(node)
+    try:
+        camera, perception = nodes
+        assert spin_until(executor, lambda: camera.finished and perception.received == len(taps), timeout=30.0)
+        assert spin_until(executor, lambda: len(received) >= len(expected), timeout=5.0)
+    finally:
+        executor.shutdown()
+        for node in (*nodes, probe):
+            node.destroy_node()
+    got = [(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, m.point.x, m.point.y, m.point.z)
+           for m in received]
+    assert [s for s, *_ in got] == [s for s, *_ in expected]           # the recorded stamps, frame by frame
+    np.testing.assert_allclose([p for _, *p in got], [p for _, *p in expected], atol=1e-6)
