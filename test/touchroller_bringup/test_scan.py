@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import csv
-import itertools
 import os
 from pathlib import Path
 
@@ -14,9 +13,9 @@ from touchroller_bringup import graph
 from touchroller_bringup.cli import main
 from touchroller_bringup.commands.scan import parse_items
 from touchroller_bringup.errors import UserError
+from touchroller_bringup.ros_domains import reserve_domain_id
 
 SHORT = ["sweep_length:=0.01", "sweep_speed:=0.02", "--quiet"]
-_DOMAINS = itertools.count(150 + os.getpid() % 40)
 
 
 def error_text(captured: str) -> str:
@@ -28,10 +27,13 @@ def error_text(captured: str) -> str:
 
 @pytest.fixture
 def isolated_ros(monkeypatch):
-    """The CLI makes its own rclpy context: give it a private DDS domain on localhost."""
+    """The CLI makes its own rclpy context: give it a DDS domain no other process on this host uses
+    (other test runs and benchmarks publish /touchroller/* too), discovery on localhost only."""
     pytest.importorskip("rclpy")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(next(_DOMAINS) % 230))
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    with reserve_domain_id() as lease:
+        monkeypatch.setenv("ROS_DOMAIN_ID", str(lease.domain_id))
+        monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        yield
 
 
 def test_parse_items_splits_files_arguments_and_overrides(tmp_path):
