@@ -459,11 +459,16 @@ def loadavg() -> str:
 
 
 def _commit() -> str:
+    """HEAD, and whether tracked files differed from it when the report ran."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=checkout_dir(), capture_output=True, text=True,
+                              check=True).stdout.strip()
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=checkout_dir(), capture_output=True,
-                              text=True, check=True).stdout.strip()
+        head = git("rev-parse", "--short", "HEAD")
+        changed = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+    return head + (f" with uncommitted changes to {len(changed.splitlines())} tracked file(s)" if changed else "")
 
 
 def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
@@ -478,6 +483,7 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
     started = time.perf_counter()
     results: dict[str, dict] = {}
     body: list[str] = []
+    timings: list[str] = []
     for section in sections:
         progress(f"report: {section.key} ({'quick' if quick else 'full'}) ...")
         t0 = time.perf_counter()
@@ -485,6 +491,7 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
         result = module.run(quick=quick)
         seconds = time.perf_counter() - t0
         results[section.key] = result
+        timings.append(f"{section.key} {seconds:.0f} s")
         body += [f"## {section.title}", "", section.intro, "", module.to_markdown(result).strip(), ""]
         figures = getattr(module, "figures", None)
         for figure in (figures(result, out.parent) if callable(figures) else []):
@@ -501,6 +508,7 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
         f"- Command: `{command}` (took {total:.0f} s, {'quick' if quick else 'full'} mode)",
         f"- Machine: {machine_description()}; load average after the run {loadavg()}",
         f"- Commit: {_commit()}",
+        f"- Time per section: {', '.join(timings)}",
         "- Each section names the bench script and command that reproduce it alone.",
         "",
         "## Goals at a glance",
