@@ -447,10 +447,13 @@ def to_markdown(result: dict[str, Any]) -> str:
                  f"(lowest {worst_ssim:.3f})")
     goals.append(f"- Length (drift) error <= 1 %: **{'met' if worst_len <= 1.0 else 'NOT met'}** (largest |error| "
                  f"{worst_len:.2f} %)")
-    goals.append(f"- `touchroller map` >= 1000 frames/s as a whole command: **{'met' if cmd['command_fps'] >= 1000 else 'NOT met'}**"
-                 f" ({cmd['command_fps']:.0f} frames/s in-process; reading alone {cmd['read_fps']:.0f} frames/s; "
-                 f"{cmd['command_s'] / cmd['read_s']:.2f}x the read time, aim <= 2x: "
-                 f"**{'met' if cmd['command_s'] <= 2 * cmd['read_s'] else 'NOT met'}**)")
+    # As a whole command means a new process (interpreter start and imports included) when measured.
+    whole_fps = cmd.get("process_fps") or cmd["command_fps"]
+    goals.append(f"- `touchroller map` >= 1000 frames/s as a whole command: **{'met' if whole_fps >= 1000 else 'NOT met'}**"
+                 f" ({whole_fps:.0f} frames/s as a new process, one run; {cmd['command_fps']:.0f} in-process; reading "
+                 f"alone {cmd['read_fps']:.0f} frames/s; {cmd['command_s'] / cmd['read_s']:.2f}x the read time "
+                 f"in-process, aim <= 2x: **{'met' if cmd['command_s'] <= 2 * cmd['read_s'] else 'NOT met'}**; "
+                 "best-of-5 figures for both in `map_speed.md`)")
     goals.append(f"- Live map update <= 1 ms per frame: **{'met' if live['median_ms'] <= 1.0 else 'NOT met'}** "
                  f"(median {live['median_ms']:.3f} ms)")
     lines += ["### Goals", "", *goals, ""]
