@@ -289,10 +289,11 @@ class _BandSampler:
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         v0, v1 = self.src_rows
-        grey = _to_grey(image[v0:v1])
+        grey = _to_grey(image[v0:v1]).astype(np.float32)
         if self.maps is not None:
+            # float in, float out: no rounding to 8 bits, and faster here than remapping uint8 then converting
             grey = cv2.remap(grey, self.maps[0], self.maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return grey.astype(np.float32)
+        return grey
 
 
 def _highpass(image: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -939,6 +940,7 @@ def stitch(images: Iterable[np.ndarray], method: str = "default", *, stamps: Seq
     flat field is estimated from all frames first, as an offline tool can; a recording too short for
     the texture to average out of it is stitched with the live estimate instead. Keywords go to `Stitcher`.
     """
+    kwargs.setdefault("history", None)  # one StitchStep per frame, however long the recording
     probe = Stitcher(method, **kwargs)
     bands = [probe.band(image) for image in images]
     if not bands:
