@@ -22,6 +22,31 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import dds_latency as common  # noqa: E402
 
+# Run in the perception process with --tracemalloc: Python/numpy allocations that grew between a snapshot
+# after warm-up and now, rewritten every few seconds (the process is terminated, not asked to report).
+TRACEMALLOC_PRELUDE = """
+import gc as _gc, threading as _threading, time as _time, tracemalloc as _tm
+_tm.start(6)
+def _trace_growth(path={path!r}, warmup_s={warmup_s}, every_s={every_s}):
+    _time.sleep(warmup_s)
+    _gc.collect()
+    base, started = _tm.take_snapshot(), _time.monotonic()
+    filters = [_tm.Filter(False, _tm.__file__), _tm.Filter(False, "<frozen importlib._bootstrap>")]
+    base = base.filter_traces(filters)
+    while True:
+        _time.sleep(every_s)
+        _gc.collect()
+        stats = _tm.take_snapshot().filter_traces(filters).compare_to(base, "traceback")
+        lines = [f"{{_time.monotonic() - started:.0f}} s after the warm-up snapshot; traced now "
+                 f"{{_tm.get_traced_memory()[0] / 1e6:.2f}} MB"]
+        for stat in stats[:12]:
+            lines.append(f"{{stat.size_diff / 1e6:+.4f}} MB in {{stat.count_diff:+d}} blocks (now {{stat.size / 1e6:.3f}} MB):")
+            lines += ["    " + str(frame) for frame in reversed(stat.traceback)]
+        with open(path, "w") as out:
+            out.write("\\n".join(lines) + "\\n")
+_threading.Thread(target=_trace_growth, daemon=True).start()
+"""
+
 
 def rss_mb(pid: int | None = None) -> float:
     status = Path(f"/proc/{pid or os.getpid()}/status").read_text()
@@ -29,11 +54,16 @@ def rss_mb(pid: int | None = None) -> float:
     return int(line.split()[1]) / 1024.0
 
 
-def run_child(processes: int, transport: str, frames: int, fps: float, map_rate: float) -> dict:
+def run_child(processes: int, transport: str, frames: int, fps: float, map_rate: float,
+              tracemalloc_path: str = "", warmup: int = 2000) -> dict:
     common.use_transport(transport)
     references, contacts = common.synthetic_frames()
     source = common.MemorySource(references, contacts, fps=fps, count=frames, record=False)
-    graph = common.Graph(processes=processes, record=False, map_rate=map_rate)
+    prelude = ""
+    if tracemalloc_path:
+        prelude = TRACEMALLOC_PRELUDE.format(path=tracemalloc_path, warmup_s=warmup / fps + 3.0,
+                                             every_s=max(5.0, frames / fps / 20))
+    graph = common.Graph(processes=processes, record=False, map_rate=map_rate, perception_prelude=prelude)
     samples: list[tuple[int, float, float | None]] = []
     next_sample = [0]
 
@@ -79,13 +109,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--transport", choices=tuple(common.TRANSPORTS), default="shm")
     parser.add_argument("--map-rates", type=float, nargs="+", default=[1.0, 0.0],
                         help="perception map.publish_rate values to run (0 disables the stitched map)")
+    parser.add_argument("--tracemalloc", default="", metavar="PATH",
+                        help="also write the perception process's Python allocation growth (tracemalloc) to "
+                             "PATH (slows it down; use for finding a leak, not for the RSS figures)")
     parser.add_argument("--out", default=str(common.RESULTS / "dds_soak.md"))
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     frames = 2000 if args.quick else args.frames
     warmup = min(args.warmup, frames // 4)
     if args.child:
-        print(json.dumps(run_child(args.processes[0], args.transport, frames, args.fps, args.map_rates[0])), flush=True)
+        print(json.dumps(run_child(args.processes[0], args.transport, frames, args.fps, args.map_rates[0],
+                                   args.tracemalloc, warmup)), flush=True)
         return 0
     command = "python bench/dds_soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
@@ -111,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     for map_rate, processes in [(m, p) for m in args.map_rates for p in args.processes]:
         result = subprocess.run(
             [sys.executable, __file__, "--child", "--processes", str(processes), "--transport", args.transport,
-             "--frames", str(frames), "--fps", str(args.fps), "--map-rates", str(map_rate)],
+             "--frames", str(frames), "--fps", str(args.fps), "--map-rates", str(map_rate), "--warmup", str(warmup),
+             *(["--tracemalloc", f"{args.tracemalloc}.map{map_rate:g}.p{processes}"] if args.tracemalloc else [])],
             capture_output=True, text=True, timeout=3600)
         line = next((x for x in reversed(result.stdout.splitlines()) if x.startswith("{")), None)
         if line is None:
