@@ -150,6 +150,11 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
     ),
 }
 
+# Replaying is offline work: perception takes every frame of the recording (a reliable queue instead of
+# the live graph's "newest frame only"), so it finds what `touchroller contacts` finds in the bag.
+REPLAY_PERCEPTION = {"qos_overrides./touchroller/image_raw.subscription.reliability": "reliable",
+                     "qos_overrides./touchroller/image_raw.subscription.depth": 100}
+
 CAMERA = ("camera_node", "touchroller_camera", "touchroller_driver.camera_node:CameraNode")
 PERCEPTION = ("perception_node", "touchroller_perception", "touchroller_perception.perception_node:PerceptionNode")
 SWEEP = ("sweep_node", "touchroller_sweep", "touchroller_driver.sweep_node:SweepNode")
@@ -259,6 +264,7 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
     else:  # replay: a recording through the camera node into perception
         camera = {"source": "bag", "bag_path": args["bag"],
                   "rate": _positive_float(launch, "rate", args["rate"], allow_zero=True),
-                  "loop": args["loop"] == "true"}
-        nodes = (spec(CAMERA, "camera", camera), spec(PERCEPTION, "perception", {}))
+                  "loop": args["loop"] == "true",
+                  "wait_for_subscribers": 1}   # perception: it must see the first (reference) frames
+        nodes = (spec(CAMERA, "camera", camera), spec(PERCEPTION, "perception", REPLAY_PERCEPTION))
     return Graph(launch, nodes, args, _environment(args))

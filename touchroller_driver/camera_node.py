@@ -50,7 +50,7 @@ TCP_POSE_TOPIC = "/touchroller/tcp_pose"
 #: Parameters that select or configure the source: changing one reopens it.
 SOURCE_PARAMETERS = (
     "source", "device", "width", "height", "fps", "exposure", "video_path", "bag_path", "bag_topic",
-    "scene", "seed", "rate", "loop", "sim.follow_arm", "sweep.start_pose", "sweep.clearance", "sweep.direction",
+    "scene", "seed", "rate", "loop", "wait_for_subscribers", "sim.follow_arm", "sweep.start_pose", "sweep.clearance", "sweep.direction",
 )
 
 
@@ -133,6 +133,9 @@ class CameraNode(Node):
                 min=0.0, max=100.0)
         declare(self, "loop", False, "Restart video/bag/sim sources at their end")
         declare(self, "frame_id", "touchroller_camera", "frame_id of published images and camera info")
+        declare(self, "wait_for_subscribers", 0, f"Open the source only once {IMAGE_TOPIC} has this many "
+                "subscribers (replay: perception must see a recording's first, reference frames); 0: at once",
+                min=0, max=100)
         declare(self, "sim.follow_arm", False, "source=sim: render the roller state of the arm's poses on "
                 f"{TCP_POSE_TOPIC} (a sweep node's simulated arm) instead of the scene's own motion")
         # the sweep node's names, so the same params files place the arm identically for both
@@ -193,6 +196,8 @@ class CameraNode(Node):
 
     def _on_geometry(self, model: CameraModel) -> None:
         self.get_logger().info(f"camera model updated: fx={model.fx:g} fy={model.fy:g} theta={model.theta:g} d={model.d:g}")
+        if self._following():
+            self._restart.set()   # the follower's roll = travel / cylinder.radius
 
     def _make_source(self) -> FrameSource:
         param = {name: self.get_parameter(name).value for name in SOURCE_PARAMETERS}
@@ -252,6 +257,7 @@ class CameraNode(Node):
         while not self._stop.is_set():
             if needs_open or self._restart.is_set():
                 needs_open = False
+                self._wait_for_subscribers()
                 self._open_source()
             if not self._opened:  # opening failed (logged once): wait for a parameter change
                 self._restart.wait(0.2)
@@ -278,6 +284,16 @@ class CameraNode(Node):
                 if not self.context.ok():
                     break
                 self._log_error(f"publishing failed: {type(exc).__name__}: {exc}")
+
+    def _wait_for_subscribers(self) -> None:
+        """Hold the source until `wait_for_subscribers` subscriptions match the image topic, so that a
+        replayed recording's first (reference) frames reach perception started in another process."""
+        wanted = int(self.get_parameter("wait_for_subscribers").value)
+        if wanted > 0 and self.image_pub.get_subscription_count() < wanted:
+            self.get_logger().info(f"waiting for {wanted} subscriber(s) on {IMAGE_TOPIC}")
+            while (self.image_pub.get_subscription_count() < wanted and not self._stop.is_set()
+                   and not self._restart.is_set()):
+                self._stop.wait(0.05)
 
     def _open_source(self) -> bool:
         self._restart.clear()

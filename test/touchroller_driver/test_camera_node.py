@@ -241,6 +241,29 @@ def test_sim_source_by_parameters_publishes_rendered_frames(ros_context, spin_un
         camera.destroy_node()
 
 
+def test_wait_for_subscribers_holds_the_source_until_a_subscriber_matches(ros_context, spin_until):
+    """Replay: a recording's first frames (perception's reference) must not go out before anyone listens."""
+    rng = np.random.default_rng(2)
+    source = ListSource([rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(3)])
+    camera = CameraNode(context=ros_context, source=source,
+                        parameter_overrides=[Parameter("wait_for_subscribers", value=1)])
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(camera)
+    listener = None
+    try:
+        spin_until(executor, lambda: False, timeout=0.5)
+        assert source.index == 0 and camera.published == 0          # nobody listens: nothing read
+        listener = Listener(ros_context)
+        executor.add_node(listener.node)
+        assert spin_until(executor, lambda: len(listener.images) == 3, timeout=10.0)
+        assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in listener.images] == source.stamps
+    finally:
+        executor.shutdown()
+        camera.destroy_node()
+        if listener is not None:
+            listener.node.destroy_node()
+
+
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("processes", [1, 2], ids=["one_process", "two_processes"])
 def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context, spin_until):
