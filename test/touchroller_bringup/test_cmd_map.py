@@ -97,3 +97,21 @@ def test_other_image_size_without_calibration(bag_factory, tmp_path):
         shifts = [float(r["shift_px"]) for r in csv.DictReader(stream)][1:]
     assert np.allclose(shifts, 3.0, atol=0.1)
     assert main(["map", str(bag_factory(records)), "--out", str(out), "--metric"]) == 2
+
+
+def test_a_recording_that_starts_lifted_off_gives_the_full_map(simulated_roll, bag_factory, tmp_path, capsys):
+    """A real scan approaches from above: frames with no contact before the roll must not freeze the map."""
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+    from touchroller_driver.sim.render import RollerState
+
+    records, travel = simulated_roll
+    scene = load_scene("surface_mapping", variant="fast", **{"motion.length": TRAVEL, "motion.duration": 1.5, "motion.accel": 0.1})
+    sensor = SimulatedSensor(scene, seed=4)
+    lifted = sensor.render(RollerState(travel=float(travel[0]), depth=-0.002))
+    first = records[0][0]
+    lead_in = [(first - (12 - k) * 33_333_333, lifted) for k in range(12)]
+    out = tmp_path / "led.png"
+    assert main(["map", str(bag_factory(lead_in + records)), "--out", str(out)]) == 0
+    true_px = (travel[-1] - travel[0]) * 1e3 / MM_PER_PX
+    assert cv2.imread(str(out), 0).shape[0] == pytest.approx(true_px + 70, abs=3)
+    assert f"{len(records) + 12} frames" in capsys.readouterr().out
