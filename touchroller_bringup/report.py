@@ -433,7 +433,12 @@ def _calibration_budget_rows(r: dict) -> list[str]:
 def _calibration_effort_line(r: dict) -> str:
     table = r["contacts"]["exact sensor"]
     full = r["full"]
-    return (f"Contact error against calibration effort (`contact_localisation`, exact sensor): uncalibrated "
+    goal = r["goals"]["theta_deg"]
+    enough = [row for row in r["extrinsics_vs_presses"] if row["theta_err_deg"]["max"] <= goal]
+    fewest = (f"Fewest hemisphere presses measured that keep theta within {goal}° on every seed: "
+              f"{min(enough, key=lambda row: row['presses'])['presses']}. " if enough else
+              f"No measured number of presses keeps theta within {goal}° on every seed. ")
+    return fewest + (f"Contact error against calibration effort (`contact_localisation`, exact sensor): uncalibrated "
             f"(theta = d = 0) {table['uncalibrated (theta = d = 0)']['mean_mm']:.3f} mm mean; calibrated with 20 "
             f"views + 10 presses (solve {full['solve_s']['median']:.2f} s median) "
             f"{table['ours (seed 0)']['mean_mm']:.3f} mm; the true camera {table['truth']['mean_mm']:.3f} mm.")

@@ -115,6 +115,7 @@ def test_calibration_pick_meets_the_theta_goal_first(results):
     assert rows[2][2] == "40 chessboard views + 10 hemisphere presses"
     text = report.settings_markdown(results)
     assert "uncalibrated (theta = d = 0) 1.800 mm" in text and "0.065 mm" in text
+    assert "keep theta within 0.1° on every seed: 3." in text
 
 
 def test_goals_are_judged_from_the_results(results, tmp_path):
