@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,8 +28,10 @@ from touchroller_bringup.paths import config_path
 PACKAGE = "touchroller_bringup"
 DEFAULT_PARAMS_FILES = ("touchroller.yaml", "scan.yaml")  # under config/
 FASTDDS_PROFILES = {"shm": "fastdds_shm.xml"}  # fastdds_profile:=<name> -> config/<file>
-# Fast DDS 3 (Kilted) reads the first, Fast DDS 2 (Humble, Jazzy) the second; other RMWs ignore both.
+# Fast DDS 3 (Kilted on) reads FASTDDS_..., Fast DDS 2 (Humble, Iron, Jazzy) only FASTRTPS_... (which
+# Fast DDS 3's RMW still reads but warns about), so the second is set only for those distributions.
 FASTDDS_ENVIRONMENT = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE")
+FAST_DDS_2_DISTROS = ("humble", "iron", "jazzy")
 
 
 class GraphError(ValueError):
@@ -118,8 +121,8 @@ _COMMON = (
                    "node after the package defaults (config/touchroller.yaml, config/scan.yaml)"),
     LaunchArgument("calibration_file", "", "Calibration YAML (camera.*, extrinsics.*) applied after "
                    "params_file; empty: the geometry in the params files"),
-    LaunchArgument("fastdds_profile", "", "Fast DDS XML profile for every node (sets FASTDDS_/"
-                   "FASTRTPS_DEFAULT_PROFILES_FILE): 'shm' = the shipped config/fastdds_shm.xml (shared "
+    LaunchArgument("fastdds_profile", "", "Fast DDS XML profile for every node (sets FASTDDS_DEFAULT_"
+                   "PROFILES_FILE, and FASTRTPS_... on Humble/Jazzy): 'shm' = the shipped config/fastdds_shm.xml (shared "
                    "memory sized for whole images, this host only), or a path; empty: the environment's"),
 )
 LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
@@ -214,7 +217,8 @@ def _environment(args: Mapping[str, str]) -> dict[str, str]:
     if not path.is_file():
         raise GraphError(f"fastdds_profile {choice}: {path} does not exist "
                          f"(give {' or '.join(FASTDDS_PROFILES)} or the path of a Fast DDS XML profile)")
-    return dict.fromkeys(FASTDDS_ENVIRONMENT, str(path.resolve()))
+    fast_dds_2 = os.environ.get("ROS_DISTRO", "").strip().lower() in FAST_DDS_2_DISTROS
+    return dict.fromkeys(FASTDDS_ENVIRONMENT if fast_dds_2 else FASTDDS_ENVIRONMENT[:1], str(path.resolve()))
 
 
 def _device(text: str) -> str:

@@ -111,7 +111,7 @@ def run_scan(options: ScanOptions) -> ScanResult:
     os.environ.update(graph.environment)
     context = Context()
     try:
-        rclpy.init(context=context)
+        rclpy.init(context=context, args=[])   # not sys.argv: rcl would take `name:=value` items for remaps
     except BaseException:
         sys.setswitchinterval(switch_interval)
         _restore_environment(saved_environment)

@@ -91,13 +91,20 @@ def test_resolve_arguments_fills_defaults():
                     "fastdds_profile": ""}
 
 
-def test_fastdds_profile_sets_the_environment_of_every_launch(tmp_path):
+@pytest.mark.parametrize(("distro", "variables"), [
+    ("kilted", {"FASTDDS_DEFAULT_PROFILES_FILE"}),            # Fast DDS 3: FASTRTPS_ only draws a warning
+    ("", {"FASTDDS_DEFAULT_PROFILES_FILE"}),                  # our pip wheels (Kilted), no ROS_DISTRO
+    ("jazzy", {"FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE"}),   # Fast DDS 2
+    ("humble", {"FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE"}),
+])
+def test_fastdds_profile_sets_the_environment_of_every_launch(tmp_path, monkeypatch, distro, variables):
+    monkeypatch.setenv("ROS_DISTRO", distro)
     shipped = Path(__file__).resolve().parents[2] / "config" / "fastdds_shm.xml"
     assert shipped.is_file()
     for launch, required in (("scan", {}), ("calibrate", {}), ("replay", {"bag": "b"})):
         assert build_graph(launch, required).environment == {}           # the environment's own profile
         environment = build_graph(launch, {**required, "fastdds_profile": "shm"}).environment
-        assert set(environment) == {"FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE"}
+        assert set(environment) == variables
         assert {Path(p).name for p in environment.values()} == {"fastdds_shm.xml"}
         assert all(Path(p).is_file() for p in environment.values())
     mine = tmp_path / "my_profile.xml"

@@ -165,6 +165,7 @@ def test_fastdds_profile_is_in_the_environment_when_rclpy_starts_and_restored_af
 
     profile = tmp_path / "profile.xml"
     profile.write_text('<?xml version="1.0"?><dds xmlns="http://www.eprosima.com"><profiles/></dds>\n')
+    monkeypatch.setenv("ROS_DISTRO", "jazzy")                      # Fast DDS 2: both variables are set
     monkeypatch.setenv("FASTRTPS_DEFAULT_PROFILES_FILE", "/the/users/own.xml")
     monkeypatch.delenv("FASTDDS_DEFAULT_PROFILES_FILE", raising=False)
     seen = {}
