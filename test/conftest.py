@@ -16,23 +16,22 @@ settings.register_profile("ci", derandomize=True, deadline=None, print_blob=True
 settings.register_profile("dev", deadline=None, print_blob=True)
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
-# Each test gets its own DDS domain; the worker's pid spreads parallel runs apart.
-_DOMAIN_IDS = itertools.cycle(range(10 + os.getpid() % 50, 10 + os.getpid() % 50 + 100))
-
-
 @pytest.fixture
 def ros_context(monkeypatch: pytest.MonkeyPatch) -> Iterator[object]:
-    """An initialised rclpy Context on a unique ROS_DOMAIN_ID with localhost-only discovery."""
+    """An initialised rclpy Context on a ROS domain no other process on this host uses, localhost discovery
+    (LOCALHOST discovery alone does not keep concurrent test runs and benchmarks on one domain apart)."""
     rclpy = pytest.importorskip("rclpy")
-    domain_id = next(_DOMAIN_IDS) % 200
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    try:
-        yield context
-    finally:
-        context.try_shutdown()
+    from touchroller_bringup.ros_domains import reserve_domain_id
+
+    with reserve_domain_id() as lease:
+        monkeypatch.setenv("ROS_DOMAIN_ID", str(lease.domain_id))
+        monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        context = rclpy.context.Context()
+        rclpy.init(context=context, domain_id=lease.domain_id)
+        try:
+            yield context
+        finally:
+            context.try_shutdown()
 
 
 def _spin_until(executor_or_node: object, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
