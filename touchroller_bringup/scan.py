@@ -135,7 +135,8 @@ def run_scan(options: ScanOptions) -> ScanResult:
             _wait_for_recorder(recorder, options.reference_timeout_s)
         started = time.monotonic()
         _call_start(start_client, sweep)
-        outcome, message = _follow_sweep(sweep, collected, say, getattr(perception, "reset_map", lambda: None))
+        # the perception node starts a new map when the roll starts (it follows /touchroller/sweep_progress)
+        outcome, message = _follow_sweep(sweep, collected, say)
         duration = time.monotonic() - started
         time.sleep(0.3)  # let the last frames through perception
         _flush_map(perception, collected)
@@ -338,8 +339,7 @@ def _call_start(client: Any, sweep: Any) -> None:
         raise UserError(f"sweep refused to start: {message or sweep.status.message}")
 
 
-def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
-                  on_roll_start: Callable[[], None] = lambda: None) -> tuple[str, str]:
+def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None]) -> tuple[str, str]:
     plan = sweep.sequencer.plan
     durations = 0.0
     if plan is not None:
@@ -354,12 +354,8 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
     started = time.monotonic()
     deadline = started + 2.0 * durations + 20.0
     last_report = 0.0
-    rolling = False
     while not sweep.finished.wait(0.02):
         now = time.monotonic()
-        if not rolling and sweep.status.phase.value == "sweeping":
-            rolling = True
-            on_roll_start()
         if now > deadline:
             sweep.request_stop()
             return "timeout", f"the sweep did not end within {2.0 * durations + 20.0:.0f} s; stopped"
@@ -377,7 +373,9 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
 
 
 def _flush_map(perception: Any, collected: _Collected) -> None:
-    publish = getattr(perception, "publish_map", None)
+    """Finish the map (whole-map flat field; the node did it already if it saw the roll end) and wait
+    until the scan's own subscription has it."""
+    publish = getattr(perception, "finish_map", None)
     if publish is None:
         return
     before = collected.map_msg

@@ -9,6 +9,9 @@ Thin ROS shell around `touchroller_perception.contacts` (detection), `.localisat
 * publishes one `geometry_msgs/PointStamped` per contact on `/touchroller/contacts`, frame
   `touchroller_cylinder`, stamped with the source image's stamp;
 * publishes the map on `/touchroller/map` (transient local, reliable, depth 1) at `map.publish_rate` Hz;
+  follows the sweep on `/touchroller/sweep_progress` (std_msgs/Float32, 0..1 of the roll): a new map when
+  a roll starts, and when it ends the map is finalised (whole-map flat field), published, and saved to
+  `map.save_path` if that is set;
 * `~/recapture_reference` (std_srvs/Trigger; `touchroller_bringup.ros_services` has the fallback for
   installs without std_srvs) re-captures the no-contact reference from the next `reference.frames` frames;
 * `/diagnostics`: frame rate, processing time, contacts/s, drops, malformed frames.
@@ -19,6 +22,7 @@ set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -31,6 +35,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
+from std_msgs.msg import Float32
 
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, LagWindow, RateMeter, Status
 from touchroller_bringup.ros_params import GeometryParameters, declare
@@ -43,6 +48,7 @@ from touchroller_perception.localisation import SurfaceLookup, localise
 IMAGE_TOPIC = "/touchroller/image_raw"
 CONTACTS_TOPIC = "/touchroller/contacts"
 MAP_TOPIC = "/touchroller/map"
+PROGRESS_TOPIC = "/touchroller/sweep_progress"   # the sweep node's roll progress, 0..1
 CYLINDER_FRAME = "touchroller_cylinder"
 
 
@@ -93,6 +99,9 @@ class PerceptionNode(Node):
         self._stitch_error_logged = False
         self._map_dirty = False
         self._map_timer = None
+        self._map_lock = threading.Lock()   # `touchroller scan` finishes the map from its own thread
+        self._rolling = False
+        self.saved_maps = 0
 
         self.frames = RateMeter()
         self.contact_rate = RateMeter()
@@ -106,6 +115,7 @@ class PerceptionNode(Node):
 
         self.contacts_pub = self.create_publisher(PointStamped, CONTACTS_TOPIC, 10)
         self.map_pub = self.create_publisher(Image, MAP_TOPIC, MAP_QOS)
+        self.progress_sub = self.create_subscription(Float32, PROGRESS_TOPIC, self._on_progress, 10)
         # Humble has no MessageInfo, so no drop count there
         on_image = self._on_image_with_info if _has_message_info() else self._on_image
         self.image_sub = self.create_subscription(
@@ -123,6 +133,8 @@ class PerceptionNode(Node):
             declare(self, name, getattr(defaults, field), description, min=lo, max=hi)
         declare(self, "contacts.frame_id", CYLINDER_FRAME, "frame_id of the published contact points")
         declare(self, "reference.frames", 5, "No-contact frames averaged into the reference", min=1, max=1000)
+        declare(self, "map.save_path", "", "PNG file the finished map is written to when a roll ends "
+                "(empty: not saved)")
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
                 min=0.0, max=100.0)
 
@@ -233,39 +245,82 @@ class PerceptionNode(Node):
         if self._map_timer is None:
             return
         try:
-            if self.stitcher is None:
-                from touchroller_perception.stitching import Stitcher  # optional: another module's library
+            with self._map_lock:
+                if self.stitcher is None:
+                    from touchroller_perception.stitching import Stitcher  # lazily: only with a map
 
-                self.stitcher = Stitcher(camera=self.camera)
-            stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-            self.stitcher.push(image, stamp_ns)
-            self._map_dirty = True
+                    self.stitcher = Stitcher(camera=self.camera)   # bounded per-frame history
+                stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                self.stitcher.push(image, stamp_ns)
+                self._map_dirty = True
         except Exception as exc:  # noqa: BLE001 - the map is optional; contacts must keep flowing
             if not self._stitch_error_logged:
                 self._stitch_error_logged = True
                 self.get_logger().error(f"tactile map disabled: {type(exc).__name__}: {exc}")
             self._set_map_rate(0.0)
 
-    def reset_map(self) -> None:
-        """Start a new map with the next frame (e.g. when the roll begins: frames of a roller standing
-        still would teach the stitcher a zero velocity that its static background then confirms)."""
-        self.stitcher = None
-        self._map_dirty = False
-
-    def publish_map(self) -> None:
-        if self.stitcher is None or not self._map_dirty:
+    def _on_progress(self, msg: Float32) -> None:
+        progress = float(msg.data)
+        if not math.isfinite(progress):
             return
-        from touchroller_driver.image_conversion import array_to_image
+        if not self._rolling and 0.0 < progress < 1.0:
+            self._rolling = True
+            self.reset_map()
+        elif self._rolling and progress >= 1.0:
+            self._rolling = False
+            self.finish_map()
+
+    def reset_map(self) -> None:
+        """Start a new map with the next frame (called when a roll begins, so one map per roll)."""
+        with self._map_lock:
+            self.stitcher = None
+            self._map_dirty = False
+
+    def finish_map(self) -> None:
+        """The roll ended: correct the whole map with its final flat field, publish it, and save it
+        to `map.save_path` if set. Frames pushed afterwards extend the map as before."""
+        with self._map_lock:
+            if self.stitcher is None:
+                return
+            self.stitcher.finalise()
+            self._map_dirty = True
+        tactile_map = self.publish_map()
+        path = str(self.get_parameter("map.save_path").value)
+        if path and tactile_map is not None:
+            self._save_map(tactile_map, path)
+
+    def _save_map(self, tactile_map: np.ndarray, path: str) -> None:
+        import cv2
 
         try:
-            tactile_map = self.stitcher.map_image()
-        except Exception as exc:  # noqa: BLE001
-            self.get_logger().warning(f"map not available: {exc}", throttle_duration_sec=10.0)
-            return
+            ok = cv2.imwrite(path, tactile_map)
+        except cv2.error as exc:
+            ok, reason = False, str(exc).strip().splitlines()[-1]
+        else:
+            reason = "cv2.imwrite failed (missing folder or unknown extension?)"
+        if ok:
+            self.saved_maps += 1
+            self.get_logger().info(f"map saved: {path} ({tactile_map.shape[1]}x{tactile_map.shape[0]})")
+        else:
+            self.get_logger().error(f"map not saved to {path}: {reason}")
+
+    def publish_map(self) -> np.ndarray | None:
+        """Publish the map if it changed since the last publication; returns what was published."""
+        with self._map_lock:
+            if self.stitcher is None or not self._map_dirty:
+                return None
+            try:
+                tactile_map = self.stitcher.map_image()
+            except Exception as exc:  # noqa: BLE001
+                self.get_logger().warning(f"map not available: {exc}", throttle_duration_sec=10.0)
+                return None
+            self._map_dirty = False
+        from touchroller_driver.image_conversion import array_to_image
+
         if tactile_map.dtype != np.uint8:
             tactile_map = np.clip(tactile_map, 0, 255).astype(np.uint8)
         self.map_pub.publish(array_to_image(tactile_map, self.get_clock().now().nanoseconds, frame_id=CYLINDER_FRAME))
-        self._map_dirty = False
+        return tactile_map
 
     # ------------------------------------------------------------------ diagnostics
     def _diagnostic_status(self) -> Status:

@@ -235,3 +235,61 @@ def test_image_subscription_qos_defaults_and_overrides(ros_context, spin_until):
     finally:
         for node in (default, overridden, probe):
             node.destroy_node()
+
+
+def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until, tmp_path):
+    pytest.importorskip("touchroller_perception.stitching")
+    import cv2
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Float32
+
+    from touchroller_driver.image_conversion import array_to_image
+    from touchroller_perception.perception_node import IMAGE_TOPIC, PROGRESS_TOPIC, PerceptionNode
+
+    saved = tmp_path / "map.png"
+    overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
+    overrides += [Parameter("reference.frames", value=2), Parameter("map.publish_rate", value=20.0),
+                  Parameter("map.save_path", value=str(saved))]
+    node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
+    helper = rclpy_node("roll_test_helper", ros_context)
+    image_pub = helper.create_publisher(Image, IMAGE_TOPIC, 10)
+    progress_pub = helper.create_publisher(Float32, PROGRESS_TOPIC, 10)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(helper)
+
+    def progress(value: float) -> None:
+        assert spin_until(executor, lambda: progress_pub.get_subscription_count() > 0, timeout=10.0)
+        progress_pub.publish(Float32(data=value))
+
+    try:
+        rng = np.random.default_rng(1)
+        texture = rng.integers(0, 255, (CAMERA.height * 4, CAMERA.width, 3), dtype=np.uint8)
+        frame = np.ascontiguousarray(texture[:CAMERA.height])
+        for k in range(3):   # the approach: the roller stands still
+            send(executor, spin_until, node, image_pub, array_to_image(frame, 1_000_000 * (k + 1)))
+        approach = node.stitcher
+        assert approach is not None
+        progress(0.0)
+        progress(0.01)   # the roll starts: a new map
+        assert spin_until(executor, lambda: node.stitcher is None, timeout=5.0)
+        for k in range(20):   # the surface slides along v by 5 px a frame
+            frame = np.ascontiguousarray(texture[5 * k:5 * k + CAMERA.height])
+            send(executor, spin_until, node, image_pub, array_to_image(frame, 10_000_000 * (k + 1)))
+        assert node.stitcher is not approach and not saved.exists()
+        progress(1.0)    # the roll ended: finalised, published and saved
+        assert spin_until(executor, lambda: node.saved_maps == 1, timeout=5.0)
+        written = cv2.imread(str(saved), cv2.IMREAD_UNCHANGED)
+        assert written is not None and written.shape == node.stitcher.map_image().shape
+        assert written.shape[0] >= 70 + 0.9 * 19 * 5, written.shape   # the roll (19 x 5 px), not one band
+        # a path that cannot be written is one error line; the node keeps working
+        assert node.set_parameters([Parameter("map.save_path", value=str(tmp_path / "missing" / "m.png"))])[0].successful
+        progress(0.5)
+        send(executor, spin_until, node, image_pub, array_to_image(frame, 900_000_000))
+        progress(1.0)
+        assert spin_until(executor, lambda: not node._rolling, timeout=5.0)
+        assert node.saved_maps == 1 and node.stitcher is not None
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        helper.destroy_node()
