@@ -136,6 +136,8 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
         LaunchArgument("sweep_speed", "", "Roll speed in m/s; empty: the params files (0.011, the paper's 10 s)"),
         LaunchArgument("sweep_length", "", "Roll length in m; empty: the params files (0.11)"),
         LaunchArgument("scene", "surface_mapping", "Simulator scene when use_sim is true"),
+        LaunchArgument("map_file", "", "PNG the perception node writes the finished map to when the roll "
+                       "ends (perception map.save_path); empty: not saved (touchroller scan writes map.png anyway)"),
     ),
     "calibrate": (
         LaunchArgument("use_sim", "true", "Simulated calibration scene (true) or a V4L2 camera (false)", _BOOL),
@@ -257,8 +259,9 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
             sweep["sweep.speed"] = _positive_float(launch, "sweep_speed", args["sweep_speed"])
         if args["sweep_length"]:
             sweep["sweep.length"] = _positive_float(launch, "sweep_length", args["sweep_length"])
+        perception = {"map.save_path": str(Path(args["map_file"]).expanduser())} if args["map_file"] else {}
         nodes = (spec(CAMERA, "camera", camera_parameters(follow_arm=True)),
-                 spec(PERCEPTION, "perception", {}),
+                 spec(PERCEPTION, "perception", perception),
                  spec(SWEEP, "sweep", sweep))
     elif launch == "calibrate":
         nodes = (spec(CAMERA, "camera", camera_parameters()),

@@ -59,6 +59,12 @@ def test_scan_graph_with_hardware_arguments():
                                           "sweep.length": 0.05}
 
 
+def test_scan_map_file_becomes_the_perception_save_path(tmp_path):
+    assert build_graph("scan").node("perception").parameters == {}
+    g = build_graph("scan", {"map_file": str(tmp_path / "roll.png")})
+    assert g.node("perception").parameters == {"map.save_path": str(tmp_path / "roll.png")}
+
+
 def test_user_files_follow_the_defaults(tmp_path):
     params, calibration = tmp_path / "p.yaml", tmp_path / "c.yaml"
     params.write_text("/**:\n  ros__parameters: {}\n")

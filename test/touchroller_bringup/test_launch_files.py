@@ -92,7 +92,8 @@ def _example_values(launch: str, tmp_path: Path) -> dict[str, str]:
     values = {"params_file": str(params), "calibration_file": str(calibration), "fastdds_profile": "shm"}
     if launch == "scan":
         values |= {"use_sim": "false", "camera_device": "/dev/v4l/by-id/usb-cam", "robot_ip": "127.0.0.1",
-                   "sweep_speed": "0.02", "sweep_length": "0.08", "scene": "surface_mapping"}
+                   "sweep_speed": "0.02", "sweep_length": "0.08", "scene": "surface_mapping",
+                   "map_file": str(tmp_path / "roll.png")}
     elif launch == "calibrate":
         values |= {"use_sim": "true", "camera_device": "", "output_file": str(tmp_path / "out.yaml"),
                    "scene": "calibration_hemispheres"}
