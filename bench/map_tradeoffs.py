@@ -12,25 +12,21 @@
   plus the per-frame Δy histograms of the paper's figure.
 * Trade-offs: methods and settings (search range, subpixel, window, keyframes, motion prior, background
   model, ...) — map quality against compute time per frame; and map quality against scan time.
-* Speed: `touchroller map` on a 640x480 bgr8 recording of >= 1000 frames as a whole command, against
-  reading the bag alone; and the live map update (`Stitcher.push`) per frame.
+* Speed: the live map update (`Stitcher.push`) per frame. The speed of `touchroller map` as a whole command
+  against reading the bag is `bench/map_speed.py`'s (its own report section).
 
 Every frame is stitched as the perception node and the CLI do: `Stitcher.push` one frame at a time,
 then `finalise()`. OpenCV is limited to one thread.
 
 `python bench/map_tradeoffs.py [--quick]` -> bench/results/map_tradeoffs.md + map_tradeoffs.png +
-map_dy_histograms.png + map_tradeoffs.json; the report generator calls `run(quick)` and `to_markdown`.
+map_dy_histograms.png + map_tradeoffs.json; the report generator calls `run(quick)`, `to_markdown` and
+`figures` (the two PNGs beside the report).
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import shutil
-import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,8 +35,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import RESULTS, provenance, provenance_markdown  # noqa: E402
 
 from touchroller_perception.metrics import (  # noqa: E402
     align_affine_3pt,
@@ -51,7 +47,6 @@ from touchroller_perception.metrics import (  # noqa: E402
 )
 from touchroller_perception.stitching import Stitcher  # noqa: E402
 
-RESULTS = ROOT / "bench" / "results"
 SPEEDS = {"slow": 15.0, "medium": 10.0, "fast": 5.0}  # the paper's three scan times (s)
 PAPER_TABLE_I = {"slow": (0.291, 15.09, 15.03), "medium": (0.305, 14.41, 16.43), "fast": (0.330, 15.59, 14.04)}
 
@@ -73,19 +68,6 @@ SWEEP: dict[str, tuple[str, dict[str, Any], bool]] = {
     "no lateral tracking": ("default", {"lateral": False}, False),
 }
 SCAN_TIMES = (4.0, 5.0, 7.5, 10.0, 15.0, 20.0)
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (f"nproc {len(os.sched_getaffinity(0))} (of {os.cpu_count()}), {cpu}, Python {platform.python_version()}, "
-            f"OpenCV {cv2.__version__}, numpy {np.__version__}")
 
 
 @dataclass
@@ -247,53 +229,6 @@ def live_update(frames: int) -> dict[str, Any]:
             "cpu_mean_ms": float(np.mean(cpu[10:]) * 1e3)}
 
 
-def command_speed(frames: int, repeats: int = 3) -> dict[str, Any]:
-    """`touchroller map` on a recorded bag as a whole command, against reading the bag alone."""
-    from touchroller_bringup.bags import read_images, write_images
-    from touchroller_bringup.cli import main as cli
-
-    duration = frames / 30.0
-    roll = simulate(duration, 0)
-    tmp = Path(tempfile.mkdtemp(prefix="map_bench_"))
-    try:
-        bag = tmp / "roll"
-        write_images(bag, list(zip(roll.stamps, roll.images, strict=True)))
-        size_mb = sum(p.stat().st_size for p in bag.rglob("*") if p.is_file()) / 1e6
-
-        def read_only() -> int:
-            n = 0
-            for record in read_images(bag):
-                n += int(record.image[0, 0, 0] >= 0)
-            return n
-
-        read_only()  # warm the page cache so both timings read from memory
-        out = tmp / "map.png"
-        read_s, read_cpu, command_s, command_cpu = [], [], [], []
-        for _ in range(repeats):  # interleaved, best of each: the machine is shared
-            t0, c0 = time.perf_counter(), time.process_time()
-            n = read_only()
-            read_s.append(time.perf_counter() - t0)
-            read_cpu.append(time.process_time() - c0)
-            t0, c0 = time.perf_counter(), time.process_time()
-            code = cli(["map", str(bag), "--out", str(out)])
-            command_s.append(time.perf_counter() - t0)
-            command_cpu.append(time.process_time() - c0)
-        read_s, read_cpu, command_s, command_cpu = min(read_s), min(read_cpu), min(command_s), min(command_cpu)
-        exe = Path(sys.executable).with_name("touchroller")
-        process_s = None
-        if exe.exists():
-            t0 = time.perf_counter()
-            subprocess.run([str(exe), "map", str(bag), "--out", str(tmp / "map2.png")], check=True,
-                           capture_output=True, env={**os.environ, "OPENCV_NUM_THREADS": "1"})
-            process_s = time.perf_counter() - t0
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return {"frames": n, "bag_mb": size_mb, "exit": code, "read_s": read_s, "command_s": command_s,
-            "read_cpu_s": read_cpu, "command_cpu_s": command_cpu,
-            "process_s": process_s, "read_fps": n / read_s, "command_fps": n / command_s,
-            "process_fps": None if process_s is None else n / process_s}
-
-
 def plot(result: dict[str, Any], path: Path, hist_path: Path) -> None:
     import matplotlib
 
@@ -356,19 +291,26 @@ def plot(result: dict[str, Any], path: Path, hist_path: Path) -> None:
     plt.close(fig)
 
 
+def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
+    """The report's plots, written into `out_dir`: quality against compute and scan time, the Δy histograms."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [out_dir / "map_tradeoffs.png", out_dir / "map_dy_histograms.png"]
+    plot(result, *paths)
+    return paths
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     cv2.setNumThreads(1)
     seeds = [0] if quick else [0, 1, 2]
     started = time.perf_counter()
-    result: dict[str, Any] = {"quick": quick, "machine": machine(),
-                              "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    result: dict[str, Any] = {"quick": quick, "provenance": provenance("map_tradeoffs", quick)}
     result["table_i"] = table_i(seeds)
     result["sweep_duration"] = 10.0
     result["sweep"] = sweep(10.0, 0)
     result["scan_times"] = scan_time_sweep(0, (5.0, 10.0, 15.0) if quick else SCAN_TIMES)
     result["robustness"] = robustness(list(ROBUSTNESS)[3:5] if quick else list(ROBUSTNESS), 0)
     result["live"] = live_update(150 if quick else 300)
-    result["command"] = command_speed(300 if quick else 1020)
     result["seconds"] = time.perf_counter() - started
     return result
 
@@ -383,11 +325,11 @@ def _pm(values: list[float], fmt: str) -> str:
 
 
 def to_markdown(result: dict[str, Any]) -> str:
-    command = "python bench/map_tradeoffs.py" + (" --quick" if result["quick"] else "")
-    lines = [f"Command: `{command}` (cv2.setNumThreads(1)); simulator scene `surface_mapping` (plain-weave fabric, "
-             "8 cm x 11 cm, 640x480 bgr8 at 30 fps, gel background, vignetting, noise, motion blur).",
-             f"Machine: {result['machine']}. Measured {result['measured']} while the machine was shared with other "
-             f"engineers' jobs: timings are contended. Took {result['seconds']:.0f} s.", "",
+    lines = [provenance_markdown(result["provenance"]) + "  ",
+             "OpenCV limited to one thread (cv2.setNumThreads(1)); simulator scene `surface_mapping` (plain-weave "
+             "fabric, 8 cm x 11 cm, 640x480 bgr8 at 30 fps, gel background, vignetting, noise, motion blur). "
+             f"Measured while the machine was shared with other engineers' jobs: timings are contended. Took "
+             f"{result['seconds']:.0f} s.", "",
              "### Table I reproduced", "",
              "Like for like: the map against the simulator's ideal tactile rendering of the true surface, translation "
              "only, both standardised (mean, contrast). Paper protocol: against the height map with the 3-point "
@@ -426,19 +368,14 @@ def to_markdown(result: dict[str, Any]) -> str:
         lines.append(f"| {r['case']} | {r['method']} | {r['frames']} | {r['ssim']:.3f} | {r['psnr']:.1f} | "
                      f"{r['length_error_percent']:+.2f} | {r['drift_percent']:.2f} | {r['prior_frames']} |")
     lines.append("")
-    live, cmd = result["live"], result["command"]
+    live = result["live"]
     lines += ["### Speed", "",
               f"- Live map update (`Stitcher.push`, 640x480 bgr8, {live['frames']} frames): median "
               f"{live['median_ms']:.3f} ms, p90 {live['p90_ms']:.3f} ms, max {live['max_ms']:.3f} ms per frame wall "
               f"(mean CPU time {live['cpu_mean_ms']:.3f} ms); rendering the map (`map_image`) "
               f"{live['map_image_ms']:.1f} ms (at the publish rate, not per frame).",
-              f"- `touchroller map` on a {cmd['frames']}-frame 640x480 bgr8 sqlite3 bag ({cmd['bag_mb']:.0f} MB, page "
-              f"cache warm, best of 3): reading the bag alone {cmd['read_fps']:.0f} frames/s "
-              f"({cmd['read_cpu_s'] / cmd['frames'] * 1e3:.3f} ms CPU per frame); the whole command in-process "
-              f"{cmd['command_fps']:.0f} frames/s ({cmd['command_cpu_s'] / cmd['frames'] * 1e3:.3f} ms CPU per frame, "
-              f"{cmd['command_s'] / cmd['read_s']:.2f}x the read time)"
-              + (f"; as a new process (`.venv/bin/touchroller map`, interpreter start included) "
-                 f"{cmd['process_fps']:.0f} frames/s." if cmd.get("process_fps") else "."), ""]
+              "- `touchroller map` as a whole command against reading the bag alone: `bench/map_speed.py` "
+              "(`bench/results/map_speed.md`, and its own section of the report).", ""]
     goals = []
     ours = [r for r in result["table_i"].values() if r["method"] == "default"]
     worst_ssim = min(min(r["ssim"]) for r in ours)
@@ -447,13 +384,6 @@ def to_markdown(result: dict[str, Any]) -> str:
                  f"(lowest {worst_ssim:.3f})")
     goals.append(f"- Length (drift) error <= 1 %: **{'met' if worst_len <= 1.0 else 'NOT met'}** (largest |error| "
                  f"{worst_len:.2f} %)")
-    # As a whole command means a new process (interpreter start and imports included) when measured.
-    whole_fps = cmd.get("process_fps") or cmd["command_fps"]
-    goals.append(f"- `touchroller map` >= 1000 frames/s as a whole command: **{'met' if whole_fps >= 1000 else 'NOT met'}**"
-                 f" ({whole_fps:.0f} frames/s as a new process, one run; {cmd['command_fps']:.0f} in-process; reading "
-                 f"alone {cmd['read_fps']:.0f} frames/s; {cmd['command_s'] / cmd['read_s']:.2f}x the read time "
-                 f"in-process, aim <= 2x: **{'met' if cmd['command_s'] <= 2 * cmd['read_s'] else 'NOT met'}**; "
-                 "best-of-5 figures for both in `map_speed.md`)")
     goals.append(f"- Live map update <= 1 ms per frame: **{'met' if live['median_ms'] <= 1.0 else 'NOT met'}** "
                  f"(median {live['median_ms']:.3f} ms)")
     lines += ["### Goals", "", *goals, ""]
@@ -462,7 +392,7 @@ def to_markdown(result: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="one seed, fewer scan times, a 300-frame bag")
+    parser.add_argument("--quick", action="store_true", help="one seed, fewer scan times and surfaces")
     parser.add_argument("--out", default=str(RESULTS / "map_tradeoffs.md"))
     args = parser.parse_args(argv)
     result = run(quick=args.quick)

@@ -36,6 +36,10 @@ SECTIONS: tuple[Section, ...] = (
             "An 8 cm x 11 cm fabric rolled in 15 s, 10 s and 5 s in the simulator; map quality against the "
             "simulator's ground-truth surface for the paper's stitching (integer Δy, MAE) and ours, and what "
             "map accuracy costs in compute per frame and in scan time."),
+    Section("map_speed", "`touchroller map`: speed against reading the bag", "map_speed",
+            "`touchroller map BAG --out map.png` on a simulated 640x480 bgr8 recording as a whole command (a new "
+            "process: interpreter start and imports included) and in-process, against just reading the bag, best of "
+            "several interleaved runs; and where the command's time goes."),
     Section("table_ii", "Contact localisation: the paper's Table II reproduced", "contacts_table_ii",
             "The 3-stick solid tapped at 5 central angles x 3 axial positions in the simulator, with the paper's "
             "error sources modelled; mean ± std of the Euclidean error in mm per cell, beside the paper's."),
@@ -139,22 +143,33 @@ def _map_length(r: dict) -> tuple[str, bool]:
     return f"largest {worst:.2f} %", worst <= 1.0
 
 
-def _map_command(r: dict) -> tuple[str, bool]:
-    c = r["command"]
-    return f"{c['command_fps']:.0f} frames/s ({c['frames']} frames, in-process)", c["command_fps"] >= 1000
+def _map_speed_verdict(r: dict, met: bool) -> bool | None:
+    """A quick run's short bag weighs interpreter start more than the goal's >= 1000-frame recordings: the figure
+    is shown, the verdict is left to the full run."""
+    return None if r["quick"] else met
+
+
+def _map_speed_quick_note(r: dict) -> str:
+    return f"; quick run, {r['summary']['frames']} frames: judged by the full run" if r["quick"] else ""
 
 
 def _map_process(r: dict) -> tuple[str, bool | None]:
-    c = r["command"]
-    if not c.get("process_fps"):
-        return "not measured (no .venv/bin/touchroller)", None
-    return f"{c['process_fps']:.0f} frames/s (interpreter start and imports included)", c["process_fps"] >= 1000
+    m = r["summary"]
+    return (f"{m['process_fps']:.0f} frames/s, best of {m['repeats']} new processes (interpreter start and imports "
+            f"included){_map_speed_quick_note(r)}"), _map_speed_verdict(r, m["process_fps"] >= r["goal_fps"])
 
 
-def _map_read_ratio(r: dict) -> tuple[str, bool]:
-    c = r["command"]
-    ratio = c["command_s"] / c["read_s"]
-    return f"{ratio:.2f}x ({c['read_fps']:.0f} frames/s reading alone)", ratio <= 2.0
+def _map_command(r: dict) -> tuple[str, bool | None]:
+    m = r["summary"]
+    return (f"{m['command_fps']:.0f} frames/s, best of {m['repeats']} in-process runs{_map_speed_quick_note(r)}",
+            _map_speed_verdict(r, m["command_fps"] >= r["goal_fps"]))
+
+
+def _map_read_ratio(r: dict) -> tuple[str, bool | None]:
+    m = r["summary"]
+    return (f"{m['process_read_ratio']:.2f}x as new processes ({m['read_process_fps']:.0f} frames/s reading alone); "
+            f"in-process {m['in_process_read_ratio']:.2f}x{_map_speed_quick_note(r)}"), \
+        _map_speed_verdict(r, m["process_read_ratio"] <= r["goal_read_ratio"])
 
 
 def _map_live(r: dict) -> tuple[str, bool]:
@@ -246,9 +261,9 @@ GOALS: tuple[Goal, ...] = (
     Goal(4, "Invalid pixels return NaN + valid=False, never a wrong finite number", "stability", _invalid_is_nan),
     Goal(5, "Map SSIM vs ground truth >= 0.85 at 15 s / 10 s / 5 s (worst seed)", "table_i", _map_ssim),
     Goal(5, "Map length (drift) error <= 1 %", "table_i", _map_length),
-    Goal(5, "`touchroller map` >= 1000 frames/s as a whole command (a new process)", "table_i", _map_process),
-    Goal(5, "`touchroller map` >= 1000 frames/s in-process (without interpreter start)", "table_i", _map_command),
-    Goal(5, "`touchroller map` within 2x of reading the bag alone", "table_i", _map_read_ratio),
+    Goal(5, "`touchroller map` >= 1000 frames/s as a whole command (a new process)", "map_speed", _map_process),
+    Goal(5, "`touchroller map` >= 1000 frames/s in-process (without interpreter start)", "map_speed", _map_command),
+    Goal(5, "`touchroller map` within 2x of reading the bag alone (new processes)", "map_speed", _map_read_ratio),
     Goal(5, "Live map update <= 1 ms per frame", "table_i", _map_live),
     Goal(6, "Calibration: theta within 0.1 deg (20 chessboard + 10 hemisphere images)", "calibration",
          _calib("theta_err_deg", "°", "theta_deg")),

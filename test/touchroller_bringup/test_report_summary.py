@@ -38,9 +38,11 @@ def results() -> dict[str, dict]:
         "scan_times": [_scan(d, m, s if m == "default" else 0.2) for d, s in ((4.0, 0.7), (5.0, 0.88), (10.0, 0.97),
                                                                            (15.0, 0.98)) for m in ("paper", "default")],
         "live": {"median_ms": 0.4, "p90_ms": 0.6},
-        "command": {"frames": 300, "command_fps": 1200.0, "process_fps": 900.0, "read_fps": 5000.0,
-                    "command_s": 0.25, "read_s": 0.06},
     }
+    map_speed = {"quick": False, "goal_fps": 1000.0, "goal_read_ratio": 2.0,
+                 "summary": {"frames": 1021, "repeats": 5, "command_fps": 1200.0, "process_fps": 900.0,
+                             "read_fps": 5000.0, "read_process_fps": 2500.0, "process_read_ratio": 2.78,
+                             "in_process_read_ratio": 4.17}}
     contacts = {
         "speed": [{"workload": "no contact (gaps)", "median_ms": 0.2, "contacts_per_frame": 0.0},
                   {"workload": "3 contacts (taps)", "median_ms": 0.9, "contacts_per_frame": 3.0},
@@ -69,7 +71,7 @@ def results() -> dict[str, dict]:
                                          "error_sources": {"mean_mm": 0.89, "max_cell_mean_mm": 1.18}}}}
     stability = {"cases": [{"round_trip_m": 1e-17, "invalid_return": "NaN point, valid=False"}],
                  "non_finite": {"valid": [False, False, False, True], "all_invalid_are_nan": True}}
-    return {"table_i": table_i, "contacts_speed": contacts, "calibration": calibration, "simulator": simulator,
+    return {"table_i": table_i, "map_speed": map_speed, "contacts_speed": contacts, "calibration": calibration, "simulator": simulator,
             "table_ii": table_ii, "stability": stability}
 
 
@@ -124,13 +126,32 @@ def test_goals_are_judged_from_the_results(results, tmp_path):
     assert status["Map length (drift) error <= 1 %"] == "**met**"
     assert status["`touchroller map` >= 1000 frames/s as a whole command (a new process)"] == "**NOT met**"
     assert status["`touchroller map` >= 1000 frames/s in-process (without interpreter start)"] == "**met**"
-    assert status["`touchroller map` within 2x of reading the bag alone"] == "**NOT met**"    # 4.17x
+    assert status["`touchroller map` within 2x of reading the bag alone (new processes)"] == "**NOT met**"  # 2.78x
     assert status["Aim: sub-millimetre everywhere with the paper's error sources modelled (worst cell)"] == \
         "**NOT met**"
     worse = copy.deepcopy(results)
     worse["table_i"]["table_i"]["5/default"]["ssim"] = [0.80]
     status = {row[0]: row[3] for row in _rows(report.goals_markdown(worse, tmp_path), "")[2:]}
     assert status["Map SSIM vs ground truth >= 0.85 at 15 s / 10 s / 5 s (worst seed)"] == "**NOT met**"
+
+
+def test_map_speed_goals_follow_the_best_of_n_new_process_figures(results, tmp_path):
+    summary = results["map_speed"]["summary"]
+    summary.update(process_fps=1100.0, process_read_ratio=1.9)
+    rows = {row[0]: row for row in _rows(report.goals_markdown(results, tmp_path), "`touchroller map`")}
+    whole = rows["`touchroller map` >= 1000 frames/s as a whole command (a new process)"]
+    ratio = rows["`touchroller map` within 2x of reading the bag alone (new processes)"]
+    assert whole[3] == "**met**" and "1100 frames/s, best of 5 new processes" in whole[2]
+    assert ratio[3] == "**met**" and "1.90x as new processes" in ratio[2] and "in-process 4.17x" in ratio[2]
+
+
+def test_a_quick_map_speed_run_shows_its_figures_without_a_verdict(results, tmp_path):
+    results["map_speed"]["quick"] = True
+    results["map_speed"]["summary"]["frames"] = 300
+    rows = [row for row in _rows(report.goals_markdown(results, tmp_path), "`touchroller map`")]
+    assert len(rows) == 3
+    for row in rows:
+        assert row[3] == "—" and "quick run, 300 frames: judged by the full run" in row[2]
 
 
 def test_goals_without_a_section_link_their_bench_result(results, tmp_path):

@@ -1,0 +1,72 @@
+"""bench/map_speed.py: the report section's figures and goal verdicts come from the measured times."""
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[2] / "bench"
+
+
+def load_bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_map_speed_under_test", BENCH / "map_speed.py")
+    assert spec and spec.loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def fake_result(bench: ModuleType, quick: bool, command_process_s: float, read_process_s: float = 0.5,
+                frames: int = 1000) -> dict:
+    """A result as `run` returns it, with chosen wall times (no timing here: the verdicts are under test)."""
+    speed = {"frames": frames, "command": "/venv/bin/touchroller map BAG --out map.png",
+             "read_s": 0.2, "command_s": 0.6, "read_process_s": read_process_s, "command_process_s": command_process_s,
+             "read_cpu_s": 0.2, "command_cpu_s": 0.8, "read_process_cpu_s": 0.4, "command_process_cpu_s": 1.0}
+    result = {"provenance": {"command": ".venv/bin/python bench/map_speed.py", "machine": "test machine",
+                             "measured": "now", "loadavg": "0.00 0.00 0.00"},
+              "quick": quick, "goal_fps": bench.GOAL_FPS, "goal_read_ratio": bench.GOAL_READ_RATIO,
+              "bag_frames": frames, "bag_mb": 900.0, "repeats": 5, "speed": speed, "took_s": 30.0,
+              "loadavg_after": "0.00 0.00 0.00",
+              "imports": {"imports_s": 0.2, "interpreter_s": 0.05, "heavy_loaded": [], "top_imports_ms": {"cv2": 130}},
+              "stages": {"band_ms": 0.25, "push_band_ms": 0.3, "finalise_png_ms": 8.0, "frames": 300}}
+    result["summary"] = bench.summary(result)
+    return result
+
+
+def test_summary_is_frames_over_best_times():
+    bench = load_bench()
+    m = fake_result(bench, False, command_process_s=0.8, read_process_s=0.5)["summary"]
+    assert m["process_fps"] == pytest.approx(1250.0) and m["command_fps"] == pytest.approx(1000 / 0.6)
+    assert m["process_read_ratio"] == pytest.approx(1.6) and m["in_process_read_ratio"] == pytest.approx(3.0)
+
+
+@pytest.mark.parametrize(("command_process_s", "fps_verdict", "ratio_verdict"),
+                         [(0.8, "**met**", "**met**"),            # 1250 frames/s, 1.6x
+                          (1.2, "**NOT met**", "**NOT met**")])   # 833 frames/s, 2.4x
+def test_full_run_judges_the_new_process_figures(command_process_s, fps_verdict, ratio_verdict):
+    bench = load_bench()
+    text = bench.to_markdown(fake_result(bench, False, command_process_s))
+    goals = text.split("### Goals", 1)[1].strip().splitlines()
+    assert goals[0].startswith("- >= 1000 frames/s as a whole command") and fps_verdict in goals[0]
+    assert goals[1].startswith("- Within 2x of reading the bag") and goals[1].split(" as new")[0].endswith(ratio_verdict)
+    assert "Command: `.venv/bin/python bench/map_speed.py`" in text and "test machine" in text
+
+
+def test_quick_run_shows_the_figures_without_a_verdict():
+    bench = load_bench()
+    text = bench.to_markdown(fake_result(bench, True, command_process_s=0.6, frames=300))
+    goals = text.split("### Goals", 1)[1]
+    assert "500 frames/s" in goals and "not judged on this quick run" in goals
+    assert "met**" not in goals
+    # the table has the four timed rows; the quick run has no run without a bytecode cache
+    assert text.count("\n| ") == 5 and "PYTHONDONTWRITEBYTECODE" not in text
+
+
+def test_cli_refuses_a_bag_without_frames(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        load_bench().main(["--frames", "0"])
+    assert exit_info.value.code == 2 and "--frames and --repeats must be >= 1" in capsys.readouterr().err
