@@ -28,6 +28,7 @@ def test_quick_report_has_every_section_with_complete_tables(tmp_path):
     assert all(status in ("**met**", "**NOT met**", "—", "see the file") for status in statuses), statuses
     assert statuses.count("**met**") + statuses.count("**NOT met**") >= 15
     # `touchroller map`'s figures come from its own section (a quick run's short bag leaves the verdict to the full run)
+    assert "A status — is a figure without a verdict" in goals
     assert "best of 2 new processes" in goals and re.search(r"quick run, \d+ frames: judged by the full run", goals)
     # both map plots reach the report, beside it
     for figure in ("map_tradeoffs", "map_dy_histograms"):
