@@ -513,7 +513,7 @@ def run(quick: bool = False) -> dict:
     return {"quick": quick, "runs": [flat_run(row) for row in rows], "machine": machine(),
             "load": os.getloadavg(),
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "command": f"python bench/dds_latency.py{' --quick' if quick else ''}", "map_rate": 1.0,
+            "command": f"python bench/dds_latency.py {'--quick' if quick else '--section'}", "map_rate": 1.0,
             "rows": rows, "slow_consumer": slow, "publish_path": publish, "publish_calls": 50 if quick else 300,
             "seconds": time.perf_counter() - started}
 
@@ -628,6 +628,7 @@ QOS_VARIANTS = [(depth, reliability) for reliability in ("BEST_EFFORT", "RELIABL
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the report's quick section (~20 s)")
+    parser.add_argument("--section", action="store_true", help="the report's full section (~2 min)")
     parser.add_argument("--qos", action="store_true",
                         help="the perception image subscription's depth 1/2/3 x best effort/reliable at 60 Hz "
                              "(shm) instead of the latency table; writes bench/results/dds_qos.md")
@@ -644,9 +645,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(run_plan(json.loads(args.plan))), flush=True)
         return 0
     command = ("python bench/dds_latency.py " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
-    if args.quick:
-        result = run(quick=True)
-        out = Path(args.out or RESULTS / "dds_latency_quick.md")
+    if args.quick or args.section:
+        result = run(quick=args.quick)
+        out = Path(args.out or RESULTS / f"dds_latency_{'quick' if args.quick else 'section'}.md")
     else:
         started = time.perf_counter()
         if args.qos:
