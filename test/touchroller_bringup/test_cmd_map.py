@@ -115,3 +115,36 @@ def test_a_recording_that_starts_lifted_off_gives_the_full_map(simulated_roll, b
     true_px = (travel[-1] - travel[0]) * 1e3 / MM_PER_PX
     assert cv2.imread(str(out), 0).shape[0] == pytest.approx(true_px + 70, abs=3)
     assert f"{len(records) + 12} frames" in capsys.readouterr().out
+
+
+def test_read_ahead_keeps_order_raises_in_place_and_stops_early():
+    import threading
+
+    from touchroller_bringup.commands.map import _read_ahead
+
+    assert list(_read_ahead(iter(range(100)), depth=3)) == list(range(100))
+
+    def failing():
+        yield from range(5)
+        raise ValueError("truncated")
+
+    seen = []
+    with pytest.raises(ValueError, match="truncated"):
+        for item in _read_ahead(failing(), depth=2):
+            seen.append(item)
+    assert seen == [0, 1, 2, 3, 4]
+
+    produced = []
+
+    def endless():
+        k = 0
+        while True:
+            produced.append(k)
+            yield k
+            k += 1
+
+    reader = _read_ahead(endless(), depth=2)
+    assert next(reader) == 0
+    reader.close()   # the consumer stops early (an error while stitching): the reader thread ends too
+    assert not any(t.name == "bag-reader" and t.is_alive() for t in threading.enumerate())
+    assert len(produced) <= 5

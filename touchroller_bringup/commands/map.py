@@ -9,11 +9,16 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import queue
+import threading
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TypeVar
 
 from touchroller_bringup.errors import UserError
 
 DEFAULT_MM_PER_PX = 0.1
+T = TypeVar("T")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -43,8 +48,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
-    from touchroller_bringup.bags import read_images
-
     out = Path(args.out)
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give an image file name such as map.png")
@@ -57,9 +60,23 @@ def run(args: argparse.Namespace) -> int:
     if args.search < 1:
         raise UserError(f"--search must be at least 1 pixel, got {args.search}")
     camera = _load_camera(args.params)
+    # OpenCV's own thread pool costs more than it saves on a 70-row band; the second core reads the bag.
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return _stitch_bag(args, out, camera)
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
+    import cv2
+
+    from touchroller_bringup.bags import read_images
+
     stitcher = None
     frames = 0
-    for record in read_images(args.bag, args.topic):
+    for record in _read_ahead(read_images(args.bag, args.topic)):
         if stitcher is None:
             stitcher = _make_stitcher(args, camera, record.image.shape)
         try:
@@ -83,6 +100,43 @@ def run(args: argparse.Namespace) -> int:
     print(f"{frames} frames -> {out} ({image.shape[1]}x{image.shape[0]} px, travel {travel:.1f} px{scale}, "
           f"method {args.method}{note})")
     return 0
+
+
+def _read_ahead(records: Iterator[T], depth: int = 8) -> Iterator[T]:
+    """`records`, read by a second thread a few items ahead: SQLite reads and OpenCV both release the
+    GIL, so reading the bag overlaps with stitching instead of adding to it. Errors surface in order."""
+    items: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def produce() -> None:
+        try:
+            for item in records:
+                while not stop.is_set():
+                    try:
+                        items.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            items.put((done, None))
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer's thread
+            items.put((done, exc))
+
+    reader = threading.Thread(target=produce, name="bag-reader", daemon=True)
+    reader.start()
+    try:
+        while True:
+            item, error = items.get()
+            if item is done:
+                if error is not None:
+                    raise error
+                return
+            yield item
+    finally:
+        stop.set()
+        reader.join(timeout=5.0)
 
 
 def _make_stitcher(args: argparse.Namespace, camera, shape):
