@@ -182,7 +182,11 @@ class Graph:
         from rclpy.node import Node
         from rclpy.parameter import Parameter
 
-        self.domain_id = domain_id if domain_id is not None else 100 + os.getpid() % 100
+        from touchroller_bringup.ros_domains import reserve_domain_id
+
+        # a domain no test run or other benchmark on this host uses (they would see each other's topics)
+        self._lease = reserve_domain_id() if domain_id is None else None
+        self.domain_id = domain_id if domain_id is not None else self._lease.domain_id
         os.environ["ROS_DOMAIN_ID"] = str(self.domain_id)
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         self.context = Context()
@@ -273,6 +277,8 @@ class Graph:
             except subprocess.TimeoutExpired:
                 self.child.kill()
         self.context.try_shutdown()
+        if self._lease is not None:
+            self._lease.release()
 
 
 def latencies_ms(source: MemorySource, probe: Probe) -> tuple[np.ndarray, int]:
@@ -309,10 +315,12 @@ def measure_publish_path(frames: list[np.ndarray], repeats: int = 200) -> dict[s
     from rclpy.node import Node
     from sensor_msgs.msg import Image
 
+    from touchroller_bringup.ros_domains import reserve_domain_id
     from touchroller_driver.camera_node import CameraNode
 
+    lease = reserve_domain_id()
     context = Context()
-    rclpy.init(context=context, domain_id=(os.getpid() % 100) + 2)
+    rclpy.init(context=context, domain_id=lease.domain_id)
     camera = CameraNode(context=context, source=MemorySource(frames, frames, 1.0, 0), autostart=False)
     listener = Node("publish_path_listener", context=context)
     listener.create_subscription(Image, "/touchroller/image_raw", lambda m: None, 1)
@@ -326,6 +334,7 @@ def measure_publish_path(frames: list[np.ndarray], repeats: int = 200) -> dict[s
         camera.destroy_node()
         listener.destroy_node()
         context.try_shutdown()
+        lease.release()
     return summarise(np.array(times))
 
 
