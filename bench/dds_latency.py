@@ -341,7 +341,9 @@ def measure_publish_path(frames: list[np.ndarray], repeats: int = 200) -> dict[s
 TRANSPORTS = {
     "default": None,  # rmw_fastrtps_cpp's built-in transports (UDPv4 + SHM with 512 KB segments)
     "shm": ROOT / "config" / "fastdds_shm.xml",  # shared memory with segments that hold a whole image
+    "shm_udp": ROOT / "config" / "fastdds_shm_udp.xml",  # the same plus UDPv4: the launch files' default
 }
+RECOMMENDED = "shm_udp"   # what `ros2 launch` uses unless the user names a profile
 
 
 def use_transport(transport: str) -> None:
@@ -503,17 +505,17 @@ SLOW_DELAY_MS = 50.0
 def run(quick: bool = False) -> dict:
     """Latency, losses and skips at 30/60 Hz, and the slow-consumer check (report section, issue 7).
 
-    quick: shared memory, perception in its own process, 2 s per rate, slow consumer 2.5 s (~20 s in all);
-    full: both transports x 1 and 2 processes x 30/60 Hz, 8 s each, slow consumer in 1 and 2 processes.
+    quick: the launch default (shm_udp), perception in its own process, 2 s per rate, slow consumer 2.5 s (~20 s in all);
+    full: the three transports x 1 and 2 processes x 30/60 Hz, 8 s each, slow consumer in 1 and 2 processes.
     """
     started = time.perf_counter()
     seconds = 2.0 if quick else 8.0
     process_counts = [2] if quick else [1, 2]
     rows, slow = [], []
-    for transport in ["shm"] if quick else list(TRANSPORTS):
+    for transport in [RECOMMENDED] if quick else list(TRANSPORTS):
         plan = [{"processes": processes, "fps": fps, "seconds": seconds}
                 for processes in process_counts for fps in (30.0, 60.0)]
-        if transport == "shm":  # the slow consumer on the recommended transport
+        if transport == RECOMMENDED:  # the slow consumer on the launch files' default transport
             plan += [{"processes": processes, "seconds": 2.5 if quick else 8.0, "delay_ms": SLOW_DELAY_MS}
                      for processes in process_counts]
         for row in measure_plan(transport, plan):
@@ -584,13 +586,14 @@ def to_markdown(result: dict) -> str:
     seconds = sorted({row["seconds"] for row in rows})
     lines = [
         f"Command: `{result['command']}` ({_fmt(result['seconds'], 0)} s); machine: {result['machine']}; "
-        f"{result['date']}; measured while the machine was shared (load average "
+        f"{result['date']}; timings depend on the machine's load (load average "
         f"{'/'.join(f'{x:.1f}' for x in result.get('load', ()))} at the end). RMW "
         f"{os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')} over loopback, 640x480 bgr8, "
         f"{'/'.join(f'{s:g}' for s in seconds)} s per run, perception map.publish_rate {result['map_rate']:g} Hz.",
         "",
-        "Latency = contact received by a probe node − the image's capture stamp. 'shm' = `config/fastdds_shm.xml` "
-        "(shared memory only, segments that hold a whole image); 'default' = Fast DDS built-in transports. With one "
+        "Latency = contact received by a probe node − the image's capture stamp. 'shm_udp' = `config/fastdds_shm_udp.xml` "
+        "(the launch files' default: shared memory with segments that hold a whole image, plus UDP for other hosts); "
+        "'shm' = `config/fastdds_shm.xml` (the same without UDP); 'default' = Fast DDS built-in transports. With one "
         "process all nodes share an interpreter (as `touchroller scan`); with two the perception node runs in its "
         "own (as `ros2 launch`). 'late at camera' = frames the publishing thread read more than a frame period "
         "after capture (a real camera would have replaced them). 'lost in transport' = samples DDS reported lost "

@@ -240,7 +240,7 @@ def to_markdown(r: dict[str, Any]) -> str:
                      "command_process_no_bytecode_cache"))
     lines = [
         provenance_markdown(r["provenance"]) + "  ",
-        f"Measured while the machine was shared with other engineers' jobs (timings contended; best of "
+        f"Timings depend on the machine's load (best of "
         f"{r['repeats']} interleaved runs; load average after {r['loadavg_after']}). Took {r['took_s']:.0f} s.",
         "",
         f"Bag: {r['bag_frames']} frames of 640x480 bgr8 (simulated `surface_mapping` roll), sqlite3, "

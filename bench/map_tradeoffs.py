@@ -328,7 +328,7 @@ def to_markdown(result: dict[str, Any]) -> str:
     lines = [provenance_markdown(result["provenance"]) + "  ",
              "OpenCV limited to one thread (cv2.setNumThreads(1)); simulator scene `surface_mapping` (plain-weave "
              "fabric, 8 cm x 11 cm, 640x480 bgr8 at 30 fps, gel background, vignetting, noise, motion blur). "
-             f"Measured while the machine was shared with other engineers' jobs: timings are contended. Took "
+             f"Timings depend on the machine's load (above). Took "
              f"{result['seconds']:.0f} s.", "",
              "### Table I reproduced", "",
              "Like for like: the map against the simulator's ideal tactile rendering of the true surface, translation "

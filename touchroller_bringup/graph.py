@@ -27,7 +27,10 @@ from touchroller_bringup.paths import config_path
 
 PACKAGE = "touchroller_bringup"
 DEFAULT_PARAMS_FILES = ("touchroller.yaml", "scan.yaml")  # under config/
-FASTDDS_PROFILES = {"shm": "fastdds_shm.xml"}  # fastdds_profile:=<name> -> config/<file>
+# fastdds_profile:=<name> -> config/<file>
+FASTDDS_PROFILES = {"shm_udp": "fastdds_shm_udp.xml", "shm": "fastdds_shm.xml"}
+# fastdds_profile:=auto (the default): shm_udp unless the environment already names a profile
+AUTO_PROFILE = "shm_udp"
 # Fast DDS 3 (Kilted on) reads FASTDDS_..., Fast DDS 2 (Humble, Iron, Jazzy) only FASTRTPS_... (which
 # Fast DDS 3's RMW still reads but warns about), so the second is set only for those distributions.
 FASTDDS_ENVIRONMENT = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE")
@@ -121,9 +124,11 @@ _COMMON = (
                    "node after the package defaults (config/touchroller.yaml, config/scan.yaml)"),
     LaunchArgument("calibration_file", "", "Calibration YAML (camera.*, extrinsics.*) applied after "
                    "params_file; empty: the geometry in the params files"),
-    LaunchArgument("fastdds_profile", "", "Fast DDS XML profile for every node (sets FASTDDS_DEFAULT_"
-                   "PROFILES_FILE, and FASTRTPS_... on Humble/Jazzy): 'shm' = the shipped config/fastdds_shm.xml (shared "
-                   "memory sized for whole images, this host only), or a path; empty: the environment's"),
+    LaunchArgument("fastdds_profile", "auto", "Fast DDS XML profile for every node (sets FASTDDS_DEFAULT_"
+                   "PROFILES_FILE, and FASTRTPS_... on Humble/Jazzy): 'shm_udp' = config/fastdds_shm_udp.xml (shared "
+                   "memory sized for whole images on this host, UDP to others), 'shm' = config/fastdds_shm.xml (this "
+                   "host only), a path, or empty for the environment's; 'auto': shm_udp unless the environment "
+                   "already sets a profile"),
 )
 LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
     "scan": (
@@ -213,6 +218,9 @@ def _params_files(args: Mapping[str, str], extra: Sequence[str | Path] = ()) -> 
 
 def _environment(args: Mapping[str, str]) -> dict[str, str]:
     choice = args.get("fastdds_profile", "")
+    if choice == "auto":
+        given = any(os.environ.get(name) for name in FASTDDS_ENVIRONMENT)
+        choice = "" if given else AUTO_PROFILE
     if not choice:
         return {}
     path = config_path(FASTDDS_PROFILES[choice]) if choice in FASTDDS_PROFILES else Path(choice).expanduser()

@@ -208,12 +208,16 @@ _PAPER_MEAN_MM = 7.66   # the paper's Table II mean, the issue's yardstick ("far
 
 
 def _dds_runs(r: dict, rate: float) -> list[dict]:
-    """The runs at `rate` on the recommended transport (shared memory, config/fastdds_shm.xml) when measured."""
+    """The runs at `rate` on the launch files' default transport (config/fastdds_shm_udp.xml), else on
+    shared memory only (config/fastdds_shm.xml), else all, as measured."""
     runs = [row for row in r["runs"] if float(row["fps"]) == rate]
-    shm = [row for row in runs if row["transport"] == "shm"]
-    if not (shm or runs):
+    if not runs:
         raise KeyError(f"no run at {rate:g} Hz")
-    return shm or runs
+    for transport in ("shm_udp", "shm"):
+        chosen = [row for row in runs if row["transport"] == transport]
+        if chosen:
+            return chosen
+    return runs
 
 
 def _dds_latency(r: dict) -> tuple[str, bool]:

@@ -94,7 +94,7 @@ def test_bad_arguments_are_one_clear_error(launch, values, message):
 def test_resolve_arguments_fills_defaults():
     args = resolve_arguments("replay", {"bag": "x"})
     assert args == {"bag": "x", "rate": "1.0", "loop": "false", "params_file": "", "calibration_file": "",
-                    "fastdds_profile": ""}
+                    "fastdds_profile": "auto"}
 
 
 @pytest.mark.parametrize(("distro", "variables"), [
@@ -105,10 +105,19 @@ def test_resolve_arguments_fills_defaults():
 ])
 def test_fastdds_profile_sets_the_environment_of_every_launch(tmp_path, monkeypatch, distro, variables):
     monkeypatch.setenv("ROS_DISTRO", distro)
+    for name in ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE"):
+        monkeypatch.delenv(name, raising=False)
     shipped = Path(__file__).resolve().parents[2] / "config" / "fastdds_shm.xml"
     assert shipped.is_file()
     for launch, required in (("scan", {}), ("calibrate", {}), ("replay", {"bag": "b"})):
-        assert build_graph(launch, required).environment == {}           # the environment's own profile
+        # the default: shared memory for this host and UDP for others, unless the user set a profile
+        default = build_graph(launch, required).environment
+        assert set(default) == variables and {Path(p).name for p in default.values()} == {"fastdds_shm_udp.xml"}
+        assert all(Path(p).is_file() for p in default.values())
+        with monkeypatch.context() as env:
+            env.setenv("FASTDDS_DEFAULT_PROFILES_FILE", str(tmp_path / "theirs.xml"))
+            assert build_graph(launch, required).environment == {}
+        assert build_graph(launch, {**required, "fastdds_profile": ""}).environment == {}   # the environment's
         environment = build_graph(launch, {**required, "fastdds_profile": "shm"}).environment
         assert set(environment) == variables
         assert {Path(p).name for p in environment.values()} == {"fastdds_shm.xml"}
