@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import threading
@@ -35,6 +34,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "bench" / "results"
+sys.path.insert(0, str(ROOT / "bench"))
+from _common import machine  # noqa: E402  (one machine line for every bench and the report)
 
 WIDTH, HEIGHT = 640, 480
 REFERENCE_FRAMES = 30  # no-contact frames first: the perception node takes its reference from the first 5 it gets
@@ -287,18 +288,6 @@ def latencies_ms(source: MemorySource, probe: Probe) -> tuple[np.ndarray, int]:
         arrivals = dict(probe.arrivals)
     got = [(arrivals[s] - s) * 1e-6 for s in source.contact_stamps if s in arrivals]
     return np.array(got), len(source.contact_stamps) - len(got)
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{os.cpu_count()} cores (nproc {len(os.sched_getaffinity(0))}), {cpu}, Python {platform.python_version()}"
 
 
 def summarise(values: np.ndarray) -> dict[str, float]:

@@ -106,6 +106,8 @@ def roller_state_from_pose(pose: ArrayLike, velocity: ArrayLike, t: float, *, or
 
 
 DEFAULT_START_POSE = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0)  # the sweep's touching pose (UR base frame)
+DEFAULT_CLEARANCE = 0.002  # m the arm rests above the touching pose
+DEFAULT_DIRECTION = (1.0, 0.0, 0.0)  # rolling direction in the base frame
 
 
 def simulated_arm_origin(start_pose: ArrayLike, clearance: float) -> tuple[np.ndarray, float]:

@@ -39,7 +39,13 @@ from touchroller_bringup.ros_diagnostics import (
     Status,
 )
 from touchroller_bringup.ros_params import GeometryParameters, declare
-from touchroller_driver.arm import DEFAULT_START_POSE, PoseFollower, simulated_arm_origin
+from touchroller_driver.arm import (
+    DEFAULT_CLEARANCE,
+    DEFAULT_DIRECTION,
+    DEFAULT_START_POSE,
+    PoseFollower,
+    simulated_arm_origin,
+)
 from touchroller_driver.image_conversion import fill_image
 from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
 from touchroller_perception.geometry import CameraModel
@@ -141,9 +147,9 @@ class CameraNode(Node):
         # the sweep node's names, so the same params files place the arm identically for both
         declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
                 "sim.follow_arm: the sweep's touching TCP pose [x, y, z, rx, ry, rz] (as the sweep node)")
-        declare(self, "sweep.clearance", 0.002, "sim.follow_arm: height above the start pose the arm rests at, "
+        declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "sim.follow_arm: height above the start pose the arm rests at, "
                 "m (as the sweep node)", min=0.0, max=0.05)
-        declare(self, "sweep.direction", [1.0, 0.0, 0.0], "sim.follow_arm: rolling direction in the base "
+        declare(self, "sweep.direction", list(DEFAULT_DIRECTION), "sim.follow_arm: rolling direction in the base "
                 "frame (as the sweep node)")
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:

@@ -31,6 +31,8 @@ from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPubl
 from touchroller_bringup.ros_params import declare
 from touchroller_bringup.ros_services import trigger_service_type
 from touchroller_driver.arm import (
+    DEFAULT_CLEARANCE,
+    DEFAULT_DIRECTION,
     DEFAULT_START_POSE,
     Arm,
     ArmError,
@@ -128,9 +130,9 @@ class SweepNode(Node):
         declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
                 "TCP pose [x, y, z, rx, ry, rz] (base frame, m, rotation vector) where the roller just "
                 "touches the surface at the start of the sweep")
-        declare(self, "sweep.direction", [1.0, 0.0, 0.0], "Rolling direction in the base frame (horizontal)")
+        declare(self, "sweep.direction", list(DEFAULT_DIRECTION), "Rolling direction in the base frame (horizontal)")
         declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
-        declare(self, "sweep.clearance", 0.002, "Height above the start pose the roller approaches from and "
+        declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "Height above the start pose the roller approaches from and "
                 "lifts back to, m", min=0.0, max=0.05)
         declare(self, "cylinder.radius", 0.05, "Radius r of the membrane surface, metres (simulated roll)",
                 min=0.001, max=1.0)
