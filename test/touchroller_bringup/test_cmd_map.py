@@ -119,6 +119,7 @@ def test_a_recording_that_starts_lifted_off_gives_the_full_map(simulated_roll, b
 
 def test_read_ahead_keeps_order_raises_in_place_and_stops_early():
     import threading
+    import time
 
     from touchroller_bringup.commands.map import _read_ahead
 
@@ -145,6 +146,10 @@ def test_read_ahead_keeps_order_raises_in_place_and_stops_early():
 
     reader = _read_ahead(endless(), depth=2)
     assert next(reader) == 0
+    deadline = time.monotonic() + 5.0   # the reader runs ahead of the consumer, up to the queue's depth
+    while len(produced) < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(produced) >= 3
     reader.close()   # the consumer stops early (an error while stitching): the reader thread ends too
     assert not any(t.name == "bag-reader" and t.is_alive() for t in threading.enumerate())
     assert len(produced) <= 5
