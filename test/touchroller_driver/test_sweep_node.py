@@ -113,10 +113,17 @@ def test_start_service_runs_the_whole_sweep(harness_factory, spin_until):
     assert spin_until(h.executor, lambda: h.progress and h.progress[-1] == 1.0, timeout=5.0)
     rolling = [p for p in h.progress if 0.0 < p < 1.0]
     assert rolling and rolling == sorted(rolling)
-    end = h.poses[-1]
-    assert end.header.frame_id == "base"
-    assert end.pose.position.x == pytest.approx(START[0] + 0.02, abs=1e-9)
-    assert end.pose.position.z == pytest.approx(START[2] + 0.002, abs=1e-9)  # lifted to sweep.clearance
+    # The arm ends lifted to sweep.clearance above the roll's end ...
+    final = arm.tcp_pose()
+    assert final[0] == pytest.approx(START[0] + 0.02, abs=1e-9)
+    assert final[2] == pytest.approx(START[2] + 0.002, abs=1e-9)
+    # ... and the node publishes that pose. Progress reaches 1.0 when the roll ends, before the lift,
+    # and the two topics are delivered independently, so wait for the pose itself.
+    def published_final() -> bool:
+        return bool(h.poses) and np.allclose(
+            [h.poses[-1].pose.position.x, h.poses[-1].pose.position.z], final[[0, 2]], atol=1e-9)
+    assert spin_until(h.executor, published_final, timeout=5.0)
+    assert h.poses[-1].header.frame_id == "base"
     # Once done, a second start runs again (from where the arm is, via the start pose).
     assert h.call(spin_until, "start").success
 
