@@ -99,6 +99,18 @@ def test_other_image_size_without_calibration(bag_factory, tmp_path):
     assert main(["map", str(bag_factory(records)), "--out", str(out), "--metric"]) == 2
 
 
+def test_a_frame_of_another_size_is_one_line_naming_its_stamp(simulated_roll, bag_factory, tmp_path, capsys):
+    """Bands are cut in the reader thread: its errors still reach the user as one line, nothing written."""
+    records, _ = simulated_roll
+    odd_stamp = records[5][0]
+    broken = records[:5] + [(odd_stamp, records[5][1][:240])] + records[6:]
+    out = tmp_path / "broken.png"
+    assert main(["map", str(bag_factory(broken)), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"frame at stamp {odd_stamp}" in err and "frame size changed" in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
 def test_a_recording_that_starts_lifted_off_gives_the_full_map(simulated_roll, bag_factory, tmp_path, capsys):
     """A real scan approaches from above: frames with no contact before the roll must not freeze the map."""
     from touchroller_driver.sim import SimulatedSensor, load_scene

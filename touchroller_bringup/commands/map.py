@@ -74,16 +74,28 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
 
     from touchroller_bringup.bags import read_images
 
-    stitcher = None
+    made: list = []  # the stitcher, made by the reader thread from the first frame's size
+
+    def bands() -> Iterator[tuple[int, object]]:
+        # Runs in the reader thread: reading, grey conversion and the rectifying remap release the GIL,
+        # so they overlap with registration in the main thread. Band cutting is stateless.
+        for record in read_images(args.bag, args.topic):
+            if not made:
+                made.append(_make_stitcher(args, camera, record.image.shape))
+            try:
+                band = made[0].band(record.image)
+            except ValueError as exc:
+                raise UserError(f"frame at stamp {record.stamp_ns}: {exc}") from None
+            yield record.stamp_ns, band
+
     frames = 0
-    for record in _read_ahead(read_images(args.bag, args.topic)):
-        if stitcher is None:
-            stitcher = _make_stitcher(args, camera, record.image.shape)
+    for stamp_ns, band in _read_ahead(bands()):
         try:
-            stitcher.push(record.image, record.stamp_ns)
+            made[0].push_band(band, stamp_ns)
         except ValueError as exc:
-            raise UserError(f"frame at stamp {record.stamp_ns}: {exc}") from None
+            raise UserError(f"frame at stamp {stamp_ns}: {exc}") from None
         frames += 1
+    stitcher = made[0] if made else None
     if stitcher is None:
         raise UserError(f"{args.bag} has no images on {args.topic}")
     stitcher.finalise()
@@ -103,8 +115,8 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
 
 
 def _read_ahead(records: Iterator[T], depth: int = 8) -> Iterator[T]:
-    """`records`, read by a second thread a few items ahead: SQLite reads and OpenCV both release the
-    GIL, so reading the bag overlaps with stitching instead of adding to it. Errors surface in order."""
+    """`records`, produced by a second thread a few items ahead: SQLite reads and OpenCV both release
+    the GIL, so reading the bag overlaps with stitching instead of adding to it. Errors surface in order."""
     items: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
     done = object()
