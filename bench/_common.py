@@ -20,7 +20,13 @@ if str(ROOT) not in sys.path:
 from touchroller_bringup.report import loadavg  # noqa: E402
 from touchroller_bringup.report import machine_description as machine  # noqa: E402
 
-__all__ = ["RESULTS", "ROOT", "command", "loadavg", "machine", "provenance", "provenance_markdown"]
+__all__ = ["RESULTS", "ROOT", "command", "loadavg", "machine", "provenance", "provenance_markdown", "results_path"]
+
+
+def results_path(name: str, quick: bool, suffix: str = ".md") -> Path:
+    """Where a bench writes its figures by default. Quick runs go to `bench/results/quick/` (not
+    committed), so a CI-sized check never overwrites the committed full-run figures."""
+    return (RESULTS / "quick" if quick else RESULTS) / f"{name}{suffix}"
 
 
 def command(script: str, quick: bool = False, *extra: str) -> str:

@@ -32,13 +32,11 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS as RESULTS_DIR  # noqa: E402
-from _common import provenance, provenance_markdown  # noqa: E402
+from _common import provenance, provenance_markdown, results_path  # noqa: E402
 
 from touchroller_perception import calibration as cal  # noqa: E402
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 
-RESULTS = RESULTS_DIR / "calib_bench"
 GOALS = {"theta_deg": 0.1, "d_mm": 0.05, "rms_px": 0.2, "solve_s": 2.0}
 #: the contact_localisation scene's `paper` variant sensor flaws, applied to the calibration scenes
 SENSOR_FLAWS = {
@@ -390,12 +388,11 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="3 seeds and fewer image counts")
     args = parser.parse_args()
     result = run(quick=args.quick)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    suffix = "_quick" if args.quick else ""
-    Path(f"{RESULTS}{suffix}.md").write_text(markdown(result), encoding="utf-8")
-    Path(f"{RESULTS}{suffix}.json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
-    if not args.quick:
-        figures(result, RESULTS.parent)
+    out = results_path("calib_bench", args.quick)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(markdown(result), encoding="utf-8")
+    out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    figures(result, out.parent)
     print(markdown(result))
     return 0
 

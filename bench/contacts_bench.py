@@ -21,8 +21,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS as RESULTS_DIR  # noqa: E402
-from _common import provenance, provenance_markdown  # noqa: E402
+from _common import provenance, provenance_markdown, results_path  # noqa: E402
 
 from touchroller_perception.contacts import ContactDetector, DetectorConfig  # noqa: E402
 from touchroller_perception.localisation import (  # noqa: E402
@@ -31,8 +30,6 @@ from touchroller_perception.localisation import (  # noqa: E402
     TapRenderer,
     localise,
 )
-
-RESULTS = RESULTS_DIR / "contacts_bench.md"
 
 #: Detector settings compared for accuracy against time on the tap frames.
 SETTINGS: dict[str, dict[str, Any]] = {
@@ -196,10 +193,10 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer frames and repeats")
-    parser.add_argument("--out", default=str(RESULTS))
+    parser.add_argument("--out", help="results file (default: bench/results/contacts_bench.md, quick/ with --quick)")
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else results_path("contacts_bench", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("# Contact detection + localisation time per frame\n\n" + to_markdown(result), encoding="utf-8")
     for figure in figures(result, out.parent):

@@ -14,8 +14,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS as RESULTS_DIR  # noqa: E402
-from _common import command  # noqa: E402
+from _common import command, results_path  # noqa: E402
 
 from touchroller_perception.localisation import (  # noqa: E402
     TABLE_II_CAMERA,
@@ -24,8 +23,6 @@ from touchroller_perception.localisation import (  # noqa: E402
     table_ii,
     table_ii_markdown,
 )
-
-RESULTS = RESULTS_DIR / "contacts_table_ii.md"
 
 
 def run(quick: bool = False) -> dict[str, Any]:
@@ -119,10 +116,10 @@ def _detection_example():
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 taps per cell, main conditions only")
-    parser.add_argument("--out", default=str(RESULTS))
+    parser.add_argument("--out", help="results file (default: bench/results/contacts_table_ii.md, quick/ with --quick)")
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else results_path("contacts_table_ii", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("# Contact localisation: the paper's Table II in simulation\n\n" + to_markdown(result),
                    encoding="utf-8")

@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "bench" / "results"
 sys.path.insert(0, str(ROOT / "bench"))
-from _common import machine  # noqa: E402  (one machine line for every bench and the report)
+from _common import machine, results_path  # noqa: E402  (one machine line for every bench and the report)
 
 WIDTH, HEIGHT = 640, 480
 REFERENCE_FRAMES = 30  # no-contact frames first: the perception node takes its reference from the first 5 it gets
@@ -648,7 +648,7 @@ def main(argv: list[str] | None = None) -> int:
     command = ("python bench/dds_latency.py " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
     if args.quick or args.section:
         result = run(quick=args.quick)
-        out = Path(args.out or RESULTS / f"dds_latency_{'quick' if args.quick else 'section'}.md")
+        out = Path(args.out or results_path(f"dds_latency{'' if args.quick else '_section'}", args.quick))
     else:
         started = time.perf_counter()
         if args.qos:

@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--delay-ms", type=float, default=50.0)
     parser.add_argument("--processes", type=int, nargs="+", choices=(1, 2), default=[1, 2])
     parser.add_argument("--transport", choices=tuple(common.TRANSPORTS), default="shm")
-    parser.add_argument("--out", default=str(common.RESULTS / "dds_slow_consumer.md"))
+    parser.add_argument("--out", help="results file (default: bench/results/dds_slow_consumer.md, quick/ with --quick)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     seconds = 5.0 if args.quick else args.seconds
@@ -125,8 +125,10 @@ def main(argv: list[str] | None = None) -> int:
                      f"{s['max']:.1f} | {r['first_second_median']:.1f} | {r['last_second_median']:.1f} | "
                      f"{'met' if r['met'] else 'NOT met'} |")
         print(lines[-1], flush=True)
-    Path(args.out).write_text("\n".join(lines) + "\n")
-    print(f"wrote {args.out}")
+    out = Path(args.out) if args.out else common.results_path("dds_slow_consumer", args.quick)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {out}")
     return 0
 
 

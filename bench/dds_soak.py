@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tracemalloc", default="", metavar="PATH",
                         help="also write the perception process's Python allocation growth (tracemalloc) to "
                              "PATH (slows it down; use for finding a leak, not for the RSS figures)")
-    parser.add_argument("--out", default=str(common.RESULTS / "dds_soak.md"))
+    parser.add_argument("--out", help="results file (default: bench/results/dds_soak.md, quick/ with --quick)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     frames = 2000 if args.quick else args.frames
@@ -168,8 +168,10 @@ def main(argv: list[str] | None = None) -> int:
                        f"RSS samples (frames: MB) "
                        + ", ".join(f"{f}: {m:.1f}" + (f"/{c:.1f}" if c is not None else "") for f, m, c in r["samples"]))
     lines += ["", *details, ""]
-    Path(args.out).write_text("\n".join(lines))
-    print(f"wrote {args.out}")
+    out = Path(args.out) if args.out else common.results_path("dds_soak", args.quick)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines))
+    print(f"wrote {out}")
     return 0
 
 

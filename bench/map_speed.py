@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS, ROOT, loadavg, provenance, provenance_markdown  # noqa: E402
+from _common import ROOT, loadavg, provenance, provenance_markdown, results_path  # noqa: E402
 
 HEAVY = ("skimage", "scipy", "matplotlib", "rclpy")
 READ_SNIPPET = ("import sys\nfrom touchroller_bringup.bags import read_images\n"
@@ -283,15 +283,17 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"{QUICK['frames']} frames, best of {QUICK['repeats']}, no run without a bytecode cache")
     parser.add_argument("--frames", type=int, default=None, help=f"bag length (default {FULL['frames']})")
     parser.add_argument("--repeats", type=int, default=None, help=f"best of this many runs (default {FULL['repeats']})")
-    parser.add_argument("--out", type=Path, default=RESULTS / "map_speed.md", help="results file (+ .json beside it)")
+    parser.add_argument("--out", type=Path, help="results file, + .json beside it (default: "
+                        "bench/results/map_speed.md, quick/ with --quick)")
     args = parser.parse_args(argv)
     if (args.frames is not None and args.frames < 1) or (args.repeats is not None and args.repeats < 1):
         parser.error("--frames and --repeats must be >= 1")
     result = run(args.quick, args.frames, args.repeats)
     text = "# `touchroller map`: whole-command speed against reading the bag\n\n" + to_markdown(result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
-    args.out.write_text(text, encoding="utf-8")
+    out = args.out or results_path("map_speed", args.quick)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    out.write_text(text, encoding="utf-8")
     print(text)
     return 0
 

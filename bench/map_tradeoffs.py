@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS, provenance, provenance_markdown  # noqa: E402
+from _common import provenance, provenance_markdown, results_path  # noqa: E402
 
 from touchroller_perception.metrics import (  # noqa: E402
     align_affine_3pt,
@@ -393,10 +393,10 @@ def to_markdown(result: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="one seed, fewer scan times and surfaces")
-    parser.add_argument("--out", default=str(RESULTS / "map_tradeoffs.md"))
+    parser.add_argument("--out", help="results file (default: bench/results/map_tradeoffs.md, quick/ with --quick)")
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else results_path("map_tradeoffs", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     plot(result, out.with_suffix(".png"), out.with_name("map_dy_histograms.png"))
     out.write_text("# Surface mapping: Table I and what accuracy costs\n\n" + to_markdown(result), encoding="utf-8")

@@ -22,7 +22,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS, loadavg, provenance, provenance_markdown  # noqa: E402
+from _common import loadavg, provenance, provenance_markdown, results_path  # noqa: E402
 
 from touchroller_driver.sim import EFFECTS, SimulatedSensor, load_scene  # noqa: E402
 from touchroller_driver.sim.scenarios import timeline  # noqa: E402
@@ -84,9 +84,9 @@ def run(quick: bool = False) -> dict:
 
 
 def write(result: dict) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "sim_bench.json").write_text(json.dumps(result, indent=2))
-    path = RESULTS / "sim_bench.md"
+    path = results_path("sim_bench", bool(result["quick"]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.with_suffix(".json").write_text(json.dumps(result, indent=2))
     path.write_text("# Simulator benchmark (`bench/sim_bench.py`)\n\n" + to_markdown(result))
     return path
 

@@ -1,7 +1,8 @@
 """`touchroller bench [NAME ...] [--quick]`: run the benchmarks in the checkout's `bench/` folder.
 
 Each benchmark is a script `bench/<name>.py` that accepts `--quick` and records its figures under
-`bench/results/` with the command that produced them. Benchmarks measure time, so they are not
+`bench/results/` with the command that produced them; `--quick` runs write to `bench/results/quick/`
+(not committed) so they never replace full-run figures. Benchmarks measure time, so they are not
 tests; run them on a quiet machine.
 """
 from __future__ import annotations
@@ -32,7 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("bench", help="run benchmarks (bench/*.py) and record their figures",
                                    description=__doc__.splitlines()[0])
     parser.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all)")
-    parser.add_argument("--quick", action="store_true", help="small, CI-sized runs")
+    parser.add_argument("--quick", action="store_true",
+                        help="small, CI-sized runs (figures go to bench/results/quick/)")
     parser.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     parser.set_defaults(func=run)
 
