@@ -354,22 +354,13 @@ def use_transport(transport: str) -> None:
 INSTRUMENT_PRELUDE = r"""
 import dataclasses as _dc, time as _time
 import touchroller_perception.perception_node as _pn
-_bench = {"lost": None, "gaps": 0, "busy": 0, "last_seq": None, "last_end": 0, "busy_ns": 0, "first": None,
+_bench = {"gaps": 0, "busy": 0, "last_seq": None, "last_end": 0, "busy_ns": 0, "first": None,
           "durations": [], "qos": "?"}
 _create = _pn.PerceptionNode.create_subscription
-def _lost(info):
-    _bench["lost"] = info.total_count
 def _create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
-    if topic != _pn.IMAGE_TOPIC:
-        return _create(self, msg_type, topic, callback, qos_profile, **kwargs)
-    try:
-        from rclpy.event_handler import SubscriptionEventCallbacks
-        sub = _create(self, msg_type, topic, callback, qos_profile,
-                      event_callbacks=SubscriptionEventCallbacks(message_lost=_lost), **kwargs)
-        _bench["lost"] = 0
-    except Exception:  # an RMW without the message_lost event: lost stays unknown
-        sub = _create(self, msg_type, topic, callback, qos_profile, **kwargs)
-    _bench["qos"] = f"{sub.qos_profile.reliability.name.lower()} depth {sub.qos_profile.depth}"
+    sub = _create(self, msg_type, topic, callback, qos_profile, **kwargs)
+    if topic == _pn.IMAGE_TOPIC:
+        _bench["qos"] = f"{sub.qos_profile.reliability.name.lower()} depth {sub.qos_profile.depth}"
     return sub
 _pn.PerceptionNode.create_subscription = _create_subscription
 _on_image_with_info = _pn.PerceptionNode._on_image_with_info
@@ -396,7 +387,7 @@ def _diagnostic_status(self):
     durations = sorted(_bench["durations"])
     pick = lambda q: durations[min(len(durations) - 1, int(q * len(durations)))] if durations else float("nan")
     span = _bench["last_end"] - (_bench["first"] or _bench["last_end"])
-    values = dict(status.values, bench_lost=-1 if _bench["lost"] is None else _bench["lost"],
+    values = dict(status.values, bench_lost=-1 if self.lost_in_transport is None else self.lost_in_transport,
                   bench_gaps=_bench["gaps"], bench_busy_skips=_bench["busy"], bench_callbacks=len(durations),
                   bench_callback_p50_ms=pick(0.5), bench_callback_p99_ms=pick(0.99),
                   bench_busy_fraction=_bench["busy_ns"] / span if span > 0 else float("nan"), bench_qos=_bench["qos"])

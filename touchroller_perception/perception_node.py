@@ -14,7 +14,9 @@ Thin ROS shell around `touchroller_perception.contacts` (detection), `.localisat
   `map.save_path` if that is set;
 * `~/recapture_reference` (std_srvs/Trigger; `touchroller_bringup.ros_services` has the fallback for
   installs without std_srvs) re-captures the no-contact reference from the next `reference.frames` frames;
-* `/diagnostics`: frame rate, processing time, contacts/s, drops, malformed frames.
+* `/diagnostics`: frame rate, processing time, contacts/s, malformed frames, and frames missed: all
+  sequence gaps (`frames_dropped`, mostly stale frames skipped while busy) and, of those, the ones DDS
+  reports lost in transport (`frames_lost_in_transport`).
 
 Geometry parameters (DESIGN.md names) are declared by `touchroller_bringup.ros_params` and can be
 set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`).
@@ -108,7 +110,8 @@ class PerceptionNode(Node):
         self.processing = LagWindow(200)
         self.received = 0
         self.malformed = 0
-        self.dropped = 0
+        self.dropped = 0              # sequence gaps: stale frames skipped while busy, plus any lost
+        self.lost_in_transport: int | None = None   # DDS message_lost total; None if the RMW lacks it
         self.published_contacts = 0
         self.unmapped_contacts = 0
         self._last_sequence: dict[Any, int] = {}   # per publisher: several cameras may share the topic
@@ -118,9 +121,7 @@ class PerceptionNode(Node):
         self.progress_sub = self.create_subscription(Float32, PROGRESS_TOPIC, self._on_progress, 10)
         # Humble has no MessageInfo, so no drop count there
         on_image = self._on_image_with_info if _has_message_info() else self._on_image
-        self.image_sub = self.create_subscription(
-            Image, IMAGE_TOPIC, on_image, image_qos(),
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self.image_sub = self._subscribe_images(on_image)
         self._create_recapture_interface()
         self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: perception")
@@ -186,6 +187,28 @@ class PerceptionNode(Node):
         self.get_logger().info(f"recapturing the no-contact reference ({self.detector.reference_frames} frames)")
 
     # ------------------------------------------------------------------ images
+    def _subscribe_images(self, on_image: Any) -> Any:
+        """The image subscription, with DDS's message_lost event where the RMW has it: it tells frames
+        lost in transport apart from stale frames skipped on purpose (both leave sequence gaps)."""
+        options = {"qos_overriding_options": QoSOverridingOptions.with_default_policies()}
+        try:
+            from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
+        except ImportError:   # Humble names the module rclpy.qos_event: count gaps only
+            return self.create_subscription(Image, IMAGE_TOPIC, on_image, image_qos(), **options)
+        try:
+            subscription = self.create_subscription(
+                Image, IMAGE_TOPIC, on_image, image_qos(),
+                event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_message_lost), **options)
+        except UnsupportedEventTypeError:
+            return self.create_subscription(Image, IMAGE_TOPIC, on_image, image_qos(), **options)
+        self.lost_in_transport = 0
+        return subscription
+
+    def _on_message_lost(self, info: Any) -> None:
+        self.lost_in_transport = int(info.total_count)
+        self.get_logger().warning(f"{info.total_count_change} image(s) lost in transport "
+                                  f"({info.total_count} in total)", throttle_duration_sec=5.0)
+
     def _on_image_with_info(self, msg: Image, info: Any) -> None:
         sequence = info.get("publication_sequence_number") if isinstance(info, dict) else None
         if sequence:
@@ -334,6 +357,7 @@ class PerceptionNode(Node):
             "contacts_unmapped": self.unmapped_contacts,
             "frames_received": self.received,
             "frames_dropped": self.dropped,
+            "frames_lost_in_transport": "unknown" if self.lost_in_transport is None else self.lost_in_transport,
             "frames_malformed": self.malformed,
             "reference_ready": self.detector.reference_ready,
             "reference_noise_std": self.detector.reference.noise_std if self.detector.reference else float("nan"),

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -200,6 +201,8 @@ def test_a_busy_node_skips_stale_frames_and_counts_them(graph, spin_until):
     assert node.received < 1 + 8
     if _has_message_info():
         assert node.received + node.dropped == 1 + 8
+    # Skipped on purpose (keep-last 1), not lost: DDS's message_lost count stays at zero.
+    assert node.lost_in_transport == 0
 
 
 def test_image_subscription_qos_defaults_and_overrides(ros_context, spin_until):
@@ -293,3 +296,37 @@ def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until,
         executor.shutdown()
         node.destroy_node()
         helper.destroy_node()
+
+
+def test_frames_lost_in_transport_come_from_the_message_lost_event(graph):
+    from rclpy.event_handler import QoSMessageLostInfo
+
+    node = graph[0]
+    assert node._diagnostic_status().values["frames_lost_in_transport"] == 0
+    assert {"total_count", "total_count_change"} <= set(dir(QoSMessageLostInfo))  # what rclpy hands over
+    for total, change in ((3, 3), (5, 2)):   # its fields are read-only: stand-ins with the same fields
+        node._on_message_lost(SimpleNamespace(total_count=total, total_count_change=change))
+    assert node._diagnostic_status().values["frames_lost_in_transport"] == 5
+
+
+def test_an_rmw_without_message_lost_still_subscribes_and_says_unknown(ros_context, monkeypatch):
+    from rclpy.event_handler import UnsupportedEventTypeError
+    from rclpy.node import Node
+
+    from touchroller_perception.perception_node import IMAGE_TOPIC, PerceptionNode
+
+    create = Node.create_subscription
+
+    def without_message_lost(self, msg_type, topic, callback, qos, **kwargs):
+        if kwargs.get("event_callbacks") is not None and kwargs["event_callbacks"].message_lost:
+            raise UnsupportedEventTypeError("message lost event not supported")
+        return create(self, msg_type, topic, callback, qos, **kwargs)
+
+    monkeypatch.setattr(Node, "create_subscription", without_message_lost)
+    node = PerceptionNode(context=ros_context)
+    try:
+        assert node.image_sub.topic_name == IMAGE_TOPIC
+        assert node.lost_in_transport is None
+        assert node._diagnostic_status().values["frames_lost_in_transport"] == "unknown"
+    finally:
+        node.destroy_node()
