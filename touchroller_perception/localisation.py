@@ -28,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -260,13 +260,22 @@ def _pick(contacts: list[Contact], expected_uv: np.ndarray, gate_px: float) -> C
 
 def table_ii(quick: bool = True, taps: int | None = None, seed: int = 0, source: str = "auto",
              camera: CameraModel | None = None,
-             conditions: Mapping[str, ErrorSources] | None = None) -> dict[str, Any]:
+             conditions: Mapping[str, ErrorSources] | None = None,
+             sim_conditions: Sequence[str] | None = None,
+             calibrations: Mapping[str, CalibrateFn] | None = None,
+             calibration_seeds: int | None = None) -> dict[str, Any]:
     """Reproduce Table II in simulation; returns a JSON-friendly dict (see `table_ii_markdown`).
 
     `source`: ``"sim"`` renders the simulator's ``contact_localisation`` scene (its ``exact`` and
     ``paper`` variants carry the error sources), ``"synthetic"`` the fallback `TapRenderer`, and
     ``"auto"`` the simulator when it is installed. `quick` uses 3 taps per cell and the four main
     conditions, else 10 taps and also each error source alone.
+
+    With the simulator, the ``our_calibration`` condition(s) (`calibrations`, default
+    `OUR_CALIBRATIONS`, the first only when `quick`) calibrate a sensor with the `paper` variant's
+    flaws on its simulated calibration images, per seed (`calibration_seeds`: 3 quick, 10 full),
+    and locate that sensor's taps with the camera found. `sim_conditions` overrides the list of
+    `SIM_CONDITIONS` to run.
     """
     if source not in ("auto", "sim", "synthetic"):
         raise ValueError(f"source must be auto, sim or synthetic, got {source!r}")
@@ -278,7 +287,14 @@ def table_ii(quick: bool = True, taps: int | None = None, seed: int = 0, source:
             if source == "sim":
                 raise
         else:
-            return _table_ii_sim(taps, seed, QUICK_SIM_CONDITIONS if quick else tuple(SIM_CONDITIONS))
+            names = tuple(sim_conditions) if sim_conditions is not None else (
+                QUICK_SIM_CONDITIONS if quick else tuple(SIM_CONDITIONS))
+            if calibrations is None:
+                calibrations = {n: f for n, f in OUR_CALIBRATIONS.items() if not quick or n in QUICK_OUR_CALIBRATIONS}
+            seeds = calibration_seeds or (3 if quick else 10)
+            if not names and not calibrations:
+                raise ValueError("no condition to run")
+            return _table_ii_sim(taps, seed, names, calibrations, seeds)
     return _table_ii_synthetic(taps, seed, camera, conditions)
 
 
@@ -345,8 +361,47 @@ SIM_CONDITIONS: dict[str, tuple[str, dict[str, Any], str]] = {
 QUICK_SIM_CONDITIONS = ("exact", "paper_detector", "error_sources", "error_sources_paper_detector")
 
 
-def _table_ii_sim(taps: int, seed: int, names: Sequence[str]) -> dict[str, Any]:
-    from touchroller_driver.sim import SimulatedSensor, load_scene
+def _detected_taps(scene: Any, seed: int, method: str) -> tuple[list[tuple[int, int, np.ndarray, np.ndarray]], int]:
+    """Render a `contact_localisation` scene and detect its taps: [(cell row, cell column, detected
+    pixel, true membrane point)] for the taps found near their true pixel, and how many taps were visible."""
+    from touchroller_driver.sim import SimulatedSensor
+
+    sensor = SimulatedSensor(scene, seed=seed)
+    truth_camera = scene.camera
+    config = DetectorConfig(method="paper") if method == "paper" else DetectorConfig()
+    detector = ContactDetector(config, reference_frames=int(scene.motion.get("reference_frames", 5)))
+    found_taps: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+    count = 0
+    for frame in sensor.frames():
+        found = detector.process(frame.image)
+        if frame.truth.get("phase") != "tap":
+            continue
+        for truth in frame.truth["contacts"]:
+            pixel = np.asarray(truth["pixel"], dtype=np.float64)
+            if not np.isfinite(pixel).all() or not truth_camera.in_image(pixel, margin=5):
+                continue
+            count += 1
+            contact = _pick(found or [], pixel, gate_px=25.0)
+            if contact is not None:
+                i, j = _cell_index(truth["alpha"], truth["position_fraction"])
+                found_taps.append((i, j, np.array([contact.u, contact.v]), np.asarray(truth["point"], dtype=np.float64)))
+    return found_taps, count
+
+
+def _tap_errors(taps: Sequence[tuple[int, int, np.ndarray, np.ndarray]], camera: CameraModel,
+                cells: list[list[list[float]]] | None = None) -> list[list[list[float]]]:
+    """Back-project the detected taps through `camera`; errors (mm) appended to `cells` per cell."""
+    cells = cells if cells is not None else _new_cells()
+    for i, j, uv, truth_point in taps:
+        point, valid = camera.back_project(uv)
+        if valid:
+            cells[i][j].append(1e3 * float(np.linalg.norm(point - truth_point)))
+    return cells
+
+
+def _table_ii_sim(taps: int, seed: int, names: Sequence[str],
+                  calibrations: Mapping[str, CalibrateFn] | None = None, calibration_seeds: int = 3) -> dict[str, Any]:
+    from touchroller_driver.sim import load_scene
 
     start = time.perf_counter()
     errors: dict[str, list[list[list[float]]]] = {}
@@ -354,48 +409,145 @@ def _table_ii_sim(taps: int, seed: int, names: Sequence[str]) -> dict[str, Any]:
     described: dict[str, dict[str, Any]] = {}
     rows: list[dict[str, Any]] | None = None
     scene_info: dict[str, Any] = {}
+    detections: dict[tuple[str, str, int], tuple[list, int]] = {}     # (variant, detector, seed) -> taps
     for name in names:
         variant, overrides, method = SIM_CONDITIONS[name]
         scene = load_scene("contact_localisation", variant=variant, **{"motion.repeats": taps, **overrides})
-        sensor = SimulatedSensor(scene, seed=seed)
         truth_camera, calibrated = scene.camera, scene.paper_camera
         if rows is None:
             rows = _empty_rows(truth_camera)
-        reference_count = int(scene.motion.get("reference_frames", 5))
-        config = DetectorConfig(method="paper") if method == "paper" else DetectorConfig()
-        detector = ContactDetector(config, reference_frames=reference_count)
-        cells, count = _new_cells(), 0
-        for frame in sensor.frames():
-            found = detector.process(frame.image)
-            if frame.truth.get("phase") != "tap":
-                continue
-            for truth in frame.truth["contacts"]:
-                pixel = np.asarray(truth["pixel"], dtype=np.float64)
-                if not np.isfinite(pixel).all() or not truth_camera.in_image(pixel, margin=5):
-                    continue
-                count += 1
-                contact = _pick(found or [], pixel, gate_px=25.0)
-                if contact is None:
-                    continue
-                point, valid = calibrated.back_project(np.array([contact.u, contact.v]))
-                if valid:
-                    i, j = _cell_index(truth["alpha"], truth["position_fraction"])
-                    cells[i][j].append(1e3 * float(np.linalg.norm(point - np.asarray(truth["point"]))))
-        errors[name], expected[name] = cells, count
-        cal_err = scene.data.get("calibration_error") or {}
+        found, count = _detected_taps(scene, seed, method)
+        if not overrides:
+            detections[(variant, method, seed)] = (found, count)
+        errors[name], expected[name] = _tap_errors(found, calibrated), count
         described[name] = {"detector": method, "variant": variant + (" + " + ", ".join(
                                f"{k}={v:g}" for k, v in overrides.items()) if overrides else ""),
-                           "theta_error": float(cal_err.get("theta", 0.0)), "d_error": float(cal_err.get("d", 0.0)),
-                           "thickness_amplitude": float(scene.sensor.get("thickness_variation", 0.0)),
-                           "noise_sigma": float(scene.effect_params("noise").get("sigma", 0.0))
-                           if "noise" in scene.effects else 0.0}
+                           **_scene_errors(scene)}
         scene_info = {"camera": truth_camera.to_params(), "effects": list(scene.effects)}
+    if calibrations:
+        scene = load_scene("contact_localisation", variant=OUR_CALIBRATION_VARIANT, **{"motion.repeats": taps})
+        if rows is None:
+            rows = _empty_rows(scene.camera)
+            scene_info = {"camera": scene.camera.to_params(), "effects": list(scene.effects)}
+        for name, calibrated_errors in _our_calibration(scene, taps, seed, calibration_seeds, calibrations,
+                                                        detections).items():
+            errors[name], expected[name], described[name] = calibrated_errors
     assert rows is not None
     summary = _summarise(rows, errors, expected, described)
+    for name in calibrations or {}:
+        per_seed = described[name]["calibration"]["per_seed"]
+        summary[name]["worst_seed_max_cell_mean_mm"] = max(s["max_cell_mean_mm"] for s in per_seed)
     return {"rows": rows, "summary": summary, "taps_per_cell": taps, "seed": seed,
             "source": "touchroller_driver.sim scene contact_localisation (variants exact, paper)",
             "camera": scene_info["camera"], "effects": scene_info["effects"],
             "seconds": time.perf_counter() - start}
+
+
+def _scene_errors(scene: Any) -> dict[str, float]:
+    """The error sources a `contact_localisation` scene carries (what its `paper_camera` gets wrong,
+    its elastomer's thickness variation and its sensor noise)."""
+    cal_err = scene.data.get("calibration_error") or {}
+    return {"theta_error": float(cal_err.get("theta", 0.0)), "d_error": float(cal_err.get("d", 0.0)),
+            "thickness_amplitude": float(scene.sensor.get("thickness_variation", 0.0)),
+            "noise_sigma": float(scene.effect_params("noise").get("sigma", 0.0)) if "noise" in scene.effects else 0.0}
+
+
+# --------------------------------------------------------------------------- our calibration in the loop
+#: Calibration images per seed: as `bench/calib_bench.py` table C (20 chessboard views, 10 presses).
+OUR_CALIBRATION_VIEWS = 20
+OUR_CALIBRATION_PRESSES = 10
+#: The scene variant whose sensor flaws (uneven elastomer, noise) stay on; its injected calibration
+#: error is NOT used: the taps are back-projected with the camera our calibration found.
+OUR_CALIBRATION_VARIANT = "paper"
+
+#: (chessboard images, hemisphere reference image, hemisphere press images) -> calibrated camera
+CalibrateFn = Callable[[list[np.ndarray], np.ndarray, list[np.ndarray]], CameraModel]
+
+
+def calibrate_with_ours(chessboard: list[np.ndarray], reference: np.ndarray, presses: list[np.ndarray],
+                        balance_rows: bool = True) -> CameraModel:
+    """`touchroller_perception.calibration` as `touchroller calibrate` runs it: intrinsics from the
+    chessboard, then theta and d from the hemisphere presses (started at theta = d = 0)."""
+    from touchroller_perception import calibration as cal
+
+    intrinsics = cal.calibrate_intrinsics(chessboard)
+    start = intrinsics.camera.replace(theta=0.0, d=0.0)
+    return cal.calibrate_extrinsics(presses, start, reference=reference, balance_rows=balance_rows).camera
+
+
+def _without_row_balance(chessboard: list[np.ndarray], reference: np.ndarray, presses: list[np.ndarray]) -> CameraModel:
+    return calibrate_with_ours(chessboard, reference, presses, balance_rows=False)
+
+
+#: name -> calibration. The quick run has the default (row balance on) only.
+OUR_CALIBRATIONS: dict[str, CalibrateFn] = {"our_calibration": calibrate_with_ours,
+                                            "our_calibration_no_row_balance": _without_row_balance}
+QUICK_OUR_CALIBRATIONS = ("our_calibration",)
+
+
+def render_calibration_images(seed: int, sensor_overrides: Mapping[str, Any], views: int = OUR_CALIBRATION_VIEWS,
+                              presses: int = OUR_CALIBRATION_PRESSES) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray], CameraModel]:
+    """The simulator's calibration scenes for one sensor: (chessboard views, median hemisphere
+    reference, hemisphere presses, true camera). Both scenes use `seed`, which also draws the
+    elastomer's thickness pattern, so a tap scene rendered with the same seed has the same membrane."""
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+
+    board = SimulatedSensor(load_scene("calibration_chessboard", **{"motion.views": views, **sensor_overrides}), seed=seed)
+    chessboard = [f.image for f in board.frames()]
+    frame = SimulatedSensor(load_scene("calibration_hemispheres", **{"motion.presses": presses, **sensor_overrides}),
+                            seed=seed)
+    frames = list(frame.frames())
+    references = [f.image for f in frames if f.truth.get("phase") == "reference"]
+    pressed = [f.image for f in frames if f.truth.get("phase") == "press"]
+    if board.camera != frame.camera:
+        raise ValueError("the calibration scenes disagree on the true camera")
+    return chessboard, np.median(np.stack(references), axis=0).astype(np.uint8), pressed, frame.camera
+
+
+def _our_calibration(scene: Any, taps: int, seed: int, seeds: int, calibrations: Mapping[str, CalibrateFn],
+                     detections: dict[tuple[str, str, int], tuple[list, int]]) -> dict[str, tuple[Any, int, dict[str, Any]]]:
+    """Per seed: calibrate on the simulated calibration images of a sensor with the scene's flaws,
+    then locate that sensor's taps (same seed, same membrane) with the camera each calibration found."""
+    flaws = _scene_errors(scene)
+    overrides = {"sensor.thickness_variation": flaws["thickness_amplitude"]}
+    if "noise" in scene.effects:
+        overrides["effect_params.noise.sigma"] = flaws["noise_sigma"]
+    cells = {name: _new_cells() for name in calibrations}
+    runs: dict[str, list[dict[str, Any]]] = {name: [] for name in calibrations}
+    count = 0
+    for k in range(seeds):
+        chessboard, reference, presses, truth = render_calibration_images(seed + k, overrides)
+        if truth != scene.camera:
+            raise ValueError("the calibration scenes' true camera is not the contact scene's")
+        key = (OUR_CALIBRATION_VARIANT, "colour", seed + k)
+        found, seen = detections.get(key) or _detected_taps(scene, seed + k, "colour")
+        count += seen
+        for name, calibrate in calibrations.items():
+            camera = calibrate(chessboard, reference, presses)
+            seed_cells = _tap_errors(found, camera)
+            means = np.array([[np.mean(c) if c else np.nan for c in row] for row in seed_cells])
+            for i, row in enumerate(seed_cells):
+                for j, cell in enumerate(row):
+                    cells[name][i][j].extend(cell)
+            runs[name].append({
+                "seed": seed + k, "theta_err_deg": math.degrees(camera.theta - truth.theta),
+                "d_err_mm": 1e3 * (camera.d - truth.d), "fx_err_px": camera.fx - truth.fx,
+                "cx_err_px": camera.cx - truth.cx, "cy_err_px": camera.cy - truth.cy,
+                "mean_mm": float(np.mean([e for row in seed_cells for c in row for e in c])),
+                "max_cell_mean_mm": float(np.nanmax(means)) if np.isfinite(means).any() else float("nan")})
+    out = {}
+    for name in calibrations:
+        theta = np.array([r["theta_err_deg"] for r in runs[name]])
+        d = np.array([r["d_err_mm"] for r in runs[name]])
+        described = {"detector": "colour", "variant": OUR_CALIBRATION_VARIANT + " (its calibration error not used)",
+                     **flaws, "theta_error": 0.0, "d_error": 0.0,
+                     "calibration": {
+                         "method": name, "views": OUR_CALIBRATION_VIEWS, "presses": OUR_CALIBRATION_PRESSES,
+                         "seeds": seeds, "per_seed": runs[name],
+                         "theta_err_deg": {"rms": float(np.sqrt(np.mean(theta**2))), "max": float(np.abs(theta).max())},
+                         "d_err_mm": {"rms": float(np.sqrt(np.mean(d**2))), "max": float(np.abs(d).max())}}}
+        out[name] = (cells[name], count, described)
+    return out
 
 
 def _table_ii_synthetic(taps: int, seed: int, camera: CameraModel | None,
@@ -465,6 +617,7 @@ def table_ii_markdown(result: Mapping[str, Any], command: str = "") -> str:
                  + " | ".join(f"{summary[n]['max_cell_mean_mm']:.3f}" for n in names) + " |")
     lines.append("| taps detected | - | " + " | ".join(f"{summary[n]['detected']}/{summary[n]['taps']}"
                                                        for n in names) + " |")
+    lines += _calibration_markdown(result)
     lines += ["", "### Sensitivity of the localised point to each error source", "",
               "| angle | position | mm per deg theta | mm per mm d | mm per px u | mm per px v | mm per mm radius |",
               "|---|---|---|---|---|---|---|"]
@@ -475,10 +628,37 @@ def table_ii_markdown(result: Mapping[str, Any], command: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+def _calibration_markdown(result: Mapping[str, Any]) -> list[str]:
+    """Per seed of each our-calibration condition: what the calibration got wrong and what it cost."""
+    lines: list[str] = []
+    for name, summary in result["summary"].items():
+        calibration = summary.get("errors", {}).get("calibration") if name != "paper" else None
+        if not calibration:
+            continue
+        lines += ["", f"### `{name}`: the calibration each seed found, and its Table II", "",
+                  f"Worst cell over the pooled taps: **{summary['max_cell_mean_mm']:.3f} mm**; worst cell of any "
+                  f"single seed: {summary['worst_seed_max_cell_mean_mm']:.3f} mm.", "",
+                  "| seed | theta err (deg) | d err (mm) | fx err (px) | cx err (px) | cy err (px) | mean (mm) "
+                  "| worst cell (mm) |", "|---|---|---|---|---|---|---|---|"]
+        for r in calibration["per_seed"]:
+            lines.append(f"| {r['seed']} | {r['theta_err_deg']:+.4f} | {r['d_err_mm']:+.4f} | {r['fx_err_px']:+.3f} "
+                         f"| {r['cx_err_px']:+.3f} | {r['cy_err_px']:+.3f} | {r['mean_mm']:.3f} "
+                         f"| {r['max_cell_mean_mm']:.3f} |")
+    return lines
+
+
 def _describe(errors: Mapping[str, Any]) -> str:
     parts = [f"detector `{errors['detector']}`"]
     if errors.get("variant"):
         parts.append(f"scene variant `{errors['variant']}`")
+    calibration = errors.get("calibration")
+    if calibration:
+        parts.append(f"camera from our calibration ({calibration['views']} chessboard views + "
+                     f"{calibration['presses']} hemisphere presses on the same flawed sensor, "
+                     f"{'row balance off' if 'no_row_balance' in calibration['method'] else 'default settings'}), "
+                     f"recalibrated for each of {calibration['seeds']} seeds: theta error "
+                     f"{calibration['theta_err_deg']['rms']:.3f} deg RMS (worst {calibration['theta_err_deg']['max']:.3f}), "
+                     f"d error {calibration['d_err_mm']['rms']:.3f} mm RMS (worst {calibration['d_err_mm']['max']:.3f})")
     if errors["theta_error"]:
         parts.append(f"theta error {math.degrees(errors['theta_error']):.2f} deg")
     if errors["d_error"]:
@@ -487,7 +667,7 @@ def _describe(errors: Mapping[str, Any]) -> str:
         parts.append(f"elastomer thickness ±{errors['thickness_amplitude'] * 1e3:.2f} mm")
     if errors.get("noise_sigma"):
         parts.append(f"sensor noise std {errors['noise_sigma']:g} grey levels")
-    if not (errors["theta_error"] or errors["d_error"] or errors["thickness_amplitude"]):
+    if not (errors["theta_error"] or errors["d_error"] or errors["thickness_amplitude"] or calibration):
         parts.append("exact calibration, uniform elastomer")
     return ", ".join(parts)
 

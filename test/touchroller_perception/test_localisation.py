@@ -87,7 +87,7 @@ def test_table_ii_exact_calibration_is_sub_quarter_millimetre():
 
 def test_table_ii_on_the_simulator_scene():
     pytest.importorskip("touchroller_driver.sim")
-    result = table_ii(taps=1, source="sim")
+    result = table_ii(taps=1, source="sim", calibrations={})
     summary = result["summary"]
     assert "contact_localisation" in result["source"]
     assert summary["exact"]["detected"] == summary["exact"]["taps"] > 0
@@ -95,6 +95,56 @@ def test_table_ii_on_the_simulator_scene():
     # the scene's paper variant: 1 deg of theta alone costs ~0.87 mm, so the error must show it
     assert summary["error_sources"]["mean_mm"] > 0.5
     assert summary["paper_detector"]["mean_mm"] > 5 * summary["exact"]["mean_mm"]
+
+
+def test_our_calibration_condition_runs_in_quick_mode_with_a_complete_table():
+    pytest.importorskip("touchroller_driver.sim")
+    result = table_ii(quick=True, taps=1, sim_conditions=())
+    summary = result["summary"]["our_calibration"]
+    assert set(result["summary"]) == {"our_calibration", "paper"}
+    counts = [row["our_calibration"]["n"] for row in result["rows"]]
+    assert all(n > 0 and n % 3 == 0 for n in counts)          # every cell, the same taps for each of 3 seeds
+    assert summary["detected"] == summary["taps"] == sum(counts)
+    runs = summary["errors"]["calibration"]["per_seed"]
+    assert [r["seed"] for r in runs] == [0, 1, 2]
+    # the error is what the calibration got wrong: never exactly zero, and the scene's injected error is not used
+    assert all(0 < abs(r["theta_err_deg"]) < 1.0 and 0 < abs(r["d_err_mm"]) < 0.5 for r in runs)
+    assert summary["errors"]["theta_error"] == summary["errors"]["d_error"] == 0.0
+    assert summary["errors"]["thickness_amplitude"] > 0 and summary["errors"]["noise_sigma"] > 0
+    cell_means = [row["our_calibration"]["mean_mm"] for row in result["rows"]]
+    assert summary["max_cell_mean_mm"] == pytest.approx(max(cell_means))
+    assert summary["worst_seed_max_cell_mean_mm"] >= max(r["max_cell_mean_mm"] for r in runs) - 1e-12
+    assert summary["worst_seed_max_cell_mean_mm"] >= summary["max_cell_mean_mm"] - 1e-12
+    text = table_ii_markdown(result)
+    assert "`our_calibration`: the calibration each seed found" in text
+    assert "recalibrated for each of 3 seeds" in text
+
+
+def test_our_calibration_figures_come_from_the_calibration_it_ran():
+    pytest.importorskip("touchroller_driver.sim")
+    from touchroller_perception.localisation import calibrate_with_ours
+
+    found = []
+
+    def ours(chessboard, reference, presses):
+        found.append(calibrate_with_ours(chessboard, reference, presses))
+        return found[-1]
+
+    def off_by_one_degree(chessboard, reference, presses):
+        return found[-1].replace(theta=found[-1].theta + math.radians(1.0))
+
+    result = table_ii(taps=1, sim_conditions=(), calibration_seeds=1,
+                      calibrations={"ours": ours, "off_by_one_degree": off_by_one_degree})
+    summary = result["summary"]
+    truth = CameraModel.from_params(result["camera"])
+    [run] = summary["ours"]["errors"]["calibration"]["per_seed"]
+    [wrong] = summary["off_by_one_degree"]["errors"]["calibration"]["per_seed"]
+    assert run["theta_err_deg"] == pytest.approx(math.degrees(found[0].theta - truth.theta))
+    assert run["d_err_mm"] == pytest.approx(1e3 * (found[0].d - truth.d))
+    assert wrong["theta_err_deg"] - run["theta_err_deg"] == pytest.approx(1.0)
+    # one more degree of theta costs ~r * 1 deg = 0.87 mm more wherever the calibration was good
+    assert summary["off_by_one_degree"]["mean_mm"] > summary["ours"]["mean_mm"] + 0.4
+    assert summary["off_by_one_degree"]["max_cell_mean_mm"] > summary["ours"]["max_cell_mean_mm"]
 
 
 def test_surface_lookup_matches_the_exact_back_projection():
