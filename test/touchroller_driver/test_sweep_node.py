@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -28,10 +29,11 @@ from touchroller_driver.sweep_node import (  # noqa: E402
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
 
 START = [0.4, 0.0, 0.2, math.pi, 0.0, 0.0]
+SWEEP_SPEED = 0.02
 SPEEDUP = 10.0  # the simulated arm's clock runs 10x faster than wall time to keep tests short
 OVERRIDES = [
     Parameter("sweep.length", value=0.02),
-    Parameter("sweep.speed", value=0.02),
+    Parameter("sweep.speed", value=SWEEP_SPEED),
     Parameter("sweep.approach_speed", value=0.01),
     Parameter("sweep.start_pose", value=START),
 ]
@@ -39,6 +41,42 @@ OVERRIDES = [
 
 def fast_clock() -> float:
     return time.monotonic() * SPEEDUP
+
+
+class ScaledClock:
+    """Wall time scaled by a rate the test can change while it runs (continuous, never jumps back)."""
+
+    def __init__(self, rate: float = SPEEDUP) -> None:
+        self._lock = threading.Lock()
+        self._since, self._base, self.rate = time.monotonic(), time.monotonic() * rate, rate
+
+    def __call__(self) -> float:
+        with self._lock:
+            return self._base + (time.monotonic() - self._since) * self.rate
+
+    def set_rate(self, rate: float) -> None:
+        with self._lock:
+            now = time.monotonic()
+            self._base += (now - self._since) * self.rate
+            self._since, self.rate = now, rate
+
+
+SLOW_ROLL = 0.02   # the roll (1 s of arm time) then lasts 50 s of wall time: no stall on a loaded machine ends it
+
+
+class SlowRollArm(SimulatedArm):
+    """Moves to the surface 10x faster than real time, then rolls SLOW_ROLL x real time: tests that act on a
+    sweep *while it rolls* are not racing a 0.1 s window (a descheduled test thread misses it)."""
+
+    def __init__(self) -> None:
+        super().__init__(START, clock=ScaledClock())
+        self.rolling = threading.Event()
+
+    def move_linear(self, target_pose, speed: float, accel: float, asynchronous: bool = True) -> None:
+        super().move_linear(target_pose, speed, accel, asynchronous)
+        if speed == pytest.approx(SWEEP_SPEED) and not self.rolling.is_set():   # the roll segment
+            self.clock.set_rate(SLOW_ROLL)
+            self.rolling.set()
 
 
 class Harness:
@@ -110,7 +148,7 @@ def test_start_service_runs_the_whole_sweep(harness_factory, spin_until):
     assert response.success
     assert spin_until(h.executor, h.node.finished.is_set, timeout=20.0)
     assert h.node.status.phase is SweepPhase.DONE
-    assert spin_until(h.executor, lambda: h.progress and h.progress[-1] == 1.0, timeout=5.0)
+    assert spin_until(h.executor, lambda: h.progress and h.progress[-1] == 1.0, timeout=20.0)
     rolling = [p for p in h.progress if 0.0 < p < 1.0]
     assert rolling and rolling == sorted(rolling)
     # The arm ends lifted to sweep.clearance above the roll's end ...
@@ -122,19 +160,20 @@ def test_start_service_runs_the_whole_sweep(harness_factory, spin_until):
     def published_final() -> bool:
         return bool(h.poses) and np.allclose(
             [h.poses[-1].pose.position.x, h.poses[-1].pose.position.z], final[[0, 2]], atol=1e-9)
-    assert spin_until(h.executor, published_final, timeout=5.0)
+    assert spin_until(h.executor, published_final, timeout=20.0)
     assert h.poses[-1].header.frame_id == "base"
     # Once done, a second start runs again (from where the arm is, via the start pose).
     assert h.call(spin_until, "start").success
 
 
 def test_start_is_refused_while_a_sweep_runs_and_stop_halts(harness_factory, spin_until):
-    arm = sim_arm()
+    arm = SlowRollArm()   # at 10x the whole sweep took 0.15 s: a late second call found it done (and passed)
     h = harness_factory(arm=arm)
     assert h.call(spin_until, "start").success
     assert not h.call(spin_until, "start").success
+    assert arm.is_moving() and h.node.sequencer.active   # the refusal above was for a running sweep
     assert h.call(spin_until, "stop").success
-    assert h.node.finished.wait(2.0)
+    assert h.node.finished.wait(10.0)
     assert h.node.status.phase is SweepPhase.STOPPED
     assert not arm.is_moving()
 
@@ -152,19 +191,20 @@ def test_parameters_beyond_the_arm_limits_are_rejected(harness_factory):
 
 
 def test_fault_stops_the_sweep_and_shows_in_diagnostics(harness_factory, spin_until):
-    arm = sim_arm()
+    arm = SlowRollArm()   # the roll lasted 0.1 s at 10x: a test thread descheduled that long missed it
     h = harness_factory(arm=arm)
     assert h.call(spin_until, "start").success
-    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.SWEEPING, timeout=10.0)
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.SWEEPING, timeout=20.0)
+    assert arm.is_moving()
     arm.inject_fault("protective stop")
-    assert spin_until(h.executor, h.node.finished.is_set, timeout=5.0)
+    assert spin_until(h.executor, h.node.finished.is_set, timeout=20.0)
     assert h.node.status.phase is SweepPhase.FAULT
 
     def error_reported() -> bool:
         return any(s.level == b"\x02" and "protective stop" in s.message
                    for array in h.diagnostics for s in array.status)
 
-    assert spin_until(h.executor, error_reported, timeout=5.0)
+    assert spin_until(h.executor, error_reported, timeout=20.0)
     response = h.call(spin_until, "start")
     assert not response.success
 
@@ -200,20 +240,20 @@ def test_the_arm_thread_keeps_the_arm_alive(harness_factory, spin_until):
 
 def test_shutting_the_context_down_mid_sweep_stops_the_arm(ros_context):
     """Ctrl-C under `ros2 run`: rclpy shuts the context down; the arm thread stops the arm and exits."""
-    arm = sim_arm()
+    arm = SlowRollArm()   # at 10x the roll lasted 0.1 s: a late poll found the sweep over and the arm still
     node = SweepNode(arm=arm, context=ros_context, parameter_overrides=list(OVERRIDES))
     try:
         assert node.request_start()[0]
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + 20.0
         while node.status.phase is not SweepPhase.SWEEPING and time.monotonic() < deadline:
             time.sleep(0.01)
         assert arm.is_moving()
         ros_context.try_shutdown()
-        node._worker.join(timeout=5.0)
+        node._worker.join(timeout=20.0)
         assert not node._worker.is_alive()
         assert not arm.is_moving()
         halted = arm.tcp_pose()
-        time.sleep(0.2)
-        np.testing.assert_allclose(arm.tcp_pose(), halted)
+        time.sleep(0.2)   # still rolling, the arm would move 0.2 s x SLOW_ROLL x 0.02 m/s = 80 um by now
+        np.testing.assert_allclose(arm.tcp_pose(), halted, rtol=0, atol=1e-9)
     finally:
         node.destroy_node()
