@@ -80,7 +80,7 @@ def make_graph(context, **camera_kwargs):
 
 
 def wait_for_subscription(camera, spin_until, executor):
-    assert spin_until(executor, lambda: camera.image_pub.get_subscription_count() > 0, timeout=5.0)
+    assert spin_until(executor, lambda: camera.image_pub.get_subscription_count() > 0, timeout=20.0)
 
 
 def test_external_source_frames_are_published_as_bgr8_with_capture_stamps(ros_context, spin_until):
@@ -94,7 +94,7 @@ def test_external_source_frames_are_published_as_bgr8_with_capture_stamps(ros_co
     try:
         wait_for_subscription(camera, spin_until, executor)
         camera.start()
-        assert spin_until(executor, lambda: len(listener.images) >= 4 and len(listener.infos) >= 4, timeout=10)
+        assert spin_until(executor, lambda: len(listener.images) >= 4 and len(listener.infos) >= 4, timeout=20)
         for msg, image, stamp in zip(listener.images, images, source.stamps, strict=False):
             assert msg.encoding == "bgr8"
             assert msg.header.frame_id == "cam_optical"
@@ -105,7 +105,7 @@ def test_external_source_frames_are_published_as_bgr8_with_capture_stamps(ros_co
         assert info.k[0] == pytest.approx(612.5) and info.distortion_model == "plumb_bob"
         assert (info.width, info.height) == (640, 480)
         assert info.header.stamp == listener.images[0].header.stamp
-        assert spin_until(executor, lambda: camera.finished, timeout=5)
+        assert spin_until(executor, lambda: camera.finished, timeout=20)
     finally:
         executor.shutdown()
         camera.destroy_node()
@@ -118,7 +118,10 @@ def test_malformed_frames_are_logged_and_skipped_and_the_node_keeps_publishing(r
     try:
         wait_for_subscription(camera, spin_until, executor)
         camera.start()
-        assert spin_until(executor, lambda: len(listener.images) >= 2, timeout=10)
+        # The camera thread counts a frame after publishing it, and the listener may get the image first:
+        # wait for the source to run dry (every frame handled and counted), then for the images.
+        assert spin_until(executor, lambda: camera.finished, timeout=20)
+        assert spin_until(executor, lambda: len(listener.images) >= 2, timeout=20)
         assert camera.malformed == 2 and camera.published == 2
         stamps = [m.header.stamp.nanosec for m in listener.images]
         assert len(set(stamps)) == 2  # the first and the last frame, nothing else
@@ -149,7 +152,7 @@ def test_bad_parameter_values_are_rejected_and_good_ones_reopen_the_source(ros_c
         wait_for_subscription(camera, spin_until, executor)
         assert listener.images == []  # the missing file: logged, nothing published, still alive
         assert camera.set_parameters([Parameter("video_path", value=str(video))])[0].successful
-        assert spin_until(executor, lambda: len(listener.images) >= 5, timeout=10)
+        assert spin_until(executor, lambda: len(listener.images) >= 5, timeout=20)
         assert [listener.images[i].encoding for i in range(5)] == ["bgr8"] * 5
         assert camera.source is not None and "clip.avi" in camera.source.info
     finally:
@@ -172,16 +175,17 @@ def test_diagnostics_report_rate_lag_and_drops(ros_context, spin_until):
     try:
         camera.start()
 
-        def has_status():
-            return any(s.values for array in listener.diagnostics for s in array.status
-                       if status_values(s).get("published", "0") not in ("0",))
+        def streaming():
+            """Statuses once frames flow and drops are counted: an early status (a slow first frame on a
+            loaded machine) may report 1 frame, none dropped and no rate yet."""
+            return [s for array in listener.diagnostics for s in array.status
+                    if int(status_values(s).get("dropped", "0")) > 0 and float(status_values(s).get("frame_rate_hz", "0")) > 0]
 
-        assert spin_until(executor, has_status, timeout=10)
-        status = [s for a in listener.diagnostics for s in a.status if status_values(s).get("published") != "0"][-1]
+        assert spin_until(executor, lambda: bool(streaming()), timeout=20)
+        status = streaming()[-1]
         values = status_values(status)
-        assert float(values["frame_rate_hz"]) > 0
+        assert int(values["published"]) > 0
         assert float(values["lag_median_ms"]) >= 0
-        assert int(values["dropped"]) > 0
         assert values["source"] == "list source"
         assert status.level == b"\x00" and status.message == "streaming"
     finally:
@@ -209,7 +213,7 @@ def test_image_publisher_is_reliable_and_qos_can_be_overridden(ros_context, spin
 
         listener.create_subscription(Image, IMAGE_TOPIC, lambda m: None,
                                      QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
-        assert spin_until(camera, lambda: camera.image_pub.get_subscription_count() == 1, timeout=5)
+        assert spin_until(camera, lambda: camera.image_pub.get_subscription_count() == 1, timeout=20)
         listener.destroy_node()
     finally:
         camera.destroy_node()
@@ -316,7 +320,7 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
 
         assert spin_until(executor, lifted_at_the_end, timeout=30.0)
         if sweep is not None:
-            assert spin_until(executor, sweep.finished.is_set, timeout=5.0)
+            assert spin_until(executor, sweep.finished.is_set, timeout=20.0)
             assert sweep.status.phase.value == "done"
         spin_until(executor, lambda: False, timeout=0.3)   # the last frames
     finally:
