@@ -108,6 +108,13 @@ def _table_ii(r: dict, name: str) -> dict:
     return r["table_ii"]["summary"][name]
 
 
+def _our_calibration(r: dict) -> tuple[str, bool]:
+    m = _table_ii(r, "our_calibration")
+    worst = max(m["max_cell_mean_mm"], m["worst_seed_max_cell_mean_mm"], m["max_tap_mm"])
+    return (f"{m['max_cell_mean_mm']:.3f} mm over all seeds (mean {m['mean_mm']:.3f} mm); one seed's worst cell "
+            f"{m['worst_seed_max_cell_mean_mm']:.3f} mm, worst single tap {m['max_tap_mm']:.3f} mm", worst < 1.0)
+
+
 def _contacts_speed(workload_start: str) -> Measure:
     def measure(r: dict) -> tuple[str, bool]:
         row = next(row for row in r["speed"] if row["workload"].startswith(workload_start))
@@ -251,7 +258,10 @@ GOALS: tuple[Goal, ...] = (
     Goal(4, "Localisation error <= 0.25 mm mean with exact calibration (Table II in simulation)", "table_ii",
          lambda r: (f"{_table_ii(r, 'exact')['mean_mm']:.3f} mm (worst cell "
                     f"{_table_ii(r, 'exact')['max_cell_mean_mm']:.3f} mm)", _table_ii(r, "exact")["mean_mm"] <= 0.25)),
-    Goal(4, "Aim: sub-millimetre everywhere with the paper's error sources modelled (worst cell)", "table_ii",
+    Goal(4, "Aim: sub-millimetre everywhere, whole pipeline: our calibration run on a sensor with uneven "
+            "elastomer (±0.3 mm) and noise, then its taps located (worst cell)", "table_ii", _our_calibration),
+    Goal(4, "The same aim with the paper's calibration error instead (theta 1°, d 0.5 mm: 1° alone costs "
+            "0.87 mm), uneven elastomer and noise (worst cell)", "table_ii",
          lambda r: (f"{_table_ii(r, 'error_sources')['max_cell_mean_mm']:.3f} mm (mean "
                     f"{_table_ii(r, 'error_sources')['mean_mm']:.3f} mm)",
                     _table_ii(r, "error_sources")["max_cell_mean_mm"] < 1.0)),
