@@ -42,10 +42,12 @@ def write_avi(path, count: int, fps: float = 5.0, size=(64, 48)) -> list[int]:
 class FakeCapture:
     """Shaped like cv2.VideoCapture; frame i has pixel value i % 256 and fails after `fail_after` grabs."""
 
-    def __init__(self, counter, fail_after: int | None = None, gate: threading.Event | None = None):
+    def __init__(self, counter, fail_after: int | None = None, gate: threading.Event | None = None,
+                 done: threading.Event | None = None):
         self.counter = counter
         self.fail_after = fail_after
         self.gate = gate
+        self.done = done or threading.Event()
         self.grabs = 0
         self.released = False
         self.value = 0
@@ -54,8 +56,9 @@ class FakeCapture:
         return True
 
     def grab(self):
-        if self.gate is not None:
-            self.gate.wait(1.0)
+        if self.gate is not None:   # grab only when the test allows it (or ends), however late that is
+            while not self.gate.wait(0.05) and not self.done.is_set():
+                pass
             self.gate.clear()
         if self.fail_after is not None and self.grabs >= self.fail_after:
             time.sleep(0.001)
@@ -106,12 +109,12 @@ def test_capture_thread_keeps_only_the_newest_frame_and_counts_drops():
     thread = CaptureThread(lambda: FakeCapture(counter), backoff=FAST)
     thread.start()
     try:
-        first = thread.read(timeout=2.0)
+        first = thread.read(timeout=20.0)
         assert first is not None
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 20
         while thread.stats.captured < first.seq + 20 and time.monotonic() < deadline:
             time.sleep(0.01)
-        newest = thread.read(timeout=2.0)
+        newest = thread.read(timeout=20.0)
         assert newest is not None
         # everything between the two reads was replaced, not queued
         assert newest.seq - first.seq > 10
@@ -122,19 +125,21 @@ def test_capture_thread_keeps_only_the_newest_frame_and_counts_drops():
 
 
 def test_capture_thread_stamps_at_grab_time_not_read_time():
-    gate = threading.Event()
+    gate, done = threading.Event(), threading.Event()
     ticks = itertools.count(1000)
-    thread = CaptureThread(lambda: FakeCapture(itertools.count(), gate=gate), clock_ns=lambda: next(ticks))
+    thread = CaptureThread(lambda: FakeCapture(itertools.count(), gate=gate, done=done),
+                           clock_ns=lambda: next(ticks))
     thread.start()
     try:
-        gate.set()  # exactly one grab
-        frame = thread.read(timeout=2.0)
+        gate.set()  # exactly one grab (the next waits for the gate: no second frame 1 s later on a slow run)
+        frame = thread.read(timeout=20.0)
         assert frame is not None
         stamp_at_grab = frame.stamp_ns
         time.sleep(0.05)
         assert thread.read(timeout=0.05) is None  # nothing new: no duplicate of the old frame
         assert stamp_at_grab == 1000  # the clock was read once, when the grab returned
     finally:
+        done.set()
         gate.set()
         thread.stop()
 
@@ -159,7 +164,7 @@ def test_capture_thread_reconnects_with_backoff_after_the_device_disappears():
     thread.start()
     try:
         seqs = []
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 20
         while len(seqs) < 6 and time.monotonic() < deadline:
             frame = thread.read(timeout=0.5)
             if frame is not None:
@@ -177,7 +182,7 @@ def test_capture_thread_reconnects_with_backoff_after_the_device_disappears():
 def test_v4l2_source_through_opencv_videocapture_on_an_mjpg_file(tmp_path):
     path = tmp_path / "cam.avi"
     levels = write_avi(path, 5)
-    gate = threading.Event()
+    gate, done = threading.Event(), threading.Event()
 
     class Paced:
         """The file's VideoCapture, grabbing only when the test allows (like a camera at its frame rate)."""
@@ -188,8 +193,9 @@ def test_v4l2_source_through_opencv_videocapture_on_an_mjpg_file(tmp_path):
         def isOpened(self):  # noqa: N802
             return self.capture.isOpened()
 
-        def grab(self):
-            gate.wait(2.0)
+        def grab(self):   # however late the test allows it: an unasked grab would drop a frame
+            while not gate.wait(0.05) and not done.is_set():
+                pass
             gate.clear()
             return self.capture.grab()
 
@@ -207,13 +213,14 @@ def test_v4l2_source_through_opencv_videocapture_on_an_mjpg_file(tmp_path):
         got = []
         for _ in levels:
             gate.set()
-            frame = source.read(timeout=3.0)
+            frame = source.read(timeout=20.0)
             assert frame is not None
             got.append(float(frame.image.mean()))
             assert frame.image.shape == (48, 64, 3) and frame.image.dtype == np.uint8
         assert got == pytest.approx(levels, abs=3)  # MJPG is lossy
         assert source.stats.dropped == 0
     finally:
+        done.set()
         gate.set()
         source.close()
 
@@ -244,7 +251,32 @@ def test_video_file_source_fast_pacing_reads_every_frame_then_finishes(tmp_path)
     source.close()
 
 
-def test_video_file_source_loops_and_paces_real_time(tmp_path):
+class VirtualTime:
+    """Stands in for the `time` module of touchroller_driver.sources: monotonic time advances only when
+    the code under test sleeps, so pacing checks do not depend on how busy the machine is."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += max(seconds, 0.0)
+
+    time_ns = staticmethod(time.time_ns)
+
+
+@pytest.fixture
+def virtual_time(monkeypatch) -> VirtualTime:
+    import touchroller_driver.sources as sources
+
+    clock = VirtualTime()
+    monkeypatch.setattr(sources, "time", clock)
+    return clock
+
+
+def test_video_file_source_loops_and_paces_real_time(tmp_path, virtual_time):
     path = tmp_path / "slow.avi"
     write_avi(path, 2, fps=1.0)
     looping = VideoFileSource(path, rate=0.0, loop=True)
@@ -256,6 +288,9 @@ def test_video_file_source_loops_and_paces_real_time(tmp_path):
     paced.open()
     assert paced.read(timeout=1.0) is not None
     assert paced.read(timeout=0.01) is None  # the next frame is due a second later
+    assert paced.read(timeout=0.5) is None
+    assert paced.read(timeout=0.6) is not None   # ... and comes then
+    assert virtual_time.now - 1000.0 == pytest.approx(1.0)
     assert not paced.stats.finished
     paced.close()
 
@@ -292,7 +327,7 @@ def test_simulated_source_renders_the_arm_state_at_capture_time():
     assert "bound to arm" in source.info
 
 
-def test_simulated_source_bound_to_an_unknown_arm_state_waits_without_a_burst_after():
+def test_simulated_source_bound_to_an_unknown_arm_state_waits_without_a_burst_after(virtual_time):
     """state_at -> None (e.g. no tcp_pose yet): no frame; once the state is known, frames come at fps
     from then on, not a burst of the frames that were 'due' while waiting."""
     sensor = FakeSensor()
@@ -305,6 +340,7 @@ def test_simulated_source_bound_to_an_unknown_arm_state_waits_without_a_burst_af
     first = source.read(0.05)
     assert first is not None and first.seq == 0 and sensor.rendered == [2.0]
     assert source.read(0.01) is None            # the next frame is due 0.1 s later, not at once
+    assert source.read(0.1) is not None
 
 
 def test_simulated_source_plays_the_scene_motion_standalone_and_loops():
