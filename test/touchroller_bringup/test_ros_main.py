@@ -5,32 +5,52 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
-from touchroller_bringup.ros_domains import reserve_domain_id
-
 pytest.importorskip("rclpy")
+pytestmark = pytest.mark.ros
 
-NODE_MODULES = (
-    "touchroller_driver.camera_node",
-    "touchroller_driver.sweep_node",
-    "touchroller_perception.perception_node",
-    "touchroller_perception.calibration_node",
-)
+NODE_MODULES = {
+    "touchroller_driver.camera_node": "/camera_node",
+    "touchroller_driver.sweep_node": "/touchroller_sweep",
+    "touchroller_perception.perception_node": "/perception_node",
+    "touchroller_perception.calibration_node": "/touchroller_calibration",
+}
 
 
+@pytest.mark.timeout(120)
 @pytest.mark.parametrize("module", NODE_MODULES)
-def test_main_spins_the_node_and_exits_cleanly_on_sigint(module, tmp_path):
-    with reserve_domain_id() as lease:   # no other process on this host uses it
-        env = dict(os.environ, ROS_DOMAIN_ID=str(lease.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                   PYTHONUNBUFFERED="1")
-        process = subprocess.Popen([sys.executable, "-c", f"from {module} import main; main()"], cwd=tmp_path,
-                                   env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        time.sleep(3.0)                                   # long enough to construct the node and spin
-        assert process.poll() is None, f"{module} exited early:\n{process.stdout.read()}"
+def test_main_spins_the_node_and_exits_cleanly_on_sigint(module, ros_context, spin_until, tmp_path):
+    """Ctrl-C once the node answers a service (so it is constructed and spinning), however long its
+    start-up takes: a fixed 3 s wait sent SIGINT mid-import on a loaded machine (a traceback)."""
+    from rcl_interfaces.srv import ListParameters
+    from rclpy.node import Node
+
+    # ros_context put its (exclusive) ROS_DOMAIN_ID and localhost discovery into os.environ
+    process = subprocess.Popen([sys.executable, "-c", f"from {module} import main; main()"], cwd=tmp_path,
+                               env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
+    probe = Node("main_probe", context=ros_context)
+    try:
+        client = probe.create_client(ListParameters, f"{NODE_MODULES[module]}/list_parameters")
+        ready = spin_until(probe, lambda: client.service_is_ready() or process.poll() is not None, timeout=60.0)
+        assert ready and process.poll() is None, f"{module} exited early or never came up:\n{_output(process)}"
+        future = client.call_async(ListParameters.Request())
+        assert spin_until(probe, future.done, timeout=20.0), f"{module} does not spin:\n{_output(process)}"
+        assert future.result().result.names                    # its declared parameters: it is our node
         process.send_signal(signal.SIGINT)
-        output, _ = process.communicate(timeout=20)
+        output, _ = process.communicate(timeout=30)
+    finally:
+        probe.destroy_node()
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
     assert process.returncode == 0, output
     assert "Traceback" not in output, output
+
+
+def _output(process: subprocess.Popen) -> str:
+    if process.poll() is None:
+        process.kill()
+    return process.communicate()[0]
