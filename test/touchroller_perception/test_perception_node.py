@@ -73,7 +73,7 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
     frame = renderer.render([uv], rng)
     stamp_ns = 1_700_000_000_123_456_789
     send(executor, spin_until, node, image_pub, array_to_image(frame, stamp_ns))
-    assert spin_until(executor, lambda: len(received) == 1, timeout=5.0)
+    assert spin_until(executor, lambda: len(received) == 1, timeout=20.0)
     point = received[0]
     assert point.header.frame_id == "touchroller_cylinder"
     assert point.header.stamp.sec * 1_000_000_000 + point.header.stamp.nanosec == stamp_ns
@@ -85,7 +85,7 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
     assert node.set_parameters([Parameter("extrinsics.theta", value=theta)])[0].successful
     assert node.camera.theta == theta
     send(executor, spin_until, node, image_pub, array_to_image(frame, stamp_ns + 1))
-    assert spin_until(executor, lambda: len(received) == 2, timeout=5.0)
+    assert spin_until(executor, lambda: len(received) == 2, timeout=20.0)
     moved = np.array([received[1].point.x, received[1].point.y, received[1].point.z])
     expected, _ = CAMERA.replace(theta=theta).back_project(uv)
     assert np.linalg.norm(moved - expected) < 0.3e-3
@@ -107,7 +107,7 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
     send(executor, spin_until, node, image_pub, short)
     assert node.malformed == 3
     send(executor, spin_until, node, image_pub, array_to_image(frame, stamp_ns + 3))
-    assert spin_until(executor, lambda: len(received) == 3, timeout=5.0)
+    assert spin_until(executor, lambda: len(received) == 3, timeout=20.0)
 
     # diagnostics: counts of what happened, published on /diagnostics
     from diagnostic_msgs.msg import DiagnosticArray
@@ -121,14 +121,14 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
     arrays: list = []
     helper = [n for n in executor.get_nodes() if n is not node][0]
     helper.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
-    assert spin_until(executor, lambda: any("perception" in s.name for a in arrays for s in a.status), timeout=5.0)
+    assert spin_until(executor, lambda: any("perception" in s.name for a in arrays for s in a.status), timeout=20.0)
     mine = [s for a in arrays for s in a.status if "perception" in s.name][0]
     assert float(status_values(mine)["processing_ms_median"]) > 0
 
     # recapturing the reference: the next 3 frames are the new background
     assert spin_until(executor, recapture.service_is_ready, timeout=10.0)
     future = recapture.call_async(recapture.srv_type.Request())
-    assert spin_until(executor, future.done, timeout=5.0)
+    assert spin_until(executor, future.done, timeout=20.0)
     assert future.result().success and "3 frames" in future.result().message
     assert not node.detector.reference_ready
 
@@ -168,13 +168,13 @@ def test_tactile_map_is_published_latched(ros_context, spin_until):
         for k in range(6):   # the surface slides along v by 4 px a frame
             frame = np.ascontiguousarray(texture[4 * k:4 * k + CAMERA.height])
             send(executor, spin_until, node, image_pub, array_to_image(frame, 1_000_000 * (k + 1)))
-        assert spin_until(executor, lambda: node.stitcher is not None and not node._map_dirty, timeout=5.0)
+        assert spin_until(executor, lambda: node.stitcher is not None and not node._map_dirty, timeout=20.0)
         # a subscriber that joins late still gets the last map (transient local)
         maps: list = []
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         helper.create_subscription(Image, MAP_TOPIC, maps.append, latched)
-        assert spin_until(executor, lambda: len(maps) >= 1, timeout=5.0)
+        assert spin_until(executor, lambda: len(maps) >= 1, timeout=20.0)
         tactile_map = image_to_array(maps[0])
         assert tactile_map.size > 0 and maps[0].header.frame_id == "touchroller_cylinder"
         # 0 Hz disables the map
@@ -196,7 +196,7 @@ def test_a_busy_node_skips_stale_frames_and_counts_them(graph, spin_until):
     send(executor, spin_until, node, image_pub, array_to_image(frame, 999))   # the sequence baseline
     for k in range(8):           # published while the node is not spinning: only the newest is kept
         image_pub.publish(array_to_image(frame, 1000 + k))
-    assert spin_until(executor, lambda: node.received >= 2, timeout=5.0)
+    assert spin_until(executor, lambda: node.received >= 2, timeout=20.0)
     spin_until(executor, lambda: False, timeout=0.3)
     assert node.received < 1 + 8
     if _has_message_info():
@@ -275,22 +275,26 @@ def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until,
         assert approach is not None
         progress(0.0)
         progress(0.01)   # the roll starts: a new map
-        assert spin_until(executor, lambda: node.stitcher is None, timeout=5.0)
+        assert spin_until(executor, lambda: node.stitcher is None, timeout=20.0)
         for k in range(20):   # the surface slides along v by 5 px a frame
             frame = np.ascontiguousarray(texture[5 * k:5 * k + CAMERA.height])
             send(executor, spin_until, node, image_pub, array_to_image(frame, 10_000_000 * (k + 1)))
         assert node.stitcher is not approach and not saved.exists()
         progress(1.0)    # the roll ended: finalised, published and saved
-        assert spin_until(executor, lambda: node.saved_maps == 1, timeout=5.0)
+        assert spin_until(executor, lambda: node.saved_maps == 1, timeout=20.0)
         written = cv2.imread(str(saved), cv2.IMREAD_UNCHANGED)
         assert written is not None and written.shape == node.stitcher.map_image().shape
         assert written.shape[0] >= 70 + 0.9 * 19 * 5, written.shape   # the roll (19 x 5 px), not one band
         # a path that cannot be written is one error line; the node keeps working
         assert node.set_parameters([Parameter("map.save_path", value=str(tmp_path / "missing" / "m.png"))])[0].successful
+        # progress and images are separate topics, delivered independently: wait until the node has taken
+        # each progress message before the next step (else the frame could land before the roll began, or
+        # the final check could run before 1.0 arrived and pass on the previous roll's state)
         progress(0.5)
+        assert spin_until(executor, lambda: node._rolling, timeout=20.0)
         send(executor, spin_until, node, image_pub, array_to_image(frame, 900_000_000))
         progress(1.0)
-        assert spin_until(executor, lambda: not node._rolling, timeout=5.0)
+        assert spin_until(executor, lambda: not node._rolling, timeout=20.0)
         assert node.saved_maps == 1 and node.stitcher is not None
     finally:
         executor.shutdown()
