@@ -228,3 +228,68 @@ def test_bgra_frames_use_their_colour_channels():
     det.set_reference([bgra(f) for f in references()])
     [contact] = det.detect(bgra(render([(100.0, 80.0)], seed=6)))
     assert math.hypot(contact.u - 100.0, contact.v - 80.0) < 0.5
+
+
+def test_contacts_refined_together_equal_each_refined_alone():
+    # all candidate windows are refined in one batch (a mosaic of the windows): packing them
+    # together must not change any centre, also for a window cut by the image border
+    truth = [(60.0, 60.0), (250.0, 70.0), (150.0, 180.0), (6.0, 200.0), (300.0, 230.0)]
+    det = detector(compensate_illumination=False)
+    together = det.detect(render(truth, seed=12))
+    assert len(together) == len(truth)
+    for centre in truth:
+        [alone] = det.detect(render([centre], seed=12))
+        [same] = [c for c in together if math.hypot(c.u - alone.u, c.v - alone.v) < 1.0]
+        assert same.u == pytest.approx(alone.u, abs=1e-9) and same.v == pytest.approx(alone.v, abs=1e-9)
+        assert same.area == alone.area and same.peak_snr == pytest.approx(alone.peak_snr, rel=1e-12)
+
+
+def test_specks_smaller_than_min_area_are_dropped_and_a_contact_next_to_them_is_found(monkeypatch):
+    # specks whose whole bounding box (downscaled) is below min_area are dropped before they are
+    # drawn; the contact beside them must still be found and centred
+    truth = (160.0, 120.0)
+    frame = render([truth], seed=13).astype(np.int16)
+    for du, dv in [(-40, -3), (41, 4), (2, 40), (-36, 30)]:
+        frame[int(truth[1]) + dv, int(truth[0]) + du] += 60
+    frame = np.clip(frame, 0, 255).astype(np.uint8)
+    import touchroller_perception.contacts as contacts_module
+
+    blobs = []
+    find_contours = contacts_module.cv2.findContours
+
+    def counting(*args, **kwargs):
+        found = find_contours(*args, **kwargs)
+        blobs.append(len(found[0]))
+        return found
+
+    monkeypatch.setattr(contacts_module.cv2, "findContours", counting)
+    [contact] = detector().detect(frame)
+    assert blobs[-1] > 1       # the specks are blobs on the downscaled mask
+    assert math.hypot(contact.u - truth[0], contact.v - truth[1]) < 0.5
+
+
+def test_large_and_small_blobs_in_one_frame_are_both_centred():
+    # the large blob is centred on the downscaled difference, the small one at full resolution,
+    # in the same batch of centre computations (each with its own noise level)
+    big, small = (110.0, 120.0), (260.0, 60.0)
+    frame = np.minimum(render([big], radius=30.0, amplitude=60.0, seed=14).astype(np.int16)
+                       + render([small], seed=14).astype(np.int16) - render([], seed=14).astype(np.int16), 255)
+    contacts = detector(refine_max_pixels=5000).detect(np.clip(frame, 0, 255).astype(np.uint8))
+    assert len(contacts) == 2
+    for u, v in (big, small):
+        assert min(math.hypot(c.u - u, c.v - v) for c in contacts) < (1.0 if (u, v) == big else 0.5)
+    assert max(c.area for c in contacts) > 5 * min(c.area for c in contacts)
+
+
+def test_max_contacts_keeps_the_largest_blobs():
+    truth = [((60.0, 60.0), 6.0), ((250.0, 70.0), 11.0), ((150.0, 180.0), 6.0), ((270.0, 200.0), 12.0)]
+    frame = render([truth[0][0]], radius=6.0, seed=15).astype(np.int16) - render([], seed=15).astype(np.int16)
+    for centre, radius in truth[1:]:
+        frame += render([centre], radius=radius, seed=15).astype(np.int16) - render([], seed=15).astype(np.int16)
+    frame = np.clip(frame + render([], seed=15), 0, 255).astype(np.uint8)
+    everything = detector().detect(frame)
+    assert len(everything) == 4
+    kept = detector(max_contacts=2).detect(frame)
+    assert len(kept) == 2
+    for u, v in [(250.0, 70.0), (270.0, 200.0)]:
+        assert min(math.hypot(c.u - u, c.v - v) for c in kept) < 0.5
