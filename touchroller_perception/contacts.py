@@ -479,8 +479,12 @@ def _window_pixels(full: np.ndarray, reference: np.ndarray, state: IlluminationS
     for i, ((u0, v0, u1, v1), (a0, b0, a1, b1), (x0, y0, w, h, small_region), (r0, c0)) in enumerate(zip(
             windows, boxes, blobs, places, strict=True)):
         tile = (slice(r0, r0 + b1 - b0 + 2 * pad), slice(c0, c0 + a1 - a0 + 2 * pad))
-        frame[tile] = _replicate_crop(full, (a0 - pad, b0 - pad, a1 + pad, b1 + pad), (u0, v0, u1, v1))
-        expected[tile] = _replicate_crop(reference, (a0 - pad, b0 - pad, a1 + pad, b1 + pad), (u0, v0, u1, v1))
+        if a0 - pad >= u0 and b0 - pad >= v0 and a1 + pad <= u1 and b1 + pad <= v1:     # the usual case
+            frame[tile] = full[b0 - pad:b1 + pad, a0 - pad:a1 + pad]
+            expected[tile] = reference[b0 - pad:b1 + pad, a0 - pad:a1 + pad]
+        else:
+            frame[tile] = _replicate_crop(full, (a0 - pad, b0 - pad, a1 + pad, b1 + pad), (u0, v0, u1, v1))
+            expected[tile] = _replicate_crop(reference, (a0 - pad, b0 - pad, a1 + pad, b1 + pad), (u0, v0, u1, v1))
         owner[r0 + pad:r0 + pad + b1 - b0, c0 + pad:c0 + pad + a1 - a0] = i + 1
         up = cv2.resize(small_region, (w * s, h * s), interpolation=cv2.INTER_NEAREST)
         up = up[: v1 - y0 * s, : u1 - x0 * s]     # the window clips the blob's box
@@ -606,11 +610,11 @@ def _illumination(frame: np.ndarray, reference: np.ndarray, noise: float,
     frame, reference = frame[::2, ::2], reference[::2, ::2]     # a quarter of the pixels is plenty
     channels = frame.shape[2]
     gain = np.ones(channels, np.float32)
-    shift = np.array([np.median(frame[::3, ::3, c] - reference[::3, ::3, c]) for c in range(channels)],
-                     dtype=np.float32)
-    contact = (_squared_norm(frame - reference - shift) > threshold**2).astype(np.uint8)
+    shift = np.median(frame[::3, ::3] - reference[::3, ::3], axis=(0, 1)).astype(np.float32)
+    residual = frame - reference - shift
+    contact = (_squared_norm(residual) > threshold**2).astype(np.uint8)
     background = cv2.dilate(contact, np.ones((5, 5), np.uint8)) == 0
-    background &= (np.abs(frame - reference - shift) < 4.0 * noise + 2.0).all(axis=2)
+    background &= (np.abs(residual) < 4.0 * noise + 2.0).all(axis=2)
     count = int(background.sum())
     if count < max(16, background.size // 4):     # mostly "contact": keep the robust offset only
         return gain, shift
