@@ -34,8 +34,11 @@ def ros_context(monkeypatch: pytest.MonkeyPatch) -> Iterator[object]:
             context.try_shutdown()
 
 
-def _spin_until(executor_or_node: object, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
-    """Spin until `predicate()` is true or `timeout` s pass; returns the predicate's last value."""
+def _spin_until(executor_or_node: object, predicate: Callable[[], bool], timeout: float = 20.0) -> bool:
+    """Spin until `predicate()` is true or `timeout` s pass; returns the predicate's last value.
+
+    Returns as soon as the predicate holds, so a generous timeout costs nothing on a quiet machine and
+    keeps a loaded CI machine (slow discovery, starved threads) from failing at random."""
     from rclpy.executors import Executor, SingleThreadedExecutor
 
     if isinstance(executor_or_node, Executor):

@@ -246,7 +246,7 @@ def test_replay_graph_gives_the_contacts_of_touchroller_contacts(ros_context, sp
     try:
         camera, perception = nodes
         assert spin_until(executor, lambda: camera.finished and perception.received == len(taps), timeout=30.0)
-        assert spin_until(executor, lambda: len(received) >= len(expected), timeout=5.0)
+        assert spin_until(executor, lambda: len(received) >= len(expected), timeout=20)
     finally:
         executor.shutdown()
         for node in (*nodes, probe):

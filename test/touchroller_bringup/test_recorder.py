@@ -52,12 +52,12 @@ def test_records_images_and_latched_topics_with_their_qos(ros_context, spin_unti
     executor.add_node(talker)
     executor.add_node(recorder)
     try:
-        assert spin_until(executor, lambda: image_pub.get_subscription_count() == 1, timeout=5)
+        assert spin_until(executor, lambda: image_pub.get_subscription_count() == 1, timeout=20)
         frames = images(10)
         for i, frame in enumerate(frames):
             image_pub.publish(array_to_image(frame, 5_000_000_000 + i * 1_000_000))
         assert spin_until(executor, lambda: recorder.counts.get("/touchroller/image_raw", 0) == 10
-                          and recorder.counts.get("/touchroller/status", 0) == 1, timeout=10)
+                          and recorder.counts.get("/touchroller/status", 0) == 1, timeout=20)
     finally:
         recorder.destroy_node()
         executor.shutdown()
@@ -85,11 +85,11 @@ def test_only_the_requested_topics_are_recorded(ros_context, spin_until, tmp_pat
     executor.add_node(talker)
     executor.add_node(recorder)
     try:
-        assert spin_until(executor, lambda: wanted.get_subscription_count() == 1, timeout=5)
+        assert spin_until(executor, lambda: wanted.get_subscription_count() == 1, timeout=20)
         for i in range(3):
             wanted.publish(String(data=f"w{i}"))
             other.publish(String(data=f"o{i}"))
-        assert spin_until(executor, lambda: recorder.message_count == 3, timeout=5)
+        assert spin_until(executor, lambda: recorder.message_count == 3, timeout=20)
         spin_until(executor, lambda: False, timeout=0.3)
         assert other.get_subscription_count() == 0
     finally:

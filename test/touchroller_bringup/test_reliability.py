@@ -54,13 +54,13 @@ def test_camera_node_on_a_truncated_bag_reports_and_keeps_serving(ros_context, s
     camera = CameraNode(context=ros_context, parameter_overrides=[
         Parameter("source", value="bag"), Parameter("bag_path", value=str(bag)), Parameter("rate", value=0.0)])
     try:
-        assert spin_until(camera, lambda: camera.finished, timeout=10)
+        assert spin_until(camera, lambda: camera.finished, timeout=20)
         status = camera._diagnostic_status()
         assert status.level == 2 and "source stopped" in status.message
         # still alive: parameters still answer, a new (good) source can be chosen
         good = bag_factory(frames(3))
         assert camera.set_parameters([Parameter("bag_path", value=str(good))])[0].successful
-        assert spin_until(camera, lambda: camera.published == 3, timeout=10)
+        assert spin_until(camera, lambda: camera.published == 3, timeout=20)
     finally:
         camera.destroy_node()
 
@@ -159,7 +159,7 @@ def test_perception_node_survives_malformed_images(ros_context, spin_until):
     executor.add_node(node)
     executor.add_node(talker)
     try:
-        assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, timeout=5)
+        assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, timeout=20)
         for msg in malformed_images():
             publisher.publish(msg)
             executor.spin_once(timeout_sec=0.05)  # a callback that raised would propagate here

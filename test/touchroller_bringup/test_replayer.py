@@ -49,13 +49,13 @@ class Listener:
                                       qos or QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
 
 
-def play(context, spin_until, replayer, listener, expected, timeout=10.0):
+def play(context, spin_until, replayer, listener, expected, timeout=20):
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(replayer)
     executor.add_node(listener.node)
     try:
         pub = replayer.publisher_for(replayer.topics[0])
-        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, timeout=5)
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, timeout=20)
         started = time.monotonic()
         replayer.start()
         assert spin_until(executor, lambda: replayer.finished and len(listener.received) >= expected, timeout=timeout)
@@ -91,12 +91,12 @@ def test_recorded_transient_local_qos_is_respected(ros_context, spin_until, tmp_
         assert qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
         assert qos.reliability == ReliabilityPolicy.RELIABLE
         replayer.start()
-        assert replayer.wait(5.0)
+        assert replayer.wait(20.0)
         # a late subscriber that asks for transient local still gets the messages: they were latched
         late = Listener(ros_context, topic="/touchroller/map_info",
                         qos=QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        assert spin_until(late.node, lambda: len(late.received) == 2, timeout=5)
+        assert spin_until(late.node, lambda: len(late.received) == 2, timeout=20)
         late.node.destroy_node()
     finally:
         replayer.destroy_node()
@@ -140,7 +140,7 @@ def test_loop_plays_again_until_stopped(ros_context, spin_until, tmp_path):
     try:
         assert spin_until(executor, lambda: replayer.publisher_for("/chatter").get_subscription_count() > 0)
         replayer.start()
-        assert spin_until(executor, lambda: len(listener.received) >= 7, timeout=10)
+        assert spin_until(executor, lambda: len(listener.received) >= 7, timeout=20)
         replayer.stop()
         assert replayer.finished and replayer.error is None
     finally:

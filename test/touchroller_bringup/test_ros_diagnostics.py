@@ -58,7 +58,7 @@ def test_publisher_sends_statuses_and_reports_a_failing_probe(ros_context, spin_
     diagnostics.add(lambda: Status(OK, "fine", {"rate_hz": 29.97, "dropped": 0}))
     diagnostics.add(lambda: 1 / 0)
     try:
-        assert spin_until(node, lambda: bool(received), timeout=5)
+        assert spin_until(node, lambda: bool(received), timeout=20)
         good, bad = received[0].status
         assert (good.name, good.hardware_id, good.message) == ("probe", "hw0", "fine")
         assert status_values(good) == {"rate_hz": "29.97", "dropped": "0"}

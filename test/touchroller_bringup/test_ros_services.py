@@ -36,15 +36,15 @@ def services_of(nodes: list[Node], probe: Node, spin_until, executor) -> dict[st
     def found() -> dict[str, list[str]]:
         return {name: types for name, types in probe.get_service_names_and_types() if name in EXPECTED}
 
-    spin_until(executor, lambda: set(found()) == EXPECTED, timeout=10.0)
+    spin_until(executor, lambda: set(found()) == EXPECTED, timeout=20)
     return found()
 
 
 def call(probe: Node, executor, spin_until, name: str, service_type: type):
     client = probe.create_client(service_type, name)
-    assert spin_until(executor, client.service_is_ready, timeout=10.0)
+    assert spin_until(executor, client.service_is_ready, timeout=20)
     future = client.call_async(service_type.Request())
-    assert spin_until(executor, future.done, timeout=10.0)
+    assert spin_until(executor, future.done, timeout=20)
     return future.result()
 
 

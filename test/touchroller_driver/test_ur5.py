@@ -279,7 +279,7 @@ def fake_rtde_server():
         server.wait(timeout=5)
 
 
-def _wait_for(predicate, timeout: float = 3.0) -> bool:
+def _wait_for(predicate, timeout: float = 20.0) -> bool:
     import time
 
     deadline = time.monotonic() + timeout

@@ -57,7 +57,7 @@ def call(executor, spin_until, helper, name: str) -> object:
 
     TriggerService, _ = trigger_service_type()   # std_srvs/Trigger (AddDiagnostics without std_srvs)
     client = helper.create_client(TriggerService, f"/touchroller_calibration/{name}")
-    assert spin_until(executor, client.service_is_ready, timeout=10.0)
+    assert spin_until(executor, client.service_is_ready, timeout=20)
     future = client.call_async(TriggerService.Request())
     assert spin_until(executor, future.done, timeout=30.0)
     helper.destroy_client(client)
@@ -67,9 +67,9 @@ def call(executor, spin_until, helper, name: str) -> object:
 def show(executor, spin_until, node, image_pub, frame) -> None:
     from touchroller_driver.image_conversion import array_to_image
 
-    assert spin_until(executor, lambda: image_pub.get_subscription_count() > 0, timeout=10.0)
+    assert spin_until(executor, lambda: image_pub.get_subscription_count() > 0, timeout=20)
     image_pub.publish(array_to_image(frame.image, frame.stamp_ns))
-    assert spin_until(executor, lambda: node.latest is not None and node.latest[0] == frame.stamp_ns, timeout=10.0)
+    assert spin_until(executor, lambda: node.latest is not None and node.latest[0] == frame.stamp_ns, timeout=20)
 
 
 def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
@@ -77,7 +77,7 @@ def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
 
     node, perception, helper, executor, image_pub, infos = graph
     truth, references, pressed = presses
-    assert spin_until(executor, lambda: len(infos) >= 1, timeout=10.0)     # the start-up camera info
+    assert spin_until(executor, lambda: len(infos) >= 1, timeout=20)     # the start-up camera info
 
     failed = call(executor, spin_until, helper, "solve")
     assert not failed.success and "nothing captured" in failed.message
@@ -102,7 +102,7 @@ def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
     solved = call(executor, spin_until, helper, "solve")
     assert solved.success, solved.message
     assert "extrinsics from 4/4 images" in solved.message
-    assert spin_until(executor, lambda: node.remote_result is not None, timeout=10.0)
+    assert spin_until(executor, lambda: node.remote_result is not None, timeout=20)
     assert node.remote_result.successful
     model = perception.geometry.model
     assert abs(math.degrees(model.theta - truth.theta)) < 0.15
@@ -110,7 +110,7 @@ def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
     written = CameraModel.from_yaml(tmp_path / "cal.yaml")
     assert written.theta == pytest.approx(model.theta) and written.d == pytest.approx(model.d)
     assert node.geometry.model.theta == pytest.approx(model.theta)
-    assert spin_until(executor, lambda: len(infos) >= 2, timeout=10.0)
+    assert spin_until(executor, lambda: len(infos) >= 2, timeout=20)
     assert infos[-1].k[0] == pytest.approx(truth.fx) and infos[-1].distortion_model == "plumb_bob"
 
     assert call(executor, spin_until, helper, "reset").success
@@ -159,7 +159,7 @@ def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, sp
     solved = call(executor, spin_until, helper, "solve")
     assert solved.success, solved.message
     assert "intrinsics from 8/8 views" in solved.message and "setting 9 parameters" in solved.message
-    assert spin_until(executor, lambda: node.remote_result is not None, timeout=10.0)
+    assert spin_until(executor, lambda: node.remote_result is not None, timeout=20)
     assert node.remote_result.successful, node.remote_result.reason
     model = perception.geometry.model
     assert abs(model.fx - truth.fx) < 2.0 and abs(model.cy - truth.cy) < 3.0
