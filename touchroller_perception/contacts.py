@@ -572,28 +572,33 @@ def _centres_of_groups(values: np.ndarray, magnitude: np.ndarray, x: np.ndarray,
     np.maximum(-values.T, 0.0, out=terms[0, channels:])
     np.multiply(terms[0], x, out=terms[1])
     np.multiply(terms[0], y, out=terms[2])
-    sums = np.moveaxis(np.add.reduceat(terms, starts, axis=2), 2, 0)   # (k, 3, 2C)
-    mass = sums[:, 0]
-    peak = np.maximum.reduceat(magnitude, starts)
-    mass_pos, mass_neg = mass[:, :channels], mass[:, channels:]
-    weight = np.minimum(mass_pos, mass_neg)
-    # a channel counts when both lobes carry real signal, not just noise leaking through the mask
-    bipolar = ((weight > 0.1 * np.maximum(mass_pos, mass_neg))
-               & (weight > (3.0 * noise[present] * np.sqrt(npix.astype(np.float64)))[:, None]))
-    w = np.where(bipolar, weight, 0.0)
-    lone = ~bipolar.any(axis=1)
-    # lobe centroids of the channels that count (others: 0, and weight 0)
-    centroids = np.divide(sums[:, 1:], mass[:, None], out=np.zeros_like(sums[:, 1:]),
-                          where=np.concatenate([bipolar, bipolar], axis=1)[:, None])      # (k, 2, 2C)
-    mid = 0.5 * (centroids[:, :, :channels] + centroids[:, :, channels:])                 # (k, 2, C)
-    u, v = ((mid * w[:, None]).sum(axis=2) / np.where(lone, 1.0, w.sum(axis=1))[:, None]).T
-    if lone.any():
+    sums = np.add.reduceat(terms, starts, axis=2)                       # (3, 2C, k)
+    peak = np.maximum.reduceat(magnitude, starts).tolist()
+    # a few numbers per blob: plain Python beats a dozen numpy calls on tiny arrays
+    mass, moment_x, moment_y = (part.T.tolist() for part in sums)
+    floors = (3.0 * noise[present] * np.sqrt(npix.astype(np.float64))).tolist()
+    lone = []
+    for k, (i, count) in enumerate(zip(present.tolist(), npix.tolist(), strict=True)):
+        u = v = total = 0.0
+        for c in range(channels):
+            pos, neg = mass[k][c], mass[k][channels + c]
+            weight = min(pos, neg)
+            # a channel counts when both lobes carry real signal, not just noise leaking through the mask
+            if weight > 0.1 * max(pos, neg) and weight > floors[k]:
+                u += 0.5 * (moment_x[k][c] / pos + moment_x[k][channels + c] / neg) * weight
+                v += 0.5 * (moment_y[k][c] / pos + moment_y[k][channels + c] / neg) * weight
+                total += weight
+        if total > 0.0:
+            found[i] = (u / total, v / total, count, peak[k])
+        else:
+            lone.append((k, i, count))
+    if lone:
         magnitude = magnitude.astype(np.float64)
         total = np.add.reduceat(magnitude, starts)
-        u = np.where(lone, np.add.reduceat(magnitude * x, starts) / total, u)
-        v = np.where(lone, np.add.reduceat(magnitude * y, starts) / total, v)
-    for k, i in enumerate(present):
-        found[i] = (float(u[k]), float(v[k]), int(npix[k]), float(peak[k]))
+        u = np.add.reduceat(magnitude * x, starts) / total
+        v = np.add.reduceat(magnitude * y, starts) / total
+        for k, i, count in lone:
+            found[i] = (float(u[k]), float(v[k]), count, peak[k])
     return found
 
 
