@@ -474,8 +474,9 @@ def _window_pixels(full: np.ndarray, reference: np.ndarray, state: IlluminationS
     places, mosaic_shape = _pack([(b1 - b0 + 2 * pad, a1 - a0 + 2 * pad) for a0, b0, a1, b1 in boxes])
     frame = np.zeros(mosaic_shape + (channels,), full.dtype)
     expected = np.zeros(mosaic_shape + (channels,), np.float32)
-    region = np.zeros(mosaic_shape, np.uint8)
-    owner = np.zeros(mosaic_shape, np.int32)          # 1 + the index of the window a pixel belongs to
+    # each blob's mask, labelled 1 + its window's index: after dilation it also says whose a pixel is
+    region = np.zeros(mosaic_shape, np.uint8 if len(windows) < 255 else np.uint16)
+    clipped = []
     for i, ((u0, v0, u1, v1), (a0, b0, a1, b1), (x0, y0, w, h, small_region), (r0, c0)) in enumerate(zip(
             windows, boxes, blobs, places, strict=True)):
         tile = (slice(r0, r0 + b1 - b0 + 2 * pad), slice(c0, c0 + a1 - a0 + 2 * pad))
@@ -485,21 +486,28 @@ def _window_pixels(full: np.ndarray, reference: np.ndarray, state: IlluminationS
         else:
             frame[tile] = _replicate_crop(full, (a0 - pad, b0 - pad, a1 + pad, b1 + pad), (u0, v0, u1, v1))
             expected[tile] = _replicate_crop(reference, (a0 - pad, b0 - pad, a1 + pad, b1 + pad), (u0, v0, u1, v1))
-        owner[r0 + pad:r0 + pad + b1 - b0, c0 + pad:c0 + pad + a1 - a0] = i + 1
         up = cv2.resize(small_region, (w * s, h * s), interpolation=cv2.INTER_NEAREST)
         up = up[: v1 - y0 * s, : u1 - x0 * s]     # the window clips the blob's box
         ry, rx = r0 + pad + y0 * s - b0, c0 + pad + x0 * s - a0
-        region[ry:ry + up.shape[0], rx:rx + up.shape[1]] = up
+        np.multiply(up, i + 1, out=region[ry:ry + up.shape[0], rx:rx + up.shape[1]], casting="unsafe")
+        if (a0, b0, a1, b1) != (x0 * s - grow, y0 * s - grow, (x0 + w) * s + grow, (y0 + h) * s + grow):
+            clipped.append((r0, c0, b1 - b0 + 2 * pad, a1 - a0 + 2 * pad))
     # the same per-pixel arithmetic as refining each window on its own
     if state is not None:
         expected = _affine(expected, state.gain, state.offset)
     diff = np.atleast_3d(_blur(_difference(frame, expected), sigma))
     score = cv2.sqrt(_squared_norm(diff))
+    # the dilation reaches no further than the box grown by `grow`: only where the window cut that
+    # box does the dilated mask spill past the window's edge, into the window's padding
+    owner = cv2.dilate(region, np.ones((s + 1, s + 1), np.uint8))
+    for r0, c0, tile_h, tile_w in clipped:
+        tile = owner[r0:r0 + tile_h, c0:c0 + tile_w]
+        tile[:pad], tile[tile_h - pad:], tile[:, :pad], tile[:, tile_w - pad:] = 0, 0, 0, 0
+    owner *= score > threshold
     # flat indices: np.nonzero and 2-D fancy indexing cost ~4x more
-    index = np.flatnonzero(cv2.dilate(region, np.ones((s + 1, s + 1), np.uint8)).view(bool)
-                           & (owner > 0) & (score > threshold))
+    index = np.flatnonzero(owner)
     # group the pixels by window (stable: row-major order within each window)
-    window = owner.ravel().take(index) - 1
+    window = owner.ravel().take(index).astype(np.intp) - 1
     order = np.argsort(window, kind="stable")
     index, window = index.take(order), window.take(order)
     ys, xs = np.divmod(index, mosaic_shape[1])
