@@ -507,9 +507,9 @@ def _window_pixels(full: np.ndarray, reference: np.ndarray, state: IlluminationS
     # flat indices: np.nonzero and 2-D fancy indexing cost ~4x more
     index = np.flatnonzero(owner)
     # group the pixels by window (stable: row-major order within each window)
-    window = owner.ravel().take(index).astype(np.intp) - 1
-    order = np.argsort(window, kind="stable")
-    index, window = index.take(order), window.take(order)
+    label = owner.ravel().take(index)
+    order = np.argsort(label, kind="stable")          # radix sort on the small labels
+    index, window = index.take(order), label.take(order).astype(np.intp) - 1
     ys, xs = np.divmod(index, mosaic_shape[1])
     # mosaic position -> position in the blob's window
     shift_x = np.array([c0 + pad - (a0 - u0) for (_, c0), (u0, *_), (a0, *_) in zip(places, windows, boxes, strict=True)])
@@ -620,14 +620,18 @@ def _illumination(frame: np.ndarray, reference: np.ndarray, noise: float,
     masked with a wide margin (a dent's faint tails correlate with the background's shading), and
     gain and offset are fitted by least squares on the remaining pixels.
     """
-    frame, reference = frame[::2, ::2], reference[::2, ::2]     # a quarter of the pixels is plenty
+    # a quarter of the pixels is plenty (contiguous copies: strided 3-channel numpy arithmetic is slow)
+    frame, reference = np.ascontiguousarray(frame[::2, ::2]), np.ascontiguousarray(reference[::2, ::2])
     channels = frame.shape[2]
     gain = np.ones(channels, np.float32)
-    shift = np.median(frame[::3, ::3] - reference[::3, ::3], axis=(0, 1)).astype(np.float32)
-    residual = frame - reference - shift
+    shift = _channel_medians(frame[::3, ::3] - reference[::3, ::3])
+    residual = frame - reference
+    residual -= shift
     contact = (_squared_norm(residual) > threshold**2).astype(np.uint8)
     background = cv2.dilate(contact, np.ones((5, 5), np.uint8)) == 0
-    background &= (np.abs(residual) < 4.0 * noise + 2.0).all(axis=2)
+    limit = 4.0 * noise + 2.0
+    for c in range(channels):
+        background &= np.abs(residual[:, :, c]) < limit
     count = int(background.sum())
     if count < max(16, background.size // 4):     # mostly "contact": keep the robust offset only
         return gain, shift
@@ -642,6 +646,17 @@ def _illumination(frame: np.ndarray, reference: np.ndarray, noise: float,
         gain[c] = min(max(g, 0.5), 2.0)      # beyond this it is not drift: let the detector see it
         offset[c] = f_mean - gain[c] * r_mean
     return gain, offset
+
+
+def _channel_medians(image: np.ndarray) -> np.ndarray:
+    """np.median over all pixels per channel (same values), ~5x faster: one partition per channel row."""
+    rows = np.ascontiguousarray(image.reshape(-1, image.shape[2]).T)
+    n = rows.shape[1]
+    k = n // 2
+    if n % 2:
+        return np.partition(rows, k, axis=1)[:, k]
+    part = np.partition(rows, (k - 1, k), axis=1)
+    return (part[:, k - 1] + part[:, k]) / 2
 
 
 def detect_paper(image: np.ndarray, reference: NoContactReference | None,
