@@ -293,3 +293,17 @@ def test_max_contacts_keeps_the_largest_blobs():
     assert len(kept) == 2
     for u, v in [(250.0, 70.0), (270.0, 200.0)]:
         assert min(math.hypot(c.u - u, c.v - v) for c in kept) < 0.5
+
+
+@settings(max_examples=30, deadline=None)
+@given(h=st.integers(1, 25), w=st.integers(1, 25), channels=st.sampled_from([1, 3]), seed=st.integers(0, 999),
+       dtype=st.sampled_from([np.float32, np.float64]))
+def test_property_channel_medians_equal_numpy_median(h, w, channels, seed, dtype):
+    from touchroller_perception.contacts import _channel_medians
+
+    image = np.random.default_rng(seed).normal(0.0, 5.0, (h, w, channels)).astype(dtype)
+    image[::3] = np.round(image[::3])     # ties, as differences of integer grey levels have
+    expected = np.median(image, axis=(0, 1))
+    result = _channel_medians(image)
+    assert result.dtype == expected.dtype
+    np.testing.assert_array_equal(result, expected)
