@@ -131,7 +131,10 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 def to_markdown(result: dict[str, Any]) -> str:
-    lines = [provenance_markdown(result["provenance"]), "",
+    lines = [provenance_markdown(result["provenance"]), ""]
+    if result.get("note"):
+        lines += [result["note"], ""]
+    lines += [
              f"OpenCV on one thread (cv2.setNumThreads(1)); frames: {result['source']}, 640x480 bgr8.", "",
              "| workload | median ms | p90 ms | max ms | frames timed | contacts/frame |",
              "|---|---|---|---|---|---|"]
@@ -196,8 +199,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer frames and repeats")
     parser.add_argument("--out", help="results file (default: bench/results/contacts_bench.md, quick/ with --quick)")
+    parser.add_argument("--note", help="a line about the conditions, written under the machine line "
+                                       "(e.g. that the machine was shared)")
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
+    if args.note:
+        result["note"] = args.note
     out = Path(args.out) if args.out else results_path("contacts_bench", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("# Contact detection + localisation time per frame\n\n" + to_markdown(result), encoding="utf-8")
