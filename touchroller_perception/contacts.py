@@ -363,7 +363,7 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
     pending = candidates
     while pending and len(contacts) < cfg.max_contacts:
         # refine only as many candidates as could still become contacts (a flood of blobs stays cheap)
-        room = cfg.max_contacts - len(contacts)
+        room = min(cfg.max_contacts - len(contacts), 65534)    # window labels are uint16 at most
         chunk, pending = pending[:room], pending[room:]
         windows = []
         for _, x0, y0, w, h, _region in chunk:
