@@ -5,6 +5,7 @@ from collections.abc import Callable, Sequence
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 
@@ -15,6 +16,12 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except _rclpy.RCLError:
+        # Ctrl-C shuts the context down from the signal handler; landing between spin's context check
+        # and building its wait set, that surfaces as "the given context is not valid". Only then
+        # is it a clean exit: with the context still up, an RCLError is a real failure.
+        if node.context.ok():
+            raise
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

@@ -154,7 +154,9 @@ def run_scan(options: ScanOptions) -> ScanResult:
     finally:
         stop_spinning.set()
         if spinner is not None:
-            spinner.join(timeout=2.0)
+            # Nodes must not be destroyed under a running spin_once (rclpy then raises in the thread):
+            # wait for it however loaded the machine is; it ends within one spin_once and its callbacks.
+            spinner.join(timeout=60.0)
         _drain(executor)
         executor.shutdown(timeout_sec=2.0)
         for node in reversed(nodes):
@@ -325,7 +327,7 @@ def _wait_for_reference(perception: Any, sweep: Any, collected: _Collected, time
 
 
 def _call_start(client: Any, sweep: Any) -> None:
-    if not client.wait_for_service(timeout_sec=5.0):
+    if not client.wait_for_service(timeout_sec=20.0):   # in-process, but discovery is slow on a loaded machine
         raise UserError("the sweep node's ~/start service is not available")
     future = client.call_async(client.srv_type.Request())
     deadline = time.monotonic() + 10.0

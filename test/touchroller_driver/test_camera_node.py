@@ -24,8 +24,6 @@ from touchroller_driver.image_conversion import image_to_array  # noqa: E402
 from touchroller_driver.sources import Frame, SourceStats  # noqa: E402
 
 pytestmark = pytest.mark.ros
-# run_node exits 1 when SIGINT lands while rclpy.spin builds its wait set (reported; see test_ros_main.py)
-KNOWN_SHUTDOWN_RACE = "failed to initialize wait set: the given context is not valid"
 
 
 class ListSource:
@@ -348,8 +346,10 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
     tactile_map, _ = stitch([image for _, image in frames], stamps=[stamp for stamp, _ in frames],
                             camera=camera.geometry.model)
     rolled_px = length / (camera.geometry.model.radius / camera.geometry.model.fy)
-    # one band (the stitcher's 70 rows) + the roll (100 px at r / fy = 0.1 mm per pixel); measured: 170-171 rows
-    assert abs(tactile_map.shape[0] - (70 + rolled_px)) <= 0.1 * rolled_px, (tactile_map.shape, rolled_px)
+    # one band (the stitcher's 70 rows) + the roll (100 px at r / fy = 0.1 mm per pixel); measured: 170-171 rows.
+    # The arm moves in real time: a test process frozen for 0.2 s at a time lost frames and gave 151-191
+    # rows. A camera that does not follow the arm gives one band (~70 rows), far outside this bound.
+    assert abs(tactile_map.shape[0] - (70 + rolled_px)) <= 0.25 * rolled_px, (tactile_map.shape, rolled_px)
 
 
 def start_node_process(module: str, spec) -> subprocess.Popen:
@@ -376,8 +376,6 @@ def stop_node_process(process: subprocess.Popen) -> tuple[int, str]:
 
 
 def assert_clean_exit(returncode: int, output: str) -> None:
-    if returncode != 0 and KNOWN_SHUTDOWN_RACE in output:   # see test_ros_main.py: a product bug
-        pytest.xfail(f"known Ctrl-C race in touchroller_bringup.ros_main.run_node: {KNOWN_SHUTDOWN_RACE}")
     assert returncode == 0, output
 
 
