@@ -503,7 +503,8 @@ def settings_markdown(results: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def _load(script: str) -> ModuleType:
+def load_bench_script(script: str) -> ModuleType:
+    """The checkout's `bench/<script>.py` as a module (for the report's sections and the bench tests)."""
     path = checkout_dir() / "bench" / f"{script}.py"
     if not path.is_file():
         raise UserError(f"report section needs {path.relative_to(checkout_dir())}, which is missing")
@@ -514,6 +515,11 @@ def _load(script: str) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module      # dataclasses in a bench script look their module up here
     spec.loader.exec_module(module)
+    return module
+
+
+def _load(script: str) -> ModuleType:
+    module = load_bench_script(script)
     for name in ("run", "to_markdown"):
         if not callable(getattr(module, name, None)):
             raise UserError(f"bench/{script}.py has no {name}() for the report")

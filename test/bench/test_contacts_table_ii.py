@@ -1,24 +1,16 @@
 """bench/contacts_table_ii.py: the report section shows our calibration's Table II beside the paper's error sources."""
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import cv2
 import pytest
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
+from touchroller_bringup.report import load_bench_script
 
 
 def load_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_contacts_table_ii_under_test", BENCH / "contacts_table_ii.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_bench_script("contacts_table_ii")
 
 
 def test_markdown_and_figure_carry_the_our_calibration_condition(tmp_path):

@@ -1,24 +1,16 @@
 """bench/dds_latency.py: the report section renders every figure of a tiny real run over DDS."""
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
+from touchroller_bringup.report import load_bench_script
 
 
 def load_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_dds_latency_under_test", BENCH / "dds_latency.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module     # dataclasses look their module up here
-    spec.loader.exec_module(module)
-    return module
+    return load_bench_script("dds_latency")
 
 
 def test_prelude_rejects_an_unknown_reliability():

@@ -1,23 +1,16 @@
 """bench/map_speed.py: the report section's figures and goal verdicts come from the measured times."""
 from __future__ import annotations
 
-import importlib.util
 import sys
-from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
+from touchroller_bringup.report import load_bench_script
 
 
 def load_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_map_speed_under_test", BENCH / "map_speed.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_bench_script("map_speed")
 
 
 def fake_result(bench: ModuleType, quick: bool, command_process_s: float, read_process_s: float = 0.5,

@@ -1,23 +1,15 @@
 """bench/map_tradeoffs.py: the report gets both plots (quality against compute and scan time; Δy histograms)."""
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import cv2
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
+from touchroller_bringup.report import load_bench_script
 
 
 def load_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_map_tradeoffs_under_test", BENCH / "map_tradeoffs.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module     # dataclasses look their module up here
-    spec.loader.exec_module(module)
-    return module
+    return load_bench_script("map_tradeoffs")
 
 
 def small_result(bench: ModuleType) -> dict:
