@@ -35,7 +35,8 @@ def typestore():
     return get_typestore(Stores.ROS2_KILTED)
 
 
-def _open_reader(path: str | Path):
+def open_bag(path: str | Path):
+    """An opened rosbags Reader; UserError (one line) for a missing or unreadable bag."""
     from rosbags.rosbag2 import Reader
 
     path = Path(path)
@@ -47,7 +48,8 @@ def _open_reader(path: str | Path):
         reader = Reader(path)
         reader.open()
     except Exception as exc:  # noqa: BLE001 - rosbags raises several types for unreadable bags
-        raise UserError(f"cannot open bag {path}: {exc}") from None
+        first_line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UserError(f"cannot open bag {path}: {first_line}") from None
     return reader
 
 
@@ -63,7 +65,7 @@ def _image_connections(reader, path, topic: str):
 
 
 def image_topic_count(path: str | Path, topic: str = IMAGE_TOPIC) -> int:
-    reader = _open_reader(path)
+    reader = open_bag(path)
     try:
         return sum(c.msgcount for c in _image_connections(reader, path, topic))
     finally:
@@ -72,7 +74,7 @@ def image_topic_count(path: str | Path, topic: str = IMAGE_TOPIC) -> int:
 
 def read_images(path: str | Path, topic: str = IMAGE_TOPIC) -> Iterator[ImageRecord]:
     """Images on `topic` in recording order. UserError on a missing, unreadable or truncated bag."""
-    reader = _open_reader(path)
+    reader = open_bag(path)
     store = None
     try:
         connections = _image_connections(reader, path, topic)

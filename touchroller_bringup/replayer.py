@@ -16,25 +16,9 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
+from touchroller_bringup.bags import open_bag
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.recorder import message_class, qos_time_to_duration
-
-
-def open_bag(path: str | Path) -> Any:
-    """An opened rosbags Reader; UserError (one line) for a missing or unreadable bag."""
-    from rosbags.rosbag2 import Reader
-
-    path = Path(path)
-    if not path.exists():
-        raise UserError(f"no such bag: {path}")
-    if path.is_file():  # a .db3/.mcap file: rosbags wants the folder holding metadata.yaml
-        path = path.parent
-    try:
-        reader = Reader(path)
-        reader.open()
-    except Exception as exc:  # noqa: BLE001 - rosbags raises several types for unreadable bags
-        raise UserError(f"cannot open bag {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
-    return reader
 
 
 def playback_qos(offered: list[Any]) -> QoSProfile:
