@@ -190,17 +190,18 @@ class PerceptionNode(Node):
     def _subscribe_images(self, on_image: Any) -> Any:
         """The image subscription, with DDS's message_lost event where the RMW has it: it tells frames
         lost in transport apart from stale frames skipped on purpose (both leave sequence gaps)."""
-        options = {"qos_overriding_options": QoSOverridingOptions.with_default_policies()}
+        def subscribe(**events: Any) -> Any:
+            return self.create_subscription(Image, IMAGE_TOPIC, on_image, image_qos(), **events,
+                                            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+
         try:
             from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
         except ImportError:   # Humble names the module rclpy.qos_event: count gaps only
-            return self.create_subscription(Image, IMAGE_TOPIC, on_image, image_qos(), **options)
+            return subscribe()
         try:
-            subscription = self.create_subscription(
-                Image, IMAGE_TOPIC, on_image, image_qos(),
-                event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_message_lost), **options)
+            subscription = subscribe(event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_message_lost))
         except UnsupportedEventTypeError:
-            return self.create_subscription(Image, IMAGE_TOPIC, on_image, image_qos(), **options)
+            return subscribe()
         self.lost_in_transport = 0
         return subscription
 

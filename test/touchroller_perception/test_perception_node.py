@@ -307,6 +307,8 @@ def test_frames_lost_in_transport_come_from_the_message_lost_event(graph):
 
     node = graph[0]
     assert node._diagnostic_status().values["frames_lost_in_transport"] == 0
+    # the image subscription hands DDS's message_lost events to the node
+    assert node._on_message_lost in [handler.callback for handler in node.image_sub.event_handlers]
     assert {"total_count", "total_count_change"} <= set(dir(QoSMessageLostInfo))  # what rclpy hands over
     for total, change in ((3, 3), (5, 2)):   # its fields are read-only: stand-ins with the same fields
         node._on_message_lost(SimpleNamespace(total_count=total, total_count_change=change))
