@@ -39,10 +39,10 @@ setup(
     entry_points={
         "console_scripts": [
             "touchroller = touchroller_bringup.cli:main",
-            "camera_node = touchroller_driver.camera_node:main",
-            "sweep_node = touchroller_driver.sweep_node:main",
-            "perception_node = touchroller_perception.perception_node:main",
-            "calibration_node = touchroller_perception.calibration_node:main",
+            "camera_node = touchroller_bringup.nodes.camera_node:main",
+            "sweep_node = touchroller_bringup.nodes.sweep_node:main",
+            "perception_node = touchroller_bringup.nodes.perception_node:main",
+            "calibration_node = touchroller_bringup.nodes.calibration_node:main",
         ],
     },
 )

@@ -1,24 +1,19 @@
 """What every benchmark records beside its figures: the machine, the command, when, and how loaded.
 
-Import it from a bench script as `from _common import machine, provenance` (a script's own folder is
-on `sys.path` when it runs as `python bench/<name>.py`, and the report generator puts `bench/` there
-before it loads a section). Importing it also puts the checkout on `sys.path`, so the scripts run from
-a source checkout without an install.
+Import it from a bench script as `from bench._common import machine, provenance`; benchmarks run from
+the checkout as `python -m bench.NAME`.
 """
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
+from touchroller_bringup.report import loadavg
+from touchroller_bringup.report import machine_description as machine
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from touchroller_bringup.report import loadavg  # noqa: E402
-from touchroller_bringup.report import machine_description as machine  # noqa: E402
 
 __all__ = ["RESULTS", "ROOT", "command", "loadavg", "machine", "provenance", "provenance_markdown", "results_path"]
 
@@ -31,7 +26,7 @@ def results_path(name: str, quick: bool, suffix: str = ".md") -> Path:
 
 def command(script: str, quick: bool = False, *extra: str) -> str:
     """The command that reproduces a bench's figures, as a user types it in the checkout."""
-    return " ".join([".venv/bin/python", f"bench/{script}.py", *(["--quick"] if quick else []), *extra])
+    return " ".join([".venv/bin/python", "-m", f"bench.{script}", *(["--quick"] if quick else []), *extra])
 
 
 def provenance(script: str, quick: bool = False, *extra: str) -> dict[str, Any]:

@@ -16,7 +16,7 @@ D. end to end: contacts of the `contact_localisation` scene located with that ca
 E. robustness of theta and d to the paper's sensor flaws (noise, uneven elastomer);
 F. the terms the paper's model neglects, as reported by one calibration.
 
-`run(quick)` returns the figures as a dict; `python bench/calib_bench.py [--quick]` also writes
+`run(quick)` returns the figures as a dict; `python -m bench.calib_bench [--quick]` also writes
 bench/results/calib_bench.md (and .json).
 """
 from __future__ import annotations
@@ -31,9 +31,7 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import provenance, provenance_markdown, results_path  # noqa: E402
-
+from bench._common import provenance, provenance_markdown, results_path
 from touchroller_perception import calibration as cal  # noqa: E402
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 

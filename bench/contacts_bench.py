@@ -1,13 +1,12 @@
 """Contact detection + localisation time per 640x480 frame (median, one core), and accuracy against settings.
 
 Frames: the simulator's contact_localisation scene (no-contact frames and taps with 3 contacts) and
-surface_mapping scene (rolling over fabric), or the fallback TapRenderer when the simulator is not
-installed. Per frame: `ContactDetector.detect` then `localise` through the per-pixel
+surface_mapping scene (rolling over fabric). Per frame: `ContactDetector.detect` then `localise` through the per-pixel
 `SurfaceLookup` (PointStamped has no covariance, so the node does not compute it), as the
 perception node does. OpenCV is limited to one thread.
 
 Goal (issue 4): <= 1 ms median per frame. Results: bench/results/contacts_bench.md
-(`python bench/contacts_bench.py [--quick]`; the report generator calls `run` and `to_markdown`).
+(`python -m bench.contacts_bench [--quick]`; the report generator calls `run` and `to_markdown`).
 """
 from __future__ import annotations
 
@@ -20,16 +19,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import provenance, provenance_markdown, results_path  # noqa: E402
-
+from bench._common import provenance, provenance_markdown, results_path
 from touchroller_perception.contacts import ContactDetector, DetectorConfig  # noqa: E402
-from touchroller_perception.localisation import (  # noqa: E402
-    TABLE_II_CAMERA,
-    SurfaceLookup,
-    TapRenderer,
-    localise,
-)
+from touchroller_perception.localisation import SurfaceLookup, localise
 
 #: Detector settings compared for accuracy against time on the tap frames.
 SETTINGS: dict[str, dict[str, Any]] = {
@@ -64,20 +56,6 @@ def sim_workloads(frames_per_kind: int):
     return workloads, sensor.camera, "touchroller_driver.sim"
 
 
-def synthetic_workloads(frames_per_kind: int):
-    camera = TABLE_II_CAMERA
-    renderer = TapRenderer(camera, seed=0)
-    rng = np.random.default_rng(0)
-    references = [renderer.render([], rng) for _ in range(5)]
-    points = camera.surface_point(np.array([-0.025, 0.0, 0.025]), np.array([0.0, 0.26, -0.26]))
-    uv, _ = camera.project(points)
-    idle = [renderer.render([], rng) for _ in range(frames_per_kind)]
-    taps = [renderer.render(uv, rng) for _ in range(frames_per_kind)]
-    return ({"no contact (TapRenderer)": (references, idle, [[]] * len(idle)),
-             "3 contacts (TapRenderer)": (references, taps, [points.tolist()] * len(taps))},
-            camera, "touchroller_perception.localisation.TapRenderer (simulator not installed)")
-
-
 def time_workload(references, frames, truths, camera, lookup, config: DetectorConfig, repeats: int) -> dict[str, Any]:
     detector = ContactDetector(config)
     detector.set_reference(references)
@@ -107,10 +85,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     stamp = provenance("contacts_bench", quick)
     cv2.setNumThreads(1)
     frames_per_kind, repeats = (10, 3) if quick else (40, 10)
-    try:
-        workloads, camera, source = sim_workloads(frames_per_kind)
-    except ImportError:
-        workloads, camera, source = synthetic_workloads(frames_per_kind)
+    workloads, camera, source = sim_workloads(frames_per_kind)
     lookup = SurfaceLookup(camera)   # built once per camera model, as in the node
     speed = []
     for name, (references, frames, truths) in workloads.items():

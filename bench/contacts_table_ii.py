@@ -1,10 +1,10 @@
 """The paper's Table II (contact localisation error) reproduced in simulation, with its error budget.
 
-Runs `touchroller_perception.localisation.table_ii` (simulator scene contact_localisation when
+Runs `bench.table_ii.table_ii` (simulator scene contact_localisation when
 installed; its `our_calibration` condition calibrates on simulated calibration images per seed and
 locates the taps with the camera found) and `explain_paper_table`, and writes
 bench/results/contacts_table_ii.md (+ .json)
-(`python bench/contacts_table_ii.py [--quick]`; the report generator calls `run` and `to_markdown`).
+(`python -m bench.contacts_table_ii [--quick]`; the report generator calls `run` and `to_markdown`).
 Not a timing benchmark: the figures are errors in mm and do not depend on the machine.
 """
 from __future__ import annotations
@@ -15,26 +15,19 @@ import sys
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import command, results_path  # noqa: E402
-
-from touchroller_perception.localisation import (  # noqa: E402
-    TABLE_II_CAMERA,
+from bench._common import command, results_path
+from bench.table_ii import (
     explain_markdown,
     explain_paper_table,
     table_ii,
     table_ii_markdown,
 )
+from touchroller_driver.sim import SimulatedSensor, load_scene
 
 
 def run(quick: bool = False) -> dict[str, Any]:
     result = table_ii(quick=quick)
-    try:
-        from touchroller_driver.sim import load_scene
-
-        camera = load_scene("contact_localisation").camera
-    except ImportError:
-        camera = TABLE_II_CAMERA
+    camera = load_scene("contact_localisation").camera
     return {"table_ii": result, "paper_fit": explain_paper_table(camera), "quick": quick}
 
 
@@ -95,10 +88,6 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
 
 
 def _detection_example():
-    try:
-        from touchroller_driver.sim import SimulatedSensor, load_scene
-    except ImportError:
-        return None
     from touchroller_perception.contacts import ContactDetector, DetectorConfig
 
     frames = list(SimulatedSensor(load_scene("contact_localisation", **{"motion.repeats": 1}), seed=0).frames())

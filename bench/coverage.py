@@ -3,19 +3,16 @@
 Both are timed from the arm's speed and acceleration limits with trapezoidal moves
 (touchroller_driver.sim.flat_sensor, parameters from config/scenes/flat_sensor_comparison.yaml).
 
-    .venv/bin/python bench/coverage.py [--quick]
+    .venv/bin/python -m bench.coverage [--quick]
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
-from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import command  # noqa: E402
-
+from bench._common import command
 from touchroller_driver.sim import load_scene  # noqa: E402
 from touchroller_driver.sim.flat_sensor import compare  # noqa: E402
 

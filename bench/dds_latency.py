@@ -1,7 +1,7 @@
 """DDS latency over loopback: image published -> contact received (p50/p99) at 30 Hz, losses at 60 Hz.
 
-The real graph: `touchroller_driver.camera_node.CameraNode` publishes 640x480 bgr8 frames (reliable)
-from an in-memory source, `touchroller_perception.perception_node.PerceptionNode` detects contacts,
+The real graph: `touchroller_bringup.nodes.camera_node.CameraNode` publishes 640x480 bgr8 frames (reliable)
+from an in-memory source, `touchroller_bringup.nodes.perception_node.PerceptionNode` detects contacts,
 and a probe node receives `/touchroller/contacts`. Latency = probe receive time - contact stamp,
 where the contact carries the image's capture stamp (the moment the frame was due from the camera).
 `--processes 2` runs the perception node in its own process (as `ros2 launch` would); 1 runs all
@@ -31,11 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
+from bench._common import machine, results_path  # one machine line for every bench and the report
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "bench" / "results"
-sys.path.insert(0, str(ROOT / "bench"))
-from _common import machine, results_path  # noqa: E402  (one machine line for every bench and the report)
 
 WIDTH, HEIGHT = 640, 480
 REFERENCE_FRAMES = 30  # no-contact frames first: the perception node takes its reference from the first 5 it gets
@@ -205,13 +204,13 @@ class Graph:
         params = {"map.publish_rate": float(map_rate), **(perception_params or {})}
         if processes == 2:
             ros_args = [arg for name, value in params.items() for arg in ("-p", f"{name}:={value}")]
-            code = (f"{perception_prelude}\nfrom touchroller_perception.perception_node import main\n"
+            code = (f"{perception_prelude}\nfrom touchroller_bringup.nodes.perception_node import main\n"
                     f"main(['--ros-args', *{ros_args!r}])")
             self.child = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=dict(os.environ),
                                           stdout=subprocess.DEVNULL, stderr=None if os.environ.get("DDS_BENCH_VERBOSE") else subprocess.DEVNULL)
         else:
             exec(perception_prelude, {})  # the same code the child process would run (e.g. a slow-down)
-            from touchroller_perception.perception_node import PerceptionNode
+            from touchroller_bringup.nodes.perception_node import PerceptionNode
 
             self.perception = PerceptionNode(
                 context=self.context, parameter_overrides=[Parameter(name, value=value) for name, value in params.items()])
@@ -234,7 +233,7 @@ class Graph:
 
     def run_camera(self, source, timeout_s: float, monitor=None) -> None:
         """Publish every frame of `source` through a CameraNode, wait for the last contacts."""
-        from touchroller_driver.camera_node import CameraNode
+        from touchroller_bringup.nodes.camera_node import CameraNode
 
         self.camera = CameraNode(context=self.context, source=source, autostart=False)
         executor = __import__("rclpy.executors", fromlist=["x"]).SingleThreadedExecutor(context=self.context)
@@ -304,8 +303,8 @@ def measure_publish_path(frames: list[np.ndarray], repeats: int = 200) -> dict[s
     from rclpy.node import Node
     from sensor_msgs.msg import Image
 
+    from touchroller_bringup.nodes.camera_node import CameraNode
     from touchroller_bringup.ros_domains import reserve_domain_id
-    from touchroller_driver.camera_node import CameraNode
 
     lease = reserve_domain_id()
     context = Context()
@@ -353,7 +352,7 @@ def use_transport(transport: str) -> None:
 # ride on the node's own /diagnostics status, so the probe receives them from either process.
 INSTRUMENT_PRELUDE = r"""
 import dataclasses as _dc, time as _time
-import touchroller_perception.perception_node as _pn
+import touchroller_bringup.nodes.perception_node as _pn
 _bench = {"gaps": 0, "busy": 0, "last_seq": None, "last_end": 0, "busy_ns": 0, "first": None,
           "durations": [], "qos": "?"}
 _create = _pn.PerceptionNode.create_subscription
@@ -448,8 +447,7 @@ def run_plan(plan: list[dict]) -> list[dict]:
     rows = []
     for config in plan:
         if config.get("delay_ms"):
-            sys.path.insert(0, str(Path(__file__).resolve().parent))
-            import dds_slow_consumer  # it imports this module: load it only when needed
+            from bench import dds_slow_consumer  # it imports this module: load it only when needed
 
             rows.append(dds_slow_consumer.run_and_judge(config["processes"], config["transport"],
                                                         config["seconds"], config["delay_ms"]))
@@ -463,7 +461,7 @@ def run_plan(plan: list[dict]) -> list[dict]:
 def measure_plan(transport: str, plan: list[dict]) -> list[dict]:
     """`run_plan` in a fresh interpreter with `transport` (Fast DDS reads its profile once per process)."""
     plan = [{"transport": transport, **config} for config in plan]
-    result = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", "--transports", transport,
+    result = subprocess.run([sys.executable, "-m", __spec__.name, "--child", "--transports", transport,
                              "--plan", json.dumps(plan)], cwd=ROOT, capture_output=True, text=True, timeout=1800)
     for line in reversed(result.stdout.splitlines()):
         if line.startswith("["):
@@ -504,7 +502,7 @@ def run(quick: bool = False) -> dict:
     return {"quick": quick, "runs": [flat_run(row) for row in rows], "machine": machine(),
             "load": os.getloadavg(),
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "command": f"python bench/dds_latency.py {'--quick' if quick else '--section'}", "map_rate": 1.0,
+            "command": f"python -m bench.dds_latency {'--quick' if quick else '--section'}", "map_rate": 1.0,
             "rows": rows, "slow_consumer": slow, "publish_path": publish, "publish_calls": 50 if quick else 300,
             "seconds": time.perf_counter() - started}
 
@@ -610,7 +608,7 @@ def to_markdown(result: dict) -> str:
                   f"{result['publish_calls']} calls): p50 {_fmt(publish['p50'], 3)} ms, "
                   f"p99 {_fmt(publish['p99'], 3)} ms.", ""]
     lines += ["The 20 000-frame memory soak takes minutes and is not part of this section: see "
-              "`bench/results/dds_soak.md` (command `python bench/dds_soak.py`) and `docs/dds.md`.", ""]
+              "`bench/results/dds_soak.md` (command `python -m bench.dds_soak`) and `docs/dds.md`.", ""]
     return "\n".join(lines)
 
 
@@ -636,7 +634,7 @@ def main(argv: list[str] | None = None) -> int:
         use_transport(args.transports[0])
         print(json.dumps(run_plan(json.loads(args.plan))), flush=True)
         return 0
-    command = ("python bench/dds_latency.py " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
+    command = ("python -m bench.dds_latency " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
     if args.quick or args.section:
         result = run(quick=args.quick)
         out = Path(args.out or results_path(f"dds_latency{'' if args.quick else '_section'}", args.quick))

@@ -18,12 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import dds_latency as common  # noqa: E402
+from bench import dds_latency as common
 
 SLOW_PRELUDE = """
 import time as _time
-import touchroller_perception.perception_node as _perception
+import touchroller_bringup.nodes.perception_node as _perception
 _original = _perception.PerceptionNode._on_image
 def _slow(self, msg, _original=_original):
     _time.sleep({delay})
@@ -77,7 +76,7 @@ def run_and_judge(processes: int, transport: str, seconds: float, delay_ms: floa
 def measure(processes: int, transport: str, seconds: float, delay_ms: float) -> dict:
     """`run_child` in a fresh interpreter, judged."""
     result = subprocess.run(
-        [sys.executable, str(Path(__file__).resolve()), "--child", "--processes", str(processes),
+        [sys.executable, "-m", __spec__.name, "--child", "--processes", str(processes),
          "--transport", transport, "--seconds", str(seconds), "--delay-ms", str(delay_ms)],
         capture_output=True, text=True, timeout=900, cwd=common.ROOT)
     line = next((x for x in reversed(result.stdout.splitlines()) if x.startswith("{")), None)
@@ -100,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         print(json.dumps(run_child(args.processes[0], args.transport, seconds, args.delay_ms)), flush=True)
         return 0
-    command = "python bench/dds_slow_consumer.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = "python -m bench.dds_slow_consumer " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
         "# Slow consumer: stale frames are skipped, not queued",
         "",

@@ -19,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import dds_latency as common  # noqa: E402
+from bench import dds_latency as common
 
 # Run in the perception process with --tracemalloc: Python/numpy allocations that grew between a snapshot
 # after warm-up and now, rewritten every few seconds (the process is terminated, not asked to report).
@@ -121,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(run_child(args.processes[0], args.transport, frames, args.fps, args.map_rates[0],
                                    args.tracemalloc, warmup)), flush=True)
         return 0
-    command = "python bench/dds_soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = "python -m bench.dds_soak " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
         "# Soak: frames through the graph without memory growth",
         "",
@@ -144,10 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     details = []
     for map_rate, processes in [(m, p) for m in args.map_rates for p in args.processes]:
         result = subprocess.run(
-            [sys.executable, __file__, "--child", "--processes", str(processes), "--transport", args.transport,
+            [sys.executable, "-m", __spec__.name, "--child", "--processes", str(processes), "--transport", args.transport,
              "--frames", str(frames), "--fps", str(args.fps), "--map-rates", str(map_rate), "--warmup", str(warmup),
              *(["--tracemalloc", f"{args.tracemalloc}.map{map_rate:g}.p{processes}"] if args.tracemalloc else [])],
-            capture_output=True, text=True, timeout=3600)
+            capture_output=True, text=True, timeout=3600, cwd=common.ROOT)
         line = next((x for x in reversed(result.stdout.splitlines()) if x.startswith("{")), None)
         if line is None:
             print(result.stderr[-2000:], file=sys.stderr)

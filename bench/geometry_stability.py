@@ -4,7 +4,7 @@ For each case: the share of image pixels that back-project validly, the worst ro
 pixel -> point -> pixel (px) and point -> pixel -> point (m) over the valid ones, and what the
 invalid ones return. Also the back-projection cost per pixel.
 
-    .venv/bin/python bench/geometry_stability.py [--quick] [--json out.json]
+    .venv/bin/python -m bench.geometry_stability [--quick] [--json out.json]
 """
 from __future__ import annotations
 
@@ -17,9 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import provenance, provenance_markdown  # noqa: E402
-
+from bench._common import provenance, provenance_markdown
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 
 CASES: list[tuple[str, dict]] = [

@@ -10,7 +10,7 @@ included), and within 2x the time of just reading the bag. Measured, interleaved
   matplotlib get imported at all), cutting the band (grey + rectifying remap), registering and
   splatting (`Stitcher.push_band`), `finalise()` + PNG, per frame on frames held in memory.
 
-`python bench/map_speed.py [--quick] [--frames N] [--repeats N]` -> bench/results/map_speed.md + .json.
+`python -m bench.map_speed [--quick] [--frames N] [--repeats N]` -> bench/results/map_speed.md + .json.
 The report generator (`touchroller report`) calls `run(quick)` and `to_markdown(result)`; quick mode times
 a 300-frame bag, best of 2, and skips the run without a bytecode cache.
 """
@@ -31,8 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, loadavg, provenance, provenance_markdown, results_path  # noqa: E402
+from bench._common import ROOT, loadavg, provenance, provenance_markdown, results_path
 
 HEAVY = ("skimage", "scipy", "matplotlib", "rclpy")
 READ_SNIPPET = ("import sys\nfrom touchroller_bringup.bags import read_images\n"
@@ -217,7 +216,7 @@ def goals_markdown(r: dict[str, Any]) -> list[str]:
     fps, ratio = m["process_fps"], m["process_read_ratio"]
     if r["quick"]:
         why = (f"not judged on this quick run ({m['frames']} frames: interpreter start weighs more on a short bag); "
-               f"the full run (`.venv/bin/python bench/map_speed.py`, {FULL['frames']} frames) judges it")
+               f"the full run (`.venv/bin/python -m bench.map_speed`, {FULL['frames']} frames) judges it")
         return [f"- >= {r['goal_fps']:.0f} frames/s as a whole command (new process): {fps:.0f} frames/s; {why}.",
                 f"- Within {r['goal_read_ratio']:g}x of reading the bag (new processes): {ratio:.2f}x; {why}."]
     return [f"- >= {r['goal_fps']:.0f} frames/s as a whole command (new process): {_verdict(fps >= r['goal_fps'])} "

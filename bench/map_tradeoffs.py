@@ -18,7 +18,7 @@
 Every frame is stitched as the perception node and the CLI do: `Stitcher.push` one frame at a time,
 then `finalise()`. OpenCV is limited to one thread.
 
-`python bench/map_tradeoffs.py [--quick]` -> bench/results/map_tradeoffs.md + map_tradeoffs.png +
+`python -m bench.map_tradeoffs [--quick]` -> bench/results/map_tradeoffs.md + map_tradeoffs.png +
 map_dy_histograms.png + map_tradeoffs.json; the report generator calls `run(quick)`, `to_markdown` and
 `figures` (the two PNGs beside the report).
 """
@@ -35,9 +35,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import provenance, provenance_markdown, results_path  # noqa: E402
-
+from bench._common import provenance, provenance_markdown, results_path
 from touchroller_perception.metrics import (  # noqa: E402
     align_affine_3pt,
     compare_to_truth,

@@ -1,6 +1,6 @@
 """Simulator speed: frames/s of the surface_mapping scene at 640x480 on one core, and each effect's cost.
 
-Run: `.venv/bin/python bench/sim_bench.py [--quick]` (or `touchroller bench sim_bench`).
+Run: `.venv/bin/python -m bench.sim_bench [--quick]` (or `touchroller bench sim_bench`).
 Writes bench/results/sim_bench.md (+ .json). One core: OpenCV and BLAS threads are pinned to 1.
 Timings are of `SimulatedSensor.render(state)` over the scene's own roll (states precomputed), so
 they are the renderer's cost; `frames()` (with ground truth bookkeeping) is timed separately.
@@ -21,9 +21,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import loadavg, provenance, provenance_markdown, results_path  # noqa: E402
-
+from bench._common import loadavg, provenance, provenance_markdown, results_path  # noqa: E402
 from touchroller_driver.sim import EFFECTS, SimulatedSensor, load_scene  # noqa: E402
 from touchroller_driver.sim.scenarios import timeline  # noqa: E402
 

@@ -71,7 +71,7 @@ def test_ament_index_resolves_the_built_package(colcon_install):
     site = next((colcon_install / "lib").glob("python3*/site-packages"))
     env = dict(os.environ, AMENT_PREFIX_PATH=str(colcon_install), PYTHONPATH=str(site))
     code = ("from ament_index_python.packages import get_package_share_directory as g;"
-            "from touchroller_bringup.paths import share_dir;"
+            "from touchroller_driver.paths import share_dir;"
             f"print(g('{PACKAGE}')); print(share_dir())")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     expected = str(colcon_install / "share" / PACKAGE)
@@ -80,6 +80,6 @@ def test_ament_index_resolves_the_built_package(colcon_install):
 
 def test_config_is_found_in_the_checkout_without_an_index(monkeypatch):
     monkeypatch.delenv("AMENT_PREFIX_PATH", raising=False)
-    from touchroller_bringup import paths
+    from touchroller_driver import paths
 
     assert paths.config_path("touchroller.yaml").is_file()

@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 
 from touchroller_bringup.errors import UserError
-from touchroller_driver.image_conversion import ImageFormatError, compressed_to_array, image_to_array
+from touchroller_bringup.image_conversion import ImageFormatError, compressed_to_array, image_to_array
 
 IMAGE_TOPIC = "/touchroller/image_raw"
 IMAGE_TYPE = "sensor_msgs/msg/Image"
@@ -156,7 +156,7 @@ def write_images(
     from rosbags.typesys.stores.ros2_kilted import sensor_msgs__msg__Image as Image
     from rosbags.typesys.stores.ros2_kilted import std_msgs__msg__Header as Header
 
-    from touchroller_driver.image_conversion import encoding_for
+    from touchroller_bringup.image_conversion import encoding_for
 
     plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
     if plugin is None:

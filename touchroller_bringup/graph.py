@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from touchroller_bringup.paths import config_path
+from touchroller_driver.paths import config_path
 
 PACKAGE = "touchroller_bringup"
 DEFAULT_PARAMS_FILES = ("touchroller.yaml", "scan.yaml")  # under config/
@@ -165,11 +165,11 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
 REPLAY_PERCEPTION = {"qos_overrides./touchroller/image_raw.subscription.reliability": "reliable",
                      "qos_overrides./touchroller/image_raw.subscription.depth": 100}
 
-CAMERA = ("camera_node", "touchroller_camera", "touchroller_driver.camera_node:CameraNode")
-PERCEPTION = ("perception_node", "touchroller_perception", "touchroller_perception.perception_node:PerceptionNode")
-SWEEP = ("sweep_node", "touchroller_sweep", "touchroller_driver.sweep_node:SweepNode")
+CAMERA = ("camera_node", "touchroller_camera", "touchroller_bringup.nodes.camera_node:CameraNode")
+PERCEPTION = ("perception_node", "touchroller_perception", "touchroller_bringup.nodes.perception_node:PerceptionNode")
+SWEEP = ("sweep_node", "touchroller_sweep", "touchroller_bringup.nodes.sweep_node:SweepNode")
 CALIBRATION = ("calibration_node", "touchroller_calibration",
-               "touchroller_perception.calibration_node:CalibrationNode")
+               "touchroller_bringup.nodes.calibration_node:CalibrationNode")
 
 
 def resolve_arguments(launch: str, values: Mapping[str, str] | None = None) -> dict[str, str]:

@@ -20,7 +20,7 @@ from pathlib import Path
 from types import ModuleType
 
 from touchroller_bringup.errors import UserError
-from touchroller_bringup.paths import checkout_dir
+from touchroller_driver.paths import checkout_dir
 
 
 @dataclass(frozen=True)
@@ -504,18 +504,12 @@ def settings_markdown(results: dict[str, dict]) -> str:
 
 
 def load_bench_script(script: str) -> ModuleType:
-    """The checkout's `bench/<script>.py` as a module (for the report's sections and the bench tests)."""
-    path = checkout_dir() / "bench" / f"{script}.py"
-    if not path.is_file():
-        raise UserError(f"report section needs {path.relative_to(checkout_dir())}, which is missing")
-    if str(path.parent) not in sys.path:
-        sys.path.insert(0, str(path.parent))      # bench scripts import their helpers (bench/_common.py)
-    spec = importlib.util.spec_from_file_location(f"bench_{script}", path)
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module      # dataclasses in a bench script look their module up here
-    spec.loader.exec_module(module)
-    return module
+    """The checkout's `bench.<script>` module (for the report's sections and the bench tests)."""
+    if not (checkout_dir() / "bench" / f"{script}.py").is_file():
+        raise UserError(f"report section needs bench/{script}.py, which is missing (run from the source checkout)")
+    if str(checkout_dir()) not in sys.path:
+        sys.path.insert(0, str(checkout_dir()))   # the console script may run from anywhere; bench/ is not installed
+    return importlib.import_module(f"bench.{script}")
 
 
 def _load(script: str) -> ModuleType:

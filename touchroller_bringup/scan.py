@@ -397,7 +397,7 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
                    recorded: Mapping[str, int] | None = None) -> ScanResult:
     import cv2
 
-    from touchroller_driver.image_conversion import image_to_array
+    from touchroller_bringup.image_conversion import image_to_array
 
     files: dict[str, Path] = {}
     with collected.lock:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -525,6 +525,8 @@ class SimulatedSource:
 class BagSource:
     """Images from a rosbag2 recording (Image or CompressedImage), paced by their recorded stamps.
 
+    `reader(path, topic)` yields records with `stamp_ns` and `image` (`touchroller_bringup.bags.read_images`
+    in the product: reading bags belongs to the layer above, this class only paces and stamps).
     `restamp` False keeps the recorded capture stamps (so contacts match the recording);
     True stamps frames with `clock_ns` at replay.
     """
@@ -534,6 +536,7 @@ class BagSource:
         path: str | Path,
         topic: str = "/touchroller/image_raw",
         *,
+        reader: Callable[[Path, str], Iterable[Any]],
         rate: float = 1.0,
         loop: bool = False,
         restamp: bool = False,
@@ -541,6 +544,7 @@ class BagSource:
     ) -> None:
         self.path = Path(path)
         self.topic = topic
+        self._reader = reader
         self.rate, self.loop, self.restamp = rate, loop, restamp
         self._clock_ns = clock_ns
         self._pacer = _Pacer(rate)
@@ -557,9 +561,7 @@ class BagSource:
         return f"bag {self.path} {self.topic}"
 
     def _iterate(self) -> Iterator[Any]:
-        from touchroller_bringup.bags import read_images  # lazy: only bag sources need rosbags
-
-        return iter(read_images(self.path, topic=self.topic))
+        return iter(self._reader(self.path, self.topic))
 
     def open(self) -> None:
         if not self.path.exists():
@@ -610,7 +612,8 @@ class BagSource:
 
 
 def make_source(kind: str, **params: Any) -> FrameSource:
-    """A source by kind: v4l2(device, width, height, fps, exposure), video(path), sim(scene | sensor), bag(path)."""
+    """A source by kind: v4l2(device, width, height, fps, exposure), video(path), sim(scene | sensor),
+    bag(path, reader)."""
     kind = kind.strip().lower()
     if kind == "v4l2":
         return V4L2Source(**params)

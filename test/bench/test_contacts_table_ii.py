@@ -15,7 +15,7 @@ def load_bench() -> ModuleType:
 
 def test_markdown_and_figure_carry_the_our_calibration_condition(tmp_path):
     pytest.importorskip("touchroller_driver.sim")
-    from touchroller_perception.localisation import TABLE_II_CAMERA, explain_paper_table, table_ii
+    from bench.table_ii import TABLE_II_CAMERA, explain_paper_table, table_ii
 
     bench = load_bench()
     table = table_ii(taps=1, sim_conditions=("exact",), calibration_seeds=1)

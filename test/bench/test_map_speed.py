@@ -69,7 +69,7 @@ def test_cli_refuses_a_bag_without_frames(capsys):
                                                            ([], "map_speed.md", "quick/map_speed.md")])
 def test_a_quick_run_never_overwrites_the_committed_full_figures(monkeypatch, tmp_path, argv, written, untouched):
     bench = load_bench()
-    monkeypatch.setattr(sys.modules["_common"], "RESULTS", tmp_path)  # where results_path() writes
+    monkeypatch.setattr(sys.modules["bench._common"], "RESULTS", tmp_path)  # where results_path() writes
     monkeypatch.setattr(bench, "run", lambda quick, frames, repeats: fake_result(bench, quick, 0.8))
     assert bench.main(argv) == 0
     assert (tmp_path / written).is_file() and (tmp_path / written).with_suffix(".json").is_file()

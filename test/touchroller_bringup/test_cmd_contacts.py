@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from touchroller_bringup.cli import main
+from touchroller_driver.sim.taps import TapRenderer
 from touchroller_perception.geometry import CameraModel
-from touchroller_perception.localisation import TapRenderer
 
 CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240, theta=0.03, d=0.001)
 

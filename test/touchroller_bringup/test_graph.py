@@ -218,9 +218,9 @@ def test_replay_graph_gives_the_contacts_of_touchroller_contacts(ros_context, sp
     from rclpy.node import Node
 
     from touchroller_bringup.cli import main
-    from touchroller_bringup.paths import config_path
+    from touchroller_driver.paths import config_path
+    from touchroller_driver.sim.taps import TapRenderer
     from touchroller_perception.geometry import CameraModel
-    from touchroller_perception.localisation import TapRenderer
 
     camera_model = CameraModel.from_yaml(config_path("touchroller.yaml"))
     renderer = TapRenderer(camera_model, seed=3)

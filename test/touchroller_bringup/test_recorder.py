@@ -19,8 +19,8 @@ from std_msgs.msg import String  # noqa: E402
 
 from touchroller_bringup.bags import read_images  # noqa: E402
 from touchroller_bringup.errors import UserError  # noqa: E402
+from touchroller_bringup.image_conversion import array_to_image  # noqa: E402
 from touchroller_bringup.recorder import Recorder, subscription_qos  # noqa: E402
-from touchroller_driver.image_conversion import array_to_image  # noqa: E402
 
 pytestmark = pytest.mark.ros
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

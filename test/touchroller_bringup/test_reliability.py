@@ -16,8 +16,9 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
+from touchroller_bringup.bags import read_images  # noqa: E402
 from touchroller_bringup.cli import main  # noqa: E402
-from touchroller_driver.camera_node import IMAGE_TOPIC, CameraNode  # noqa: E402
+from touchroller_bringup.nodes.camera_node import IMAGE_TOPIC, CameraNode  # noqa: E402
 from touchroller_driver.sources import Backoff, BagSource, V4L2Source  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -42,7 +43,7 @@ def test_truncated_bag_is_one_line_for_replay_and_ends_a_bag_source_cleanly(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(bag) in err[0] and "Traceback" not in err[0]
 
-    source = BagSource(bag, rate=0.0)
+    source = BagSource(bag, rate=0.0, reader=read_images)
     source.open()
     assert source.read(timeout=0.5) is None  # no exception escapes
     assert source.stats.finished and source.stats.last_error
@@ -151,7 +152,7 @@ def malformed_images():
 
 
 def test_perception_node_survives_malformed_images(ros_context, spin_until):
-    perception_node = pytest.importorskip("touchroller_perception.perception_node")
+    perception_node = pytest.importorskip("touchroller_bringup.nodes.perception_node")
     node = perception_node.PerceptionNode(context=ros_context)
     talker = Node("talker", context=ros_context)
     publisher = talker.create_publisher(Image, IMAGE_TOPIC, 10)

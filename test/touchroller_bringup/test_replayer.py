@@ -14,8 +14,8 @@ from rclpy.serialization import serialize_message  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from touchroller_bringup.errors import UserError  # noqa: E402
+from touchroller_bringup.image_conversion import image_to_array  # noqa: E402
 from touchroller_bringup.replayer import Replayer, playback_qos  # noqa: E402
-from touchroller_driver.image_conversion import image_to_array  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

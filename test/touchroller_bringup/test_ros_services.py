@@ -22,9 +22,9 @@ EXPECTED = {
 
 
 def make_nodes(context) -> list[Node]:
-    from touchroller_driver.sweep_node import SweepNode
-    from touchroller_perception.calibration_node import CalibrationNode
-    from touchroller_perception.perception_node import PerceptionNode
+    from touchroller_bringup.nodes.calibration_node import CalibrationNode
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+    from touchroller_bringup.nodes.sweep_node import SweepNode
 
     return [PerceptionNode("touchroller_perception", context=context,
                            parameter_overrides=[Parameter("map.publish_rate", value=0.0)]),

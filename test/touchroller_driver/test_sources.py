@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from touchroller_bringup.bags import read_images
 from touchroller_driver.sources import (
     Backoff,
     BagSource,
@@ -360,7 +361,7 @@ def test_bag_source_keeps_recorded_stamps_and_reads_compressed_images(tmp_path):
     bag = tmp_path / "rec"
     images = [np.full((8, 10, 3), 20 * i, np.uint8) for i in range(3)]
     write_images(bag, [(1_000_000_000 + i * 33_000_000, im) for i, im in enumerate(images)])
-    source = BagSource(bag, rate=0.0)
+    source = BagSource(bag, rate=0.0, reader=read_images)
     source.open()
     frames = [source.read(1.0) for _ in range(3)]
     assert [f.stamp_ns for f in frames] == [1_000_000_000, 1_033_000_000, 1_066_000_000]
@@ -369,7 +370,7 @@ def test_bag_source_keeps_recorded_stamps_and_reads_compressed_images(tmp_path):
 
     compressed = tmp_path / "compressed"
     _write_compressed(compressed, images)
-    source = make_source("bag", path=compressed, rate=0.0, restamp=True, clock_ns=lambda: 42)
+    source = make_source("bag", path=compressed, reader=read_images, rate=0.0, restamp=True, clock_ns=lambda: 42)
     source.open()
     frame = source.read(1.0)
     assert frame.stamp_ns == 42 and frame.image.shape == (8, 10, 3)
@@ -394,7 +395,7 @@ def _write_compressed(path, images):
 
 def test_bag_source_missing_bag_and_unknown_kind_are_clear_errors(tmp_path):
     with pytest.raises(SourceError, match="bag not found"):
-        BagSource(tmp_path / "missing").open()
+        BagSource(tmp_path / "missing", reader=read_images).open()
     with pytest.raises(SourceError, match="unknown camera source 'usb'"):
         make_source("usb")
 

@@ -1,6 +1,6 @@
 """`touchroller bench [NAME ...] [--quick]`: run the benchmarks in the checkout's `bench/` folder.
 
-Each benchmark is a script `bench/<name>.py` that accepts `--quick` and records its figures under
+Each benchmark is a module `bench/<name>.py`, run as `python -m bench.<name>`, that accepts `--quick` and records its figures under
 `bench/results/` with the command that produced them; `--quick` runs write to `bench/results/quick/`
 (not committed) so they never replace full-run figures. Benchmarks measure time, so they are not
 tests; run them on a quiet machine.
@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from touchroller_bringup.errors import UserError
-from touchroller_bringup.paths import checkout_dir
+from touchroller_driver.paths import checkout_dir
 
 
 def bench_dir() -> Path:
@@ -26,7 +26,8 @@ def bench_dir() -> Path:
 
 
 def available() -> dict[str, Path]:
-    return {p.stem: p for p in sorted(bench_dir().glob("*.py")) if not p.stem.startswith("_")}
+    return {p.stem: p for p in sorted(bench_dir().glob("*.py"))
+            if not p.stem.startswith("_") and p.stem != "table_ii"}   # table_ii is a harness, not a bench
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"unknown benchmark {unknown[0]!r} (available: {', '.join(scripts)})")
     failed = []
     for name in args.names or list(scripts):
-        command = [sys.executable, str(scripts[name])] + (["--quick"] if args.quick else [])
+        command = [sys.executable, "-m", f"bench.{name}"] + (["--quick"] if args.quick else [])
         print(f"== {name}: {' '.join(command[1:])}", flush=True)
         start = time.perf_counter()
         result = subprocess.run(command, cwd=checkout_dir())

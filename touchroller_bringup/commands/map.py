@@ -171,7 +171,7 @@ def _make_stitcher(args: argparse.Namespace, camera, shape):
 
 
 def _load_camera(path: str | None):
-    from touchroller_bringup.paths import config_path
+    from touchroller_driver.paths import config_path
     from touchroller_perception.geometry import CameraModel
 
     explicit = path is not None

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from touchroller_bringup.paths import checkout_dir
+from touchroller_driver.paths import checkout_dir
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

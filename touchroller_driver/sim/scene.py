@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from touchroller_bringup.paths import config_path
+from touchroller_driver.paths import config_path
 from touchroller_perception.geometry import CameraModel
 
 #: Effects a scene may list; the contact geometry and the membrane shading are always rendered.

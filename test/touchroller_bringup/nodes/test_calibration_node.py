@@ -29,8 +29,8 @@ def graph(ros_context, presses, tmp_path):
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
 
-    from touchroller_perception.calibration_node import CAMERA_INFO_QOS, CAMERA_INFO_TOPIC, CalibrationNode
-    from touchroller_perception.perception_node import PerceptionNode
+    from touchroller_bringup.nodes.calibration_node import CAMERA_INFO_QOS, CAMERA_INFO_TOPIC, CalibrationNode
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
 
     truth = presses[0]
     start = truth.replace(theta=0.0, d=0.0)
@@ -65,7 +65,7 @@ def call(executor, spin_until, helper, name: str) -> object:
 
 
 def show(executor, spin_until, node, image_pub, frame) -> None:
-    from touchroller_driver.image_conversion import array_to_image
+    from touchroller_bringup.image_conversion import array_to_image
 
     assert spin_until(executor, lambda: image_pub.get_subscription_count() > 0, timeout=20)
     image_pub.publish(array_to_image(frame.image, frame.stamp_ns))

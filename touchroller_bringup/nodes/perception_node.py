@@ -39,10 +39,10 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32
 
+from touchroller_bringup.image_conversion import image_to_array
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, LagWindow, RateMeter, Status
 from touchroller_bringup.ros_params import GeometryParameters, declare
 from touchroller_bringup.ros_services import create_trigger_service
-from touchroller_driver.image_conversion import image_to_array
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
@@ -339,7 +339,7 @@ class PerceptionNode(Node):
                 self.get_logger().warning(f"map not available: {exc}", throttle_duration_sec=10.0)
                 return None
             self._map_dirty = False
-        from touchroller_driver.image_conversion import array_to_image
+        from touchroller_bringup.image_conversion import array_to_image
 
         if tactile_map.dtype != np.uint8:
             tactile_map = np.clip(tactile_map, 0, 255).astype(np.uint8)

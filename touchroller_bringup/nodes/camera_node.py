@@ -29,6 +29,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, Image
 
+from touchroller_bringup.bags import read_images
+from touchroller_bringup.image_conversion import fill_image
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
     OK,
@@ -46,7 +48,6 @@ from touchroller_driver.arm import (
     PoseFollower,
     simulated_arm_origin,
 )
-from touchroller_driver.image_conversion import fill_image
 from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
 from touchroller_perception.geometry import CameraModel
 
@@ -218,7 +219,7 @@ class CameraNode(Node):
                                clock_ns=clock_ns)
         if kind == "bag":
             return make_source("bag", path=param["bag_path"], topic=param["bag_topic"], rate=param["rate"],
-                               loop=param["loop"], clock_ns=clock_ns)
+                               loop=param["loop"], clock_ns=clock_ns, reader=read_images)
         if self._following():
             from touchroller_driver.sim import SimulatedSensor, load_scene  # lazy: heavy and optional
 

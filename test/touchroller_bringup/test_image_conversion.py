@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from touchroller_driver.image_conversion import (
+from touchroller_bringup.image_conversion import (
     ImageFormatError,
     array_to_image,
     compressed_to_array,

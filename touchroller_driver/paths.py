@@ -34,6 +34,3 @@ def checkout_dir() -> Path:
     """The source checkout this code runs from (holds bench/, docs/); meaningful only in a checkout."""
     return _CHECKOUT
 
-
-def launch_path(name: str) -> Path:
-    return share_dir() / "launch" / name

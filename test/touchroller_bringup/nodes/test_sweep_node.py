@@ -17,14 +17,14 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float32  # noqa: E402
 
-from touchroller_driver.arm import ArmLimits, SimulatedArm, SweepPhase  # noqa: E402
-from touchroller_driver.sweep_node import (  # noqa: E402
+from touchroller_bringup.nodes.sweep_node import (  # noqa: E402
     PROGRESS_TOPIC,
     TCP_POSE_TOPIC,
     SweepNode,
     rotation_vector_to_quaternion,
     trigger_service_type,
 )
+from touchroller_driver.arm import ArmLimits, SimulatedArm, SweepPhase  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
 

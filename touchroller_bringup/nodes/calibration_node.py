@@ -32,9 +32,9 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
+from touchroller_bringup.image_conversion import image_to_array
 from touchroller_bringup.ros_params import GeometryParameters, declare
 from touchroller_bringup.ros_services import create_trigger_service
-from touchroller_driver.image_conversion import image_to_array
 from touchroller_perception import calibration as cal
 from touchroller_perception.geometry import CameraModel
 

@@ -18,9 +18,9 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
+from touchroller_bringup.image_conversion import image_to_array  # noqa: E402
+from touchroller_bringup.nodes.camera_node import CAMERA_INFO_TOPIC, IMAGE_TOPIC, CameraNode  # noqa: E402
 from touchroller_bringup.ros_diagnostics import status_values  # noqa: E402
-from touchroller_driver.camera_node import CAMERA_INFO_TOPIC, IMAGE_TOPIC, CameraNode  # noqa: E402
-from touchroller_driver.image_conversion import image_to_array  # noqa: E402
 from touchroller_driver.sources import Frame, SourceStats  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -278,15 +278,15 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
     from std_msgs.msg import Float32
 
     from touchroller_bringup.graph import build_graph
+    from touchroller_bringup.nodes.sweep_node import PROGRESS_TOPIC, TCP_POSE_TOPIC, SweepNode
     from touchroller_bringup.ros_services import trigger_service_type
-    from touchroller_driver.sweep_node import PROGRESS_TOPIC, TCP_POSE_TOPIC, SweepNode
     from touchroller_perception.stitching import stitch
 
     length, speed = 0.01, 0.01                      # 1 cm in 1 s: ~30 frames, ~3 px of roll per frame
     graph = build_graph("scan", {"sweep_length": str(length), "sweep_speed": str(speed)})
     camera = CameraNode(context=ros_context, **graph.node("camera").node_kwargs())
     sweep = SweepNode(context=ros_context, **graph.node("sweep").node_kwargs()) if processes == 1 else None
-    sweep_process = start_node_process("touchroller_driver.sweep_node", graph.node("sweep")) if sweep is None else None
+    sweep_process = start_node_process("touchroller_bringup.nodes.sweep_node", graph.node("sweep")) if sweep is None else None
     listener = Listener(ros_context, qos=QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
     poses: list = []
     progress: list = []

@@ -13,8 +13,8 @@ pytestmark = pytest.mark.ros
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
+from touchroller_driver.sim.taps import TapRenderer  # noqa: E402
 from touchroller_perception.geometry import CameraModel  # noqa: E402
-from touchroller_perception.localisation import TapRenderer  # noqa: E402
 
 CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
 
@@ -24,8 +24,8 @@ def graph(ros_context):
     from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import Image
 
+    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, PerceptionNode
     from touchroller_bringup.ros_services import trigger_service_type
-    from touchroller_perception.perception_node import IMAGE_TOPIC, PerceptionNode
 
     overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
     overrides += [Parameter("reference.frames", value=3), Parameter("map.publish_rate", value=0.0)]
@@ -59,7 +59,7 @@ def send(executor, spin_until, node, publisher, msg) -> None:
 
 
 def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until):
-    from touchroller_driver.image_conversion import array_to_image
+    from touchroller_bringup.image_conversion import array_to_image
 
     node, executor, image_pub, recapture, received = graph
     renderer = TapRenderer(CAMERA, seed=1)
@@ -151,8 +151,8 @@ def test_tactile_map_is_published_latched(ros_context, spin_until):
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
-    from touchroller_driver.image_conversion import array_to_image, image_to_array
-    from touchroller_perception.perception_node import IMAGE_TOPIC, MAP_TOPIC, PerceptionNode
+    from touchroller_bringup.image_conversion import array_to_image, image_to_array
+    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, MAP_TOPIC, PerceptionNode
 
     overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
     overrides += [Parameter("reference.frames", value=2), Parameter("map.publish_rate", value=50.0)]
@@ -187,8 +187,8 @@ def test_tactile_map_is_published_latched(ros_context, spin_until):
 
 
 def test_a_busy_node_skips_stale_frames_and_counts_them(graph, spin_until):
-    from touchroller_driver.image_conversion import array_to_image
-    from touchroller_perception.perception_node import _has_message_info
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.nodes.perception_node import _has_message_info
 
     node, executor, image_pub, _, _ = graph
     assert spin_until(executor, lambda: image_pub.get_subscription_count() > 0, timeout=10.0)
@@ -208,7 +208,7 @@ def test_a_busy_node_skips_stale_frames_and_counts_them(graph, spin_until):
 def test_image_subscription_qos_defaults_and_overrides(ros_context, spin_until):
     from rclpy.qos import HistoryPolicy, ReliabilityPolicy
 
-    from touchroller_perception.perception_node import IMAGE_TOPIC, PerceptionNode
+    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, PerceptionNode
 
     prefix = f"qos_overrides.{IMAGE_TOPIC}.subscription"
     default = PerceptionNode("perception_default", context=ros_context,
@@ -246,8 +246,8 @@ def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until,
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float32
 
-    from touchroller_driver.image_conversion import array_to_image
-    from touchroller_perception.perception_node import IMAGE_TOPIC, PROGRESS_TOPIC, PerceptionNode
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, PROGRESS_TOPIC, PerceptionNode
 
     saved = tmp_path / "map.png"
     overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
@@ -319,7 +319,7 @@ def test_an_rmw_without_message_lost_still_subscribes_and_says_unknown(ros_conte
     from rclpy.event_handler import UnsupportedEventTypeError
     from rclpy.node import Node
 
-    from touchroller_perception.perception_node import IMAGE_TOPIC, PerceptionNode
+    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, PerceptionNode
 
     create = Node.create_subscription
 
