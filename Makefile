@@ -20,6 +20,7 @@ scan: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 
 test: $(STAMP) lint
 	$(VENV)/bin/python -m pytest

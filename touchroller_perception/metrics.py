@@ -169,7 +169,7 @@ def compare_to_truth(map_image: ArrayLike, truth: ArrayLike, *, valid: ArrayLike
     row, col, peak = _locate(core, t)
     # truth(y, x) ~ map(y - dy, x - dx)
     dy, dx = row - r0, col - c0
-    shift = np.float32([[1, 0, dx], [0, 1, dy]])
+    shift = np.array([[1, 0, dx], [0, 1, dy]], dtype=np.float32)
     size = (t.shape[1], t.shape[0])
     warped = cv2.warpAffine(m.astype(np.float32), shift, size, flags=cv2.INTER_LINEAR)
     inside = cv2.warpAffine(np.ones(m.shape, np.float32), shift, size, flags=cv2.INTER_LINEAR) > 0.999
