@@ -7,11 +7,13 @@ STAMP := $(VENV)/.installed
 
 setup: $(STAMP)
 
-# Re-install only when the pins or the package metadata change.
-$(STAMP): requirements.txt setup.py setup.cfg package.xml
+# Re-install only when the pins or the package metadata change. Message packages without a wheel
+# (tf2_msgs) are built from interfaces/ only when the venv cannot import them (a ROS install can).
+$(STAMP): requirements.txt setup.py setup.cfg package.xml $(wildcard interfaces/*/msg/*.msg)
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	@echo "Setting up $(VENV) (pinned versions from requirements.txt)..."
 	@$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.txt
+	@interfaces/build_missing.sh $(VENV)
 	@$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	@touch $(STAMP)
 
