@@ -137,7 +137,7 @@ def stages(bag: Path, frames: int = 300, repeats: int = 3) -> dict[str, float]:
     """Per-frame cost of each part of the command on frames already in memory (ms, best of repeats)."""
     from touchroller_bringup.bags import read_images
     from touchroller_perception.geometry import CameraModel
-    from touchroller_perception.stitching import Stitcher
+    from touchroller_perception.stitching import Stitcher, StitcherConfig
 
     camera = CameraModel.from_yaml(ROOT / "config" / "touchroller.yaml")
     records = []
@@ -147,7 +147,7 @@ def stages(bag: Path, frames: int = 300, repeats: int = 3) -> dict[str, float]:
             break
     best = {"band_ms": np.inf, "push_band_ms": np.inf, "finalise_png_ms": np.inf}
     for _ in range(repeats):
-        stitcher = Stitcher(camera=camera, live_map=False, history=1)
+        stitcher = Stitcher(StitcherConfig(live_map=False, history=1), camera=camera)
         start = time.perf_counter()
         bands = [stitcher.band(image) for _, image in records]
         best["band_ms"] = min(best["band_ms"], (time.perf_counter() - start) / len(records) * 1e3)

@@ -43,7 +43,7 @@ from touchroller_perception.metrics import (  # noqa: E402
     standardise,
     valid_box,
 )
-from touchroller_perception.stitching import Stitcher  # noqa: E402
+from touchroller_perception.stitching import Stitcher, StitcherConfig  # noqa: E402
 
 SPEEDS = {"slow": 15.0, "medium": 10.0, "fast": 5.0}  # the paper's three scan times (s)
 PAPER_TABLE_I = {"slow": (0.291, 15.09, 15.03), "medium": (0.305, 14.41, 16.43), "fast": (0.330, 15.59, 14.04)}
@@ -97,7 +97,7 @@ def simulate(duration: float, seed: int = 0, **overrides: Any) -> Roll:
 
 def stitch_roll(roll: Roll, method: str, settings: dict[str, Any], arm_prior: bool) -> tuple[Stitcher, float]:
     """Stitch frame by frame as the node/CLI do; returns the stitcher and the push time per frame (ms)."""
-    stitcher = Stitcher(method, camera=roll.camera, history=None, **settings)
+    stitcher = Stitcher(StitcherConfig(method=method, history=None, **settings), camera=roll.camera)
     px_per_m = 1e3 / roll.mm_per_px
     dt = np.diff(np.array(roll.stamps, dtype=np.float64), prepend=roll.stamps[0]) * 1e-9
     # the surface moves up the image (-v) as the roller travels forward

@@ -29,6 +29,7 @@ No rclpy here.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import statistics
 from collections import deque
@@ -230,7 +231,7 @@ def _to_grey(image: np.ndarray) -> np.ndarray:
     return grey
 
 
-class _BandSampler:
+class BandSampler:
     """Cuts the band out of a frame as float32 grey: a plain row crop, or a resampling of the membrane
     around the contact line onto a grid uniform in membrane y (rows) and x (columns)."""
 
@@ -299,7 +300,7 @@ def _highpass(image: np.ndarray, rows: int, cols: int) -> np.ndarray:
     return cv2.subtract(image, cv2.blur(image, (cols, rows), borderType=cv2.BORDER_REFLECT))
 
 
-def _taper(n: int) -> np.ndarray:
+def taper(n: int) -> np.ndarray:
     """Weights across the band: highest at the contact line, small but non-zero at the edges."""
     t = (np.arange(n) + 0.5) / n
     return (0.05 + np.sin(np.pi * t) ** 2).astype(np.float32)
@@ -331,30 +332,221 @@ def flat_field_from_mean(mean: np.ndarray, sigma_cols: float = 15.0) -> np.ndarr
     return mean * (smooth / profile)
 
 
+@dataclass(frozen=True)
+class StitcherConfig:
+    """How a `Stitcher` works; the perception node's `map.*` parameters map onto these fields.
+
+    method: "default" (subpixel keyframe registration) or "paper" (the paper's integer MAE search).
+    band_rows: rows of the band cut around the contact line (the paper: 70).
+    search: largest |shift| per frame searched, pixels (the paper: 25).
+    centre_row: without a camera model, the image row the band is centred on (None: the middle row).
+    rectify: with a camera model, resample the band to membrane coordinates (default method).
+    subpixel: subpixel registration and placement (default method).
+    keyframes: register against a keyframe (less drift) rather than the previous frame.
+    keyframe_overlap: a new keyframe is taken when the overlap with the current one drops below this.
+    motion_prior: predict each shift (the caller's prior, else the recent velocity) and search near it first.
+    local_search: half-width of that first search, pixels.
+    background: divide out a flat field (the band's mean over frames): what does not move with the surface.
+    lateral: also track a shift along the axis (u).
+    column_bin: columns averaged together for registration (speed; rows are never binned).
+    highpass: box size of the high-pass filter that removes residual shading before registration.
+    min_confidence: below this the motion prior is used instead of the image.
+    live_map: keep the flat-field correction of the map current frame by frame (for `map_image` while
+      stitching); an offline caller that calls `finalise()` at the end can turn it off and save time.
+    history: how many per-frame records (`steps`, `stamps`, `shifts`) to keep, the newest; None keeps
+      all (offline evaluation). Bounded by default so a live stitcher's memory grows only with the map.
+    """
+
+    method: str = "default"
+    band_rows: int = 70
+    search: int = 25
+    centre_row: float | None = None
+    rectify: bool = True
+    subpixel: bool = True
+    keyframes: bool = True
+    keyframe_overlap: float = 0.6
+    motion_prior: bool = True
+    local_search: int = 3
+    background: bool = True
+    lateral: bool = True
+    column_bin: int = 4
+    highpass: int = 9
+    min_confidence: float = 0.15
+    live_map: bool = True
+    history: int | None = DEFAULT_HISTORY
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"unknown stitching method {self.method!r}; choose from {', '.join(METHODS)}")
+        if self.band_rows < 8:
+            raise ValueError(f"band_rows must be >= 8, got {self.band_rows}")
+        if self.search < 1:
+            raise ValueError(f"search must be >= 1 pixel, got {self.search}")
+        if self.column_bin < 1:
+            raise ValueError(f"column_bin must be >= 1, got {self.column_bin}")
+        if self.highpass < 1 or self.local_search < 0:
+            raise ValueError(f"highpass must be >= 1 and local_search >= 0, got {self.highpass}, {self.local_search}")
+        if not 0.0 < self.keyframe_overlap < 1.0:
+            raise ValueError(f"keyframe_overlap must be in (0, 1), got {self.keyframe_overlap}")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+        if self.history is not None and self.history < 1:
+            raise ValueError(f"history must be >= 1 frame or None (all), got {self.history}")
+        if self.centre_row is not None and not math.isfinite(self.centre_row):
+            raise ValueError(f"centre_row must be finite or None, got {self.centre_row}")
+
+    def replace(self, **changes: Any) -> StitcherConfig:
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def shaded(self) -> bool:
+        """The map divides out a flat field (default method with a background model)."""
+        return self.method == "default" and self.background
+
+
+class FlatField:
+    """What does not move with the surface (gel background, LED shading, vignetting, dust): a static
+    gain on the band, estimated as the band's running mean over frames taken at different places
+    (`flat_field_from_mean`), or fixed (`fixed`, e.g. from `estimate_flat_field` over a recording).
+
+    Live, a field is offered only once the surface has moved two bands and ten frames were learnt
+    (before that the mean still holds texture), and recomputed every ten frames (cost)."""
+
+    def __init__(self, band_rows: int, fixed: np.ndarray | None = None, memory: int = _FLAT_FIELD_MEMORY) -> None:
+        self.band_rows = band_rows
+        self.fixed = None if fixed is None else np.asarray(fixed, np.float32)
+        self.memory = memory
+        self.count = 0  # frames in the running mean
+        self._sum: np.ndarray | None = None
+        self._field: np.ndarray | None = None  # the live field offered for flattening
+        self._dirty = 0  # frames added since it was computed
+        self._last_position = 0.0  # position of the last frame learnt
+        self._gain: np.ndarray | None = None  # level / field, for the field `_gain_of`
+        self._gain_of: np.ndarray | None = None
+        self.gain_level = 1.0  # mean grey level of `_gain_of`
+
+    def field(self, travel: float) -> np.ndarray | None:
+        """The field to flatten a band with now (None: not known yet)."""
+        if self.fixed is not None:
+            return self.fixed
+        if travel < 2 * self.band_rows or self.count < 10 or self._sum is None:
+            return None
+        if self._field is None or self._dirty >= 10:
+            self._field = flat_field_from_mean(self._sum / self.count)
+            self._dirty = 0
+        return self._field
+
+    def flatten(self, band: np.ndarray, travel: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """The band with the field divided out (scaled to the field's mean level), and the field used."""
+        field = self.field(travel)
+        if field is None:
+            return band, None
+        if self._gain_of is not field:  # the field changes every few frames at most
+            self.gain_level = float(field.mean())
+            self._gain, self._gain_of = self.gain_level / np.maximum(field, 1.0), field
+        return cv2.multiply(band, self._gain), field
+
+    def level(self, field: np.ndarray) -> float:
+        return self.gain_level if self._gain_of is field else float(field.mean())
+
+    def learn(self, band: np.ndarray, position: float) -> None:
+        """Add a frame to the running mean if the surface moved since the last one added: the mean of
+        frames at one place is the surface itself, not what stays still."""
+        if self.fixed is not None or abs(position - self._last_position) < _STILL_PX:
+            return
+        self._last_position = position
+        if self._sum is None:
+            self._sum = np.zeros_like(band)
+        if self.count >= self.memory:  # a running mean: follows slowly changing light
+            cv2.scaleAdd(self._sum, (self.memory - 1) / self.memory, band, dst=self._sum)
+        else:
+            cv2.add(self._sum, band, dst=self._sum)
+            self.count += 1
+        self._dirty += 1
+
+    def final(self) -> np.ndarray | None:
+        """The best field from everything learnt (None if nothing moved)."""
+        if self.fixed is not None:
+            return self.fixed
+        if self._sum is None or self.count == 0:
+            return None
+        return flat_field_from_mean(self._sum / self.count)
+
+
+class VelocityPredictor:
+    """The expected shift of the next frame: the caller's prior, else the recent velocity (the median of
+    the last confident shifts per nanosecond of stamp, so a dropped frame doubles the prediction and a
+    duplicated stamp predicts 0; per frame when stamps are unusable)."""
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self._per_ns: deque[float] = deque(maxlen=_VELOCITY_FRAMES)
+        self._per_frame: deque[float] = deque(maxlen=_VELOCITY_FRAMES)
+
+    def predict(self, dt: int | None, prior_px: float | None) -> float | None:
+        if not self.enabled:
+            return None
+        if prior_px is not None:
+            return float(prior_px)
+        if dt == 0:
+            return 0.0  # a duplicated frame (same stamp) has not moved
+        if dt is not None and dt > 0 and self._per_ns:
+            return _velocity(self._per_ns) * dt
+        return _velocity(self._per_frame) if self._per_frame else None
+
+    def update(self, shift: float, dt: int | None) -> None:
+        """A confident shift, `dt` ns after the previous frame."""
+        self._per_frame.append(shift)
+        if dt is not None and dt > 0:
+            self._per_ns.append(shift / dt)
+
+
+class PaperRegistration:
+    """The paper's method: the integer shift in [-search, search] minimising the mean absolute error to
+    the previous patch over the overlapping rows."""
+
+    def __init__(self, search: int) -> None:
+        self.search = search
+        self._previous: np.ndarray | None = None
+
+    def register(self, band: np.ndarray) -> tuple[float, float]:
+        """(shift, confidence) of `band` against the previous one; (0, 0) for the first."""
+        shift, confidence = 0.0, 0.0
+        if self._previous is not None:
+            costs = _sad_costs(band, self._previous, range(-self.search, self.search + 1), min_overlap=1)
+            best = int(np.nanargmin(costs))
+            shift = float(best - self.search)
+            confidence = _confidence(costs, best)
+        self._previous = band
+        return shift, confidence
+
+
+@dataclass
+class _Keyframe:
+    features: np.ndarray  # binned, high-passed (row registration)
+    full: np.ndarray  # the raw band (lateral registration)
+    energy: np.ndarray  # `_row_energy_cumsum(features)`
+    row: float  # map position (rows, columns) when it was taken
+    col: float
+
+
+@dataclass
+class _Pending:
+    """The latest frame before the roller first moved (see `Stitcher._place`)."""
+
+    band: np.ndarray
+    field: np.ndarray | None
+    row: float
+    col: float
+
+
 class Stitcher:
     """Incremental stitcher: `push` each frame, read `map_image()` whenever needed.
 
-    Keyword parameters:
-      band_rows: rows of the band cut around the contact line (the paper: 70).
-      search: largest |shift| per frame searched, pixels (the paper: 25).
-      camera: a `CameraModel`; locates the contact line, gives mm per pixel, and (with `rectify`)
-        resamples the band to membrane coordinates. Without it the band is centred on `centre_row`
-        (default: the image's middle row) and the scale is unknown.
-      subpixel: subpixel registration and placement (default method).
-      keyframes: register against a keyframe (less drift) rather than the previous frame.
-      keyframe_overlap: a new keyframe is taken when the overlap with the current one drops below this.
-      motion_prior: predict each shift (prior_px, else recent velocity) and search near it first.
-      local_search: half-width of that first search, pixels.
-      background: divide out a flat field (the band's mean over frames): what does not move with the
-        surface. `flat_field` passes one in (e.g. from `estimate_flat_field` over a whole recording).
-      lateral: also track a shift along the axis (u).
-      column_bin: columns averaged together for registration (speed; rows are never binned).
-      highpass: box size of the high-pass filter that removes residual shading before registration.
-      min_confidence: below this the motion prior is used instead of the image.
-      live_map: keep the flat-field correction of the map current frame by frame (for `map_image` while
-        stitching); an offline caller that calls `finalise()` at the end can turn it off and save time.
-      history: how many per-frame records (`steps`, `stamps`, `shifts`) to keep, the newest; None keeps
-        all (offline evaluation). Bounded by default so a live stitcher's memory grows only with the map.
+    `config` (a `StitcherConfig`) sets the method and its tuning. `camera` (a `CameraModel`) locates the
+    contact line, gives mm per pixel and (with `config.rectify`) resamples the band to membrane
+    coordinates; without it the band is centred on `config.centre_row` and the scale is unknown.
+    `flat_field` passes in a fixed flat field (e.g. `estimate_flat_field` over a whole recording).
 
     Standing still is not motion: frames before the roller first moves (an approach from above, a
     press) do not enter the map except the last one, frames that did not move do not enter the
@@ -362,86 +554,64 @@ class Stitcher:
     the frame (contact began or ended) is replaced rather than trusted.
     """
 
-    def __init__(self, method: str = "default", *, band_rows: int = 70, search: int = 25,
-                 camera: CameraModel | None = None, centre_row: float | None = None, rectify: bool = True,
-                 subpixel: bool = True, keyframes: bool = True, keyframe_overlap: float = 0.6,
-                 motion_prior: bool = True, local_search: int = 3, background: bool = True,
-                 flat_field: np.ndarray | None = None, lateral: bool = True, column_bin: int = 4,
-                 highpass: int = 9, min_confidence: float = 0.15, live_map: bool = True,
-                 history: int | None = DEFAULT_HISTORY) -> None:
-        if method not in METHODS:
-            raise ValueError(f"unknown stitching method {method!r}; choose from {', '.join(METHODS)}")
-        if search < 1:
-            raise ValueError(f"search must be >= 1 pixel, got {search}")
-        if column_bin < 1:
-            raise ValueError(f"column_bin must be >= 1, got {column_bin}")
-        if not 0.0 < keyframe_overlap < 1.0:
-            raise ValueError(f"keyframe_overlap must be in (0, 1), got {keyframe_overlap}")
-        if history is not None and history < 1:
-            raise ValueError(f"history must be >= 1 frame or None (all), got {history}")
-        self.method = method
-        self.band_rows = int(band_rows)
-        self.search = int(search)
+    def __init__(self, config: StitcherConfig | None = None, *, camera: CameraModel | None = None,
+                 flat_field: np.ndarray | None = None) -> None:
+        self.config = config = config or StitcherConfig()
         self.camera = camera
-        self.centre_row = centre_row
-        self.rectify = bool(rectify) and method == "default"
-        self.subpixel = bool(subpixel)
-        self.keyframes = bool(keyframes)
-        self.keyframe_overlap = float(keyframe_overlap)
-        self.motion_prior = bool(motion_prior)
-        self.local_search = max(2, int(local_search))
-        self.background = bool(background)
-        self.lateral = bool(lateral)
-        self.column_bin = int(column_bin)
-        self.highpass = int(highpass) | 1
-        self.min_confidence = float(min_confidence)
-        self.live_map = bool(live_map)
-        self.history = history
+        history = config.history
         # The newest `history` frames (all with None): a list offline, a ring buffer live.
         self.shifts: list[float] | deque[float] = [] if history is None else deque(maxlen=history)
         self.steps: list[StitchStep] | deque[StitchStep] = [] if history is None else deque(maxlen=history)
         self.stamps: list[int] | deque[int] = [] if history is None else deque(maxlen=history)
         self.frames = 0  # frames pushed, and how many of them took the motion prior
         self.prior_frames = 0
-        self._fixed_flat_field = None if flat_field is None else np.asarray(flat_field, np.float32)
+        self.flat = FlatField(config.band_rows, flat_field)
+        self.predictor = VelocityPredictor(config.motion_prior)
+        self.paper = PaperRegistration(config.search)
         self._shape: tuple[int, int] | None = None
-        self._sampler: _BandSampler | None = None
+        self._sampler: BandSampler | None = None
         self._canvas: _Canvas | None = None
-        self._weights: np.ndarray | None = None
+        self._weights = taper(config.band_rows)
+        self._column_weights: np.ndarray | None = None
         self._position = 0.0  # cumulative row shift
         self._lateral_pos = 0.0  # cumulative column shift
         self._last_stamp: int | None = None
-        # Recent confident shifts per nanosecond of stamp and per frame; their median is the velocity,
-        # so one bad registration does not steer the prediction.
-        self._recent_ns: deque[float] = deque(maxlen=_VELOCITY_FRAMES)
-        self._recent_frame: deque[float] = deque(maxlen=_VELOCITY_FRAMES)
-        self._prev: np.ndarray | None = None  # paper: the previous patch
-        self._key: np.ndarray | None = None  # default: keyframe features (binned) and full resolution
-        self._key_full: np.ndarray | None = None
-        self._key_energy: np.ndarray | None = None
-        self._key_pos = (0.0, 0.0)
-        self._flat_sum: np.ndarray | None = None  # live flat field: running sum and count
-        self._flat_count = 0
-        self._flat_field: np.ndarray | None = None
-        self._level = 1.0  # the flat field's mean grey level
-        self._gain: np.ndarray | None = None  # level / flat field, and the field it was made from
-        self._gain_of: np.ndarray | None = None
-        self._field_level = 1.0
-        self._weighted_field: np.ndarray | None = None  # weights x the flat field in use (map layer 1)
-        self._weighted_field_of: np.ndarray | None = None  # ... and the field it was made from
-        self._flat_dirty = 0  # frames added to the running sum since the field was last computed
-        self._flat_row = 0.0  # position of the last frame added to it
+        self._key: _Keyframe | None = None
+        self._level = 1.0  # the map's flat-field level (its mean grey)
+        self._weighted_field: tuple[np.ndarray, np.ndarray] | None = None  # (field, weights x field)
         self._moved = False  # has the roller moved since the first frame?
-        self._pending: tuple[np.ndarray, np.ndarray | None, float, float] | None = None  # latest still frame
+        self._pending: _Pending | None = None
         self._splat_row = 0.0  # position of the last band added to the map
         self._travel = 0.0
         self._typical_energy: float | None = None  # mean |feature| while tracking confidently
 
     # -- public ------------------------------------------------------------------------------------
     @property
+    def method(self) -> str:
+        return self.config.method
+
+    @property
+    def band_rows(self) -> int:
+        return self.config.band_rows
+
+    @property
+    def history(self) -> int | None:
+        return self.config.history
+
+    @property
     def position_px(self) -> float:
         """Cumulative shift since the first frame (the last step's `position_px`)."""
         return self._position
+
+    @property
+    def lateral_px(self) -> float:
+        """Cumulative shift along the axis since the first frame."""
+        return self._lateral_pos
+
+    @property
+    def sampler(self) -> BandSampler | None:
+        """How bands are cut (None before the first frame)."""
+        return self._sampler
 
     @property
     def mm_per_px(self) -> float | None:
@@ -452,7 +622,7 @@ class Stitcher:
         """Map rows per metre of rolled surface: multiply an arm speed (m/s) by the frame interval (s)
         and this to get `prior_px`. None without a camera model."""
         if self._sampler is None and image_shape is not None:
-            self._setup(tuple(image_shape[:2]))
+            self.setup((int(image_shape[0]), int(image_shape[1])))
         if self._sampler is None or self._sampler.mm_per_px is None:
             return None
         return 1e3 / self._sampler.mm_per_px
@@ -464,11 +634,12 @@ class Stitcher:
             raise ValueError(f"expected a non-empty image, got shape {image.shape}")
         if image.dtype.kind == "f" and not np.isfinite(image).all():
             raise ValueError("the image has non-finite pixel values")
-        shape = tuple(image.shape[:2])
-        if self._shape is None:
-            self._setup(shape)
+        shape = (int(image.shape[0]), int(image.shape[1]))
+        if self._sampler is None:
+            self.setup(shape)
         elif shape != self._shape:
             raise ValueError(f"frame size changed from {self._shape} to {shape}")
+        assert self._sampler is not None
         return self._sampler(image)
 
     def push(self, image: np.ndarray, stamp_ns: int, prior_px: float | None = None) -> StitchStep:
@@ -480,15 +651,16 @@ class Stitcher:
 
     def push_band(self, band: np.ndarray, stamp_ns: int, prior_px: float | None = None) -> StitchStep:
         """`push` for a band already cut with `band()` (lets a caller make two passes over a recording)."""
-        if self._sampler is None:
+        sampler = self._sampler
+        if sampler is None:
             raise ValueError("call band() or push() with a full frame first")
-        if band.shape != (self._sampler.rows, self._sampler.cols):
-            raise ValueError(f"band shape {band.shape} differs from {(self._sampler.rows, self._sampler.cols)}")
+        if band.shape != (sampler.rows, sampler.cols):
+            raise ValueError(f"band shape {band.shape} differs from {(sampler.rows, sampler.cols)}")
         if prior_px is not None and not math.isfinite(prior_px):
             prior_px = None
         stamp_ns = int(stamp_ns)
         dt = None if self._last_stamp is None else stamp_ns - self._last_stamp
-        if self.method == "paper":
+        if self.config.method == "paper":
             step = self._push_paper(band)
         else:
             step = self._push_default(band, dt, prior_px)
@@ -502,17 +674,16 @@ class Stitcher:
 
     def map_image(self, mm_per_px: float | None = None) -> np.ndarray:
         """The map so far as uint8 grey at camera pixel scale, or resampled to `mm_per_px` (needs a camera)."""
-        if self._canvas is None:
+        if self._canvas is None or self._sampler is None:
             return np.zeros((0, 0), np.uint8)
-        shaded = self.method == "default" and self.background
-        image = self._map_canvas().image(self._level if shaded else None)
+        image = self._map_canvas().image(self._level if self.config.shaded else None)
         if mm_per_px is None:
             return image
         if not (mm_per_px > 0 and math.isfinite(mm_per_px)):
             raise ValueError(f"mm_per_px must be a positive number, got {mm_per_px}")
-        if self._sampler.mm_per_px is None:
-            raise ValueError("a metric map needs a camera model (geometry) to know mm per pixel")
         row_mm, col_mm = self._sampler.mm_per_px, self._sampler.mm_per_px_cols
+        if row_mm is None or col_mm is None:
+            raise ValueError("a metric map needs a camera model (geometry) to know mm per pixel")
         h, w = image.shape
         size = (max(1, round(w * col_mm / mm_per_px)), max(1, round(h * row_mm / mm_per_px)))
         shrink = row_mm < mm_per_px
@@ -526,183 +697,127 @@ class Stitcher:
 
     def _map_canvas(self) -> _Canvas:
         """The map's canvas; before the roller first moved, one holding just the latest frame."""
+        assert self._canvas is not None
         if self._pending is None:
             return self._canvas
-        canvas = _Canvas(self._canvas.layers[0].shape[1], layers=len(self._canvas.layers), rows=4 * self.band_rows)
-        self._splat(canvas, *self._pending)
+        canvas = _Canvas(self._canvas.layers[0].shape[1], layers=len(self._canvas.layers),
+                         rows=4 * self.config.band_rows)
+        self._splat(canvas, self._pending)
         return canvas
 
     # -- setup -------------------------------------------------------------------------------------
-    def _setup(self, shape: tuple[int, int]) -> None:
-        rows = self.band_rows
-        if self.method == "paper":  # the paper crops the image centre; a camera only gives the scale
-            sampler = _BandSampler(shape, rows, None, self.centre_row, False)
+    def setup(self, shape: tuple[int, int]) -> None:
+        """Prepare for frames of `shape` (rows, columns); `band()` does it on the first frame."""
+        config = self.config
+        rows = config.band_rows
+        if config.method == "paper":  # the paper crops the image centre; a camera only gives the scale
+            sampler = BandSampler(shape, rows, None, config.centre_row, False)
             if self.camera is not None:
-                scaled = _BandSampler(shape, rows, self.camera, None, False)
+                scaled = BandSampler(shape, rows, self.camera, None, False)
                 sampler.mm_per_px, sampler.mm_per_px_cols = scaled.mm_per_px, scaled.mm_per_px_cols
         else:
-            sampler = _BandSampler(shape, rows, self.camera, self.centre_row, self.rectify)
-        if self._fixed_flat_field is not None and self._fixed_flat_field.shape != (rows, shape[1]):
-            raise ValueError(f"flat_field shape {self._fixed_flat_field.shape} differs from the band's "
-                             f"{(rows, shape[1])}")
+            sampler = BandSampler(shape, rows, self.camera, config.centre_row, config.rectify)
+        fixed = self.flat.fixed
+        if fixed is not None and fixed.shape != (rows, shape[1]):
+            raise ValueError(f"flat_field shape {fixed.shape} differs from the band's {(rows, shape[1])}")
         self._shape = shape
         self._sampler = sampler
-        self._canvas = _Canvas(shape[1], layers=2 if self.background and self.method == "default" else 1)
-        self._weights = _taper(rows)
+        self._canvas = _Canvas(shape[1], layers=2 if config.shaded else 1)
         self._column_weights = np.ascontiguousarray(np.repeat(self._weights[:, None], shape[1], axis=1))
 
     # -- the paper's method ------------------------------------------------------------------------
     def _push_paper(self, band: np.ndarray) -> StitchStep:
-        shift, confidence = 0.0, 0.0
-        if self._prev is not None:
-            costs = _sad_costs(band, self._prev, range(-self.search, self.search + 1), min_overlap=1)
-            best = int(np.nanargmin(costs))
-            shift = float(best - self.search)
-            confidence = _confidence(costs, best)
+        assert self._canvas is not None and self._sampler is not None
+        shift, confidence = self.paper.register(band)
         self._position += shift
-        self._prev = band
         self._canvas.paste(band, round(self._sampler.row0 - self._position), 0)
         return StitchStep(shift, confidence, False, 0.0, self._position)
 
     # -- the default method ------------------------------------------------------------------------
-    def _flatten(self, band: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """Divide out what does not move with the surface (multiplicative shading, dust).
-
-        Returns the flattened band and the flat field used (None while there is none yet)."""
-        if not self.background:
-            return band, None
-        field = self._fixed_flat_field
-        if field is None:
-            # Until the texture has moved well past the band, the mean still holds texture.
-            if self._travel < 2 * self.band_rows or self._flat_count < 10:
-                return band, None
-            if self._flat_field is None or self._flat_dirty >= 10:  # refreshed every few frames (cost)
-                self._flat_field = flat_field_from_mean(self._flat_sum / self._flat_count)
-                self._flat_dirty = 0
-            field = self._flat_field
-        if self._gain_of is not field:  # the field changes every few frames at most
-            self._field_level = float(field.mean())
-            self._gain, self._gain_of = self._field_level / np.maximum(field, 1.0), field
-        return cv2.multiply(band, self._gain), field
-
-    def _learn_background(self, band: np.ndarray) -> None:
-        """Add a frame to the running mean of the live flat field, if the surface moved since the last
-        one added: the mean of frames at one place is the surface itself, not what stays still."""
-        if not self.background or self._fixed_flat_field is not None:
-            return
-        if abs(self._position - self._flat_row) < _STILL_PX:
-            return
-        self._flat_row = self._position
-        if self._flat_sum is None:
-            self._flat_sum = np.zeros_like(band)
-        if self._flat_count >= _FLAT_FIELD_MEMORY:  # a running mean: follows slowly changing light
-            cv2.scaleAdd(self._flat_sum, (_FLAT_FIELD_MEMORY - 1) / _FLAT_FIELD_MEMORY, band, dst=self._flat_sum)
-        else:
-            cv2.add(self._flat_sum, band, dst=self._flat_sum)
-            self._flat_count += 1
-        self._flat_dirty += 1
-
-    def _current_flat_field(self) -> np.ndarray | None:
-        if self._fixed_flat_field is not None:
-            return self._fixed_flat_field
-        if self._flat_count == 0:
-            return None
-        return flat_field_from_mean(self._flat_sum / self._flat_count)
-
     def finalise(self) -> None:
         """Re-weight the map with the final flat field (offline, after the last frame): the map is
         sum(w * band) / sum(w * field) at each pixel, so early frames, stitched before the field was
         known, are corrected exactly. One patch per map row where bands landed (not per frame); the
         live map skips it. Needs no per-frame history, so it works with a bounded `history`."""
-        if self.method != "default" or not self.background or self._canvas is None:
+        canvas = self._canvas
+        if not self.config.shaded or canvas is None or self._shape is None or self._column_weights is None:
             return
         if self._pending is not None:  # the roller never moved: the map is the last frame
-            self._splat(self._canvas, *self._pending)
+            self._splat(canvas, self._pending)
             self._pending, self._moved = None, True
-        field = self._current_flat_field()
+        field = self.flat.final()
         if field is None:  # nothing moved: nothing tells the static part from the surface
-            if self.live_map:
+            if self.config.live_map:
                 return  # the live layer already holds a flat guess per band
-            level = float(self._canvas.image().mean())  # layer 0 / row weight: the bands' mean grey
-            field = np.full((self.band_rows, self._shape[1]), max(level, 1.0), np.float32)
-        self._canvas.refill(1, field * self._column_weights)
+            level = float(canvas.image().mean())  # layer 0 / row weight: the bands' mean grey
+            field = np.full((self.config.band_rows, self._shape[1]), max(level, 1.0), np.float32)
+        canvas.refill(1, field * self._column_weights)
         self._level = float(field.mean())
 
     def _bin(self, image: np.ndarray) -> np.ndarray:
         """Columns averaged in groups of `column_bin` (rows untouched)."""
-        if self.column_bin == 1:
+        bin_ = self.config.column_bin
+        if bin_ == 1:
             return image
-        w = image.shape[1] // self.column_bin
-        return cv2.resize(image[:, :w * self.column_bin], (w, image.shape[0]), interpolation=cv2.INTER_AREA)
+        w = image.shape[1] // bin_
+        return cv2.resize(image[:, :w * bin_], (w, image.shape[0]), interpolation=cv2.INTER_AREA)
 
-    def _predict(self, dt: int | None, prior_px: float | None) -> float | None:
-        """Expected shift of this frame: the caller's prior, else recent velocity times the frame interval."""
-        if not self.motion_prior:
-            return None
-        if prior_px is not None:
-            return float(prior_px)
-        if dt == 0:
-            return 0.0  # a duplicated frame (same stamp) has not moved
-        if dt is not None and dt > 0 and self._recent_ns:
-            return _velocity(self._recent_ns) * dt  # a dropped frame doubles dt and the prediction
-        return _velocity(self._recent_frame) if self._recent_frame else None
+    def _features(self, band: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """(registration features, flat field used, raw band): the flattened band, columns binned,
+        high-passed (residual shading off)."""
+        flat, field = self.flat.flatten(band, self._travel) if self.config.background else (band, None)
+        highpass = self.config.highpass | 1
+        feats = _highpass(self._bin(flat), highpass, max(1, highpass // self.config.column_bin) | 1)
+        return feats, field, band
 
     def _push_default(self, band: np.ndarray, dt: int | None, prior_px: float | None) -> StitchStep:
-        # Registration features: the flattened band, columns binned, high-passed (residual shading off).
         # Lateral shifts are read from the raw band: the flat field keeps a little texture, which would
         # hold a column profile in place, and its smooth shading is high-passed away in 1-D.
-        full = band
-        flat, field = self._flatten(band)
-        feats = _highpass(self._bin(flat), self.highpass, max(1, self.highpass // self.column_bin) | 1)
+        config = self.config
+        feats, field, full = self._features(band)
         energy = float(cv2.norm(feats, cv2.NORM_L1)) / feats.size
-        if self._key is None:
-            self._key, self._key_full, self._key_energy = feats, full, _row_energy_cumsum(feats)
-            self._key_pos = (self._position, self._lateral_pos)
+        key = self._key
+        if key is None:
+            self._key = _Keyframe(feats, full, _row_energy_cumsum(feats), self._position, self._lateral_pos)
             self._place(band, field, True)
             return StitchStep(0.0, 0.0, False, 0.0, self._position)
-        predicted = self._predict(dt, prior_px)
-        key_row, key_col = self._key_pos
-        pred_rel = None if predicted is None else self._position + predicted - key_row
-        rel, confidence, cost = self._register(feats, self._key, pred_rel, self._position - key_row)
-        lat = self._lateral_pos - key_col
-        if self.lateral and rel is not None:
-            lat = _lateral_shift(full, self._key_full, rel, lat, self.highpass)
+        predicted = self.predictor.predict(dt, prior_px)
+        pred_rel = None if predicted is None else self._position + predicted - key.row
+        rel, confidence, cost = self._register(feats, key, pred_rel, self._position - key.row)
+        lat = self._lateral_pos - key.col
+        if config.lateral and rel is not None:
+            lat = _lateral_shift(full, key.full, rel, lat, config.highpass | 1)
         if self._typical_energy is not None:  # far less texture than usual: a textureless stretch
             confidence *= min(1.0, energy / (_TEXTURELESS_FRACTION * self._typical_energy))
         # A key that matches this frame this badly shows something else (a no-contact band before the
         # roller touched, a jump): its shift means nothing, and the frame becomes the new key below.
-        confident = rel is not None and confidence >= self.min_confidence and cost <= _MISMATCH_COST
-        if confident and predicted is not None and abs(predicted) >= 1.0 and (
+        confident = rel is not None and confidence >= config.min_confidence and cost <= _MISMATCH_COST
+        if confident and rel is not None and predicted is not None and abs(predicted) >= 1.0 and (
                 prior_px is not None or confidence < _WEAK_CONFIDENCE):
             # The arm (or, on a weak match, the recent velocity) says we roll but the image says we
             # stand still: the image sees only what does not move with the surface (a textureless
             # stretch over a dusty gel). Believe the motion. A real stop decelerates over frames.
-            image_shift = key_row + rel - self._position
+            image_shift = key.row + rel - self._position
             confident = abs(image_shift) >= _STATIC_FRACTION * abs(predicted)
-        if not confident:  # trust the motion prior, or stand still when there is none
-            rel = self._position + (predicted or 0.0) - key_row
-            lat = self._lateral_pos - key_col
-        shift = key_row + rel - self._position
-        lateral = key_col + lat - self._lateral_pos if self.lateral else 0.0
+        if not confident or rel is None:  # trust the motion prior, or stand still when there is none
+            rel = self._position + (predicted or 0.0) - key.row
+            lat = self._lateral_pos - key.col
+        shift = key.row + rel - self._position
+        lateral = key.col + lat - self._lateral_pos if config.lateral else 0.0
         self._position += shift
         self._lateral_pos += lateral
         self._travel += abs(shift)
         if confident:
-            self._update_velocity(shift, dt)
+            self.predictor.update(shift, dt)
             self._typical_energy = energy if self._typical_energy is None else (
                 0.9 * self._typical_energy + 0.1 * energy)
         self._place(band, field, confident)
-        self._learn_background(band)
-        overlap = 1.0 - abs(rel) / self.band_rows
-        if not self.keyframes or overlap < self.keyframe_overlap or not confident:
-            self._key, self._key_full, self._key_energy = feats, full, _row_energy_cumsum(feats)
-            self._key_pos = (self._position, self._lateral_pos)
+        if config.background:
+            self.flat.learn(band, self._position)
+        overlap = 1.0 - abs(rel) / config.band_rows
+        if not config.keyframes or overlap < config.keyframe_overlap or not confident:
+            self._key = _Keyframe(feats, full, _row_energy_cumsum(feats), self._position, self._lateral_pos)
         return StitchStep(shift, confidence, not confident and predicted is not None, lateral, self._position)
-
-    def _update_velocity(self, shift: float, dt: int | None) -> None:
-        self._recent_frame.append(shift)
-        if dt is not None and dt > 0:
-            self._recent_ns.append(shift / dt)
 
     def _place(self, band: np.ndarray, field: np.ndarray | None, confident: bool) -> None:
         """Add the band to the map at the current position, unless it adds nothing.
@@ -710,71 +825,76 @@ class Stitcher:
         Until the roller first moves, only the latest frame is kept (pending): a lead-in of frames
         standing still, touching nothing or being pressed, would otherwise all land on the first rows.
         Later, a frame that registered nothing and did not move (lifted off at the end) is left out."""
+        assert self._canvas is not None
+        here = _Pending(band, field, self._position, self._lateral_pos)
         if not self._moved:
             if abs(self._position) < _STILL_PX:
-                self._pending = (band, field, self._position, self._lateral_pos)
+                self._pending = here
                 return
             self._moved = True
             if self._pending is not None:
-                self._splat(self._canvas, *self._pending)
+                self._splat(self._canvas, self._pending)
                 self._pending = None
         elif not confident and abs(self._position - self._splat_row) < _STILL_PX:
             return
-        self._splat(self._canvas, band, field, self._position, self._lateral_pos)
+        self._splat(self._canvas, here)
         self._splat_row = self._position
 
-    def _splat(self, canvas: _Canvas, band: np.ndarray, field: np.ndarray | None, position: float,
-               lateral: float) -> None:
+    def _splat(self, canvas: _Canvas, frame: _Pending) -> None:
         """Accumulate the raw band; with a background model also the flat field at the same place, so
         the map is sum(w * band) / sum(w * field): the static gain divides out pixel by pixel."""
-        top, left = self._sampler.row0 - position, -lateral
+        assert self._sampler is not None and self._column_weights is not None
+        band, field = frame.band, frame.field
+        top, left = self._sampler.row0 - frame.row, -frame.col
+        subpixel = self.config.subpixel
         weighted_band = cv2.multiply(band, self._column_weights)
-        if not self.background:
-            canvas.add((weighted_band,), self._weights, top, left, subpixel=self.subpixel)
+        if not self.config.shaded:
+            canvas.add((weighted_band,), self._weights, top, left, subpixel=subpixel)
             return
-        if not self.live_map:  # finalise() fills the flat-field layer
-            canvas.add((weighted_band, None), self._weights, top, left, subpixel=self.subpixel)
+        if not self.config.live_map:  # finalise() fills the flat-field layer
+            canvas.add((weighted_band, None), self._weights, top, left, subpixel=subpixel)
             return
         if field is None:  # not known yet: a flat guess, corrected by finalise()
-            field = np.full_like(band, float(band.mean()))
-            weighted_field = field * self._column_weights
+            weighted_field = np.full_like(band, float(band.mean())) * self._column_weights
         else:
-            if self._weighted_field_of is not field:
-                self._weighted_field, self._weighted_field_of = field * self._column_weights, field
-            weighted_field = self._weighted_field
-        canvas.add((weighted_band, weighted_field), self._weights, top, left, subpixel=self.subpixel)
-        self._level = self._field_level if self._gain_of is field else float(field.mean())
+            if self._weighted_field is None or self._weighted_field[0] is not field:
+                self._weighted_field = (field, field * self._column_weights)
+            weighted_field = self._weighted_field[1]
+        canvas.add((weighted_band, weighted_field), self._weights, top, left, subpixel=subpixel)
+        self._level = float(band.mean()) if field is None else self.flat.level(field)
 
-    def _register(self, feats: np.ndarray, key: np.ndarray, predicted: float | None,
+    def _register(self, feats: np.ndarray, key: _Keyframe, predicted: float | None,
                   current: float) -> tuple[float | None, float, float]:
         """Row shift of `feats` relative to `key`, a confidence, and the cost (1 - NCC) there.
 
         `predicted` is the expected shift relative to the key (None: unknown), `current` the previous
         frame's shift relative to the key; the wide search covers current ± search.
         """
+        config = self.config
         h = feats.shape[0]
         max_rel = int(h * 0.75)  # keep at least a quarter of the band overlapping
         if predicted is not None and abs(predicted) > max_rel:
             # The prediction leaves no overlap with the key (a long gap in the stream, e.g. a camera
             # stall): any match found would be a coincidence, mostly a wrong period of the weave.
             return None, 0.0, math.inf
-        wide = np.arange(max(round(current) - self.search, -max_rel), min(round(current) + self.search, max_rel) + 1)
+        wide = np.arange(max(round(current) - config.search, -max_rel),
+                         min(round(current) + config.search, max_rel) + 1)
         local = wide
         if predicted is not None:
             centre = round(predicted)
-            local = np.arange(max(centre - self.local_search, -max_rel), min(centre + self.local_search, max_rel) + 1)
-        key_sq = self._key_energy if key is self._key else None
-        candidates, costs, best = _search(feats, key, local, key_sq)
+            half = max(2, config.local_search)
+            local = np.arange(max(centre - half, -max_rel), min(centre + half, max_rel) + 1)
+        candidates, costs, best = _search(feats, key.features, local, key.energy)
         if local is not wide and (best < 0 or best in (0, len(costs) - 1)
-                                  or _confidence(costs, best) < self.min_confidence):
+                                  or _confidence(costs, best) < config.min_confidence):
             # The prediction was off (speed change, a dropped frame): search the whole range.
-            candidates, costs, best = _search(feats, key, wide, key_sq)
+            candidates, costs, best = _search(feats, key.features, wide, key.energy)
         if best < 0:
             return None, 0.0, math.inf
         confidence = _confidence(costs, best)
         rel = float(candidates[best])
-        if self.subpixel:
-            rel = _lucas_kanade_rows(feats, key, rel + _parabola(costs, best))
+        if config.subpixel:
+            rel = _lucas_kanade_rows(feats, key.features, rel + _parabola(costs, best))
         return rel, confidence, float(costs[best])
 
 
@@ -930,36 +1050,34 @@ def _lateral_shift(cur: np.ndarray, key: np.ndarray, rel: float, guess: float, h
     return lat
 
 
-def stitch(images: Iterable[np.ndarray], method: str = "default", *, stamps: Sequence[int] | None = None,
-           priors: Sequence[float | None] | None = None, two_pass: bool = True,
-           **kwargs: Any) -> tuple[np.ndarray, list[StitchStep]]:
+def stitch(images: Iterable[np.ndarray], config: StitcherConfig | None = None, *,
+           camera: CameraModel | None = None, stamps: Sequence[int] | None = None,
+           priors: Sequence[float | None] | None = None, two_pass: bool = True) -> tuple[np.ndarray, list[StitchStep]]:
     """Stitch a sequence of frames; returns (uint8 map, one StitchStep per frame).
 
     Without `stamps` frames are taken as 30 fps. With `two_pass` (default method, background on) the
     flat field is estimated from all frames first, as an offline tool can; a recording too short for
-    the texture to average out of it is stitched with the live estimate instead. Keywords go to `Stitcher`.
+    the texture to average out of it is stitched with the live estimate instead. Every frame's
+    StitchStep is kept whatever `config.history` says.
     """
-    kwargs.setdefault("history", None)  # one StitchStep per frame, however long the recording
-    probe = Stitcher(method, **kwargs)
+    config = (config or StitcherConfig()).replace(history=None)
+    probe = Stitcher(config, camera=camera)
     bands = [probe.band(image) for image in images]
-    if not bands:
+    if not bands or probe._shape is None:
         return probe.map_image(), []
+    shape = probe._shape
 
     def run(flat_field: np.ndarray | None) -> Stitcher:
-        stitcher = Stitcher(method, **kwargs)
-        stitcher._setup(probe._shape)
-        if flat_field is not None:
-            stitcher._fixed_flat_field = flat_field
+        stitcher = Stitcher(config, camera=camera, flat_field=flat_field)
+        stitcher.setup(shape)
         for i, band in enumerate(bands):
             stamp = stamps[i] if stamps is not None else i * DEFAULT_FRAME_NS
             stitcher.push_band(band, stamp, priors[i] if priors is not None else None)
         return stitcher
 
-    flat = None
-    if two_pass and method == "default" and probe.background and kwargs.get("flat_field") is None:
-        flat = estimate_flat_field(bands)
+    flat = estimate_flat_field(bands) if two_pass and config.shaded else None
     stitcher = run(flat)
-    if flat is not None and abs(stitcher._position) < 2 * stitcher.band_rows:
+    if flat is not None and abs(stitcher.position_px) < 2 * config.band_rows:
         stitcher = run(None)
     stitcher.finalise()
     return stitcher.map_image(), list(stitcher.steps)

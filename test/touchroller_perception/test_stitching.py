@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.metrics import compare_to_truth
-from touchroller_perception.stitching import Stitcher, StitchStep, stitch
+from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, stitch
 
 SHAPE = (240, 320)
 BAND = (80, 160)  # image rows where the roller touches the surface
@@ -81,7 +81,7 @@ def estimated(steps: list[StitchStep]) -> np.ndarray:
 @pytest.mark.parametrize("speed", [0.4, 1.7, -2.3, 6.6])
 def test_default_tracks_subpixel_speeds_in_both_directions(speed):
     frames, pos, _ = roll(np.full(60, speed))
-    _, steps = stitch(frames, "default")
+    _, steps = stitch(frames)
     assert len(steps) == len(frames)
     assert np.max(np.abs(estimated(steps) - pos)) < 0.5
     total = steps[-1].position_px
@@ -90,7 +90,7 @@ def test_default_tracks_subpixel_speeds_in_both_directions(speed):
 
 def test_paper_method_rounds_slow_rolls_to_integer_shifts():
     frames, pos, _ = roll(np.full(40, 0.4))
-    _, steps = stitch(frames, "paper")
+    _, steps = stitch(frames, StitcherConfig(method="paper"))
     shifts = np.array([s.shift_px for s in steps])
     assert np.all(shifts == np.round(shifts))
     assert abs(steps[-1].position_px) < 0.5 * pos[-1]  # rounding eats most of a sub-pixel roll
@@ -98,7 +98,7 @@ def test_paper_method_rounds_slow_rolls_to_integer_shifts():
 
 def test_paper_method_finds_integer_shifts():
     frames, pos, _ = roll(np.full(20, -3.0))
-    _, steps = stitch(frames, "paper")
+    _, steps = stitch(frames, StitcherConfig(method="paper"))
     assert [s.shift_px for s in steps[1:]] == [-3.0] * 20
 
 
@@ -106,7 +106,7 @@ def test_paper_method_finds_integer_shifts():
 @given(speed=st.floats(0.3, 9.0), sign=st.sampled_from([-1, 1]), seed=st.integers(0, 50))
 def test_default_length_error_below_one_percent(speed, sign, seed):
     frames, pos, _ = roll(np.full(max(30, math.ceil(150 / speed)), sign * speed), seed=seed, blur=True)
-    _, steps = stitch(frames, "default")
+    _, steps = stitch(frames)
     assert abs(steps[-1].position_px - pos[-1]) <= 0.01 * abs(pos[-1]) + 0.2
 
 
@@ -121,7 +121,7 @@ def test_speed_change_dropped_and_duplicated_frames():
     images.insert(11, frames[10])
     times.insert(11, 10 * FRAME_NS)
     truth.insert(11, pos[10])
-    _, steps = stitch(images, "default", stamps=times)
+    _, steps = stitch(images, stamps=times)
     assert np.max(np.abs(estimated(steps) - np.array(truth))) < 0.5
     assert abs(steps[11].shift_px) < 0.2  # the duplicate did not move
     assert not any(s.used_prior for s in steps)
@@ -140,7 +140,7 @@ def test_textureless_stretch_falls_back_on_prior_and_flags_it():
 
 def test_textureless_without_prior_uses_recent_velocity():
     frames, pos, _ = roll(np.full(60, 2.5), flat_rows=(-40, 140), noise=1.0)
-    _, steps = stitch(frames, "default")
+    _, steps = stitch(frames)
     flagged = [s for s in steps if s.used_prior]
     assert flagged
     assert all(abs(s.shift_px - 2.5) < 0.3 for s in flagged)
@@ -151,7 +151,7 @@ def test_lateral_wander_is_tracked():
     n = 80
     lateral = np.linspace(0, 6.0, n + 1)
     frames, pos, _ = roll(np.full(n, 2.5), lateral=lateral)
-    _, steps = stitch(frames, "default")
+    _, steps = stitch(frames)
     est_lat = np.cumsum([s.lateral_px for s in steps])
     # the surface moving left by +lat in texture coordinates appears shifted right in the image
     assert abs(abs(est_lat[-1]) - 6.0) < 0.5
@@ -162,7 +162,7 @@ def test_map_matches_truth_and_beats_the_paper():
     frames, pos, tex = roll(np.full(80, 1.3), noise=3.0)
     results = {}
     for method in ("default", "paper"):
-        stitcher = Stitcher(method)
+        stitcher = Stitcher(StitcherConfig(method=method))
         for k, f in enumerate(frames):
             stitcher.push(f, k * FRAME_NS)
         results[method] = compare_to_truth(stitcher.map_image(), tex, valid=stitcher.map_coverage())
@@ -172,7 +172,7 @@ def test_map_matches_truth_and_beats_the_paper():
 
 def test_map_grows_along_the_roll_and_keeps_width():
     frames, pos, _ = roll(np.full(30, -4.0))
-    image, _ = stitch(frames, "default", lateral=False)
+    image, _ = stitch(frames, StitcherConfig(lateral=False))
     assert image.dtype == np.uint8
     assert image.shape[1] in (SHAPE[1], SHAPE[1] + 1)
     assert image.shape[0] == pytest.approx(70 + abs(pos[-1]), abs=3)
@@ -202,13 +202,15 @@ def test_metric_map_needs_a_camera():
 
 def test_bad_input_is_rejected_clearly():
     with pytest.raises(ValueError, match="method"):
-        Stitcher("magic")
+        StitcherConfig(method="magic")
     stitcher = Stitcher()
     stitcher.push(np.zeros(SHAPE, np.uint8), 0)
     with pytest.raises(ValueError, match="size changed"):
         stitcher.push(np.zeros((100, 100), np.uint8), 1)
     with pytest.raises(ValueError, match="band_rows"):
-        Stitcher(band_rows=4).push(np.zeros(SHAPE, np.uint8), 0)
+        StitcherConfig(band_rows=4)
+    with pytest.raises(ValueError, match="band_rows"):
+        Stitcher(StitcherConfig(band_rows=300)).push(np.zeros(SHAPE, np.uint8), 0)
 
 
 def test_flat_frames_give_zero_confidence_not_a_wrong_number():
@@ -230,7 +232,7 @@ def test_non_finite_frames_are_rejected():
 def test_finalise_divides_out_dust_and_shading_from_the_first_frame_on():
     frames, pos, tex = roll(np.full(70, 2.5), noise=1.0)
     live = Stitcher()
-    offline = Stitcher(live_map=False)
+    offline = Stitcher(StitcherConfig(live_map=False))
     for k, f in enumerate(frames):
         live.push(f, k * FRAME_NS)
         offline.push(f, k * FRAME_NS)
@@ -274,7 +276,7 @@ def lead_in(kind: str, n: int, seed: int = 0) -> list[np.ndarray]:
 
 
 def stitch_live(frames, *, first_stamp=0, **kwargs):
-    stitcher = Stitcher(history=None, **kwargs)
+    stitcher = Stitcher(StitcherConfig(history=None, **kwargs))
     steps = [stitcher.push(f, first_stamp + k * FRAME_NS) for k, f in enumerate(frames)]
     return stitcher, steps
 
@@ -300,7 +302,7 @@ def test_lead_in_frames_do_not_enter_the_map_or_the_background():
     frames, _, _ = roll(np.full(70, 2.5), noise=1.0)
     led, _ = stitch_live(lead_in("lifted", 30) + frames)
     plain, _ = stitch_live(frames)
-    assert led._flat_count <= plain._flat_count
+    assert led.flat.count <= plain.flat.count
     led.finalise()
     plain.finalise()
     a, b = led.map_image(), plain.map_image()
@@ -348,7 +350,7 @@ def test_a_long_gap_in_the_stream_follows_the_recent_velocity():
     """A camera stall: 40 frames missing at 2.5 px/frame is 100 px, beyond any overlap with the key."""
     frames, pos, _ = roll(np.full(120, 2.5), noise=1.0)
     keep = [k for k in range(len(frames)) if not 50 <= k < 90]
-    stitcher = Stitcher(history=None)
+    stitcher = Stitcher(StitcherConfig(history=None))
     steps = [stitcher.push(frames[k], k * FRAME_NS) for k in keep]
     assert steps[50].used_prior  # the first frame after the gap: no overlap to register
     assert abs(steps[-1].position_px - pos[keep[-1]]) <= 0.01 * pos[keep[-1]]
@@ -381,7 +383,7 @@ def test_simulated_scan_with_a_lead_in_has_the_full_length(depth):
     true_px = (travel[-1] - travel[0]) * 1e3 / (sensor.metres_per_px_at_contact()[1] * 1e3)
     results = {}
     for name, lead in (("plain", []), ("led", pre)):
-        stitcher = Stitcher(camera=sensor.camera, history=None)
+        stitcher = Stitcher(StitcherConfig(history=None), camera=sensor.camera)
         stamp0 = frames[0].stamp_ns - len(lead) * FRAME_NS
         for k, image in enumerate(lead):
             stitcher.push(image, stamp0 + k * FRAME_NS)
@@ -401,7 +403,7 @@ def test_finalise_on_a_live_stitcher_is_at_least_as_good_as_the_live_map(speed):
     """Fed frame by frame as the perception node does (lead-in, a map longer than the canvas's first
     allocation in either direction, bounded history), then finalised: nothing is lost or zeroed."""
     frames, pos, tex = roll(np.full(420, speed), noise=1.0)
-    stitcher = Stitcher(history=50)
+    stitcher = Stitcher(StitcherConfig(history=50))
     for k, f in enumerate(lead_in("lifted", 10) + frames):
         stitcher.push(f, k * FRAME_NS)
     live, covered = stitcher.map_image(), stitcher.map_coverage()
@@ -427,7 +429,7 @@ def history_size(stitcher: Stitcher) -> int:
 def test_live_history_is_bounded():
     frames, _, _ = roll(np.full(40, 2.5), noise=1.0)
     still = frames[-1]
-    bounded, unbounded = Stitcher(history=25), Stitcher(history=None)
+    bounded, unbounded = Stitcher(StitcherConfig(history=25)), Stitcher(StitcherConfig(history=None))
     sizes = {}
     for k in range(400):  # a short roll, then standing still: the map stops growing, so must the rest
         image = frames[k] if k < len(frames) else still
@@ -443,4 +445,4 @@ def test_live_history_is_bounded():
     assert bounded.position_px == unbounded.steps[-1].position_px
     assert Stitcher().history is not None  # what the perception node constructs is bounded
     with pytest.raises(ValueError, match="history"):
-        Stitcher(history=0)
+        StitcherConfig(history=0)

@@ -152,7 +152,7 @@ def _read_ahead(records: Iterator[T], depth: int = 8) -> Iterator[T]:
 
 
 def _make_stitcher(args: argparse.Namespace, camera, shape):
-    from touchroller_perception.stitching import Stitcher
+    from touchroller_perception.stitching import Stitcher, StitcherConfig
 
     height, width = shape[:2]
     if camera is not None and (camera.width, camera.height) != (width, height):
@@ -164,8 +164,9 @@ def _make_stitcher(args: argparse.Namespace, camera, shape):
         raise UserError("--metric needs a camera model for these images (--params CAL.yaml)")
     try:
         # Per-frame records only when --steps wants them: memory then does not grow with the bag.
-        return Stitcher(args.method, band_rows=args.band_rows, search=args.search, camera=camera, live_map=False,
-                        history=None if args.steps else 1)
+        config = StitcherConfig(method=args.method, band_rows=args.band_rows, search=args.search, live_map=False,
+                                history=None if args.steps else 1)
+        return Stitcher(config, camera=camera)
     except ValueError as exc:
         raise UserError(str(exc)) from None
 

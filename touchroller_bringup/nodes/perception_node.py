@@ -46,6 +46,7 @@ from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
+from touchroller_perception.stitching import Stitcher, StitcherConfig
 
 IMAGE_TOPIC = "/touchroller/image_raw"
 CONTACTS_TOPIC = "/touchroller/contacts"
@@ -84,6 +85,31 @@ DETECTOR_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
 }
 
 
+# parameter name -> (StitcherConfig field, description, min, max); a change starts a new map
+STITCHER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
+    "map.method": ("method", "Stitching: default (subpixel keyframe registration) or paper (integer MAE search)",
+                   None, None),
+    "map.band_rows": ("band_rows", "Rows of the contact band used per frame (the paper: 70)", 8, 480),
+    "map.search": ("search", "Largest shift per frame searched, pixels (the paper: 25)", 1, 200),
+    "map.rectify": ("rectify", "Resample the band to membrane coordinates through the camera model", None, None),
+    "map.subpixel": ("subpixel", "Subpixel registration and placement", None, None),
+    "map.keyframes": ("keyframes", "Register against a keyframe (less drift) rather than the previous frame",
+                      None, None),
+    "map.keyframe_overlap": ("keyframe_overlap", "Take a new keyframe when the overlap falls below this",
+                             0.05, 0.95),
+    "map.motion_prior": ("motion_prior", "Search near the shift the recent velocity predicts first", None, None),
+    "map.local_search": ("local_search", "Half-width of that first search, pixels", 0, 50),
+    "map.background": ("background", "Divide out the flat field (what does not move with the surface)",
+                       None, None),
+    "map.lateral": ("lateral", "Also track shifts along the roller axis", None, None),
+    "map.column_bin": ("column_bin", "Columns averaged together for registration (speed)", 1, 32),
+    "map.highpass": ("highpass", "Box size of the high-pass filter before registration, pixels", 1, 99),
+    "map.min_confidence": ("min_confidence", "Below this registration confidence the motion prior is used",
+                           0.0, 1.0),
+    "map.history": ("history", "Per-frame registration records kept (the newest)", 1, 1_000_000),
+}
+
+
 class PerceptionNode(Node):
     """Images -> contacts (PointStamped) and the tactile map; see the module docstring and docs/contacts.md."""
 
@@ -97,6 +123,7 @@ class PerceptionNode(Node):
         self.add_post_set_parameters_callback(self._apply)
         self.detector = ContactDetector(self._detector_config(), int(self.get_parameter("reference.frames").value))
         self.frame_id = str(self.get_parameter("contacts.frame_id").value)
+        self.stitcher_config = self._stitcher_config()
         self.stitcher: Any = None
         self._stitch_error_logged = False
         self._map_dirty = False
@@ -134,6 +161,9 @@ class PerceptionNode(Node):
             declare(self, name, getattr(defaults, field), description, min=lo, max=hi)
         declare(self, "contacts.frame_id", CYLINDER_FRAME, "frame_id of the published contact points")
         declare(self, "reference.frames", 5, "No-contact frames averaged into the reference", min=1, max=1000)
+        defaults_map = StitcherConfig()
+        for name, (field, description, lo, hi) in STITCHER_PARAMETERS.items():
+            declare(self, name, getattr(defaults_map, field), description, min=lo, max=hi)
         declare(self, "map.save_path", "", "PNG file the finished map is written to when a roll ends "
                 "(empty: not saved)")
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
@@ -144,13 +174,19 @@ class PerceptionNode(Node):
         values.update(overrides or {})
         return DetectorConfig(**{DETECTOR_PARAMETERS[name][0]: value for name, value in values.items()})
 
+    def _stitcher_config(self, overrides: dict[str, Any] | None = None) -> StitcherConfig:
+        values = {name: self.get_parameter(name).value for name in STITCHER_PARAMETERS}
+        values.update(overrides or {})
+        return StitcherConfig(**{STITCHER_PARAMETERS[name][0]: value for name, value in values.items()})
+
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        changes = {p.name: p.value for p in parameters if p.name in DETECTOR_PARAMETERS}
-        if changes:
-            try:
-                self._detector_config(changes)
-            except (TypeError, ValueError) as exc:
-                return SetParametersResult(successful=False, reason=str(exc))
+        for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config)):
+            changes = {p.name: p.value for p in parameters if p.name in table}
+            if changes:
+                try:
+                    make(changes)
+                except (TypeError, ValueError) as exc:
+                    return SetParametersResult(successful=False, reason=str(exc))
         for p in parameters:
             if p.name == "contacts.frame_id" and not str(p.value).strip():
                 return SetParametersResult(successful=False, reason="contacts.frame_id must not be empty")
@@ -160,6 +196,9 @@ class PerceptionNode(Node):
         names = {p.name for p in parameters}
         if names & set(DETECTOR_PARAMETERS):
             self.detector.config = self._detector_config()
+        if names & set(STITCHER_PARAMETERS):
+            self.stitcher_config = self._stitcher_config()
+            self.reset_map()   # a map is stitched one way throughout
         if "reference.frames" in names:
             self.detector.reference_frames = int(self.get_parameter("reference.frames").value)
         if "contacts.frame_id" in names:
@@ -271,9 +310,7 @@ class PerceptionNode(Node):
         try:
             with self._map_lock:
                 if self.stitcher is None:
-                    from touchroller_perception.stitching import Stitcher  # lazily: only with a map
-
-                    self.stitcher = Stitcher(camera=self.camera)   # bounded per-frame history
+                    self.stitcher = Stitcher(self.stitcher_config, camera=self.camera)
                 stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
                 self.stitcher.push(image, stamp_ns)
                 self._map_dirty = True

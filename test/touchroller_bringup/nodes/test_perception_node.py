@@ -146,6 +146,19 @@ def test_detector_parameters_are_validated_and_applied(graph):
     assert not node.set_parameters([Parameter("contacts.downscale", value=64)])[0].successful
 
 
+def test_stitcher_parameters_are_validated_and_start_a_new_map(graph):
+    node = graph[0]
+    assert node.stitcher_config.method == "default"
+    assert not node.set_parameters([Parameter("map.method", value="magic")])[0].successful
+    node.stitcher = object()   # stands for a map in progress
+    assert node.set_parameters([Parameter("map.method", value="paper"),
+                                Parameter("map.band_rows", value=50)])[0].successful
+    assert (node.stitcher_config.method, node.stitcher_config.band_rows) == ("paper", 50)
+    assert node.stitcher is None   # the next frame starts a map stitched the new way
+    # outside the declared range
+    assert not node.set_parameters([Parameter("map.keyframe_overlap", value=1.5)])[0].successful
+
+
 def test_tactile_map_is_published_latched(ros_context, spin_until):
     pytest.importorskip("touchroller_perception.stitching")
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
