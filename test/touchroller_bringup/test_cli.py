@@ -55,3 +55,12 @@ def test_console_script_runs_as_a_process():
     result = subprocess.run([sys.executable, "-m", "touchroller_bringup.cli", "bench", "--list"],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and "geometry_stability" in result.stdout
+
+
+def test_a_reader_that_closes_the_pipe_early_is_not_an_error():
+    # as `touchroller bench --list | head -1`: the reader takes one line and goes away
+    process = subprocess.Popen([sys.executable, "-m", "touchroller_bringup.cli", "bench", "--list"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
+    process.stdout.close()          # nobody reads: the first write breaks the pipe
+    err = process.stderr.read().decode()
+    assert process.wait(timeout=60) == 141 and err == ""
