@@ -1,0 +1,383 @@
+"""Rigid transforms and a time-interpolating transform buffer (what tf2's buffer does, without ROS).
+
+`Transform` is a rotation (unit quaternion x, y, z, w) and a translation, as in
+geometry_msgs/Transform: `T_parent_child` maps points given in the child frame into the parent frame.
+`TransformBuffer` keeps a tree of frames (one parent per child) with time-stamped transforms, as
+received on /tf (dynamic) and /tf_static, and answers `lookup(target, source, stamp_ns)`: the
+transform that maps points in `source` into `target` at that time, interpolating each dynamic edge
+between its two nearest samples (linear in translation, slerp in rotation). Like tf2 it does not
+extrapolate: a time outside an edge's samples is an `ExtrapolationError`, a missing link a
+`ConnectivityError`. `lookup_many` does the same for an array of times in one vectorised pass (what
+offline mapping and the latency estimate need). No rclpy here: the ROS side converts messages.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+class TransformError(LookupError):
+    """A transform cannot be looked up (one line, names the frames and the time)."""
+
+
+class ConnectivityError(TransformError):
+    """The two frames are not connected in the tree (a frame is unknown, or in another tree)."""
+
+
+class ExtrapolationError(TransformError):
+    """The time lies outside the samples of an edge on the path (tf2 does not extrapolate either)."""
+
+
+# -- quaternion helpers (x, y, z, w), vectorised over leading axes ------------------------------------
+
+def quaternion_multiply(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+
+
+def quaternion_conjugate(q: ArrayLike) -> FloatArray:
+    q = np.asarray(q, np.float64)
+    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+
+def quaternion_to_matrix(q: ArrayLike) -> FloatArray:
+    q = np.asarray(q, np.float64)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=-2)
+
+
+def matrix_to_quaternion(m: ArrayLike) -> FloatArray:
+    """Unit quaternion of a 3x3 rotation matrix (Shepperd's method: stable for every rotation)."""
+    m = np.asarray(m, np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    out = np.asarray(q, np.float64)
+    return out / np.linalg.norm(out)
+
+
+def slerp(a: ArrayLike, b: ArrayLike, fraction: ArrayLike) -> FloatArray:
+    """Spherical interpolation from unit quaternion a (fraction 0) to b (1), the short way round."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    f = np.asarray(fraction, np.float64)[..., None]
+    dot = np.sum(a * b, axis=-1, keepdims=True)
+    b = np.where(dot < 0, -b, b)
+    dot = np.abs(dot)
+    theta = np.arccos(np.clip(dot, -1.0, 1.0))
+    sin = np.sin(theta)
+    near = sin < 1e-9   # (almost) the same rotation: linear interpolation is exact enough
+    safe = np.where(near, 1.0, sin)
+    wa = np.where(near, 1.0 - f, np.sin((1.0 - f) * theta) / safe)
+    wb = np.where(near, f, np.sin(f * theta) / safe)
+    q = wa * a + wb * b
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def rotate(q: ArrayLike, v: ArrayLike) -> FloatArray:
+    """Vectors v (..., 3) rotated by unit quaternions q (..., 4)."""
+    q, v = np.asarray(q, np.float64), np.asarray(v, np.float64)
+    u = q[..., :3]
+    w = q[..., 3:4]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+@dataclass(frozen=True)
+class Transform:
+    """T_parent_child: p_parent = R p_child + t. `rotation` is a unit quaternion (x, y, z, w)."""
+
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+
+    def __post_init__(self) -> None:
+        t = tuple(float(v) for v in np.asarray(self.translation, np.float64).reshape(-1))
+        q = np.asarray(self.rotation, np.float64).reshape(-1)
+        norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
+        if len(t) != 3 or not all(math.isfinite(v) for v in t):
+            raise ValueError(f"a translation is 3 finite numbers, got {self.translation}")
+        if not (math.isfinite(norm) and norm > 1e-9):
+            raise ValueError(f"a rotation is a non-zero quaternion (x, y, z, w), got {self.rotation}")
+        object.__setattr__(self, "translation", t)
+        object.__setattr__(self, "rotation", tuple(float(v) for v in q / norm))
+
+    @staticmethod
+    def identity() -> Transform:
+        return Transform()
+
+    @staticmethod
+    def from_matrix(matrix: ArrayLike) -> Transform:
+        m = np.asarray(matrix, np.float64)
+        if m.shape != (4, 4):
+            raise ValueError(f"expected a 4x4 matrix, got shape {m.shape}")
+        return Transform(_vec3(m[:3, 3]), _quat(matrix_to_quaternion(m[:3, :3])))
+
+    @staticmethod
+    def from_rpy(translation: Sequence[float], rpy: Sequence[float]) -> Transform:
+        """Fixed-axis roll (x), pitch (y), yaw (z), applied in that order (URDF's and tf2's rpy)."""
+        roll, pitch, yaw = (float(v) for v in rpy)
+        qx = (math.sin(roll / 2), 0.0, 0.0, math.cos(roll / 2))
+        qy = (0.0, math.sin(pitch / 2), 0.0, math.cos(pitch / 2))
+        qz = (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+        q = quaternion_multiply(qz, quaternion_multiply(qy, qx))
+        return Transform(_vec3(translation), _quat(q))
+
+    @staticmethod
+    def from_rotation_vector(translation: Sequence[float], rotation_vector: Sequence[float]) -> Transform:
+        """A UR pose (x, y, z and the axis-angle rotation vector rx, ry, rz)."""
+        v = np.asarray(rotation_vector, np.float64)
+        angle = float(np.linalg.norm(v))
+        if angle < 1e-12:
+            return Transform(_vec3(translation))
+        axis = v / angle * math.sin(angle / 2)
+        return Transform(_vec3(translation), (axis[0], axis[1], axis[2], math.cos(angle / 2)))
+
+    def matrix(self) -> FloatArray:
+        m = np.eye(4)
+        m[:3, :3] = quaternion_to_matrix(self.rotation)
+        m[:3, 3] = self.translation
+        return m
+
+    def inverse(self) -> Transform:
+        q = quaternion_conjugate(self.rotation)
+        return Transform(_vec3(-rotate(q, self.translation)), _quat(q))
+
+    def __matmul__(self, other: Transform) -> Transform:
+        """T_a_b @ T_b_c = T_a_c."""
+        q = quaternion_multiply(self.rotation, other.rotation)
+        t = rotate(self.rotation, other.translation) + np.asarray(self.translation)
+        return Transform(_vec3(t), _quat(q))
+
+    def apply(self, points: ArrayLike) -> FloatArray:
+        """Points (..., 3) in the child frame -> the parent frame."""
+        return rotate(self.rotation, points) + np.asarray(self.translation)
+
+    def rpy(self) -> tuple[float, float, float]:
+        m = quaternion_to_matrix(self.rotation)
+        pitch = math.asin(max(-1.0, min(1.0, -float(m[2, 0]))))
+        return math.atan2(float(m[2, 1]), float(m[2, 2])), pitch, math.atan2(float(m[1, 0]), float(m[0, 0]))
+
+
+def interpolate(a: Transform, b: Transform, fraction: float) -> Transform:
+    t = (1.0 - fraction) * np.asarray(a.translation) + fraction * np.asarray(b.translation)
+    return Transform(_vec3(t), _quat(slerp(a.rotation, b.rotation, fraction)))
+
+
+@dataclass
+class _Edge:
+    """The transforms of one child frame relative to its parent, sorted by stamp."""
+
+    parent: str
+    static: bool
+    stamps: list[int] = field(default_factory=list)
+    translations: list[tuple[float, float, float]] = field(default_factory=list)
+    rotations: list[tuple[float, float, float, float]] = field(default_factory=list)
+    _arrays: tuple[NDArray[np.int64], FloatArray, FloatArray] | None = None
+
+    def add(self, stamp_ns: int, transform: Transform) -> None:
+        self._arrays = None
+        if self.static:
+            self.stamps, self.translations, self.rotations = [stamp_ns], [transform.translation], [transform.rotation]
+            return
+        if not self.stamps or stamp_ns > self.stamps[-1]:
+            i = len(self.stamps)
+        else:
+            i = bisect.bisect_left(self.stamps, stamp_ns)
+            if i < len(self.stamps) and self.stamps[i] == stamp_ns:   # the same stamp again: the newer wins
+                self.translations[i], self.rotations[i] = transform.translation, transform.rotation
+                return
+        self.stamps.insert(i, stamp_ns)
+        self.translations.insert(i, transform.translation)
+        self.rotations.insert(i, transform.rotation)
+
+    def prune(self, oldest_ns: int) -> None:
+        """Drop samples before `oldest_ns`, keeping the one just before it (to interpolate from)."""
+        i = bisect.bisect_left(self.stamps, oldest_ns) - 1
+        if i > 0 and not self.static:
+            del self.stamps[:i], self.translations[:i], self.rotations[:i]
+            self._arrays = None
+
+    def arrays(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+        if self._arrays is None:
+            self._arrays = (np.asarray(self.stamps, np.int64), np.asarray(self.translations, np.float64),
+                            np.asarray(self.rotations, np.float64))
+        return self._arrays
+
+    def at(self, stamps: NDArray[np.int64], child: str) -> tuple[FloatArray, FloatArray]:
+        """(translations (N, 3), rotations (N, 4)) at each stamp, interpolated."""
+        times, translations, rotations = self.arrays()
+        n = len(stamps)
+        if self.static or len(times) == 1:
+            if not self.static and np.any(stamps != times[0]):
+                raise ExtrapolationError(f"{self.parent} -> {child} has one sample (at {times[0]} ns); "
+                                         f"cannot interpolate at {_first_outside(stamps, times[0], times[0])} ns")
+            return np.repeat(translations[:1], n, axis=0), np.repeat(rotations[:1], n, axis=0)
+        lo, hi = int(times[0]), int(times[-1])
+        if np.any(stamps < lo) or np.any(stamps > hi):
+            raise ExtrapolationError(f"{self.parent} -> {child} is known over [{lo}, {hi}] ns; "
+                                     f"asked for {_first_outside(stamps, lo, hi)} ns")
+        i = np.clip(np.searchsorted(times, stamps, side="right") - 1, 0, len(times) - 2)
+        t0, t1 = times[i], times[i + 1]
+        f = (stamps - t0) / (t1 - t0).astype(np.float64)
+        trans = translations[i] + f[:, None] * (translations[i + 1] - translations[i])
+        return trans, slerp(rotations[i], rotations[i + 1], f)
+
+
+def _first_outside(stamps: NDArray[np.int64], lo: int, hi: int) -> int:
+    outside = stamps[(stamps < lo) | (stamps > hi)]
+    return int(outside[0]) if outside.size else int(stamps[0])
+
+
+class TransformBuffer:
+    """A tree of frames with time-stamped transforms; see the module docstring.
+
+    cache_ns: dynamic samples older than the newest one minus this are dropped (None keeps all:
+    offline, a whole recording). Static transforms never expire.
+    """
+
+    def __init__(self, cache_ns: int | None = 10_000_000_000) -> None:
+        if cache_ns is not None and cache_ns <= 0:
+            raise ValueError(f"cache_ns must be > 0 or None, got {cache_ns}")
+        self.cache_ns = cache_ns
+        self._edges: dict[str, _Edge] = {}
+
+    @property
+    def frames(self) -> set[str]:
+        return set(self._edges) | {edge.parent for edge in self._edges.values()}
+
+    def set_transform(self, parent: str, child: str, stamp_ns: int, transform: Transform,
+                      static: bool = False) -> None:
+        """T_parent_child at `stamp_ns`. A child gets a new parent (the tree was rewired) by replacing
+        its history, as tf2 does."""
+        parent, child = _frame(parent), _frame(child)
+        if parent == child:
+            raise ValueError(f"a frame cannot be its own parent: {parent}")
+        edge = self._edges.get(child)
+        if edge is None or edge.parent != parent or edge.static != static:
+            edge = self._edges[child] = _Edge(parent, static)
+        edge.add(int(stamp_ns), transform)
+        if self.cache_ns is not None and not static:
+            edge.prune(edge.stamps[-1] - self.cache_ns)
+
+    def parent(self, child: str) -> str | None:
+        edge = self._edges.get(_frame(child))
+        return None if edge is None else edge.parent
+
+    def time_range(self, child: str) -> tuple[int, int] | None:
+        """(first, last) stamp of the child's dynamic transforms (None: unknown or static)."""
+        edge = self._edges.get(_frame(child))
+        if edge is None or edge.static or not edge.stamps:
+            return None
+        return edge.stamps[0], edge.stamps[-1]
+
+    def _path(self, frame: str) -> list[str]:
+        path = [frame]
+        while frame in self._edges:
+            frame = self._edges[frame].parent
+            if frame in path:
+                raise ConnectivityError(f"the frames form a loop at {frame}")
+            path.append(frame)
+        return path
+
+    def _chain(self, target: str, source: str) -> tuple[list[str], list[str]]:
+        """(frames from source up to the common ancestor, frames from target up to it), ancestors excluded."""
+        target, source = _frame(target), _frame(source)
+        known = self.frames
+        for name in (target, source):
+            if name not in known:
+                raise ConnectivityError(f"frame {name} does not exist (known: {', '.join(sorted(known)) or 'none'})")
+        up_source, up_target = self._path(source), self._path(target)
+        common = next((f for f in up_source if f in set(up_target)), None)
+        if common is None:
+            raise ConnectivityError(f"{source} and {target} are not connected (roots {up_source[-1]} and "
+                                    f"{up_target[-1]})")
+        return up_source[:up_source.index(common)], up_target[:up_target.index(common)]
+
+    def latest_common_stamp(self, target: str, source: str) -> int | None:
+        """The newest time at which every dynamic edge between the frames has data (None: all static)."""
+        up_source, up_target = self._chain(target, source)
+        ends = [self._edges[f].stamps[-1] for f in up_source + up_target if not self._edges[f].static]
+        return min(ends) if ends else None
+
+    def can_transform(self, target: str, source: str, stamp_ns: int | None = None) -> bool:
+        try:
+            self.lookup(target, source, stamp_ns)
+        except TransformError:
+            return False
+        return True
+
+    def lookup(self, target: str, source: str, stamp_ns: int | None = None) -> Transform:
+        """T_target_source at `stamp_ns` (None: the latest time all edges have)."""
+        if stamp_ns is None:
+            stamp_ns = self.latest_common_stamp(target, source) or 0
+        translation, rotation = self._compose(target, source, np.asarray([int(stamp_ns)], np.int64))
+        return Transform(_vec3(translation[0]), _quat(rotation[0]))
+
+    def lookup_many(self, target: str, source: str, stamps_ns: Iterable[int]) -> FloatArray:
+        """T_target_source at each stamp as (N, 4, 4) matrices."""
+        stamps = np.asarray(list(stamps_ns) if not isinstance(stamps_ns, np.ndarray) else stamps_ns, np.int64)
+        translation, rotation = self._compose(target, source, stamps.reshape(-1))
+        out = np.zeros((len(stamps), 4, 4))
+        out[:, :3, :3] = quaternion_to_matrix(rotation)
+        out[:, :3, 3] = translation
+        out[:, 3, 3] = 1.0
+        return out
+
+    def _compose(self, target: str, source: str, stamps: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+        up_source, up_target = self._chain(target, source)
+        n = len(stamps)
+        # T_common_source: walk up from the source, composing parent-of-each on the left
+        t_cs, q_cs = np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        for child in up_source:
+            t, q = self._edges[child].at(stamps, child)
+            t_cs, q_cs = rotate(q, t_cs) + t, quaternion_multiply(q, q_cs)
+        t_ct, q_ct = np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        for child in up_target:
+            t, q = self._edges[child].at(stamps, child)
+            t_ct, q_ct = rotate(q, t_ct) + t, quaternion_multiply(q, q_ct)
+        # T_target_source = inverse(T_common_target) T_common_source
+        q_tc = quaternion_conjugate(q_ct)
+        return rotate(q_tc, t_cs - t_ct), quaternion_multiply(q_tc, q_cs)
+
+
+def _vec3(values: ArrayLike) -> tuple[float, float, float]:
+    x, y, z = (float(v) for v in np.asarray(values, np.float64).reshape(3))
+    return x, y, z
+
+
+def _quat(values: ArrayLike) -> tuple[float, float, float, float]:
+    x, y, z, w = (float(v) for v in np.asarray(values, np.float64).reshape(4))
+    return x, y, z, w
+
+
+def _frame(name: str) -> str:
+    """tf2 frame ids carry no leading slash."""
+    name = str(name).strip().lstrip("/")
+    if not name:
+        raise ValueError("a frame id must not be empty")
+    return name
