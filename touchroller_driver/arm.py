@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from touchroller_driver.motion import TrapezoidProfile
+from touchroller_perception.transforms import Transform
 
 if TYPE_CHECKING:  # the simulator is only needed when a simulated sensor asks for the roller state
     from touchroller_driver.sim import RollerState
@@ -108,6 +109,21 @@ def roller_state_from_pose(pose: ArrayLike, velocity: ArrayLike, t: float, *, or
 DEFAULT_START_POSE = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0)  # the sweep's touching pose (UR base frame)
 DEFAULT_CLEARANCE = 0.002  # m the arm rests above the touching pose
 DEFAULT_DIRECTION = (1.0, 0.0, 0.0)  # rolling direction in the base frame
+# touchroller_cylinder in the tool frame: the roller's axis 10 cm below the flange (along tool z), its
+# x axis (the roller axis) along -tool y. With the flange pointing down (rx = pi) that puts the axis
+# along base +y and cylinder z down, so the default sweep.direction (base +x) rolls it.
+DEFAULT_MOUNT_XYZ = (0.0, 0.0, 0.1)
+DEFAULT_MOUNT_RPY = (0.0, 0.0, -math.pi / 2)
+
+
+def mount_transform(xyz: Sequence[float], rpy: Sequence[float]) -> Transform:
+    """T_tool_cylinder from `mount.xyz` (m) and `mount.rpy` (fixed-axis roll, pitch, yaw, rad)."""
+    xyz, rpy = list(xyz), list(rpy)
+    if len(xyz) != 3 or len(rpy) != 3:
+        raise ValueError(f"mount.xyz and mount.rpy take 3 numbers each, got {xyz} and {rpy}")
+    if not all(math.isfinite(float(v)) for v in xyz + rpy):
+        raise ValueError(f"mount.xyz and mount.rpy must be finite, got {xyz} and {rpy}")
+    return Transform.from_rpy(xyz, rpy)
 
 
 def simulated_arm_origin(start_pose: ArrayLike, clearance: float) -> tuple[np.ndarray, float]:

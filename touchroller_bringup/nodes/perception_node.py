@@ -43,6 +43,7 @@ from touchroller_bringup.image_conversion import image_to_array
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, LagWindow, RateMeter, Status
 from touchroller_bringup.ros_params import GeometryParameters, declare
 from touchroller_bringup.ros_services import create_trigger_service
+from touchroller_bringup.tf import CAMERA_FRAME, CYLINDER_FRAME, TransformPublisher, camera_in_cylinder
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
@@ -52,7 +53,6 @@ IMAGE_TOPIC = "/touchroller/image_raw"
 CONTACTS_TOPIC = "/touchroller/contacts"
 MAP_TOPIC = "/touchroller/map"
 PROGRESS_TOPIC = "/touchroller/sweep_progress"   # the sweep node's roll progress, 0..1
-CYLINDER_FRAME = "touchroller_cylinder"
 
 
 
@@ -151,6 +151,8 @@ class PerceptionNode(Node):
         self.image_sub = self._subscribe_images(on_image)
         self._create_recapture_interface()
         self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+        self.tf = TransformPublisher(self)
+        self._publish_camera_frame()
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: perception")
         self.diagnostics.add(self._diagnostic_status)
 
@@ -206,9 +208,14 @@ class PerceptionNode(Node):
         if "map.publish_rate" in names:
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
 
+    def _publish_camera_frame(self) -> None:
+        """touchroller_cylinder -> touchroller_camera on /tf_static, from extrinsics.theta and d."""
+        self.tf.set_static(CYLINDER_FRAME, CAMERA_FRAME, camera_in_cylinder(self.camera))
+
     def _on_geometry(self, model: CameraModel) -> None:
         self.lookup = SurfaceLookup(model)
         self.camera = model
+        self._publish_camera_frame()
         if self.stitcher is not None:
             self.stitcher = None   # the map's band and scale follow the camera: start a new map
         self.get_logger().info(f"camera model updated: theta={model.theta:g} rad, d={model.d:g} m")

@@ -30,9 +30,12 @@ from std_msgs.msg import Float32
 from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
 from touchroller_bringup.ros_params import declare
 from touchroller_bringup.ros_services import trigger_service_type
+from touchroller_bringup.tf import CYLINDER_FRAME, TOOL_FRAME, WORLD_FRAME, TransformPublisher
 from touchroller_driver.arm import (
     DEFAULT_CLEARANCE,
     DEFAULT_DIRECTION,
+    DEFAULT_MOUNT_RPY,
+    DEFAULT_MOUNT_XYZ,
     DEFAULT_START_POSE,
     Arm,
     ArmError,
@@ -41,9 +44,11 @@ from touchroller_driver.arm import (
     SweepPhase,
     SweepSequencer,
     SweepStatus,
+    mount_transform,
     plan_sweep,
     simulated_arm_origin,
 )
+from touchroller_perception.transforms import Transform
 
 NODE_NAME = "touchroller_sweep"
 TCP_POSE_TOPIC = "/touchroller/tcp_pose"
@@ -101,6 +106,10 @@ class SweepNode(Node):
 
         base_frame = self.get_parameter("arm.base_frame").value
         self._frame_id = str(base_frame)
+        self._tool_frame = str(self.get_parameter("arm.tool_frame").value)
+        self._publish_tf = bool(self.get_parameter("publish_tf").value)
+        self.tf = TransformPublisher(self)
+        self._publish_mount()
         self._pose_pub = self.create_publisher(PoseStamped, TCP_POSE_TOPIC, 10)
         self._progress_pub = self.create_publisher(Float32, PROGRESS_TOPIC, 10)
         service_type, _ = trigger_service_type()
@@ -139,9 +148,24 @@ class SweepNode(Node):
         declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose and progress messages, "
                 "watchdog kicks (>= 10 Hz), Hz", min=10.0, max=500.0,
                 read_only=True)
-        declare(self, "arm.base_frame", "base", "Frame of the published TCP pose (the UR base)", read_only=True)
+        declare(self, "arm.base_frame", WORLD_FRAME, "Frame of the published TCP pose and parent of the tool "
+                "frame on /tf (the UR base)", read_only=True)
+        declare(self, "arm.tool_frame", TOOL_FRAME, "The arm's flange frame (UR: tool0); the TCP pose is its pose",
+                read_only=True)
+        declare(self, "publish_tf", True, "Publish arm.base_frame -> arm.tool_frame on /tf from the arm's pose; "
+                "false when a robot driver (e.g. ur_robot_driver) already does", read_only=True)
+        declare(self, "mount.xyz", list(DEFAULT_MOUNT_XYZ), f"Position of {CYLINDER_FRAME} (the roller's axis "
+                "centre) in the tool frame, m; published on /tf_static")
+        declare(self, "mount.rpy", list(DEFAULT_MOUNT_RPY), f"Orientation of {CYLINDER_FRAME} in the tool frame, "
+                "fixed-axis roll, pitch, yaw, rad (x along the roller axis, z down at the contact)")
 
     def _validate_parameters(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        mount = {p.name: p.value for p in parameters if p.name.startswith("mount.")}
+        if mount:
+            try:
+                self.mount(mount)
+            except (TypeError, ValueError) as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
         candidate = dict(self.settings)
         candidate.update({p.name: p.value for p in parameters if p.name in SWEEP_PARAMETERS})
         try:
@@ -152,6 +176,17 @@ class SweepNode(Node):
 
     def _apply_parameters(self, parameters: Sequence[Parameter]) -> None:
         self.settings.update({p.name: p.value for p in parameters if p.name in SWEEP_PARAMETERS})
+        if any(p.name.startswith("mount.") for p in parameters):
+            self._publish_mount()
+
+    def mount(self, overrides: dict[str, Any] | None = None) -> Transform:
+        """T_tool_cylinder from the mount.* parameters."""
+        values = {name: self.get_parameter(name).value for name in ("mount.xyz", "mount.rpy")}
+        values.update(overrides or {})
+        return mount_transform(values["mount.xyz"], values["mount.rpy"])
+
+    def _publish_mount(self) -> None:
+        self.tf.set_static(self._tool_frame, CYLINDER_FRAME, self.mount())
 
     def _limits_from_parameters(self) -> ArmLimits:
         return ArmLimits(max_speed=float(self.get_parameter("arm.max_speed").value),
@@ -284,7 +319,8 @@ class SweepNode(Node):
         with self._state_lock:
             self._last_pose = pose
         message = PoseStamped()
-        message.header.stamp = self.get_clock().now().to_msg()
+        stamp_ns = self.get_clock().now().nanoseconds
+        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
         message.header.frame_id = self._frame_id
         message.pose.position.x, message.pose.position.y, message.pose.position.z = (float(v) for v in pose[:3])
         q = rotation_vector_to_quaternion(pose[3:])
@@ -292,6 +328,9 @@ class SweepNode(Node):
         o.x, o.y, o.z, o.w = q
         try:
             self._pose_pub.publish(message)
+            if self._publish_tf:
+                self.tf.send([(self._frame_id, self._tool_frame, stamp_ns,
+                               Transform.from_rotation_vector(pose[:3], pose[3:]))])
             self._progress_pub.publish(Float32(data=float(progress)))
         except Exception:  # noqa: BLE001 - the context went down between the check and the publish
             if self.context.ok():
