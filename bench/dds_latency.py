@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from bench._common import machine, results_path  # one machine line for every bench and the report
+from touchroller_bringup import names
+from touchroller_bringup.image_conversion import stamp_to_ns
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results"
@@ -161,7 +163,7 @@ class Probe:
 
     def on_contact(self, msg) -> None:
         now = time.time_ns()
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_to_ns(msg.header.stamp)
         with self.lock:
             self.count += 1
             if self.record:
@@ -193,10 +195,10 @@ class Graph:
         rclpy.init(context=self.context, domain_id=self.domain_id)
         self.probe = Probe(record=record)
         self.probe_node = Node("latency_probe", context=self.context)
-        self.probe_node.create_subscription(PointStamped, "/touchroller/contacts", self.probe.on_contact, 100)
+        self.probe_node.create_subscription(PointStamped, names.topic(names.CONTACTS), self.probe.on_contact, 100)
         from diagnostic_msgs.msg import DiagnosticArray
 
-        self.probe_node.create_subscription(DiagnosticArray, "/diagnostics", self.probe.on_diagnostics, 10)
+        self.probe_node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self.probe.on_diagnostics, 10)
         self.executors = []
         self.threads = []
         self.child: subprocess.Popen | None = None
@@ -311,7 +313,7 @@ def measure_publish_path(frames: list[np.ndarray], repeats: int = 200) -> dict[s
     rclpy.init(context=context, domain_id=lease.domain_id)
     camera = CameraNode(context=context, source=MemorySource(frames, frames, 1.0, 0), autostart=False)
     listener = Node("publish_path_listener", context=context)
-    listener.create_subscription(Image, "/touchroller/image_raw", lambda m: None, 1)
+    listener.create_subscription(Image, names.topic(names.IMAGE), lambda m: None, 1)
     times = []
     try:
         for i in range(repeats):
@@ -353,12 +355,13 @@ def use_transport(transport: str) -> None:
 INSTRUMENT_PRELUDE = r"""
 import dataclasses as _dc, time as _time
 import touchroller_bringup.nodes.perception_node as _pn
+from touchroller_bringup import names as _names
 _bench = {"gaps": 0, "busy": 0, "last_seq": None, "last_end": 0, "busy_ns": 0, "first": None,
           "durations": [], "qos": "?"}
 _create = _pn.PerceptionNode.create_subscription
 def _create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
     sub = _create(self, msg_type, topic, callback, qos_profile, **kwargs)
-    if topic == _pn.IMAGE_TOPIC:
+    if topic == _names.IMAGE:
         _bench["qos"] = f"{sub.qos_profile.reliability.name.lower()} depth {sub.qos_profile.depth}"
     return sub
 _pn.PerceptionNode.create_subscription = _create_subscription
@@ -395,16 +398,15 @@ _pn.PerceptionNode._diagnostic_status = _diagnostic_status
 """
 
 
-IMAGE_QOS_PARAMETER = "qos_overrides./touchroller/image_raw.subscription."
-
-
 def image_qos_parameters(depth: int = 0, reliability: str = "BEST_EFFORT") -> dict[str, object]:
     """The perception node's QoS override parameters for its image subscription; depth 0: the node's default."""
     if reliability not in ("BEST_EFFORT", "RELIABLE"):
         raise ValueError(f"reliability must be BEST_EFFORT or RELIABLE, got {reliability!r}")
     if depth <= 0:
         return {}
-    return {IMAGE_QOS_PARAMETER + "depth": int(depth), IMAGE_QOS_PARAMETER + "reliability": reliability.lower()}
+    return {names.qos_override(names.IMAGE, names.DEFAULT_NAMESPACE, "subscription", "depth"): int(depth),
+            names.qos_override(names.IMAGE, names.DEFAULT_NAMESPACE, "subscription", "reliability"):
+                reliability.lower()}
 
 
 def _number(values: dict[str, str], key: str) -> float:

@@ -28,7 +28,6 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -540,12 +539,6 @@ def _describe(errors: Mapping[str, Any]) -> str:
     if not (errors["theta_error"] or errors["d_error"] or errors["thickness_amplitude"] or calibration):
         parts.append("exact calibration, uniform elastomer")
     return ", ".join(parts)
-
-
-def write_table_ii(path: str | Path, quick: bool = False, command: str = "", source: str = "auto") -> dict[str, Any]:
-    result = table_ii(quick=quick, source=source)
-    Path(path).write_text(table_ii_markdown(result, command), encoding="utf-8")
-    return result
 
 
 #: Calibration parameters `explain_paper_table` fits, with bounds (rad, m, px).

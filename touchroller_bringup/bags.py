@@ -14,10 +14,16 @@ from typing import Literal
 
 import numpy as np
 
+from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
-from touchroller_bringup.image_conversion import ImageFormatError, compressed_to_array, image_to_array
+from touchroller_bringup.image_conversion import (
+    ImageFormatError,
+    compressed_to_array,
+    image_to_array,
+    stamp_to_ns,
+)
 
-IMAGE_TOPIC = "/touchroller/image_raw"
+IMAGE_TOPIC = names.IMAGE_TOPIC   # /touchroller/image_raw
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 Storage = Literal["sqlite3", "mcap"]
@@ -64,14 +70,6 @@ def _image_connections(reader, path, topic: str):
     return connections
 
 
-def image_topic_count(path: str | Path, topic: str = IMAGE_TOPIC) -> int:
-    reader = open_bag(path)
-    try:
-        return sum(c.msgcount for c in _image_connections(reader, path, topic))
-    finally:
-        reader.close()
-
-
 def read_images(path: str | Path, topic: str = IMAGE_TOPIC) -> Iterator[ImageRecord]:
     """Images on `topic` in recording order. UserError on a missing, unreadable or truncated bag."""
     reader = open_bag(path)
@@ -85,7 +83,7 @@ def read_images(path: str | Path, topic: str = IMAGE_TOPIC) -> Iterator[ImageRec
                 else:
                     store = store or typestore()
                     msg = store.deserialize_cdr(raw, connection.msgtype)
-                    stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                    stamp_ns = stamp_to_ns(msg.header.stamp)
                     image = compressed_to_array(msg)
                 yield ImageRecord(stamp_ns, image)
         except (ImageFormatError, struct.error, ValueError) as exc:
@@ -148,7 +146,7 @@ def write_images(
     records: Iterable[ImageRecord | tuple[int, np.ndarray]],
     topic: str = IMAGE_TOPIC,
     storage: Storage = "sqlite3",
-    frame_id: str = "touchroller_camera",
+    frame_id: str = names.CAMERA_FRAME,
 ) -> int:
     """Write images as sensor_msgs/Image to a new rosbag2 folder; returns the number written."""
     from rosbags.rosbag2 import StoragePlugin, Writer

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from touchroller_bringup import names
 from touchroller_driver.paths import config_path
 
 PACKAGE = "touchroller_bringup"
@@ -61,6 +62,12 @@ class NodeSpec:
     remappings: tuple[tuple[str, str], ...] = ()
     params_files: tuple[str, ...] = ()
     package: str = PACKAGE
+    namespace: str = names.DEFAULT_NAMESPACE   # without slashes; "" is the root
+
+    @property
+    def full_name(self) -> str:
+        """The node's fully qualified name: /touchroller/sweep."""
+        return names.topic(self.name, self.namespace)
 
     def launch_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for `launch_ros.actions.Node`."""
@@ -68,6 +75,7 @@ class NodeSpec:
             "package": self.package,
             "executable": self.executable,
             "name": self.name,
+            "namespace": f"/{self.namespace}",
             "parameters": [*self.params_files, dict(self.parameters)],
             "remappings": list(self.remappings),
             "output": "screen",
@@ -77,7 +85,7 @@ class NodeSpec:
         """`rclpy.node.Node` keyword arguments with the same effect as `launch_kwargs` in a launch."""
         from rclpy.parameter import Parameter
 
-        cli_args = ["--ros-args", "-r", f"__node:={self.name}"]
+        cli_args = ["--ros-args", "-r", f"__node:={self.name}", "-r", f"__ns:=/{self.namespace}"]
         for path in self.params_files:
             cli_args += ["--params-file", str(path)]
         for source, target in self.remappings:
@@ -117,9 +125,17 @@ class Graph:
     def keys(self) -> tuple[str, ...]:
         return tuple(spec.key for spec in self.nodes)
 
+    @property
+    def namespace(self) -> str:
+        """The namespace of every node (without slashes; "" is the root)."""
+        return names.check_namespace(self.arguments["namespace"])
+
 
 _BOOL = ("true", "false")
 _COMMON = (
+    LaunchArgument("namespace", names.DEFAULT_NAMESPACE, "ROS namespace of every node, topic and service "
+                   "(e.g. left: /left/image_raw, /left/sweep/start); frame ids take the prefix left/ "
+                   "(none in the default namespace)"),
     LaunchArgument("params_file", "", "Extra ROS 2 params YAML (/**: ros__parameters:) applied to every "
                    "node after the package defaults (config/touchroller.yaml, config/scan.yaml)"),
     LaunchArgument("calibration_file", "", "Calibration YAML (camera.*, extrinsics.*) applied after "
@@ -153,23 +169,25 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
         LaunchArgument("scene", "calibration_hemispheres", "Simulator scene when use_sim is true"),
     ),
     "replay": (
-        LaunchArgument("bag", None, "rosbag2 folder (sqlite3 or MCAP) with /touchroller/image_raw"),
+        LaunchArgument("bag", None, "rosbag2 folder (sqlite3 or MCAP) with {names.topic(names.IMAGE)}"),
         LaunchArgument("rate", "1.0", "Playback rate: 1 real time, 0 as fast as possible"),
         LaunchArgument("loop", "false", "Restart the recording at its end", _BOOL),
         *_COMMON,
     ),
 }
 
-# Replaying is offline work: perception takes every frame of the recording (a reliable queue instead of
-# the live graph's "newest frame only"), so it finds what `touchroller contacts` finds in the bag.
-REPLAY_PERCEPTION = {"qos_overrides./touchroller/image_raw.subscription.reliability": "reliable",
-                     "qos_overrides./touchroller/image_raw.subscription.depth": 100}
 
-CAMERA = ("camera_node", "touchroller_camera", "touchroller_bringup.nodes.camera_node:CameraNode")
-PERCEPTION = ("perception_node", "touchroller_perception", "touchroller_bringup.nodes.perception_node:PerceptionNode")
-SWEEP = ("sweep_node", "touchroller_sweep", "touchroller_bringup.nodes.sweep_node:SweepNode")
-CALIBRATION = ("calibration_node", "touchroller_calibration",
-               "touchroller_bringup.nodes.calibration_node:CalibrationNode")
+def replay_perception(namespace: str) -> dict[str, Any]:
+    """Replaying is offline work: perception takes every frame of the recording (a reliable queue instead
+    of the live graph's "newest frame only"), so it finds what `touchroller contacts` finds in the bag."""
+    return {names.qos_override(names.IMAGE, namespace, "subscription", "reliability"): "reliable",
+            names.qos_override(names.IMAGE, namespace, "subscription", "depth"): 100}
+
+
+CAMERA = ("camera_node", names.CAMERA_NODE, "touchroller_bringup.nodes.camera_node:CameraNode")
+PERCEPTION = ("perception_node", names.PERCEPTION_NODE, "touchroller_bringup.nodes.perception_node:PerceptionNode")
+SWEEP = ("sweep_node", names.SWEEP_NODE, "touchroller_bringup.nodes.sweep_node:SweepNode")
+CALIBRATION = ("calibration_node", names.CALIBRATION_NODE, "touchroller_bringup.nodes.calibration_node:CalibrationNode")
 
 
 def resolve_arguments(launch: str, values: Mapping[str, str] | None = None) -> dict[str, str]:
@@ -231,10 +249,6 @@ def _environment(args: Mapping[str, str]) -> dict[str, str]:
     return dict.fromkeys(FASTDDS_ENVIRONMENT if fast_dds_2 else FASTDDS_ENVIRONMENT[:1], str(path.resolve()))
 
 
-def _device(text: str) -> str:
-    return text  # the camera node takes an index or a path as a string
-
-
 def build_graph(launch: str, values: Mapping[str, str] | None = None,
                 extra_params_files: Sequence[str | Path] = ()) -> Graph:
     """The nodes of `launch` ("scan", "calibrate", "replay") for these launch-argument values.
@@ -245,18 +259,23 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
     args = resolve_arguments(launch, values)
     files = _params_files(args, extra_params_files)
     use_sim = args.get("use_sim") == "true"
+    try:
+        namespace = names.check_namespace(args["namespace"])
+    except names.InvalidName as exc:
+        raise GraphError(f"{launch}: {exc}") from None
 
     def spec(role: tuple[str, str, str], key: str, parameters: Mapping[str, Any],
              remappings: Sequence[tuple[str, str]] = ()) -> NodeSpec:
         executable, name, target = role
-        return NodeSpec(key, executable, name, target, dict(parameters), tuple(remappings), files)
+        return NodeSpec(key, executable, name, target, dict(parameters), tuple(remappings), files,
+                        namespace=namespace)
 
     def camera_parameters(follow_arm: bool = False) -> dict[str, Any]:
         if use_sim:   # in scan, the simulated sensor follows the sweep node's arm (its tcp_pose)
             return {"source": "sim", "scene": args["scene"], "sim.follow_arm": follow_arm}
         params: dict[str, Any] = {"source": "v4l2"}
         if args.get("camera_device"):
-            params["device"] = _device(args["camera_device"])
+            params["device"] = args["camera_device"]   # an index or a path, as a string
         return params
 
     if launch == "scan":
@@ -275,11 +294,11 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
         nodes = (spec(CAMERA, "camera", camera_parameters()),
                  spec(PERCEPTION, "perception", {}),
                  spec(CALIBRATION, "calibration", {"output_path": args["output_file"],
-                                                   "perception_node": PERCEPTION[1]}))
+                                                   "perception_node": names.PERCEPTION_NODE}))
     else:  # replay: a recording through the camera node into perception
         camera = {"source": "bag", "bag_path": args["bag"],
                   "rate": _positive_float(launch, "rate", args["rate"], allow_zero=True),
                   "loop": args["loop"] == "true",
                   "wait_for_subscribers": 1}   # perception: it must see the first (reference) frames
-        nodes = (spec(CAMERA, "camera", camera), spec(PERCEPTION, "perception", REPLAY_PERCEPTION))
+        nodes = (spec(CAMERA, "camera", camera), spec(PERCEPTION, "perception", replay_perception(namespace)))
     return Graph(launch, nodes, args, _environment(args))

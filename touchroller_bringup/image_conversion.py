@@ -13,6 +13,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from touchroller_bringup import names
+
 # encoding -> (channels, dtype, conversion to BGR or None)
 _ENCODINGS: dict[str, tuple[int, np.dtype, int | None]] = {
     "bgr8": (3, np.dtype(np.uint8), None),
@@ -104,7 +106,7 @@ def fill_image(msg: Any, array: np.ndarray, stamp_ns: int, frame_id: str, encodi
     return msg
 
 
-def array_to_image(array: np.ndarray, stamp_ns: int, frame_id: str = "touchroller_camera",
+def array_to_image(array: np.ndarray, stamp_ns: int, frame_id: str = names.CAMERA_FRAME,
                    encoding: str | None = None) -> Any:
     """A new sensor_msgs/msg/Image (rclpy) for the array."""
     from sensor_msgs.msg import Image
@@ -113,4 +115,5 @@ def array_to_image(array: np.ndarray, stamp_ns: int, frame_id: str = "touchrolle
 
 
 def stamp_to_ns(stamp: Any) -> int:
+    """A builtin_interfaces/Time (any object with `sec` and `nanosec`) as integer nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)

@@ -15,6 +15,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from touchroller_bringup import names
 from touchroller_perception.geometry import PARAMETER_NAMES, CameraModel
 
 # name -> (description, min, max)
@@ -59,6 +60,15 @@ def declare(node: Node, name: str, default: Any, description: str, *, min: float
                    additional_constraints=additional_constraints),
     )
     return param.value
+
+
+def declare_frame_prefix(node: Node) -> str:
+    """Declare the read-only `frame_prefix` every frame id the node publishes starts with, and return it.
+    Its default follows the node's namespace (`names.frame_prefix`): "" in `touchroller`, "left/" in `left`."""
+    default = names.frame_prefix(node.get_namespace())
+    return str(declare(node, "frame_prefix", default, "Prefix of every frame id this node publishes (default: "
+                       "none in the namespace touchroller, else the namespace and a slash, e.g. left/)",
+                       read_only=True))
 
 
 def declare_geometry_parameters(node: Node, model: CameraModel | None = None) -> None:

@@ -6,12 +6,14 @@ the state it reports at each capture time, so the images follow the sweep exactl
 for the perception node's no-contact reference, calls the sweep node's `~/start` service (the same
 call a user makes), prints progress, and when the sweep ends writes to the output folder:
 
-- `map.png`: the last tactile map published on `/touchroller/map`;
-- `contacts.csv`: every `/touchroller/contacts` point, columns of `touchroller contacts`
+Topics are in the graph's namespace (`namespace:=...`, `touchroller` by default):
+
+- `map.png`: the last tactile map published on `map` (`/touchroller/map`);
+- `contacts.csv`: every `contacts` point, columns of `touchroller contacts`
   (u, v re-projected through the perception node's camera model; area/confidence/peak_snr are not
   carried by PointStamped and are `nan`);
 - `report.md`: duration, frames, contacts, map size, skipped/dropped frames, the sweep's outcome;
-- with `record`: `recording/`, a rosbag2 folder of the `/touchroller/*` topics and `/diagnostics`
+- with `record`: `recording/`, a rosbag2 folder of the namespace's topics and `/diagnostics`
   (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
 """
 from __future__ import annotations
@@ -29,15 +31,14 @@ from typing import Any
 
 import numpy as np
 
+from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.graph import Graph, GraphError, build_graph
+from touchroller_bringup.image_conversion import stamp_to_ns
 
-IMAGE_TOPIC = "/touchroller/image_raw"
-CONTACTS_TOPIC = "/touchroller/contacts"
-MAP_TOPIC = "/touchroller/map"
-PROGRESS_TOPIC = "/touchroller/sweep_progress"
-RECORDED_TOPICS = (IMAGE_TOPIC, "/touchroller/camera_info", CONTACTS_TOPIC, MAP_TOPIC, "/touchroller/tcp_pose",
-                   PROGRESS_TOPIC, "/diagnostics")
+# with `record`: these topics of the scan's namespace, and /diagnostics
+RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS,
+                   names.DIAGNOSTICS)
 
 
 @dataclass
@@ -122,8 +123,8 @@ def run_scan(options: ScanOptions) -> ScanResult:
     stop_spinning = threading.Event()
     try:
         sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
-        probe, collected, start_client = _make_probe(context, nodes)
-        recorder = _make_recorder(out_dir, options, context, nodes) if options.record else None
+        probe, collected, start_client = _make_probe(context, nodes, graph.namespace)
+        recorder = _make_recorder(out_dir, options, context, nodes, graph.namespace) if options.record else None
         for node in nodes:
             executor.add_node(node)
         spinner = threading.Thread(target=_spin, args=(executor, stop_spinning), name="scan-executor", daemon=True)
@@ -131,6 +132,7 @@ def run_scan(options: ScanOptions) -> ScanResult:
         say(f"scan: graph up ({', '.join(n.get_name() for n in nodes[:-1])}); "
             f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
         _wait_for_reference(perception, sweep, collected, options.reference_timeout_s)
+        _check_namespace_is_ours(probe, graph.namespace)
         if recorder is not None:
             _wait_for_recorder(recorder, options.reference_timeout_s)
         started = time.monotonic()
@@ -205,7 +207,7 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
             except (ParameterException, ValueError) as exc:  # bad parameter types or values
                 name = _integer_for_double(exc, overrides)
                 if name is None:
-                    raise UserError(f"cannot start node {spec.name}: {' '.join(str(exc).split())}") from None
+                    raise UserError(f"cannot start node {spec.full_name}: {' '.join(str(exc).split())}") from None
                 overrides[name] = float(overrides[name])  # `speed:=1` means 1.0, as ros2 param set would not
         nodes.append(node)
         return node
@@ -249,13 +251,14 @@ def _check_overrides(overrides: Mapping[str, Any], nodes: Sequence[Any]) -> None
         raise UserError(f"no node of the scan graph has parameter(s) {', '.join(unknown)}")
 
 
-def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: list[Any]) -> Any:
+def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: list[Any], namespace: str) -> Any:
     from touchroller_bringup.recorder import Recorder
 
     path = out_dir / "recording"
     if path.exists():
         raise UserError(f"{path} already exists; choose another --out")
-    recorder = Recorder(path, topics=RECORDED_TOPICS, storage=options.storage, context=context)
+    topics = [names.topic(name, namespace) for name in RECORDED_TOPICS]
+    recorder = Recorder(path, topics=topics, storage=options.storage, context=context)
     nodes.append(recorder)
     return recorder
 
@@ -263,22 +266,22 @@ def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: lis
 def _wait_for_recorder(recorder: Any, timeout: float) -> None:
     """The recorder subscribes once it has seen a publisher; start the sweep only after it has."""
     deadline = time.monotonic() + timeout
-    while IMAGE_TOPIC not in recorder.counts:
+    image_topic = recorder.topics[0]
+    while image_topic not in recorder.counts:
         if time.monotonic() > deadline:
-            raise UserError(f"the recorder did not find {IMAGE_TOPIC} within {timeout:.0f} s")
+            raise UserError(f"the recorder did not find {image_topic} within {timeout:.0f} s")
         time.sleep(0.02)
 
 
-def _make_probe(context: Any, nodes: list[Any]) -> tuple[Any, _Collected, Any]:
+def _make_probe(context: Any, nodes: list[Any], namespace: str) -> tuple[Any, _Collected, Any]:
     from geometry_msgs.msg import PointStamped
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float32
+    from std_srvs.srv import Trigger
 
-    from touchroller_bringup.ros_services import trigger_service_type
-
-    probe = Node("touchroller_scan", context=context)
+    probe = Node("scan", namespace=namespace, context=context)   # relative names: the graph's namespace
     nodes.append(probe)
     collected = _Collected()
 
@@ -287,7 +290,7 @@ def _make_probe(context: Any, nodes: list[Any]) -> tuple[Any, _Collected, Any]:
             collected.frames += 1
 
     def on_contact(msg: PointStamped) -> None:
-        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp_ns = stamp_to_ns(msg.header.stamp)
         with collected.lock:
             collected.contacts.append((stamp_ns, msg.point.x, msg.point.y, msg.point.z))
 
@@ -301,12 +304,11 @@ def _make_probe(context: Any, nodes: list[Any]) -> tuple[Any, _Collected, Any]:
     reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    probe.create_subscription(Image, IMAGE_TOPIC, on_frame, reliable, raw=True)  # count only: no decoding
-    probe.create_subscription(PointStamped, CONTACTS_TOPIC, on_contact, QoSProfile(depth=1000))
-    probe.create_subscription(Image, MAP_TOPIC, on_map, latched)
-    probe.create_subscription(Float32, PROGRESS_TOPIC, on_progress, 10)
-    service_type, _ = trigger_service_type()
-    start_client = probe.create_client(service_type, "/touchroller_sweep/start")
+    probe.create_subscription(Image, names.IMAGE, on_frame, reliable, raw=True)  # count only: no decoding
+    probe.create_subscription(PointStamped, names.CONTACTS, on_contact, QoSProfile(depth=1000))
+    probe.create_subscription(Image, names.MAP, on_map, latched)
+    probe.create_subscription(Float32, names.SWEEP_PROGRESS, on_progress, 10)
+    start_client = probe.create_client(Trigger, f"{names.SWEEP_NODE}/{names.START}")
     return probe, collected, start_client
 
 
@@ -324,6 +326,18 @@ def _wait_for_reference(perception: Any, sweep: Any, collected: _Collected, time
             return
         time.sleep(0.05)
     raise UserError(f"no usable camera frames within {timeout:.0f} s ({collected.frames} received)")
+
+
+def _check_namespace_is_ours(probe: Any, namespace: str) -> None:
+    """Refuse to start when another graph runs in this namespace on this ROS domain: our `~/start` call
+    would start its sweep too, and its images and contacts would mix with ours. Checked once the
+    reference is captured, so discovery has had the seconds that takes."""
+    full = names.topic(names.SWEEP_NODE, namespace)
+    sweeps = [1 for name, ns in probe.get_node_names_and_namespaces() if names.topic(name, ns) == full]
+    if len(sweeps) > 1:
+        raise UserError(f"another TouchRoller graph runs in namespace /{namespace} on this ROS domain ({full} "
+                        "exists twice): give this scan its own namespace (touchroller scan --namespace NAME) "
+                        "or its own ROS_DOMAIN_ID")
 
 
 def _call_start(client: Any, sweep: Any) -> None:

@@ -8,7 +8,6 @@
   (thread-safe), for the perception node, the simulated camera and the scan runner.
 - `from_msg` / `to_msg` convert one geometry_msgs/TransformStamped.
 
-The frame names of DESIGN.md ("Frames and TF") are here too.
 """
 from __future__ import annotations
 
@@ -19,15 +18,17 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from touchroller_bringup import names
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.transforms import Transform, TransformBuffer, TransformError
 
-TF_TOPIC = "/tf"
-TF_STATIC_TOPIC = "/tf_static"
-WORLD_FRAME = "base"                    # the robot's base; the world map lives here (parameter world_frame)
-TOOL_FRAME = "tool0"                    # the arm's flange (UR convention)
-CYLINDER_FRAME = "touchroller_cylinder"
-CAMERA_FRAME = "touchroller_camera"
+TF_TOPIC = names.TF
+TF_STATIC_TOPIC = names.TF_STATIC
+# DESIGN.md's frame names (before a node's frame prefix); the names live in touchroller_bringup.names
+WORLD_FRAME = names.BASE_FRAME          # the robot's base; the world map lives here (parameter world_frame)
+TOOL_FRAME = names.TOOL_FRAME           # the arm's flange (UR convention)
+CYLINDER_FRAME = names.CYLINDER_FRAME
+CAMERA_FRAME = names.CAMERA_FRAME
 
 TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.VOLATILE)

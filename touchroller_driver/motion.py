@@ -75,23 +75,3 @@ class TrapezoidProfile:
         speed = np.where(inside, np.clip(speed, 0.0, v), 0.0)
         speed = math.copysign(1.0, self.distance) * speed
         return float(speed) if speed.ndim == 0 else speed
-
-    def time_at(self, s: ArrayLike) -> np.ndarray | float:
-        """Inverse of `position`: earliest time at which |position| reaches |s| (clamped to the move)."""
-        s_arr = np.clip(np.abs(np.asarray(s, dtype=np.float64)), 0.0, abs(self.distance))
-        a, v, t1 = self.a_max, self._v_peak, self._t_ramp
-        s1 = 0.5 * a * t1**2
-        s2 = abs(self.distance) - s1
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ramp_up = np.sqrt(2.0 * s_arr / a)
-            cruise = t1 + (s_arr - s1) / v if v > 0 else np.zeros_like(s_arr)
-            ramp_down = self.duration - np.sqrt(np.maximum(2.0 * (abs(self.distance) - s_arr) / a, 0.0))
-        t = np.where(s_arr <= s1, ramp_up, np.where(s_arr <= s2, cruise, ramp_down))
-        return float(t) if t.ndim == 0 else t
-
-
-def sequence_duration(moves: list[tuple[float, float, float]], dwell: float = 0.0) -> float:
-    """Total time of rest-to-rest moves `(distance, v_max, a_max)` with `dwell` seconds after each."""
-    if dwell < 0 or not math.isfinite(dwell):
-        raise ValueError(f"dwell must be a finite number >= 0, got {dwell}")
-    return sum(TrapezoidProfile(*move).duration + dwell for move in moves)

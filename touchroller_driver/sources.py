@@ -525,7 +525,7 @@ class SimulatedSource:
 class BagSource:
     """Images from a rosbag2 recording (Image or CompressedImage), paced by their recorded stamps.
 
-    `reader(path, topic)` yields records with `stamp_ns` and `image` (`touchroller_bringup.bags.read_images`
+    `reader(path, topic)` (`reader(path)` when `topic` is None: the reader's default topic) yields records with `stamp_ns` and `image` (`touchroller_bringup.bags.read_images`
     in the product: reading bags belongs to the layer above, this class only paces and stamps).
     `restamp` False keeps the recorded capture stamps (so contacts match the recording);
     True stamps frames with `clock_ns` at replay.
@@ -534,9 +534,9 @@ class BagSource:
     def __init__(
         self,
         path: str | Path,
-        topic: str = "/touchroller/image_raw",
+        topic: str | None = None,
         *,
-        reader: Callable[[Path, str], Iterable[Any]],
+        reader: Callable[..., Iterable[Any]],
         rate: float = 1.0,
         loop: bool = False,
         restamp: bool = False,
@@ -558,10 +558,10 @@ class BagSource:
 
     @property
     def info(self) -> str:
-        return f"bag {self.path} {self.topic}"
+        return f"bag {self.path} {self.topic or ''}".rstrip()
 
     def _iterate(self) -> Iterator[Any]:
-        return iter(self._reader(self.path, self.topic))
+        return iter(self._reader(self.path) if self.topic is None else self._reader(self.path, self.topic))
 
     def open(self) -> None:
         if not self.path.exists():

@@ -43,6 +43,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from touchroller_perception.geometry import CameraModel
+from touchroller_perception.images import to_grey
 
 FloatArray = NDArray[np.float64]
 
@@ -56,24 +57,6 @@ class CalibrationError(ValueError):
 
 
 # =========================================================================== images
-def to_gray(image: np.ndarray) -> np.ndarray:
-    """uint8 grey image from bgr8/bgra8/mono8/mono16 arrays."""
-    array = np.asarray(image)
-    if array.ndim == 3 and array.shape[2] == 4:
-        array = cv2.cvtColor(array, cv2.COLOR_BGRA2GRAY)
-    elif array.ndim == 3 and array.shape[2] == 3:
-        array = cv2.cvtColor(array, cv2.COLOR_BGR2GRAY)
-    elif array.ndim == 3 and array.shape[2] == 1:
-        array = array[..., 0]
-    elif array.ndim != 2:
-        raise CalibrationError(f"expected an HxW or HxWx3 image, got shape {array.shape}")
-    if array.dtype == np.uint16:
-        array = (array >> 8).astype(np.uint8)
-    elif array.dtype != np.uint8:
-        array = np.clip(array, 0, 255).astype(np.uint8)
-    return array
-
-
 def _image_size(images: Sequence[np.ndarray]) -> tuple[int, int]:
     sizes = {(int(img.shape[1]), int(img.shape[0])) for img in images}
     if len(sizes) != 1:
@@ -116,7 +99,10 @@ class ChessboardDetection:
 
 def find_chessboard(image: np.ndarray, board: Chessboard, max_edge_width: float = 4.0) -> ChessboardDetection:
     """Subpixel inner corners of `board` in `image` (findChessboardCornersSB), with a blur check."""
-    gray = to_gray(image)
+    try:
+        gray = to_grey(image)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
     # the classic detector + cornerSubPix takes ~1 ms a view; the sector-based one (~30-90 ms) is the fallback
     found, corners = cv2.findChessboardCorners(
         gray, board.pattern_size,

@@ -36,6 +36,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from touchroller_perception.images import to_grey
+
 METHODS = ("colour", "paper")
 
 
@@ -167,7 +169,7 @@ class NoContactReference:
 
     def grey(self) -> np.ndarray:
         if self._grey is None:
-            self._grey = _grey(self.mean)
+            self._grey = to_grey(self.mean, uint8=False)
         return self._grey
 
 
@@ -180,13 +182,6 @@ def _noise_std(frames: Sequence[np.ndarray], mean: np.ndarray) -> float:
     diff = np.diff(frames[0], axis=1).ravel()
     mad = float(np.median(np.abs(diff - np.median(diff))))
     return 1.4826 * mad / math.sqrt(2.0)
-
-
-def _grey(image: np.ndarray) -> np.ndarray:
-    image = np.atleast_3d(image)
-    if image.shape[2] == 1:
-        return image[:, :, 0].astype(np.float32)
-    return cv2.cvtColor(image[:, :, :3].astype(np.float32), cv2.COLOR_BGR2GRAY)
 
 
 class ContactDetector:
@@ -674,7 +669,7 @@ def detect_paper(image: np.ndarray, reference: NoContactReference | None,
     """The paper's pipeline: grey, Gaussian blur, fixed binarisation, findContours, moments centroid."""
     cfg = config or DetectorConfig(method="paper")
     frame = _as_float(image)
-    grey = _grey(frame)
+    grey = to_grey(frame, uint8=False)
     if reference is not None:
         if reference.shape[:2] != frame.shape[:2]:
             raise ValueError(f"image shape {np.shape(image)} does not match the reference {reference.shape}")

@@ -40,6 +40,8 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
+from touchroller_perception.images import to_grey
+
 if TYPE_CHECKING:  # the geometry module is only needed when a camera model is passed
     from touchroller_perception.geometry import CameraModel
 
@@ -215,22 +217,6 @@ class _Canvas:
         return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
-def _to_grey(image: np.ndarray) -> np.ndarray:
-    if image.ndim == 2:
-        grey = image
-    elif image.ndim == 3 and image.shape[2] == 3:
-        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    elif image.ndim == 3 and image.shape[2] == 4:
-        grey = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
-    elif image.ndim == 3 and image.shape[2] == 1:
-        grey = image[:, :, 0]
-    else:
-        raise ValueError(f"expected an HxW, HxWx3 or HxWx4 image, got shape {image.shape}")
-    if grey.dtype == np.uint16:
-        grey = (grey >> 8).astype(np.uint8)
-    return grey
-
-
 class BandSampler:
     """Cuts the band out of a frame as float32 grey: a plain row crop, or a resampling of the membrane
     around the contact line onto a grid uniform in membrane y (rows) and x (columns)."""
@@ -290,7 +276,7 @@ class BandSampler:
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         v0, v1 = self.src_rows
-        grey = _to_grey(image[v0:v1])
+        grey = to_grey(image[v0:v1])
         if self.maps is not None:
             grey = cv2.remap(grey, self.maps[0], self.maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return grey.astype(np.float32)

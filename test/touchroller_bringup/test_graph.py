@@ -94,7 +94,7 @@ def test_bad_arguments_are_one_clear_error(launch, values, message):
 def test_resolve_arguments_fills_defaults():
     args = resolve_arguments("replay", {"bag": "x"})
     assert args == {"bag": "x", "rate": "1.0", "loop": "false", "params_file": "", "calibration_file": "",
-                    "fastdds_profile": "auto"}
+                    "fastdds_profile": "auto", "namespace": "touchroller"}
 
 
 @pytest.mark.parametrize(("distro", "variables"), [
@@ -170,7 +170,7 @@ def test_sweep_node_from_the_graph_reads_the_scan_defaults(ros_context):
     spec = build_graph("scan", {"sweep_speed": "0.02"}).node("sweep")
     node = spec.load_class()(context=ros_context, **spec.node_kwargs())
     try:
-        assert node.get_name() == "touchroller_sweep"
+        assert node.get_fully_qualified_name() == "/touchroller/sweep"
         assert node.get_parameter("sweep.speed").value == pytest.approx(0.02)   # argument
         assert node.get_parameter("sweep.length").value == pytest.approx(0.11)  # config/scan.yaml
         assert node.get_parameter("cylinder.radius").value == pytest.approx(0.05)  # config/touchroller.yaml

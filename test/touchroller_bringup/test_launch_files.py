@@ -1,9 +1,10 @@
 """The launch files agree with the graph module.
 
-`launch`/`launch_ros` are not installable here, so each launch file is (1) parsed with `ast` and
-(2) imported with stub `launch`/`launch_ros` modules injected into sys.modules only inside the test,
-then its arguments and the Nodes it builds are compared with `touchroller_bringup.graph`. Where the
-real `launch` imports (a ROS 2 machine), the description is also built and its actions inspected.
+Each launch file is (1) parsed with `ast` (it hands its LAUNCH to `touchroller_bringup.launching`, and
+spells no node by hand) and (2) imported with stub `launch`/`launch_ros` modules injected into
+sys.modules only inside the test, then its arguments and the Nodes it builds are compared with
+`touchroller_bringup.graph`. Where the real `launch` imports (a ROS 2 machine, or the venv with
+ros-extras installed), the description is also built and its actions inspected.
 """
 from __future__ import annotations
 
@@ -31,10 +32,10 @@ def test_launch_file_reads_everything_from_the_graph(path):
     constants = {node.targets[0].id: node.value.value for node in tree.body
                  if isinstance(node, ast.Assign) and isinstance(node.value, ast.Constant)}
     assert constants.get("LAUNCH") == path.name.removesuffix(".launch.py")
-    used = {f"{n.value.id}.{n.attr}" for n in ast.walk(tree)
-            if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name)}
-    assert {"graph.LAUNCH_ARGUMENTS", "graph.build_graph"} <= used
-    assert any(isinstance(n, ast.FunctionDef) and n.name == "generate_launch_description" for n in tree.body)
+    imported = {(n.module, alias.name) for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) for alias in n.names}
+    assert imported == {("touchroller_bringup.launching", "launch_description")}
+    generate = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "generate_launch_description")
+    assert ast.unparse(generate.body[-1]) == "return launch_description(LAUNCH)"
     # No node is spelled out by hand: no executable/package string literals in the launch file.
     literals = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)}
     executables = {role[0] for role in (graph.CAMERA, graph.PERCEPTION, graph.SWEEP, graph.CALIBRATION)}
@@ -89,7 +90,8 @@ def _example_values(launch: str, tmp_path: Path) -> dict[str, str]:
     params.write_text("/**:\n  ros__parameters:\n    sweep.depth: 0.002\n")
     calibration = tmp_path / "cal.yaml"
     calibration.write_text("/**:\n  ros__parameters:\n    extrinsics.theta: 0.01\n")
-    values = {"params_file": str(params), "calibration_file": str(calibration), "fastdds_profile": "shm"}
+    values = {"params_file": str(params), "calibration_file": str(calibration), "fastdds_profile": "shm",
+              "namespace": "left"}
     if launch == "scan":
         values |= {"use_sim": "false", "camera_device": "/dev/v4l/by-id/usb-cam", "robot_ip": "127.0.0.1",
                    "sweep_speed": "0.02", "sweep_length": "0.08", "scene": "surface_mapping",
@@ -118,7 +120,7 @@ def test_stubbed_launch_matches_the_graph(path, monkeypatch, tmp_path):
     opaque = [a for a in actions if type(a).__name__ == "OpaqueFunction"]
     assert len(opaque) == 1
     values = _example_values(launch, tmp_path)
-    built = opaque[0].kwargs["function"](FakeContext(values))
+    built = opaque[0].kwargs["function"](FakeContext(values), *opaque[0].kwargs.get("args", ()))
     expected = graph.build_graph(launch, values)
     # the environment (the Fast DDS profile) is set before any node starts
     environment = [a for a in built if type(a).__name__ == "SetEnvironmentVariable"]
@@ -127,6 +129,7 @@ def test_stubbed_launch_matches_the_graph(path, monkeypatch, tmp_path):
     assert "FASTDDS_DEFAULT_PROFILES_FILE" in expected.environment
     nodes = built[len(environment):]
     assert [n.kwargs for n in nodes] == [spec.launch_kwargs() for spec in expected.nodes]
+    assert {n.kwargs["namespace"] for n in nodes} == {"/left"}
     for node in nodes:  # the user's files come after the defaults, in order
         assert node.kwargs["parameters"][-3:-1] == [str(Path(values["params_file"]).resolve()),
                                                     str(Path(values["calibration_file"]).resolve())]

@@ -18,7 +18,8 @@ from sensor_msgs.msg import Image  # noqa: E402
 
 from touchroller_bringup.bags import read_images  # noqa: E402
 from touchroller_bringup.cli import main  # noqa: E402
-from touchroller_bringup.nodes.camera_node import IMAGE_TOPIC, CameraNode  # noqa: E402
+from touchroller_bringup.names import IMAGE_TOPIC  # noqa: E402
+from touchroller_bringup.nodes.camera_node import CameraNode  # noqa: E402
 from touchroller_driver.sources import Backoff, BagSource, V4L2Source  # noqa: E402
 
 pytestmark = pytest.mark.ros

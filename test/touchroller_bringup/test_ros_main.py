@@ -12,10 +12,10 @@ pytest.importorskip("rclpy")
 pytestmark = pytest.mark.ros
 
 NODE_MODULES = {
-    "touchroller_bringup.nodes.camera_node": "/camera_node",
-    "touchroller_bringup.nodes.sweep_node": "/touchroller_sweep",
-    "touchroller_bringup.nodes.perception_node": "/perception_node",
-    "touchroller_bringup.nodes.calibration_node": "/touchroller_calibration",
+    "touchroller_bringup.nodes.camera_node": "/touchroller/camera",
+    "touchroller_bringup.nodes.sweep_node": "/touchroller/sweep",
+    "touchroller_bringup.nodes.perception_node": "/touchroller/perception",
+    "touchroller_bringup.nodes.calibration_node": "/touchroller/calibration",
 }
 
 

@@ -96,6 +96,39 @@ def test_short_simulated_scan_writes_map_contacts_and_report(isolated_ros, tmp_p
 
 
 @pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_scan_in_its_own_namespace(isolated_ros, tmp_path, capsys):
+    """--namespace left moves the whole graph: the recording holds /left/* and no /touchroller/* topic."""
+    from touchroller_bringup.bags import read_images
+
+    out = tmp_path / "left"
+    assert main(["scan", *SHORT, "--namespace", "left", "--record", "--out", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    assert "/left/image_raw" in report and "/left/contacts" in report and "/touchroller/" not in report
+    assert list(read_images(out / "recording", topic="/left/image_raw"))
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_a_second_graph_in_the_same_namespace_stops_the_scan_before_the_arm_moves(isolated_ros, tmp_path, capsys):
+    """Two scans on one ROS domain and namespace would start each other's sweep: the second one refuses."""
+    import rclpy
+    from rclpy.node import Node
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context, args=[])
+    other = Node("sweep", namespace="touchroller", context=context)   # what another scan's sweep node is
+    try:
+        assert main(["scan", *SHORT, "--out", str(tmp_path / "x")]) == 2
+    finally:
+        other.destroy_node()
+        context.try_shutdown()
+    err = error_text(capsys.readouterr().err)
+    assert "another TouchRoller graph runs in namespace /touchroller" in err and "--namespace" in err
+    assert "\n" not in err
+
+
+@pytest.mark.ros
 def test_unknown_parameter_is_one_line(isolated_ros, tmp_path, capsys):
     assert main(["scan", *SHORT, "sweep.sped:=0.01", "--out", str(tmp_path / "x")]) == 2
     err = error_text(capsys.readouterr().err)
@@ -111,7 +144,7 @@ def test_speed_beyond_the_arm_limit_is_refused_before_motion(isolated_ros, tmp_p
 
 @pytest.mark.ros
 def test_missing_node_is_one_clear_line(isolated_ros, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(graph, "PERCEPTION", ("perception_node", "touchroller_perception",
+    monkeypatch.setattr(graph, "PERCEPTION", ("perception_node", "perception",
                                               "touchroller_perception.not_landed_yet:PerceptionNode"))
     assert main(["scan", *SHORT, "--out", str(tmp_path / "x")]) == 2
     err = error_text(capsys.readouterr().err)
@@ -148,7 +181,7 @@ def test_default_output_folder_is_timestamped(monkeypatch, tmp_path):
 def test_bad_parameter_value_names_the_node(isolated_ros, tmp_path, capsys):
     assert main(["scan", "sweep.start_pose:=[0.4, 0, 0.2]", "--quiet", "--out", str(tmp_path / "x")]) == 2
     err = error_text(capsys.readouterr().err)
-    assert err.startswith("touchroller: error: cannot start node touchroller_sweep") and "6 values" in err
+    assert err.startswith("touchroller: error: cannot start node /touchroller/sweep") and "6 values" in err
 
 
 @pytest.mark.ros

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from touchroller_driver.motion import TrapezoidProfile, sequence_duration
+from touchroller_driver.motion import TrapezoidProfile
 
 
 def test_trapezoid_reaches_cruise_speed():
@@ -40,12 +40,6 @@ def test_zero_distance_and_bad_input():
         TrapezoidProfile(math.nan, 1.0, 1.0)
 
 
-def test_sequence_duration_adds_dwell():
-    moves = [(0.1, 0.1, 1.0)] * 3
-    single = TrapezoidProfile(0.1, 0.1, 1.0).duration
-    assert sequence_duration(moves, dwell=0.5) == pytest.approx(3 * (single + 0.5))
-
-
 @given(
     distance=st.floats(-2.0, 2.0, allow_nan=False),
     v_max=st.floats(1e-3, 3.0),
@@ -65,5 +59,3 @@ def test_profile_is_consistent(distance, v_max, a_max):
         fine = np.linspace(0.0, prof.duration, 20001)
         integral = np.trapezoid(prof.velocity(fine), fine)
         assert integral == pytest.approx(distance, abs=1e-3 * abs(distance) + 1e-12)
-        mid = prof.time_at(abs(distance) / 2)
-        assert abs(prof.position(mid)) == pytest.approx(abs(distance) / 2, abs=1e-9)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from touchroller_bringup.errors import UserError
+from touchroller_bringup.names import IMAGE_TOPIC
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -77,7 +78,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", type=Path, help="rosbag2 folder, image folder or image file")
     parser.add_argument("--out", required=True, type=Path, help="calibration YAML to write")
-    parser.add_argument("--topic", default="/touchroller/image_raw", help="image topic in a bag")
+    parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic in a bag (default: %(default)s)")
     parser.add_argument("--report", type=Path, help="also write the full report (per view) as YAML")
 
 

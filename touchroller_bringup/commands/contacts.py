@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 from touchroller_bringup.errors import UserError
+from touchroller_bringup.names import IMAGE_TOPIC
 
 COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z", "area", "confidence", "peak_snr", "var_x", "var_y", "var_z")
 
@@ -25,7 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("bag", help="rosbag2 folder")
     parser.add_argument("--out", required=True, help="CSV file to write")
     parser.add_argument("--params", help="calibration YAML (ROS 2 params file); without it x, y, z are nan")
-    parser.add_argument("--topic", default="/touchroller/image_raw", help="image topic (default: %(default)s)")
+    parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic (default: %(default)s)")
     parser.add_argument("--reference-frames", type=int, default=5,
                         help="no-contact frames at the start that form the reference (default: %(default)s)")
     parser.add_argument("--method", choices=("colour", "paper"), default="colour",

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from touchroller_bringup.errors import UserError
+from touchroller_bringup.names import IMAGE_TOPIC
 
 DEFAULT_MM_PER_PX = 0.1
 T = TypeVar("T")
@@ -30,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", required=True, help="image file to write (.png, .tif, ...)")
     parser.add_argument("--method", choices=("default", "paper"), default="default",
                         help="subpixel keyframe registration (default) or the paper's integer MAE search")
-    parser.add_argument("--topic", default="/touchroller/image_raw", help="image topic (default: %(default)s)")
+    parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic (default: %(default)s)")
     parser.add_argument("--params", help="calibration YAML (ROS 2 params file): rectifies the band through the "
                                          "camera model and gives the metric scale (default: config/touchroller.yaml)")
     parser.add_argument("--metric", nargs="?", type=float, const=DEFAULT_MM_PER_PX, default=None,

@@ -1,9 +1,11 @@
 """`touchroller scan [params.yaml ...] [name:=value ...] [--out DIR]`: the scan graph in one process.
 
 `name:=value` sets a launch argument of scan.launch.py when `name` is one (use_sim, camera_device,
-robot_ip, params_file, calibration_file, sweep_speed, sweep_length, scene), else a ROS parameter on
-every node of the graph that declares it (e.g. `sweep.depth:=0.0008`, `map.publish_rate:=5.0`).
-With no arguments: the simulated sensor and arm over the built-in `surface_mapping` scene.
+robot_ip, params_file, calibration_file, sweep_speed, sweep_length, scene, namespace, ...), else a ROS
+parameter on every node of the graph that declares it (e.g. `sweep.depth:=0.0008`, `map.publish_rate:=5.0`).
+With no arguments: the simulated sensor and arm over the built-in `surface_mapping` scene, in the
+namespace `touchroller`. Two scans on one ROS domain need different namespaces (`--namespace left`) or
+different ROS_DOMAIN_IDs; a scan that finds its namespace taken stops before the arm moves.
 """
 from __future__ import annotations
 
@@ -35,9 +37,12 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None,
                         help="output folder (default: scan_output/<UTC timestamp>/)")
     parser.add_argument("--seed", type=int, default=0, help="simulator random seed (use_sim:=true)")
+    parser.add_argument("--namespace", default=None, metavar="NS",
+                        help="ROS namespace of the graph (default touchroller: /touchroller/contacts, ...); "
+                             "the same as namespace:=NS")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     parser.add_argument("--record", action="store_true",
-                        help="also record the /touchroller topics to OUT/recording (rosbag2)")
+                        help="also record the graph's topics to OUT/recording (rosbag2)")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default=None,
                         help="storage of the --record bag (default sqlite3)")
 
@@ -56,6 +61,7 @@ def _reparse(args: argparse.Namespace) -> argparse.Namespace:
     parsed.quiet = parsed.quiet or args.quiet
     parsed.record = parsed.record or args.record
     parsed.storage = parsed.storage or args.storage or "sqlite3"
+    parsed.namespace = parsed.namespace if parsed.namespace is not None else args.namespace
     return parsed
 
 
@@ -105,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
 
     args = _reparse(args)
     files, arguments, overrides = parse_items(args.items)
+    if args.namespace is not None:
+        arguments["namespace"] = args.namespace
     out = args.out or Path("scan_output") / time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     progress = None if args.quiet else (lambda line: print(line, flush=True))
     result = run_scan(ScanOptions(out_dir=out, arguments=arguments, params_files=files, overrides=overrides,

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from touchroller_bringup.errors import UserError
+from touchroller_bringup.names import IMAGE_TOPIC
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -22,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--variant", help="a variant the scene defines (e.g. slow, medium, fast, paper)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a scene value, dotted keys, YAML values (e.g. motion.duration=5)")
-    parser.add_argument("--topic", default="/touchroller/image_raw")
+    parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic (default: %(default)s)")
     parser.set_defaults(func=run)
 
 

@@ -2,20 +2,21 @@
 
 Thin ROS shell around `touchroller_perception.calibration`:
 
-* subscribes `image_topic` (default `/touchroller/image_raw`) and keeps the latest frame;
+* subscribes `image_topic` (default `image_raw`, relative to the node's namespace, `touchroller` by
+  default) and keeps the latest frame;
 * `~/capture` stores the latest frame (a new one each time) as a view of the current `target`:
   `chessboard` (intrinsics), `hemispheres` (theta and d) or `reference` (a no-contact frame,
   subtracted from the hemisphere images);
 * `~/solve` calibrates from what was captured (intrinsics first if there are chessboard views, then
   theta and d), sets the result on the running perception node through
-  `/<perception_node>/set_parameters_atomically`, writes the calibration YAML to `output_path`,
+  `<perception_node>/set_parameters_atomically` (a relative name: the perception node in the same
+  namespace), writes the calibration YAML to `output_path`,
   updates its own geometry parameters and publishes `sensor_msgs/CameraInfo` on
-  `/touchroller/camera_info` (transient local, so late subscribers get it);
+  `camera_info` (transient local, so late subscribers get it);
 * `~/reset` drops all captured frames.
 
-The services are `std_srvs/srv/Trigger` (`ros2 service call /touchroller_calibration/solve
-std_srvs/srv/Trigger`); on an install without std_srvs, `touchroller_bringup.ros_services` falls back
-to `diagnostic_msgs/srv/AddDiagnostics`, whose response has the same `success` and `message` fields.
+The services are `std_srvs/srv/Trigger` (`ros2 service call /touchroller/calibration/solve
+std_srvs/srv/Trigger`).
 """
 from __future__ import annotations
 
@@ -32,24 +33,24 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
-from touchroller_bringup.image_conversion import image_to_array
-from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_bringup import names
+from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
+from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_perception import calibration as cal
 from touchroller_perception.geometry import CameraModel
 
-CAMERA_INFO_TOPIC = "/touchroller/camera_info"
-CAMERA_FRAME = "touchroller_camera"
 TARGETS = ("chessboard", "hemispheres", "reference")
 CAMERA_INFO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 # parameter -> (default, description, min, max)
 SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
-    "image_topic": ("/touchroller/image_raw", "Image topic the captures are taken from", None, None),
+    "image_topic": (names.IMAGE, "Image topic the captures are taken from (relative: in the node's namespace)",
+                    None, None),
     "target": ("hemispheres", f"What ~/capture stores: {', '.join(TARGETS)}", None, None),
-    "perception_node": ("touchroller_perception", "Node whose geometry parameters ~/solve sets ('' = none)",
-                        None, None),
+    "perception_node": (names.PERCEPTION_NODE, "Node whose geometry parameters ~/solve sets (relative: in "
+                        "the node's namespace; '' = none)", None, None),
     "output_path": ("touchroller_calibration.yaml", "Calibration YAML written by ~/solve ('' = none)", None, None),
     "board.columns": (7, "Chessboard inner corners along a row", 2, 100),
     "board.rows": (7, "Chessboard inner corners along a column", 2, 100),
@@ -67,8 +68,10 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
 
 
 class CalibrationNode(Node):
-    def __init__(self, **node_kwargs: Any) -> None:
-        super().__init__("touchroller_calibration", **node_kwargs)
+    def __init__(self, node_name: str = names.CALIBRATION_NODE, **node_kwargs: Any) -> None:
+        node_kwargs.setdefault("namespace", names.DEFAULT_NAMESPACE)
+        super().__init__(node_name, **node_kwargs)
+        self.frame_prefix = declare_frame_prefix(self)
         self.geometry = GeometryParameters(self)
         for name, (default, description, lo, hi) in SETTINGS.items():
             declare(self, name, default, description, min=lo, max=hi)
@@ -81,10 +84,10 @@ class CalibrationNode(Node):
         self.last_result: str = ""
         self.remote_result: SetParametersResult | None = None
 
-        self.info_pub = self.create_publisher(CameraInfo, CAMERA_INFO_TOPIC, CAMERA_INFO_QOS)
+        self.info_pub = self.create_publisher(CameraInfo, names.CAMERA_INFO, CAMERA_INFO_QOS)
         self.image_sub = None
         self._subscribe(str(self.get_parameter("image_topic").value))
-        for name, action in (("capture", self.capture), ("solve", self.solve), ("reset", self.reset)):
+        for name, action in ((names.CAPTURE, self.capture), (names.SOLVE, self.solve), (names.RESET, self.reset)):
             create_trigger_service(self, f"~/{name}", action)
         self._remote_client = None
         self.publish_camera_info(self.geometry.model)
@@ -130,7 +133,7 @@ class CalibrationNode(Node):
         except ValueError as exc:
             self.get_logger().warning(f"dropping malformed image: {exc}", throttle_duration_sec=5.0)
             return
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_to_ns(msg.header.stamp)
         self.latest = (stamp, np.array(image, copy=True))
 
     def capture(self) -> tuple[bool, str]:
@@ -211,34 +214,35 @@ class CalibrationNode(Node):
         return f"wrote {path}"
 
     def _send(self, camera: CameraModel, with_intrinsics: bool) -> str:
-        name = str(self.get_parameter("perception_node").value).strip("/")
+        name = str(self.get_parameter("perception_node").value).strip().rstrip("/")
         if not name:
             return ""
-        service = f"/{name}/set_parameters_atomically"
+        service = self.resolve_service_name(f"{name}/set_parameters_atomically")
+        name = service.removesuffix("/set_parameters_atomically")   # the node's full name, for messages
         if self._remote_client is None or self._remote_client.srv_name != service:
             self._remote_client = self.create_client(SetParametersAtomically, service)
         if not self._remote_client.service_is_ready():
-            return f"{service} is not available: parameters not set on /{name}"
+            return f"{service} is not available: parameters not set on {name}"
         request = SetParametersAtomically.Request()
         request.parameters = [Parameter(n, value=v).to_parameter_msg() for n, v in _changed(camera, with_intrinsics)]
         self.remote_result = None
         future = self._remote_client.call_async(request)
         future.add_done_callback(lambda f: self._on_remote_result(f, name))
-        return f"setting {len(request.parameters)} parameters on /{name}"
+        return f"setting {len(request.parameters)} parameters on {name}"
 
     def _on_remote_result(self, future: Any, name: str) -> None:
         response = future.result()
         self.remote_result = response.result if response is not None else SetParametersResult(
             successful=False, reason="no response")
         if self.remote_result.successful:
-            self.get_logger().info(f"/{name} accepted the calibration")
+            self.get_logger().info(f"{name} accepted the calibration")
         else:
-            self.get_logger().error(f"/{name} rejected the calibration: {self.remote_result.reason}")
+            self.get_logger().error(f"{name} rejected the calibration: {self.remote_result.reason}")
 
     def publish_camera_info(self, camera: CameraModel) -> None:
         msg = CameraInfo()
         msg.header.stamp = self.get_clock().now().to_msg()
-        msg.header.frame_id = CAMERA_FRAME
+        msg.header.frame_id = names.frame(names.CAMERA_FRAME, self.frame_prefix)
         for field, value in cal.camera_info_fields(camera).items():
             setattr(msg, field, value)
         self.info_pub.publish(msg)

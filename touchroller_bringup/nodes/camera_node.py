@@ -1,4 +1,7 @@
-"""The TouchRoller camera driver node: a `FrameSource` -> `/touchroller/image_raw` + `/touchroller/camera_info`.
+"""The TouchRoller camera driver node: a `FrameSource` -> `image_raw` + `camera_info`.
+
+Topics are relative to the node's namespace (`touchroller` by default: `/touchroller/image_raw`; names
+in `touchroller_bringup.names`); frame ids start with `frame_prefix`, which follows the namespace.
 
 Thin ROS shell around `touchroller_driver.sources`: a publishing thread takes the newest frame
 from the source and publishes it at once (no timer in the path, so no added latency), stamped
@@ -8,7 +11,7 @@ measured frame rate, publish lag (publish time - capture stamp) and drops.
 
 With `source=sim` and `sim.follow_arm`, the simulated sensor follows the arm of a sweep node running
 anywhere in the graph (e.g. another process under `ros2 launch`): the node subscribes
-`/touchroller/tcp_pose` and renders, at `fps`, the roller state of the latest pose extrapolated to the
+`tcp_pose` and renders, at `fps`, the roller state of the latest pose extrapolated to the
 capture time (`touchroller_driver.arm.PoseFollower`). The arm's frame comes from the same parameters as
 the sweep node's simulated arm (`sweep.start_pose`, `sweep.clearance`, `sweep.direction`,
 `cylinder.radius`; config/scan.yaml sets them for every node) and the scene's roll start.
@@ -29,8 +32,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, Image
 
+from touchroller_bringup import names
 from touchroller_bringup.bags import read_images
-from touchroller_bringup.image_conversion import fill_image
+from touchroller_bringup.image_conversion import fill_image, stamp_to_ns
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
     OK,
@@ -40,7 +44,7 @@ from touchroller_bringup.ros_diagnostics import (
     RateMeter,
     Status,
 )
-from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
 from touchroller_driver.arm import (
     DEFAULT_CLEARANCE,
     DEFAULT_DIRECTION,
@@ -51,9 +55,6 @@ from touchroller_driver.arm import (
 from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
 from touchroller_perception.geometry import CameraModel
 
-IMAGE_TOPIC = "/touchroller/image_raw"
-CAMERA_INFO_TOPIC = "/touchroller/camera_info"
-TCP_POSE_TOPIC = "/touchroller/tcp_pose"
 #: Parameters that select or configure the source: changing one reopens it.
 SOURCE_PARAMETERS = (
     "source", "device", "width", "height", "fps", "exposure", "video_path", "bag_path", "bag_topic",
@@ -85,14 +86,16 @@ def camera_info_from_model(model: CameraModel, stamp_ns: int, frame_id: str) -> 
 class CameraNode(Node):
     """Publishes camera frames; `source=` supplies an external FrameSource (then `source.*` params are ignored)."""
 
-    def __init__(self, node_name: str = "camera_node", *, source: FrameSource | None = None,
+    def __init__(self, node_name: str = names.CAMERA_NODE, *, source: FrameSource | None = None,
                  autostart: bool = True, **node_kwargs: Any) -> None:
+        node_kwargs.setdefault("namespace", names.DEFAULT_NAMESPACE)
         super().__init__(node_name, **node_kwargs)
         self._declare_parameters()
+        self.frame_prefix = declare_frame_prefix(self)
         self.geometry = GeometryParameters(self, on_change=self._on_geometry)
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
-        self.frame_id = str(self.get_parameter("frame_id").value)
+        self.frame_id = self._prefixed_frame_id()
         self._external_source = source is not None
         self.source: FrameSource | None = source
         self._opened = False
@@ -111,8 +114,8 @@ class CameraNode(Node):
         self._closed_stats = SourceStats()  # drops etc. of sources closed by a restart
 
         overrides = QoSOverridingOptions.with_default_policies()
-        self.image_pub = self.create_publisher(Image, IMAGE_TOPIC, image_qos(), qos_overriding_options=overrides)
-        self.info_pub = self.create_publisher(CameraInfo, CAMERA_INFO_TOPIC, image_qos(),
+        self.image_pub = self.create_publisher(Image, names.IMAGE, image_qos(), qos_overriding_options=overrides)
+        self.info_pub = self.create_publisher(CameraInfo, names.CAMERA_INFO, image_qos(),
                                               qos_overriding_options=overrides)
         self.follower: PoseFollower | None = None   # source=sim with sim.follow_arm: the arm's poses
         self.pose_sub = None
@@ -133,18 +136,19 @@ class CameraNode(Node):
         declare(self, "exposure", 0.0, "Manual exposure in V4L2 units; 0 = auto exposure", min=0.0, max=100000.0)
         declare(self, "video_path", "", "Video file to play (source=video)")
         declare(self, "bag_path", "", "rosbag2 folder to play images from (source=bag)")
-        declare(self, "bag_topic", IMAGE_TOPIC, "Image topic inside the bag (source=bag)")
+        declare(self, "bag_topic", names.topic(names.IMAGE), "Image topic inside the bag (source=bag)")
         declare(self, "scene", "surface_mapping", "Simulator scene name or YAML path (source=sim)")
         declare(self, "seed", 0, "Simulator random seed (source=sim)", min=0, max=2**31 - 1)
         declare(self, "rate", 1.0, "Playback rate for video/bag/sim: 1 real time, 0 as fast as possible",
                 min=0.0, max=100.0)
         declare(self, "loop", False, "Restart video/bag/sim sources at their end")
-        declare(self, "frame_id", "touchroller_camera", "frame_id of published images and camera info")
-        declare(self, "wait_for_subscribers", 0, f"Open the source only once {IMAGE_TOPIC} has this many "
+        declare(self, "frame_id", names.CAMERA_FRAME, "frame_id of published images and camera info (after "
+                "frame_prefix)")
+        declare(self, "wait_for_subscribers", 0, f"Open the source only once {names.IMAGE} has this many "
                 "subscribers (replay: perception must see a recording's first, reference frames); 0: at once",
                 min=0, max=100)
         declare(self, "sim.follow_arm", False, "source=sim: render the roller state of the arm's poses on "
-                f"{TCP_POSE_TOPIC} (a sweep node's simulated arm) instead of the scene's own motion")
+                f"{names.TCP_POSE} (a sweep node's simulated arm) instead of the scene's own motion")
         # the sweep node's names, so the same params files place the arm identically for both
         declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
                 "sim.follow_arm: the sweep's touching TCP pose [x, y, z, rx, ry, rz] (as the sweep node)")
@@ -162,11 +166,14 @@ class CameraNode(Node):
                 return SetParametersResult(successful=False, reason=f"{param.name} must not be empty")
         return SetParametersResult(successful=True)
 
+    def _prefixed_frame_id(self) -> str:
+        return names.frame(str(self.get_parameter("frame_id").value), self.frame_prefix)
+
     def _apply(self, parameters: Sequence[Parameter]) -> None:
-        names = {p.name for p in parameters}
-        if "frame_id" in names:
-            self.frame_id = str(self.get_parameter("frame_id").value)
-        if names & set(SOURCE_PARAMETERS) and not self._external_source:
+        changed = {p.name for p in parameters}
+        if "frame_id" in changed:
+            self.frame_id = self._prefixed_frame_id()
+        if changed & set(SOURCE_PARAMETERS) and not self._external_source:
             self._subscribe_poses_if_following()
             self._restart.set()  # the publishing thread reopens the source
 
@@ -178,14 +185,13 @@ class CameraNode(Node):
     def _subscribe_poses_if_following(self) -> None:
         # Created here (executor or constructing thread), never from the publishing thread; kept once made.
         if self.pose_sub is None and self._following():
-            self.pose_sub = self.create_subscription(PoseStamped, TCP_POSE_TOPIC, self._on_pose, 10)
+            self.pose_sub = self.create_subscription(PoseStamped, names.TCP_POSE, self._on_pose, 10)
 
     def _on_pose(self, msg: PoseStamped) -> None:
         follower = self.follower
         if follower is not None:
-            stamp = msg.header.stamp
             p = msg.pose.position
-            follower.update(stamp.sec + stamp.nanosec * 1e-9, (p.x, p.y, p.z))
+            follower.update(stamp_to_ns(msg.header.stamp) * 1e-9, (p.x, p.y, p.z))
 
     def _make_follower(self, scene: Any) -> PoseFollower:
         from touchroller_driver.sim.scenarios import roll_extent
@@ -297,7 +303,7 @@ class CameraNode(Node):
         replayed recording's first (reference) frames reach perception started in another process."""
         wanted = int(self.get_parameter("wait_for_subscribers").value)
         if wanted > 0 and self.image_pub.get_subscription_count() < wanted:
-            self.get_logger().info(f"waiting for {wanted} subscriber(s) on {IMAGE_TOPIC}")
+            self.get_logger().info(f"waiting for {wanted} subscriber(s) on {self.image_pub.topic_name}")
             while (self.image_pub.get_subscription_count() < wanted and not self._stop.is_set()
                    and not self._restart.is_set()):
                 self._stop.wait(0.05)

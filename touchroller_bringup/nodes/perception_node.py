@@ -3,17 +3,20 @@
 Thin ROS shell around `touchroller_perception.contacts` (detection), `.localisation`
 (back-projection through the calibrated camera model) and `.stitching` (the map, imported lazily):
 
-* subscribes `/touchroller/image_raw` (best effort, keep-last depth 1: a slow consumer skips
+Topics are relative to the node's namespace (`touchroller` by default; names in
+`touchroller_bringup.names`), frame ids start with `frame_prefix` (which follows the namespace):
+
+* subscribes `image_raw` (best effort, keep-last depth 1: a slow consumer skips
   stale frames instead of queueing them; overridable at start-up with the read-only parameters
   `qos_overrides./touchroller/image_raw.subscription.{history,depth,reliability}`);
-* publishes one `geometry_msgs/PointStamped` per contact on `/touchroller/contacts`, frame
+* publishes one `geometry_msgs/PointStamped` per contact on `contacts`, frame
   `touchroller_cylinder`, stamped with the source image's stamp;
-* publishes the map on `/touchroller/map` (transient local, reliable, depth 1) at `map.publish_rate` Hz;
-  follows the sweep on `/touchroller/sweep_progress` (std_msgs/Float32, 0..1 of the roll): a new map when
+* publishes the map on `map` (transient local, reliable, depth 1) at `map.publish_rate` Hz;
+  follows the sweep on `sweep_progress` (std_msgs/Float32, 0..1 of the roll): a new map when
   a roll starts, and when it ends the map is finalised (whole-map flat field), published, and saved to
   `map.save_path` if that is set;
-* `~/recapture_reference` (std_srvs/Trigger; `touchroller_bringup.ros_services` has the fallback for
-  installs without std_srvs) re-captures the no-contact reference from the next `reference.frames` frames;
+* `~/recapture_reference` (std_srvs/Trigger) re-captures the no-contact reference from the next
+  `reference.frames` frames;
 * `/diagnostics`: frame rate, processing time, contacts/s, malformed frames, and frames missed: all
   sequence gaps (`frames_dropped`, mostly stale frames skipped while busy) and, of those, the ones DDS
   reports lost in transport (`frames_lost_in_transport`).
@@ -39,21 +42,16 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32
 
-from touchroller_bringup.image_conversion import image_to_array
+from touchroller_bringup import names
+from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, LagWindow, RateMeter, Status
-from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
 from touchroller_bringup.ros_services import create_trigger_service
-from touchroller_bringup.tf import CAMERA_FRAME, CYLINDER_FRAME, TransformPublisher, camera_in_cylinder
+from touchroller_bringup.tf import TransformPublisher, camera_in_cylinder
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
 from touchroller_perception.stitching import Stitcher, StitcherConfig
-
-IMAGE_TOPIC = "/touchroller/image_raw"
-CONTACTS_TOPIC = "/touchroller/contacts"
-MAP_TOPIC = "/touchroller/map"
-PROGRESS_TOPIC = "/touchroller/sweep_progress"   # the sweep node's roll progress, 0..1
-
 
 
 def image_qos() -> QoSProfile:
@@ -64,7 +62,6 @@ def image_qos() -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE)
 
 
-IMAGE_QOS = image_qos()   # the default, for readers; the node subscribes with a fresh image_qos()
 MAP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -113,16 +110,18 @@ STITCHER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
 class PerceptionNode(Node):
     """Images -> contacts (PointStamped) and the tactile map; see the module docstring and docs/contacts.md."""
 
-    def __init__(self, node_name: str = "perception_node", **node_kwargs: Any) -> None:
+    def __init__(self, node_name: str = names.PERCEPTION_NODE, **node_kwargs: Any) -> None:
+        node_kwargs.setdefault("namespace", names.DEFAULT_NAMESPACE)
         super().__init__(node_name, **node_kwargs)
         self._declare_parameters()
+        self.frame_prefix = declare_frame_prefix(self)
         self.geometry = GeometryParameters(self, on_change=self._on_geometry)
         self.camera: CameraModel = self.geometry.model
         self.lookup = SurfaceLookup(self.camera)   # per-pixel back-projection: microseconds per contact
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         self.detector = ContactDetector(self._detector_config(), int(self.get_parameter("reference.frames").value))
-        self.frame_id = str(self.get_parameter("contacts.frame_id").value)
+        self.frame_id = self._contacts_frame_id()
         self.stitcher_config = self._stitcher_config()
         self.stitcher: Any = None
         self._stitch_error_logged = False
@@ -143,9 +142,9 @@ class PerceptionNode(Node):
         self.unmapped_contacts = 0
         self._last_sequence: dict[Any, int] = {}   # per publisher: several cameras may share the topic
 
-        self.contacts_pub = self.create_publisher(PointStamped, CONTACTS_TOPIC, 10)
-        self.map_pub = self.create_publisher(Image, MAP_TOPIC, MAP_QOS)
-        self.progress_sub = self.create_subscription(Float32, PROGRESS_TOPIC, self._on_progress, 10)
+        self.contacts_pub = self.create_publisher(PointStamped, names.CONTACTS, 10)
+        self.map_pub = self.create_publisher(Image, names.MAP, MAP_QOS)
+        self.progress_sub = self.create_subscription(Float32, names.SWEEP_PROGRESS, self._on_progress, 10)
         # Humble has no MessageInfo, so no drop count there
         on_image = self._on_image_with_info if _has_message_info() else self._on_image
         self.image_sub = self._subscribe_images(on_image)
@@ -161,7 +160,8 @@ class PerceptionNode(Node):
         defaults = DetectorConfig()
         for name, (field, description, lo, hi) in DETECTOR_PARAMETERS.items():
             declare(self, name, getattr(defaults, field), description, min=lo, max=hi)
-        declare(self, "contacts.frame_id", CYLINDER_FRAME, "frame_id of the published contact points")
+        declare(self, "contacts.frame_id", names.CYLINDER_FRAME, "frame_id of the published contact points (after "
+                "frame_prefix)")
         declare(self, "reference.frames", 5, "No-contact frames averaged into the reference", min=1, max=1000)
         defaults_map = StitcherConfig()
         for name, (field, description, lo, hi) in STITCHER_PARAMETERS.items():
@@ -195,22 +195,26 @@ class PerceptionNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:
-        names = {p.name for p in parameters}
-        if names & set(DETECTOR_PARAMETERS):
+        changed = {p.name for p in parameters}
+        if changed & set(DETECTOR_PARAMETERS):
             self.detector.config = self._detector_config()
-        if names & set(STITCHER_PARAMETERS):
+        if changed & set(STITCHER_PARAMETERS):
             self.stitcher_config = self._stitcher_config()
             self.reset_map()   # a map is stitched one way throughout
-        if "reference.frames" in names:
+        if "reference.frames" in changed:
             self.detector.reference_frames = int(self.get_parameter("reference.frames").value)
-        if "contacts.frame_id" in names:
-            self.frame_id = str(self.get_parameter("contacts.frame_id").value)
-        if "map.publish_rate" in names:
+        if "contacts.frame_id" in changed:
+            self.frame_id = self._contacts_frame_id()
+        if "map.publish_rate" in changed:
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+
+    def _contacts_frame_id(self) -> str:
+        return names.frame(str(self.get_parameter("contacts.frame_id").value), self.frame_prefix)
 
     def _publish_camera_frame(self) -> None:
         """touchroller_cylinder -> touchroller_camera on /tf_static, from extrinsics.theta and d."""
-        self.tf.set_static(CYLINDER_FRAME, CAMERA_FRAME, camera_in_cylinder(self.camera))
+        self.tf.set_static(names.frame(names.CYLINDER_FRAME, self.frame_prefix),
+                           names.frame(names.CAMERA_FRAME, self.frame_prefix), camera_in_cylinder(self.camera))
 
     def _on_geometry(self, model: CameraModel) -> None:
         self.lookup = SurfaceLookup(model)
@@ -237,7 +241,7 @@ class PerceptionNode(Node):
         """The image subscription, with DDS's message_lost event where the RMW has it: it tells frames
         lost in transport apart from stale frames skipped on purpose (both leave sequence gaps)."""
         def subscribe(**events: Any) -> Any:
-            return self.create_subscription(Image, IMAGE_TOPIC, on_image, image_qos(), **events,
+            return self.create_subscription(Image, names.IMAGE, on_image, image_qos(), **events,
                                             qos_overriding_options=QoSOverridingOptions.with_default_policies())
 
         try:
@@ -318,7 +322,7 @@ class PerceptionNode(Node):
             with self._map_lock:
                 if self.stitcher is None:
                     self.stitcher = Stitcher(self.stitcher_config, camera=self.camera)
-                stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                stamp_ns = stamp_to_ns(msg.header.stamp)
                 self.stitcher.push(image, stamp_ns)
                 self._map_dirty = True
         except Exception as exc:  # noqa: BLE001 - the map is optional; contacts must keep flowing
@@ -387,7 +391,8 @@ class PerceptionNode(Node):
 
         if tactile_map.dtype != np.uint8:
             tactile_map = np.clip(tactile_map, 0, 255).astype(np.uint8)
-        self.map_pub.publish(array_to_image(tactile_map, self.get_clock().now().nanoseconds, frame_id=CYLINDER_FRAME))
+        self.map_pub.publish(array_to_image(tactile_map, self.get_clock().now().nanoseconds,
+                                          frame_id=names.frame(names.CYLINDER_FRAME, self.frame_prefix)))
         return tactile_map
 
     # ------------------------------------------------------------------ diagnostics

@@ -4,12 +4,12 @@ Safety: the arm moves only after `~/start` is called; every segment of the sweep
 against `arm.max_speed`/`arm.max_accel` (read-only at run time) before the first command; all arm
 calls happen on one worker thread; a fault (protective/emergency stop, lost connection, refused
 command) stops the sweep and shows as ERROR on `/diagnostics`. Publishes the TCP pose
-(`/touchroller/tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
-(`/touchroller/sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`.
+(`tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
+(`sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`; topics are relative to the node's
+namespace (`touchroller` by default, names in `touchroller_bringup.names`).
 
-Services `~/start` and `~/stop` are std_srvs/Trigger (`ros2 service call /touchroller_sweep/start
-std_srvs/srv/Trigger`); on an install without std_srvs, `touchroller_bringup.ros_services` falls back to
-diagnostic_msgs/AddDiagnostics (same `success` and `message` response fields).
+Services `~/start` and `~/stop` are std_srvs/Trigger (`ros2 service call /touchroller/sweep/start
+std_srvs/srv/Trigger`).
 """
 from __future__ import annotations
 
@@ -26,11 +26,12 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float32
+from std_srvs.srv import Trigger
 
+from touchroller_bringup import names
 from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
-from touchroller_bringup.ros_params import declare
-from touchroller_bringup.ros_services import trigger_service_type
-from touchroller_bringup.tf import CYLINDER_FRAME, TOOL_FRAME, WORLD_FRAME, TransformPublisher
+from touchroller_bringup.ros_params import declare, declare_frame_prefix
+from touchroller_bringup.tf import TransformPublisher
 from touchroller_driver.arm import (
     DEFAULT_CLEARANCE,
     DEFAULT_DIRECTION,
@@ -50,9 +51,6 @@ from touchroller_driver.arm import (
 )
 from touchroller_perception.transforms import Transform
 
-NODE_NAME = "touchroller_sweep"
-TCP_POSE_TOPIC = "/touchroller/tcp_pose"
-PROGRESS_TOPIC = "/touchroller/sweep_progress"
 COMMAND_TIMEOUT_S = 5.0
 
 # Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
@@ -82,9 +80,11 @@ class SweepNode(Node):
     """Thin ROS shell around `SweepSequencer` and an `Arm`; pass `arm=` to supply one (e.g. a shared
     SimulatedArm that also drives the simulated camera in `touchroller scan`)."""
 
-    def __init__(self, *, arm: Arm | None = None, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
+    def __init__(self, *, arm: Arm | None = None, node_name: str = names.SWEEP_NODE, **node_kwargs: Any) -> None:
+        node_kwargs.setdefault("namespace", names.DEFAULT_NAMESPACE)
         super().__init__(node_name, **node_kwargs)
         self._declare_parameters()
+        self.frame_prefix = declare_frame_prefix(self)
         self.settings = {name: self.get_parameter(name).value for name in SWEEP_PARAMETERS}
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -104,19 +104,18 @@ class SweepNode(Node):
         self._shutdown = threading.Event()
         self.last_answer: tuple[str, bool, str] | None = None  # (service, success, message) of the last call
 
-        base_frame = self.get_parameter("arm.base_frame").value
-        self._frame_id = str(base_frame)
-        self._tool_frame = str(self.get_parameter("arm.tool_frame").value)
+        self._frame_id = names.frame(str(self.get_parameter("arm.base_frame").value), self.frame_prefix)
+        self._tool_frame = names.frame(str(self.get_parameter("arm.tool_frame").value), self.frame_prefix)
+        self._cylinder_frame = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         self._publish_tf = bool(self.get_parameter("publish_tf").value)
         self.tf = TransformPublisher(self)
         self._publish_mount()
-        self._pose_pub = self.create_publisher(PoseStamped, TCP_POSE_TOPIC, 10)
-        self._progress_pub = self.create_publisher(Float32, PROGRESS_TOPIC, 10)
-        service_type, _ = trigger_service_type()
-        self._start_srv = self.create_service(service_type, "~/start", self._on_start)
-        self._stop_srv = self.create_service(service_type, "~/stop", self._on_stop)
+        self._pose_pub = self.create_publisher(PoseStamped, names.TCP_POSE, 10)
+        self._progress_pub = self.create_publisher(Float32, names.SWEEP_PROGRESS, 10)
+        self._start_srv = self.create_service(Trigger, f"~/{names.START}", self._on_start)
+        self._stop_srv = self.create_service(Trigger, f"~/{names.STOP}", self._on_stop)
         hardware = "simulated arm" if isinstance(self.arm, SimulatedArm) else f"UR at {self.get_parameter('robot_ip').value}"
-        self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: sweep", hardware_id=hardware)
+        self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name(), hardware_id=hardware)
         self.diagnostics.add(self._diagnostic_status)
 
         self._worker = threading.Thread(target=self._run_worker, name="sweep-arm", daemon=True)
@@ -148,16 +147,16 @@ class SweepNode(Node):
         declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose and progress messages, "
                 "watchdog kicks (>= 10 Hz), Hz", min=10.0, max=500.0,
                 read_only=True)
-        declare(self, "arm.base_frame", WORLD_FRAME, "Frame of the published TCP pose and parent of the tool "
-                "frame on /tf (the UR base)", read_only=True)
-        declare(self, "arm.tool_frame", TOOL_FRAME, "The arm's flange frame (UR: tool0); the TCP pose is its pose",
-                read_only=True)
+        declare(self, "arm.base_frame", names.BASE_FRAME, "Frame of the published TCP pose and parent of the tool "
+                "frame on /tf (the UR base; after frame_prefix)", read_only=True)
+        declare(self, "arm.tool_frame", names.TOOL_FRAME, "The arm's flange frame (UR: tool0; after frame_prefix); "
+                "the TCP pose is its pose", read_only=True)
         declare(self, "publish_tf", True, "Publish arm.base_frame -> arm.tool_frame on /tf from the arm's pose; "
                 "false when a robot driver (e.g. ur_robot_driver) already does", read_only=True)
-        declare(self, "mount.xyz", list(DEFAULT_MOUNT_XYZ), f"Position of {CYLINDER_FRAME} (the roller's axis "
-                "centre) in the tool frame, m; published on /tf_static")
-        declare(self, "mount.rpy", list(DEFAULT_MOUNT_RPY), f"Orientation of {CYLINDER_FRAME} in the tool frame, "
-                "fixed-axis roll, pitch, yaw, rad (x along the roller axis, z down at the contact)")
+        declare(self, "mount.xyz", list(DEFAULT_MOUNT_XYZ), f"Position of {names.CYLINDER_FRAME} (the roller's "
+                "axis centre) in the tool frame, m; published on /tf_static")
+        declare(self, "mount.rpy", list(DEFAULT_MOUNT_RPY), f"Orientation of {names.CYLINDER_FRAME} in the tool "
+                "frame, fixed-axis roll, pitch, yaw, rad (x along the roller axis, z down at the contact)")
 
     def _validate_parameters(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         mount = {p.name: p.value for p in parameters if p.name.startswith("mount.")}
@@ -186,7 +185,7 @@ class SweepNode(Node):
         return mount_transform(values["mount.xyz"], values["mount.rpy"])
 
     def _publish_mount(self) -> None:
-        self.tf.set_static(self._tool_frame, CYLINDER_FRAME, self.mount())
+        self.tf.set_static(self._tool_frame, self._cylinder_frame, self.mount())
 
     def _limits_from_parameters(self) -> ArmLimits:
         return ArmLimits(max_speed=float(self.get_parameter("arm.max_speed").value),

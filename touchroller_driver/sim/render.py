@@ -87,9 +87,6 @@ class TruthMap:
     x_of_column: np.ndarray     # world X of each column (m)
 
 
-_LIGHT_ORDER = ("blue", "green", "red")   # bgr8 channel order
-
-
 def lowpass_sigma(sensor: dict[str, Any]) -> float:
     """Gaussian sigma (m) by which the membrane smooths the relief; grows with the gel's thickness."""
     value = sensor.get("lowpass_sigma", "auto")

@@ -10,7 +10,6 @@ ground_truth_tactile.png (the same relief as the sensor's shading renders it, gr
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -92,7 +91,3 @@ def write_ground_truth(out_dir: str | Path, sensor: SimulatedSensor, frames: lis
         yaml.safe_dump(plain(document), stream, sort_keys=False, width=120)
     written["ground_truth"] = out / "ground_truth.yaml"
     return written
-
-
-def is_finite_number(value: Any) -> bool:
-    return isinstance(value, int | float) and math.isfinite(value)

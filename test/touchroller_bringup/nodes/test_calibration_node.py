@@ -29,20 +29,21 @@ def graph(ros_context, presses, tmp_path):
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
 
-    from touchroller_bringup.nodes.calibration_node import CAMERA_INFO_QOS, CAMERA_INFO_TOPIC, CalibrationNode
+    from touchroller_bringup import names
+    from touchroller_bringup.nodes.calibration_node import CAMERA_INFO_QOS, CalibrationNode
     from touchroller_bringup.nodes.perception_node import PerceptionNode
 
     truth = presses[0]
     start = truth.replace(theta=0.0, d=0.0)
     geometry = [Parameter(n, value=v) for n, v in start.to_params().items()]
-    perception = PerceptionNode("touchroller_perception", context=ros_context,
+    perception = PerceptionNode(context=ros_context,
                                 parameter_overrides=[*geometry, Parameter("map.publish_rate", value=0.0)])
     node = CalibrationNode(context=ros_context, parameter_overrides=[
         *geometry, Parameter("output_path", value=str(tmp_path / "cal.yaml"))])
     helper = Node("calibration_test_helper", context=ros_context)
     infos: list = []
-    helper.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, infos.append, CAMERA_INFO_QOS)
-    image_pub = helper.create_publisher(Image, "/touchroller/image_raw", 10)
+    helper.create_subscription(CameraInfo, names.topic(names.CAMERA_INFO), infos.append, CAMERA_INFO_QOS)
+    image_pub = helper.create_publisher(Image, names.topic(names.IMAGE), 10)
     executor = SingleThreadedExecutor(context=ros_context)
     for n in (perception, node, helper):
         executor.add_node(n)
@@ -53,12 +54,13 @@ def graph(ros_context, presses, tmp_path):
 
 
 def call(executor, spin_until, helper, name: str) -> object:
-    from touchroller_bringup.ros_services import trigger_service_type
+    from std_srvs.srv import Trigger
 
-    TriggerService, _ = trigger_service_type()   # std_srvs/Trigger (AddDiagnostics without std_srvs)
-    client = helper.create_client(TriggerService, f"/touchroller_calibration/{name}")
+    from touchroller_bringup import names
+
+    client = helper.create_client(Trigger, names.service(names.CALIBRATION_NODE, name))
     assert spin_until(executor, client.service_is_ready, timeout=20)
-    future = client.call_async(TriggerService.Request())
+    future = client.call_async(Trigger.Request())
     assert spin_until(executor, future.done, timeout=30.0)
     helper.destroy_client(client)
     return future.result()

@@ -18,12 +18,14 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
-from touchroller_bringup.image_conversion import image_to_array  # noqa: E402
-from touchroller_bringup.nodes.camera_node import CAMERA_INFO_TOPIC, IMAGE_TOPIC, CameraNode  # noqa: E402
+from touchroller_bringup import names  # noqa: E402
+from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns  # noqa: E402
+from touchroller_bringup.nodes.camera_node import CameraNode  # noqa: E402
 from touchroller_bringup.ros_diagnostics import status_values  # noqa: E402
 from touchroller_driver.sources import Frame, SourceStats  # noqa: E402
 
 pytestmark = pytest.mark.ros
+IMAGE_TOPIC, CAMERA_INFO_TOPIC = names.topic(names.IMAGE), names.topic(names.CAMERA_INFO)   # /touchroller/...
 
 
 class ListSource:
@@ -276,10 +278,10 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
     frames roll with the arm and stitch into a map of the commanded length."""
     from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import Float32
+    from std_srvs.srv import Trigger
 
     from touchroller_bringup.graph import build_graph
-    from touchroller_bringup.nodes.sweep_node import PROGRESS_TOPIC, TCP_POSE_TOPIC, SweepNode
-    from touchroller_bringup.ros_services import trigger_service_type
+    from touchroller_bringup.nodes.sweep_node import SweepNode
     from touchroller_perception.stitching import stitch
 
     length, speed = 0.01, 0.01                      # 1 cm in 1 s: ~30 frames, ~3 px of roll per frame
@@ -290,8 +292,8 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
     listener = Listener(ros_context, qos=QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
     poses: list = []
     progress: list = []
-    listener.node.create_subscription(PoseStamped, TCP_POSE_TOPIC, poses.append, 200)
-    listener.node.create_subscription(Float32, PROGRESS_TOPIC, lambda m: progress.append(m.data), 200)
+    listener.node.create_subscription(PoseStamped, names.topic(names.TCP_POSE), poses.append, 200)
+    listener.node.create_subscription(Float32, names.topic(names.SWEEP_PROGRESS), lambda m: progress.append(m.data), 200)
     executor = SingleThreadedExecutor(context=ros_context)
     nodes = [n for n in (camera, sweep, listener.node) if n is not None]
     for node in nodes:
@@ -307,10 +309,9 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
         rest_change = np.mean(np.abs(resting[-1] - resting[-2]))
         assert camera.follower.state_at(camera._now_s()).depth == pytest.approx(-clearance, abs=1e-9)
 
-        service_type, _ = trigger_service_type()
-        client = listener.node.create_client(service_type, "/touchroller_sweep/start")
+        client = listener.node.create_client(Trigger, names.service(names.SWEEP_NODE, names.START))
         assert spin_until(executor, client.service_is_ready, timeout=10.0)
-        future = client.call_async(service_type.Request())
+        future = client.call_async(Trigger.Request())
         assert spin_until(executor, future.done, timeout=10.0) and future.result().success
 
         def lifted_at_the_end() -> bool:
@@ -331,10 +332,10 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
     if sweep_exit is not None:
         assert_clean_exit(*sweep_exit)
 
-    frames = [(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, image_to_array(m))
+    frames = [(stamp_to_ns(m.header.stamp), image_to_array(m))
               for m in listener.images]
     # the frames of the roll: while the arm's poses are on the rolling segment (pressed, moving along x)
-    rolling_stamps = [p.header.stamp.sec * 1_000_000_000 + p.header.stamp.nanosec for p in poses
+    rolling_stamps = [stamp_to_ns(p.header.stamp) for p in poses
                       if start[0] + 1e-3 < p.pose.position.x < start[0] + length - 1e-3]
     rolling = [(stamp, image) for stamp, image in frames
                if rolling_stamps and rolling_stamps[0] <= stamp <= rolling_stamps[-1]]

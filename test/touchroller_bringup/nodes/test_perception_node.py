@@ -13,9 +13,11 @@ pytestmark = pytest.mark.ros
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
+from touchroller_bringup import names  # noqa: E402
 from touchroller_driver.sim.taps import TapRenderer  # noqa: E402
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 
+IMAGE_TOPIC = names.topic(names.IMAGE)   # /touchroller/image_raw
 CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
 
 
@@ -23,18 +25,18 @@ CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=2
 def graph(ros_context):
     from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import Image
+    from std_srvs.srv import Trigger
 
-    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, PerceptionNode
-    from touchroller_bringup.ros_services import trigger_service_type
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
 
     overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
     overrides += [Parameter("reference.frames", value=3), Parameter("map.publish_rate", value=0.0)]
     node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
     helper = rclpy_node("perception_test_helper", ros_context)
     received: list = []
-    helper.create_subscription(PointStamped, "/touchroller/contacts", received.append, 10)
+    helper.create_subscription(PointStamped, names.topic(names.CONTACTS), received.append, 10)
     image_pub = helper.create_publisher(Image, IMAGE_TOPIC, 10)
-    recapture = helper.create_client(trigger_service_type()[0], "/perception_node/recapture_reference")
+    recapture = helper.create_client(Trigger, names.service(names.PERCEPTION_NODE, names.RECAPTURE_REFERENCE))
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
     executor.add_node(helper)
@@ -165,7 +167,7 @@ def test_tactile_map_is_published_latched(ros_context, spin_until):
     from sensor_msgs.msg import Image
 
     from touchroller_bringup.image_conversion import array_to_image, image_to_array
-    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, MAP_TOPIC, PerceptionNode
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
 
     overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
     overrides += [Parameter("reference.frames", value=2), Parameter("map.publish_rate", value=50.0)]
@@ -186,7 +188,7 @@ def test_tactile_map_is_published_latched(ros_context, spin_until):
         maps: list = []
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        helper.create_subscription(Image, MAP_TOPIC, maps.append, latched)
+        helper.create_subscription(Image, names.topic(names.MAP), maps.append, latched)
         assert spin_until(executor, lambda: len(maps) >= 1, timeout=20.0)
         tactile_map = image_to_array(maps[0])
         assert tactile_map.size > 0 and maps[0].header.frame_id == "touchroller_cylinder"
@@ -221,7 +223,7 @@ def test_a_busy_node_skips_stale_frames_and_counts_them(graph, spin_until):
 def test_image_subscription_qos_defaults_and_overrides(ros_context, spin_until):
     from rclpy.qos import HistoryPolicy, ReliabilityPolicy
 
-    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, PerceptionNode
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
 
     prefix = f"qos_overrides.{IMAGE_TOPIC}.subscription"
     default = PerceptionNode("perception_default", context=ros_context,
@@ -260,7 +262,7 @@ def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until,
     from std_msgs.msg import Float32
 
     from touchroller_bringup.image_conversion import array_to_image
-    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, PROGRESS_TOPIC, PerceptionNode
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
 
     saved = tmp_path / "map.png"
     overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
@@ -269,7 +271,7 @@ def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until,
     node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
     helper = rclpy_node("roll_test_helper", ros_context)
     image_pub = helper.create_publisher(Image, IMAGE_TOPIC, 10)
-    progress_pub = helper.create_publisher(Float32, PROGRESS_TOPIC, 10)
+    progress_pub = helper.create_publisher(Float32, names.topic(names.SWEEP_PROGRESS), 10)
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
     executor.add_node(helper)
@@ -332,7 +334,7 @@ def test_an_rmw_without_message_lost_still_subscribes_and_says_unknown(ros_conte
     from rclpy.event_handler import UnsupportedEventTypeError
     from rclpy.node import Node
 
-    from touchroller_bringup.nodes.perception_node import IMAGE_TOPIC, PerceptionNode
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
 
     create = Node.create_subscription
 

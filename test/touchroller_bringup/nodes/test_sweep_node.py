@@ -16,14 +16,10 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float32  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 
-from touchroller_bringup.nodes.sweep_node import (  # noqa: E402
-    PROGRESS_TOPIC,
-    TCP_POSE_TOPIC,
-    SweepNode,
-    rotation_vector_to_quaternion,
-    trigger_service_type,
-)
+from touchroller_bringup import names  # noqa: E402
+from touchroller_bringup.nodes.sweep_node import SweepNode, rotation_vector_to_quaternion  # noqa: E402
 from touchroller_driver.arm import ArmLimits, SimulatedArm, SweepPhase  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
@@ -91,18 +87,17 @@ class Harness:
         self.poses: list[PoseStamped] = []
         self.progress: list[float] = []
         self.diagnostics: list[DiagnosticArray] = []
-        self.probe.create_subscription(PoseStamped, TCP_POSE_TOPIC, self.poses.append, 50)
-        self.probe.create_subscription(Float32, PROGRESS_TOPIC, lambda m: self.progress.append(m.data), 50)
+        self.probe.create_subscription(PoseStamped, names.topic(names.TCP_POSE), self.poses.append, 50)
+        self.probe.create_subscription(Float32, names.topic(names.SWEEP_PROGRESS),
+                                       lambda m: self.progress.append(m.data), 50)
         self.probe.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
-        service_type, self.is_trigger = trigger_service_type()
-        self.service_type = service_type
-        self.clients = {name: self.probe.create_client(service_type, f"/touchroller_sweep/{name}")
-                        for name in ("start", "stop")}
+        self.clients = {name: self.probe.create_client(Trigger, names.service(names.SWEEP_NODE, name))
+                        for name in (names.START, names.STOP)}
 
     def call(self, spin_until, name: str):
         client = self.clients[name]
         assert spin_until(self.executor, client.service_is_ready, timeout=10.0)
-        future = client.call_async(self.service_type.Request())
+        future = client.call_async(Trigger.Request())
         assert spin_until(self.executor, future.done, timeout=10.0)
         return future.result()
 
