@@ -97,6 +97,9 @@ def test_nodes_built_from_the_graph_use_the_namespace_and_frame_prefix(namespace
     poses: list = []
     probe.create_subscription(Image, names.topic(names.IMAGE, namespace), images.append, 10)
     probe.create_subscription(PoseStamped, names.topic(names.TCP_POSE, namespace), poses.append, 10)
+    from touchroller_bringup.tf import TransformListener
+
+    tf = TransformListener(probe)   # /tf and /tf_static: absolute, the frames carry the prefix
     executor = SingleThreadedExecutor(context=ros_context)
     for node in (*nodes, probe):
         executor.add_node(node)
@@ -111,7 +114,8 @@ def test_nodes_built_from_the_graph_use_the_namespace_and_frame_prefix(namespace
         expected_topics = {names.topic(t, namespace) for t in (names.IMAGE, names.CAMERA_INFO, names.CONTACTS,
                                                                names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS)}
         assert expected_topics <= ours
-        assert all(topic.startswith(f"/{namespace}/") or topic in ("/diagnostics", "/parameter_events", "/rosout")
+        assert all(topic.startswith(f"/{namespace}/") or topic in ("/diagnostics", "/tf", "/tf_static",
+                                                                           "/parameter_events", "/rosout")
                    for topic, _ in published)
         services = {name for name, _ in probe.get_service_names_and_types()}
         for node, service in ((names.SWEEP_NODE, names.START), (names.SWEEP_NODE, names.STOP),
@@ -121,9 +125,16 @@ def test_nodes_built_from_the_graph_use_the_namespace_and_frame_prefix(namespace
                               {name for name, _ in probe.get_service_names_and_types()}, timeout=20.0), services
         assert perception.image_sub.topic_name == names.topic(names.IMAGE, namespace)
 
-        # frame ids: the camera's images, the sweep's poses, the contacts' frame
+        # frame ids: the camera's images, the sweep's poses, the contacts' frame, TF
         camera.start()
         assert spin_until(executor, lambda: images and poses, timeout=20.0)
+        chain = [f"{prefix}base", f"{prefix}tool0", f"{prefix}touchroller_cylinder", f"{prefix}touchroller_camera"]
+
+        def tf_chain_known() -> bool:
+            with tf.lock:
+                return all(tf.buffer.can_transform(chain[0], child) for child in chain[1:])
+
+        assert spin_until(executor, tf_chain_known, timeout=20.0)
         assert images[0].header.frame_id == f"{prefix}touchroller_camera"
         assert poses[-1].header.frame_id == f"{prefix}base"
         assert perception.frame_id == f"{prefix}touchroller_cylinder"
