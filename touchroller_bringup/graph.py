@@ -166,7 +166,9 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
         *_COMMON,
         LaunchArgument("output_file", "touchroller_calibration.yaml",
                        "Where the calibration node writes the solved calibration YAML"),
-        LaunchArgument("scene", "calibration_hemispheres", "Simulator scene when use_sim is true"),
+        LaunchArgument("scene", "calibration_hemispheres:by_hand", "Simulator scene (NAME or NAME:VARIANT) when "
+                       "use_sim is true, played on a loop; the by_hand variants hold each press (chessboard view) "
+                       "long enough to call ~/capture by hand"),
     ),
     "replay": (
         LaunchArgument("bag", None, "rosbag2 folder (sqlite3 or MCAP) with {names.topic(names.IMAGE)}"),
@@ -271,8 +273,10 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
                         namespace=namespace)
 
     def camera_parameters(follow_arm: bool = False) -> dict[str, Any]:
-        if use_sim:   # in scan, the simulated sensor follows the sweep node's arm (its tcp_pose)
-            return {"source": "sim", "scene": args["scene"], "sim.follow_arm": follow_arm}
+        if use_sim and follow_arm:   # in scan, the simulated sensor follows the sweep node's arm (its tcp_pose)
+            return {"source": "sim", "scene": args["scene"], "sim.follow_arm": True}
+        if use_sim:   # calibrate: the scene's presses over and over, for captures by hand
+            return {"source": "sim", "scene": args["scene"], "sim.follow_arm": False, "loop": True}
         params: dict[str, Any] = {"source": "v4l2"}
         if args.get("camera_device"):
             params["device"] = args["camera_device"]   # an index or a path, as a string

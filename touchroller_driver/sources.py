@@ -146,7 +146,8 @@ class CaptureThread:
     Latency cannot build up: a frame that was not read before the next one arrived is counted
     as dropped and replaced. The stamp is taken when `grab()` returns, before decoding. When
     the device fails (open fails, or `max_failures` grabs in a row fail) it is released and
-    reopened with exponential back-off until `close()`.
+    reopened with exponential back-off until `close()`. `log` gets what happens to the device
+    (reconnected), `warn` what goes wrong (cannot open, with the reason, once per reason; lost).
     """
 
     def __init__(
@@ -158,6 +159,7 @@ class CaptureThread:
         max_failures: int = 5,
         name: str = "touchroller-capture",
         log: Callable[[str], None] | None = None,
+        warn: Callable[[str], None] | None = None,
     ) -> None:
         self._open_capture = open_capture
         self._clock_ns = clock_ns
@@ -165,6 +167,8 @@ class CaptureThread:
         self._max_failures = max_failures
         self._name = name
         self._log = log or (lambda message: None)
+        self._warn = warn or self._log
+        self._reported_error = ""   # the open failure last reported: each reason once, not every retry
         self.stats = SourceStats()
         self._condition = threading.Condition()
         self._latest: Frame | None = None
@@ -218,17 +222,24 @@ class CaptureThread:
         try:
             capture = self._open_capture()
         except Exception as exc:  # noqa: BLE001 - a device that fails to open is retried, not fatal
-            self.stats.last_error = f"open failed: {exc}"
+            self._open_failed(f"open failed: {exc}")
             return None
         if capture is None or not capture.isOpened():
-            self.stats.last_error = "open failed: device not available"
+            self._open_failed("open failed: device not available")
             _release(capture)
             return None
+        self._reported_error = ""
         if self.stats.captured or self.stats.reconnects or self.stats.last_error:
             self.stats.reconnects += 1
             self._log("camera reconnected")
         self.stats.connected = True
         return capture
+
+    def _open_failed(self, reason: str) -> None:
+        self.stats.last_error = reason
+        if reason != self._reported_error:
+            self._reported_error = reason
+            self._warn(f"cannot open the camera ({reason}); retrying with back-off")
 
     def _grab_until_failure(self, capture: CaptureLike) -> None:
         failures = 0
@@ -245,7 +256,7 @@ class CaptureThread:
                 failures += 1
                 if failures >= self._max_failures:
                     self.stats.last_error = self.stats.last_error or "grab failed"
-                    self._log(f"camera lost ({self.stats.last_error}); reconnecting with back-off")
+                    self._warn(f"camera lost ({self.stats.last_error}); reconnecting with back-off")
                     return
                 continue
             failures = 0
@@ -301,11 +312,12 @@ class V4L2Source:
         backoff: Backoff = Backoff(),
         open_capture: Callable[[], CaptureLike] | None = None,
         log: Callable[[str], None] | None = None,
+        warn: Callable[[str], None] | None = None,
     ) -> None:
         self.device = device
         self.width, self.height, self.fps, self.exposure, self.fourcc = width, height, fps, exposure, fourcc
         self._thread = CaptureThread(
-            open_capture or self._open_device, clock_ns=clock_ns, backoff=backoff, log=log
+            open_capture or self._open_device, clock_ns=clock_ns, backoff=backoff, log=log, warn=warn
         )
 
     @property

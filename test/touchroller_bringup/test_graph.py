@@ -255,3 +255,70 @@ def test_replay_graph_gives_the_contacts_of_touchroller_contacts(ros_context, sp
            for m in received]
     assert [s for s, *_ in got] == [s for s, *_ in expected]           # the recorded stamps, frame by frame
     np.testing.assert_allclose([p for _, *p in got], [p for _, *p in expected], atol=1e-6)
+
+
+def test_the_simulated_calibration_scenes_hold_each_view_for_captures_by_hand():
+    sim = pytest.importorskip("touchroller_driver.sim")
+    default = build_graph("calibrate").node("camera").parameters
+    assert default["loop"] is True and default["scene"] == "calibration_hemispheres:by_hand"
+    hemispheres = sim.load_scene(default["scene"])
+    assert hemispheres.motion["hold_frames"] / hemispheres.fps >= 1.0     # a press stays a second or more
+    assert hemispheres.motion["gap_frames"] < hemispheres.motion["hold_frames"]
+    assert 1.0 / sim.load_scene("calibration_chessboard:by_hand").fps >= 1.0
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(180)
+def test_calibrate_graph_in_simulation_can_be_followed_by_hand(ros_context, spin_until, tmp_path):
+    """docs/calibration.md's steps on `calibrate.launch.py use_sim:=true`: ~/capture called at a human pace
+    (once a second, here at twice the speed with rate 2) keeps finding presses after the scene's first pass
+    has ended (it loops), and ~/solve then calibrates. The scene is the shipped one with 3 presses."""
+    import time
+
+    import yaml
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_srvs.srv import Trigger
+
+    from touchroller_bringup import names
+    from touchroller_driver.paths import config_path
+
+    scene = yaml.safe_load(config_path("scenes", "calibration_hemispheres.yaml").read_text())
+    scene["motion"]["presses"] = 3
+    scene_path = tmp_path / "hemispheres.yaml"
+    scene_path.write_text(yaml.safe_dump(scene))
+    built = build_graph("calibrate", {"scene": f"{scene_path}:by_hand", "output_file": str(tmp_path / "cal.yaml")})
+    overrides = {"camera": {"rate": 2.0}, "perception": {"map.publish_rate": 0.0}, "calibration": {}}
+    nodes = [spec.load_class()(context=ros_context, **spec.node_kwargs(overrides[spec.key])) for spec in built.nodes]
+    camera = nodes[0]
+    probe = Node("calibration_user", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (*nodes, probe):
+        executor.add_node(node)
+
+    def call(service: str) -> Trigger.Response:
+        client = probe.create_client(Trigger, names.service(names.CALIBRATION_NODE, service))
+        assert spin_until(executor, client.service_is_ready, timeout=20.0)
+        future = client.call_async(Trigger.Request())
+        assert spin_until(executor, future.done, timeout=20.0)
+        return future.result()
+
+    one_pass = 5 + 3 * (45 + 15)   # frames of the scene: reference, then 3 presses held 45 and lifted 15
+    answers = []
+    try:
+        assert spin_until(executor, lambda: camera.published > 0, timeout=30.0)
+        while camera.published < 2 * one_pass and len(answers) < 60:   # into the second pass
+            answers.append(call(names.CAPTURE))
+            deadline = time.monotonic() + 0.5
+            spin_until(executor, lambda d=deadline: time.monotonic() > d, timeout=1.0)
+        solved = call(names.SOLVE)
+    finally:
+        executor.shutdown()
+        for node in (*nodes, probe):
+            node.destroy_node()
+    assert camera.published >= 2 * one_pass, "the scene loops"
+    captured = [a for a in answers if a.success]
+    assert len(captured) >= 4, [a.message for a in answers]
+    assert all(a.message.startswith(("not captured: no imprints", "no new image")) for a in answers if not a.success)
+    assert solved.success, solved.message
+    assert (tmp_path / "cal.yaml").is_file()

@@ -110,6 +110,7 @@ class CameraNode(Node):
         self.rate_meter = RateMeter()
         self.lag = LagWindow(200)
         self._finished_logged = False
+        self._streaming_logged = False
         self._last_error_log = 0.0
         self._closed_stats = SourceStats()  # drops etc. of sources closed by a restart
 
@@ -137,7 +138,7 @@ class CameraNode(Node):
         declare(self, "video_path", "", "Video file to play (source=video)")
         declare(self, "bag_path", "", "rosbag2 folder to play images from (source=bag)")
         declare(self, "bag_topic", names.topic(names.IMAGE), "Image topic inside the bag (source=bag)")
-        declare(self, "scene", "surface_mapping", "Simulator scene name or YAML path (source=sim)")
+        declare(self, "scene", "surface_mapping", "Simulator scene: NAME, NAME:VARIANT or a YAML path (source=sim)")
         declare(self, "seed", 0, "Simulator random seed (source=sim)", min=0, max=2**31 - 1)
         declare(self, "rate", 1.0, "Playback rate for video/bag/sim: 1 real time, 0 as fast as possible",
                 min=0.0, max=100.0)
@@ -219,7 +220,7 @@ class CameraNode(Node):
         if kind == "v4l2":
             return make_source("v4l2", device=param["device"], width=param["width"], height=param["height"],
                                fps=param["fps"], exposure=param["exposure"], clock_ns=clock_ns,
-                               log=self.get_logger().info)
+                               log=self.get_logger().info, warn=self.get_logger().warning)
         if kind == "video":
             return make_source("video", path=param["video_path"], rate=param["rate"], loop=param["loop"],
                                clock_ns=clock_ns)
@@ -292,11 +293,15 @@ class CameraNode(Node):
                         self.get_logger().info(f"source finished after {self.published} frames: {self.source.info}")
                 continue
             try:
-                self.publish_frame(frame.image, frame.stamp_ns)
+                published = self.publish_frame(frame.image, frame.stamp_ns)
             except Exception as exc:  # noqa: BLE001 - e.g. the context was shut down by Ctrl-C
                 if not self.context.ok():
                     break
                 self._log_error(f"publishing failed: {type(exc).__name__}: {exc}")
+                continue
+            if published and not self._streaming_logged:
+                self._streaming_logged = True
+                self.get_logger().info(f"streaming from {self.source.info}")
 
     def _wait_for_subscribers(self) -> None:
         """Hold the source until `wait_for_subscribers` subscriptions match the image topic, so that a
@@ -326,8 +331,9 @@ class CameraNode(Node):
             self._opened = True
             self._open_error = ""
         self._finished_logged = False
+        self._streaming_logged = False
         self.diagnostics.hardware_id = source.info
-        self.get_logger().info(f"streaming from {source.info}")
+        self.get_logger().info(f"opening {source.info}")   # "streaming" only once a frame is out
         return True
 
     def _close_source(self) -> None:

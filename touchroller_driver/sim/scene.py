@@ -110,7 +110,10 @@ class Scene:
 
 
 def load_scene(name_or_path: str | Path, variant: str | None = None, **overrides: Any) -> Scene:
-    """A scene by name (a file in `config/scenes/`) or by path, with a variant and dotted overrides."""
+    """A scene by name (a file in `config/scenes/`) or by path, with a variant and dotted overrides.
+    `NAME:VARIANT` names a variant too (`calibration_hemispheres:by_hand`), so one string can carry it."""
+    if variant is None and isinstance(name_or_path, str) and ":" in name_or_path and not Path(name_or_path).is_file():
+        name_or_path, _, variant = name_or_path.rpartition(":")
     path = _resolve(name_or_path)
     try:
         with open(path, encoding="utf-8") as stream:

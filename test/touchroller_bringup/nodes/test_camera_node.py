@@ -113,6 +113,48 @@ def test_external_source_frames_are_published_as_bgr8_with_capture_stamps(ros_co
         camera.destroy_node()
 
 
+def recorded_logs(node) -> list[tuple[str, str]]:
+    """(severity, message) of everything the node logs from now on."""
+    logs: list[tuple[str, str]] = []
+    logger = node.get_logger()
+    for severity in ("info", "warning", "error"):
+        setattr(logger, severity, lambda message, *_, s=severity, **__: logs.append((s, str(message))))
+    return logs
+
+
+def test_a_device_that_cannot_be_opened_is_logged_as_such_never_as_streaming(ros_context, spin_until, tmp_path):
+    device = str(tmp_path / "video9")   # no such device
+    camera = CameraNode(context=ros_context, autostart=False, parameter_overrides=[
+        Parameter("source", value="v4l2"), Parameter("device", value=device)])
+    logs = recorded_logs(camera)
+    try:
+        camera.start()
+        assert spin_until(camera, lambda: any(s == "warning" for s, _ in logs), timeout=20.0), logs
+        spin_until(camera, lambda: False, timeout=0.5)   # a few back-off retries
+    finally:
+        camera.destroy_node()
+    assert ("info", f"opening v4l2 {device} 640x480@30") in logs
+    failures = [m for s, m in logs if s == "warning"]
+    assert failures == ["cannot open the camera (open failed: device not available); retrying with back-off"]
+    assert not any("streaming" in m for _, m in logs)
+
+
+def test_streaming_is_logged_once_the_first_frame_is_out(ros_context, spin_until):
+    listener, camera, executor = make_graph(ros_context, source=ListSource([np.zeros((4, 4, 3), np.uint8)] * 3))
+    logs = recorded_logs(camera)
+    try:
+        wait_for_subscription(camera, spin_until, executor)
+        camera.start()
+        assert spin_until(executor, lambda: len(listener.images) >= 3, timeout=20)
+    finally:
+        executor.shutdown()
+        camera.destroy_node()
+        listener.node.destroy_node()
+    messages = [m for _, m in logs]
+    assert messages.index("opening list source") < messages.index("streaming from list source")
+    assert messages.count("streaming from list source") == 1
+
+
 def test_malformed_frames_are_logged_and_skipped_and_the_node_keeps_publishing(ros_context, spin_until):
     good = np.full((8, 8, 3), 9, np.uint8)
     images = [good, np.zeros((8, 8, 3), np.float32), np.zeros((8, 8, 2), np.uint8), good]
