@@ -18,20 +18,28 @@ for tool in cmake gcc g++; do
   command -v "$tool" >/dev/null || { echo "interfaces: $tool is needed to build ${missing[*]}" >&2; exit 1; }
 done
 
-# The message wheels' exported CMake targets name the include directories of the machine that built
-# them (/opt/python/cp3XX-cp3XX/...); point them at this venv's Python and numpy headers.
-inc="$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
-npinc="$("$py" -c 'import numpy; print(numpy.get_include())')"
-{ grep -rlE '/opt/python/cp3[0-9]+-cp3[0-9]+' "$venv/share" --include='*.cmake' 2>/dev/null || true; } | while read -r f; do
-  sed -i -E "s#/opt/python/cp3[0-9]+-cp3[0-9]+/lib/python3\.[0-9]+/site-packages/numpy/_core/include#$npinc#g;
-             s#/opt/python/cp3[0-9]+-cp3[0-9]+/include/python3\.[0-9]+#$inc#g" "$f"
-done
-
 build="$(mktemp -d)"; log="$build/log"
 trap 'rm -rf "$build"' EXIT
+
+# The message wheels' exported CMake targets name the include directories of the machine that built
+# them (/opt/python/cp3XX-cp3XX/...). The build sees the venv through an overlay prefix in which those
+# packages' share/ folders are copies pointing at this venv's Python and numpy headers; the venv's own
+# files stay as pip installed them.
+inc="$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
+npinc="$("$py" -c 'import numpy; print(numpy.get_include())')"
+overlay="$build/prefix"
+mkdir -p "$overlay/share"
+for dir in lib include bin; do [ -e "$venv/$dir" ] && ln -s "$venv/$dir" "$overlay/$dir"; done
+{ grep -rlE '/opt/python/cp3[0-9]+-cp3[0-9]+' "$venv/share" --include='*.cmake' 2>/dev/null || true; } \
+  | sed -E "s#^$venv/share/([^/]+)/.*#\1#" | sort -u | while read -r pkg; do
+  cp -r "$venv/share/$pkg" "$overlay/share/$pkg"
+  find "$overlay/share/$pkg" -name '*.cmake' -exec sed -i -E \
+    "s#/opt/python/cp3[0-9]+-cp3[0-9]+/lib/python3\.[0-9]+/site-packages/numpy/_core/include#$npinc#g;
+     s#/opt/python/cp3[0-9]+-cp3[0-9]+/include/python3\.[0-9]+#$inc#g" {} +
+done
 for name in "${missing[@]}"; do
   echo "interfaces: building $name into $venv (no wheel for it)"
-  if ! (export PATH="$venv/bin:$PATH" AMENT_PREFIX_PATH="$venv" CMAKE_PREFIX_PATH="$venv"
+  if ! (export PATH="$venv/bin:$PATH" AMENT_PREFIX_PATH="$overlay:$venv" CMAKE_PREFIX_PATH="$overlay:$venv"
         cmake -S "$here/$name" -B "$build/$name" -DCMAKE_INSTALL_PREFIX="$venv" -DPython3_EXECUTABLE="$py" \
           -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
         && cmake --build "$build/$name" -j "$(nproc)" && cmake --install "$build/$name") >"$log" 2>&1; then

@@ -272,11 +272,11 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
         return NodeSpec(key, executable, name, target, dict(parameters), tuple(remappings), files,
                         namespace=namespace)
 
-    def camera_parameters(follow_arm: bool = False) -> dict[str, Any]:
-        if use_sim and follow_arm:   # in scan, the simulated sensor follows the sweep node's arm (its tcp_pose)
-            return {"source": "sim", "scene": args["scene"], "sim.follow_arm": True}
+    def camera_parameters(on_arm: bool = False) -> dict[str, Any]:
+        if use_sim and on_arm:   # in scan, the simulated sensor is on the sweep node's simulated arm (TF, one clock)
+            return {"source": "sim", "scene": args["scene"], "sim.motion": "arm"}
         if use_sim:   # calibrate: the scene's presses over and over, for captures by hand
-            return {"source": "sim", "scene": args["scene"], "sim.follow_arm": False, "loop": True}
+            return {"source": "sim", "scene": args["scene"], "sim.motion": "scene", "loop": True}
         params: dict[str, Any] = {"source": "v4l2"}
         if args.get("camera_device"):
             params["device"] = args["camera_device"]   # an index or a path, as a string
@@ -290,8 +290,15 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
             sweep["sweep.speed"] = _positive_float(launch, "sweep_speed", args["sweep_speed"])
         if args["sweep_length"]:
             sweep["sweep.length"] = _positive_float(launch, "sweep_length", args["sweep_length"])
-        perception = {"map.save_path": str(Path(args["map_file"]).expanduser())} if args["map_file"] else {}
-        nodes = (spec(CAMERA, "camera", camera_parameters(follow_arm=True)),
+        perception: dict[str, Any] = {"map.save_path": str(Path(args["map_file"]).expanduser())} if args["map_file"] else {}
+        camera = camera_parameters(on_arm=True)
+        if use_sim:
+            # One simulated clock: the sweep node's simulated arm publishes it on /clock and every node
+            # runs on it. Perception takes every frame (as in replay): the simulated scan is deterministic.
+            perception.update(replay_perception(namespace))
+            for params in (camera, perception, sweep):
+                params["use_sim_time"] = True
+        nodes = (spec(CAMERA, "camera", camera),
                  spec(PERCEPTION, "perception", perception),
                  spec(SWEEP, "sweep", sweep))
     elif launch == "calibrate":

@@ -1,8 +1,10 @@
 """`touchroller scan` in one process: the scan graph of `graph.py` on a multi-threaded executor.
 
-The same nodes, names, params files and overrides as `scan.launch.py`. With `use_sim` (the default)
-one `SimulatedArm` is shared: the sweep node moves it, and the camera node's simulated source renders
-the state it reports at each capture time, so the images follow the sweep exactly. The runner waits
+The same nodes, names, params files and overrides as `scan.launch.py`, made from their `NodeSpec`s
+alone (nothing is handed between them in process). With `use_sim` (the default) the sweep node's
+simulated arm publishes the simulated clock and its pose on TF, and the camera node's simulated sensor
+renders each frame at its time on that clock where TF has the roller, so the images follow the sweep
+exactly and the same sweep gives the same images (graph.py runs the nodes with use_sim_time). The runner waits
 for the perception node's no-contact reference, calls the sweep node's `~/start` service (the same
 call a user makes), prints progress, and when the sweep ends writes to the output folder:
 
@@ -140,7 +142,7 @@ def run_scan(options: ScanOptions) -> ScanResult:
         # the perception node starts a new map when the roll starts (it follows /touchroller/sweep_progress)
         outcome, message = _follow_sweep(sweep, collected, say)
         duration = time.monotonic() - started
-        time.sleep(0.3)  # let the last frames through perception
+        _wait_for_perception(sweep, perception)
         _flush_map(perception, collected)
         answer = sweep.last_answer[2] if sweep.last_answer else ""
         recorded: dict[str, int] = {}
@@ -198,11 +200,11 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
 
     overrides = dict(options.overrides)
 
-    def create(key: str, **extra: Any) -> Any:
+    def create(key: str) -> Any:
         spec = graph.node(key)
         while True:
             try:
-                node = classes[key](context=context, **extra, **spec.node_kwargs(overrides))
+                node = classes[key](context=context, **spec.node_kwargs(overrides))
                 break
             except (ParameterException, ValueError) as exc:  # bad parameter types or values
                 name = _integer_for_double(exc, overrides)
@@ -212,23 +214,16 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
         nodes.append(node)
         return node
 
-    sweep = create("sweep")
     if graph.arguments["use_sim"] == "true":
-        from touchroller_driver.sim import SimulatedSensor, load_scene
-        from touchroller_driver.sim.scenarios import roll_extent
-        from touchroller_driver.sources import SimulatedSource
+        from touchroller_driver.sim import load_scene
 
-        try:
-            scene = load_scene(graph.arguments["scene"])
+        try:   # the camera node would only log it: say it here, in one line
+            load_scene(graph.arguments["scene"])
         except (OSError, ValueError, KeyError) as exc:
             raise UserError(f"scene {graph.arguments['scene']!r}: {exc}") from None
-        sensor = SimulatedSensor(scene, seed=options.seed)
-        arm = sweep.arm
-        arm.travel_origin, _, arm.x_along_origin = roll_extent(scene)
-        source = SimulatedSource(sensor, clock=arm.clock, state_at=arm.roller_state)
-        camera = create("camera", source=source)
-    else:
-        camera = create("camera")
+        overrides.setdefault("seed", options.seed)
+    sweep = create("sweep")
+    camera = create("camera")
     perception = create("perception")
     _check_overrides(options.overrides, nodes)
     return sweep, camera, perception
@@ -386,6 +381,21 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None])
     status = sweep.status
     say(f"scan: sweep {status.phase.value}: {status.message}")
     return status.phase.value, status.message
+
+
+def _wait_for_perception(sweep: Any, perception: Any, timeout: float = 30.0) -> None:
+    """Let the frames of the sweep's last moments through perception. Simulated, the camera renders
+    every frame of the sweep however far it falls behind the clock: wait until perception has the frame
+    of the moment the sweep ended (or the timeout); on hardware, a moment for the last frames."""
+    clock = getattr(sweep, "sim_clock", None)
+    if clock is None or not hasattr(perception, "last_stamp_ns"):
+        time.sleep(0.3)
+        return
+    end_ns = clock.now_ns()
+    deadline = time.monotonic() + timeout
+    while perception.last_stamp_ns < end_ns and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.1)   # the map update of that frame
 
 
 def _flush_map(perception: Any, collected: _Collected) -> None:

@@ -13,16 +13,13 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from touchroller_driver.motion import TrapezoidProfile
 from touchroller_perception.transforms import Transform
-
-if TYPE_CHECKING:  # the simulator is only needed when a simulated sensor asks for the roller state
-    from touchroller_driver.sim import RollerState
 
 
 class ArmError(RuntimeError):
@@ -77,35 +74,6 @@ def as_pose(pose: ArrayLike) -> np.ndarray:
     return array
 
 
-def roller_state_from_pose(pose: ArrayLike, velocity: ArrayLike, t: float, *, origin: ArrayLike,
-                           surface_z: float, rolling_direction: Sequence[float], radius: float,
-                           travel_origin: float = 0.0, x_along_origin: float = 0.0) -> RollerState:
-    """The simulated sensor's `RollerState` for a TCP pose (and linear velocity, m/s) in the base frame.
-
-    The roller rolls without slip along `rolling_direction` (horizontal, base frame) from `origin`,
-    which sits at (`x_along_origin`, `travel_origin`) of the simulated surface; its axis is horizontal
-    and perpendicular to the rolling direction; it touches the surface at z = `surface_z`. Usable by
-    anything that receives poses (e.g. a simulated camera following `/touchroller/tcp_pose`).
-    """
-    from touchroller_driver.sim import RollerState
-
-    heading = np.asarray(rolling_direction, dtype=np.float64)
-    heading = heading / np.linalg.norm(heading)
-    axis = np.cross((0.0, 0.0, 1.0), heading)
-    axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else np.array([0.0, 1.0, 0.0])
-    pose = np.asarray(pose, dtype=np.float64)
-    offset = pose[:3] - np.asarray(origin, dtype=np.float64)[:3]
-    travel = float(offset @ heading)
-    return RollerState(
-        x_along=x_along_origin + float(offset @ axis),
-        travel=travel_origin + travel,
-        roll=travel / radius,
-        depth=surface_z - float(pose[2]),
-        speed=float(np.asarray(velocity, dtype=np.float64)[:3] @ heading),
-        t=float(t),
-    )
-
-
 DEFAULT_START_POSE = (0.4, 0.0, 0.2, math.pi, 0.0, 0.0)  # the sweep's touching pose (UR base frame)
 DEFAULT_CLEARANCE = 0.002  # m the arm rests above the touching pose
 DEFAULT_DIRECTION = (1.0, 0.0, 0.0)  # rolling direction in the base frame
@@ -134,60 +102,6 @@ def simulated_arm_origin(start_pose: ArrayLike, clearance: float) -> tuple[np.nd
     if not (math.isfinite(clearance) and clearance >= 0):
         raise ArmLimitError(f"sweep clearance must be a finite number >= 0, got {clearance}")
     return touching + np.array([0.0, 0.0, float(clearance), 0.0, 0.0, 0.0]), float(touching[2])
-
-
-class PoseFollower:
-    """The simulated sensor's `RollerState` from a stream of TCP poses (e.g. `/touchroller/tcp_pose`
-    published by a sweep node in another process): what a simulated camera needs to follow the arm.
-
-    `update(t, position)` takes each pose (t in seconds on the clock the camera also uses, e.g. the
-    ROS clock of the message stamps); the velocity is the difference of the last two poses. `state_at(t)`
-    extrapolates the last pose to the capture time by that velocity (at most `max_extrapolation` s,
-    so a stalled pose stream freezes the roller instead of running it away) and returns None before
-    the first pose. Thread-safe: poses arrive on the executor thread, frames render on the camera's.
-    """
-
-    def __init__(self, *, origin: ArrayLike, surface_z: float, rolling_direction: Sequence[float],
-                 radius: float, travel_origin: float = 0.0, x_along_origin: float = 0.0,
-                 max_extrapolation: float = 0.1) -> None:
-        if not (math.isfinite(radius) and radius > 0):
-            raise ValueError(f"radius must be > 0, got {radius}")
-        direction = np.asarray(rolling_direction, dtype=np.float64)
-        if direction.shape != (3,) or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) == 0:
-            raise ValueError(f"rolling_direction must be a non-zero 3-vector, got {rolling_direction}")
-        self._frame = {"origin": as_pose(origin), "surface_z": float(surface_z),
-                       "rolling_direction": direction, "radius": float(radius),
-                       "travel_origin": float(travel_origin), "x_along_origin": float(x_along_origin)}
-        self.max_extrapolation = float(max_extrapolation)
-        self._lock = threading.Lock()
-        self._last: tuple[float, np.ndarray] | None = None
-        self._velocity = np.zeros(3)
-        self.poses = 0
-
-    def update(self, t: float, position: ArrayLike) -> bool:
-        """Take one pose; False (ignored) if it is not newer than the last or not finite."""
-        xyz = np.asarray(position, dtype=np.float64).reshape(-1)[:3]
-        if xyz.shape != (3,) or not np.all(np.isfinite(xyz)) or not math.isfinite(t):
-            return False
-        with self._lock:
-            if self._last is not None:
-                t_last, xyz_last = self._last
-                if t <= t_last:
-                    return False
-                self._velocity = (xyz - xyz_last) / (t - t_last)
-            self._last = (float(t), xyz)
-            self.poses += 1
-        return True
-
-    def state_at(self, t: float) -> RollerState | None:
-        with self._lock:
-            if self._last is None:
-                return None
-            t_last, xyz = self._last
-            velocity = self._velocity.copy()
-        ahead = min(max(float(t) - t_last, 0.0), self.max_extrapolation)
-        pose = np.concatenate([xyz + velocity * ahead, self._frame["origin"][3:]])
-        return roller_state_from_pose(pose, velocity, t, **self._frame)
 
 
 @runtime_checkable
@@ -238,36 +152,16 @@ class _Move:
 
 
 class SimulatedArm:
-    """A kinematic arm: linear moves follow a trapezoid velocity profile in real (or injected) time.
-
-    Its pose drives the simulated sensor through `roller_state(t)`: the roller rolls without slip along
-    `rolling_direction` (base frame), so roll angle = travel / radius; it touches the surface at
-    `surface_z`, so depth = surface_z - z. The start pose sits at (`x_along_origin`, `travel_origin`)
-    of the simulated surface. `stop()` halts instantly (an idealisation); `inject_fault`
-    stands in for a protective stop.
+    """A kinematic arm: linear moves follow a trapezoid velocity profile in the time of `clock` (seconds:
+    real time by default; the sweep node's simulated clock in simulation, which the simulated camera
+    shares). It knows nothing of the sensor: the camera reads its pose (over TF). `stop()` halts
+    instantly (an idealisation); `inject_fault` stands in for a protective stop.
     """
 
-    def __init__(self, start_pose: ArrayLike = DEFAULT_START_POSE, *,
-                 limits: ArmLimits | None = None, surface_z: float | None = None,
-                 rolling_direction: Sequence[float] = (1.0, 0.0, 0.0), radius: float = 0.05,
-                 travel_origin: float = 0.0, x_along_origin: float = 0.0,
+    def __init__(self, start_pose: ArrayLike = DEFAULT_START_POSE, *, limits: ArmLimits | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.limits = limits or ArmLimits()
         self.origin = as_pose(start_pose)
-        self.surface_z = float(self.origin[2] if surface_z is None else surface_z)
-        direction = np.asarray(rolling_direction, dtype=np.float64)
-        if direction.shape != (3,) or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) == 0:
-            raise ValueError(f"rolling_direction must be a non-zero 3-vector, got {rolling_direction}")
-        self.rolling_direction = direction / np.linalg.norm(direction)
-        # The roller's axis is horizontal and perpendicular to the rolling direction.
-        axis = np.cross((0.0, 0.0, 1.0), self.rolling_direction)
-        self.axis_direction = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else np.array([0., 1., 0.])
-        if not (math.isfinite(radius) and radius > 0):
-            raise ValueError(f"radius must be > 0, got {radius}")
-        self.radius = float(radius)
-        # Where the start pose is over the simulated surface (the scene's roll start and axial offset).
-        self.travel_origin = float(travel_origin)
-        self.x_along_origin = float(x_along_origin)
         self.clock = clock
         self._lock = threading.Lock()
         self._connected = False
@@ -334,16 +228,6 @@ class SimulatedArm:
     def pose_at(self, t: float) -> np.ndarray:
         with self._lock:
             return self._pose_locked(t)
-
-    def roller_state(self, t: float | None = None) -> RollerState:
-        """The simulated sensor's state at arm-clock time `t` (seconds; now if None)."""
-        t = self.clock() if t is None else float(t)
-        with self._lock:
-            pose = self._pose_locked(t)
-            velocity = self._move.velocity(t) if self._move is not None else np.zeros(3)
-        return roller_state_from_pose(pose, velocity, t, origin=self.origin, surface_z=self.surface_z,
-                                      rolling_direction=self.rolling_direction, radius=self.radius,
-                                      travel_origin=self.travel_origin, x_along_origin=self.x_along_origin)
 
     # -- internals -----------------------------------------------------------------------------
     def _require_ready(self) -> None:

@@ -430,29 +430,21 @@ class VideoFileSource:
 
 
 class SimulatedSource:
-    """The simulated sensor (`touchroller_driver.sim.SimulatedSensor`) as a camera.
-
-    Bound to an arm, pass `state_at(t) -> RollerState | None`: each frame renders the state the arm
-    reports at capture time `t = clock()` (seconds, the arm's clock), at `fps`; None (the arm's state is
-    not known yet) delivers no frame. Standalone, it plays the scene's own
-    motion (`sensor.frames()`) paced by the frames' stamps (`rate` 1.0 real time, 0 as fast as possible).
-    Published stamps come from `clock_ns` at capture in both cases.
+    """The simulated sensor (`touchroller_driver.sim.SimulatedSensor`) playing the scene's own motion
+    (`sensor.frames()`), paced by the frames' stamps (`rate` 1.0 real time, 0 as fast as possible) and
+    stamped from `clock_ns` at capture. The sensor on a (simulated) arm is `touchroller_driver.sim.camera.ArmCamera`.
     """
 
     def __init__(
         self,
         sensor: Any,
-        clock: Callable[[], float] = time.monotonic,
         *,
-        state_at: Callable[[float], Any] | None = None,
         fps: float | None = None,
         rate: float = 1.0,
         loop: bool = False,
         clock_ns: ClockNs = time.time_ns,
     ) -> None:
         self.sensor = sensor
-        self.clock = clock
-        self.state_at = state_at
         scene_fps = getattr(getattr(sensor, "scene", None), "fps", None)
         self.fps = float(fps or scene_fps or 30.0)
         self.rate, self.loop = rate, loop
@@ -470,31 +462,16 @@ class SimulatedSource:
     def info(self) -> str:
         scene = getattr(self.sensor, "scene", None)
         name = getattr(scene, "name", None) or type(self.sensor).__name__
-        mode = "bound to arm" if self.state_at is not None else "scene motion"
-        return f"sim {name} ({mode})"
+        return f"sim {name} (scene motion)"
 
     def open(self) -> None:
         self.stats.connected = True
-        if self.state_at is None:
-            self._frames = iter(self.sensor.frames())
+        self._frames = iter(self.sensor.frames())
 
     def read(self, timeout: float) -> Frame | None:
         if self.stats.finished:
             return None
-        if self.state_at is not None:
-            return self._read_bound(timeout)
         return self._read_scene(timeout)
-
-    def _read_bound(self, timeout: float) -> Frame | None:
-        if not self._pacer.wait(self._seq / self.fps, timeout):
-            return None
-        stamp_ns = self._clock_ns()
-        state = self.state_at(self.clock())
-        if state is None:   # the arm has not reported yet (e.g. no pose received): no frame
-            self._pacer.reset()   # and no burst of overdue frames once it does
-            time.sleep(min(timeout, 1.0 / self.fps))
-            return None
-        return self._deliver(stamp_ns, as_bgr8(self.sensor.render(state)))
 
     def _read_scene(self, timeout: float) -> Frame | None:
         if self._pending is None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from touchroller_bringup import graph
-from touchroller_bringup.graph import GraphError, NodeSpec, build_graph, resolve_arguments
+from touchroller_bringup.graph import GraphError, NodeSpec, build_graph, replay_perception, resolve_arguments
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -43,10 +43,13 @@ def test_every_node_has_a_console_script_in_its_module(tmp_path):
 def test_scan_graph_defaults_are_simulated():
     g = build_graph("scan")
     assert g.keys == ("camera", "perception", "sweep")
-    # separate processes under ros2 launch: the simulated camera follows the sweep node's arm (tcp_pose)
-    assert g.node("camera").parameters == {"source": "sim", "scene": "surface_mapping", "sim.follow_arm": True}
-    assert g.node("sweep").parameters == {"use_sim": True}
-    assert build_graph("calibrate").node("camera").parameters["sim.follow_arm"] is False
+    # the simulated camera is on the sweep node's simulated arm: TF and one simulated clock (use_sim_time)
+    assert g.node("camera").parameters == {"source": "sim", "scene": "surface_mapping", "sim.motion": "arm",
+                                           "use_sim_time": True}
+    assert g.node("sweep").parameters == {"use_sim": True, "use_sim_time": True}
+    assert g.node("perception").parameters == {**replay_perception("touchroller"), "use_sim_time": True}   # every frame
+    assert build_graph("calibrate").node("camera").parameters["sim.motion"] == "scene"
+    assert "use_sim_time" not in build_graph("scan", {"use_sim": "false"}).node("sweep").parameters
     files = g.node("sweep").params_files
     assert [Path(f).name for f in files] == ["touchroller.yaml", "scan.yaml"]
 
@@ -60,9 +63,9 @@ def test_scan_graph_with_hardware_arguments():
 
 
 def test_scan_map_file_becomes_the_perception_save_path(tmp_path):
-    assert build_graph("scan").node("perception").parameters == {}
+    assert "map.save_path" not in build_graph("scan").node("perception").parameters
     g = build_graph("scan", {"map_file": str(tmp_path / "roll.png")})
-    assert g.node("perception").parameters == {"map.save_path": str(tmp_path / "roll.png")}
+    assert g.node("perception").parameters["map.save_path"] == str(tmp_path / "roll.png")
 
 
 def test_user_files_follow_the_defaults(tmp_path):
@@ -173,7 +176,7 @@ def test_sweep_node_from_the_graph_reads_the_scan_defaults(ros_context):
         assert node.get_fully_qualified_name() == "/touchroller/sweep"
         assert node.get_parameter("sweep.speed").value == pytest.approx(0.02)   # argument
         assert node.get_parameter("sweep.length").value == pytest.approx(0.11)  # config/scan.yaml
-        assert node.get_parameter("cylinder.radius").value == pytest.approx(0.05)  # config/touchroller.yaml
+        assert node.get_parameter("mount.xyz").value == pytest.approx([0.0, 0.0, 0.1])  # config/touchroller.yaml
     finally:
         node.destroy_node()
 

@@ -114,7 +114,7 @@ def test_nodes_built_from_the_graph_use_the_namespace_and_frame_prefix(namespace
         expected_topics = {names.topic(t, namespace) for t in (names.IMAGE, names.CAMERA_INFO, names.CONTACTS,
                                                                names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS)}
         assert expected_topics <= ours
-        assert all(topic.startswith(f"/{namespace}/") or topic in ("/diagnostics", "/tf", "/tf_static",
+        assert all(topic.startswith(f"/{namespace}/") or topic in ("/diagnostics", "/tf", "/tf_static", "/clock",
                                                                            "/parameter_events", "/rosout")
                    for topic, _ in published)
         services = {name for name, _ in probe.get_service_names_and_types()}

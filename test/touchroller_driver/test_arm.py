@@ -137,27 +137,6 @@ def test_fault_stops_motion_and_refuses_commands_until_reconnect():
     arm.move_linear(START, 0.01, 0.1)
 
 
-def test_roller_state_rolls_without_slip():
-    try:
-        from touchroller_driver.sim import RollerState
-    except ImportError:
-        pytest.skip("simulator (touchroller_driver.sim.RollerState) not landed yet")
-    arm, clock = make_arm(radius=0.05, rolling_direction=(1.0, 0.0, 0.0), travel_origin=0.01, x_along_origin=0.002)
-    arm.move_linear(np.array(START) + [0.0, 0.0, -0.001, 0, 0, 0], 0.01, 0.1)
-    clock.t += 5.0
-    pressed = arm.tcp_pose()
-    arm.move_linear(pressed + [0.11, 0.0, 0.0, 0, 0, 0], 0.011, 0.1)
-    t0 = clock.t
-    state = arm.roller_state(t0 + 5.0)
-    travel = TrapezoidProfile(0.11, 0.011, 0.1).position(5.0)
-    assert state.travel == pytest.approx(0.01 + travel)
-    assert state.roll == pytest.approx(travel / 0.05)
-    assert state.depth == pytest.approx(0.001)
-    assert state.speed == pytest.approx(0.011)
-    assert state.x_along == pytest.approx(0.002, abs=1e-12)
-    assert isinstance(state, RollerState)
-
-
 @settings(max_examples=60, deadline=None)
 @given(
     distance=st.floats(-0.3, 0.3).filter(lambda d: abs(d) > 1e-6),
@@ -282,83 +261,6 @@ def test_stop_request_ends_the_sweep_in_stopped():
     with pytest.raises(ArmError):  # a faulted arm cannot start a new sweep
         arm.inject_fault("estop")
         sequencer.start(plan_sweep(START, length=0.1, speed=0.01, accel=0.1, depth=0.0))
-
-
-@pytest.mark.slow
-def test_the_arm_pose_drives_the_simulated_sensor():
-    """Touching (depth 0) only the fabric's relief prints; pressed by `depth`, a band 2 sqrt(2 r depth) wide."""
-    try:
-        from touchroller_driver.sim import RollerState, SimulatedSensor, load_scene
-    except ImportError:
-        pytest.skip("simulator not landed yet")
-    sensor = SimulatedSensor(load_scene("surface_mapping", effects=[]), seed=0)
-    arm, clock = make_arm(radius=sensor.camera.radius, travel_origin=0.02)
-    lifted = sensor.render(RollerState(travel=0.02, depth=-1e-3)).astype(np.float64)
-
-    def band_rows(state) -> int:
-        return int((np.abs(sensor.render(state).astype(np.float64) - lifted).mean(axis=(1, 2)) > 1.0).sum())
-
-    depth = 5e-4
-    touching = band_rows(arm.roller_state())
-    arm.move_linear(np.array(START) - [0, 0, depth, 0, 0, 0], 0.005, 0.1)
-    clock.t += 10.0
-    state = arm.roller_state()
-    assert state.depth == pytest.approx(depth) and state.travel == pytest.approx(0.02)
-    pressed = band_rows(state)
-    metres_per_px = sensor.camera.radius / sensor.camera.fy  # at the contact line, theta = d = 0
-    relief = float(sensor.scene.surface["relief"])  # the fabric's peaks press in deeper than its base plane
-
-    def band(penetration: float) -> float:
-        return 2.0 * math.sqrt(2.0 * sensor.camera.radius * penetration) / metres_per_px
-
-    assert 0.95 * band(depth) <= pressed <= 1.05 * band(depth + relief)
-    assert touching < 0.6 * pressed, (touching, pressed)
-
-
-def test_roller_state_from_pose_projects_onto_the_rolling_and_axis_directions():
-    try:
-        from touchroller_driver.arm import roller_state_from_pose
-    except ImportError:  # pragma: no cover
-        pytest.skip("simulator not landed yet")
-    pose = np.array(START) + [0.01, 0.02, -0.001, 0, 0, 0]
-    state = roller_state_from_pose(pose, [0.0, 0.005, 0.0], 3.0, origin=START, surface_z=START[2],
-                                   rolling_direction=(0.0, 2.0, 0.0), radius=0.05, travel_origin=0.1,
-                                   x_along_origin=0.004)
-    assert state.travel == pytest.approx(0.12)          # 0.1 + 0.02 along +y
-    assert state.x_along == pytest.approx(0.004 - 0.01)  # axis = z x y = -x
-    assert state.roll == pytest.approx(0.02 / 0.05)
-    assert state.depth == pytest.approx(0.001)
-    assert state.speed == pytest.approx(0.005) and state.t == 3.0
-
-
-def test_pose_follower_matches_the_simulated_arm_it_follows():
-    """A follower fed the arm's poses at 50 Hz gives the arm's own roller state, also between poses."""
-    pytest.importorskip("touchroller_driver.sim")
-    from touchroller_driver.arm import PoseFollower, simulated_arm_origin
-
-    clock = FakeClock()
-    rest, surface_z = simulated_arm_origin(START, 0.002)
-    arm = SimulatedArm(rest, surface_z=surface_z, clock=clock, radius=0.05, travel_origin=0.01, x_along_origin=0.002)
-    arm.connect()
-    follower = PoseFollower(origin=rest, surface_z=surface_z, rolling_direction=(1.0, 0.0, 0.0), radius=0.05,
-                            travel_origin=0.01, x_along_origin=0.002)
-    assert follower.state_at(0.0) is None                      # nothing before the first pose
-    arm.move_linear(np.array(START) + [0.02, 0, -0.0005, 0, 0, 0], 0.01, 0.1)
-    for k in range(60):                                        # 1.2 s of poses at 50 Hz
-        clock.t = 100.0 + 0.02 * k
-        assert follower.update(clock.t, arm.tcp_pose()[:3])
-    t = clock.t + 0.007                                        # a frame between two poses
-    mine, truth = follower.state_at(t), arm.roller_state(t)
-    assert mine.travel == pytest.approx(truth.travel, abs=1e-6)
-    assert mine.depth == pytest.approx(truth.depth, abs=1e-6)
-    assert mine.x_along == pytest.approx(truth.x_along, abs=1e-9)
-    assert mine.speed == pytest.approx(truth.speed, abs=1e-3) and mine.speed > 0
-    # a stalled pose stream freezes the roller after max_extrapolation instead of running it away
-    assert follower.state_at(t + 10.0).travel == pytest.approx(follower.state_at(t + 0.1).travel)
-    # stale, repeated and non-finite poses are ignored
-    assert not follower.update(clock.t, arm.tcp_pose()[:3])
-    assert not follower.update(clock.t + 0.01, [np.nan, 0.0, 0.2])
-    assert follower.poses == 60
 
 
 def test_simulated_arm_origin_rests_above_the_touching_pose():

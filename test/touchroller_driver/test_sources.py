@@ -316,33 +316,6 @@ class FakeSensor:
             yield SimpleNamespace(stamp_ns=i * 10_000_000, image=np.full((4, 6, 3), i, np.uint8), truth={})
 
 
-def test_simulated_source_renders_the_arm_state_at_capture_time():
-    sensor = FakeSensor()
-    arm_time = iter([1.5, 2.5])
-    source = SimulatedSource(sensor, clock=lambda: next(arm_time), state_at=lambda t: t * 2, rate=0.0)
-    source.open()
-    first, second = source.read(1.0), source.read(1.0)
-    assert sensor.rendered == [3.0, 5.0]
-    assert int(first.image[0, 0, 0]) == 30 and int(second.image[0, 0, 0]) == 50
-    assert (first.seq, second.seq) == (0, 1)
-    assert "bound to arm" in source.info
-
-
-def test_simulated_source_bound_to_an_unknown_arm_state_waits_without_a_burst_after(virtual_time):
-    """state_at -> None (e.g. no tcp_pose yet): no frame; once the state is known, frames come at fps
-    from then on, not a burst of the frames that were 'due' while waiting."""
-    sensor = FakeSensor()
-    known = {"state": None}
-    source = SimulatedSource(sensor, clock=lambda: 1.0, state_at=lambda t: known["state"], fps=10.0)
-    source.open()
-    assert [source.read(0.05) for _ in range(4)] == [None] * 4     # 0.2 s+ with nothing to render
-    assert sensor.rendered == [] and source.stats.captured == 0
-    known["state"] = 2.0
-    first = source.read(0.05)
-    assert first is not None and first.seq == 0 and sensor.rendered == [2.0]
-    assert source.read(0.01) is None            # the next frame is due 0.1 s later, not at once
-    assert source.read(0.1) is not None
-
 
 def test_simulated_source_plays_the_scene_motion_standalone_and_loops():
     source = make_source("sim", sensor=FakeSensor(3), rate=0.0, loop=True)
@@ -398,24 +371,3 @@ def test_bag_source_missing_bag_and_unknown_kind_are_clear_errors(tmp_path):
         BagSource(tmp_path / "missing", reader=read_images).open()
     with pytest.raises(SourceError, match="unknown camera source 'usb'"):
         make_source("usb")
-
-
-def test_simulated_source_with_the_real_simulator_bound_to_an_arm_state():
-    sim = pytest.importorskip("touchroller_driver.sim")
-    sensor = sim.SimulatedSensor(sim.load_scene("surface_mapping"), seed=0)
-    arm_clock = iter([0.5, 0.6])
-
-    def state_at(t):
-        return sim.RollerState(travel=0.02 * t, depth=5e-4, speed=0.02, t=t)
-
-    rendered = []
-    render = sensor.render
-    sensor.render = lambda state: rendered.append(state) or render(state)
-    source = make_source("sim", sensor=sensor, clock=lambda: next(arm_clock), state_at=state_at, rate=0.0)
-    source.open()
-    frame = source.read(1.0)
-    assert frame.image.shape == (sensor.camera.height, sensor.camera.width, 3) and frame.image.dtype == np.uint8
-    assert frame.image.std() > 0  # a rendered gel, not a blank frame
-    source.read(1.0)
-    assert [state.t for state in rendered] == [0.5, 0.6]  # the arm's state at each capture time
-    assert rendered[1].travel > rendered[0].travel

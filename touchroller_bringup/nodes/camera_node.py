@@ -9,13 +9,16 @@ with the capture time. Images are always `bgr8`. Reliable QoS (REP 2003), overri
 `qos_overrides./touchroller/image_raw.publisher.*` parameters. `/diagnostics` carries the
 measured frame rate, publish lag (publish time - capture stamp) and drops.
 
-With `source=sim` and `sim.follow_arm`, the simulated sensor follows the arm of a sweep node running
-anywhere in the graph (e.g. another process under `ros2 launch`): the node subscribes
-`tcp_pose` and renders, at `fps`, the roller state of the latest pose extrapolated to the
-capture time (`touchroller_driver.arm.PoseFollower`). The arm's frame comes from the same parameters as
-the sweep node's simulated arm (`sweep.start_pose`, `sweep.clearance`, `sweep.direction`,
-`cylinder.radius`; config/scan.yaml sets them for every node) and the scene's roll start.
-No frames are published before the first pose.
+Stamps are the source's capture time minus `camera.latency` (seconds, like v4l2_camera's
+timestamp_offset): a webcam's frame reaches the host tens of milliseconds after its exposure.
+
+`source=sim` is the simulator: with `sim.motion=scene` it plays the scene's own motion; with
+`sim.motion=arm` it is the simulated sensor on the arm (`touchroller_driver.sim.camera.ArmCamera`):
+frame k is rendered at exactly its time on the frame grid of the simulated clock (the node's ROS clock,
+/clock from the sweep node's simulated arm under use_sim_time), with the roller where TF
+(`world_frame` -> touchroller_cylinder, both after `frame_prefix`, from /tf and /tf_static) has it at
+that time, over the scene's surface placed in `world_frame`; `sim.latency` stamps the frames that late
+(the simulated webcam's latency). No frames are published before the arm's pose is known.
 """
 from __future__ import annotations
 
@@ -24,7 +27,6 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -34,7 +36,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from touchroller_bringup import names
 from touchroller_bringup.bags import read_images
-from touchroller_bringup.image_conversion import fill_image, stamp_to_ns
+from touchroller_bringup.image_conversion import fill_image
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
     OK,
@@ -45,20 +47,16 @@ from touchroller_bringup.ros_diagnostics import (
     Status,
 )
 from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
-from touchroller_driver.arm import (
-    DEFAULT_CLEARANCE,
-    DEFAULT_DIRECTION,
-    DEFAULT_START_POSE,
-    PoseFollower,
-    simulated_arm_origin,
-)
+from touchroller_bringup.tf import TransformListener
 from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
 from touchroller_perception.geometry import CameraModel
+from touchroller_perception.transforms import Transform, TransformBuffer
 
+SIM_MOTIONS = ("scene", "arm")
 #: Parameters that select or configure the source: changing one reopens it.
 SOURCE_PARAMETERS = (
     "source", "device", "width", "height", "fps", "exposure", "video_path", "bag_path", "bag_topic",
-    "scene", "seed", "rate", "loop", "wait_for_subscribers", "sim.follow_arm", "sweep.start_pose", "sweep.clearance", "sweep.direction",
+    "scene", "seed", "rate", "loop", "wait_for_subscribers", "sim.motion", "sim.latency", "world_frame",
 )
 
 
@@ -118,9 +116,8 @@ class CameraNode(Node):
         self.image_pub = self.create_publisher(Image, names.IMAGE, image_qos(), qos_overriding_options=overrides)
         self.info_pub = self.create_publisher(CameraInfo, names.CAMERA_INFO, image_qos(),
                                               qos_overriding_options=overrides)
-        self.follower: PoseFollower | None = None   # source=sim with sim.follow_arm: the arm's poses
-        self.pose_sub = None
-        self._subscribe_poses_if_following()
+        self.tf_listener: TransformListener | None = None   # source=sim with sim.motion=arm: the arm's pose
+        self._listen_to_tf_if_on_arm()
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: camera", hardware_id="")
         self.diagnostics.add(self._diagnostic_status)
         if autostart:
@@ -148,22 +145,25 @@ class CameraNode(Node):
         declare(self, "wait_for_subscribers", 0, f"Open the source only once {names.IMAGE} has this many "
                 "subscribers (replay: perception must see a recording's first, reference frames); 0: at once",
                 min=0, max=100)
-        declare(self, "sim.follow_arm", False, "source=sim: render the roller state of the arm's poses on "
-                f"{names.TCP_POSE} (a sweep node's simulated arm) instead of the scene's own motion")
-        # the sweep node's names, so the same params files place the arm identically for both
-        declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
-                "sim.follow_arm: the sweep's touching TCP pose [x, y, z, rx, ry, rz] (as the sweep node)")
-        declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "sim.follow_arm: height above the start pose the arm rests at, "
-                "m (as the sweep node)", min=0.0, max=0.05)
-        declare(self, "sweep.direction", list(DEFAULT_DIRECTION), "sim.follow_arm: rolling direction in the base "
-                "frame (as the sweep node)")
+        declare(self, "camera.latency", 0.0, "Seconds from a frame's exposure to its capture stamp, subtracted "
+                "from the stamps (like v4l2_camera's timestamp_offset); 0: stamps as captured", min=0.0, max=1.0)
+        declare(self, "sim.motion", "scene", "source=sim: 'scene' plays the scene's own motion; 'arm' renders the "
+                "roller where TF (world_frame -> touchroller_cylinder) has it, on the simulated clock",
+                additional_constraints="scene or arm")
+        declare(self, "sim.latency", 0.0, "source=sim, sim.motion=arm: how late the simulated webcam stamps its "
+                "frames after exposure, s (an effect the mapper is not told)", min=0.0, max=1.0)
+        declare(self, "world_frame", names.BASE_FRAME, "source=sim, sim.motion=arm: the frame the scene's surface "
+                "lies in (the arm's base; after frame_prefix)")
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         for param in parameters:
             if param.name == "source" and str(param.value) not in SOURCE_KINDS:
                 return SetParametersResult(
                     successful=False, reason=f"source must be one of {', '.join(SOURCE_KINDS)}, got {param.value!r}")
-            if param.name in ("frame_id", "device", "bag_topic") and not str(param.value).strip():
+            if param.name == "sim.motion" and str(param.value) not in SIM_MOTIONS:
+                return SetParametersResult(successful=False, reason=f"sim.motion must be one of "
+                                           f"{', '.join(SIM_MOTIONS)}, got {param.value!r}")
+            if param.name in ("frame_id", "device", "bag_topic", "world_frame") and not str(param.value).strip():
                 return SetParametersResult(successful=False, reason=f"{param.name} must not be empty")
         return SetParametersResult(successful=True)
 
@@ -175,43 +175,29 @@ class CameraNode(Node):
         if "frame_id" in changed:
             self.frame_id = self._prefixed_frame_id()
         if changed & set(SOURCE_PARAMETERS) and not self._external_source:
-            self._subscribe_poses_if_following()
+            self._listen_to_tf_if_on_arm()
             self._restart.set()  # the publishing thread reopens the source
 
-    # ------------------------------------------------------------------ following the arm (sim)
-    def _following(self) -> bool:
+    # ------------------------------------------------------------------ the simulated sensor on the arm
+    def _on_arm(self) -> bool:
         return (not self._external_source and str(self.get_parameter("source").value) == "sim"
-                and bool(self.get_parameter("sim.follow_arm").value))
+                and str(self.get_parameter("sim.motion").value) == "arm")
 
-    def _subscribe_poses_if_following(self) -> None:
+    def _listen_to_tf_if_on_arm(self) -> None:
         # Created here (executor or constructing thread), never from the publishing thread; kept once made.
-        if self.pose_sub is None and self._following():
-            self.pose_sub = self.create_subscription(PoseStamped, names.TCP_POSE, self._on_pose, 10)
+        if self.tf_listener is None and self._on_arm():
+            self.tf_listener = TransformListener(self, TransformBuffer(cache_ns=10_000_000_000))
 
-    def _on_pose(self, msg: PoseStamped) -> None:
-        follower = self.follower
-        if follower is not None:
-            p = msg.pose.position
-            follower.update(stamp_to_ns(msg.header.stamp) * 1e-9, (p.x, p.y, p.z))
-
-    def _make_follower(self, scene: Any) -> PoseFollower:
-        from touchroller_driver.sim.scenarios import roll_extent
-
-        rest, surface_z = simulated_arm_origin(list(self.get_parameter("sweep.start_pose").value),
-                                               float(self.get_parameter("sweep.clearance").value))
-        travel_origin, _, x_along_origin = roll_extent(scene)
-        return PoseFollower(origin=rest, surface_z=surface_z,
-                            rolling_direction=list(self.get_parameter("sweep.direction").value),
-                            radius=self.geometry.model.radius, travel_origin=travel_origin,
-                            x_along_origin=x_along_origin)
-
-    def _now_s(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+    def _cylinder_pose(self, t_ns: int) -> Transform | None:
+        listener = self.tf_listener
+        world = names.frame(str(self.get_parameter("world_frame").value), self.frame_prefix)
+        cylinder = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
+        return None if listener is None else listener.lookup(world, cylinder, t_ns)
 
     def _on_geometry(self, model: CameraModel) -> None:
         self.get_logger().info(f"camera model updated: fx={model.fx:g} fy={model.fy:g} theta={model.theta:g} d={model.d:g}")
-        if self._following():
-            self._restart.set()   # the follower's roll = travel / cylinder.radius
+        if self._on_arm():
+            self._restart.set()
 
     def _make_source(self) -> FrameSource:
         param = {name: self.get_parameter(name).value for name in SOURCE_PARAMETERS}
@@ -227,18 +213,18 @@ class CameraNode(Node):
         if kind == "bag":
             return make_source("bag", path=param["bag_path"], topic=param["bag_topic"], rate=param["rate"],
                                loop=param["loop"], clock_ns=clock_ns, reader=read_images)
-        if self._following():
+        if self._on_arm():
             from touchroller_driver.sim import SimulatedSensor, load_scene  # lazy: heavy and optional
+            from touchroller_driver.sim.camera import ArmCamera
 
             sensor = SimulatedSensor(load_scene(param["scene"]), seed=param["seed"])
-            follower = self._make_follower(sensor.scene)
-            source = make_source("sim", sensor=sensor, state_at=follower.state_at, clock=self._now_s,
-                                 fps=param["fps"], clock_ns=clock_ns)
-            self.follower = follower
-            return source
-        self.follower = None
+            return ArmCamera(sensor, now_ns=self._now_ns, cylinder_pose=self._cylinder_pose, fps=param["fps"],
+                             latency_s=float(param["sim.latency"]))
         return make_source("sim", scene=param["scene"], seed=param["seed"], rate=param["rate"],
                            loop=param["loop"], clock_ns=clock_ns)
+
+    def _latency_ns(self) -> int:
+        return round(float(self.get_parameter("camera.latency").value) * 1e9)
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -293,7 +279,7 @@ class CameraNode(Node):
                         self.get_logger().info(f"source finished after {self.published} frames: {self.source.info}")
                 continue
             try:
-                published = self.publish_frame(frame.image, frame.stamp_ns)
+                published = self.publish_frame(frame.image, frame.stamp_ns - self._latency_ns())
             except Exception as exc:  # noqa: BLE001 - e.g. the context was shut down by Ctrl-C
                 if not self.context.ok():
                     break

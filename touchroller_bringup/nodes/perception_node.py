@@ -135,6 +135,7 @@ class PerceptionNode(Node):
         self.contact_rate = RateMeter()
         self.processing = LagWindow(200)
         self.received = 0
+        self.last_stamp_ns = 0        # stamp of the newest image taken
         self.malformed = 0
         self.dropped = 0              # sequence gaps: stale frames skipped while busy, plus any lost
         self.lost_in_transport: int | None = None   # DDS message_lost total; None if the RMW lacks it
@@ -274,6 +275,7 @@ class PerceptionNode(Node):
     def _on_image(self, msg: Image) -> None:
         start = time.perf_counter()
         self.received += 1
+        self.last_stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.frames.tick()
         try:
             image = image_to_array(msg)

@@ -6,7 +6,14 @@ calls happen on one worker thread; a fault (protective/emergency stop, lost conn
 command) stops the sweep and shows as ERROR on `/diagnostics`. Publishes the TCP pose
 (`tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
 (`sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`; topics are relative to the node's
-namespace (`touchroller` by default, names in `touchroller_bringup.names`).
+namespace (`touchroller` by default, names in `touchroller_bringup.names`). TF: base -> tool0 on /tf
+(unless `publish_tf` is false) and tool0 -> touchroller_cylinder (`mount.*`) on /tf_static.
+
+With `use_sim` the arm is simulated on a simulated clock (`touchroller_driver.sim.clock.SimClock`) that
+this node's arm loop advances one tick (1 / `sweep.publish_rate`) per pass, paced to `sim.rate` x real
+time, and publishes on /clock; the graph runs every node with use_sim_time, so the simulated camera
+renders on the same clock as the arm (exact poses), and a sweep starts on a whole second of it, so the
+same sweep gives the same images.
 
 Services `~/start` and `~/stop` are std_srvs/Trigger (`ros2 service call /touchroller/sweep/start
 std_srvs/srv/Trigger`).
@@ -25,6 +32,7 @@ from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float32
 from std_srvs.srv import Trigger
 
@@ -49,6 +57,7 @@ from touchroller_driver.arm import (
     plan_sweep,
     simulated_arm_origin,
 )
+from touchroller_driver.sim.clock import SimClock
 from touchroller_perception.transforms import Transform
 
 COMMAND_TIMEOUT_S = 5.0
@@ -93,6 +102,8 @@ class SweepNode(Node):
         if arm is not None:  # a supplied arm keeps its own limits; the stricter of the two apply here
             self.limits = ArmLimits(max_speed=min(self.limits.max_speed, arm.limits.max_speed),
                                     max_accel=min(self.limits.max_accel, arm.limits.max_accel))
+        self.sim_clock: SimClock | None = None   # use_sim: the one clock of the simulated arm and camera
+        self._clock_pub: Any = None
         self.arm: Arm = arm if arm is not None else self._make_arm()
         self.sequencer = SweepSequencer(self.arm)
         self.finished = threading.Event()  # set when a started sweep ends (done, stopped or fault)
@@ -142,9 +153,10 @@ class SweepNode(Node):
         declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
         declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "Height above the start pose the roller approaches from and "
                 "lifts back to, m", min=0.0, max=0.05)
-        declare(self, "cylinder.radius", 0.05, "Radius r of the membrane surface, metres (simulated roll)",
-                min=0.001, max=1.0)
-        declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose and progress messages, "
+        declare(self, "sim.rate", 1.0, "use_sim: simulated seconds per wall-clock second of the simulated clock "
+                "(published on /clock; the simulated camera renders on it)", min=0.1, max=20.0, read_only=True)
+        declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose, /tf and progress messages, "
+                "with use_sim the simulated clock's tick, "
                 "watchdog kicks (>= 10 Hz), Hz", min=10.0, max=500.0,
                 read_only=True)
         declare(self, "arm.base_frame", names.BASE_FRAME, "Frame of the published TCP pose and parent of the tool "
@@ -204,11 +216,11 @@ class SweepNode(Node):
 
     def _make_arm(self) -> Arm:
         if self.get_parameter("use_sim").value:
-            rest, surface_z = simulated_arm_origin(self.settings["sweep.start_pose"],
-                                                   float(self.settings["sweep.clearance"]))
-            return SimulatedArm(rest, surface_z=surface_z, limits=self.limits,
-                                rolling_direction=list(self.settings["sweep.direction"]),
-                                radius=float(self.get_parameter("cylinder.radius").value))
+            rest, _ = simulated_arm_origin(self.settings["sweep.start_pose"], float(self.settings["sweep.clearance"]))
+            rate_hz = float(self.get_parameter("sweep.publish_rate").value)
+            self.sim_clock = SimClock(rate_hz, rate=float(self.get_parameter("sim.rate").value))
+            self._clock_pub = self.create_publisher(Clock, "/clock", 10)
+            return SimulatedArm(rest, limits=self.limits, clock=self.sim_clock.now)
         from touchroller_driver.ur5 import UR5Arm
 
         return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits)
@@ -262,13 +274,24 @@ class SweepNode(Node):
         period = 1.0 / float(self.get_parameter("sweep.publish_rate").value)
         while not self._shutdown.is_set() and self.context.ok():  # Ctrl-C shuts the context down first
             try:
-                command = self._commands.get(timeout=period)
+                # Simulated, the loop is the clock: one tick per pass, paced by SimClock.advance.
+                command = self._commands.get(timeout=period) if self.sim_clock is None else self._commands.get_nowait()
             except queue.Empty:
+                command = None
+            if command is not None and command.name == "start" and self.sim_clock is not None \
+                    and not self.sim_clock.on_whole_second():
+                # Simulated, a sweep starts on a whole second of the clock: the frame grid of any
+                # whole-number frame rate lines up with it, so the same sweep gives the same images.
+                self._commands.queue.appendleft(command)
                 command = None
             was_active = self.sequencer.active
             if command is not None:
                 self._execute(command)
+            if self.sim_clock is not None:
+                self.sim_clock.advance(self._shutdown)
             self._step(was_active or self.sequencer.active)
+            if self.sim_clock is not None:
+                self._publish_clock(self.sim_clock.now_ns())
         self._release_arm()
 
     def _execute(self, command: _Command) -> None:
@@ -314,11 +337,24 @@ class SweepNode(Node):
             else:
                 self.get_logger().info(f"sweep {status.phase.value}: {status.message}")
 
+    def _now_ns(self) -> int:
+        """The arm's time: the simulated clock, else the node's ROS clock."""
+        return self.sim_clock.now_ns() if self.sim_clock is not None else self.get_clock().now().nanoseconds
+
+    def _publish_clock(self, stamp_ns: int) -> None:
+        message = Clock()
+        message.clock.sec, message.clock.nanosec = divmod(stamp_ns, 1_000_000_000)
+        try:
+            self._clock_pub.publish(message)
+        except Exception:  # noqa: BLE001 - the context went down between the check and the publish
+            if self.context.ok():
+                raise
+
     def _publish(self, pose: np.ndarray, progress: float) -> None:
         with self._state_lock:
             self._last_pose = pose
         message = PoseStamped()
-        stamp_ns = self.get_clock().now().nanoseconds
+        stamp_ns = self._now_ns()
         message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
         message.header.frame_id = self._frame_id
         message.pose.position.x, message.pose.position.y, message.pose.position.z = (float(v) for v in pose[:3])

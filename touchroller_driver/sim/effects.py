@@ -97,6 +97,7 @@ class NoiseBank:
         self.rng = rng
         self.sigma = float(sigma)
         self.shot = float(shot_dn_per_electron)
+        self.salt = int(rng.integers(0, 2**31))
         if self.shot > 0:   # signal-dependent: keep unit normals, scale per pixel per frame
             self.unit = rng.standard_normal(self.size * frames).astype(np.float32)
             return
@@ -105,21 +106,29 @@ class NoiseBank:
         self.negative = np.clip(-noise, 0, 255).astype(np.uint8)
 
 
-def add_noise(image: np.ndarray, bank: NoiseBank) -> np.ndarray:
-    """Saturating uint8 image + noise from the bank (in place).
+def _bank_offset(bank: NoiseBank, span: int, frame: int | None) -> int:
+    """Where this frame's noise starts in the bank: random, or fixed by the frame's index (the same frame
+    of the same scene and seed always gets the same noise, however many frames were rendered before)."""
+    if frame is None:
+        return int(bank.rng.integers(0, span))
+    return (int(frame) * 2654435761 + bank.salt) % span   # Knuth's multiplicative hash: frames spread out
+
+
+def add_noise(image: np.ndarray, bank: NoiseBank, frame: int | None = None) -> np.ndarray:
+    """Saturating uint8 image + noise from the bank (in place); `frame` fixes the noise to a frame index.
 
     Read noise only: sigma DN. With `shot_dn_per_electron` = g > 0, photon shot noise is added:
     variance sigma^2 + g * signal (DN^2), i.e. Poisson statistics of signal / g electrons.
     """
     if bank.shot > 0:
-        start = int(bank.rng.integers(0, bank.unit.size - bank.size + 1))
+        start = _bank_offset(bank, bank.unit.size - bank.size + 1, frame)
         unit = bank.unit[start:start + bank.size].reshape(bank.shape)
         signal = image.astype(np.float32)
         std = cv2.sqrt(signal * np.float32(bank.shot) + np.float32(bank.sigma**2))
         noisy = cv2.add(signal, cv2.multiply(unit, std))
         np.copyto(image, cv2.convertScaleAbs(np.maximum(noisy, 0.0)))
         return image
-    start = int(bank.rng.integers(0, bank.positive.size - bank.size + 1))
+    start = _bank_offset(bank, bank.positive.size - bank.size + 1, frame)
     pos = bank.positive[start:start + bank.size].reshape(bank.shape)
     neg = bank.negative[start:start + bank.size].reshape(bank.shape)
     cv2.add(image, pos, dst=image)
@@ -135,5 +144,8 @@ def compress(image: np.ndarray, quality: int) -> np.ndarray:
     return cv2.imdecode(buf, cv2.IMREAD_COLOR)
 
 
-def frame_dropped(rng: np.random.Generator, probability: float) -> bool:
-    return bool(rng.random() < probability)
+def frame_dropped(rng: np.random.Generator, probability: float, frame: int | None = None, seed: int = 0) -> bool:
+    """Whether a frame is lost: random, or fixed by the frame's index (and the seed)."""
+    if frame is None:
+        return bool(rng.random() < probability)
+    return bool(np.random.default_rng([int(seed), int(frame)]).random() < probability)

@@ -163,17 +163,19 @@ class SimulatedSensor:
         radius = self.camera.radius + float(self.thickness_offset(x, alpha))
         return np.array([x, radius * math.sin(alpha), radius * math.cos(alpha)])
 
-    def render(self, state: RollerState) -> np.ndarray:
-        """The bgr8 image for a roller state."""
-        return self._render(state)[0]
+    def render(self, state: RollerState, frame: int | None = None) -> np.ndarray:
+        """The bgr8 image for a roller state; `frame` (an index) fixes the random effects to that frame."""
+        return self._render(state, frame=frame)[0]
 
-    def capture(self, state: RollerState) -> np.ndarray | None:
-        """Like a camera read: the image, or None when the scene's `dropped_frames` effect drops it."""
+    def capture(self, state: RollerState, frame: int | None = None) -> np.ndarray | None:
+        """Like a camera read: the image, or None when the scene's `dropped_frames` effect drops it.
+        With `frame` (an index, e.g. on the simulated clock's frame grid) noise and drops are functions
+        of the frame, not of how many frames came before."""
         if "dropped_frames" in self.effects and effects.frame_dropped(
-                self._rng_frames, float(self.scene.effect_params("dropped_frames")["probability"])):
+                self._rng_frames, float(self.scene.effect_params("dropped_frames")["probability"]), frame, self.seed):
             self.counts["dropped_frames"] = self.counts.get("dropped_frames", 0) + 1
             return None
-        return self.render(state)
+        return self.render(state, frame)
 
     def render_layers(self, state: RollerState) -> dict[str, Any]:
         """The image plus its intermediate layers (full-size indentation and relief, m) for validation."""
@@ -365,7 +367,8 @@ class SimulatedSensor:
     def _count(self, name: str) -> None:
         self.counts[name] = self.counts.get(name, 0) + 1
 
-    def _render(self, state: RollerState, keep_layers: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
+    def _render(self, state: RollerState, keep_layers: bool = False,
+                frame: int | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         if self._board is not None:
             raise ValueError("the chessboard scene shows a board to the bare camera; use frames()")
         values = (state.x_along, state.travel, state.depth, state.speed)
@@ -381,7 +384,7 @@ class SimulatedSensor:
             image[v0:v1] = self._apply_static(shade, v0, v1)
             self._count("shading")
         if self._noise is not None:
-            effects.add_noise(image, self._noise)
+            effects.add_noise(image, self._noise, frame)
             self._count("noise")
         if "compression" in self.effects:
             image = effects.compress(image, int(self.scene.effect_params("compression")["quality"]))

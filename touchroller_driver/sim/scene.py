@@ -47,6 +47,13 @@ _DEFAULT_SENSOR: dict[str, Any] = {
 }
 
 
+# Where the surface lies in the world frame (`base`) for the simulated arm (touchroller_driver.sim.camera):
+# grid point (0, 0) on the contact line of the default sweep.start_pose (tool0 at (0.4, 0, 0.2) pointing
+# down, the roller's axis 10 cm below it: mount.xyz) and its rows along world +x (the default sweep
+# direction); the surface plane is where that pose touches it (z = 0.2 - 0.1 - r).
+_DEFAULT_WORLD: dict[str, Any] = {"surface_origin": [0.4, 0.0, 0.05], "surface_yaw": 0.0}
+
+
 def _default_camera() -> dict[str, Any]:
     path = config_path("touchroller.yaml")
     return CameraModel.from_yaml(path).to_params() if path.is_file() else CameraModel().to_params()
@@ -79,6 +86,12 @@ class Scene:
     @property
     def surface(self) -> dict[str, Any]:
         return self.data.get("surface") or {"kind": "flat"}
+
+    @property
+    def world(self) -> dict[str, Any]:
+        """The surface's placement in the world frame: `surface_origin` [x, y, z] (m) of the surface grid's
+        point (0, 0), `surface_yaw` (rad) of its rows (the rolling direction) from world x."""
+        return self.data["world"]
 
     @property
     def sensor(self) -> dict[str, Any]:
@@ -183,6 +196,9 @@ def _with_defaults(data: dict[str, Any]) -> dict[str, Any]:
     data.setdefault("effect_params", {})
     data.setdefault("calibration_error", {"theta": 0.0, "d": 0.0})
     data.setdefault("start_stamp_ns", 1_700_000_000_000_000_000)
+    world = dict(_DEFAULT_WORLD)
+    world.update(data.get("world") or {})
+    data["world"] = world
     return data
 
 
@@ -234,6 +250,10 @@ def validate(scene: Scene) -> None:
         from touchroller_driver.sim.scenarios import roll_profile
 
         roll_profile(scene.motion)   # raises ValueError if the move is infeasible
+    origin, yaw = d["world"].get("surface_origin"), d["world"].get("surface_yaw")
+    if not (isinstance(origin, list | tuple) and len(origin) == 3 and all(_finite(v) for v in origin)) or not _finite(yaw):
+        raise ValueError(f"{where}: world.surface_origin must be 3 finite numbers and world.surface_yaw a finite "
+                         f"angle, got {origin!r} and {yaw!r}")
     p = scene.effect_params("dropped_frames")["probability"]
     if not 0.0 <= float(p) < 1.0:
         raise ValueError(f"{where}: dropped_frames.probability must be in [0, 1), got {p}")
@@ -241,3 +261,7 @@ def validate(scene: Scene) -> None:
         raise ValueError(f"{where}: compression.quality must be in 1..100")
     if float(scene.effect_params("noise")["sigma"]) < 0 or float(scene.effect_params("noise")["shot"]) < 0:
         raise ValueError(f"{where}: noise.sigma and noise.shot must be >= 0")
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)

@@ -314,16 +314,17 @@ def test_wait_for_subscribers_holds_the_source_until_a_subscriber_matches(ros_co
 
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("processes", [1, 2], ids=["one_process", "two_processes"])
-def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context, spin_until):
+def test_sim_camera_is_on_the_sweep_nodes_arm_through_tf_and_one_clock(processes, ros_context, spin_until):
     """Scan graph as separate nodes (as ros2 launch runs them; with 2, the sweep node is its own process):
-    only /touchroller/tcp_pose couples the sweep node's simulated arm and the simulated camera; the
-    frames roll with the arm and stitch into a map of the commanded length."""
+    only TF and the simulated clock (/clock) couple the sweep node's simulated arm and the simulated
+    camera; the frames roll with the arm and stitch into a map of the commanded length."""
     from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import Float32
     from std_srvs.srv import Trigger
 
     from touchroller_bringup.graph import build_graph
     from touchroller_bringup.nodes.sweep_node import SweepNode
+    from touchroller_driver.sim.clock import first_frame_at_or_after, frame_time_ns
     from touchroller_perception.stitching import stitch
 
     length, speed = 0.01, 0.01                      # 1 cm in 1 s: ~30 frames, ~3 px of roll per frame
@@ -340,16 +341,19 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
     nodes = [n for n in (camera, sweep, listener.node) if n is not None]
     for node in nodes:
         executor.add_node(node)
-    start = list(camera.get_parameter("sweep.start_pose").value)       # the sweep node reads the same files
-    clearance = float(camera.get_parameter("sweep.clearance").value)
+    start, clearance = [0.4, 0.0, 0.2], 0.002     # config/scan.yaml's sweep.start_pose and sweep.clearance
     try:
-        assert camera.get_parameter("sim.follow_arm").value and camera.pose_sub is not None
+        assert camera.get_parameter("sim.motion").value == "arm" and camera.tf_listener is not None
+        assert camera.get_parameter("use_sim_time").value
         # the roller rests at (or above) the surface, unpressed: frames arrive once poses do, barely changing
         assert spin_until(executor, lambda: len(listener.images) >= 5, timeout=30.0)
-        assert camera.follower.poses > 0
         resting = [coarse(image_to_array(m)) for m in listener.images[-3:]]
         rest_change = np.mean(np.abs(resting[-1] - resting[-2]))
-        assert camera.follower.state_at(camera._now_s()).depth == pytest.approx(-clearance, abs=1e-9)
+        latest_pose_ns = camera.tf_listener.buffer.time_range("tool0")[1]
+        assert camera.source.state_at(latest_pose_ns).depth == pytest.approx(-clearance, abs=1e-9)
+        # frames are on the simulated clock's frame grid: stamps are whole multiples of 1/30 s
+        stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in listener.images]
+        assert all(stamp == frame_time_ns(first_frame_at_or_after(stamp, 30.0), 30.0) for stamp in stamps)
 
         client = listener.node.create_client(Trigger, names.service(names.SWEEP_NODE, names.START))
         assert spin_until(executor, client.service_is_ready, timeout=10.0)
@@ -389,10 +393,9 @@ def test_sim_camera_follows_a_sweep_node_through_tcp_pose(processes, ros_context
     tactile_map, _ = stitch([image for _, image in frames], stamps=[stamp for stamp, _ in frames],
                             camera=camera.geometry.model)
     rolled_px = length / (camera.geometry.model.radius / camera.geometry.model.fy)
-    # one band (the stitcher's 70 rows) + the roll (100 px at r / fy = 0.1 mm per pixel); measured: 170-171 rows.
-    # The arm moves in real time: a test process frozen for 0.2 s at a time lost frames and gave 151-191
-    # rows. A camera that does not follow the arm gives one band (~70 rows), far outside this bound.
-    assert abs(tactile_map.shape[0] - (70 + rolled_px)) <= 0.25 * rolled_px, (tactile_map.shape, rolled_px)
+    # one band (the stitcher's 70 rows) + the roll (100 px at r / fy = 0.1 mm per pixel). A camera that does
+    # not follow the arm gives one band (~70 rows), far outside this bound.
+    assert abs(tactile_map.shape[0] - (70 + rolled_px)) <= 0.1 * rolled_px, (tactile_map.shape, rolled_px)
 
 
 def start_node_process(module: str, spec) -> subprocess.Popen:
