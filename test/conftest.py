@@ -16,6 +16,56 @@ settings.register_profile("ci", derandomize=True, deadline=None, print_blob=True
 settings.register_profile("dev", deadline=None, print_blob=True)
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
+ROOT = Path(__file__).resolve().parents[1]
+# The real ROS 2 command-line and launch tools for a pip-built venv (launch, launch_ros, ros2cli; tests only):
+# `shared/ros-extras` beside the checkout (`../shared/ros-extras`), or beside a folder above it (a worktree).
+ROS_EXTRAS_INSTALL = next((parent / "shared" / "ros-extras" / "install" for parent in ROOT.parents
+                           if (parent / "shared" / "ros-extras" / "install").is_file()), None)
+
+
+def _ros_tools_import() -> bool:
+    import importlib.util
+
+    importlib.invalidate_caches()
+    return all(importlib.util.find_spec(name) is not None for name in ("launch", "launch_ros", "ros2cli"))
+
+
+@pytest.fixture(scope="session")
+def ros_tools() -> Path:
+    """The folder of the `ros2` and `colcon` executables, with `launch`/`launch_ros` importable: a ROS 2
+    install's, or this venv's once `ROS_EXTRAS_INSTALL` has added them (idempotent: about a second when
+    done before). Skips where neither is available, as in a user's clone without a ROS 2 install."""
+    import fcntl
+    import shutil
+    import subprocess
+    import sys
+
+    bin_dir = Path(sys.executable).parent
+    if not _ros_tools_import() or not (bin_dir / "ros2").exists():
+        if ROS_EXTRAS_INSTALL is None or sys.prefix == sys.base_prefix:
+            ros2 = shutil.which("ros2")
+            if ros2 and _ros_tools_import():
+                return Path(ros2).parent
+            pytest.skip("no ROS 2 command-line tools: neither a ROS 2 install nor shared/ros-extras beside the checkout")
+        venv = Path(sys.prefix)
+        with open(venv / ".ros-extras.lock", "w") as lock:   # one installer at a time per venv
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            # ros-extras/install rewrites the message wheels' /opt/python include paths in the venv's CMake
+            # files; after `make setup` has done that (interfaces/build_missing.sh) its `grep | while` finds
+            # nothing and fails under pipefail. A file it can rewrite keeps it going; removed afterwards.
+            marker = venv / "share" / "touchroller_ros_extras" / "include_paths.cmake"
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.write_text("# /opt/python/cp311-cp311/include/python3.11\n")
+            try:
+                done = subprocess.run([str(ROS_EXTRAS_INSTALL), str(venv)], capture_output=True, text=True,
+                                      timeout=900)
+            finally:
+                shutil.rmtree(marker.parent, ignore_errors=True)
+        if done.returncode != 0 or not _ros_tools_import():
+            pytest.fail(f"{ROS_EXTRAS_INSTALL} {venv} failed: {(done.stderr or done.stdout).strip()[-500:]}")
+    return bin_dir
+
+
 @pytest.fixture
 def ros_context(monkeypatch: pytest.MonkeyPatch) -> Iterator[object]:
     """An initialised rclpy Context on a ROS domain no other process on this host uses, localhost discovery

@@ -136,9 +136,7 @@ def test_stubbed_launch_matches_the_graph(path, monkeypatch, tmp_path):
 
 
 @pytest.mark.parametrize("path", LAUNCH_FILES, ids=lambda p: p.name)
-def test_with_real_launch_where_installed(path):
-    pytest.importorskip("launch")
-    pytest.importorskip("launch_ros")
+def test_with_real_launch(path, ros_tools):
     from launch import LaunchContext  # noqa: I001 (ruff takes launch/ for first-party)
     from launch.actions import DeclareLaunchArgument, OpaqueFunction
 
