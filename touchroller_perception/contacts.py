@@ -56,6 +56,12 @@ class DetectorConfig:
     close_size: int = 3               # morphological closing (downscaled px): merges lit and shaded lobes
     min_area: float = 64.0            # px^2 at full resolution (pixels above threshold); smaller is noise
     max_contacts: int = 32
+    background_sigma: float = 96.0    # px at full resolution: smooth shading field of the difference (0: off)
+    lobe_fraction: float = 0.4        # centre from each lobe's part above this fraction of the lobe's peak
+    extent_fraction: float = 0.3      # a contact's area/ellipse: colour distance above this fraction of its peak
+    min_score: float = 12.0           # smallest contact peak, in noise std of the difference (see Contact.score)
+    border: float = 16.0              # px at full resolution: a band along the edges not searched (lens edge, glare)
+    adapt_rate: float = 0.05          # weight of a quiet frame blended into the reference (0: never adapt)
     paper_threshold: float = 8.0      # grey levels, the paper's fixed binarisation
     paper_blur: int = 5               # Gaussian kernel size of the paper's pipeline (odd)
     paper_min_area: float = 10.0      # px^2, smallest contour the paper's pipeline keeps
@@ -75,6 +81,16 @@ class DetectorConfig:
                 raise ValueError(f"contacts.{name} must be >= 0, got {value}")
         if self.close_size < 0 or self.min_area < 0 or self.max_contacts < 1:
             raise ValueError("contacts.close_size and min_area must be >= 0, max_contacts >= 1")
+        if not (self.background_sigma >= 0 and math.isfinite(self.background_sigma)):
+            raise ValueError(f"contacts.background_sigma must be >= 0, got {self.background_sigma}")
+        for name in ("lobe_fraction", "extent_fraction", "adapt_rate"):
+            value = getattr(self, name)
+            if not 0.0 <= value < 1.0:
+                raise ValueError(f"contacts.{name} must be in [0, 1), got {value}")
+        if not (self.border >= 0 and math.isfinite(self.border)):
+            raise ValueError(f"contacts.border must be >= 0, got {self.border}")
+        if not (self.min_score >= 0 and math.isfinite(self.min_score)):
+            raise ValueError(f"contacts.min_score must be >= 0, got {self.min_score}")
         if self.paper_blur < 1 or self.paper_blur % 2 == 0:
             raise ValueError(f"contacts.paper_blur must be an odd kernel size, got {self.paper_blur}")
 
@@ -84,13 +100,20 @@ class DetectorConfig:
 
 @dataclasses.dataclass(frozen=True)
 class Contact:
-    """One detected contact: pixel centre (u along the axis, v around it), area, confidence."""
+    """One detected contact: pixel centre (u along the axis, v around it), size, shape and strength.
+
+    The shape is the ellipse with the second moments of the contact's pixels (those whose colour
+    change exceeds `extent_fraction` of the contact's peak), as PyTouch's ContactArea reports it.
+    """
 
     u: float
     v: float
-    area: float          # px^2 at full resolution
+    area: float          # px^2 at full resolution: pixels above extent_fraction of the peak
     confidence: float    # 0..1: signal over threshold, halved when the blob touches the border
-    peak_snr: float      # peak colour distance / noise std
+    score: float         # peak colour change in noise standard deviations of the difference (detection scale)
+    major_axis: float = math.nan   # full length of the ellipse's major axis, px
+    minor_axis: float = math.nan   # full length of the minor axis, px
+    angle: float = math.nan        # major axis from +u towards +v, radians in (-pi/2, pi/2]
 
 
 FloatImage = NDArray[np.float32]
@@ -142,16 +165,22 @@ def _downscale(image: np.ndarray, factor: int) -> np.ndarray:
 
 
 class NoContactReference:
-    """Mean of no-contact frames and the noise level measured on them (per channel, in grey levels)."""
+    """Mean of no-contact frames and the noise level measured on them (per channel, in grey levels).
+
+    The frames fix the image format (size, channels, dtype): frames of another format are refused
+    rather than compared with it. `blend` moves the mean towards a new no-contact frame (the slow
+    adaptive update).
+    """
 
     def __init__(self, frames: Sequence[np.ndarray]):
         if len(frames) == 0:
             raise ValueError("the no-contact reference needs at least one frame")
+        formats = {_image_format(f) for f in frames}
+        if len(formats) > 1:
+            raise ValueError("reference frames differ in size, channel count or dtype")
         stack = [_as_float(f) for f in frames]
-        shape = stack[0].shape
-        if any(f.shape != shape for f in stack):
-            raise ValueError("reference frames differ in size or channel count")
-        self.shape: tuple[int, int, int] = shape
+        self.shape: tuple[int, int, int] = stack[0].shape
+        self.dtype = np.asarray(frames[0]).dtype
         self.mean: FloatImage = np.mean(stack, axis=0, dtype=np.float64).astype(np.float32)
         self.noise_std = _noise_std(stack, self.mean)
         self.frame_count = len(stack)
@@ -163,14 +192,35 @@ class NoContactReference:
         """The reference downscaled like the frames are, and the noise std measured at that scale."""
         if factor not in self._small_cache:
             smalls = [np.atleast_3d(_downscale(f, factor)) for f in self._frames]
-            mean = np.mean(smalls, axis=0, dtype=np.float64).astype(np.float32)
-            self._small_cache[factor] = (mean, _noise_std(smalls, mean))
+            noise = _noise_std(smalls, np.mean(smalls, axis=0, dtype=np.float64).astype(np.float32))
+            # bilinear downscaling is linear: the downscaled mean is the mean of the downscaled frames
+            self._small_cache[factor] = (np.atleast_3d(_downscale(self.mean, factor)), noise)
         return self._small_cache[factor]
 
     def grey(self) -> np.ndarray:
         if self._grey is None:
             self._grey = to_grey(self.mean, uint8=False)
         return self._grey
+
+    def matches(self, image: np.ndarray) -> bool:
+        """True if `image` has the reference's size, channel count and dtype (bgra counts as bgr)."""
+        array = np.asarray(image)
+        if array.ndim == 3 and array.shape[2] == 4:
+            array = array[:, :, :3]
+        return np.atleast_3d(array).shape == self.shape and array.dtype == self.dtype
+
+    def blend(self, frame: np.ndarray, rate: float) -> None:
+        """mean <- (1 - rate) mean + rate frame: follows slow drift seen while nothing touches."""
+        cv2.accumulateWeighted(_as_float(frame), self.mean, rate)
+        self._small_cache = {f: (np.atleast_3d(_downscale(self.mean, f)), noise)
+                             for f, (_, noise) in self._small_cache.items()}
+        self._grey = None
+
+
+def _image_format(image: np.ndarray) -> tuple[tuple[int, ...], np.dtype]:
+    array = np.asarray(image)
+    channels = array.shape[2] if array.ndim == 3 else 1
+    return (array.shape[:2] + (3 if channels == 4 else channels,), array.dtype)
 
 
 def _noise_std(frames: Sequence[np.ndarray], mean: np.ndarray) -> float:
@@ -188,7 +238,10 @@ class ContactDetector:
     """Stateful detector for a stream: collects `reference_frames` frames, then detects.
 
     `process(image)` returns None while the reference is being captured, else the contacts.
-    `recapture()` starts a new reference from the next frames.
+    `recapture()` starts a new reference from the next frames. Frames whose format (size, channels,
+    dtype) differs from the reference are refused with a ValueError; the reference stays until it
+    is recaptured on request. While nothing touches, the reference follows slow drift (see
+    `BackgroundModel` and `DetectorConfig.adapt_rate`).
     """
 
     def __init__(self, config: DetectorConfig | None = None, reference_frames: int = 5):
@@ -198,7 +251,7 @@ class ContactDetector:
         self.reference_frames = int(reference_frames)
         self.reference: NoContactReference | None = None
         self._pending: list[np.ndarray] = []
-        self.illumination = IlluminationState()
+        self.background = BackgroundModel()
 
     # ------------------------------------------------------------------ reference
     def recapture(self, reference_frames: int | None = None) -> None:
@@ -208,12 +261,12 @@ class ContactDetector:
             self.reference_frames = int(reference_frames)
         self.reference = None
         self._pending = []
-        self.illumination = IlluminationState()
+        self.background = BackgroundModel()
 
     def set_reference(self, frames: Iterable[np.ndarray]) -> None:
         self.reference = NoContactReference(list(frames))
         self._pending = []
-        self.illumination = IlluminationState()
+        self.background = BackgroundModel()
 
     @property
     def reference_ready(self) -> bool:
@@ -222,6 +275,9 @@ class ContactDetector:
     def process(self, image: np.ndarray) -> list[Contact] | None:
         if self.reference is None:
             _as_float(image)  # reject malformed frames before they enter the reference
+            if self._pending and _image_format(image) != _image_format(self._pending[0]):
+                raise ValueError(f"frame {_describe(image)} differs from the reference frames collected so far "
+                                 f"({_describe(self._pending[0])}); refused")
             self._pending.append(np.array(image, copy=True))
             if len(self._pending) >= self.reference_frames:
                 self.set_reference(self._pending)
@@ -230,10 +286,10 @@ class ContactDetector:
 
     # ------------------------------------------------------------------ detection
     def threshold(self) -> float:
-        """Colour-distance threshold on the blurred full-resolution difference (grey levels)."""
-        ref = self._require_reference()
-        noise = ref.noise_std * _blur_noise_factor(self.config.refine_blur_sigma)
-        return max(self.config.min_threshold, self.config.threshold_sigma * noise)
+        """Colour-distance threshold on the blurred downscaled difference (grey levels), once measured."""
+        self._require_reference()
+        noise = self.background.noise
+        return math.nan if noise is None else max(self.config.min_threshold, self.config.threshold_sigma * noise)
 
     def detect(self, image: np.ndarray) -> list[Contact]:
         if self.config.method == "paper":
@@ -242,14 +298,25 @@ class ContactDetector:
         frame = np.asarray(image)
         if frame.ndim == 3 and frame.shape[2] == 4:
             frame = np.ascontiguousarray(frame[:, :, :3])   # bgra: the reference dropped alpha too
-        if np.atleast_3d(frame).shape != ref.shape:
-            raise ValueError(f"image shape {frame.shape} does not match the reference {ref.shape}; recapture")
-        return _detect_colour(frame, ref, self.config, self.illumination)
+        if not ref.matches(frame):
+            raise ValueError(f"image {_describe(image)} does not match the reference ({_describe_reference(ref)}); "
+                             "capture a new reference")
+        return _detect_colour(frame, ref, self.config, self.background)
 
     def _require_reference(self) -> NoContactReference:
         if self.reference is None:
             raise RuntimeError("no no-contact reference yet: feed frames with process() or call set_reference()")
         return self.reference
+
+
+def _describe(image: np.ndarray) -> str:
+    array = np.asarray(image)
+    return f"{'x'.join(str(n) for n in array.shape)} {array.dtype}"
+
+
+def _describe_reference(ref: NoContactReference) -> str:
+    shape = ref.shape if ref.shape[2] > 1 else ref.shape[:2]
+    return f"{'x'.join(str(n) for n in shape)} {ref.dtype}"
 
 
 def _squared_norm(image: np.ndarray) -> np.ndarray:
@@ -268,27 +335,95 @@ def _squared_norm(image: np.ndarray) -> np.ndarray:
 
 
 @dataclasses.dataclass
-class IlluminationState:
-    """The last illumination fit (gain, offset per channel) and how many frames ago it was made.
+class BackgroundModel:
+    """What a frame without contact looks like, relative to the reference, and how noisy it is.
 
-    Drift is slow, so the fit (~0.5 ms) is refreshed every `refit_every` frames, and at once when
-    a large part of the image exceeds the threshold (a sudden exposure change).
+    Fitted on the downscaled frame (every `refit_every` frames; drift is slow): a per-channel gain
+    and offset (exposure, LED drift), then a smooth shading field of what is left (normalised
+    Gaussian of scale `background_sigma` over the pixels that are not contacts), then the noise:
+    1.4826 x the median absolute deviation of the blurred remaining difference, per channel (the
+    RMS over channels is `noise`). Measured on the difference itself, the noise needs only one
+    reference frame and includes what the model does not explain (texture, compression).
+    A large part of the image over the threshold between fits (an exposure step) refits at once.
     """
 
     gain: np.ndarray | None = None
     offset: np.ndarray | None = None
-    expected_small: np.ndarray | None = None   # the downscaled reference under that gain and offset
+    field_small: np.ndarray | None = None      # smooth shading at the detection scale (None: off)
+    expected_small: np.ndarray | None = None   # the downscaled reference under gain, offset and field
+    noise: float | None = None                 # noise std of the blurred downscaled difference (per channel, RMS)
     age: int = 0
     refit_every: int = 8
     flood_fraction: float = 0.2
+    quiet_frames: int = 0                      # frames in a row without any candidate blob
+    _expected_full: np.ndarray | None = None
 
     def due(self) -> bool:
         return self.gain is None or self.age >= self.refit_every
 
-    def fit(self, frame: np.ndarray, reference: np.ndarray, noise: float, threshold: float) -> None:
-        self.gain, self.offset = _illumination(frame, reference, noise, threshold)
-        self.expected_small = _affine(reference, self.gain, self.offset)
+    def fit(self, small_frame: np.ndarray, ref_small: np.ndarray, cfg: DetectorConfig, scale: int) -> None:
+        frame = small_frame.astype(np.float32, copy=False)
+        channels = frame.shape[2]
+        raw = np.atleast_3d(cv2.subtract(frame, ref_small))
+        shift = _channel_medians(raw[::2, ::2])
+        raw_noise = _mad_noise(np.atleast_3d(cv2.subtract(raw[::2, ::2], _scalar(shift))))
+        raw_threshold = max(cfg.min_threshold, cfg.threshold_sigma * raw_noise)
+        if cfg.compensate_illumination:
+            self.gain, self.offset = _illumination(frame, ref_small, raw_noise, raw_threshold)
+        else:
+            self.gain, self.offset = np.ones(channels, np.float32), np.zeros(channels, np.float32)
+        expected = _affine(ref_small, self.gain, self.offset)
+        self.field_small = None
+        if cfg.compensate_illumination and cfg.background_sigma > 0:
+            self.field_small = _smooth_field(np.atleast_3d(cv2.subtract(frame, expected)), raw_threshold,
+                                             cfg.background_sigma / scale)
+            expected = np.atleast_3d(cv2.add(expected, self.field_small))
+        self.expected_small = expected
+        residual = np.atleast_3d(_blur(np.atleast_3d(cv2.subtract(frame, expected)), cfg.blur_sigma))
+        self.noise = _mad_noise(residual[::2, ::2])
+        self._expected_full = None
         self.age = 0
+
+    def expected_full(self, reference: NoContactReference) -> np.ndarray:
+        """The full-resolution reference under the fitted gain, offset and field (made when first needed)."""
+        if self._expected_full is None:
+            assert self.gain is not None and self.offset is not None
+            expected = _affine(reference.mean, self.gain, self.offset)
+            if self.field_small is not None:
+                height, width = reference.shape[:2]
+                field = np.atleast_3d(cv2.resize(self.field_small, (width, height), interpolation=cv2.INTER_LINEAR))
+                expected = np.atleast_3d(cv2.add(expected, field))
+            self._expected_full = expected
+        return self._expected_full
+
+
+def _mad_noise(residual: np.ndarray) -> float:
+    """RMS over channels of the per-channel robust std (1.4826 x median absolute deviation)."""
+    centre = _channel_medians(residual)
+    spread = _channel_medians(np.abs(np.atleast_3d(cv2.subtract(residual, _scalar(centre)))))
+    return float(1.4826 * math.sqrt(float(np.mean(np.square(spread, dtype=np.float64)))))
+
+
+def _smooth_field(residual: np.ndarray, threshold: float, sigma: float) -> np.ndarray:
+    """A smooth per-channel field through the residual where it is not a contact (normalised convolution).
+
+    Computed on a 4x coarser grid (the field is smooth at the scale `sigma`, in pixels of
+    `residual`), then resized back. Pixels over the threshold, grown by a margin, do not count:
+    a contact must not become part of its own background.
+    """
+    height, width, channels = residual.shape
+    contact = (_squared_norm(residual) > threshold * threshold).astype(np.uint8)
+    keep = (cv2.dilate(contact, np.ones((5, 5), np.uint8)) == 0).astype(np.float32)
+    q = 4 if min(height, width) >= 32 else 1
+    size = (max(1, width // q), max(1, height // q))
+    weight = cv2.resize(keep, size, interpolation=cv2.INTER_AREA)
+    values = np.atleast_3d(cv2.resize(residual * keep[:, :, None], size, interpolation=cv2.INTER_AREA))
+    coarse_sigma = max(sigma / q, 0.5)
+    weight = cv2.GaussianBlur(weight, (0, 0), coarse_sigma, borderType=cv2.BORDER_REFLECT)
+    values = np.atleast_3d(cv2.GaussianBlur(values, (0, 0), coarse_sigma, borderType=cv2.BORDER_REFLECT))
+    field = values / np.maximum(weight, 1e-3)[:, :, None]
+    field[weight < 1e-3] = 0.0
+    return np.atleast_3d(cv2.resize(field, (width, height), interpolation=cv2.INTER_LINEAR)).astype(np.float32)
 
 
 def _difference(frame: np.ndarray, expected: np.ndarray) -> np.ndarray:
@@ -309,61 +444,48 @@ def _affine(image: np.ndarray, gain: np.ndarray, offset: np.ndarray) -> np.ndarr
 
 
 def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConfig,
-                   illumination: IlluminationState | None = None) -> list[Contact]:
+                   background: BackgroundModel | None = None) -> list[Contact]:
     s = int(cfg.downscale)
     full = np.atleast_3d(frame)
     if full.dtype.kind == "f" and not np.isfinite(full).all():
         raise ValueError("image contains non-finite values")
-    # 1) candidates on the downscaled colour distance
-    ref_small, ref_small_noise = ref.small(s)
-    small_frame = np.atleast_3d(_downscale(full, s))
-    small_noise = ref_small_noise * _blur_noise_factor(cfg.blur_sigma)
-    small_threshold = max(cfg.min_threshold, cfg.threshold_sigma * small_noise)
-    state: IlluminationState | None = None
-    expected_small = ref_small
-    if cfg.compensate_illumination:
-        state = illumination if illumination is not None else IlluminationState()
-        unblurred_threshold = max(cfg.min_threshold, cfg.threshold_sigma * ref_small_noise)
-        fitted_now = state.due()
-        if fitted_now:
-            state.fit(small_frame.astype(np.float32), ref_small, ref_small_noise, unblurred_threshold)
-        state.age += 1
-        expected_small = state.expected_small
-    small = _blur(_difference(small_frame, expected_small), cfg.blur_sigma)
-    small_sq = _squared_norm(np.atleast_3d(small))
-    above = small_sq > small_threshold**2
-    if state is not None and not fitted_now and np.count_nonzero(above) > state.flood_fraction * above.size:
+    state = background if background is not None else BackgroundModel()
+    small_frame = np.atleast_3d(_downscale(full, s)).astype(np.float32, copy=False)
+    # 1) the background model: refitted every few frames; the reference follows slow drift while quiet
+    fitted_now = state.due()
+    if fitted_now:
+        if cfg.adapt_rate > 0 and state.gain is not None and state.quiet_frames >= state.refit_every:
+            ref.blend(full, cfg.adapt_rate)
+        state.fit(small_frame, ref.small(s)[0], cfg, s)
+    state.age += 1
+    small, small_sq, above, small_threshold = _small_difference(small_frame, state, cfg)
+    if not fitted_now and np.count_nonzero(above) > state.flood_fraction * above.size:
         # much of the image changed at once: an exposure step rather than contacts; refit now
-        state.fit(small_frame.astype(np.float32), ref_small, ref_small_noise, unblurred_threshold)
+        state.fit(small_frame, ref.small(s)[0], cfg, s)
         state.age = 1
-        small = _blur(_difference(small_frame, state.expected_small), cfg.blur_sigma)
-        small_sq = _squared_norm(np.atleast_3d(small))
-        above = small_sq > small_threshold**2
-    small = np.atleast_3d(small)
-    if not above.any():
+        small, small_sq, above, small_threshold = _small_difference(small_frame, state, cfg)
+    # 2) candidates: blobs of the closed mask, large enough and significant enough
+    candidates = _candidates_of(above, small_sq, s, cfg) if above.any() else []
+    state.quiet_frames = state.quiet_frames + 1 if not candidates else 0
+    small_noise = max(float(state.noise or 0.0), 1e-12)
+    strong = [c for c in candidates if math.sqrt(c[6]) >= cfg.min_score * small_noise]
+    if not strong:
         return []
-    mask = above.astype(np.uint8)
-    if cfg.close_size > 1:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (cfg.close_size, cfg.close_size))
-        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
-    # contours are ~10x cheaper than connectedComponentsWithStats on this small mask
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    candidates = _candidates(contours, above, s * s * 1.0, cfg.min_area)
-    # 2) refine each candidate: at full resolution in its window (all windows in one batch), or on
+    # 3) refine each candidate: at full resolution in its window (all windows in one batch), or on
     # the downscaled difference when the window is large
     full_sigma = cfg.refine_blur_sigma
-    full_noise = ref.noise_std * _blur_noise_factor(full_sigma)
+    full_noise = small_noise * _full_to_small_noise(ref, s, cfg)
     full_threshold = max(cfg.min_threshold, cfg.threshold_sigma * full_noise)
     height, width = full.shape[:2]
     margin = 2 * s
     contacts: list[Contact] = []
-    pending = candidates
+    pending = strong
     while pending and len(contacts) < cfg.max_contacts:
         # refine only as many candidates as could still become contacts (a flood of blobs stays cheap)
         room = min(cfg.max_contacts - len(contacts), 65534)    # window labels are uint16 at most
         chunk, pending = pending[:room], pending[room:]
         windows = []
-        for _, x0, y0, w, h, _region in chunk:
+        for _, x0, y0, w, h, _region, _peak in chunk:
             u0, v0 = max(0, x0 * s - margin), max(0, y0 * s - margin)
             u1, v1 = min(width, (x0 + w) * s + margin), min(height, (y0 + h) * s + margin)
             windows.append((u0, v0, u1, v1))
@@ -374,41 +496,96 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
         coarse = [i for i, big in enumerate(large) if big]
         parts = []
         if fine:
-            parts.append(_window_pixels(full, ref.mean, state, [windows[i] for i in fine], [chunk[i][1:] for i in fine],
-                                        s, full_sigma, full_threshold))
+            parts.append(_window_pixels(full, state.expected_full(ref), [windows[i] for i in fine],
+                                        [chunk[i][1:6] for i in fine], s, full_sigma, full_threshold))
         if coarse:
-            parts.append(_region_pixels(small, small_sq, [chunk[i][1:] for i in coarse], small_threshold))
+            parts.append(_region_pixels(small, small_sq, [chunk[i][1:6] for i in coarse], small_threshold))
         pixels = [np.concatenate(p) for p in zip(*parts, strict=True)] if len(parts) > 1 else parts[0]
         noise = np.repeat([full_noise, small_noise], [len(fine), len(coarse)])
-        found_all = dict(zip(fine + coarse, _centres_of_groups(*pixels, noise), strict=True))
-        for i, ((_, x0, y0, _w, _h, _region), (u0, v0, u1, v1), big) in enumerate(zip(chunk, windows, large, strict=True)):
+        found_all = dict(zip(fine + coarse, _centres_of_groups(*pixels, noise, cfg.lobe_fraction,
+                                                               cfg.extent_fraction), strict=True))
+        for i, (candidate, (u0, v0, u1, v1), big) in enumerate(zip(chunk, windows, large, strict=True)):
             found = found_all[i]
-            if found is None:
+            # the coarse mask's area is spread by the blur: a speck must also be large at full resolution
+            if found is None or found[3] * (s * s if big else 1) < cfg.min_area:
                 continue
-            cu, cv_, npix, peak = found
             touches = u0 == 0 or v0 == 0 or u1 == width or v1 == height
+            score = math.sqrt(candidate[6]) / small_noise
             if big:
-                centre_shift = (s - 1) / 2.0     # centre of small pixel i is full pixel i * s + (s - 1) / 2
-                confidence = max(0.0, 1.0 - small_threshold / peak) * (0.5 if touches else 1.0)
-                contacts.append(Contact(u=(cu + x0) * s + centre_shift, v=(cv_ + y0) * s + centre_shift,
-                                        area=float(npix * s * s), confidence=float(confidence),
-                                        peak_snr=float(peak / max(small_noise, 1e-12))))
+                contacts.append(_contact(found, candidate[1] * s, candidate[2] * s, s, small_threshold, score, touches))
             else:
-                confidence = max(0.0, 1.0 - full_threshold / peak) * (0.5 if touches else 1.0)
-                contacts.append(Contact(u=cu + u0, v=cv_ + v0, area=float(npix), confidence=float(confidence),
-                                        peak_snr=float(peak / max(full_noise, 1e-12))))
+                contacts.append(_contact(found, u0, v0, 1, full_threshold, score, touches))
             if len(contacts) >= cfg.max_contacts:
                 break
     return contacts
 
 
-Candidate = tuple[int, int, int, int, int, np.ndarray]   # signal area, x0, y0, w, h, filled region (uint8)
-Found = tuple[float, float, int, float] | None           # centre u, v in the window, area px, peak distance
+def _small_difference(small_frame: np.ndarray, state: BackgroundModel,
+                      cfg: DetectorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The blurred downscaled difference to the modelled background, its squared colour distance,
+    the pixels over the threshold, and the threshold."""
+    threshold = max(cfg.min_threshold, cfg.threshold_sigma * float(state.noise or 0.0))
+    small = np.atleast_3d(_blur(_difference(small_frame, state.expected_small), cfg.blur_sigma))
+    small_sq = _squared_norm(small)
+    above = small_sq > threshold * threshold
+    band = math.ceil(cfg.border / cfg.downscale)
+    if band > 0:
+        # the image's edge (lens rim, membrane clamp, LED glare) changes with the slightest shift
+        above[:band], above[-band:], above[:, :band], above[:, -band:] = False, False, False, False
+    return small, small_sq, above, threshold
 
 
-def _candidates(contours: Sequence[np.ndarray], above: np.ndarray, pixel_area: float,
+def _full_to_small_noise(ref: NoContactReference, s: int, cfg: DetectorConfig) -> float:
+    """Noise std of the blurred full-resolution difference relative to that of the blurred downscaled one.
+
+    Measured on the reference frames when there are several; else the value for white noise
+    (bilinear downscaling by an even factor averages 2x2 pixels, by an odd one picks a pixel).
+    Real noise is correlated, so white noise overstates the full-resolution side: a safe threshold.
+    """
+    if ref.frame_count >= 2:
+        small_noise = ref.small(s)[1]
+        if small_noise > 0 and ref.noise_std > 0:
+            return float(ref.noise_std * _blur_noise_factor(cfg.refine_blur_sigma)
+                         / (small_noise * _blur_noise_factor(cfg.blur_sigma)))
+    averaged = 0.5 if s % 2 == 0 else 1.0
+    return _blur_noise_factor(cfg.refine_blur_sigma) / (averaged * _blur_noise_factor(cfg.blur_sigma))
+
+
+def _contact(found: tuple, u0: int, v0: int, s: int, threshold: float, score: float, touches: bool) -> Contact:
+    """A Contact from a blob's centre and moments in its window (origin u0, v0; s full pixels per pixel)."""
+    cu, cv_, peak, _significant, extent, mxx, myy, mxy = found
+    shift = (s - 1) / 2.0    # centre of window pixel i is full pixel i * s + (s - 1) / 2
+    # the window's pixels are s x s squares: their own spread adds (s^2 - 1) / 12 per axis
+    quantum = (s * s - 1) / 12.0
+    mxx, myy, mxy = mxx * s * s + quantum, myy * s * s + quantum, mxy * s * s
+    half_trace, det_root = 0.5 * (mxx + myy), math.hypot(0.5 * (mxx - myy), mxy)
+    major, minor = half_trace + det_root, max(half_trace - det_root, 0.0)
+    angle = 0.5 * math.atan2(2.0 * mxy, mxx - myy)
+    confidence = max(0.0, 1.0 - threshold / peak) * (0.5 if touches else 1.0)
+    return Contact(u=cu * s + shift + u0, v=cv_ * s + shift + v0, area=float(extent * s * s),
+                   confidence=float(confidence), score=float(score), major_axis=4.0 * math.sqrt(major),
+                   minor_axis=4.0 * math.sqrt(minor), angle=angle if angle > -math.pi / 2 else angle + math.pi)
+
+
+Candidate = tuple[int, int, int, int, int, np.ndarray, float]   # signal area, x0, y0, w, h, region, peak^2
+# centre u, v in the window, peak distance, pixels over the threshold, extent (pixels), central second
+# moments xx, yy, xy
+Found = tuple[float, float, float, int, int, float, float, float] | None
+
+
+def _candidates_of(above: np.ndarray, small_sq: np.ndarray, s: int, cfg: DetectorConfig) -> list[Candidate]:
+    mask = above.astype(np.uint8)
+    if cfg.close_size > 1:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (cfg.close_size, cfg.close_size))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
+    # contours are ~10x cheaper than connectedComponentsWithStats on this small mask
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    return _candidates(contours, above, small_sq, s * s * 1.0, cfg.min_area)
+
+
+def _candidates(contours: Sequence[np.ndarray], above: np.ndarray, small_sq: np.ndarray, pixel_area: float,
                 min_area: float) -> list[Candidate]:
-    """Blobs of the closed mask, largest signal first, without those below `min_area`.
+    """Blobs of the closed mask, largest signal first, without those below `min_area`, with their peak.
 
     Area counts only pixels above threshold: closing must not turn scattered noise into a blob.
     A blob whose whole bounding box is smaller than `min_area` is dropped before it is drawn
@@ -430,7 +607,8 @@ def _candidates(contours: Sequence[np.ndarray], above: np.ndarray, pixel_area: f
     for i, (x0, y0, w, h) in enumerate(boxes, 1):
         if signal[i] * pixel_area >= min_area:
             region = (labels[y0:y0 + h, x0:x0 + w] == i).view(np.uint8)
-            candidates.append((int(signal[i]), x0, y0, w, h, region))
+            peak = float(small_sq[y0:y0 + h, x0:x0 + w][region.view(bool)].max())
+            candidates.append((int(signal[i]), x0, y0, w, h, region, peak))
     candidates.sort(key=lambda c: -c[0])
     return candidates
 
@@ -453,11 +631,12 @@ def _region_pixels(small: np.ndarray, small_sq: np.ndarray, blobs: Sequence[tupl
             np.array([len(p[1]) for p in picks]))
 
 
-def _window_pixels(full: np.ndarray, reference: np.ndarray, state: IlluminationState | None,
+def _window_pixels(full: np.ndarray, reference: np.ndarray,
                    windows: Sequence[tuple[int, int, int, int]], blobs: Sequence[tuple], s: int,
                    sigma: float, threshold: float) -> Pixels:
     """The pixels of each blob's mask that exceed the threshold on the blurred full-resolution
-    difference in the blob's window, all windows in one pass over a mosaic of the windows.
+    difference to `reference` (the modelled background) in the blob's window, all windows in one
+    pass over a mosaic of the windows.
 
     Per blob, a dozen small numpy/OpenCV calls cost ~0.1 ms in call overhead alone. Instead the
     windows are copied into one image (shelf-packed), each cropped to its blob's mask plus the
@@ -496,8 +675,6 @@ def _window_pixels(full: np.ndarray, reference: np.ndarray, state: IlluminationS
         if (a0, b0, a1, b1) != (x0 * s - grow, y0 * s - grow, (x0 + w) * s + grow, (y0 + h) * s + grow):
             clipped.append((r0, c0, b1 - b0 + 2 * pad, a1 - a0 + 2 * pad))
     # the same per-pixel arithmetic as refining each window on its own
-    if state is not None:
-        expected = _affine(expected, state.gain, state.offset)
     diff = np.atleast_3d(_blur(_difference(frame, expected), sigma))
     score = cv2.sqrt(_squared_norm(diff))
     # the dilation reaches no further than the box grown by `grow`: only where the window cut that
@@ -558,15 +735,22 @@ def _pack(sizes: Sequence[tuple[int, int]]) -> tuple[list[tuple[int, int]], tupl
 
 
 def _centres_of_groups(values: np.ndarray, magnitude: np.ndarray, x: np.ndarray, y: np.ndarray,
-                       counts: np.ndarray, noise: np.ndarray) -> list[Found]:
-    """Colour-aware centres of several blobs from their selected pixels, in one vectorised pass.
+                       counts: np.ndarray, noise: np.ndarray, lobe_fraction: float = 0.0,
+                       extent_fraction: float = 0.0) -> list[Found]:
+    """Colour-aware centres and shapes of several blobs from their selected pixels, in one vectorised pass.
 
     The pixels of blob i are the i-th run of `counts[i]` entries of: signed changes `values`
     (n, C), colour distance `magnitude` (n,) and position `x`, `y` in the blob's window; `noise`
-    is the noise std of each blob's difference image. Per
-    channel, the centre is the midpoint of the brightening and the darkening lobe's centroids; the
-    channels are weighted by the weaker lobe's mass, and those without two real lobes left out.
-    A blob without any such channel falls back to its magnitude-weighted centroid.
+    is the noise std of each blob's difference image. Per channel, the centre is the midpoint of
+    the brightening and the darkening lobe's centroids; the channels are weighted by the weaker
+    lobe's mass, and those without two real lobes left out. A blob without any such channel falls
+    back to its magnitude-weighted centroid.
+
+    Each lobe's centroid uses only the lobe's core, weighted by how far it exceeds
+    `lobe_fraction` of the lobe's own peak: a lobe scaled by any gain keeps its centroid, and the
+    faint broad halo a real membrane shows around a press (and a shading change around it) stays
+    out of the centre. The shape is the second moments of the pixels whose colour distance
+    exceeds `extent_fraction` of the blob's peak.
     """
     found: list[Found] = [None] * len(counts)
     present = np.flatnonzero(counts)
@@ -577,40 +761,65 @@ def _centres_of_groups(values: np.ndarray, magnitude: np.ndarray, x: np.ndarray,
     channels = values.shape[1]
     x = x.astype(np.float64)
     y = y.astype(np.float64)
-    # lobe masses, x and y moments; one row per lobe and channel (~3x faster than pixel-major)
-    terms = np.empty((3, 2 * channels, values.shape[0]), np.float64)
-    np.maximum(values.T, 0.0, out=terms[0, :channels])                 # brightening | darkening
-    np.maximum(-values.T, 0.0, out=terms[0, channels:])
-    np.multiply(terms[0], x, out=terms[1])
-    np.multiply(terms[0], y, out=terms[2])
-    sums = np.add.reduceat(terms, starts, axis=2)                       # (3, 2C, k)
-    peak = np.maximum.reduceat(magnitude, starts).tolist()
+    # lobe masses (one row per lobe and channel, ~3x faster than pixel-major), then their cores
+    lobes = np.empty((2 * channels, values.shape[0]), np.float64)
+    np.maximum(values.T, 0.0, out=lobes[:channels])                 # brightening | darkening
+    np.maximum(-values.T, 0.0, out=lobes[channels:])
+    raw_mass = np.add.reduceat(lobes, starts, axis=1).T.tolist()     # (k, 2C)
+    if lobe_fraction > 0:
+        cut = np.maximum.reduceat(lobes, starts, axis=1) * lobe_fraction
+        lobes -= np.repeat(cut, npix, axis=1)
+        np.maximum(lobes, 0.0, out=lobes)
+    terms = np.empty((3,) + lobes.shape, np.float64)
+    terms[0] = lobes
+    np.multiply(lobes, x, out=terms[1])
+    np.multiply(lobes, y, out=terms[2])
+    sums = np.add.reduceat(terms, starts, axis=2)                   # (3, 2C, k)
+    peaks = np.maximum.reduceat(magnitude, starts)
+    shapes = _shapes(magnitude, x, y, starts, np.repeat(extent_fraction * peaks, npix))
+    peak = peaks.tolist()
+    npix_list = npix.tolist()
     # a few numbers per blob: plain Python beats a dozen numpy calls on tiny arrays
     mass, moment_x, moment_y = (part.T.tolist() for part in sums)
     floors = (3.0 * noise[present] * np.sqrt(npix.astype(np.float64))).tolist()
     lone = []
-    for k, (i, count) in enumerate(zip(present.tolist(), npix.tolist(), strict=True)):
+    for k, i in enumerate(present.tolist()):
         u = v = total = 0.0
         for c in range(channels):
-            pos, neg = mass[k][c], mass[k][channels + c]
+            pos, neg = raw_mass[k][c], raw_mass[k][channels + c]
             weight = min(pos, neg)
+            core_pos, core_neg = mass[k][c], mass[k][channels + c]
             # a channel counts when both lobes carry real signal, not just noise leaking through the mask
-            if weight > 0.1 * max(pos, neg) and weight > floors[k]:
-                u += 0.5 * (moment_x[k][c] / pos + moment_x[k][channels + c] / neg) * weight
-                v += 0.5 * (moment_y[k][c] / pos + moment_y[k][channels + c] / neg) * weight
+            if weight > 0.1 * max(pos, neg) and weight > floors[k] and core_pos > 0 and core_neg > 0:
+                u += 0.5 * (moment_x[k][c] / core_pos + moment_x[k][channels + c] / core_neg) * weight
+                v += 0.5 * (moment_y[k][c] / core_pos + moment_y[k][channels + c] / core_neg) * weight
                 total += weight
         if total > 0.0:
-            found[i] = (u / total, v / total, count, peak[k])
+            found[i] = (u / total, v / total, peak[k], npix_list[k]) + shapes[k]
         else:
-            lone.append((k, i, count))
+            lone.append((k, i))
     if lone:
-        magnitude = magnitude.astype(np.float64)
-        total = np.add.reduceat(magnitude, starts)
-        u = np.add.reduceat(magnitude * x, starts) / total
-        v = np.add.reduceat(magnitude * y, starts) / total
-        for k, i, count in lone:
-            found[i] = (float(u[k]), float(v[k]), count, peak[k])
+        weight = magnitude.astype(np.float64) - np.repeat(lobe_fraction * peaks, npix)
+        np.maximum(weight, 0.0, out=weight)
+        weight += 1e-12 * (magnitude > 0)      # a flat blob (all at its peak) keeps its plain centroid
+        total = np.add.reduceat(weight, starts)
+        u = np.add.reduceat(weight * x, starts) / total
+        v = np.add.reduceat(weight * y, starts) / total
+        for k, i in lone:
+            found[i] = (float(u[k]), float(v[k]), peak[k], npix_list[k]) + shapes[k]
     return found
+
+
+def _shapes(magnitude: np.ndarray, x: np.ndarray, y: np.ndarray, starts: np.ndarray,
+            floor: np.ndarray) -> list[tuple[int, float, float, float]]:
+    """Per group: the number of pixels with magnitude >= floor, and their central second moments xx, yy, xy."""
+    inside = (magnitude >= floor).astype(np.float64)
+    ix, iy = inside * x, inside * y
+    n, sx, sy, sxx, syy, sxy = np.add.reduceat(np.stack([inside, ix, iy, ix * x, iy * y, ix * y]), starts, axis=1)
+    n = np.maximum(n, 1.0)
+    mx, my = sx / n, sy / n
+    out = np.stack([n, sxx / n - mx * mx, syy / n - my * my, sxy / n - mx * my]).T.tolist()
+    return [(int(a), max(b, 0.0), max(c, 0.0), d) for a, b, c, d in out]
 
 
 def _illumination(frame: np.ndarray, reference: np.ndarray, noise: float,
@@ -683,7 +892,12 @@ def detect_paper(image: np.ndarray, reference: NoContactReference | None,
         m = cv2.moments(contour)
         if m["m00"] <= 0 or m["m00"] < cfg.paper_min_area:
             continue
+        mxx, myy, mxy = m["mu20"] / m["m00"], m["mu02"] / m["m00"], m["mu11"] / m["m00"]
+        half_trace, root = 0.5 * (mxx + myy), math.hypot(0.5 * (mxx - myy), mxy)
+        angle = 0.5 * math.atan2(2.0 * mxy, mxx - myy)
         contacts.append(Contact(u=m["m10"] / m["m00"], v=m["m01"] / m["m00"], area=float(m["m00"]),
-                                confidence=1.0, peak_snr=float("nan")))
+                                confidence=1.0, score=math.nan, major_axis=4.0 * math.sqrt(half_trace + root),
+                                minor_axis=4.0 * math.sqrt(max(half_trace - root, 0.0)),
+                                angle=angle if angle > -math.pi / 2 else angle + math.pi))
     contacts.sort(key=lambda c: -c.area)
     return contacts[: cfg.max_contacts]

@@ -241,7 +241,7 @@ def test_contacts_refined_together_equal_each_refined_alone():
         [alone] = det.detect(render([centre], seed=12))
         [same] = [c for c in together if math.hypot(c.u - alone.u, c.v - alone.v) < 1.0]
         assert same.u == pytest.approx(alone.u, abs=1e-9) and same.v == pytest.approx(alone.v, abs=1e-9)
-        assert same.area == alone.area and same.peak_snr == pytest.approx(alone.peak_snr, rel=1e-12)
+        assert same.area == alone.area and same.score == pytest.approx(alone.score, rel=1e-12)
 
 
 def test_specks_smaller_than_min_area_are_dropped_and_a_contact_next_to_them_is_found(monkeypatch):
@@ -249,8 +249,8 @@ def test_specks_smaller_than_min_area_are_dropped_and_a_contact_next_to_them_is_
     # drawn; the contact beside them must still be found and centred
     truth = (160.0, 120.0)
     frame = render([truth], seed=13).astype(np.int16)
-    for du, dv in [(-40, -3), (41, 4), (2, 40), (-36, 30)]:
-        frame[int(truth[1]) + dv, int(truth[0]) + du] += 60
+    for du, dv in [(-60, -3), (61, 4), (2, 60), (-56, 50)]:
+        frame[int(truth[1]) + dv:int(truth[1]) + dv + 3, int(truth[0]) + du:int(truth[0]) + du + 3] += 60
     frame = np.clip(frame, 0, 255).astype(np.uint8)
     import touchroller_perception.contacts as contacts_module
 
