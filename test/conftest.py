@@ -137,3 +137,21 @@ def bag_factory(tmp_path: Path) -> Callable[..., Path]:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def real_presses() -> Callable[..., object]:
+    """`real_presses(sensor="gelsight_mini")`: real GelSight presses with labelled centres (bench.real_presses),
+    loaded once per sensor from the pinned `taxim` wheel; the test is skipped where the wheel is absent."""
+    from bench import real_presses as module
+
+    if not module.available():
+        pytest.skip("the taxim wheel (real GelSight presses) is not installed")
+    cache: dict[str, object] = {}
+
+    def load(sensor: str = module.TUNING_SENSOR) -> object:
+        if sensor not in cache:
+            cache[sensor] = module.load_presses(sensor)
+        return cache[sensor]
+
+    return load

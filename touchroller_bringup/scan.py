@@ -12,8 +12,8 @@ Topics are in the graph's namespace (`namespace:=...`, `touchroller` by default)
 
 - `map.png`: the last tactile map published on `map` (`/touchroller/map`);
 - `contacts.csv`: every `contacts` point, columns of `touchroller contacts`
-  (u, v re-projected through the perception node's camera model; area/confidence/peak_snr are not
-  carried by PointStamped and are `nan`);
+  (u, v re-projected through the perception node's camera model; score, area, ellipse and confidence
+  are not carried by PointStamped and are `nan`);
 - `report.md`: duration, frames, contacts, map size, skipped/dropped frames, the sweep's outcome;
 - with `record`: `recording/`, a rosbag2 folder of the namespace's topics and `/diagnostics`
   (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
@@ -455,7 +455,7 @@ def _parameter(node: Any, name: str, default: Any) -> Any:
 
 def _write_contacts(path: Path, contacts: Sequence[tuple[int, float, float, float]], camera: Any,
                     pixel_sigma: float) -> None:
-    from touchroller_bringup.commands.contacts import COLUMNS
+    from touchroller_bringup.commands.contacts import COLUMNS, CONTACT_COLUMNS
 
     points = np.array([c[1:] for c in contacts], dtype=np.float64).reshape(-1, 3)
     if camera is not None and len(points):
@@ -470,7 +470,7 @@ def _write_contacts(path: Path, contacts: Sequence[tuple[int, float, float, floa
         writer = csv.writer(stream)
         writer.writerow(COLUMNS)
         for (stamp_ns, *_), (u, v), point, var in zip(contacts, uv, points, variances, strict=True):
-            row = [stamp_ns, _f(u), _f(v), *(_f(p, "%.9g") for p in point), "nan", "nan", "nan",
+            row = [stamp_ns, _f(u), _f(v), *(_f(p, "%.9g") for p in point), *(["nan"] * len(CONTACT_COLUMNS)),
                    *(_f(x, "%.6g") for x in var)]
             writer.writerow(row[:len(COLUMNS)])
 

@@ -54,7 +54,7 @@ class DetectorConfig:
     refine_max_pixels: int = 20000    # larger candidate windows are centred on the downscaled image
     compensate_illumination: bool = True   # per-channel gain/offset of frame vs reference (drift)
     close_size: int = 3               # morphological closing (downscaled px): merges lit and shaded lobes
-    min_area: float = 64.0            # px^2 at full resolution (pixels above threshold); smaller is noise
+    min_area: float = 100.0           # px^2 at full resolution: a contact's area (extent); smaller is dust or noise
     max_contacts: int = 32
     background_sigma: float = 96.0    # px at full resolution: smooth shading field of the difference (0: off)
     lobe_fraction: float = 0.4        # centre from each lobe's part above this fraction of the lobe's peak
@@ -181,7 +181,7 @@ class NoContactReference:
         stack = [_as_float(f) for f in frames]
         self.shape: tuple[int, int, int] = stack[0].shape
         self.dtype = np.asarray(frames[0]).dtype
-        self.mean: FloatImage = np.mean(stack, axis=0, dtype=np.float64).astype(np.float32)
+        self.mean: FloatImage = np.asarray(np.mean(stack, axis=0, dtype=np.float64), np.float32)
         self.noise_std = _noise_std(stack, self.mean)
         self.frame_count = len(stack)
         self._frames = stack
@@ -192,7 +192,7 @@ class NoContactReference:
         """The reference downscaled like the frames are, and the noise std measured at that scale."""
         if factor not in self._small_cache:
             smalls = [np.atleast_3d(_downscale(f, factor)) for f in self._frames]
-            noise = _noise_std(smalls, np.mean(smalls, axis=0, dtype=np.float64).astype(np.float32))
+            noise = _noise_std(smalls, np.asarray(np.mean(smalls, axis=0, dtype=np.float64), np.float32))
             # bilinear downscaling is linear: the downscaled mean is the mean of the downscaled frames
             self._small_cache[factor] = (np.atleast_3d(_downscale(self.mean, factor)), noise)
         return self._small_cache[factor]
@@ -299,8 +299,7 @@ class ContactDetector:
         if frame.ndim == 3 and frame.shape[2] == 4:
             frame = np.ascontiguousarray(frame[:, :, :3])   # bgra: the reference dropped alpha too
         if not ref.matches(frame):
-            raise ValueError(f"image {_describe(image)} does not match the reference ({_describe_reference(ref)}); "
-                             "capture a new reference")
+            raise ValueError(f"image {_describe(image)} does not match the reference ({_describe_reference(ref)})")
         return _detect_colour(frame, ref, self.config, self.background)
 
     def _require_reference(self) -> NoContactReference:
@@ -435,7 +434,8 @@ def _difference(frame: np.ndarray, expected: np.ndarray) -> np.ndarray:
 
 def _scalar(values: np.ndarray) -> tuple[float, float, float, float]:
     """Per-channel values as an OpenCV scalar (numpy broadcasting over a last axis of 3 runs ~4x slower)."""
-    return tuple(float(v) for v in values) + (0.0,) * (4 - len(values))
+    padded = [float(v) for v in values] + [0.0] * (4 - len(values))
+    return padded[0], padded[1], padded[2], padded[3]
 
 
 def _affine(image: np.ndarray, gain: np.ndarray, offset: np.ndarray) -> np.ndarray:
@@ -500,14 +500,15 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
                                         [chunk[i][1:6] for i in fine], s, full_sigma, full_threshold))
         if coarse:
             parts.append(_region_pixels(small, small_sq, [chunk[i][1:6] for i in coarse], small_threshold))
-        pixels = [np.concatenate(p) for p in zip(*parts, strict=True)] if len(parts) > 1 else parts[0]
+        values, magnitude, xs, ys, counts = (np.concatenate(p) for p in zip(*parts, strict=True))
         noise = np.repeat([full_noise, small_noise], [len(fine), len(coarse)])
-        found_all = dict(zip(fine + coarse, _centres_of_groups(*pixels, noise, cfg.lobe_fraction,
-                                                               cfg.extent_fraction), strict=True))
+        found_all = dict(zip(fine + coarse, _centres_of_groups(values, magnitude, xs, ys, counts, noise,
+                                                               cfg.lobe_fraction, cfg.extent_fraction), strict=True))
         for i, (candidate, (u0, v0, u1, v1), big) in enumerate(zip(chunk, windows, large, strict=True)):
             found = found_all[i]
-            # the coarse mask's area is spread by the blur: a speck must also be large at full resolution
-            if found is None or found[3] * (s * s if big else 1) < cfg.min_area:
+            # the coarse mask's area is spread by the blur: the contact itself (its extent at full
+            # resolution) must be large; a speck or a dust grain shifted with the membrane is not
+            if found is None or found[4] * (s * s if big else 1) < cfg.min_area:
                 continue
             touches = u0 == 0 or v0 == 0 or u1 == width or v1 == height
             score = math.sqrt(candidate[6]) / small_noise
@@ -524,15 +525,11 @@ def _small_difference(small_frame: np.ndarray, state: BackgroundModel,
                       cfg: DetectorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """The blurred downscaled difference to the modelled background, its squared colour distance,
     the pixels over the threshold, and the threshold."""
+    assert state.expected_small is not None, "fit the background model first"
     threshold = max(cfg.min_threshold, cfg.threshold_sigma * float(state.noise or 0.0))
     small = np.atleast_3d(_blur(_difference(small_frame, state.expected_small), cfg.blur_sigma))
     small_sq = _squared_norm(small)
-    above = small_sq > threshold * threshold
-    band = math.ceil(cfg.border / cfg.downscale)
-    if band > 0:
-        # the image's edge (lens rim, membrane clamp, LED glare) changes with the slightest shift
-        above[:band], above[-band:], above[:, :band], above[:, -band:] = False, False, False, False
-    return small, small_sq, above, threshold
+    return small, small_sq, small_sq > threshold * threshold, threshold
 
 
 def _full_to_small_noise(ref: NoContactReference, s: int, cfg: DetectorConfig) -> float:
@@ -580,14 +577,22 @@ def _candidates_of(above: np.ndarray, small_sq: np.ndarray, s: int, cfg: Detecto
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
     # contours are ~10x cheaper than connectedComponentsWithStats on this small mask
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    return _candidates(contours, above, small_sq, s * s * 1.0, cfg.min_area)
+    inside = above
+    band = math.ceil(cfg.border / s)
+    if band > 0:
+        # the image's edge (lens rim, membrane clamp, LED glare) changes with the slightest shift:
+        # a blob must be large and strong enough without it (but keeps its pixels there)
+        inside = above.copy()
+        inside[:band], inside[-band:], inside[:, :band], inside[:, -band:] = False, False, False, False
+    return _candidates(contours, inside, small_sq, s * s * 1.0, cfg.min_area)
 
 
 def _candidates(contours: Sequence[np.ndarray], above: np.ndarray, small_sq: np.ndarray, pixel_area: float,
                 min_area: float) -> list[Candidate]:
     """Blobs of the closed mask, largest signal first, without those below `min_area`, with their peak.
 
-    Area counts only pixels above threshold: closing must not turn scattered noise into a blob.
+    Area and peak count only pixels of `above` (over the threshold, away from the border): closing
+    must not turn scattered noise into a blob.
     A blob whose whole bounding box is smaller than `min_area` is dropped before it is drawn
     (textured frames have dozens of such specks). Outer contours filled do not overlap, so one
     label image serves all blobs.
@@ -607,7 +612,7 @@ def _candidates(contours: Sequence[np.ndarray], above: np.ndarray, small_sq: np.
     for i, (x0, y0, w, h) in enumerate(boxes, 1):
         if signal[i] * pixel_area >= min_area:
             region = (labels[y0:y0 + h, x0:x0 + w] == i).view(np.uint8)
-            peak = float(small_sq[y0:y0 + h, x0:x0 + w][region.view(bool)].max())
+            peak = float(small_sq[y0:y0 + h, x0:x0 + w][region.view(bool) & above[y0:y0 + h, x0:x0 + w]].max())
             candidates.append((int(signal[i]), x0, y0, w, h, region, peak))
     candidates.sort(key=lambda c: -c[0])
     return candidates
@@ -799,14 +804,14 @@ def _centres_of_groups(values: np.ndarray, magnitude: np.ndarray, x: np.ndarray,
         else:
             lone.append((k, i))
     if lone:
-        weight = magnitude.astype(np.float64) - np.repeat(lobe_fraction * peaks, npix)
-        np.maximum(weight, 0.0, out=weight)
-        weight += 1e-12 * (magnitude > 0)      # a flat blob (all at its peak) keeps its plain centroid
-        total = np.add.reduceat(weight, starts)
-        u = np.add.reduceat(weight * x, starts) / total
-        v = np.add.reduceat(weight * y, starts) / total
+        core = magnitude.astype(np.float64) - np.repeat(lobe_fraction * peaks, npix)
+        np.maximum(core, 0.0, out=core)
+        core += 1e-12 * (magnitude > 0)      # a flat blob (all at its peak) keeps its plain centroid
+        core_total = np.add.reduceat(core, starts)
+        centre_u = np.add.reduceat(core * x, starts) / core_total
+        centre_v = np.add.reduceat(core * y, starts) / core_total
         for k, i in lone:
-            found[i] = (float(u[k]), float(v[k]), peak[k], npix_list[k]) + shapes[k]
+            found[i] = (float(centre_u[k]), float(centre_v[k]), peak[k], npix_list[k]) + shapes[k]
     return found
 
 

@@ -24,7 +24,7 @@ SMALL_CAMERA = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, distortion=(-
 
 
 def _contact(u, v):
-    return Contact(u=float(u), v=float(v), area=100.0, confidence=1.0, peak_snr=20.0)
+    return Contact(u=float(u), v=float(v), area=100.0, confidence=1.0, score=20.0)
 
 
 def test_sensitivities_match_the_geometry_at_the_centre():

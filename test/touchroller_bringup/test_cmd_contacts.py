@@ -91,3 +91,39 @@ def test_simulated_taps_end_to_end(bag_factory, tmp_path):
     errors = [min(np.linalg.norm(np.array([float(r[k]) for k in "xyz"]) - p) for p in truth[int(r["stamp_ns"])])
               for r in rows]
     assert np.mean(errors) < 0.25e-3      # the goal with exact calibration
+
+
+def test_contact_columns_follow_the_point_columns(tapped_bag, tmp_path):
+    from touchroller_bringup.commands.contacts import COLUMNS
+
+    bag, _ = tapped_bag
+    out = tmp_path / "contacts.csv"
+    assert main(["contacts", str(bag), "--out", str(out)]) == 0
+    rows = _read(out)
+    assert tuple(rows[0]) == COLUMNS
+    assert list(COLUMNS[:11]) == ["stamp_ns", "u", "v", "x", "y", "z", "score", "area", "major_axis",
+                                  "minor_axis", "angle"]
+    for row in rows:
+        assert float(row["score"]) >= 12.0 and float(row["area"]) >= 100.0
+        assert 0 < float(row["minor_axis"]) <= float(row["major_axis"])
+        assert -np.pi / 2 < float(row["angle"]) <= np.pi / 2
+
+
+def test_reference_from_another_recording(bag_factory, tmp_path, capsys):
+    renderer = TapRenderer(CAMERA, seed=3)
+    rng = np.random.default_rng(2)
+    uv, _ = CAMERA.project(CAMERA.surface_point(np.array([0.0]), np.array([0.1])))
+    reference = bag_factory([(1_000 * i, renderer.render([], rng)) for i in range(3)])
+    # every frame of the run is a contact frame: none is spent on the reference
+    run = bag_factory([(1_000_000 * i, renderer.render(uv, rng)) for i in range(4)])
+    out = tmp_path / "contacts.csv"
+    assert main(["contacts", str(run), "--reference-bag", str(reference), "--reference-frames", "3",
+                 "--out", str(out)]) == 0
+    rows = _read(out)
+    assert [int(r["stamp_ns"]) for r in rows] == [0, 1_000_000, 2_000_000, 3_000_000]
+    assert "4 frames" in capsys.readouterr().out
+    small = bag_factory([(0, renderer.render([], rng)[:120, :160])])
+    code = main(["contacts", str(small), "--reference-bag", str(reference), "--reference-frames", "3",
+                 "--out", str(tmp_path / "c.csv")])
+    err = capsys.readouterr().err
+    assert code == 2 and "does not match the reference" in err and len(err.strip().splitlines()) == 1

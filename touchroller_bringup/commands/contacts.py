@@ -1,9 +1,10 @@
 """`touchroller contacts BAG --out contacts.csv`: the contacts in a recording, one CSV row per contact.
 
 Columns: stamp_ns,u,v,x,y,z (DESIGN.md; x y z in metres in touchroller_cylinder, `nan` without
-`--params`), then area (px), confidence (0..1), peak_snr, and the covariance diagonal var_x,
-var_y, var_z (m^2, from `--pixel-sigma` through the camera model). The no-contact reference is the
-mean of the first `--reference-frames` frames; they produce no rows.
+`--params`), then the contact's score (peak change in noise std), area (px^2), ellipse (major_axis,
+minor_axis in px, angle in rad from +u towards +v), confidence (0..1), and the covariance diagonal
+var_x, var_y, var_z (m^2, from `--pixel-sigma` through the camera model). The no-contact reference
+is the mean of the first `--reference-frames` frames (or `--reference-bag`); they produce no rows.
 """
 from __future__ import annotations
 
@@ -15,7 +16,9 @@ from pathlib import Path
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 
-COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z", "area", "confidence", "peak_snr", "var_x", "var_y", "var_z")
+POINT_COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z")          # DESIGN.md, first
+CONTACT_COLUMNS = ("score", "area", "major_axis", "minor_axis", "angle", "confidence")
+COLUMNS = POINT_COLUMNS + CONTACT_COLUMNS + ("var_x", "var_y", "var_z")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,6 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic (default: %(default)s)")
     parser.add_argument("--reference-frames", type=int, default=5,
                         help="no-contact frames at the start that form the reference (default: %(default)s)")
+    parser.add_argument("--reference-bag", metavar="BAG",
+                        help="take the reference from the first --reference-frames frames of this recording "
+                             "(made without contact, e.g. just before the run) instead of from BAG's start")
     parser.add_argument("--method", choices=("colour", "paper"), default="colour",
                         help="colour-aware detector, or the paper's grey/threshold/moments pipeline")
     parser.add_argument("--threshold-sigma", type=float, default=None,
@@ -56,6 +62,10 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UserError(str(exc)) from None
     detector = ContactDetector(config, reference_frames=args.reference_frames)
+    skipped = args.reference_frames
+    if args.reference_bag:
+        detector.set_reference(_reference_frames(args.reference_bag, args.topic, args.reference_frames, read_images))
+        skipped = 0
     out = Path(args.out)
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a CSV file name")
@@ -73,13 +83,32 @@ def run(args: argparse.Namespace) -> int:
             for row in _rows(record.stamp_ns, contacts or [], camera, args.pixel_sigma, localise):
                 writer.writerow(row)
                 rows += 1
-    if frames < args.reference_frames:
+    if frames < skipped:
         raise UserError(f"{args.bag} has {frames} image(s) on {args.topic}; the reference needs "
                         f"{args.reference_frames} (--reference-frames)")
     where = "pixels and cylinder points" if camera else "pixels only (no --params: x y z are nan)"
-    print(f"{rows} contacts in {frames - args.reference_frames} frames after a {args.reference_frames}-frame "
-          f"reference -> {out} ({where})")
+    source = f"{args.reference_bag}" if args.reference_bag else "the recording's start"
+    print(f"{rows} contacts in {frames - skipped} frames, reference of {args.reference_frames} frame(s) from "
+          f"{source} -> {out} ({where})")
     return 0
+
+
+def _reference_frames(bag: str, topic: str, count: int, read_images) -> list:
+    """The first `count` images of `bag` on `topic`, all of one format."""
+    from touchroller_perception.contacts import NoContactReference
+
+    frames = []
+    for record in read_images(bag, topic):
+        frames.append(record.image)
+        if len(frames) == count:
+            break
+    if len(frames) < count:
+        raise UserError(f"--reference-bag {bag} has {len(frames)} image(s) on {topic}; the reference needs {count}")
+    try:
+        NoContactReference(frames)
+    except ValueError as exc:
+        raise UserError(f"--reference-bag {bag}: {exc}") from None
+    return frames
 
 
 def _load_camera(path: str):
@@ -96,14 +125,19 @@ def _load_camera(path: str):
 def _rows(stamp_ns: int, contacts, camera, pixel_sigma: float, localise):
     if camera is None:
         for c in contacts:
-            yield (stamp_ns, _f(c.u), _f(c.v), "nan", "nan", "nan", _f(c.area), _f(c.confidence),
-                   _f(c.peak_snr), "nan", "nan", "nan")
+            yield (stamp_ns, _f(c.u), _f(c.v), "nan", "nan", "nan", *_details(c), "nan", "nan", "nan")
         return
     for loc in localise(camera, contacts, pixel_sigma=pixel_sigma):
         c = loc.contact
         var = [loc.covariance[i, i] for i in range(3)]
-        yield (stamp_ns, _f(c.u), _f(c.v), *(_f(p, "%.9g") for p in loc.point), _f(c.area),
-               _f(c.confidence), _f(c.peak_snr), *(_f(v, "%.6g") for v in var))
+        yield (stamp_ns, _f(c.u), _f(c.v), *(_f(p, "%.9g") for p in loc.point), *_details(c),
+               *(_f(v, "%.6g") for v in var))
+
+
+def _details(c) -> tuple[str, ...]:
+    """The CONTACT_COLUMNS of one contact."""
+    return (_f(c.score, "%.2f"), _f(c.area, "%.1f"), _f(c.major_axis, "%.2f"), _f(c.minor_axis, "%.2f"),
+            _f(c.angle), _f(c.confidence))
 
 
 def _f(value: float, fmt: str = "%.4f") -> str:

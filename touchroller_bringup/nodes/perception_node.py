@@ -44,7 +44,15 @@ from std_msgs.msg import Float32
 
 from touchroller_bringup import names
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
-from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, LagWindow, RateMeter, Status
+from touchroller_bringup.ros_diagnostics import (
+    ERROR,
+    OK,
+    WARN,
+    DiagnosticsPublisher,
+    LagWindow,
+    RateMeter,
+    Status,
+)
 from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_bringup.tf import TransformPublisher, camera_in_cylinder
@@ -79,6 +87,17 @@ DETECTOR_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "contacts.compensate_illumination": ("compensate_illumination",
                                          "Fit a per-channel gain/offset to the reference (LED drift, exposure)",
                                          None, None),
+    "contacts.background_sigma": ("background_sigma", "Scale of the smooth shading field removed from the "
+                                  "difference, px (0 disables)", 0.0, 10000.0),
+    "contacts.min_score": ("min_score", "Smallest contact peak, in noise std of the difference", 0.0, 1e6),
+    "contacts.lobe_fraction": ("lobe_fraction", "Centre from each lobe's part above this fraction of its peak",
+                               0.0, 0.95),
+    "contacts.extent_fraction": ("extent_fraction", "A contact's area and ellipse: pixels above this fraction "
+                                 "of its peak", 0.0, 0.95),
+    "contacts.border": ("border", "Band along the image edges that cannot make a contact on its own, px",
+                        0.0, 1000.0),
+    "contacts.adapt_rate": ("adapt_rate", "Weight of a quiet frame blended into the reference every 8 frames "
+                            "(0: fixed reference)", 0.0, 0.95),
 }
 
 
@@ -137,6 +156,8 @@ class PerceptionNode(Node):
         self.received = 0
         self.last_stamp_ns = 0        # stamp of the newest image taken
         self.malformed = 0
+        self.refused = 0              # frames whose format differs from the reference
+        self._last_refused = ""       # why the latest frame was refused ("" once one is accepted again)
         self.dropped = 0              # sequence gaps: stale frames skipped while busy, plus any lost
         self.lost_in_transport: int | None = None   # DDS message_lost total; None if the RMW lacks it
         self.published_contacts = 0
@@ -285,11 +306,14 @@ class PerceptionNode(Node):
             return
         try:
             contacts = self.detector.process(image)
-        except ValueError as exc:   # e.g. the resolution changed: the old reference is useless
-            self.malformed += 1
-            self.get_logger().warning(f"{exc}: recapturing the reference", throttle_duration_sec=5.0)
-            self.detector.recapture()
+        except ValueError as exc:
+            # another size or encoding: the reference stays until the user captures a new one
+            self.refused += 1
+            self._last_refused = str(exc)
+            self.get_logger().error(f"{exc}; call ~/recapture_reference once the sensor is free",
+                                    throttle_duration_sec=5.0)
             return
+        self._last_refused = ""
         if contacts:
             self._publish_contacts(msg, contacts)
         self._push_map(image, msg)
@@ -411,15 +435,24 @@ class PerceptionNode(Node):
             "frames_dropped": self.dropped,
             "frames_lost_in_transport": "unknown" if self.lost_in_transport is None else self.lost_in_transport,
             "frames_malformed": self.malformed,
+            "frames_refused": self.refused,
             "reference_ready": self.detector.reference_ready,
             "reference_noise_std": self.detector.reference.noise_std if self.detector.reference else float("nan"),
+            "difference_noise_std": _or_nan(self.detector.background.noise),
             "method": self.detector.config.method,
         }
+        if self._last_refused:
+            return Status(ERROR, f"frames do not match the reference: {self._last_refused}; "
+                                 "call ~/recapture_reference", values)
         if self.received == 0:
             return Status(WARN, "no images received", values)
         if not self.detector.reference_ready:
             return Status(WARN, "capturing the no-contact reference", values)
         return Status(OK, "detecting contacts", values)
+
+
+def _or_nan(value: float | None) -> float:
+    return float("nan") if value is None else float(value)
 
 
 def _has_message_info() -> bool:

@@ -351,3 +351,27 @@ def test_an_rmw_without_message_lost_still_subscribes_and_says_unknown(ros_conte
         assert node._diagnostic_status().values["frames_lost_in_transport"] == "unknown"
     finally:
         node.destroy_node()
+
+
+def test_a_frame_of_another_size_or_encoding_is_refused_and_keeps_the_reference(graph, spin_until):
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.ros_diagnostics import ERROR, OK
+
+    node, executor, image_pub, recapture, received = graph
+    renderer = TapRenderer(CAMERA, seed=2)
+    rng = np.random.default_rng(1)
+    for i in range(3):
+        send(executor, spin_until, node, image_pub, array_to_image(renderer.render([], rng), 1_000 + i))
+    reference = node.detector.reference.mean.copy()
+    # a camera that switched to half resolution, then to mono
+    send(executor, spin_until, node, image_pub, array_to_image(renderer.render([], rng)[::2, ::2], 2_000))
+    send(executor, spin_until, node, image_pub, array_to_image(renderer.render([], rng)[:, :, 1], 2_001))
+    assert node.refused == 2 and node.malformed == 0
+    status = node._diagnostic_status()
+    assert status.level == ERROR and "recapture_reference" in status.message
+    np.testing.assert_array_equal(node.detector.reference.mean, reference)
+    # frames that fit again are detected against the same reference
+    uv, _ = CAMERA.project(CAMERA.surface_point(0.0, 0.1))
+    send(executor, spin_until, node, image_pub, array_to_image(renderer.render([uv], rng), 3_000))
+    assert spin_until(executor, lambda: len(received) == 1, timeout=20.0)
+    assert node._diagnostic_status().level == OK
