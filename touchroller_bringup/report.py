@@ -49,6 +49,10 @@ SECTIONS: tuple[Section, ...] = (
             "Real GelSight presses with labelled centres (the taxim wheel), each sensor's one no-contact frame as "
             "the reference: presses found, centre error in px and mm, false contacts and time per frame, for our "
             "detector and the paper's pipeline on the same frames."),
+    Section("sim_to_real", "Simulated against real presses", "sim_to_real",
+            "The simulator's presses against real ones at the same place and radius, with its ideal appearance and "
+            "with a realistic one fitted on real frames (press shape, colour response, background, noise); and our "
+            "accuracy on simulated presses under both appearances, side by side."),
     Section("calibration", "Calibration: accuracy against effort", "calib_bench",
             "theta, d and reprojection error against the number of calibration images and solve time, and the "
             "contact error that remains after calibrating on simulated frames."),
