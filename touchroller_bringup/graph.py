@@ -156,6 +156,9 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
         *_COMMON,
         LaunchArgument("sweep_speed", "", "Roll speed in m/s; empty: the params files (0.011, the paper's 10 s)"),
         LaunchArgument("sweep_length", "", "Roll length in m; empty: the params files (0.11)"),
+        LaunchArgument("area", "", "Rectangle to cover, 'x,y,length,width' in m in the robot's base frame "
+                       "(corner, length along sweep.direction, width along the roller's axis): a raster of "
+                       "passes; empty: the params files (one roll of sweep_length)"),
         LaunchArgument("scene", "surface_mapping", "Simulator scene when use_sim is true"),
         LaunchArgument("map_file", "", "PNG the perception node writes the finished map to when the roll "
                        "ends (perception map.save_path); empty: not saved (touchroller scan writes map.png anyway)"),
@@ -251,6 +254,17 @@ def _environment(args: Mapping[str, str]) -> dict[str, str]:
     return dict.fromkeys(FASTDDS_ENVIRONMENT if fast_dds_2 else FASTDDS_ENVIRONMENT[:1], str(path.resolve()))
 
 
+def _area(launch: str, text: str) -> list[float]:
+    parts = [p for p in text.replace(" ", ",").split(",") if p]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 4 or not all(math.isfinite(v) for v in values) or values[2] <= 0 or values[3] < 0:
+        raise GraphError(f"{launch}: area:={text} must be 'x,y,length,width' in m (length > 0, width >= 0)")
+    return values
+
+
 def build_graph(launch: str, values: Mapping[str, str] | None = None,
                 extra_params_files: Sequence[str | Path] = ()) -> Graph:
     """The nodes of `launch` ("scan", "calibrate", "replay") for these launch-argument values.
@@ -290,6 +304,8 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
             sweep["sweep.speed"] = _positive_float(launch, "sweep_speed", args["sweep_speed"])
         if args["sweep_length"]:
             sweep["sweep.length"] = _positive_float(launch, "sweep_length", args["sweep_length"])
+        if args["area"]:
+            sweep["sweep.area"] = _area(launch, args["area"])
         perception: dict[str, Any] = {"map.save_path": str(Path(args["map_file"]).expanduser())} if args["map_file"] else {}
         camera = camera_parameters(on_arm=True)
         if use_sim:

@@ -376,6 +376,8 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None])
             with collected.lock:
                 frames, contacts = collected.frames, len(collected.contacts)
             rolled = f" ({100 * status.roll_progress * plan.length:.1f} of {100 * plan.length:.1f} cm)" if plan else ""
+            if plan is not None and len(plan.rolls) > 1 and status.roll is not None:
+                rolled += f" pass {status.roll + 1}/{len(plan.rolls)}"
             say(f"scan: {status.phase.value:8s} {100.0 * status.roll_progress:5.1f}%{rolled}  "
                 f"{frames} frames, {contacts} contacts, {now - started:4.1f} s")
     status = sweep.status

@@ -275,11 +275,127 @@ class Segment:
 
 @dataclass(frozen=True)
 class SweepPlan:
-    """Linear moves: above the start pose, press in by `depth`, roll `length`, lift off."""
+    """Linear moves: above the start pose, press in by `depth`, roll, lift off; a raster repeats that
+    for every pass. `rolls` are the indices of the rolling segments, `lengths` their lengths."""
 
     segments: tuple[Segment, ...]
-    sweep_index: int  # which segment is the roll
-    length: float
+    rolls: tuple[int, ...]
+    lengths: tuple[float, ...]
+    passes: tuple[RasterPass, ...] = ()
+
+    @property
+    def length(self) -> float:
+        """Total rolled length, m."""
+        return float(sum(self.lengths))
+
+    def roll_number(self, index: int) -> int | None:
+        """Which roll (0-based) segment `index` is, None if it is not one."""
+        return self.rolls.index(index) if index in self.rolls else None
+
+
+@dataclass(frozen=True)
+class RasterPass:
+    """One pass of a raster in the world frame's horizontal plane: the contact line's centre rolls from
+    `start` to `end` (x, y, m); it covers `across` = (low, high) m of the rectangle's width."""
+
+    start: tuple[float, float]
+    end: tuple[float, float]
+    across: tuple[float, float]
+
+
+def raster_offsets(width: float, usable_width: float, overlap: float) -> list[float]:
+    """Centre lines of the passes across a rectangle `width` wide (0 = the edge): as few passes of
+    `usable_width` as cover it with neighbours sharing at least `overlap` of the usable width, spread
+    evenly, the first and last flush with the edges; one centred pass when the rectangle is narrower."""
+    if not (math.isfinite(usable_width) and usable_width > 0):
+        raise ArmLimitError(f"the roller's usable width must be > 0 m, got {usable_width}")
+    if not (0.0 <= overlap < 1.0):
+        raise ArmLimitError(f"pass overlap must be in [0, 1), got {overlap}")
+    if width <= usable_width:
+        return [width / 2.0]
+    step = usable_width * (1.0 - overlap)
+    count = math.ceil((width - usable_width) / step - 1e-9) + 1
+    pitch = (width - usable_width) / (count - 1)
+    return [usable_width / 2.0 + k * pitch for k in range(count)]
+
+
+def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transform, speed: float, accel: float,
+                depth: float, direction: Sequence[float] = (1.0, 0.0, 0.0), usable_width: float = 0.06,
+                overlap: float = 0.25, approach_speed: float | None = None, clearance: float = 0.0) -> SweepPlan:
+    """A boustrophedon raster over the rectangle `area` = (x, y, length, width) of the world's horizontal
+    plane: corner (x, y), `length` along `direction`, `width` along the roller's axis (+axis side).
+    Every pass rolls the whole length, pressed `depth` into the surface, alternately forwards and back;
+    between passes the roller lifts by `clearance`, moves across and presses again. `start_pose` gives
+    the tool's orientation and the height at which the roller just touches the surface; `mount` is
+    T_tool_cylinder (the roller's axis centre in the tool frame)."""
+    start = as_pose(start_pose)
+    values = [float(v) for v in area]
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise ArmLimitError(f"sweep.area is [x, y, length, width] (4 finite numbers, m), got {list(area)}")
+    x0, y0, length, width = values
+    for name, value in (("area length", length), ("area width", width), ("depth", depth), ("clearance", clearance)):
+        if value < 0:
+            raise ArmLimitError(f"sweep {name} must be >= 0, got {value}")
+    heading = _horizontal(direction, "sweep direction")
+    tool = Transform.from_rotation_vector(start[:3], start[3:])
+    cylinder = tool @ mount
+    axis = _horizontal(cylinder.matrix()[:3, 0], "the roller's axis (mount.rpy and the start pose's rotation)")
+    if abs(float(axis @ heading)) > math.sin(math.radians(2.0)):
+        raise ArmLimitError("sweep.direction must be perpendicular to the roller's axis (from mount.rpy and "
+                            "sweep.start_pose); it rolls along its circumference only")
+    across = axis if float(np.cross(heading, axis)[2]) > 0 else -axis   # the rectangle spans +across (left)
+    # tool xy that puts the cylinder's centre over a world xy (the orientation stays the start pose's)
+    offset = np.asarray(cylinder.translation)[:2] - start[:2]
+    corner = np.array([x0, y0])
+    slow = min(speed, approach_speed) if approach_speed is not None else speed
+    segments: list[Segment] = []
+    rolls: list[int] = []
+    passes: list[RasterPass] = []
+
+    def tool_at(xy: np.ndarray, dz: float) -> np.ndarray:
+        pose = start.copy()
+        pose[:2] = xy - offset
+        pose[2] += dz
+        return pose
+
+    for k, centre in enumerate(raster_offsets(width, usable_width, overlap)):
+        a = corner + centre * across[:2]
+        b = a + length * heading[:2]
+        begin, finish = (a, b) if k % 2 == 0 else (b, a)
+        above, pressed = tool_at(begin, clearance), tool_at(begin, -depth)
+        move = "to_start" if k == 0 else "across"
+        segments.append(Segment(move, above, slow if k == 0 else max(slow, speed), accel))
+        segments.append(Segment("press", pressed, slow, accel))
+        rolls.append(len(segments))
+        segments.append(Segment("sweep", tool_at(finish, -depth), speed, accel))
+        segments.append(Segment("lift", tool_at(finish, clearance), slow, accel))
+        passes.append(RasterPass((float(begin[0]), float(begin[1])), (float(finish[0]), float(finish[1])),
+                                 (centre - usable_width / 2.0, centre + usable_width / 2.0)))
+    return SweepPlan(tuple(segments), tuple(rolls), tuple([length] * len(passes)), tuple(passes))
+
+
+def raster_coverage(plan: SweepPlan, width: float, roll: int, fraction: float) -> float:
+    """Percent of the raster's rectangle (`width` across) rolled over once roll `roll` (0-based) is
+    `fraction` done; the passes are parallel strips, each rolled whole before the next."""
+    if not plan.passes or width <= 0:
+        return 100.0 * (roll + fraction) / max(len(plan.rolls), 1)
+    covered, union = 0.0, []
+    for k, raster_pass in enumerate(plan.passes[:roll + 1]):
+        low, high = max(raster_pass.across[0], 0.0), min(raster_pass.across[1], width)
+        new = max(high - low, 0.0) - sum(max(min(high, h) - max(low, lo), 0.0) for lo, h in union)
+        covered += new * (fraction if k == roll else 1.0)
+        union.append((low, high))
+    return 100.0 * min(covered / width, 1.0)
+
+
+def _horizontal(vector: ArrayLike, what: str) -> np.ndarray:
+    v = np.asarray(vector, dtype=np.float64).reshape(-1)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ArmLimitError(f"{what} must be 3 finite numbers, got {list(v)}")
+    v = v - np.array([0.0, 0.0, v[2]])
+    if np.linalg.norm(v) < 1e-9:
+        raise ArmLimitError(f"{what} must have a horizontal component")
+    return v / np.linalg.norm(v)
 
 
 def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: float, depth: float,
@@ -306,15 +422,17 @@ def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: flo
                 Segment("sweep", end, speed, accel)]
     if retract:
         segments.append(Segment("lift", end + (depth + clearance) * up, slow, accel))
-    return SweepPlan(tuple(segments), sweep_index=2, length=float(length))
+    return SweepPlan(tuple(segments), rolls=(2,), lengths=(float(length),))
 
 
 @dataclass(frozen=True)
 class SweepStatus:
     phase: SweepPhase
     segment: str | None
-    roll_progress: float  # 0..1 of the rolling segment
+    roll_progress: float  # 0..1 of all the rolling (the passes of a raster, in order)
     message: str = ""
+    roll: int | None = None   # the roll under way or last done (0-based), None before the first
+    roll_fraction: float = 0.0   # how much of it is done
 
 
 class SweepSequencer:
@@ -354,7 +472,7 @@ class SweepSequencer:
         was_active = self.active
         self.arm.stop()
         if was_active:
-            self._status = SweepStatus(SweepPhase.STOPPED, self._status.segment, self._roll_progress(), message)
+            self._status = self._make_status(SweepPhase.STOPPED, self._status.segment, message)
 
     def poll(self) -> SweepStatus:
         """Advance through the plan; call regularly (e.g. at 50 Hz) while a sweep runs."""
@@ -363,34 +481,53 @@ class SweepSequencer:
         fault = self.arm.fault()
         if fault is not None:
             self.arm.stop()
-            self._status = SweepStatus(SweepPhase.FAULT, self._status.segment, self._roll_progress(), fault)
+            self._status = self._make_status(SweepPhase.FAULT, self._status.segment, fault)
             return self._status
         if not self.arm.is_moving():
             self._next_segment()
         else:
-            self._status = SweepStatus(self._status.phase, self._status.segment, self._roll_progress())
+            self._status = self._make_status(self._status.phase, self._status.segment)
         return self._status
 
     def _next_segment(self) -> None:
         assert self.plan is not None
         self._index += 1
         if self._index >= len(self.plan.segments):
-            self._status = SweepStatus(SweepPhase.DONE, None, 1.0, "sweep complete")
+            self._status = SweepStatus(SweepPhase.DONE, None, 1.0, "sweep complete", len(self.plan.rolls) - 1, 1.0)
             return
         segment = self.plan.segments[self._index]
-        phase = SweepPhase.SWEEPING if self._index == self.plan.sweep_index else SweepPhase.MOVING
+        phase = SweepPhase.SWEEPING if self.plan.roll_number(self._index) is not None else SweepPhase.MOVING
         try:
             self.arm.move_linear(segment.target, segment.speed, segment.accel, asynchronous=True)
         except ArmError as exc:
             self.arm.stop()
-            self._status = SweepStatus(SweepPhase.FAULT, segment.name, self._roll_progress(), str(exc))
+            self._status = self._make_status(SweepPhase.FAULT, segment.name, str(exc))
             return
-        self._status = SweepStatus(phase, segment.name, self._roll_progress())
+        self._status = self._make_status(phase, segment.name)
+
+    def _make_status(self, phase: SweepPhase, segment: str | None, message: str = "") -> SweepStatus:
+        roll, fraction = self._roll_state()
+        return SweepStatus(phase, segment, self._roll_progress(), message, roll, fraction)
+
+    def _roll_state(self) -> tuple[int | None, float]:
+        """(the roll under way or last done, its fraction done)."""
+        if self.plan is None:
+            return None, 0.0
+        done = [k for k, index in enumerate(self.plan.rolls) if index <= self._index]
+        if not done:
+            return None, 0.0
+        roll = done[-1]
+        if self.plan.rolls[roll] < self._index:
+            return roll, 1.0
+        progress = self.arm.progress()
+        return roll, min(max(progress, 0.0), 1.0) if math.isfinite(progress) else 0.0
 
     def _roll_progress(self) -> float:
-        if self.plan is None or self._index < self.plan.sweep_index:
+        roll, fraction = self._roll_state()
+        if self.plan is None or roll is None:
             return 0.0
-        if self._index > self.plan.sweep_index:
-            return 1.0
-        progress = self.arm.progress()
-        return min(max(progress, 0.0), 1.0) if math.isfinite(progress) else 0.0
+        lengths = self.plan.lengths
+        total = sum(lengths)
+        if total <= 0:
+            return (roll + fraction) / len(lengths)
+        return min((sum(lengths[:roll]) + fraction * lengths[roll]) / total, 1.0)

@@ -230,6 +230,7 @@ class BandSampler:
         self.maps: tuple[np.ndarray, np.ndarray] | None = None
         self.mm_per_px: float | None = None  # along the rows (rolling direction)
         self.mm_per_px_cols: float | None = None
+        self.centre_u: float | None = None  # image column of the contact line's centre (x = 0), with a camera
         if camera is not None:
             self._from_camera(camera, shape, band_rows, rectify)
             return
@@ -254,6 +255,7 @@ class BandSampler:
         m_per_col = eps * r / float(np.hypot(*(uv[2] - uv[0])))
         self.mm_per_px, self.mm_per_px_cols = m_per_row * 1e3, m_per_col * 1e3
         centre_u, centre_v = uv[0]
+        self.centre_u = float(centre_u)
         if not rectify:
             self._crop(centre_v, height)
             return
@@ -593,6 +595,16 @@ class Stitcher:
     def lateral_px(self) -> float:
         """Cumulative shift along the axis since the first frame."""
         return self._lateral_pos
+
+    def flat_field_now(self) -> np.ndarray | None:
+        """The flat field the stitcher divides bands by at this point of the scan (None: not known yet)."""
+        if not self.config.shaded:
+            return None
+        return self.flat.field(self._travel)
+
+    def flat_field_final(self) -> np.ndarray | None:
+        """The best flat field from everything stitched so far (what `finalise` uses)."""
+        return self.flat.final() if self.config.shaded else None
 
     @property
     def sampler(self) -> BandSampler | None:

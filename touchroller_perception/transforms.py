@@ -89,6 +89,9 @@ def slerp(a: ArrayLike, b: ArrayLike, fraction: ArrayLike) -> FloatArray:
     dot = np.sum(a * b, axis=-1, keepdims=True)
     b = np.where(dot < 0, -b, b)
     dot = np.abs(dot)
+    if np.all(dot > 1.0 - 1e-10):   # samples of a smooth motion: normalised lerp is exact to ~1e-15
+        q = a + f * (b - a)
+        return q / np.linalg.norm(q, axis=-1, keepdims=True)
     theta = np.arccos(np.clip(dot, -1.0, 1.0))
     sin = np.sin(theta)
     near = sin < 1e-9   # (almost) the same rotation: linear interpolation is exact enough
@@ -198,9 +201,11 @@ class _Edge:
     translations: list[tuple[float, float, float]] = field(default_factory=list)
     rotations: list[tuple[float, float, float, float]] = field(default_factory=list)
     _arrays: tuple[NDArray[np.int64], FloatArray, FloatArray] | None = None
+    _matrix: FloatArray | None = None
 
     def add(self, stamp_ns: int, transform: Transform) -> None:
         self._arrays = None
+        self._matrix = None
         if self.static:
             self.stamps, self.translations, self.rotations = [stamp_ns], [transform.translation], [transform.rotation]
             return
@@ -222,16 +227,33 @@ class _Edge:
             del self.stamps[:i], self.translations[:i], self.rotations[:i]
             self._arrays = None
 
+    def matrix(self) -> FloatArray:
+        """The 4x4 of a static edge (its one sample)."""
+        if self._matrix is None:
+            self._matrix = Transform(self.translations[0], self.rotations[0]).matrix()
+        return self._matrix
+
     def arrays(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
         if self._arrays is None:
             self._arrays = (np.asarray(self.stamps, np.int64), np.asarray(self.translations, np.float64),
                             np.asarray(self.rotations, np.float64))
         return self._arrays
 
-    def at(self, stamps: NDArray[np.int64], child: str) -> tuple[FloatArray, FloatArray]:
-        """(translations (N, 3), rotations (N, 4)) at each stamp, interpolated."""
+    def at(self, stamps: NDArray[np.int64], child: str,
+           missing: bool = False) -> tuple[FloatArray, FloatArray]:
+        """(translations (N, 3), rotations (N, 4)) at each stamp, interpolated; with `missing`, NaN at
+        stamps outside the samples instead of an ExtrapolationError."""
         times, translations, rotations = self.arrays()
         n = len(stamps)
+        if missing and not self.static:
+            lo, hi = int(times[0]), int(times[-1])
+            inside = (stamps >= lo) & (stamps <= hi)
+            if not inside.all():
+                trans = np.full((n, 3), np.nan)
+                rots = np.full((n, 4), np.nan)
+                if inside.any():
+                    trans[inside], rots[inside] = self.at(stamps[inside], child)
+                return trans, rots
         if self.static or len(times) == 1:
             if not self.static and np.any(stamps != times[0]):
                 raise ExtrapolationError(f"{self.parent} -> {child} has one sample (at {times[0]} ns); "
@@ -338,27 +360,54 @@ class TransformBuffer:
         translation, rotation = self._compose(target, source, np.asarray([int(stamp_ns)], np.int64))
         return Transform(_vec3(translation[0]), _quat(rotation[0]))
 
-    def lookup_many(self, target: str, source: str, stamps_ns: Iterable[int]) -> FloatArray:
-        """T_target_source at each stamp as (N, 4, 4) matrices."""
+    def lookup_many(self, target: str, source: str, stamps_ns: Iterable[int], missing: bool = False) -> FloatArray:
+        """T_target_source at each stamp as (N, 4, 4) matrices; with `missing`, all-NaN matrices at the
+        stamps some edge has no data for (instead of an ExtrapolationError). Static edges are composed
+        once, so a chain with one moving edge costs one interpolation and two matrix products."""
         stamps = np.asarray(list(stamps_ns) if not isinstance(stamps_ns, np.ndarray) else stamps_ns, np.int64)
-        translation, rotation = self._compose(target, source, stamps.reshape(-1))
-        out = np.zeros((len(stamps), 4, 4))
-        out[:, :3, :3] = quaternion_to_matrix(rotation)
-        out[:, :3, 3] = translation
-        out[:, 3, 3] = 1.0
+        stamps = stamps.reshape(-1)
+        up_source, up_target = self._chain(target, source)
+        common_source = self._chain_matrices(up_source, stamps, missing)
+        common_target = self._chain_matrices(up_target, stamps, missing)
+        inverse = np.zeros_like(common_target)
+        rotation_t = np.swapaxes(common_target[..., :3, :3], -1, -2)
+        inverse[..., :3, :3] = rotation_t
+        inverse[..., :3, 3] = -np.einsum("...ij,...j->...i", rotation_t, common_target[..., :3, 3])
+        inverse[..., 3, 3] = 1.0
+        out = np.matmul(inverse, common_source)
+        if out.ndim == 2:
+            out = np.broadcast_to(out, (len(stamps), 4, 4)).copy()
         return out
 
-    def _compose(self, target: str, source: str, stamps: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+    def _chain_matrices(self, frames: list[str], stamps: NDArray[np.int64], missing: bool) -> FloatArray:
+        """T_common_frame0 for the path frames[0] -> ... -> the common ancestor: (4, 4) when all edges are
+        static, else (N, 4, 4)."""
+        out: FloatArray = np.eye(4)
+        for child in frames:
+            edge = self._edges[child]
+            if edge.static:
+                out = edge.matrix() @ out
+                continue
+            t, q = edge.at(stamps, child, missing)
+            m = np.zeros((len(stamps), 4, 4))
+            m[:, :3, :3] = quaternion_to_matrix(q)
+            m[:, :3, 3] = t
+            m[:, 3, 3] = 1.0
+            out = np.matmul(m, out)
+        return out
+
+    def _compose(self, target: str, source: str, stamps: NDArray[np.int64],
+                 missing: bool = False) -> tuple[FloatArray, FloatArray]:
         up_source, up_target = self._chain(target, source)
         n = len(stamps)
         # T_common_source: walk up from the source, composing parent-of-each on the left
         t_cs, q_cs = np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
         for child in up_source:
-            t, q = self._edges[child].at(stamps, child)
+            t, q = self._edges[child].at(stamps, child, missing)
             t_cs, q_cs = rotate(q, t_cs) + t, quaternion_multiply(q, q_cs)
         t_ct, q_ct = np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
         for child in up_target:
-            t, q = self._edges[child].at(stamps, child)
+            t, q = self._edges[child].at(stamps, child, missing)
             t_ct, q_ct = rotate(q, t_ct) + t, quaternion_multiply(q, q_ct)
         # T_target_source = inverse(T_common_target) T_common_source
         q_tc = quaternion_conjugate(q_ct)

@@ -196,7 +196,7 @@ def test_plan_presses_rolls_and_lifts():
     assert press[2] == pytest.approx(START[2] - 0.001)
     np.testing.assert_allclose(sweep - press, [0, 0.11, 0, 0, 0, 0], atol=1e-12)
     assert lift[2] == pytest.approx(START[2])
-    assert plan.segments[plan.sweep_index].speed == 0.011
+    assert plan.rolls == (2,) and plan.segments[plan.rolls[0]].speed == 0.011
 
 
 @pytest.mark.parametrize("kwargs", [
@@ -271,3 +271,58 @@ def test_simulated_arm_origin_rests_above_the_touching_pose():
     np.testing.assert_allclose(rest[[0, 1, 3, 4, 5]], np.array(START)[[0, 1, 3, 4, 5]])
     with pytest.raises(ArmLimitError):
         simulated_arm_origin(START, -0.001)
+
+
+def test_raster_covers_the_rectangle_in_alternating_passes():
+    from touchroller_driver.arm import (
+        DEFAULT_MOUNT_RPY,
+        DEFAULT_MOUNT_XYZ,
+        mount_transform,
+        plan_raster,
+        raster_coverage,
+        raster_offsets,
+    )
+
+    assert raster_offsets(0.04, 0.06, 0.25) == [0.02]                 # narrower than the roller: one pass
+    offsets = raster_offsets(0.18, 0.06, 0.25)
+    assert offsets[0] == pytest.approx(0.03) and offsets[-1] == pytest.approx(0.15)
+    assert all(0.06 - (b - a) >= 0.25 * 0.06 - 1e-12 for a, b in zip(offsets, offsets[1:], strict=False))
+    mount = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+    plan = plan_raster(START, area=[0.38, -0.09, 0.24, 0.18], mount=mount, speed=0.02, accel=0.1, depth=5e-4,
+                       clearance=0.002, approach_speed=0.005)
+    assert len(plan.rolls) == len(offsets) == 4 and plan.length == pytest.approx(0.96)
+    rolls = [plan.segments[i] for i in plan.rolls]
+    for k, (roll, raster_pass) in enumerate(zip(rolls, plan.passes, strict=True)):
+        press = plan.segments[plan.rolls[k] - 1]
+        assert press.name == "press" and press.target[2] == pytest.approx(START[2] - 5e-4)
+        # default mount: the cylinder centre is under the flange, so tool xy = contact line xy
+        assert roll.target[:2] == pytest.approx(raster_pass.end) and press.target[:2] == pytest.approx(raster_pass.start)
+        assert raster_pass.start[0] == pytest.approx(0.38 if k % 2 == 0 else 0.62)   # boustrophedon
+        assert raster_pass.start[1] == pytest.approx(-0.09 + offsets[k])
+    assert [s.name for s in plan.segments[4:8]] == ["across", "press", "sweep", "lift"]
+    assert raster_coverage(plan, 0.18, 0, 0.5) == pytest.approx(100 * 0.03 / 0.18)
+    assert raster_coverage(plan, 0.18, 3, 1.0) == pytest.approx(100.0)
+    with pytest.raises(ArmLimitError, match="perpendicular"):
+        plan_raster(START, area=[0.38, -0.09, 0.24, 0.18], mount=mount, speed=0.02, accel=0.1, depth=5e-4,
+                    direction=(1.0, 1.0, 0.0))
+
+
+def test_sequencer_reports_progress_over_all_passes():
+    from touchroller_driver.arm import DEFAULT_MOUNT_RPY, DEFAULT_MOUNT_XYZ, mount_transform, plan_raster
+
+    arm, clock = make_arm()
+    plan = plan_raster(START, area=[0.4, -0.05, 0.02, 0.1], mount=mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY),
+                       speed=0.02, accel=0.1, depth=5e-4, clearance=0.002)
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan)
+    seen = []
+    for _ in range(4000):
+        clock.t += 0.01
+        status = sequencer.poll()
+        seen.append((status.roll, round(status.roll_progress, 3)))
+        if not sequencer.active:
+            break
+    assert status.phase.value == "done" and status.roll_progress == 1.0
+    progress = [p for _, p in seen]
+    assert progress == sorted(progress)                          # never goes back
+    assert any(roll == 1 and 0.5 < p < 1.0 for roll, p in seen)   # the second pass is the second half

@@ -33,7 +33,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import Float32
+from std_msgs.msg import Float32, UInt32MultiArray
 from std_srvs.srv import Trigger
 
 from touchroller_bringup import names
@@ -51,10 +51,13 @@ from touchroller_driver.arm import (
     ArmLimits,
     SimulatedArm,
     SweepPhase,
+    SweepPlan,
     SweepSequencer,
     SweepStatus,
     mount_transform,
+    plan_raster,
     plan_sweep,
+    raster_coverage,
     simulated_arm_origin,
 )
 from touchroller_driver.sim.clock import SimClock
@@ -64,7 +67,8 @@ COMMAND_TIMEOUT_S = 5.0
 
 # Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
 SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
-                    "sweep.start_pose", "sweep.direction", "sweep.retract", "sweep.clearance")
+                    "sweep.start_pose", "sweep.direction", "sweep.retract", "sweep.clearance", "sweep.area",
+                    "sweep.usable_width", "sweep.overlap")
 
 
 def rotation_vector_to_quaternion(rotation: Sequence[float]) -> tuple[float, float, float, float]:
@@ -123,6 +127,8 @@ class SweepNode(Node):
         self._publish_mount()
         self._pose_pub = self.create_publisher(PoseStamped, names.TCP_POSE, 10)
         self._progress_pub = self.create_publisher(Float32, names.SWEEP_PROGRESS, 10)
+        self._coverage_pub = self.create_publisher(Float32, names.COVERAGE, 10)
+        self._pass_pub = self.create_publisher(UInt32MultiArray, names.SWEEP_PASS, 10)
         self._start_srv = self.create_service(Trigger, f"~/{names.START}", self._on_start)
         self._stop_srv = self.create_service(Trigger, f"~/{names.STOP}", self._on_stop)
         hardware = "simulated arm" if isinstance(self.arm, SimulatedArm) else f"UR at {self.get_parameter('robot_ip').value}"
@@ -149,6 +155,14 @@ class SweepNode(Node):
         declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
                 "TCP pose [x, y, z, rx, ry, rz] (base frame, m, rotation vector) where the roller just "
                 "touches the surface at the start of the sweep")
+        declare(self, "sweep.area", [0.0, 0.0, 0.0, 0.0], "Rectangle to cover [x, y, length, width], m, in "
+                "arm.base_frame: corner (x, y), length along sweep.direction, width along the roller's axis; "
+                "a boustrophedon raster of passes rolled alternately forwards and back (one pass when narrower "
+                "than sweep.usable_width). length 0: one roll of sweep.length from sweep.start_pose")
+        declare(self, "sweep.usable_width", 0.06, "Width of surface one pass maps, m (the band the camera "
+                "sees along the axis, less a margin)", min=0.001, max=1.0)
+        declare(self, "sweep.overlap", 0.25, "Least fraction of sweep.usable_width neighbouring passes share",
+                min=0.0, max=0.9)
         declare(self, "sweep.direction", list(DEFAULT_DIRECTION), "Rolling direction in the base frame (horizontal)")
         declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
         declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "Height above the start pose the roller approaches from and "
@@ -203,7 +217,20 @@ class SweepNode(Node):
         return ArmLimits(max_speed=float(self.get_parameter("arm.max_speed").value),
                          max_accel=float(self.get_parameter("arm.max_accel").value))
 
-    def _plan_from(self, settings: dict[str, Any]):
+    def _plan_from(self, settings: dict[str, Any]) -> SweepPlan:
+        area = [float(v) for v in settings["sweep.area"]]
+        if len(area) != 4:
+            raise ValueError(f"sweep.area is [x, y, length, width] in m, got {area}")
+        if area[2] > 0:   # a raster over the rectangle (one pass when it is narrower than the roller)
+            plan = plan_raster(
+                list(settings["sweep.start_pose"]), area=area, mount=self.mount(),
+                speed=float(settings["sweep.speed"]), accel=float(settings["sweep.accel"]),
+                depth=float(settings["sweep.depth"]), direction=list(settings["sweep.direction"]),
+                usable_width=float(settings["sweep.usable_width"]), overlap=float(settings["sweep.overlap"]),
+                approach_speed=float(settings["sweep.approach_speed"]), clearance=float(settings["sweep.clearance"]))
+            for segment in plan.segments:
+                self.limits.check(segment.target, segment.speed, segment.accel)
+            return plan
         plan = plan_sweep(
             list(settings["sweep.start_pose"]), length=float(settings["sweep.length"]),
             speed=float(settings["sweep.speed"]), accel=float(settings["sweep.accel"]),
@@ -329,7 +356,7 @@ class SweepNode(Node):
             pose = None
         self._set_status(status)
         if pose is not None:
-            self._publish(pose, status.roll_progress)
+            self._publish(pose, status)
         if was_active and not self.sequencer.active:
             self.finished.set()
             if status.phase is SweepPhase.FAULT:
@@ -350,7 +377,7 @@ class SweepNode(Node):
             if self.context.ok():
                 raise
 
-    def _publish(self, pose: np.ndarray, progress: float) -> None:
+    def _publish(self, pose: np.ndarray, status: SweepStatus) -> None:
         with self._state_lock:
             self._last_pose = pose
         message = PoseStamped()
@@ -366,7 +393,13 @@ class SweepNode(Node):
             if self._publish_tf:
                 self.tf.send([(self._frame_id, self._tool_frame, stamp_ns,
                                Transform.from_rotation_vector(pose[:3], pose[3:]))])
-            self._progress_pub.publish(Float32(data=float(progress)))
+            self._progress_pub.publish(Float32(data=float(status.roll_progress)))
+            plan = self.sequencer.plan
+            if plan is not None and status.roll is not None:
+                width = float(self.settings["sweep.area"][3]) if plan.passes else 0.0
+                self._coverage_pub.publish(Float32(data=float(raster_coverage(plan, width, status.roll,
+                                                                              status.roll_fraction))))
+                self._pass_pub.publish(UInt32MultiArray(data=[status.roll + 1, len(plan.rolls)]))
         except Exception:  # noqa: BLE001 - the context went down between the check and the publish
             if self.context.ok():
                 raise
@@ -399,8 +432,11 @@ class SweepNode(Node):
         with self._state_lock:
             pose = self._last_pose
         level = {SweepPhase.FAULT: ERROR, SweepPhase.STOPPED: WARN}.get(status.phase, OK)
+        plan = self.sequencer.plan
         values: dict[str, Any] = {"phase": status.phase.value, "segment": status.segment or "",
                                   "roll_progress": status.roll_progress,
+                                  "pass": (status.roll or 0) + 1 if status.roll is not None else 0,
+                                  "passes": len(plan.rolls) if plan is not None else 0,
                                   "sweep_speed_m_s": float(self.settings["sweep.speed"]),
                                   "sweep_length_m": float(self.settings["sweep.length"])}
         if pose is not None:

@@ -62,6 +62,13 @@ class SimClock:
     def on_whole_second(self) -> bool:
         return self._now_ns % NS == 0
 
+    def step(self) -> int:
+        """Move to the next tick at once (no pacing: offline simulation as fast as the machine goes)."""
+        with self._lock:
+            self._ticks += 1
+            self._now_ns = self._start_ns + frame_time_ns(self._ticks, self.tick_hz)
+            return self._now_ns
+
     def advance(self, stop: threading.Event | None = None) -> int:
         """Wait until the next tick is due on the wall clock (scaled by `rate`), then move to it."""
         with self._lock:

@@ -271,6 +271,31 @@ class SimulatedSensor:
         tactile = cv2.cvtColor(cv2.convertScaleAbs(shaded), cv2.COLOR_BGR2GRAY)
         return TruthMap(image, height, tactile, mpp_v * 1e3, mpp_u * 1e3, y_lo, x_cols)
 
+    def world_truth(self, surface_frame: Any, origin: tuple[float, float], shape: tuple[int, int],
+                    resolution: float) -> tuple[np.ndarray, np.ndarray]:
+        """The true surface on a grid of the world plane (rows growing with world y, cell (r, c) centred
+        at origin + ((c + 0.5), (r + 0.5)) * resolution), given T_world_S (`sim.camera.surface_frame`):
+        (height, m, as the membrane follows it; tactile grey: the relief as the sensor shades it).
+        The like-for-like reference for a world map, in place (no alignment)."""
+        rows, cols = shape
+        xs = origin[0] + (np.arange(cols) + 0.5) * resolution
+        ys = origin[1] + (np.arange(rows) + 0.5) * resolution
+        X, Y = np.meshgrid(xs, ys)
+        world = np.stack([X, Y, np.zeros_like(X)], axis=-1).reshape(-1, 3)
+        in_surface = surface_frame.inverse().apply(world)
+        height = self._relief.sample(in_surface[:, 0], in_surface[:, 1]).reshape(rows, cols).astype(np.float32)
+        if min(rows, cols) > 1:
+            gy, gx = np.gradient(height.astype(np.float64), resolution)
+        else:
+            gy = gx = np.zeros_like(height, np.float64)
+        # slopes in the cylinder frame's axes (x along the roller, y along the roll) as the shading wants them
+        axes = surface_frame.matrix()[:2, :2]   # world xy of S's x and y
+        sx = gx * axes[0, 0] + gy * axes[1, 0]
+        sy = gx * axes[0, 1] + gy * axes[1, 1]
+        shaded = self._shade_slopes(sx.astype(np.float32), sy.astype(np.float32))
+        tactile = cv2.cvtColor(cv2.convertScaleAbs(shaded), cv2.COLOR_BGR2GRAY)
+        return height, tactile
+
     # ------------------------------------------------------------------ precomputation
     def _build_maps(self) -> None:
         cam = self.camera

@@ -1,0 +1,103 @@
+"""The world map on simulated raster scans: placed by TF, latency found from the data, passes registered."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from touchroller_perception.transforms import TransformBuffer
+from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
+
+sim = pytest.importorskip("touchroller_driver.sim")
+
+from touchroller_driver.arm import (  # noqa: E402
+    DEFAULT_MOUNT_RPY,
+    DEFAULT_MOUNT_XYZ,
+    DEFAULT_START_POSE,
+    mount_transform,
+    plan_raster,
+    simulated_arm_origin,
+)
+from touchroller_driver.sim.camera import surface_frame  # noqa: E402
+from touchroller_driver.sim.sweep import simulate_sweep  # noqa: E402
+from touchroller_perception.metrics import ssim  # noqa: E402
+
+MOUNT = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+AREA = (0.42, -0.045, 0.05, 0.09)   # 5 cm x 9 cm: two passes
+
+
+@pytest.fixture(scope="module")
+def sensor():
+    return sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
+
+
+@pytest.fixture(scope="module")
+def scans(sensor):
+    """Frames and TF of the same raster filmed with a camera latency of 0 and 40 ms."""
+    plan = plan_raster(DEFAULT_START_POSE, area=AREA, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
+                       clearance=0.002, approach_speed=0.005)
+    rest, _ = simulated_arm_origin(DEFAULT_START_POSE, 0.002)
+    # start above the first pass: a short approach
+    start = np.array(plan.segments[0].target)
+    out = {}
+    for latency in (0.0, 0.04):
+        out[latency] = list(simulate_sweep(sensor, plan, start, MOUNT, latency_s=latency))
+    assert len(plan.rolls) == 2
+    return plan, rest, out
+
+
+def run(events, sensor, **config):
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    bounds = (AREA[0] - 0.01, AREA[1] - 0.01, AREA[0] + AREA[2] + 0.01, AREA[1] + AREA[3] + 0.01)
+    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                         WorldMapConfig(bounds=bounds, **config))
+    for event in events:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+        else:
+            mapper.push(event[2], event[1])
+    mapper.finalise()
+    return mapper
+
+
+def in_place_ssim(mapper, sensor) -> float:
+    """SSIM of the map against the true surface where it lies, no alignment, over the mapped rectangle."""
+    grey, weight = mapper.canvas.value(mapper._level)
+    _, tactile = sensor.world_truth(surface_frame(sensor.scene), mapper.canvas.origin, grey.shape,
+                                    mapper.config.resolution)
+    (c0, r0), (c1, r1) = (np.round(mapper.canvas.to_grid(np.array(p)) + 0.5).astype(int)
+                          for p in (AREA[:2], (AREA[0] + AREA[2], AREA[1] + AREA[3])))
+    a, b = grey[r0:r1, c0:c1], tactile[r0:r1, c0:c1].astype(np.float32)
+    assert (weight[r0:r1, c0:c1] > 0.05).mean() > 0.98
+    return ssim(*(np.clip((x - x.mean()) / x.std() * 40 + 128, 0, 255) for x in (a, b)))
+
+
+@pytest.mark.slow
+def test_a_two_pass_raster_maps_in_place_with_the_latency_found(scans, sensor):
+    plan, _, events = scans
+    mapper = run(events[0.04], sensor)
+    assert mapper.stats.latency_estimated
+    assert mapper.stats.latency_s == pytest.approx(0.04, abs=0.003)
+    assert mapper.stats.passes == 2 and mapper.stats.mapped > 0.5 * mapper.stats.frames
+    assert mapper.coverage((AREA[0], AREA[1], AREA[0] + AREA[2], AREA[1] + AREA[3])) >= 98.0
+    assert in_place_ssim(mapper, sensor) >= 0.90
+    # told nothing and assuming no latency (TF only), the passes land 0.8 mm off, in opposite directions
+    tf_only = run(events[0.04], sensor, latency=0.0, register=False)
+    assert in_place_ssim(tf_only, sensor) < in_place_ssim(mapper, sensor) - 0.1
+
+
+@pytest.mark.slow
+def test_without_latency_the_estimate_is_zero_and_registration_changes_nothing(scans, sensor):
+    _, _, events = scans
+    mapper = run(events[0.0], sensor)
+    assert mapper.stats.latency_s == pytest.approx(0.0, abs=0.003)
+    assert all(abs(dx) < 0.3 and abs(dy) < 0.3 for dx, dy in mapper.stats.pass_corrections_px)
+
+
+def test_config_is_checked():
+    with pytest.raises(ValueError, match="resolution"):
+        WorldMapConfig(resolution=0.0)
+    with pytest.raises(ValueError, match="bounds"):
+        WorldMapConfig(bounds=(1.0, 0.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="max_pixels"):
+        WorldMapConfig(bounds=(0.0, 0.0, 10.0, 10.0))

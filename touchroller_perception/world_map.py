@@ -1,0 +1,694 @@
+"""One tactile map in the robot's frame: each frame's contact band placed by TF, refined by registration.
+
+`WorldMapper.push(image, stamp_ns)` takes the frames of a scan (any number of passes) and builds one
+mosaic in the world frame (`map` frame of nav2: x right, y up) at `config.resolution` m per pixel:
+
+* the band is cut and rectified as the strip stitcher does (`stitching.BandSampler`): rows uniform in
+  membrane y, columns in x, so band pixel (row i, column j) is the point (x_j, y_i, r) of the cylinder
+  frame, the contact patch pressed flat under the roller; `T_world_cylinder` at the frame's exposure time
+  (stamp - latency) puts it in the world;
+* which frames are mapped: those with the roller pressed. The pressed height is learnt from the frames
+  whose image moves with the arm (the strip stitcher's registration agrees with the arm's motion along
+  the roll): frames within `contact_tolerance` of it are in contact; an arm moving above the surface
+  (approach, between passes) is not, whatever the image shows;
+* the camera's latency (exposure to stamp): `config.latency` if told, else estimated from the data
+  (`LatencyEstimator`: the image-registered roll against the arm's, around each start and stop);
+* refinement by registration: each pass after the first is registered (2-D, subpixel) against what the
+  earlier passes mapped where they overlap, and shifted by the median of its frames' offsets, so a
+  residual latency or an arm calibration error does not leave a seam;
+* blending: each band is splatted with weights tapered across the band and towards its ends along the
+  axis, and the map is sum(w * band) / sum(w * flat field): the static gel pattern divides out and
+  overlaps average without seams (`finalise()` re-weights everything with the final flat field).
+
+Frames wait (a bounded queue) until their pose, the pressed height and the latency are known. Memory
+is bounded by the map (a fixed rectangle given by `bounds`, else growing up to `max_pixels`), not by the
+number of frames. No rclpy here; the caller looks poses up (`touchroller_perception.transforms`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from touchroller_perception.geometry import CameraModel
+from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, taper
+
+FloatArray = NDArray[np.float64]
+#: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet): e.g.
+#: `TransformBuffer.lookup_many(world, cylinder, stamps, missing=True)`.
+PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
+
+
+def buffer_lookup(buffer: Any, world: str, cylinder: str) -> PoseLookup:
+    """A PoseLookup over a `touchroller_perception.transforms.TransformBuffer` (unknown frames: NaN)."""
+    from touchroller_perception.transforms import TransformError
+
+    def lookup(stamps: NDArray[np.int64]) -> FloatArray:
+        try:
+            return buffer.lookup_many(world, cylinder, stamps, missing=True)
+        except TransformError:
+            return np.full((len(stamps), 4, 4), np.nan)
+
+    return lookup
+
+
+@dataclass(frozen=True)
+class WorldMapConfig:
+    """How a `WorldMapper` works; the perception node's `map.*` world parameters map onto these fields.
+
+    resolution: metres per map pixel.
+    bounds: (x_min, y_min, x_max, y_max) of the map in the world frame, m (e.g. the scan's rectangle plus
+      a margin); None: it grows with what is mapped, up to `max_pixels`.
+    max_pixels: the most pixels the map may hold (memory: 12 bytes each).
+    latency: the camera's latency (s, exposure to stamp) if known; None: estimated from the data.
+    max_latency: the largest latency considered, s.
+    register: refine each pass's placement by registration against the earlier passes.
+    search_px: the largest correction registration looks for, map pixels.
+    contact_tolerance: frames with the roller within this of its pressed height are mapped, m.
+    edge_taper: the weights fall to zero over this distance at the band's ends along the axis, m.
+    hold_frames: frames kept while their pose, the pressed height or the latency are not known yet.
+    """
+
+    resolution: float = 1e-4
+    bounds: tuple[float, float, float, float] | None = None
+    max_pixels: int = 40_000_000
+    latency: float | None = None
+    max_latency: float = 0.2
+    register: bool = True
+    search_px: int = 6
+    contact_tolerance: float = 2e-4
+    edge_taper: float = 4e-3
+    hold_frames: int = 150
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.resolution) and 1e-6 <= self.resolution <= 0.01):
+            raise ValueError(f"map resolution must be in [1e-6, 0.01] m per pixel, got {self.resolution}")
+        if self.bounds is not None:
+            b = [float(v) for v in self.bounds]
+            if len(b) != 4 or not all(math.isfinite(v) for v in b) or b[2] <= b[0] or b[3] <= b[1]:
+                raise ValueError(f"map bounds are (x_min, y_min, x_max, y_max) with max > min, got {self.bounds}")
+            pixels = (b[2] - b[0]) * (b[3] - b[1]) / self.resolution ** 2
+            if pixels > self.max_pixels:
+                raise ValueError(f"map bounds at {self.resolution} m/px need {pixels:.3g} pixels, more than "
+                                 f"max_pixels {self.max_pixels}")
+        if self.latency is not None and not (math.isfinite(self.latency) and 0 <= self.latency <= 1.0):
+            raise ValueError(f"latency must be in [0, 1] s or None (estimate it), got {self.latency}")
+        if not (0 < self.max_latency <= 1.0):
+            raise ValueError(f"max_latency must be in (0, 1] s, got {self.max_latency}")
+        if self.search_px < 1 or self.hold_frames < 1 or self.max_pixels < 10_000:
+            raise ValueError("search_px and hold_frames must be >= 1, max_pixels >= 10000")
+        if not (self.contact_tolerance > 0 and self.edge_taper >= 0):
+            raise ValueError("contact_tolerance must be > 0 and edge_taper >= 0")
+
+    def replace(self, **changes: Any) -> WorldMapConfig:
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class WorldMapImage:
+    """The map as files want it: grey (uint8) and alpha (255 mapped, 0 not), row 0 the top (largest y),
+    `origin` the world (x, y) of the lower-left pixel's corner (nav2 map_server's convention)."""
+
+    grey: np.ndarray
+    alpha: np.ndarray
+    resolution: float
+    origin: tuple[float, float]
+
+
+# ------------------------------------------------------------------------------------------------ canvas
+class WorldCanvas:
+    """Weighted sums on a grid of the world plane: layer 0 sum(w band), 1 sum(w field), 2 sum(w).
+    Cell (row r, column c) covers world x in origin_x + [c, c + 1] * res, y in origin_y + [r, r + 1] * res
+    (rows grow with y; images flip it). Grows geometrically unless fixed by `bounds`."""
+
+    def __init__(self, resolution: float, bounds: tuple[float, float, float, float] | None,
+                 max_pixels: int) -> None:
+        self.resolution = resolution
+        self.max_pixels = max_pixels
+        self.fixed = bounds is not None
+        if bounds is not None:
+            x0, y0, x1, y1 = bounds
+            cols, rows = math.ceil((x1 - x0) / resolution), math.ceil((y1 - y0) / resolution)
+            self.origin = (float(x0), float(y0))
+        else:
+            cols, rows = 0, 0
+            self.origin = (0.0, 0.0)
+        self.layers = np.zeros((rows, cols, 3), np.float32)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.layers.shape[0], self.layers.shape[1]
+
+    def to_grid(self, xy: np.ndarray) -> np.ndarray:
+        """World (x, y) -> fractional (column, row) where pixel centres are whole numbers."""
+        return (np.asarray(xy) - np.asarray(self.origin)) / self.resolution - 0.5
+
+    def ensure(self, c0: int, r0: int, c1: int, r1: int) -> tuple[int, int]:
+        """Make columns [c0, c1) and rows [r0, r1) exist (growing, unless fixed); returns the shift of
+        the old indices (the new index of old (0, 0)). Raises MemoryError past max_pixels."""
+        rows, cols = self.shape
+        if self.fixed or (rows and cols and c0 >= 0 and r0 >= 0 and c1 <= cols and r1 <= rows):
+            return 0, 0
+        if not rows or not cols:   # the first band: start around it with room to grow
+            pad = 256
+            new_c0, new_r0 = c0 - pad, r0 - pad
+            self.layers = np.zeros((r1 - r0 + 2 * pad, c1 - c0 + 2 * pad, 3), np.float32)
+            self.origin = (self.origin[0] + new_c0 * self.resolution, self.origin[1] + new_r0 * self.resolution)
+            return -new_c0, -new_r0
+        left = max(0, -c0)
+        right = max(0, c1 - cols)
+        bottom = max(0, -r0)
+        top = max(0, r1 - rows)
+        left, right = (max(left, cols // 2) if left else 0), (max(right, cols // 2) if right else 0)
+        bottom, top = (max(bottom, rows // 2) if bottom else 0), (max(top, rows // 2) if top else 0)
+        if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
+            left, right, bottom, top = max(0, -c0), max(0, c1 - cols), max(0, -r0), max(0, r1 - rows)
+            if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
+                raise MemoryError(f"the map would exceed {self.max_pixels} pixels at {self.resolution} m/px "
+                                  "(set bounds or a coarser resolution)")
+        self.layers = np.pad(self.layers, ((bottom, top), (left, right), (0, 0)))
+        self.origin = (self.origin[0] - left * self.resolution, self.origin[1] - bottom * self.resolution)
+        return left, bottom
+
+    def add(self, warped: np.ndarray, c0: int, r0: int) -> None:
+        """Add a (h, w, 3) patch with its top-left... lowest cell at (column c0, row r0), clipped to the map."""
+        rows, cols = self.shape
+        h, w = warped.shape[:2]
+        a0, b0 = max(r0, 0), max(c0, 0)
+        a1, b1 = min(r0 + h, rows), min(c0 + w, cols)
+        if a1 <= a0 or b1 <= b0:
+            return
+        view = self.layers[a0:a1, b0:b1]
+        cv2.add(view, warped[a0 - r0:a1 - r0, b0 - c0:b1 - c0], dst=view)
+
+    def value(self, level: float, min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+        """(flat-field-corrected map as float32 grey, weight), rows growing with y."""
+        band, flat, weight = self.layers[..., 0], self.layers[..., 1], self.layers[..., 2]
+        known = (weight > min_weight) & (flat > 1e-6)
+        grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
+        return grey, np.where(known, weight, 0.0).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------ latency
+@dataclass
+class _Window:
+    """Frames around one start or stop of the roll: (stamp ns, image position px), confident ones only."""
+
+    stamps: list[int] = field(default_factory=list)
+    positions: list[float] = field(default_factory=list)
+    latency: float | None = None   # its own estimate, s (None: it has no clear minimum)
+    residual_px: float | None = None
+    solved: bool = False
+
+
+class LatencyEstimator:
+    """The camera's latency from the data: the strip stitcher's image position P_k (rows the surface
+    moved in the band) must follow the arm: P_k = c + s Y(t_k - L), Y = the roll along the band's rows
+    from TF (m / m_per_row). At constant speed any L fits (c absorbs it), so the fit uses windows around
+    each start and stop of a roll, where the image and the arm must start (stop) together; L minimises
+    the sum of the windows' least-squares residuals (c and s fitted per window, s for the scale error of
+    a calibration), searched over [0, max_latency] at 1 ms, then refined by a parabola."""
+
+    def __init__(self, max_latency: float, m_per_row: float, before_s: float = 1.0, after_s: float = 1.0,
+                 max_residual_px: float = 0.3) -> None:
+        self.max_latency_ns = round(max_latency * 1e9)
+        self.m_per_row = m_per_row
+        self.before_ns, self.after_ns = round(before_s * 1e9), round(after_s * 1e9)
+        self.max_residual_px = max_residual_px   # a window the model does not fit (a slip, lost texture) is left out
+        self.windows: list[_Window] = []
+        self.estimate: float | None = None   # seconds
+        self.residual_px: float | None = None  # RMS of the fit at the estimate
+
+    def add_window(self, stamps: Sequence[int], positions: Sequence[float]) -> None:
+        if len(stamps) >= 8:
+            self.windows.append(_Window(list(stamps), list(positions)))
+
+    def _cost(self, windows: Sequence[_Window], latency_ns: int, poses: PoseLookup) -> float | None:
+        total, count = 0.0, 0
+        for window in windows:
+            stamps = np.asarray(window.stamps, np.int64) - latency_ns
+            transforms = poses(stamps)
+            if not np.isfinite(transforms).all():
+                return None
+            y = _roll_coordinate(transforms) / self.m_per_row
+            p = np.asarray(window.positions)
+            design = np.stack([np.ones_like(y), y], axis=1)
+            solution, *_ = np.linalg.lstsq(design, p, rcond=None)
+            residual = p - design @ solution
+            total += float(residual @ residual)
+            count += len(p)
+        return total / max(count, 1)
+
+    def _scan(self, window: _Window, candidates: NDArray[np.int64], poses: PoseLookup) -> tuple[np.ndarray, int] | None:
+        costs = np.array([np.nan if (c := self._cost([window], int(v), poses)) is None else c
+                          for v in candidates])
+        if not np.isfinite(costs).any():
+            return None
+        return costs, int(np.nanargmin(costs))
+
+    def _solve_window(self, window: _Window, poses: PoseLookup) -> float | None:
+        """The latency that fits one window best: a 5 ms grid over [0, max_latency], then 1 ms around its
+        best, then a parabola through the three best; None when the window says nothing (flat costs)."""
+        coarse = self._scan(window, np.arange(0, self.max_latency_ns + 1, 5_000_000), poses)
+        if coarse is None:
+            return None
+        costs, best = coarse
+        finite = costs[np.isfinite(costs)]
+        if finite.max() < 4.0 * max(finite.min(), 1e-6):   # no clear minimum: no start or stop in it
+            return None
+        centre = best * 5_000_000
+        candidates = np.arange(max(centre - 6_000_000, 0), min(centre + 6_000_000, self.max_latency_ns) + 1, 1_000_000)
+        fine = self._scan(window, candidates, poses)
+        if fine is None:
+            return None
+        costs, best = fine
+        offset = 0.0
+        if 0 < best < len(costs) - 1 and np.isfinite(costs[best - 1]) and np.isfinite(costs[best + 1]):
+            a, b, c = costs[best - 1], costs[best], costs[best + 1]
+            den = a - 2 * b + c
+            if den > 0:
+                offset = float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+        window.latency = max(float(candidates[best]) + offset * 1e6, 0.0) * 1e-9
+        window.residual_px = math.sqrt(max(float(costs[best]), 0.0))
+        return window.latency
+
+    def solve(self, poses: PoseLookup) -> float | None:
+        """The median of the windows' estimates (each window solved once): None until one has a clear
+        minimum. One bad window (a slip, a textureless start) does not move the median."""
+        for window in self.windows:
+            if window.latency is None and not window.solved:
+                window.solved = True
+                self._solve_window(window, poses)
+        good = [(w.latency, w.residual_px) for w in self.windows if w.latency is not None
+                and w.residual_px is not None and w.residual_px <= self.max_residual_px]
+        if not good:
+            return None
+        self.estimate = float(np.median([latency for latency, _ in good]))
+        self.residual_px = float(np.median([residual for _, residual in good]))
+        return self.estimate
+
+
+def _roll_coordinate(transforms: FloatArray) -> FloatArray:
+    """Where a point fixed in the world lies along the cylinder's y axis (the band's rows), m, at each
+    pose: the surface moves by this in the band as the roller rolls. The point: the first pose's origin."""
+    world_point = transforms[0, :3, 3]
+    rotations = transforms[:, :3, :3]
+    return np.einsum("nij,ni->nj", rotations, world_point[None, :] - transforms[:, :3, 3])[:, 1]
+
+
+# ------------------------------------------------------------------------------------------------ mapper
+@dataclass
+class _Frame:
+    stamp_ns: int
+    band: np.ndarray
+    field: np.ndarray | None
+    step: StitchStep
+
+
+@dataclass
+class MapStats:
+    """What a WorldMapper did (for diagnostics and reports)."""
+
+    frames: int = 0
+    mapped: int = 0
+    not_in_contact: int = 0
+    no_pose: int = 0
+    passes: int = 0
+    pass_corrections_px: list[tuple[float, float]] = field(default_factory=list)
+    latency_s: float | None = None
+    latency_estimated: bool = False
+    pressed_height: float | None = None
+
+
+class WorldMapper:
+    """See the module docstring. `poses` looks T_world_cylinder up at stamps (ns); `camera` is the
+    sensor's calibrated model (the band's metric geometry)."""
+
+    def __init__(self, camera: CameraModel, poses: PoseLookup, config: WorldMapConfig | None = None,
+                 stitcher: StitcherConfig | None = None) -> None:
+        self.config = config = config or WorldMapConfig()
+        self.camera = camera
+        self.poses = poses
+        self.strip = Stitcher((stitcher or StitcherConfig()).replace(history=1, live_map=False), camera=camera)
+        self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels)
+        self.stats = MapStats(latency_s=config.latency)
+        self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
+        self._pending: deque[_Frame] = deque()
+        self._pressed_height: float | None = None
+        self._heights: list[float] = []
+        self._weights: np.ndarray | None = None   # band weights (rows x columns)
+        self._level = 1.0
+        self._placements: list[tuple[np.ndarray, int, int, int, int]] = []   # (M, c0, r0, w, h) for finalise
+        # latency windows: the recent confident (stamp, position) of the strip stitcher, and roll events
+        self._recent: deque[tuple[int, float]] = deque(maxlen=600)
+        self._events: list[int] = []   # arm times of starts and stops (ns)
+        self._last_event_check = 0
+        self._previous_stamp: int | None = None
+        self._estimator: LatencyEstimator | None = None
+        # passes and their registration against the earlier ones
+        self._in_contact = False
+        self._last_contact_ns: int | None = None
+        self._prior: tuple[np.ndarray, np.ndarray, int, int] | None = None   # (value, weight, c-shift, r-shift)
+        self._pass_offsets: list[tuple[float, float, float]] = []   # (dx, dy, score) this pass
+        self._pass_delta = np.zeros(2)
+        self._pass_buffer: list[tuple[_Frame, np.ndarray]] = []
+
+    # -- public --------------------------------------------------------------------------------------
+    def push(self, image: np.ndarray, stamp_ns: int) -> None:
+        """Take one frame (any image the strip stitcher takes)."""
+        band = self.strip.band(image)
+        if self._weights is None:
+            self._setup()
+        step = self.strip.push_band(band, int(stamp_ns), self._arm_prior(int(stamp_ns)))
+        frame = _Frame(int(stamp_ns), band, self.strip.flat_field_now(), step)
+        self.stats.frames += 1
+        if step.confidence >= self.strip.config.min_confidence and not step.used_prior:
+            self._recent.append((frame.stamp_ns, step.position_px))
+        self._pending.append(frame)
+        self._drain(final=False)
+
+    def _arm_prior(self, stamp_ns: int) -> float | None:
+        """The arm's roll since the previous frame, band rows: the strip stitcher's motion prior, so a
+        roll that starts before the flat field is known is not taken for the static gel pattern standing
+        still. At the latency estimate, or the largest latency while there is none (a pose known by now)."""
+        previous, self._previous_stamp = self._previous_stamp, stamp_ns
+        if previous is None:
+            return None
+        latency = self._latency()
+        shift = round(self.config.max_latency * 1e9) if latency is None else latency
+        poses = self.poses(np.array([previous, stamp_ns], np.int64) - shift)
+        if not np.isfinite(poses).all():
+            return None
+        rows = _roll_coordinate(poses) / self.m_per_row
+        return float(rows[1] - rows[0])
+
+    def finalise(self) -> None:
+        """Place what is still waiting, and re-weight the whole map with the final flat field."""
+        self._drain(final=True)
+        self._flush_pass_buffer()
+        field = self.strip.flat_field_final()
+        if field is None or self._weights is None or not self._placements:
+            return
+        weighted = (field * self._weights).astype(np.float32)
+        self.canvas.layers[..., 1] = 0.0
+        for matrix, c0, r0, w, h in self._placements:
+            warped = cv2.warpAffine(weighted, matrix, (w, h), flags=cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            rows, cols = self.canvas.shape
+            a0, b0, a1, b1 = max(r0, 0), max(c0, 0), min(r0 + h, rows), min(c0 + w, cols)
+            if a1 > a0 and b1 > b0:
+                self.canvas.layers[a0:a1, b0:b1, 1] += warped[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
+        self._level = float(field.mean())
+
+    def map_image(self) -> WorldMapImage:
+        grey, weight = self.canvas.value(self._level)
+        image = np.clip(grey + 0.5, 0, 255).astype(np.uint8)[::-1]
+        alpha = np.where(weight[::-1] > 0.05, 255, 0).astype(np.uint8)
+        return WorldMapImage(np.ascontiguousarray(image), np.ascontiguousarray(alpha), self.config.resolution,
+                             self.canvas.origin)
+
+    def coverage(self, bounds: tuple[float, float, float, float]) -> float:
+        """Percent of the rectangle (x_min, y_min, x_max, y_max) mapped."""
+        _, weight = self.canvas.value(self._level)
+        c0, r0 = np.floor(self.canvas.to_grid(np.array(bounds[:2])) + 0.5).astype(int)
+        c1, r1 = np.floor(self.canvas.to_grid(np.array(bounds[2:])) + 0.5).astype(int)
+        total = max((c1 - c0) * (r1 - r0), 1)
+        rows, cols = weight.shape
+        window = weight[max(r0, 0):min(r1, rows), max(c0, 0):min(c1, cols)]
+        return 100.0 * float(np.count_nonzero(window > 0.05)) / total
+
+    # -- setup ---------------------------------------------------------------------------------------
+    def _setup(self) -> None:
+        sampler = self.strip.sampler
+        if sampler is None or sampler.mm_per_px is None or sampler.mm_per_px_cols is None or sampler.centre_u is None:
+            raise ValueError("a world map needs the camera model's rectified band (default method)")
+        self.m_per_row, self.m_per_col = sampler.mm_per_px * 1e-3, sampler.mm_per_px_cols * 1e-3
+        rows, cols = sampler.rows, sampler.cols
+        across = taper(rows)
+        x = (np.arange(cols) - sampler.centre_u) * self.m_per_col
+        half = 0.5 * self.camera.length
+        ends = np.clip((half - np.abs(x)) / max(self.config.edge_taper, 1e-9), 0.0, 1.0) if self.config.edge_taper else \
+            (np.abs(x) <= half).astype(np.float64)
+        ends = np.minimum(ends, np.clip(np.minimum(np.arange(cols) + 1, cols - np.arange(cols)) / 8.0, 0.0, 1.0))
+        self._weights = (across[:, None] * ends[None, :]).astype(np.float32)
+        self._estimator = LatencyEstimator(self.config.max_latency, self.m_per_row) if self.latency_ns is None else None
+
+    # -- the queue -----------------------------------------------------------------------------------
+    def _drain(self, final: bool) -> None:
+        self._find_events(final)
+        while self._pending:
+            frame = self._pending[0]
+            ready = self._ready(frame)
+            if ready is None and not final and len(self._pending) <= self.config.hold_frames:
+                return
+            self._pending.popleft()
+            if self._pressed_height is None:   # held too long and nothing rolled yet: a lead-in, not mapped
+                self.stats.not_in_contact += 1
+                continue
+            pose = ready if ready is not None else self._pose_now(frame)   # the end: with what is known
+            if pose is None:
+                self.stats.no_pose += 1
+                continue
+            self._take(frame, pose)
+
+    def _latency(self) -> int | None:
+        if self.latency_ns is not None:
+            return self.latency_ns
+        return None if self.stats.latency_s is None else round(self.stats.latency_s * 1e9)
+
+    def _pose_now(self, frame: _Frame) -> np.ndarray | None:
+        latency = self._latency() or 0
+        pose = self.poses(np.array([frame.stamp_ns - latency], np.int64))[0]
+        return pose if np.isfinite(pose).all() else None
+
+    def _ready(self, frame: _Frame) -> np.ndarray | None:
+        """The frame's pose when everything it needs is known, else None."""
+        if self._latency() is None or self._pressed_height is None:
+            return None
+        return self._pose_now(frame)
+
+    # -- contact, events and latency --------------------------------------------------------------------
+    def _find_events(self, final: bool) -> None:
+        """Learn the pressed height, find starts and stops of the roll, and (re)estimate the latency."""
+        if len(self._recent) < 3:
+            return
+        stamps = np.array([s for s, _ in self._recent], np.int64)
+        if stamps[-1] - self._last_event_check < 100_000_000 and not final:
+            return
+        self._last_event_check = int(stamps[-1])
+        positions = np.array([p for _, p in self._recent])
+        latency = self._latency() or 0
+        poses = self.poses(stamps - latency)
+        known = np.isfinite(poses).all(axis=(1, 2))
+        if known.sum() < 3:
+            return
+        stamps, positions, poses = stamps[known], positions[known], poses[known]
+        arm_rows = _roll_coordinate(poses) / self.m_per_row
+        dt = np.diff(stamps) * 1e-9
+        valid = dt > 0
+        if not valid.any():
+            return
+        arm_speed = np.zeros(len(stamps))
+        image_speed = np.zeros(len(stamps))
+        arm_speed[1:][valid] = np.diff(arm_rows)[valid] / dt[valid]
+        image_speed[1:][valid] = np.diff(positions)[valid] / dt[valid]
+        fast = np.abs(arm_speed) > 3.0   # rows per second: the arm rolls, not just settles
+        agree = fast & (np.abs(image_speed - arm_speed) < 0.3 * np.abs(arm_speed) + 1.0)
+        if agree.sum() >= 5:
+            heights = poses[agree, 2, 3]
+            self._pressed_height = float(np.median(heights))
+            self.stats.pressed_height = self._pressed_height
+        if self._estimator is None:
+            return
+        # starts and stops: the arm's speed along the rows crossing half its cruise, in agreeing stretches
+        moving = np.abs(arm_speed) > max(0.5 * np.percentile(np.abs(arm_speed), 90), 3.0)
+        windows = len(self._estimator.windows)
+        for k in np.flatnonzero(moving[1:] != moving[:-1]) + 1:
+            event = int(stamps[k])
+            if all(abs(event - e) > 300_000_000 for e in self._events):
+                self._events.append(event)
+                self._add_window(event)
+        added = len(self._estimator.windows) > windows
+        if self._estimator.windows and (added or (final and self.stats.latency_s is None)):
+            estimate = self._estimator.solve(self.poses)
+            if estimate is not None:
+                self.stats.latency_s = estimate
+                self.stats.latency_estimated = True
+
+    def _add_window(self, event_ns: int) -> None:
+        """The frames around a start or stop of the arm, the roller pressed (an arm moving above the
+        surface, between passes, starts and stops too: its frames do not follow it)."""
+        assert self._estimator is not None
+        lo = event_ns - self._estimator.before_ns
+        hi = event_ns + self._estimator.after_ns
+        window = [(s, p) for s, p in self._recent if lo <= s <= hi]
+        if not window or window[-1][0] < hi - 100_000_000 or self._pressed_height is None:
+            self._events.remove(event_ns)   # not enough known yet: found again later
+            return
+        stamps = np.array([s for s, _ in window], np.int64)
+        poses = self.poses(stamps - (self._latency() or 0))
+        heights = np.where(np.isfinite(poses).all(axis=(1, 2)), poses[:, 2, 3], np.inf)
+        pressed = heights <= self._pressed_height + self.config.contact_tolerance
+        if pressed.sum() < 20:
+            return   # the roller was not down around it: no window (and not looked at again)
+        positions = np.array([p for _, p in window])
+        self._estimator.add_window([int(v) for v in stamps[pressed]], [float(v) for v in positions[pressed]])
+
+    # -- placing -----------------------------------------------------------------------------------------
+    def _take(self, frame: _Frame, pose: np.ndarray) -> None:
+        height = float(pose[2, 3])
+        assert self._pressed_height is not None
+        if height > self._pressed_height + self.config.contact_tolerance:
+            self.stats.not_in_contact += 1
+            if self._in_contact:
+                self._end_pass()
+            return
+        if not self._in_contact:
+            self._start_pass()
+        self._in_contact = True
+        if self._prior is None or not self.config.register:
+            self._place(frame, pose, np.zeros(2))
+            return
+        offset = self._register(frame, pose)
+        if offset is not None:
+            self._pass_offsets.append(offset)
+        if len(self._pass_offsets) < 10 and len(self._pass_buffer) < 45:
+            self._pass_buffer.append((frame, pose))
+            return
+        self._update_delta()
+        self._flush_pass_buffer()
+        self._place(frame, pose, self._pass_delta)
+
+    def _start_pass(self) -> None:
+        self.stats.passes += 1
+        self._pass_offsets, self._pass_buffer, self._pass_delta = [], [], np.zeros(2)
+        if self.stats.passes > 1 and self.config.register:
+            value, weight = self.canvas.value(self._level)
+            self._prior = (value, weight, 0, 0)
+
+    def _end_pass(self) -> None:
+        self._flush_pass_buffer()
+        if self._prior is not None:
+            self.stats.pass_corrections_px.append((float(self._pass_delta[0]), float(self._pass_delta[1])))
+        self._in_contact = False
+
+    def _update_delta(self) -> None:
+        if self._pass_offsets:
+            offsets = np.array(self._pass_offsets)
+            self._pass_delta = np.median(offsets[:, :2], axis=0)
+
+    def _flush_pass_buffer(self) -> None:
+        if not self._pass_buffer:
+            return
+        self._update_delta()
+        buffered, self._pass_buffer = self._pass_buffer, []
+        for frame, pose in buffered:
+            self._place(frame, pose, self._pass_delta)
+
+    def _affine(self, pose: np.ndarray) -> np.ndarray:
+        """2x3: band (column j, row i) -> map grid (column, row), pixel centres on whole numbers."""
+        sampler = self.strip.sampler
+        assert sampler is not None and sampler.centre_u is not None
+        rows = sampler.rows
+        r = self.camera.radius
+        rotation, translation = pose[:3, :3], pose[:3, 3]
+        # cylinder point of band pixel (j, i): (x0 + j mc, y0 + i mr, r)
+        x0, y0 = -sampler.centre_u * self.m_per_col, -(rows - 1) / 2.0 * self.m_per_row
+        origin = rotation @ np.array([x0, y0, r]) + translation
+        dj, di = rotation[:, 0] * self.m_per_col, rotation[:, 1] * self.m_per_row
+        res = self.config.resolution
+        ox, oy = self.canvas.origin
+        return np.array([[dj[0] / res, di[0] / res, (origin[0] - ox) / res - 0.5],
+                         [dj[1] / res, di[1] / res, (origin[1] - oy) / res - 0.5]])
+
+    def _footprint(self, matrix: np.ndarray) -> tuple[int, int, int, int]:
+        sampler = self.strip.sampler
+        assert sampler is not None
+        corners = np.array([[0, 0, 1], [sampler.cols - 1, 0, 1], [0, sampler.rows - 1, 1],
+                            [sampler.cols - 1, sampler.rows - 1, 1]], np.float64) @ matrix.T
+        c0, r0 = np.floor(corners.min(axis=0)).astype(int) - 1
+        c1, r1 = np.ceil(corners.max(axis=0)).astype(int) + 2
+        return int(c0), int(r0), int(c1), int(r1)
+
+    def _warp(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """(the frame's [w band, w field, w] on the map grid, the affine used, column, row of its corner)."""
+        assert self._weights is not None
+        matrix = self._affine(pose)
+        matrix[:, 2] += delta
+        c0, r0, c1, r1 = self._footprint(matrix)
+        shift = self.canvas.ensure(c0, r0, c1, r1)
+        if shift != (0, 0):
+            matrix[:, 2] += shift
+            c0, r0, c1, r1 = c0 + shift[0], r0 + shift[1], c1 + shift[0], r1 + shift[1]
+            self._placements = [(m + np.array([[0, 0, shift[0]], [0, 0, shift[1]]]), a + shift[0], b + shift[1], w, h)
+                                for m, a, b, w, h in self._placements]
+            if self._prior is not None:
+                value, weight, cs, rs = self._prior
+                self._prior = (value, weight, cs + shift[0], rs + shift[1])
+        field = frame.field if frame.field is not None else np.full_like(frame.band, float(frame.band.mean()))
+        stack = cv2.merge([frame.band * self._weights, field * self._weights, self._weights])
+        local = matrix.copy()
+        local[:, 2] -= (c0, r0)
+        warped = cv2.warpAffine(stack, local, (c1 - c0, r1 - r0), flags=cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return warped, local, c0, r0
+
+    def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
+        warped, local, c0, r0 = self._warp(frame, pose, delta)
+        self.canvas.add(warped, c0, r0)
+        self._placements.append((local, c0, r0, warped.shape[1], warped.shape[0]))
+        self.stats.mapped += 1
+        if frame.field is not None:
+            self._level = float(frame.field.mean())
+
+    def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float] | None:
+        """This frame's offset (columns, rows, score) against the earlier passes where they overlap."""
+        assert self._prior is not None
+        warped, _, c0, r0 = self._warp(frame, pose, np.zeros(2))
+        value, weight, cs, rs = self._prior
+        h, w = warped.shape[:2]
+        pr0, pc0 = r0 - rs, c0 - cs
+        rows, cols = value.shape
+        if pr0 < 0 or pc0 < 0 or pr0 + h > rows or pc0 + w > cols:
+            return None
+        prior = value[pr0:pr0 + h, pc0:pc0 + w]
+        known = weight[pr0:pr0 + h, pc0:pc0 + w] > 0.3 * float(weight.max() or 1.0)
+        mine = warped[..., 2] > 0.3 * float(self._weights.max() if self._weights is not None else 1.0)
+        both = known & mine
+        s = self.config.search_px
+        ys, xs = np.nonzero(both)
+        if len(ys) < 400:
+            return None
+        a0, a1, b0, b1 = ys.min() + s, ys.max() - s, xs.min() + s, xs.max() - s
+        if a1 - a0 < 12 or b1 - b0 < 12 or not both[a0:a1, b0:b1].all():
+            # the overlap is not a full rectangle: use its largest all-covered rows band
+            return None
+        band = np.divide(warped[..., 0], warped[..., 1], out=np.zeros((h, w), np.float32), where=warped[..., 1] > 1e-6)
+        template = _highpass(band[a0:a1, b0:b1])
+        search = _highpass(prior[a0 - s:a1 + s, b0 - s:b1 + s])
+        scores = cv2.matchTemplate(search, template, cv2.TM_CCOEFF_NORMED)
+        _, best, _, (bx, by) = cv2.minMaxLoc(scores)
+        if best < 0.3 or not (0 < bx < scores.shape[1] - 1 and 0 < by < scores.shape[0] - 1):
+            return None
+        fx = _parabola_peak(scores[by, bx - 1:bx + 2])
+        fy = _parabola_peak(scores[by - 1:by + 2, bx])
+        # the template sits at (bx + fx - s, by + fy - s) in the prior: move the frame by that much
+        return float(bx + fx - s), float(by + fy - s), float(best)
+
+
+def _highpass(image: np.ndarray) -> np.ndarray:
+    image = image.astype(np.float32)
+    return cv2.subtract(image, cv2.GaussianBlur(image, (0, 0), 3.0))
+
+
+def _parabola_peak(values: np.ndarray) -> float:
+    a, b, c = (float(v) for v in values)
+    den = a - 2 * b + c
+    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den < 0 else 0.0
