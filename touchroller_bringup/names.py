@@ -34,6 +34,7 @@ MAP_METADATA = "map_metadata"    # nav_msgs/MapMetaData of the world map (resolu
 DIAGNOSTICS = "/diagnostics"     # absolute: shared by every node of the robot
 TF = "/tf"                       # absolute, as tf2 publishes them; frame ids carry the prefix instead
 TF_STATIC = "/tf_static"
+CLOCK = "/clock"                 # absolute: the simulated clock (use_sim_time), as ROS defines it
 
 # -- services (std_srvs/Trigger), under their node: `<namespace>/<node>/<service>` -------------
 START = "start"                  # sweep: roll now

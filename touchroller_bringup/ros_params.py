@@ -2,7 +2,7 @@
 
 `declare` wraps `Node.declare_parameter` with a ParameterDescriptor carrying the description and
 a floating-point or integer range, so `ros2 param describe` shows them and rclpy rejects values
-outside the range. `declare_geometry_parameters` declares DESIGN.md's camera/cylinder/extrinsics
+outside the range. `declare_geometry_parameters` declares docs/design.md's camera/cylinder/extrinsics
 parameters; `GeometryParameters` validates a whole update in the on-set callback (the model is
 rebuilt from the candidate values) and applies it in the post-set callback.
 """
@@ -72,7 +72,7 @@ def declare_frame_prefix(node: Node) -> str:
 
 
 def declare_geometry_parameters(node: Node, model: CameraModel | None = None) -> None:
-    """Declare DESIGN.md's geometry parameters with the model's values as defaults."""
+    """Declare docs/design.md's geometry parameters with the model's values as defaults."""
     defaults = (model or CameraModel()).to_params()
     for name, (description, lo, hi) in GEOMETRY_PARAMETERS.items():
         declare(node, name, defaults[name], description, min=lo, max=hi)

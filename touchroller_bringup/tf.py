@@ -19,12 +19,13 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from touchroller_bringup import names
+from touchroller_bringup.image_conversion import stamp_to_ns
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.transforms import Transform, TransformBuffer, TransformError
 
 TF_TOPIC = names.TF
 TF_STATIC_TOPIC = names.TF_STATIC
-# DESIGN.md's frame names (before a node's frame prefix); the names live in touchroller_bringup.names
+# docs/design.md's frame names (before a node's frame prefix); the names live in touchroller_bringup.names
 WORLD_FRAME = names.BASE_FRAME          # the robot's base; the world map lives here (parameter world_frame)
 TOOL_FRAME = names.TOOL_FRAME           # the arm's flange (UR convention)
 CYLINDER_FRAME = names.CYLINDER_FRAME
@@ -66,13 +67,12 @@ def to_msg(parent: str, child: str, stamp_ns: int, transform: Transform) -> Any:
 def from_msg(msg: Any) -> tuple[str, str, int, Transform]:
     """(parent, child, stamp_ns, T_parent_child) of a geometry_msgs/TransformStamped."""
     t, q = msg.transform.translation, msg.transform.rotation
-    stamp = msg.header.stamp
-    return (msg.header.frame_id, msg.child_frame_id, stamp.sec * 1_000_000_000 + stamp.nanosec,
+    return (msg.header.frame_id, msg.child_frame_id, stamp_to_ns(msg.header.stamp),
             Transform((t.x, t.y, t.z), (q.x, q.y, q.z, q.w)))
 
 
 def camera_in_cylinder(model: CameraModel) -> Transform:
-    """T_cylinder_camera of DESIGN.md's geometry: the optical frame (z along the view) is the cylinder
+    """T_cylinder_camera of docs/design.md's geometry: the optical frame (z along the view) is the cylinder
     frame rotated by theta about x and shifted by d along z: p_cam = R_x(theta) p_cyl + (0, 0, d)."""
     import numpy as np
 

@@ -859,7 +859,7 @@ def calibration_sigma(intrinsics: IntrinsicsResult | None, extrinsics: Extrinsic
 
 def write_calibration(path: str, camera: CameraModel, intrinsics: IntrinsicsResult | None = None,
                       extrinsics: ExtrinsicsResult | None = None, keep: Mapping[str, Any] | None = None) -> None:
-    """The DESIGN.md parameters file, plus `calibration.sigma.*` and RMS figures as extra parameters
+    """The docs/design.md parameters file, plus `calibration.sigma.*` and RMS figures as extra parameters
     (`keep`: extra parameters of an earlier step to carry over, overridden by this step's)."""
     extra: dict[str, Any] = dict(keep or {})
     extra.update({f"calibration.sigma.{k}": float(v) for k, v in calibration_sigma(intrinsics, extrinsics).items()})

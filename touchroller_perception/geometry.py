@@ -2,7 +2,7 @@
 
 Cylinder frame `touchroller_cylinder`: x along the axis, z down, origin at the centre; the
 membrane is y^2 + z^2 = r^2. The camera is a pinhole rotated by `theta` about x and shifted by
-`d` along z (DESIGN.md):
+`d` along z (docs/design.md):
 
     x_c = X,  y_c = Y cos(theta) + Z sin(theta),  z_c = -Y sin(theta) + Z cos(theta) + d
     u = fx * distort(x_c / z_c, y_c / z_c)_x + cx,  v = fy * distort(...)_y + cy
@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-#: Parameter names of DESIGN.md, in the order `to_params` writes them.
+#: Parameter names of docs/design.md, in the order `to_params` writes them.
 PARAMETER_NAMES = (
     "camera.fx", "camera.fy", "camera.cx", "camera.cy", "camera.distortion",
     "camera.width", "camera.height",
@@ -85,7 +85,7 @@ class CameraModel:
     # ----------------------------------------------------------------- parameters and files
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> CameraModel:
-        """Build from DESIGN.md parameter names (`camera.fx`, ...); absent names keep defaults."""
+        """Build from docs/design.md parameter names (`camera.fx`, ...); absent names keep defaults."""
         flat = _flatten(params)
         kwargs = {field: flat[name] for name, field in _FIELD_OF_PARAMETER.items() if name in flat}
         if "distortion" in kwargs:

@@ -1,6 +1,6 @@
 """Pixel contacts -> points on the cylinder, with covariance.
 
-`localise` back-projects detected pixel centres through the calibrated `CameraModel` (DESIGN.md
+`localise` back-projects detected pixel centres through the calibrated `CameraModel` (docs/design.md
 Eq. bigeq) onto the membrane and attaches a first-order covariance (pixel noise plus, if given,
 calibration uncertainty). `SurfaceLookup` tabulates the back-projection of every pixel once per
 camera so a live node pays microseconds per contact. The paper's Table II evaluation lives in

@@ -1,4 +1,4 @@
-"""The camera model of DESIGN.md: projection, back-projection and the hard cases."""
+"""The camera model of docs/design.md: projection, back-projection and the hard cases."""
 from __future__ import annotations
 
 import math

@@ -1,7 +1,7 @@
 """`touchroller calibrate intrinsics|extrinsics INPUT --out CAL.yaml`: the paper's two-step calibration.
 
 INPUT is a rosbag2 recording (topic `/touchroller/image_raw` unless `--topic`), an image folder
-(png/jpg/bmp/tif, sorted by name) or one image file. The output is a DESIGN.md parameters file
+(png/jpg/bmp/tif, sorted by name) or one image file. The output is a docs/design.md parameters file
 (`/**: ros__parameters:`) that `touchroller contacts --params` and the nodes read.
 
     touchroller calibrate intrinsics chessboard_bag --out cal.yaml

@@ -1,6 +1,6 @@
 """`touchroller contacts BAG --out contacts.csv`: the contacts in a recording, one CSV row per contact.
 
-Columns: stamp_ns,u,v,x,y,z (DESIGN.md; x y z in metres in touchroller_cylinder, `nan` without
+Columns: stamp_ns,u,v,x,y,z (docs/design.md; x y z in metres in touchroller_cylinder, `nan` without
 `--params`), then the contact's score (peak change in noise std), area (px^2), ellipse (major_axis,
 minor_axis in px, angle in rad from +u towards +v), confidence (0..1), and the covariance diagonal
 var_x, var_y, var_z (m^2, from `--pixel-sigma` through the camera model). The no-contact reference
@@ -16,7 +16,7 @@ from pathlib import Path
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 
-POINT_COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z")          # DESIGN.md, first
+POINT_COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z")          # docs/design.md, first
 CONTACT_COLUMNS = ("score", "area", "major_axis", "minor_axis", "angle", "confidence")
 COLUMNS = POINT_COLUMNS + CONTACT_COLUMNS + ("var_x", "var_y", "var_z")
 

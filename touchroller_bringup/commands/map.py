@@ -1,4 +1,4 @@
-"""`touchroller map BAG --out map.png`: the stitched tactile map of a recording (DESIGN.md).
+"""`touchroller map BAG --out map.png`: the stitched tactile map of a recording (docs/design.md).
 
 The map is grey, at camera pixel scale (rows along the roll), or resampled to millimetres with
 `--metric`. `--method paper` reproduces the paper's integer MAE search for comparison. One pass over

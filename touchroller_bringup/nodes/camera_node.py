@@ -118,7 +118,7 @@ class CameraNode(Node):
                                               qos_overriding_options=overrides)
         self.tf_listener: TransformListener | None = None   # source=sim with sim.motion=arm: the arm's pose
         self._listen_to_tf_if_on_arm()
-        self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: camera", hardware_id="")
+        self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name(), hardware_id="")
         self.diagnostics.add(self._diagnostic_status)
         if autostart:
             self.start()

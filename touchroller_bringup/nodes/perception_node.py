@@ -21,7 +21,7 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   sequence gaps (`frames_dropped`, mostly stale frames skipped while busy) and, of those, the ones DDS
   reports lost in transport (`frames_lost_in_transport`).
 
-Geometry parameters (DESIGN.md names) are declared by `touchroller_bringup.ros_params` and can be
+Geometry parameters (docs/design.md names) are declared by `touchroller_bringup.ros_params` and can be
 set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`).
 """
 from __future__ import annotations
@@ -174,7 +174,7 @@ class PerceptionNode(Node):
         self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
         self.tf = TransformPublisher(self)
         self._publish_camera_frame()
-        self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: perception")
+        self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name())
         self.diagnostics.add(self._diagnostic_status)
 
     # ------------------------------------------------------------------ parameters
@@ -296,7 +296,7 @@ class PerceptionNode(Node):
     def _on_image(self, msg: Image) -> None:
         start = time.perf_counter()
         self.received += 1
-        self.last_stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        self.last_stamp_ns = stamp_to_ns(msg.header.stamp)
         self.frames.tick()
         try:
             image = image_to_array(msg)

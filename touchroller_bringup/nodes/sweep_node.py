@@ -246,7 +246,7 @@ class SweepNode(Node):
             rest, _ = simulated_arm_origin(self.settings["sweep.start_pose"], float(self.settings["sweep.clearance"]))
             rate_hz = float(self.get_parameter("sweep.publish_rate").value)
             self.sim_clock = SimClock(rate_hz, rate=float(self.get_parameter("sim.rate").value))
-            self._clock_pub = self.create_publisher(Clock, "/clock", 10)
+            self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10)
             return SimulatedArm(rest, limits=self.limits, clock=self.sim_clock.now)
         from touchroller_driver.ur5 import UR5Arm
 

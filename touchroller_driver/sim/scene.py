@@ -203,7 +203,7 @@ def _with_defaults(data: dict[str, Any]) -> dict[str, Any]:
 
 
 def _flatten_camera(camera: Mapping[str, Any]) -> dict[str, Any]:
-    """Accept DESIGN.md names (`camera.fx`, `extrinsics.theta`) or nested mappings."""
+    """Accept docs/design.md names (`camera.fx`, `extrinsics.theta`) or nested mappings."""
     flat: dict[str, Any] = {}
     for key, value in camera.items():
         if isinstance(value, Mapping):
@@ -215,7 +215,7 @@ def _flatten_camera(camera: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _camera_names(given: Mapping[str, Any]) -> dict[str, Any]:
-    """DESIGN.md parameter names for a camera block; bare field names (fx, theta, ...) are accepted."""
+    """docs/design.md parameter names for a camera block; bare field names (fx, theta, ...) are accepted."""
     from touchroller_perception.geometry import PARAMETER_NAMES
 
     by_field = {name.split(".")[-1]: name for name in PARAMETER_NAMES}

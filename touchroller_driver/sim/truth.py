@@ -1,6 +1,6 @@
 """Ground truth files written next to a simulated recording.
 
-BAG/ground_truth.yaml: scene (after variants/overrides), seed, true and "paper" cameras (DESIGN.md
+BAG/ground_truth.yaml: scene (after variants/overrides), seed, true and "paper" cameras (docs/design.md
 parameter names), per-frame truth (stamp, time, roller state and pose, contacts with 3D points in
 `touchroller_cylinder` and pixels, board poses), dropped frames, and scene-specific extras.
 BAG/camera_truth.yaml and BAG/camera_paper.yaml: ROS 2 params files for `--params`.
