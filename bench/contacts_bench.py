@@ -116,10 +116,12 @@ def to_markdown(result: dict[str, Any]) -> str:
     for r in result["speed"]:
         lines.append(f"| {r['workload']} | {r['median_ms']:.3f} | {r['p90_ms']:.3f} | {r['max_ms']:.3f} | "
                      f"{r['frames_timed']} | {r['contacts_per_frame']:.2f} |")
-    lines += ["", "Goal: detection + localisation <= 1 ms median per 640x480 frame on one core (default colour detector):"]
+    lines += ["", "Goal: detection + localisation <= 1 ms median per 640x480 frame on one core "
+                  "(default colour detector):"]
     for r in result["speed"]:
         verdict = "met" if r["median_ms"] <= 1.0 else "NOT met"
-        lines.append(f"- {r['workload']}: **{verdict}** ({r['median_ms']:.3f} ms, {r['contacts_per_frame']:.1f} blobs/frame)")
+        lines.append(f"- {r['workload']}: **{verdict}** ({r['median_ms']:.3f} ms, "
+                     f"{r['contacts_per_frame']:.1f} blobs/frame)")
     lines += ["", "The rolling-over-fabric frames are a stress case, not a contact-localisation workload: the "
               "roller is in contact from the first frame, so the reference holds the band and the moving "
               "texture shows up as many blobs (up to ~24 per frame). All blobs of a frame are refined at "
@@ -128,7 +130,8 @@ def to_markdown(result: dict[str, Any]) -> str:
               f"### Accuracy against time on the tap frames ({result['tap_frames']}, exact calibration)", "",
               "| detector setting | median ms | mean error mm | contacts found / missed |", "|---|---|---|---|"]
     for r in result["settings"]:
-        lines.append(f"| {r['setting']} | {r['median_ms']:.3f} | {r['error_mm']:.4f} | {r['matched']} / {r['missed']} |")
+        lines.append(f"| {r['setting']} | {r['median_ms']:.3f} | {r['error_mm']:.4f} | "
+                     f"{r['matched']} / {r['missed']} |")
     return "\n".join(lines) + "\n"
 
 

@@ -120,12 +120,14 @@ def to_markdown(result: dict[str, Any]) -> str:
               f"({mini['median_px']:.2f} px against the hand labels; see the label scatter below)",
               f"- no false contact: **{'met' if mini['false_contacts'] == 0 else 'NOT met'}** "
               f"({mini['false_contacts']})",
-              f"- <= 1 ms per frame: **{'met' if mini['median_ms'] <= 1.0 else 'NOT met'}** ({mini['median_ms']:.3f} ms)",
+              f"- <= 1 ms per frame: **{'met' if mini['median_ms'] <= 1.0 else 'NOT met'}** "
+              f"({mini['median_ms']:.3f} ms)",
               "", "### How precise are the labels?", "",
               "The Mini's presses were made in two runs, each at one indenter position along u. Within a run our "
               "centres keep u to a fraction of a pixel; the hand-placed labels of the same presses scatter by "
               "several pixels, which puts a floor under any detector's error against them:", "",
-              "| presses | std of our u, px | std of the labels' u, px | mean u ours / labels, px |", "|---|---|---|---|"]
+              "| presses | std of our u, px | std of the labels' u, px | mean u ours / labels, px |",
+              "|---|---|---|---|"]
     for r in result["label_scatter"]:
         lines.append(f"| {r['presses']} | {r['ours_u_std']:.2f} | {r['labels_u_std']:.2f} | "
                      f"{r['ours_u_mean']:.1f} / {r['labels_u_mean']:.1f} |")
@@ -135,7 +137,8 @@ def to_markdown(result: dict[str, Any]) -> str:
               "|---|---|---|---|---|---|---|---|"]
     for s in result["sensors"]:
         for p in s["methods"][0]["per_press"]:
-            lines.append(f"| {s['sensor']} | {p['index']} | ({p['label_u']:.0f}, {p['label_v']:.0f}), {p['radius']:.0f} "
+            lines.append(f"| {s['sensor']} | {p['index']} | "
+                         f"({p['label_u']:.0f}, {p['label_v']:.0f}), {p['radius']:.0f} "
                          f"| ({p['u']:.1f}, {p['v']:.1f}) | {p['error_px']:.2f} | {p['false']} | {p['score']:.0f} "
                          f"| {p['area']:.0f} |")
     return "\n".join(lines) + "\n"
@@ -155,7 +158,8 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
         for m, colour in zip(s["methods"], ("tab:blue", "tab:red"), strict=True):
             rows = m["per_press"]
             ax.plot([p["index"] for p in rows], [p["error_px"] for p in rows], "o", ms=4, color=colour,
-                    label=f"{m['method']}: median {m['all']['median_px']:.1f} px, {m['all']['found']}/{m['all']['presses']}"
+                    label=f"{m['method']}: median {m['all']['median_px']:.1f} px, "
+                          f"{m['all']['found']}/{m['all']['presses']}"
                           f" found, {m['all']['false_contacts']} false")
         ax.axhline(5.0, color="k", lw=0.8, ls="--", label="goal: median 5 px")
         ax.set_yscale("log")

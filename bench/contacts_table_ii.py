@@ -126,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{summary['exact']['max_cell_mean_mm']:.4f} mm (goal <= 0.25 mm); wrote {out}")
     for name in ("error_sources", "our_calibration"):
         if name in summary:
-            print(f"{name}: mean {summary[name]['mean_mm']:.3f} mm, worst cell {summary[name]['max_cell_mean_mm']:.3f} mm"
+            print(f"{name}: mean {summary[name]['mean_mm']:.3f} mm, "
+                  f"worst cell {summary[name]['max_cell_mean_mm']:.3f} mm"
                   + (f" (worst cell of a single seed {summary[name]['worst_seed_max_cell_mean_mm']:.3f} mm)"
                      if "worst_seed_max_cell_mean_mm" in summary[name] else ""))
     return 0

@@ -208,14 +208,16 @@ class Graph:
             ros_args = [arg for name, value in params.items() for arg in ("-p", f"{name}:={value}")]
             code = (f"{perception_prelude}\nfrom touchroller_bringup.nodes.perception_node import main\n"
                     f"main(['--ros-args', *{ros_args!r}])")
+            verbose = bool(os.environ.get("DDS_BENCH_VERBOSE"))
             self.child = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=dict(os.environ),
-                                          stdout=subprocess.DEVNULL, stderr=None if os.environ.get("DDS_BENCH_VERBOSE") else subprocess.DEVNULL)
+                                          stdout=subprocess.DEVNULL, stderr=None if verbose else subprocess.DEVNULL)
         else:
             exec(perception_prelude, {})  # the same code the child process would run (e.g. a slow-down)
             from touchroller_bringup.nodes.perception_node import PerceptionNode
 
             self.perception = PerceptionNode(
-                context=self.context, parameter_overrides=[Parameter(name, value=value) for name, value in params.items()])
+                context=self.context,
+                parameter_overrides=[Parameter(name, value=value) for name, value in params.items()])
         nodes = [self.probe_node] + ([self.perception] if self.perception is not None else [])
         for node in nodes:
             executor = SingleThreadedExecutor(context=self.context)
@@ -485,7 +487,8 @@ SLOW_DELAY_MS = 50.0
 def run(quick: bool = False) -> dict:
     """Latency, losses and skips at 30/60 Hz, and the slow-consumer check (report section, issue 7).
 
-    quick: the launch default (shm_udp), perception in its own process, 2 s per rate, slow consumer 2.5 s (~20 s in all);
+    quick: the launch default (shm_udp), perception in its own process, 2 s per rate, slow consumer 2.5 s
+    (~20 s in all);
     full: the three transports x 1 and 2 processes x 30/60 Hz, 8 s each, slow consumer in 1 and 2 processes.
     """
     started = time.perf_counter()
@@ -571,7 +574,8 @@ def to_markdown(result: dict) -> str:
         f"{os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')} over loopback, 640x480 bgr8, "
         f"{'/'.join(f'{s:g}' for s in seconds)} s per run, perception map.publish_rate {result['map_rate']:g} Hz.",
         "",
-        "Latency = contact received by a probe node − the image's capture stamp. 'shm_udp' = `config/fastdds_shm_udp.xml` "
+        "Latency = contact received by a probe node − the image's capture stamp. "
+        "'shm_udp' = `config/fastdds_shm_udp.xml` "
         "(the launch files' default: shared memory with segments that hold a whole image, plus UDP for other hosts); "
         "'shm' = `config/fastdds_shm.xml` (the same without UDP); 'default' = Fast DDS built-in transports. With one "
         "process all nodes share an interpreter (as `touchroller scan`); with two the perception node runs in its "
@@ -579,7 +583,8 @@ def to_markdown(result: dict) -> str:
         "after capture (a real camera would have replaced them). 'lost in transport' = samples DDS reported lost "
         "to the perception node's subscription; 'skipped stale' = frames replaced in its keep-last history by a "
         "newer frame before it took them (by design when the node is slower than the camera); in brackets, the "
-        "frames missing (lost or skipped) where the next frame arrived while the previous callback still ran. 'consumer busy' = share of "
+        "frames missing (lost or skipped) where the next frame arrived while the previous callback still ran. "
+        "'consumer busy' = share of "
         "the run the image callback was running. Goals (issue 7): p50 ≤ 5 ms and p99 ≤ 15 ms at 30 Hz; no drops "
         "at 60 Hz (a drop = lost in transport or late at the camera; a stale frame skipped by a busy node is not).",
         "",

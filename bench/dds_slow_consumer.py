@@ -109,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Camera at 60 Hz for {seconds:g} s; perception image callback slowed by {args.delay_ms:g} ms; "
         f"transport {args.transport}.",
         "",
-        f"Pass: latency max <= {bound_ms(args.delay_ms):.0f} ms (4 x delay + a frame period; ideal is 2 x delay + a period) and "
+        f"Pass: latency max <= {bound_ms(args.delay_ms):.0f} ms "
+        "(4 x delay + a frame period; ideal is 2 x delay + a period) and "
         "the last second's median no more than one delay above the first second's. Queueing would instead add "
         "~0.67 s of age per second of run.",
         "",

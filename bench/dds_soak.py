@@ -39,7 +39,8 @@ def _trace_growth(path={path!r}, warmup_s={warmup_s}, every_s={every_s}):
         lines = [f"{{_time.monotonic() - started:.0f}} s after the warm-up snapshot; traced now "
                  f"{{_tm.get_traced_memory()[0] / 1e6:.2f}} MB"]
         for stat in stats[:12]:
-            lines.append(f"{{stat.size_diff / 1e6:+.4f}} MB in {{stat.count_diff:+d}} blocks (now {{stat.size / 1e6:.3f}} MB):")
+            lines.append(f"{{stat.size_diff / 1e6:+.4f}} MB in {{stat.count_diff:+d}} blocks "
+                         f"(now {{stat.size / 1e6:.3f}} MB):")
             lines += ["    " + str(frame) for frame in reversed(stat.traceback)]
         with open(path, "w") as out:
             out.write("\\n".join(lines) + "\\n")
@@ -143,8 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     details = []
     for map_rate, processes in [(m, p) for m in args.map_rates for p in args.processes]:
         result = subprocess.run(
-            [sys.executable, "-m", __spec__.name, "--child", "--processes", str(processes), "--transport", args.transport,
-             "--frames", str(frames), "--fps", str(args.fps), "--map-rates", str(map_rate), "--warmup", str(warmup),
+            [sys.executable, "-m", __spec__.name, "--child", "--processes", str(processes),
+             "--transport", args.transport, "--frames", str(frames), "--fps", str(args.fps),
+             "--map-rates", str(map_rate), "--warmup", str(warmup),
              *(["--tracemalloc", f"{args.tracemalloc}.map{map_rate:g}.p{processes}"] if args.tracemalloc else [])],
             capture_output=True, text=True, timeout=3600, cwd=common.ROOT)
         line = next((x for x in reversed(result.stdout.splitlines()) if x.startswith("{")), None)
@@ -158,14 +160,16 @@ def main(argv: list[str] | None = None) -> int:
         for name, samples in series.items():
             start, end, slope = growth(samples, warmup)
             ok = slope < 0.1
-            lines.append(f"| {map_rate:g} | {processes} | {name} | {r['frames']} | {r['contacts']} | {start:.1f} | {end:.1f} | "
+            lines.append(f"| {map_rate:g} | {processes} | {name} | {r['frames']} | {r['contacts']} | "
+                         f"{start:.1f} | {end:.1f} | "
                          f"{slope:+.4f} | {'met' if ok else 'NOT met'} |")
             print(lines[-1], flush=True)
         details.append(f"- map rate {map_rate:g}, {processes} process(es): {r['seconds']:.0f} s; perception drops "
                        f"{r['perception_dropped']} of {r['perception_received']} received; latency of the last "
-                       f"2000 contacts p50 {r['recent_latency']['p50']:.2f} ms, p99 {r['recent_latency']['p99']:.2f} ms; "
-                       f"RSS samples (frames: MB) "
-                       + ", ".join(f"{f}: {m:.1f}" + (f"/{c:.1f}" if c is not None else "") for f, m, c in r["samples"]))
+                       f"2000 contacts p50 {r['recent_latency']['p50']:.2f} ms, "
+                       f"p99 {r['recent_latency']['p99']:.2f} ms; RSS samples (frames: MB) "
+                       + ", ".join(f"{f}: {m:.1f}" + (f"/{c:.1f}" if c is not None else "")
+                                   for f, m, c in r["samples"]))
     lines += ["", *details, ""]
     out = Path(args.out) if args.out else common.results_path("dds_soak", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)

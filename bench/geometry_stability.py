@@ -78,7 +78,8 @@ def run(quick: bool = False) -> dict:
 def to_markdown(result: dict) -> str:
     lines = [
         provenance_markdown(result["provenance"]), "",
-        "| case | valid pixels | worst px→3D→px (px) | worst 3D→px→3D (m) | off the cylinder (m) | invalid pixels return | µs/pixel |",
+        "| case | valid pixels | worst px→3D→px (px) | worst 3D→px→3D (m) | off the cylinder (m) "
+        "| invalid pixels return | µs/pixel |",
         "|---|---|---|---|---|---|---|",
     ]
     for c in result["cases"]:

@@ -341,9 +341,11 @@ def to_markdown(result: dict[str, Any]) -> str:
         pt = PAPER_TABLE_I[variant]
         paper_cell = f"{pt[0]:.3f} / {pt[1]:.2f} / {pt[2]:.2f}" if r["method"] == "paper" else ""
         lines.append(
-            f"| {variant} ({r['duration']:.0f} s) | {r['method']} | {_pm(r['ssim'], '{:.3f}')} | {_pm(r['psnr'], '{:.1f}')} "
+            f"| {variant} ({r['duration']:.0f} s) | {r['method']} | {_pm(r['ssim'], '{:.3f}')} "
+            f"| {_pm(r['psnr'], '{:.1f}')} "
             f"| {_pm(r['mae_percent'], '{:.1f}')} | {_pm(r['length_error_percent'], '{:+.2f}')} "
-            f"| {_pm(r['drift_percent'], '{:.2f}')} | {_pm(r['paper_ssim'], '{:.3f}')} / {_pm(r['paper_psnr'], '{:.1f}')}"
+            f"| {_pm(r['drift_percent'], '{:.2f}')} | {_pm(r['paper_ssim'], '{:.3f}')} "
+            f"/ {_pm(r['paper_psnr'], '{:.1f}')}"
             f" / {_pm(r['paper_mae_percent'], '{:.1f}')} | {paper_cell} | {_pm(r['ms_per_frame'], '{:.2f}')} |")
     lines += ["", "Δy histograms (the paper's figure): `map_dy_histograms.png`.", "",
               f"### Methods and settings: quality against compute ({result['sweep_duration']:.0f} s scan, seed 0)", "",
@@ -378,7 +380,8 @@ def to_markdown(result: dict[str, Any]) -> str:
     ours = [r for r in result["table_i"].values() if r["method"] == "default"]
     worst_ssim = min(min(r["ssim"]) for r in ours)
     worst_len = max(max(abs(v) for v in r["length_error_percent"]) for r in ours)
-    goals.append(f"- SSIM vs ground truth >= 0.85 at all three speeds: **{'met' if worst_ssim >= 0.85 else 'NOT met'}** "
+    goals.append("- SSIM vs ground truth >= 0.85 at all three speeds: "
+                 f"**{'met' if worst_ssim >= 0.85 else 'NOT met'}** "
                  f"(lowest {worst_ssim:.3f})")
     goals.append(f"- Length (drift) error <= 1 %: **{'met' if worst_len <= 1.0 else 'NOT met'}** (largest |error| "
                  f"{worst_len:.2f} %)")

@@ -163,7 +163,8 @@ def score(presses: PressSet, config: DetectorConfig | None = None, indices: Sequ
         results.append(PressResult(int(i), contact, error, false, seconds))
     if repeats > 0:
         timer = _detector(presses, config)
-        results = [dataclasses.replace(r, seconds=_best_time(timer, presses.presses[r.index], repeats)) for r in results]
+        results = [dataclasses.replace(r, seconds=_best_time(timer, presses.presses[r.index], repeats))
+                   for r in results]
     return Scorecard(presses.sensor, config.method, presses.mm_per_pixel, tuple(results))
 
 

@@ -95,7 +95,8 @@ def to_markdown(result: dict) -> str:
     status = "met" if default["fps"] >= result["goal_fps"] else "NOT met"
     lines = [
         provenance_markdown(result["provenance"]) + "  ",
-        f"OpenCV pinned to {result['cv2_threads']} thread(s), BLAS to 1. Per-frame minimum over repeats is reported to reduce scheduling noise. "
+        f"OpenCV pinned to {result['cv2_threads']} thread(s), BLAS to 1. "
+        "Per-frame minimum over repeats is reported to reduce scheduling noise. "
         f"Load average before/after: {result['loadavg_before_after'][0]} / {result['loadavg_before_after'][1]}.",
         "",
         f"Scene {result['scene']} ({result['image']}), the scene's own 10 s roll; each row renders every "

@@ -118,7 +118,8 @@ def run(quick: bool = False) -> dict[str, Any]:
                  "realistic": realism(presses, realistic, presses.held_out),
                  "ideal": realism(presses, ideal, presses.held_out), "accuracy": accuracy}
         sensors.append(entry)
-        print(f"{sensor:14s} realistic corr {entry['realistic']['correlation']:.3f} rms {entry['realistic']['rms']:.1f}  "
+        print(f"{sensor:14s} realistic corr {entry['realistic']['correlation']:.3f} "
+              f"rms {entry['realistic']['rms']:.1f}  "
               f"ideal corr {entry['ideal']['correlation']:.3f} rms {entry['ideal']['rms']:.1f}", flush=True)
     return {"sensors": sensors, "random_presses": count, "quick": quick, "provenance": stamp}
 
@@ -126,17 +127,20 @@ def run(quick: bool = False) -> dict[str, Any]:
 def to_markdown(result: dict[str, Any]) -> str:
     lines = [provenance_markdown(result["provenance"]), "",
              "### Realism: simulated against real presses (held-out presses, same place and radius)", "",
-             "| sensor | appearance | difference-image correlation, median (worst) | RMS per-pixel error, grey levels |",
+             "| sensor | appearance | difference-image correlation, median (worst) "
+             "| RMS per-pixel error, grey levels |",
              "|---|---|---|---|"]
     for s in result["sensors"]:
         for look in ("ideal", "realistic"):
             r = s[look]
-            lines.append(f"| {s['sensor']} | {look} | {r['correlation']:.3f} ({r['correlation_min']:.3f}) | {r['rms']:.1f} |")
+            lines.append(f"| {s['sensor']} | {look} | {r['correlation']:.3f} ({r['correlation_min']:.3f}) "
+                         f"| {r['rms']:.1f} |")
     lines += ["", "Fitted on the even presses of each sensor:", "",
               "| sensor | presses fitted / compared | ball radius / contact radius | halo / contact radius | "
               "response fit RMS | noise std B, G, R | noise correlation length px |", "|---|---|---|---|---|---|---|"]
     for s in result["sensors"]:
-        lines.append(f"| {s['sensor']} | {s['fitted_on']} / {s['compared_on']} | {s['ball_ratio']:.1f} | {s['halo']:.2f} | "
+        lines.append(f"| {s['sensor']} | {s['fitted_on']} / {s['compared_on']} | {s['ball_ratio']:.1f} "
+                     f"| {s['halo']:.2f} | "
                      f"{s['fit_rms']:.1f} | {', '.join(f'{x:.2f}' for x in s['noise_std'])} | "
                      f"{s['noise_correlation_px']:.2f} |")
     lines += ["", f"### Simulated accuracy, ideal and realistic appearance side by side ({result['random_presses']} "

@@ -253,7 +253,8 @@ def _detected_taps(scene: Any, seed: int, method: str) -> tuple[list[tuple[int, 
             contact = _pick(found or [], pixel, gate_px=25.0)
             if contact is not None:
                 i, j = _cell_index(truth["alpha"], truth["position_fraction"])
-                found_taps.append((i, j, np.array([contact.u, contact.v]), np.asarray(truth["point"], dtype=np.float64)))
+                point = np.asarray(truth["point"], dtype=np.float64)
+                found_taps.append((i, j, np.array([contact.u, contact.v]), point))
     return found_taps, count
 
 
@@ -353,13 +354,15 @@ OUR_CALIBRATIONS: dict[str, CalibrateFn] = {"our_calibration": calibrate_with_ou
 QUICK_OUR_CALIBRATIONS = ("our_calibration",)
 
 
-def render_calibration_images(seed: int, sensor_overrides: Mapping[str, Any], views: int = OUR_CALIBRATION_VIEWS,
-                              presses: int = OUR_CALIBRATION_PRESSES) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray], CameraModel]:
+def render_calibration_images(
+        seed: int, sensor_overrides: Mapping[str, Any], views: int = OUR_CALIBRATION_VIEWS,
+        presses: int = OUR_CALIBRATION_PRESSES) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray], CameraModel]:
     """The simulator's calibration scenes for one sensor: (chessboard views, median hemisphere
     reference, hemisphere presses, true camera). Both scenes use `seed`, which also draws the
     elastomer's thickness pattern, so a tap scene rendered with the same seed has the same membrane."""
 
-    board = SimulatedSensor(load_scene("calibration_chessboard", **{"motion.views": views, **sensor_overrides}), seed=seed)
+    board_scene = load_scene("calibration_chessboard", **{"motion.views": views, **sensor_overrides})
+    board = SimulatedSensor(board_scene, seed=seed)
     chessboard = [f.image for f in board.frames()]
     frame = SimulatedSensor(load_scene("calibration_hemispheres", **{"motion.presses": presses, **sensor_overrides}),
                             seed=seed)
@@ -371,8 +374,9 @@ def render_calibration_images(seed: int, sensor_overrides: Mapping[str, Any], vi
     return chessboard, np.median(np.stack(references), axis=0).astype(np.uint8), pressed, frame.camera
 
 
-def _our_calibration(scene: Any, taps: int, seed: int, seeds: int, calibrations: Mapping[str, CalibrateFn],
-                     detections: dict[tuple[str, str, int], tuple[list, int]]) -> dict[str, tuple[Any, int, dict[str, Any]]]:
+def _our_calibration(
+        scene: Any, taps: int, seed: int, seeds: int, calibrations: Mapping[str, CalibrateFn],
+        detections: dict[tuple[str, str, int], tuple[list, int]]) -> dict[str, tuple[Any, int, dict[str, Any]]]:
     """Per seed: calibrate on the simulated calibration images of a sensor with the scene's flaws,
     then locate that sensor's taps (same seed, same membrane) with the camera each calibration found."""
     flaws = _scene_errors(scene)
@@ -477,7 +481,8 @@ def table_ii_markdown(result: Mapping[str, Any], command: str = "") -> str:
                      f"{row['paper_std_mm']:.2f} | " + " | ".join(cells) + " |")
     lines += ["", "| summary | paper | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
     summary = result["summary"]
-    lines.append("| mean over all taps, mm | 7.66 | " + " | ".join(f"{summary[n]['mean_mm']:.3f}" for n in names) + " |")
+    means = " | ".join(f"{summary[n]['mean_mm']:.3f}" for n in names)
+    lines.append(f"| mean over all taps, mm | 7.66 | {means} |")
     lines.append("| centre cell (0, 1/2 L), mm | 2.63 | "
                  + " | ".join(f"{summary[n]['centre_mean_mm']:.3f}" for n in names) + " |")
     lines.append("| worst cell mean, mm | 13.75 | "
@@ -526,8 +531,10 @@ def _describe(errors: Mapping[str, Any]) -> str:
                      f"{calibration['presses']} hemisphere presses on the same flawed sensor, "
                      f"{'row balance off' if 'no_row_balance' in calibration['method'] else 'default settings'}), "
                      f"recalibrated for each of {calibration['seeds']} seeds: theta error "
-                     f"{calibration['theta_err_deg']['rms']:.3f} deg RMS (worst {calibration['theta_err_deg']['max']:.3f}), "
-                     f"d error {calibration['d_err_mm']['rms']:.3f} mm RMS (worst {calibration['d_err_mm']['max']:.3f})")
+                     f"{calibration['theta_err_deg']['rms']:.3f} deg RMS "
+                     f"(worst {calibration['theta_err_deg']['max']:.3f}), "
+                     f"d error {calibration['d_err_mm']['rms']:.3f} mm RMS "
+                     f"(worst {calibration['d_err_mm']['max']:.3f})")
     if errors["theta_error"]:
         parts.append(f"theta error {math.degrees(errors['theta_error']):.2f} deg")
     if errors["d_error"]:

@@ -46,7 +46,8 @@ def ros_tools() -> Path:
             ros2 = shutil.which("ros2")
             if ros2 and _ros_tools_import():
                 return Path(ros2).parent
-            pytest.skip("no ROS 2 command-line tools: neither a ROS 2 install nor shared/ros-extras beside the checkout")
+            pytest.skip("no ROS 2 command-line tools: neither a ROS 2 install nor shared/ros-extras beside the "
+                        "checkout")
         venv = Path(sys.prefix)
         with open(venv / ".ros-extras.lock", "w") as lock:   # one installer at a time per venv
             fcntl.flock(lock, fcntl.LOCK_EX)

@@ -306,7 +306,9 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
             sweep["sweep.length"] = _positive_float(launch, "sweep_length", args["sweep_length"])
         if args["area"]:
             sweep["sweep.area"] = _area(launch, args["area"])
-        perception: dict[str, Any] = {"map.save_path": str(Path(args["map_file"]).expanduser())} if args["map_file"] else {}
+        perception: dict[str, Any] = {}
+        if args["map_file"]:
+            perception["map.save_path"] = str(Path(args["map_file"]).expanduser())
         camera = camera_parameters(on_arm=True)
         if use_sim:
             # One simulated clock: the sweep node's simulated arm publishes it on /clock and every node

@@ -569,7 +569,8 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
     sections = [s for s in SECTIONS if not only or s.key in only]
     unknown = set(only) - {s.key for s in SECTIONS}
     if unknown:
-        raise UserError(f"unknown report section {sorted(unknown)[0]!r} (sections: {', '.join(s.key for s in SECTIONS)})")
+        raise UserError(f"unknown report section {sorted(unknown)[0]!r} "
+                        f"(sections: {', '.join(s.key for s in SECTIONS)})")
     modules = {s.key: _load(s.script) for s in sections}      # fail before spending minutes
     out.parent.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()

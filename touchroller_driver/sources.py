@@ -514,8 +514,9 @@ class SimulatedSource:
 class BagSource:
     """Images from a rosbag2 recording (Image or CompressedImage), paced by their recorded stamps.
 
-    `reader(path, topic)` (`reader(path)` when `topic` is None: the reader's default topic) yields records with `stamp_ns` and `image` (`touchroller_bringup.bags.read_images`
-    in the product: reading bags belongs to the layer above, this class only paces and stamps).
+    `reader(path, topic)` (`reader(path)` when `topic` is None: the reader's default topic) yields records
+    with `stamp_ns` and `image` (`touchroller_bringup.bags.read_images` in the product: reading bags belongs
+    to the layer above, this class only paces and stamps).
     `restamp` False keeps the recorded capture stamps (so contacts match the recording);
     True stamps frames with `clock_ns` at replay.
     """

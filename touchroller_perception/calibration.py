@@ -422,13 +422,15 @@ def find_imprints(
     found = len(blobs)
     if found < frame.count:
         return ImprintDetection(None, math.nan, found,
-                                f"too few imprints: found {found}, the {frame.rows}x{frame.columns} frame has {frame.count}")
+                                f"too few imprints: found {found}, the {frame.rows}x{frame.columns} frame has "
+                                f"{frame.count}")
     blobs.sort(key=lambda b: -b[0])
     blobs = blobs[:frame.count]
     elongation = float(np.median([b[3] for b in blobs]))
     if elongation > max_elongation:
         return ImprintDetection(None, elongation, found,
-                                f"blurred: imprints smeared {elongation:.1f}:1 (> {max_elongation:.1f}:1); hold the roller still")
+                                f"blurred: imprints smeared {elongation:.1f}:1 (> {max_elongation:.1f}:1); "
+                                "hold the roller still")
     centres = np.array([[b[1], b[2]] for b in blobs])
     order, reason = _order_grid(centres, frame.rows, frame.columns, min_spread)
     if order is None:
@@ -775,7 +777,8 @@ def _neglected_terms(camera: CameraModel, views: Sequence[ViewPose], theta_shift
     rotation = full_pose_rotation(float(full_theta.mean()), float(beta.mean()), float(gamma.mean()))
     error_centre, error_max = model_error_mm(camera, rotation, t.mean(axis=0))
     return {
-        "full_theta_deg": math.degrees(full_theta.mean()), "full_theta_std_deg": math.degrees(full_theta.std(ddof=ddof)),
+        "full_theta_deg": math.degrees(full_theta.mean()),
+        "full_theta_std_deg": math.degrees(full_theta.std(ddof=ddof)),
         "beta_deg": math.degrees(beta.mean()), "beta_std_deg": math.degrees(beta.std(ddof=ddof)),
         "gamma_deg": math.degrees(gamma.mean()), "gamma_std_deg": math.degrees(gamma.std(ddof=ddof)),
         "tx_mm": 1e3 * t[:, 0].mean(), "tx_std_mm": 1e3 * t[:, 0].std(ddof=ddof),

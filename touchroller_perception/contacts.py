@@ -656,7 +656,8 @@ def _window_pixels(full: np.ndarray, reference: np.ndarray,
     # reaches, so dilated masks stay out of other windows.
     grow = (s + 1) // 2
     pad = max(_ksize(sigma) // 2 if sigma > 0 else 0, grow)
-    boxes = [(max(u0, x0 * s - grow), max(v0, y0 * s - grow), min(u1, (x0 + w) * s + grow), min(v1, (y0 + h) * s + grow))
+    boxes = [(max(u0, x0 * s - grow), max(v0, y0 * s - grow),
+              min(u1, (x0 + w) * s + grow), min(v1, (y0 + h) * s + grow))
              for (u0, v0, u1, v1), (x0, y0, w, h, _) in zip(windows, blobs, strict=True)]
     places, mosaic_shape = _pack([(b1 - b0 + 2 * pad, a1 - a0 + 2 * pad) for a0, b0, a1, b1 in boxes])
     frame = np.zeros(mosaic_shape + (channels,), full.dtype)
@@ -697,8 +698,9 @@ def _window_pixels(full: np.ndarray, reference: np.ndarray,
     index, window = index.take(order), label.take(order).astype(np.intp) - 1
     ys, xs = np.divmod(index, mosaic_shape[1])
     # mosaic position -> position in the blob's window
-    shift_x = np.array([c0 + pad - (a0 - u0) for (_, c0), (u0, *_), (a0, *_) in zip(places, windows, boxes, strict=True)])
-    shift_y = np.array([r0 + pad - (b0 - v0) for (r0, _), (_, v0, *_), (_, b0, *_) in zip(places, windows, boxes, strict=True)])
+    placed = list(zip(places, windows, boxes, strict=True))
+    shift_x = np.array([c0 + pad - (a0 - u0) for (_, c0), (u0, *_), (a0, *_) in placed])
+    shift_y = np.array([r0 + pad - (b0 - v0) for (r0, _), (_, v0, *_), (_, b0, *_) in placed])
     return (diff.reshape(-1, channels).take(index, axis=0), score.ravel().take(index),
             xs - shift_x.take(window), ys - shift_y.take(window), np.bincount(window, minlength=len(windows)))
 

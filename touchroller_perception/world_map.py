@@ -434,8 +434,10 @@ class WorldMapper:
         across = taper(rows)
         x = (np.arange(cols) - sampler.centre_u) * self.m_per_col
         half = 0.5 * self.camera.length
-        ends = np.clip((half - np.abs(x)) / max(self.config.edge_taper, 1e-9), 0.0, 1.0) if self.config.edge_taper else \
-            (np.abs(x) <= half).astype(np.float64)
+        if self.config.edge_taper:
+            ends = np.clip((half - np.abs(x)) / max(self.config.edge_taper, 1e-9), 0.0, 1.0)
+        else:
+            ends = (np.abs(x) <= half).astype(np.float64)
         ends = np.minimum(ends, np.clip(np.minimum(np.arange(cols) + 1, cols - np.arange(cols)) / 8.0, 0.0, 1.0))
         self._weights = (across[:, None] * ends[None, :]).astype(np.float32)
         self._estimator = LatencyEstimator(self.config.max_latency, self.m_per_row) if self.latency_ns is None else None

@@ -1,4 +1,5 @@
-"""bench/contacts_real.py: the report's real-press section (ours vs the paper's pipeline, per press, the labels' scatter)."""
+"""bench/contacts_real.py: the report's real-press section (ours vs the paper's pipeline, per press, the
+labels' scatter)."""
 from __future__ import annotations
 
 import cv2

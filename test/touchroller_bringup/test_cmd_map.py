@@ -17,7 +17,8 @@ MM_PER_PX = 0.1  # the default camera at the contact line
 def simulated_roll():
     from touchroller_driver.sim import SimulatedSensor, load_scene
 
-    scene = load_scene("surface_mapping", variant="fast", **{"motion.length": TRAVEL, "motion.duration": 1.5, "motion.accel": 0.1})
+    scene = load_scene("surface_mapping", variant="fast",
+                       **{"motion.length": TRAVEL, "motion.duration": 1.5, "motion.accel": 0.1})
     sensor = SimulatedSensor(scene, seed=4)
     frames = list(sensor.frames())
     travel = np.array([f.truth["state"]["travel"] for f in frames])
@@ -117,7 +118,8 @@ def test_a_recording_that_starts_lifted_off_gives_the_full_map(simulated_roll, b
     from touchroller_driver.sim.render import RollerState
 
     records, travel = simulated_roll
-    scene = load_scene("surface_mapping", variant="fast", **{"motion.length": TRAVEL, "motion.duration": 1.5, "motion.accel": 0.1})
+    scene = load_scene("surface_mapping", variant="fast",
+                       **{"motion.length": TRAVEL, "motion.duration": 1.5, "motion.accel": 0.1})
     sensor = SimulatedSensor(scene, seed=4)
     lifted = sensor.render(RollerState(travel=float(travel[0]), depth=-0.002))
     first = records[0][0]

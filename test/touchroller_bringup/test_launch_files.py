@@ -94,14 +94,19 @@ def _example_values(launch: str, tmp_path: Path) -> dict[str, str]:
               "namespace": "left"}
     if launch == "scan":
         values |= {"use_sim": "false", "camera_device": "/dev/v4l/by-id/usb-cam", "robot_ip": "127.0.0.1",
-                   "sweep_speed": "0.02", "sweep_length": "0.08", "scene": "surface_mapping",
-                   "map_file": str(tmp_path / "roll.png")}
+                   "sweep_speed": "0.02", "sweep_length": "0.08", "area": "0.4,0.0,0.1,0.08",
+                   "scene": "surface_mapping", "map_file": str(tmp_path / "roll.png")}
     elif launch == "calibrate":
         values |= {"use_sim": "true", "camera_device": "", "output_file": str(tmp_path / "out.yaml"),
                    "scene": "calibration_hemispheres"}
     else:
         values |= {"bag": str(tmp_path / "bag"), "rate": "2.0", "loop": "true"}
     return values
+
+
+@pytest.mark.parametrize("launch", sorted(graph.LAUNCH_ARGUMENTS))
+def test_the_examples_cover_every_argument(launch, tmp_path):
+    assert set(_example_values(launch, tmp_path)) == {arg.name for arg in graph.LAUNCH_ARGUMENTS[launch]}
 
 
 @pytest.mark.parametrize("path", LAUNCH_FILES, ids=lambda p: p.name)

@@ -123,9 +123,11 @@ def test_cli_record_stopped_with_ctrl_c_keeps_every_message(ros_context, spin_un
         [sys.executable, "-m", "touchroller_bringup.cli", "record", "--out", str(bag), "--topics", "/chatter"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     talker = Node("talker", context=ros_context)
-    publisher = talker.create_publisher(String, "/chatter", QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    publisher = talker.create_publisher(String, "/chatter", reliable)
     try:
-        assert spin_until(talker, lambda: publisher.get_subscription_count() == 1, timeout=30), "recorder never subscribed"
+        assert spin_until(talker, lambda: publisher.get_subscription_count() == 1, timeout=30), \
+            "recorder never subscribed"
         for i in range(50):
             publisher.publish(String(data=f"message {i}"))
         # wait until the recorder has acknowledged them all (reliable), then interrupt at once

@@ -74,8 +74,8 @@ def results() -> dict[str, dict]:
                                                              "max_tap_mm": 0.62}}}}
     stability = {"cases": [{"round_trip_m": 1e-17, "invalid_return": "NaN point, valid=False"}],
                  "non_finite": {"valid": [False, False, False, True], "all_invalid_are_nan": True}}
-    return {"table_i": table_i, "map_speed": map_speed, "contacts_speed": contacts, "calibration": calibration, "simulator": simulator,
-            "table_ii": table_ii, "stability": stability}
+    return {"table_i": table_i, "map_speed": map_speed, "contacts_speed": contacts, "calibration": calibration,
+            "simulator": simulator, "table_ii": table_ii, "stability": stability}
 
 
 def _rows(markdown: str, first_cell: str) -> list[list[str]]:

@@ -111,7 +111,8 @@ def test_an_outside_rclpy_client_sees_the_tf_tree(ros_context):
     assert all(p["hash"] == TF_MESSAGE_HASH for p in seen["static_publishers"]), seen["static_publishers"]
     mount = seen["static"]["tool0->touchroller_cylinder"]
     expected = Transform.from_rpy((0.0, 0.01, 0.12), mount_rpy)
-    assert np.allclose(mount["t"], expected.translation) and np.allclose(np.abs(np.dot(mount["q"], expected.rotation)), 1.0)
+    assert np.allclose(mount["t"], expected.translation)
+    assert np.allclose(np.abs(np.dot(mount["q"], expected.rotation)), 1.0)
     camera = seen["static"]["touchroller_cylinder->touchroller_camera"]
     assert np.allclose(camera["q"], camera_in_cylinder(perception.camera).rotation, atol=1e-9)
     tool = seen["dynamic"]["base->tool0"]

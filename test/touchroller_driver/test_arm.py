@@ -296,7 +296,8 @@ def test_raster_covers_the_rectangle_in_alternating_passes():
         press = plan.segments[plan.rolls[k] - 1]
         assert press.name == "press" and press.target[2] == pytest.approx(START[2] - 5e-4)
         # default mount: the cylinder centre is under the flange, so tool xy = contact line xy
-        assert roll.target[:2] == pytest.approx(raster_pass.end) and press.target[:2] == pytest.approx(raster_pass.start)
+        assert roll.target[:2] == pytest.approx(raster_pass.end)
+        assert press.target[:2] == pytest.approx(raster_pass.start)
         assert raster_pass.start[0] == pytest.approx(0.38 if k % 2 == 0 else 0.62)   # boustrophedon
         assert raster_pass.start[1] == pytest.approx(-0.09 + offsets[k])
     assert [s.name for s in plan.segments[4:8]] == ["across", "press", "sweep", "lift"]

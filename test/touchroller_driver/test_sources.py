@@ -362,7 +362,8 @@ def _write_compressed(path, images):
         connection = writer.add_connection("/touchroller/image_raw", "sensor_msgs/msg/CompressedImage", typestore=store)
         for i, image in enumerate(images):
             data = np.frombuffer(cv2.imencode(".png", image)[1].tobytes(), np.uint8)
-            msg = msg_type(header=header_type(stamp=time_type(sec=1, nanosec=i), frame_id="cam"), format="png", data=data)
+            header = header_type(stamp=time_type(sec=1, nanosec=i), frame_id="cam")
+            msg = msg_type(header=header, format="png", data=data)
             writer.write(connection, 1_000_000_000 + i, store.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage"))
 
 

@@ -107,7 +107,8 @@ def test_no_extrapolation_and_no_unknown_frames():
     assert not buffer.can_transform("base", "camera")
     assert buffer.can_transform("base", "sensor")
     assert buffer.latest_common_stamp("table", "sensor") == 1_000_000_000
-    assert np.allclose(buffer.lookup("base", "sensor").translation, buffer.lookup("base", "sensor", 10 ** 9).translation)
+    latest = buffer.lookup("base", "sensor").translation
+    assert np.allclose(latest, buffer.lookup("base", "sensor", 10 ** 9).translation)
 
 
 def test_static_edges_hold_at_any_time_and_frames_ignore_a_leading_slash():

@@ -1,8 +1,8 @@
 """`touchroller bench [NAME ...] [--quick]`: run the benchmarks in the checkout's `bench/` folder.
 
-Each benchmark is a module `bench/<name>.py`, run as `python -m bench.<name>`, that accepts `--quick` and records its figures under
-`bench/results/` with the command that produced them; `--quick` runs write to `bench/results/quick/`
-(not committed) so they never replace full-run figures. Benchmarks measure time, so they are not
+Each benchmark is a module `bench/<name>.py`, run as `python -m bench.<name>`, that accepts `--quick` and
+records its figures under `bench/results/` with the command that produced them; `--quick` runs write to
+`bench/results/quick/` (not committed) so they never replace full-run figures. Benchmarks measure time, so they are not
 tests; run them on a quiet machine.
 """
 from __future__ import annotations

@@ -200,7 +200,8 @@ def run_compare(args: argparse.Namespace) -> int:
 
     a, b = _load_camera(args.a), _load_camera(args.b)
     if (a.width, a.height) != (b.width, b.height):
-        raise UserError(f"the calibrations are for different image sizes: {a.width}x{a.height} and {b.width}x{b.height}")
+        raise UserError(f"the calibrations are for different image sizes: {a.width}x{a.height} and "
+                        f"{b.width}x{b.height}")
     diff = compare_cameras(a, b)
     print(f"B - A: fx {diff['dfx_px']:+.3f} px, fy {diff['dfy_px']:+.3f} px, cx {diff['dcx_px']:+.3f} px, "
           f"cy {diff['dcy_px']:+.3f} px, theta {diff['dtheta_deg']:+.4f}°, d {diff['dd_mm']:+.4f} mm")

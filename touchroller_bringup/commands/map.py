@@ -36,7 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                          "camera model and gives the metric scale (default: config/touchroller.yaml)")
     parser.add_argument("--metric", nargs="?", type=float, const=DEFAULT_MM_PER_PX, default=None,
                         metavar="MM_PER_PX",
-                        help=f"resample the map to square pixels of MM_PER_PX millimetres (default {DEFAULT_MM_PER_PX})")
+                        help="resample the map to square pixels of MM_PER_PX millimetres "
+                             f"(default {DEFAULT_MM_PER_PX})")
     parser.add_argument("--band-rows", type=int, default=70,
                         help="rows of the contact band used per frame (default: %(default)s, as the paper)")
     parser.add_argument("--search", type=int, default=25,

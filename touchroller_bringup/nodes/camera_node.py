@@ -195,7 +195,8 @@ class CameraNode(Node):
         return None if listener is None else listener.lookup(world, cylinder, t_ns)
 
     def _on_geometry(self, model: CameraModel) -> None:
-        self.get_logger().info(f"camera model updated: fx={model.fx:g} fy={model.fy:g} theta={model.theta:g} d={model.d:g}")
+        self.get_logger().info(f"camera model updated: fx={model.fx:g} fy={model.fy:g} theta={model.theta:g} "
+                               f"d={model.d:g}")
         if self._on_arm():
             self._restart.set()
 

@@ -131,7 +131,8 @@ class SweepNode(Node):
         self._pass_pub = self.create_publisher(UInt32MultiArray, names.SWEEP_PASS, 10)
         self._start_srv = self.create_service(Trigger, f"~/{names.START}", self._on_start)
         self._stop_srv = self.create_service(Trigger, f"~/{names.STOP}", self._on_stop)
-        hardware = "simulated arm" if isinstance(self.arm, SimulatedArm) else f"UR at {self.get_parameter('robot_ip').value}"
+        simulated = isinstance(self.arm, SimulatedArm)
+        hardware = "simulated arm" if simulated else f"UR at {self.get_parameter('robot_ip').value}"
         self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name(), hardware_id=hardware)
         self.diagnostics.add(self._diagnostic_status)
 
@@ -165,8 +166,8 @@ class SweepNode(Node):
                 min=0.0, max=0.9)
         declare(self, "sweep.direction", list(DEFAULT_DIRECTION), "Rolling direction in the base frame (horizontal)")
         declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
-        declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "Height above the start pose the roller approaches from and "
-                "lifts back to, m", min=0.0, max=0.05)
+        declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "Height above the start pose the roller approaches "
+                "from and lifts back to, m", min=0.0, max=0.05)
         declare(self, "sim.rate", 1.0, "use_sim: simulated seconds per wall-clock second of the simulated clock "
                 "(published on /clock; the simulated camera renders on it)", min=0.1, max=20.0, read_only=True)
         declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose, /tf and progress messages, "

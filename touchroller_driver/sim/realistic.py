@@ -157,7 +157,8 @@ def _fit_noise(background: np.ndarray, presses: np.ndarray, centres: np.ndarray,
     return spread.astype(np.float32), length
 
 
-def correlated_noise(shape: tuple[int, int, int], std: np.ndarray, length: float, rng: np.random.Generator) -> np.ndarray:
+def correlated_noise(shape: tuple[int, int, int], std: np.ndarray, length: float,
+                     rng: np.random.Generator) -> np.ndarray:
     """Gaussian noise of per-channel `std` whose neighbours correlate as white noise blurred by `length` px."""
     noise = rng.standard_normal(shape).astype(np.float32)
     if length > 0.3:
@@ -199,7 +200,8 @@ class IdealPressRenderer:
 
         sensor = load_scene("contact_localisation").sensor
         elevation = math.radians(float(sensor["light_elevation_deg"]))
-        self.lights = [(math.cos(elevation) * math.cos(math.radians(a)), math.cos(elevation) * math.sin(math.radians(a)),
+        self.lights = [(math.cos(elevation) * math.cos(math.radians(a)),
+                        math.cos(elevation) * math.sin(math.radians(a)),
                         math.sin(elevation)) for a in sensor["light_azimuths_deg"]]
         self.scale = 255.0 * float(sensor["exposure_scale"])
         self.ambient, self.gain = float(sensor["ambient"]), float(sensor["light_gain"])

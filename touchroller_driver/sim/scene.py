@@ -251,7 +251,8 @@ def validate(scene: Scene) -> None:
 
         roll_profile(scene.motion)   # raises ValueError if the move is infeasible
     origin, yaw = d["world"].get("surface_origin"), d["world"].get("surface_yaw")
-    if not (isinstance(origin, list | tuple) and len(origin) == 3 and all(_finite(v) for v in origin)) or not _finite(yaw):
+    origin_ok = isinstance(origin, list | tuple) and len(origin) == 3 and all(_finite(v) for v in origin)
+    if not origin_ok or not _finite(yaw):
         raise ValueError(f"{where}: world.surface_origin must be 3 finite numbers and world.surface_yaw a finite "
                          f"angle, got {origin!r} and {yaw!r}")
     p = scene.effect_params("dropped_frames")["probability"]

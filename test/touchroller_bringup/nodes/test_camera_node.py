@@ -223,7 +223,8 @@ def test_diagnostics_report_rate_lag_and_drops(ros_context, spin_until):
             """Statuses once frames flow and drops are counted: an early status (a slow first frame on a
             loaded machine) may report 1 frame, none dropped and no rate yet."""
             return [s for array in listener.diagnostics for s in array.status
-                    if int(status_values(s).get("dropped", "0")) > 0 and float(status_values(s).get("frame_rate_hz", "0")) > 0]
+                    if int(status_values(s).get("dropped", "0")) > 0
+                    and float(status_values(s).get("frame_rate_hz", "0")) > 0]
 
         assert spin_until(executor, lambda: bool(streaming()), timeout=20)
         status = streaming()[-1]
@@ -331,12 +332,14 @@ def test_sim_camera_is_on_the_sweep_nodes_arm_through_tf_and_one_clock(processes
     graph = build_graph("scan", {"sweep_length": str(length), "sweep_speed": str(speed)})
     camera = CameraNode(context=ros_context, **graph.node("camera").node_kwargs())
     sweep = SweepNode(context=ros_context, **graph.node("sweep").node_kwargs()) if processes == 1 else None
-    sweep_process = start_node_process("touchroller_bringup.nodes.sweep_node", graph.node("sweep")) if sweep is None else None
+    sweep_process = (start_node_process("touchroller_bringup.nodes.sweep_node", graph.node("sweep"))
+                     if sweep is None else None)
     listener = Listener(ros_context, qos=QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
     poses: list = []
     progress: list = []
     listener.node.create_subscription(PoseStamped, names.topic(names.TCP_POSE), poses.append, 200)
-    listener.node.create_subscription(Float32, names.topic(names.SWEEP_PROGRESS), lambda m: progress.append(m.data), 200)
+    listener.node.create_subscription(Float32, names.topic(names.SWEEP_PROGRESS),
+                                      lambda m: progress.append(m.data), 200)
     executor = SingleThreadedExecutor(context=ros_context)
     nodes = [n for n in (camera, sweep, listener.node) if n is not None]
     for node in nodes:

@@ -301,7 +301,8 @@ def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until,
         assert written is not None and written.shape == node.stitcher.map_image().shape
         assert written.shape[0] >= 70 + 0.9 * 19 * 5, written.shape   # the roll (19 x 5 px), not one band
         # a path that cannot be written is one error line; the node keeps working
-        assert node.set_parameters([Parameter("map.save_path", value=str(tmp_path / "missing" / "m.png"))])[0].successful
+        unwritable = str(tmp_path / "missing" / "m.png")
+        assert node.set_parameters([Parameter("map.save_path", value=unwritable)])[0].successful
         # progress and images are separate topics, delivered independently: wait until the node has taken
         # each progress message before the next step (else the frame could land before the roll began, or
         # the final check could run before 1.0 arrived and pass on the previous roll's state)
