@@ -5,9 +5,14 @@ the checkout as `python -m bench.NAME`.
 """
 from __future__ import annotations
 
+import json
 import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields, is_dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from touchroller_bringup.report import loadavg
 from touchroller_bringup.report import machine_description as machine
@@ -15,7 +20,8 @@ from touchroller_bringup.report import machine_description as machine
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 
-__all__ = ["RESULTS", "ROOT", "command", "loadavg", "machine", "provenance", "provenance_markdown", "results_path"]
+__all__ = ["RESULTS", "ROOT", "Provenance", "command", "loadavg", "machine", "provenance", "provenance_markdown",
+           "results_path", "to_json"]
 
 
 def results_path(name: str, quick: bool, suffix: str = ".md") -> Path:
@@ -29,14 +35,47 @@ def command(script: str, quick: bool = False, *extra: str) -> str:
     return " ".join([".venv/bin/python", "-m", f"bench.{script}", *(["--quick"] if quick else []), *extra])
 
 
-def provenance(script: str, quick: bool = False, *extra: str) -> dict[str, Any]:
-    """Taken when a bench starts: stored in its result dict and printed by `provenance_markdown`."""
-    return {"command": command(script, quick, *extra), "machine": machine(),
-            "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "loadavg": loadavg()}
+@dataclass(frozen=True)
+class Provenance:
+    """How a bench's figures were obtained: the command that reproduces them, the machine, when, and the
+    load average at the start (above the core count, other jobs shared the machine)."""
+
+    command: str
+    machine: str
+    measured: str
+    loadavg: str
+
+    def markdown(self) -> str:
+        """Two Markdown lines (hard breaks) for the top of a bench's results and its report section."""
+        return (f"Command: `{self.command}`  \n"
+                f"Machine: {self.machine}; measured {self.measured}, load average at the start {self.loadavg}.")
 
 
-def provenance_markdown(stamp: dict[str, Any]) -> str:
-    """Two Markdown lines (hard breaks) for the top of a bench's results and its report section."""
-    return (f"Command: `{stamp['command']}`  \n"
-            f"Machine: {stamp['machine']}; measured {stamp['measured']}, load average at the start "
-            f"{stamp['loadavg']}.")
+def provenance(script: str, quick: bool = False, *extra: str) -> Provenance:
+    """Taken when a bench starts, stored in its result and printed by `provenance_markdown`."""
+    return Provenance(command(script, quick, *extra), machine(),
+                      time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), loadavg())
+
+
+def provenance_markdown(stamp: Provenance | Mapping[str, Any]) -> str:
+    """`Provenance.markdown`; a mapping (a result read back from its JSON file) is read by field name."""
+    if not isinstance(stamp, Provenance):
+        stamp = Provenance(**{f.name: str(stamp[f.name]) for f in fields(Provenance)})
+    return stamp.markdown()
+
+
+def to_json(result: Any, **kwargs: Any) -> str:
+    """A bench result as JSON: dataclasses as objects, numpy scalars and arrays as numbers and lists."""
+    return json.dumps(result, default=_plain, **kwargs)
+
+
+def _plain(value: Any) -> Any:
+    if is_dataclass(value) and not isinstance(value, type):
+        return asdict(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return float(value)   # anything else number-like; a TypeError names what cannot be written

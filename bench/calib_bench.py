@@ -22,7 +22,6 @@ bench/results/calib_bench.md (and .json).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -31,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path
+from bench._common import provenance, provenance_markdown, results_path, to_json
 from touchroller_perception import calibration as cal  # noqa: E402
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 
@@ -396,7 +395,7 @@ def main() -> int:
     out = results_path("calib_bench", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(markdown(result), encoding="utf-8")
-    out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    out.with_suffix(".json").write_text(to_json(result, indent=1), encoding="utf-8")
     figures(result, out.parent)
     print(markdown(result))
     return 0

@@ -10,12 +10,11 @@ Not a timing benchmark: the figures are errors in mm and do not depend on the ma
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
-from bench._common import command, results_path
+from bench._common import command, results_path, to_json
 from bench.table_ii import (
     explain_markdown,
     explain_paper_table,
@@ -118,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("# Contact localisation: the paper's Table II in simulation\n\n" + to_markdown(result),
                    encoding="utf-8")
-    out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    out.with_suffix(".json").write_text(to_json(result, indent=1), encoding="utf-8")
     for figure in figures(result, out.parent):
         print(f"wrote {figure}")
     summary = result["table_ii"]["summary"]

@@ -26,12 +26,14 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from bench._common import machine, results_path  # one machine line for every bench and the report
+from bench._common import machine, results_path, to_json  # one machine line for every bench and the report
 from touchroller_bringup import names
 from touchroller_bringup.image_conversion import stamp_to_ns
 
@@ -293,14 +295,60 @@ def latencies_ms(source: MemorySource, probe: Probe) -> tuple[np.ndarray, int]:
     return np.array(got), len(source.contact_stamps) - len(got)
 
 
-def summarise(values: np.ndarray) -> dict[str, float]:
+@dataclass(frozen=True)
+class LatencyStats:
+    """Milliseconds; NaN when nothing was measured."""
+
+    p50: float
+    p99: float
+    max: float
+    mean: float
+
+
+def summarise(values: np.ndarray) -> LatencyStats:
     if values.size == 0:
-        return {"p50": float("nan"), "p99": float("nan"), "max": float("nan"), "mean": float("nan")}
-    return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)),
-            "max": float(values.max()), "mean": float(values.mean())}
+        return LatencyStats(float("nan"), float("nan"), float("nan"), float("nan"))
+    return LatencyStats(float(np.percentile(values, 50)), float(np.percentile(values, 99)), float(values.max()),
+                        float(values.mean()))
 
 
-def measure_publish_path(frames: list[np.ndarray], repeats: int = 200) -> dict[str, float]:
+@dataclass(frozen=True)
+class RateRun:
+    """One run of the graph at one rate: its configuration and every figure of a table row."""
+
+    transport: str
+    processes: int
+    fps: float
+    seconds: float
+    stats: LatencyStats      # image capture stamp -> contact received, of the frames that gave a contact
+    missing: int             # contact frames that gave no contact
+    sent: int                # contact frames
+    published: int           # all frames, references included
+    camera_late: int         # read by the publishing thread more than a frame period after capture
+    received: float          # frames the perception node took
+    lost: float              # reported lost in transport by the RMW (NaN: it does not report)
+    gaps: float              # sequence gaps at the perception node
+    skipped: float           # gaps not lost in transport: stale frames replaced in the history (by design)
+    busy_skips: float        # of those, while the previous callback still ran
+    callback_p50_ms: float
+    callback_p99_ms: float
+    busy_fraction: float     # share of the run the image callback ran
+    qos: str                 # the perception node's image subscription, as it reported it
+    map_rate: float = 1.0
+    depth: int = 0
+    reliability: str = "BEST_EFFORT"
+
+    @property
+    def dropped(self) -> float:
+        """Frames dropped (not skipped by design): lost in transport plus late at the camera; NaN if unknown."""
+        return self.lost + self.camera_late
+
+    @classmethod
+    def from_json(cls, row: dict) -> RateRun:
+        return cls(**{**row, "stats": LatencyStats(**row["stats"])})
+
+
+def measure_publish_path(frames: list[np.ndarray], repeats: int = 200) -> LatencyStats:
     """Time of CameraNode.publish_frame (fill the Image + CameraInfo, serialize, hand to DDS) for VGA."""
     import rclpy
     from rclpy.context import Context
@@ -420,7 +468,7 @@ def _number(values: dict[str, str], key: str) -> float:
 
 def run_rate(fps: float, count: int, processes: int, map_rate: float = 1.0, depth: int = 0,
              reliability: str = "BEST_EFFORT", extra_prelude: str = "") -> dict:
-    """One run of the real graph in this process (and a child with processes=2); every figure of a table row."""
+    """One run of the real graph in this process (and a child with processes=2); the figures of a `RateRun`."""
     references, contacts = synthetic_frames()
     source = MemorySource(references, contacts, fps=fps, count=count)
     graph = Graph(processes=processes, map_rate=map_rate, perception_prelude=INSTRUMENT_PRELUDE + extra_prelude,
@@ -446,9 +494,10 @@ def run_rate(fps: float, count: int, processes: int, map_rate: float = 1.0, dept
             "qos": perception.get("bench_qos", "?")}
 
 
-def run_plan(plan: list[dict]) -> list[dict]:
-    """Run configurations one after the other in this process (all on the transport already selected)."""
-    rows = []
+def run_plan(plan: list[dict]) -> list[Any]:
+    """Run configurations one after the other in this process (all on the transport already selected):
+    a `RateRun` for each rate, a `dds_slow_consumer.SlowConsumerRun` for each configuration with a delay."""
+    rows: list[Any] = []
     for config in plan:
         if config.get("delay_ms"):
             from bench import dds_slow_consumer  # it imports this module: load it only when needed
@@ -458,23 +507,26 @@ def run_plan(plan: list[dict]) -> list[dict]:
             continue
         result = run_rate(config["fps"], int(config["seconds"] * config["fps"]), config["processes"],
                           config.get("map_rate", 1.0), config.get("depth", 0), config.get("reliability", "BEST_EFFORT"))
-        rows.append({**config, **result})
+        rows.append(RateRun(**{**config, **result}))
     return rows
 
 
-def measure_plan(transport: str, plan: list[dict]) -> list[dict]:
+def measure_plan(transport: str, plan: list[dict]) -> list[Any]:
     """`run_plan` in a fresh interpreter with `transport` (Fast DDS reads its profile once per process)."""
+    from bench.dds_slow_consumer import SlowConsumerRun
+
     plan = [{"transport": transport, **config} for config in plan]
     result = subprocess.run([sys.executable, "-m", __spec__.name, "--child", "--transports", transport,
                              "--plan", json.dumps(plan)], cwd=ROOT, capture_output=True, text=True, timeout=1800)
     for line in reversed(result.stdout.splitlines()):
         if line.startswith("["):
-            return json.loads(line)
+            return [SlowConsumerRun.from_json(row) if "delay_ms" in row else RateRun.from_json(row)
+                    for row in json.loads(line)]
     raise RuntimeError(f"benchmark child failed: {result.stderr.strip().splitlines()[-3:]}")
 
 
 def measure(transport: str, processes: int, fps: float, seconds: float, map_rate: float = 1.0, depth: int = 0,
-            reliability: str = "BEST_EFFORT") -> dict:
+            reliability: str = "BEST_EFFORT") -> RateRun:
     """One `run_rate` row in a fresh interpreter with `transport`; the row carries its configuration."""
     return measure_plan(transport, [{"processes": processes, "fps": fps, "seconds": seconds, "map_rate": map_rate,
                                      "depth": depth, "reliability": reliability}])[0]
@@ -484,7 +536,24 @@ def measure(transport: str, processes: int, fps: float, seconds: float, map_rate
 SLOW_DELAY_MS = 50.0
 
 
-def run(quick: bool = False) -> dict:
+@dataclass(frozen=True)
+class DdsSection:
+    """The DDS report section (or a latency/QoS table of `main`): the runs and how they were obtained."""
+
+    quick: bool
+    command: str
+    machine: str
+    date: str
+    load: tuple[float, ...]           # load average at the end
+    map_rate: float
+    seconds: float                    # the whole measurement
+    rows: tuple[RateRun, ...]
+    slow_consumer: tuple[Any, ...] = ()     # dds_slow_consumer.SlowConsumerRun
+    publish_path: LatencyStats | None = None
+    publish_calls: int = 0
+
+
+def run(quick: bool = False) -> DdsSection:
     """Latency, losses and skips at 30/60 Hz, and the slow-consumer check (report section, issue 7).
 
     quick: the launch default (shm_udp), perception in its own process, 2 s per rate, slow consumer 2.5 s
@@ -494,7 +563,8 @@ def run(quick: bool = False) -> dict:
     started = time.perf_counter()
     seconds = 2.0 if quick else 8.0
     process_counts = [2] if quick else [1, 2]
-    rows, slow = [], []
+    rows: list[RateRun] = []
+    slow: list[Any] = []
     for transport in [RECOMMENDED] if quick else list(TRANSPORTS):
         plan = [{"processes": processes, "fps": fps, "seconds": seconds}
                 for processes in process_counts for fps in (30.0, 60.0)]
@@ -502,28 +572,12 @@ def run(quick: bool = False) -> dict:
             plan += [{"processes": processes, "seconds": 2.5 if quick else 8.0, "delay_ms": SLOW_DELAY_MS}
                      for processes in process_counts]
         for row in measure_plan(transport, plan):
-            (slow if row.get("delay_ms") else rows).append(row)
-    publish = measure_publish_path(synthetic_frames(8)[1], 50 if quick else 300)
-    return {"quick": quick, "runs": [flat_run(row) for row in rows], "machine": machine(),
-            "load": os.getloadavg(),
-            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "command": f"python -m bench.dds_latency {'--quick' if quick else '--section'}", "map_rate": 1.0,
-            "rows": rows, "slow_consumer": slow, "publish_path": publish, "publish_calls": 50 if quick else 300,
-            "seconds": time.perf_counter() - started}
-
-
-def dropped(row: dict) -> float:
-    """Frames dropped (not skipped by design): lost in transport plus late at the camera; NaN if unknown."""
-    return row["lost"] + row["camera_late"]
-
-
-def flat_run(row: dict) -> dict:
-    """One run as flat figures for summaries: 'missed' counts drops (lost in transport + late at the camera),
-    not frames the perception node skipped as stale, which is its design when it is slower than the camera."""
-    return {"transport": row["transport"], "processes": row["processes"], "fps": row["fps"], "frames": row["sent"],
-            "p50_ms": row["stats"]["p50"], "p99_ms": row["stats"]["p99"], "max_ms": row["stats"]["max"],
-            "missed": dropped(row), "lost": row["lost"], "late": row["camera_late"], "skipped": row["skipped"],
-            "without_contact": row["missing"], "busy_fraction": row["busy_fraction"]}
+            (rows if isinstance(row, RateRun) else slow).append(row)
+    calls = 50 if quick else 300
+    publish = measure_publish_path(synthetic_frames(8)[1], calls)
+    return DdsSection(quick, f"python -m bench.dds_latency {'--quick' if quick else '--section'}", machine(),
+                      time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), os.getloadavg(), 1.0,
+                      time.perf_counter() - started, tuple(rows), tuple(slow), publish, calls)
 
 
 def _fmt(value: float, digits: int = 2) -> str:
@@ -534,18 +588,18 @@ def _count(value: float) -> str:
     return "n/a" if value is None or not np.isfinite(value) else f"{value:.0f}"
 
 
-def latency_goal(row: dict) -> str:
+def latency_goal(row: RateRun) -> str:
     """30 Hz: p50 <= 5 ms and p99 <= 15 ms; any rate: nothing dropped (skips of stale frames are by design)."""
-    stats, drops = row["stats"], dropped(row)
+    stats = row.stats
     problems = []
-    if row["fps"] == 30.0 and not (stats["p50"] <= 5 and stats["p99"] <= 15):
+    if row.fps == 30.0 and not (stats.p50 <= 5 and stats.p99 <= 15):
         problems.append("p50 <= 5, p99 <= 15 ms")
-    if not drops == 0:  # NaN (the RMW does not report losses) is not a pass either
-        problems.append(f"{_count(row['lost'])} lost in transport, {row['camera_late']} late at the camera")
+    if not row.dropped == 0:  # NaN (the RMW does not report losses) is not a pass either
+        problems.append(f"{_count(row.lost)} lost in transport, {row.camera_late} late at the camera")
     return "met" if not problems else f"NOT met ({'; '.join(problems)})"
 
 
-def rows_table(rows: list[dict]) -> list[str]:
+def rows_table(rows: Sequence[RateRun]) -> list[str]:
     lines = [
         "| transport | processes | image QoS | rate (Hz) | contact frames | without contact | late at camera | "
         "lost in transport | skipped stale (while busy) | callback p50/p99 (ms) | consumer busy | "
@@ -553,26 +607,26 @@ def rows_table(rows: list[dict]) -> list[str]:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
-        stats = row["stats"]
+        stats = row.stats
         lines.append(
-            f"| {row['transport']} | {row['processes']} | {row['qos']} | {row['fps']:g} | {row['sent']} | "
-            f"{row['missing']} | {row['camera_late']} | {_count(row['lost'])} | {_count(row['skipped'])} "
-            f"({_count(row['busy_skips'])}) | {_fmt(row['callback_p50_ms'], 1)}/{_fmt(row['callback_p99_ms'], 1)} | "
-            f"{_fmt(100 * row['busy_fraction'], 0)}% | {_fmt(stats['p50'])} | {_fmt(stats['p99'])} | "
-            f"{_fmt(stats['max'])} | {latency_goal(row)} |")
+            f"| {row.transport} | {row.processes} | {row.qos} | {row.fps:g} | {row.sent} | "
+            f"{row.missing} | {row.camera_late} | {_count(row.lost)} | {_count(row.skipped)} "
+            f"({_count(row.busy_skips)}) | {_fmt(row.callback_p50_ms, 1)}/{_fmt(row.callback_p99_ms, 1)} | "
+            f"{_fmt(100 * row.busy_fraction, 0)}% | {_fmt(stats.p50)} | {_fmt(stats.p99)} | "
+            f"{_fmt(stats.max)} | {latency_goal(row)} |")
     return lines
 
 
-def to_markdown(result: dict) -> str:
+def to_markdown(result: DdsSection) -> str:
     """The section's tables; every number comes from `result` (a `run` or `main` result)."""
-    rows = result["rows"]
-    seconds = sorted({row["seconds"] for row in rows})
+    rows = result.rows
+    seconds = sorted({row.seconds for row in rows})
     lines = [
-        f"Command: `{result['command']}` ({_fmt(result['seconds'], 0)} s); machine: {result['machine']}; "
-        f"{result['date']}; timings depend on the machine's load (load average "
-        f"{'/'.join(f'{x:.1f}' for x in result.get('load', ()))} at the end). RMW "
+        f"Command: `{result.command}` ({_fmt(result.seconds, 0)} s); machine: {result.machine}; "
+        f"{result.date}; timings depend on the machine's load (load average "
+        f"{'/'.join(f'{x:.1f}' for x in result.load)} at the end). RMW "
         f"{os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')} over loopback, 640x480 bgr8, "
-        f"{'/'.join(f'{s:g}' for s in seconds)} s per run, perception map.publish_rate {result['map_rate']:g} Hz.",
+        f"{'/'.join(f'{s:g}' for s in seconds)} s per run, perception map.publish_rate {result.map_rate:g} Hz.",
         "",
         "Latency = contact received by a probe node − the image's capture stamp. "
         "'shm_udp' = `config/fastdds_shm_udp.xml` "
@@ -591,10 +645,10 @@ def to_markdown(result: dict) -> str:
         *rows_table(rows),
         "",
     ]
-    slow = result.get("slow_consumer") or []
+    slow = result.slow_consumer
     if slow:
         lines += [
-            f"Slow consumer: camera at 60 Hz, the perception callback slowed by {slow[0]['delay_ms']:g} ms (it "
+            f"Slow consumer: camera at 60 Hz, the perception callback slowed by {slow[0].delay_ms:g} ms (it "
             "can take 20 frames/s). Met when the latency stays bounded (max ≤ 4 × delay + a period) and does not "
             "grow (last second's median ≤ first second's + one delay); queueing would add ~0.67 s per second.",
             "",
@@ -603,17 +657,17 @@ def to_markdown(result: dict) -> str:
             "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in slow:
-            s = r["stats"]
-            lines.append(f"| {r['processes']} | {r['seconds']:g} | {r['sent']} | {r['processed']} | "
-                         f"{_fmt(s['p50'], 1)} | {_fmt(s['p99'], 1)} | {_fmt(s['max'], 1)} | "
-                         f"{_fmt(r['first_second_median'], 1)} | {_fmt(r['last_second_median'], 1)} | "
-                         f"{'met' if r['met'] else 'NOT met'} |")
+            s = r.stats
+            lines.append(f"| {r.processes} | {r.seconds:g} | {r.sent} | {r.processed} | "
+                         f"{_fmt(s.p50, 1)} | {_fmt(s.p99, 1)} | {_fmt(s.max, 1)} | "
+                         f"{_fmt(r.first_second_median, 1)} | {_fmt(r.last_second_median, 1)} | "
+                         f"{'met' if r.met else 'NOT met'} |")
         lines.append("")
-    publish = result.get("publish_path")
+    publish = result.publish_path
     if publish:
         lines += [f"Camera publish path (`CameraNode.publish_frame`: fill Image + CameraInfo and publish, VGA bgr8, "
-                  f"{result['publish_calls']} calls): p50 {_fmt(publish['p50'], 3)} ms, "
-                  f"p99 {_fmt(publish['p99'], 3)} ms.", ""]
+                  f"{result.publish_calls} calls): p50 {_fmt(publish.p50, 3)} ms, "
+                  f"p99 {_fmt(publish.p99, 3)} ms.", ""]
     lines += ["The 20 000-frame memory soak takes minutes and is not part of this section: see "
               "`bench/results/dds_soak.md` (command `python -m bench.dds_soak`) and `docs/dds.md`.", ""]
     return "\n".join(lines)
@@ -639,7 +693,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.child:
         use_transport(args.transports[0])
-        print(json.dumps(run_plan(json.loads(args.plan))), flush=True)
+        print(to_json(run_plan(json.loads(args.plan))), flush=True)
         return 0
     command = ("python -m bench.dds_latency " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
     if args.quick or args.section:
@@ -657,17 +711,16 @@ def main(argv: list[str] | None = None) -> int:
         for transport, processes, fps, depth, reliability in configs:  # one interpreter each: no carry-over
             rows.append(measure(transport, processes, fps, args.seconds, args.map_rate, depth, reliability))
             print("\n".join(rows_table(rows[-1:])[2:]), flush=True)
-        result = {"quick": False, "runs": [flat_run(row) for row in rows], "machine": machine(),
-                  "load": os.getloadavg(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                  "command": command, "map_rate": args.map_rate, "rows": rows, "slow_consumer": [],
-                  "publish_path": None if args.qos else measure_publish_path(synthetic_frames(8)[1], 300),
-                  "publish_calls": 300, "seconds": time.perf_counter() - started}
+        publish = None if args.qos else measure_publish_path(synthetic_frames(8)[1], 300)
+        result = DdsSection(False, command, machine(), time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                            os.getloadavg(), args.map_rate, time.perf_counter() - started, tuple(rows), (),
+                            publish, 300)
         out = Path(args.out or RESULTS / ("dds_qos.md" if args.qos else "dds_latency.md"))
     title = ("# DDS: the perception node's image QoS at 60 Hz" if args.qos
              else "# DDS latency: image published -> contact received")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(f"{title}\n\n{to_markdown(result)}")
-    out.with_suffix(".json").write_text(json.dumps(result, indent=1))
+    out.with_suffix(".json").write_text(to_json(result, indent=1))
     print(f"wrote {out}")
     return 0
 

@@ -14,11 +14,13 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from bench import dds_latency as common
+from bench._common import to_json
 
 SLOW_PRELUDE = """
 import time as _time
@@ -29,6 +31,28 @@ def _slow(self, msg, _original=_original):
     return _original(self, msg)
 _perception.PerceptionNode._on_image = _slow
 """
+
+
+@dataclass(frozen=True)
+class SlowConsumerRun:
+    """The camera at 60 Hz, the perception callback slowed by `delay_ms`: the contact latency must stay
+    bounded (`bound_ms`) and not grow from the first second to the last."""
+
+    processes: int
+    transport: str
+    seconds: float
+    delay_ms: float
+    bound_ms: float
+    met: bool
+    sent: int
+    processed: int
+    stats: common.LatencyStats
+    first_second_median: float
+    last_second_median: float
+
+    @classmethod
+    def from_json(cls, row: dict) -> SlowConsumerRun:
+        return cls(**{**row, "stats": common.LatencyStats(**row["stats"])})
 
 
 def run_child(processes: int, transport: str, seconds: float, delay_ms: float) -> dict:
@@ -60,20 +84,22 @@ def bound_ms(delay_ms: float) -> float:
     return 4 * delay_ms + 1000 / 60
 
 
-def judge(result: dict, processes: int, transport: str, seconds: float, delay_ms: float) -> dict:
+def judge(result: dict, processes: int, transport: str, seconds: float, delay_ms: float) -> SlowConsumerRun:
     """A `run_child` result with its configuration and verdict: bounded latency that does not grow."""
-    met = (result["stats"]["max"] <= bound_ms(delay_ms)
+    stats = result["stats"]
+    stats = stats if isinstance(stats, common.LatencyStats) else common.LatencyStats(**stats)
+    met = (stats.max <= bound_ms(delay_ms)
            and result["last_second_median"] <= result["first_second_median"] + delay_ms)
-    return {"processes": processes, "transport": transport, "seconds": seconds, "delay_ms": delay_ms,
-            "bound_ms": bound_ms(delay_ms), "met": bool(met), **result}
+    return SlowConsumerRun(processes, transport, seconds, delay_ms, bound_ms(delay_ms), bool(met), result["sent"],
+                           result["processed"], stats, result["first_second_median"], result["last_second_median"])
 
 
-def run_and_judge(processes: int, transport: str, seconds: float, delay_ms: float) -> dict:
+def run_and_judge(processes: int, transport: str, seconds: float, delay_ms: float) -> SlowConsumerRun:
     """`run_child` in this process (the transport must already be selected), judged."""
     return judge(run_child(processes, transport, seconds, delay_ms), processes, transport, seconds, delay_ms)
 
 
-def measure(processes: int, transport: str, seconds: float, delay_ms: float) -> dict:
+def measure(processes: int, transport: str, seconds: float, delay_ms: float) -> SlowConsumerRun:
     """`run_child` in a fresh interpreter, judged."""
     result = subprocess.run(
         [sys.executable, "-m", __spec__.name, "--child", "--processes", str(processes),
@@ -97,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     seconds = 5.0 if args.quick else args.seconds
     if args.child:
-        print(json.dumps(run_child(args.processes[0], args.transport, seconds, args.delay_ms)), flush=True)
+        print(to_json(run_child(args.processes[0], args.transport, seconds, args.delay_ms)), flush=True)
         return 0
     command = "python -m bench.dds_slow_consumer " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
@@ -120,10 +146,10 @@ def main(argv: list[str] | None = None) -> int:
     ]
     for processes in args.processes:
         r = measure(processes, args.transport, seconds, args.delay_ms)
-        s = r["stats"]
-        lines.append(f"| {processes} | {r['sent']} | {r['processed']} | {s['p50']:.1f} | {s['p99']:.1f} | "
-                     f"{s['max']:.1f} | {r['first_second_median']:.1f} | {r['last_second_median']:.1f} | "
-                     f"{'met' if r['met'] else 'NOT met'} |")
+        s = r.stats
+        lines.append(f"| {processes} | {r.sent} | {r.processed} | {s.p50:.1f} | {s.p99:.1f} | "
+                     f"{s.max:.1f} | {r.first_second_median:.1f} | {r.last_second_median:.1f} | "
+                     f"{'met' if r.met else 'NOT met'} |")
         print(lines[-1], flush=True)
     out = Path(args.out) if args.out else common.results_path("dds_slow_consumer", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)

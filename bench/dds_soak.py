@@ -9,6 +9,7 @@ end, with a least-squares slope per 1000 frames. Results: bench/results/dds_soak
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import json
 import os
@@ -85,7 +86,7 @@ def run_child(processes: int, transport: str, frames: int, fps: float, map_rate:
     finally:
         graph.close()
     return {"frames": source.seq, "contacts": contacts_received, "seconds": time.monotonic() - started,
-            "samples": samples, "recent_latency": common.summarise(recent),
+            "samples": samples, "recent_latency": dataclasses.asdict(common.summarise(recent)),
             "perception_dropped": perception.get("frames_dropped", "?"),
             "perception_received": perception.get("frames_received", "?")}
 

@@ -9,15 +9,15 @@ invalid ones return. Also the back-projection cost per pixel.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from bench._common import provenance, provenance_markdown
+from bench._common import Provenance, provenance, provenance_markdown, to_json
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 
 CASES: list[tuple[str, dict]] = [
@@ -34,7 +34,38 @@ CASES: list[tuple[str, dict]] = [
 ]
 
 
-def evaluate_case(model: CameraModel, step: int) -> dict:
+@dataclass(frozen=True)
+class StabilityCase:
+    """One hard case over a grid of the image: how many pixels back-project, how well they round-trip,
+    and what the invalid ones return."""
+
+    case: str
+    pixels: int
+    valid_fraction: float
+    round_trip_px: float | None      # worst pixel -> point -> pixel; None when no pixel is valid
+    round_trip_m: float | None       # worst point -> pixel -> point
+    on_cylinder_m: float | None      # worst distance of a back-projected point from the cylinder
+    reprojected_valid: bool
+    invalid_return: str              # "NaN point, valid=False", or "FINITE (bug)"
+    us_per_pixel: float
+
+
+@dataclass(frozen=True)
+class NonFiniteInputs:
+    inputs: str
+    valid: tuple[bool, ...]
+    all_invalid_are_nan: bool
+
+
+@dataclass(frozen=True)
+class StabilityResult:
+    cases: tuple[StabilityCase, ...]
+    non_finite: NonFiniteInputs
+    grid_step_px: int
+    provenance: Provenance
+
+
+def evaluate_case(name: str, model: CameraModel, step: int) -> StabilityCase:
     u, v = np.meshgrid(np.arange(0, model.width, step, dtype=np.float64),
                        np.arange(0, model.height, step, dtype=np.float64))
     uv = np.stack([u, v], axis=-1).reshape(-1, 2)
@@ -44,54 +75,54 @@ def evaluate_case(model: CameraModel, step: int) -> dict:
     uv_back, valid_back = model.project(points[valid])
     points_again, valid_again = model.back_project(uv_back)
     invalid_points = points[~valid]
-    return {
-        "pixels": int(len(uv)),
-        "valid_fraction": float(valid.mean()),
-        "round_trip_px": float(np.max(np.abs(uv_back - uv[valid]))) if valid.any() else None,
-        "round_trip_m": float(np.max(np.linalg.norm(points_again - points[valid], axis=-1))) if valid.any() else None,
-        "on_cylinder_m": float(np.max(np.abs(np.hypot(points[valid, 1], points[valid, 2]) - model.radius)))
-        if valid.any() else None,
-        "reprojected_valid": bool(valid_back.all() and valid_again.all()),
-        "invalid_return": "NaN point, valid=False" if np.isnan(invalid_points).all() else "FINITE (bug)",
-        "us_per_pixel": 1e6 * seconds / len(uv),
-    }
+    any_valid = bool(valid.any())
+    return StabilityCase(
+        case=name,
+        pixels=int(len(uv)),
+        valid_fraction=float(valid.mean()),
+        round_trip_px=float(np.max(np.abs(uv_back - uv[valid]))) if any_valid else None,
+        round_trip_m=float(np.max(np.linalg.norm(points_again - points[valid], axis=-1))) if any_valid else None,
+        on_cylinder_m=float(np.max(np.abs(np.hypot(points[valid, 1], points[valid, 2]) - model.radius)))
+        if any_valid else None,
+        reprojected_valid=bool(valid_back.all() and valid_again.all()),
+        invalid_return="NaN point, valid=False" if np.isnan(invalid_points).all() else "FINITE (bug)",
+        us_per_pixel=1e6 * seconds / len(uv),
+    )
 
 
-def non_finite_inputs() -> dict:
+def non_finite_inputs() -> NonFiniteInputs:
     model = CameraModel(distortion=(-0.2, 0.05, 0.0, 0.0, 0.0))
     points, valid = model.back_project([[np.nan, 1.0], [np.inf, 1.0], [1.0, -np.inf], [320.0, 240.0]])
-    return {"inputs": "NaN, +inf, -inf, finite", "valid": valid.tolist(),
-            "all_invalid_are_nan": bool(np.isnan(points[~valid]).all())}
+    return NonFiniteInputs("NaN, +inf, -inf, finite", tuple(bool(v) for v in valid),
+                           bool(np.isnan(points[~valid]).all()))
 
 
-def run(quick: bool = False) -> dict:
+def run(quick: bool = False) -> StabilityResult:
     stamp = provenance("geometry_stability", quick)
     step = 8 if quick else 2
-    cases = []
-    for name, changes in CASES:
-        result = evaluate_case(CameraModel(**changes), step)
-        result["case"] = name
-        cases.append(result)
-    return {"cases": cases, "non_finite": non_finite_inputs(), "grid_step_px": step, "provenance": stamp}
+    cases = tuple(evaluate_case(name, CameraModel(**changes), step) for name, changes in CASES)
+    return StabilityResult(cases, non_finite_inputs(), step, stamp)
 
 
-def to_markdown(result: dict) -> str:
+def to_markdown(result: StabilityResult) -> str:
     lines = [
-        provenance_markdown(result["provenance"]), "",
+        provenance_markdown(result.provenance), "",
         "| case | valid pixels | worst px→3D→px (px) | worst 3D→px→3D (m) | off the cylinder (m) "
         "| invalid pixels return | µs/pixel |",
         "|---|---|---|---|---|---|---|",
     ]
-    for c in result["cases"]:
-        def fmt(x):
-            return "—" if x is None else f"{x:.1e}"
-        lines.append(f"| {c['case']} | {100 * c['valid_fraction']:.1f}% | {fmt(c['round_trip_px'])} | "
-                     f"{fmt(c['round_trip_m'])} | {fmt(c['on_cylinder_m'])} | {c['invalid_return']} | "
-                     f"{c['us_per_pixel']:.2f} |")
-    nf = result["non_finite"]
+
+    def fmt(x: float | None) -> str:
+        return "—" if x is None else f"{x:.1e}"
+
+    for c in result.cases:
+        lines.append(f"| {c.case} | {100 * c.valid_fraction:.1f}% | {fmt(c.round_trip_px)} | "
+                     f"{fmt(c.round_trip_m)} | {fmt(c.on_cylinder_m)} | {c.invalid_return} | "
+                     f"{c.us_per_pixel:.2f} |")
+    nf = result.non_finite
     lines.append("")
-    lines.append(f"Non-finite pixels ({nf['inputs']}): valid = {nf['valid']}; the invalid ones are NaN: "
-                 f"{nf['all_invalid_are_nan']}. Grid: every {result['grid_step_px']} px of a 640x480 image.")
+    lines.append(f"Non-finite pixels ({nf.inputs}): valid = {list(nf.valid)}; the invalid ones are NaN: "
+                 f"{nf.all_invalid_are_nan}. Grid: every {result.grid_step_px} px of a 640x480 image.")
     return "\n".join(lines)
 
 
@@ -102,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
     if args.json:
-        args.json.write_text(json.dumps(result, indent=1))
+        args.json.write_text(to_json(result, indent=1))
     print(to_markdown(result))
     return 0
 

@@ -17,7 +17,6 @@ a 300-frame bag, best of 2, and skips the run without a bytecode cache.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import shutil
@@ -31,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import ROOT, loadavg, provenance, provenance_markdown, results_path
+from bench._common import ROOT, loadavg, provenance, provenance_markdown, results_path, to_json
 
 HEAVY = ("skimage", "scipy", "matplotlib", "rclpy")
 READ_SNIPPET = ("import sys\nfrom touchroller_bringup.bags import read_images\n"
@@ -291,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     text = "# `touchroller map`: whole-command speed against reading the bag\n\n" + to_markdown(result)
     out = args.out or results_path("map_speed", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    out.with_suffix(".json").write_text(to_json(result, indent=1), encoding="utf-8")
     out.write_text(text, encoding="utf-8")
     print(text)
     return 0

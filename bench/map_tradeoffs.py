@@ -25,7 +25,6 @@ map_dy_histograms.png + map_tradeoffs.json; the report generator calls `run(quic
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -35,7 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path
+from bench._common import provenance, provenance_markdown, results_path, to_json
 from touchroller_perception.metrics import (  # noqa: E402
     align_affine_3pt,
     compare_to_truth,
@@ -401,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     plot(result, out.with_suffix(".png"), out.with_name("map_dy_histograms.png"))
     out.write_text("# Surface mapping: Table I and what accuracy costs\n\n" + to_markdown(result), encoding="utf-8")
-    out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float), encoding="utf-8")
+    out.with_suffix(".json").write_text(to_json(result, indent=1), encoding="utf-8")
     print(f"wrote {out}, {out.with_suffix('.png').name}, map_dy_histograms.png, {out.with_suffix('.json').name}")
     return 0
 

@@ -13,15 +13,15 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench._common import loadavg, provenance, provenance_markdown, results_path  # noqa: E402
+from bench._common import Provenance, loadavg, provenance, provenance_markdown, results_path, to_json  # noqa: E402
 from touchroller_driver.sim import EFFECTS, SimulatedSensor, load_scene  # noqa: E402
 from touchroller_driver.sim.scenarios import timeline  # noqa: E402
 
@@ -41,7 +41,42 @@ def _time_render(sensor: SimulatedSensor, states: list, repeats: int) -> np.ndar
     return per_frame.min(axis=0)   # the least-disturbed run of each frame (shared machine)
 
 
-def run(quick: bool = False) -> dict:
+@dataclass(frozen=True)
+class RenderRow:
+    """One configuration of effects: what rendering a 640x480 frame of the roll costs."""
+
+    config: str
+    effects: tuple[str, ...]
+    init_s: float          # building the sensor (lookup maps, static frames)
+    frames: int
+    mean_ms: float
+    median_ms: float
+    p95_ms: float
+    fps: float
+    delta_ms: float        # mean against the core-only configuration
+
+
+@dataclass(frozen=True)
+class SimBenchResult:
+    scene: str
+    image: str
+    rows: tuple[RenderRow, ...]
+    frames_generator_fps: float    # `sensor.frames()`, ground-truth bookkeeping included
+    frames_generator_count: int
+    goal_fps: float
+    default_effects: tuple[str, ...]
+    provenance: Provenance
+    cv2_threads: int
+    quick: bool
+    loadavg_after: str
+
+    @property
+    def scene_default(self) -> RenderRow:
+        """The row of the scene's own default effects (what the goal is judged on)."""
+        return next(row for row in self.rows if row.config.startswith("scene default"))
+
+
+def run(quick: bool = False) -> SimBenchResult:
     stamp = provenance("sim_bench", quick)
     cv2.setNumThreads(1)
     variant = "medium"
@@ -52,69 +87,63 @@ def run(quick: bool = False) -> dict:
     configs += [("+ noise with shot noise (noise.shot = 0.5)", ["noise"], {"effect_params.noise.shot": 0.5})]
     default_effects = list(load_scene("surface_mapping").effects)
     configs += [(f"scene default {default_effects}", default_effects, {}), ("all effects", list(EFFECTS), {})]
-    rows = []
+    timed = []
     for label, effects, overrides in configs:
         scene = load_scene("surface_mapping", variant=variant, effects=effects, **overrides)
         t0 = time.perf_counter()
         sensor = SimulatedSensor(scene, seed=0)
         init = time.perf_counter() - t0
         states = [step.state for step in timeline(scene, sensor)][::stride]
-        per_frame = _time_render(sensor, states, repeats)
-        rows.append({"config": label, "effects": effects, "init_s": init, "frames": len(states),
-                     "mean_ms": 1e3 * per_frame.mean(), "median_ms": 1e3 * float(np.median(per_frame)),
-                     "p95_ms": 1e3 * float(np.percentile(per_frame, 95)), "fps": 1.0 / per_frame.mean()})
-    base = rows[0]["mean_ms"]
-    for row in rows:
-        row["delta_ms"] = row["mean_ms"] - base
+        timed.append((label, effects, init, len(states), _time_render(sensor, states, repeats)))
+    base_ms = 1e3 * timed[0][4].mean()
+    rows = tuple(RenderRow(label, tuple(effects), init, frames, 1e3 * per_frame.mean(),
+                           1e3 * float(np.median(per_frame)), 1e3 * float(np.percentile(per_frame, 95)),
+                           1.0 / per_frame.mean(), 1e3 * per_frame.mean() - base_ms)
+                 for label, effects, init, frames, per_frame in timed)
     # the whole generator (truth bookkeeping included), scene defaults
     scene = load_scene("surface_mapping", variant=variant)
     sensor = SimulatedSensor(scene, seed=0)
     t0 = time.perf_counter()
     count = sum(1 for _ in sensor.frames())
     frames_fps = count / (time.perf_counter() - t0)
-    return {
-        "scene": f"surface_mapping/{variant}", "image": "640x480 bgr8", "rows": rows,
-        "frames_generator_fps": frames_fps, "frames_generator_count": count,
-        "goal_fps": GOAL_FPS, "default_effects": default_effects,
-        "provenance": stamp, "cv2_threads": cv2.getNumThreads(), "quick": quick,
-        "loadavg_before_after": [stamp["loadavg"], loadavg()],
-    }
+    return SimBenchResult(f"surface_mapping/{variant}", "640x480 bgr8", rows, frames_fps, count, GOAL_FPS,
+                          tuple(default_effects), stamp, cv2.getNumThreads(), quick, loadavg())
 
 
-def write(result: dict) -> Path:
-    path = results_path("sim_bench", bool(result["quick"]))
+def write(result: SimBenchResult) -> Path:
+    path = results_path("sim_bench", result.quick)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.with_suffix(".json").write_text(json.dumps(result, indent=2))
+    path.with_suffix(".json").write_text(to_json(result, indent=2))
     path.write_text("# Simulator benchmark (`bench/sim_bench.py`)\n\n" + to_markdown(result))
     return path
 
 
-def to_markdown(result: dict) -> str:
+def to_markdown(result: SimBenchResult) -> str:
     """The figures as Markdown (for the report and the results file)."""
-    default = next(r for r in result["rows"] if r["config"].startswith("scene default"))
-    status = "met" if default["fps"] >= result["goal_fps"] else "NOT met"
+    default = result.scene_default
+    status = "met" if default.fps >= result.goal_fps else "NOT met"
     lines = [
-        provenance_markdown(result["provenance"]) + "  ",
-        f"OpenCV pinned to {result['cv2_threads']} thread(s), BLAS to 1. "
+        provenance_markdown(result.provenance) + "  ",
+        f"OpenCV pinned to {result.cv2_threads} thread(s), BLAS to 1. "
         "Per-frame minimum over repeats is reported to reduce scheduling noise. "
-        f"Load average before/after: {result['loadavg_before_after'][0]} / {result['loadavg_before_after'][1]}.",
+        f"Load average at the end: {result.loadavg_after}.",
         "",
-        f"Scene {result['scene']} ({result['image']}), the scene's own 10 s roll; each row renders every "
+        f"Scene {result.scene} ({result.image}), the scene's own 10 s roll; each row renders every "
         f"frame of the roll with only the listed effects.",
         "",
-        f"**Goal: >= {result['goal_fps']:.0f} frames/s on one core with the scene's default effects: {status} "
-        f"({default['fps']:.0f} frames/s, {default['mean_ms']:.2f} ms/frame).**",
+        f"**Goal: >= {result.goal_fps:.0f} frames/s on one core with the scene's default effects: {status} "
+        f"({default.fps:.0f} frames/s, {default.mean_ms:.2f} ms/frame).**",
         "",
         "| configuration | ms/frame (mean) | median | p95 | frames/s | cost vs core (ms) | init (s) |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in result["rows"]:
-        lines.append(f"| {r['config']} | {r['mean_ms']:.2f} | {r['median_ms']:.2f} | {r['p95_ms']:.2f} | "
-                     f"{r['fps']:.0f} | {r['delta_ms']:+.2f} | {r['init_s']:.2f} |")
+    for r in result.rows:
+        lines.append(f"| {r.config} | {r.mean_ms:.2f} | {r.median_ms:.2f} | {r.p95_ms:.2f} | "
+                     f"{r.fps:.0f} | {r.delta_ms:+.2f} | {r.init_s:.2f} |")
     lines += [
         "",
-        f"`sensor.frames()` with ground-truth bookkeeping, scene defaults: {result['frames_generator_fps']:.0f} "
-        f"frames/s over {result['frames_generator_count']} frames.",
+        f"`sensor.frames()` with ground-truth bookkeeping, scene defaults: {result.frames_generator_fps:.0f} "
+        f"frames/s over {result.frames_generator_count} frames.",
         "",
         "Static effects (background, vignetting) cost once at start-up (init column) and one multiply-add "
         "over the contact rows per frame; noise is a pre-drawn bank sliced per frame (two saturating "

@@ -1,8 +1,11 @@
 """The evidence report, `docs/RESULTS.md`: every number in it is produced by the run that writes it.
 
-A section is a benchmark script in the checkout's `bench/` folder exposing
-`run(quick: bool) -> dict` and `to_markdown(result: dict) -> str`, and optionally
-`figures(result: dict, out_dir: Path) -> list[Path]` for PNG plots written beside the report.
+A section is a benchmark script in the checkout's `bench/` folder with the interface of `BenchScript`:
+`run(quick)` returns the section's result, `to_markdown(result)` renders it, and optionally
+`figures(result, out_dir)` writes PNG plots beside the report. A result is a frozen dataclass of the bench
+(`bench.sim_bench.SimBenchResult`, `bench.dds_latency.DdsSection`, ...; a few sections still return dicts),
+and the goals at the top read their figures from it (`Goal.measure`). The report never imports a bench
+at module level (the layers point one way), so the measures name the bench's type in a comment.
 A section that fails makes the whole report fail: a report with a missing table is not written.
 """
 from __future__ import annotations
@@ -18,9 +21,21 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
+from typing import Any, Protocol, cast
 
 from touchroller_bringup.errors import UserError
 from touchroller_driver.paths import checkout_dir
+
+#: A section's result: the bench's frozen dataclass (or, for a section not typed yet, its dict).
+SectionResult = Any
+
+
+class BenchScript(Protocol):
+    """What the report calls on a `bench/<script>.py` module (`figures` is optional)."""
+
+    def run(self, quick: bool = False) -> SectionResult: ...
+
+    def to_markdown(self, result: SectionResult) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -94,7 +109,7 @@ def machine_description() -> str:
 
 # --------------------------------------------------------------------------- goals at a glance
 #: a goal's figure from its section's result: (what was measured, met?); met is None when no verdict applies
-Measure = Callable[[dict], tuple[str, bool | None]]
+Measure = Callable[[SectionResult], tuple[str, bool | None]]
 
 
 @dataclass(frozen=True)
@@ -107,9 +122,9 @@ class Goal:
     args: str = ""
 
 
-def _sim_fps(r: dict) -> tuple[str, bool]:
-    row = next(row for row in r["rows"] if row["config"].startswith("scene default"))
-    return f"{row['fps']:.0f} frames/s ({row['mean_ms']:.2f} ms/frame)", row["fps"] >= r["goal_fps"]
+def _sim_fps(r: Any) -> tuple[str, bool]:   # bench.sim_bench.SimBenchResult
+    row = r.scene_default
+    return f"{row.fps:.0f} frames/s ({row.mean_ms:.2f} ms/frame)", row.fps >= r.goal_fps
 
 
 def _table_ii(r: dict, name: str) -> dict:
@@ -135,16 +150,16 @@ def _real(r: dict, sensor: str = "gelsight_mini") -> dict:
     return next(s for s in r["sensors"] if s["sensor"] == sensor)["methods"][0]["all"]
 
 
-def _round_trip(r: dict) -> tuple[str, bool]:
-    worst = max(c["round_trip_m"] for c in r["cases"] if c["round_trip_m"] is not None)
-    return f"worst {worst:.1e} m over {len(r['cases'])} hard cases", worst < 1e-9
+def _round_trip(r: Any) -> tuple[str, bool]:   # bench.geometry_stability.StabilityResult
+    worst = max(c.round_trip_m for c in r.cases if c.round_trip_m is not None)
+    return f"worst {worst:.1e} m over {len(r.cases)} hard cases", worst < 1e-9
 
 
-def _invalid_is_nan(r: dict) -> tuple[str, bool]:
-    cases_ok = all(c["invalid_return"].startswith("NaN") for c in r["cases"])
-    nf = r["non_finite"]
-    inputs_ok = nf["all_invalid_are_nan"] and nf["valid"] == [False, False, False, True]
-    return (f"{'all' if cases_ok else 'NOT all'} invalid pixels NaN; non-finite inputs {nf['valid']}",
+def _invalid_is_nan(r: Any) -> tuple[str, bool]:
+    cases_ok = all(c.invalid_return.startswith("NaN") for c in r.cases)
+    nf = r.non_finite
+    inputs_ok = nf.all_invalid_are_nan and tuple(nf.valid) == (False, False, False, True)
+    return (f"{'all' if cases_ok else 'NOT all'} invalid pixels NaN; non-finite inputs {list(nf.valid)}",
             cases_ok and inputs_ok)
 
 
@@ -226,43 +241,43 @@ def _calib_contacts(r: dict) -> tuple[str, bool]:
 _PAPER_MEAN_MM = 7.66   # the paper's Table II mean, the issue's yardstick ("far below")
 
 
-def _dds_runs(r: dict, rate: float) -> list[dict]:
+def _dds_runs(r: Any, rate: float) -> list[Any]:   # bench.dds_latency.DdsSection -> its RateRuns
     """The runs at `rate` on the launch files' default transport (config/fastdds_shm_udp.xml), else on
     shared memory only (config/fastdds_shm.xml), else all, as measured."""
-    runs = [row for row in r["runs"] if float(row["fps"]) == rate]
+    runs = [row for row in r.rows if float(row.fps) == rate]
     if not runs:
         raise KeyError(f"no run at {rate:g} Hz")
     for transport in ("shm_udp", "shm"):
-        chosen = [row for row in runs if row["transport"] == transport]
+        chosen = [row for row in runs if row.transport == transport]
         if chosen:
             return chosen
     return runs
 
 
-def _dds_latency(r: dict) -> tuple[str, bool]:
+def _dds_latency(r: Any) -> tuple[str, bool]:
     runs = _dds_runs(r, 30.0)
-    text = "; ".join(f"{row['transport']}, {row['processes']} process(es): p50 {row['p50_ms']:.2f} ms, p99 "
-                     f"{row['p99_ms']:.2f} ms" for row in runs)
-    return text, all(row["p50_ms"] <= 5.0 and row["p99_ms"] <= 15.0 for row in runs)
+    text = "; ".join(f"{row.transport}, {row.processes} process(es): p50 {row.stats.p50:.2f} ms, p99 "
+                     f"{row.stats.p99:.2f} ms" for row in runs)
+    return text, all(row.stats.p50 <= 5.0 and row.stats.p99 <= 15.0 for row in runs)
 
 
-def _dds_drops(r: dict) -> tuple[str, bool | None]:
+def _dds_drops(r: Any) -> tuple[str, bool | None]:
     runs = _dds_runs(r, 60.0)
-    known = [row for row in runs if row["missed"] == row["missed"]]      # NaN: the RMW did not say
-    text = "; ".join(f"{row['transport']}, {row['processes']} process(es): "
-                     + (f"{row['missed']:.0f} of {row['frames']} dropped" if row in known else "drops unknown")
-                     + f" ({row['skipped']:.0f} skipped stale by design)" for row in runs)
-    return text, (all(row["missed"] == 0 for row in known) if known == runs else None)
+    known = [row for row in runs if row.dropped == row.dropped]      # NaN: the RMW did not say
+    text = "; ".join(f"{row.transport}, {row.processes} process(es): "
+                     + (f"{row.dropped:.0f} of {row.sent} dropped" if row in known else "drops unknown")
+                     + f" ({row.skipped:.0f} skipped stale by design)" for row in runs)
+    return text, (all(row.dropped == 0 for row in known) if known == runs else None)
 
 
-def _dds_slow_consumer(r: dict) -> tuple[str, bool]:
-    slow = r["slow_consumer"]
+def _dds_slow_consumer(r: Any) -> tuple[str, bool]:
+    slow = r.slow_consumer
     if not slow:
         raise KeyError("no slow-consumer run")
-    text = "; ".join(f"{row['processes']} process(es): latency p99 {row['stats']['p99']:.0f} ms, last second's "
-                     f"median {row['last_second_median']:.0f} ms vs first {row['first_second_median']:.0f} ms"
+    text = "; ".join(f"{row.processes} process(es): latency p99 {row.stats.p99:.0f} ms, last second's "
+                     f"median {row.last_second_median:.0f} ms vs first {row.first_second_median:.0f} ms"
                      for row in slow)
-    return text, all(row["met"] for row in slow)
+    return text, all(row.met for row in slow)
 
 
 GOALS: tuple[Goal, ...] = (
@@ -325,14 +340,14 @@ def _elsewhere(goal: Goal, out_dir: Path) -> str:
     return f"not run by the report: [{result_file.name}]({link}) (`{command}`)"
 
 
-def goals_markdown(results: dict[str, dict], out_dir: Path) -> str:
+def goals_markdown(results: dict[str, SectionResult], out_dir: Path) -> str:
     lines = ["| goal | issue | measured in this run | status |", "|---|---|---|---|"]
     for goal in GOALS:
         if goal.measure is not None and goal.section in results:
             try:
                 measured, met = goal.measure(results[goal.section])
                 status = "—" if met is None else ("**met**" if met else "**NOT met**")
-            except (KeyError, StopIteration, TypeError, ValueError) as error:
+            except (AttributeError, KeyError, StopIteration, TypeError, ValueError) as error:
                 measured, status = f"figure missing from the section's result ({type(error).__name__}: {error})", \
                     "**not checked**"
         elif goal.script:
@@ -495,7 +510,7 @@ def _calibration_effort_line(r: dict) -> str:
             f"{table['ours (seed 0)']['mean_mm']:.3f} mm; the true camera {table['truth']['mean_mm']:.3f} mm.")
 
 
-def settings_markdown(results: dict[str, dict]) -> str:
+def settings_markdown(results: dict[str, SectionResult]) -> str:
     """Which setting to pick for a tight, a medium and a generous time budget, from the sections' results."""
     rows: list[str] = []
     notes: list[str] = []
@@ -534,12 +549,12 @@ def load_bench_script(script: str) -> ModuleType:
     return importlib.import_module(f"bench.{script}")
 
 
-def _load(script: str) -> ModuleType:
+def _load(script: str) -> BenchScript:
     module = load_bench_script(script)
     for name in ("run", "to_markdown"):
         if not callable(getattr(module, name, None)):
             raise UserError(f"bench/{script}.py has no {name}() for the report")
-    return module
+    return cast(BenchScript, module)
 
 
 def loadavg() -> str:
@@ -564,7 +579,7 @@ def _commit() -> str:
 
 
 def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
-                 progress: Callable[[str], None] = print) -> dict[str, dict]:
+                 progress: Callable[[str], None] = print) -> dict[str, SectionResult]:
     """Run the sections and write the report to `out` (Markdown) with figures beside it."""
     sections = [s for s in SECTIONS if not only or s.key in only]
     unknown = set(only) - {s.key for s in SECTIONS}
@@ -574,7 +589,7 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
     modules = {s.key: _load(s.script) for s in sections}      # fail before spending minutes
     out.parent.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    results: dict[str, dict] = {}
+    results: dict[str, SectionResult] = {}
     body: list[str] = []
     timings: list[str] = []
     for section in sections:

@@ -2,11 +2,19 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import re
 
 import pytest
 
 from touchroller_bringup import report
+from touchroller_bringup.report import load_bench_script
+
+sim_bench = load_bench_script("sim_bench")
+stability_bench = load_bench_script("geometry_stability")
+dds_latency = load_bench_script("dds_latency")
+dds_slow_consumer = load_bench_script("dds_slow_consumer")
+PROVENANCE = load_bench_script("_common").Provenance("python -m bench.x", "test machine", "now", "0.00 0.00 0.00")
 
 
 def _sweep(setting: str, ms: float, ssim: float, length: float = 0.01) -> dict:
@@ -66,14 +74,19 @@ def results() -> dict[str, dict]:
                                       "ours (seed 0)": {"mean_mm": 0.065, "n": 50},
                                       "uncalibrated (theta = d = 0)": {"mean_mm": 1.8, "n": 50}}},
     }
-    simulator = {"goal_fps": 200.0, "rows": [{"config": "scene default [...]", "fps": 650.0, "mean_ms": 1.5}]}
+    simulator = sim_bench.SimBenchResult(
+        "surface_mapping/medium", "640x480 bgr8",
+        (sim_bench.RenderRow("core only", (), 0.1, 300, 1.2, 1.2, 1.4, 830.0, 0.0),
+         sim_bench.RenderRow("scene default [...]", ("noise",), 0.1, 300, 1.5, 1.5, 1.7, 650.0, 0.3)),
+        700.0, 300, 200.0, ("noise",), PROVENANCE, 1, False, "0.00 0.00 0.00")
     table_ii = {"table_ii": {"summary": {"exact": {"mean_mm": 0.004, "max_cell_mean_mm": 0.007},
                                          "error_sources": {"mean_mm": 0.89, "max_cell_mean_mm": 1.18},
                                          "our_calibration": {"mean_mm": 0.34, "max_cell_mean_mm": 0.41,
                                                              "worst_seed_max_cell_mean_mm": 0.61,
                                                              "max_tap_mm": 0.62}}}}
-    stability = {"cases": [{"round_trip_m": 1e-17, "invalid_return": "NaN point, valid=False"}],
-                 "non_finite": {"valid": [False, False, False, True], "all_invalid_are_nan": True}}
+    stability = stability_bench.StabilityResult(
+        (stability_bench.StabilityCase("nominal", 100, 1.0, 1e-12, 1e-17, 1e-18, True, "NaN point, valid=False", 0.1),),
+        stability_bench.NonFiniteInputs("NaN, +inf, -inf, finite", (False, False, False, True), True), 8, PROVENANCE)
     return {"table_i": table_i, "map_speed": map_speed, "contacts_speed": contacts, "calibration": calibration,
             "simulator": simulator, "table_ii": table_ii, "stability": stability}
 
@@ -187,22 +200,31 @@ def test_timing_noise_does_not_pick_a_non_default_twin(results):
     assert [row[2] for row in rows] == ["no lateral tracking"] * 3
 
 
-def _dds_run(transport: str, processes: int, fps: float, p50: float, p99: float, missed: float) -> dict:
-    return {"transport": transport, "processes": processes, "fps": fps, "frames": 60, "p50_ms": p50, "p99_ms": p99,
-            "missed": missed, "skipped": 3}
+def _dds_run(transport: str, processes: int, fps: float, p50: float, p99: float, lost: float) -> object:
+    stats = dds_latency.LatencyStats(p50, p99, p99 + 1.0, p50)
+    return dds_latency.RateRun(transport, processes, fps, 1.0, stats, missing=0, sent=60, published=90,
+                               camera_late=0, received=88.0, lost=lost, gaps=3.0 + lost, skipped=3.0, busy_skips=0.0,
+                               callback_p50_ms=2.0, callback_p99_ms=4.0, busy_fraction=0.1, qos="best_effort depth 1")
+
+
+def _dds(runs: list, slow: list) -> object:
+    return dds_latency.DdsSection(False, "python -m bench.dds_latency", "test machine", "now", (0.0,), 1.0, 10.0,
+                                  tuple(runs), tuple(slow))
 
 
 def test_dds_goals_are_judged_on_the_shared_memory_runs(results, tmp_path):
-    slow = {"processes": 2, "met": True, "stats": {"p99": 120.0}, "first_second_median": 60.0,
-            "last_second_median": 61.0}
-    results["dds"] = {"runs": [_dds_run("shm", 2, 30.0, 3.0, 12.0, 0), _dds_run("default", 2, 30.0, 4.0, 20.0, 0),
-                               _dds_run("shm", 2, 60.0, 3.0, 11.0, 1)], "slow_consumer": [slow]}
+    slow = dds_slow_consumer.SlowConsumerRun(2, "shm", 8.0, 50.0, 216.7, True, 480, 160,
+                                             dds_latency.LatencyStats(60.0, 120.0, 130.0, 61.0), 60.0, 61.0)
+    runs = [_dds_run("shm", 2, 30.0, 3.0, 12.0, 0), _dds_run("default", 2, 30.0, 4.0, 20.0, 0),
+            _dds_run("shm", 2, 60.0, 3.0, 11.0, 1)]
+    results["dds"] = _dds(runs, [slow])
     status = {row[0]: (row[2], row[3]) for row in _rows(report.goals_markdown(results, tmp_path), "")[2:]}
     latency = status["DDS image -> contact p50 <= 5 ms and p99 <= 15 ms at 30 Hz (shared-memory transport)"]
     assert latency[1] == "**met**" and "p99 12.00 ms" in latency[0] and "20.00" not in latency[0]
     drops = status["DDS: no drops at 60 Hz (shared-memory transport)"]
     assert drops[1] == "**NOT met**" and "1 of 60 dropped" in drops[0]
     assert status["A slow consumer skips stale frames instead of queueing them"][1] == "**met**"
-    results["dds"]["runs"][2]["missed"] = float("nan")                 # the RMW did not report losses
+    runs[2] = dataclasses.replace(runs[2], lost=float("nan"))           # the RMW did not report losses
+    results["dds"] = _dds(runs, [slow])
     status = {row[0]: row[3] for row in _rows(report.goals_markdown(results, tmp_path), "")[2:]}
     assert status["DDS: no drops at 60 Hz (shared-memory transport)"] == "—"

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
@@ -74,9 +75,11 @@ def run(args: argparse.Namespace) -> int:
 
         from touchroller_driver.sim.flat_sensor import flat_press_mosaic
 
-        extra["comparison"] = compare(scene.data["comparison"], scene.motion)
+        comparison = compare(scene.data["comparison"], scene.motion)
         cv2.imwrite(str(args.out / "flat_sensor_presses.png"), flat_press_mosaic(sensor, scene.data["comparison"]))
-        extra["comparison"]["presses_image"] = "flat_sensor_presses.png"
+        # the ground-truth file carries the timing, its speed-up and the presses' image
+        extra["comparison"] = {**dataclasses.asdict(comparison), "speedup": comparison.speedup,
+                               "presses_image": "flat_sensor_presses.png"}
     write_ground_truth(args.out, sensor, truths, dropped, extra)
     elapsed = time.perf_counter() - started
     print(f"simulate: {scene.name}{'/' + scene.data['variant'] if scene.data.get('variant') else ''}: "

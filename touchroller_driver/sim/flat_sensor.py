@@ -8,6 +8,7 @@ settle and capture. The paper reports 49 presses and 196 s for the GelSight agai
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 from touchroller_driver.motion import TrapezoidProfile
@@ -28,7 +29,54 @@ def presses_needed(area: float, window: float, overlap: float) -> int:
     return 1 + math.ceil((area - window) / (window * (1.0 - overlap)) - 1e-9)
 
 
-def compare(comparison: dict[str, Any] | None, motion: dict[str, Any]) -> dict[str, Any]:
+@dataclass(frozen=True)
+class FlatSensorTiming:
+    """The flat sensor's raster of presses, in seconds: each press descends, approaches slowly, dwells
+    (settle and capture) and lifts; between presses the arm shifts along a row or to the next row."""
+
+    presses: int
+    grid: tuple[int, int]           # presses across x, along y
+    press_cycle_s: float
+    descend_s: float
+    approach_s: float
+    dwell_s: float
+    lift_s: float
+    shift_in_row_s: float
+    shift_between_rows_s: float
+    total_s: float
+
+
+@dataclass(frozen=True)
+class RollTiming:
+    """The roller's single roll: lowered once, rolled once, lifted once."""
+
+    roll_s: float
+    roll_peak_speed: float          # m/s
+    total_s: float
+
+
+@dataclass(frozen=True)
+class PaperCoverage:
+    """What the paper reports for the same area (section V)."""
+
+    flat_presses: int = 49
+    flat_total_s: float = 196.0
+    touchroller_total_s: float = 10.0
+
+
+@dataclass(frozen=True)
+class CoverageComparison:
+    flat_sensor: FlatSensorTiming
+    touchroller: RollTiming
+    parameters: dict[str, Any]      # the comparison's settings: DEFAULTS updated by the scene's
+    paper: PaperCoverage = PaperCoverage()
+
+    @property
+    def speedup(self) -> float:
+        return self.flat_sensor.total_s / self.touchroller.total_s
+
+
+def compare(comparison: dict[str, Any] | None, motion: dict[str, Any]) -> CoverageComparison:
     """Timing of the flat sensor's raster of presses and of the roller's single roll (seconds)."""
     p = dict(DEFAULTS)
     p.update(comparison or {})
@@ -47,23 +95,11 @@ def compare(comparison: dict[str, Any] | None, motion: dict[str, Any]) -> dict[s
     presses = nx * ny
     press_cycle = descend + approach + float(p["dwell"]) + retract
     shifts = (nx - 1) * ny * shift_in_row + (ny - 1) * shift_row    # boustrophedon raster
-    flat_total = presses * press_cycle + shifts
+    flat = FlatSensorTiming(presses, (nx, ny), press_cycle, descend, approach, float(p["dwell"]), retract,
+                            shift_in_row, shift_row, presses * press_cycle + shifts)
     roll = roll_profile(motion)
-    # The roller is lowered once, rolls once and is lifted once.
-    roller_total = descend + approach + roll.duration + retract
-    return {
-        "flat_sensor": {
-            "presses": presses, "grid": [nx, ny], "press_cycle_s": press_cycle,
-            "descend_s": descend, "approach_s": approach, "dwell_s": float(p["dwell"]), "lift_s": retract,
-            "shift_in_row_s": shift_in_row, "shift_between_rows_s": shift_row, "total_s": flat_total,
-        },
-        "touchroller": {
-            "roll_s": roll.duration, "roll_peak_speed": roll.peak_velocity, "total_s": roller_total,
-        },
-        "speedup": flat_total / roller_total,
-        "paper": {"flat_presses": 49, "flat_total_s": 196.0, "touchroller_total_s": 10.0},
-        "parameters": p,
-    }
+    roller = RollTiming(roll.duration, roll.peak_velocity, descend + approach + roll.duration + retract)
+    return CoverageComparison(flat, roller, p)
 
 
 def flat_press_mosaic(sensor: Any, comparison: dict[str, Any] | None = None, depth: float = 3e-4,

@@ -10,6 +10,7 @@ ground_truth_tactile.png (the same relief as the sensor's shading renders it, gr
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,9 @@ from touchroller_driver.sim.render import SimulatedSensor
 
 
 def plain(value: Any) -> Any:
-    """YAML-safe copy: numpy scalars/arrays to Python, tuples to lists, NaN kept as .nan."""
+    """YAML-safe copy: dataclasses to mappings, numpy scalars/arrays to Python, tuples to lists, NaN kept as .nan."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return plain(dataclasses.asdict(value))
     if isinstance(value, Mapping):
         return {str(k): plain(v) for k, v in value.items()}
     if isinstance(value, np.ndarray):
