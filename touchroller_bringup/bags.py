@@ -96,6 +96,66 @@ def read_images(path: str | Path, topic: str = IMAGE_TOPIC) -> Iterator[ImageRec
         reader.close()
 
 
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+
+@dataclass(frozen=True)
+class TransformRecord:
+    """One transform of a /tf or /tf_static message."""
+
+    parent: str
+    child: str
+    stamp_ns: int
+    translation: tuple[float, float, float]
+    rotation: tuple[float, float, float, float]   # x, y, z, w
+    static: bool
+
+
+def tf_topics(path: str | Path) -> tuple[str, ...]:
+    """The TF topics (/tf, /tf_static) a recording has, typed tf2_msgs/msg/TFMessage."""
+    reader = open_bag(path)
+    try:
+        return tuple(sorted({c.topic for c in reader.connections if c.topic in ("/tf", "/tf_static")
+                             and c.msgtype == TF_TYPE}))
+    finally:
+        reader.close()
+
+
+def read_images_and_tf(path: str | Path, topic: str = IMAGE_TOPIC) -> Iterator[ImageRecord | TransformRecord]:
+    """The images on `topic` and the transforms on /tf and /tf_static, in recording order (as they
+    arrived: a frame's pose may come after the frame). UserError as `read_images`."""
+    reader = open_bag(path)
+    store = None
+    try:
+        images = _image_connections(reader, path, topic)
+        tf = [c for c in reader.connections if c.topic in ("/tf", "/tf_static") and c.msgtype == TF_TYPE]
+        try:
+            for connection, _timestamp, raw in reader.messages(connections=images + tf):
+                if connection.msgtype == TF_TYPE:
+                    store = store or typestore()
+                    msg = store.deserialize_cdr(raw, TF_TYPE)
+                    static = connection.topic == "/tf_static"
+                    for t in msg.transforms:
+                        r, q = t.transform.translation, t.transform.rotation
+                        yield TransformRecord(t.header.frame_id, t.child_frame_id, stamp_to_ns(t.header.stamp),
+                                              (r.x, r.y, r.z), (q.x, q.y, q.z, q.w), static)
+                elif connection.msgtype == IMAGE_TYPE:
+                    stamp_ns, image = _parse_image_cdr(raw)
+                    yield ImageRecord(stamp_ns, image)
+                else:
+                    store = store or typestore()
+                    msg = store.deserialize_cdr(raw, connection.msgtype)
+                    yield ImageRecord(stamp_to_ns(msg.header.stamp), compressed_to_array(msg))
+        except (ImageFormatError, struct.error, ValueError) as exc:
+            raise UserError(f"bag {path}: malformed message: {exc}") from None
+        except UserError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - truncated sqlite/mcap files surface as various errors
+            raise UserError(f"bag {path} is truncated or corrupt: {type(exc).__name__}: {exc}") from None
+    finally:
+        reader.close()
+
+
 class _ImageView:
     """The fields of a sensor_msgs/Image, enough for `image_to_array`."""
 
@@ -178,3 +238,63 @@ def write_images(
             writer.write(connection, int(stamp_ns), store.serialize_cdr(msg, IMAGE_TYPE))
             count += 1
     return count
+
+
+def write_scan(
+    path: str | Path,
+    records: Iterable[ImageRecord | TransformRecord],
+    topic: str = IMAGE_TOPIC,
+    storage: Storage = "sqlite3",
+    frame_id: str = names.CAMERA_FRAME,
+) -> int:
+    """Write a scan as a recording would hold it: images (sensor_msgs/Image) and transforms (one
+    tf2_msgs/TFMessage per record, on /tf or /tf_static as `static` says), logged in the order given
+    (the order they would have arrived in); returns the number of images written."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys.stores.ros2_kilted import builtin_interfaces__msg__Time as Time
+    from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__Quaternion as Quaternion
+    from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__Transform as TransformMsg
+    from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__TransformStamped as TransformStamped
+    from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__Vector3 as Vector3
+    from rosbags.typesys.stores.ros2_kilted import sensor_msgs__msg__Image as Image
+    from rosbags.typesys.stores.ros2_kilted import std_msgs__msg__Header as Header
+    from rosbags.typesys.stores.ros2_kilted import tf2_msgs__msg__TFMessage as TFMessage
+
+    from touchroller_bringup.image_conversion import encoding_for
+
+    plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
+    if plugin is None:
+        raise UserError(f"unknown bag storage {storage!r} (use sqlite3 or mcap)")
+    path = Path(path)
+    if path.exists():
+        raise UserError(f"bag {path} already exists")
+    store = typestore()
+    images = 0
+    last = 0
+
+    def time(stamp_ns: int) -> Time:
+        sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        return Time(sec=sec, nanosec=nanosec)
+
+    with Writer(path, version=9, storage_plugin=plugin) as writer:
+        image_connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store)
+        tf_connection = writer.add_connection("/tf", TF_TYPE, typestore=store)
+        static_connection = writer.add_connection("/tf_static", TF_TYPE, typestore=store)
+        for record in records:
+            last = max(last, int(record.stamp_ns))   # log time: when it arrived, in the order given
+            if isinstance(record, ImageRecord):
+                image = np.ascontiguousarray(record.image)
+                msg = Image(header=Header(stamp=time(record.stamp_ns), frame_id=frame_id), height=image.shape[0],
+                            width=image.shape[1], encoding=encoding_for(image), is_bigendian=0,
+                            step=int(image.strides[0]), data=image.reshape(-1).view(np.uint8))
+                writer.write(image_connection, last, store.serialize_cdr(msg, IMAGE_TYPE))
+                images += 1
+                continue
+            t, q = record.translation, record.rotation
+            transform = TransformStamped(
+                header=Header(stamp=time(record.stamp_ns), frame_id=record.parent), child_frame_id=record.child,
+                transform=TransformMsg(translation=Vector3(x=t[0], y=t[1], z=t[2]),
+                                       rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])))
+            writer.write(static_connection if record.static else tf_connection, last,
+                         store.serialize_cdr(TFMessage(transforms=[transform]), TF_TYPE))
+    return images

@@ -40,7 +40,7 @@ from touchroller_bringup.image_conversion import stamp_to_ns
 
 # with `record`: these topics of the scan's namespace, and /diagnostics
 RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS,
-                   names.DIAGNOSTICS)
+                   names.DIAGNOSTICS, names.TF, names.TF_STATIC)   # with TF a recording re-maps offline
 
 
 @dataclass
@@ -71,6 +71,7 @@ class ScanResult:
     files: dict[str, Path]
     sweep: str = ""         # what the sweep node answered to ~/start (length, speed, depth)
     recorded: dict[str, int] = field(default_factory=dict)  # topic -> messages in recording/
+    world_map: dict[str, Any] | None = None   # the world map's frame, resolution, origin, latency, passes
 
     @property
     def ok(self) -> bool:
@@ -431,7 +432,16 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
         map_msg = collected.map_msg
         frames = collected.frames
     map_shape = None
-    if map_msg is not None:
+    world = getattr(perception, "world", None)
+    world_map = None
+    if world is not None:   # the world map in the robot's frame: map.png (grey + alpha) and map.yaml
+        from touchroller_bringup.map_files import write_world_map
+
+        image = world.map_image()
+        files["map"], files["map_yaml"] = write_world_map(out_dir / "map.png", image, perception.world_frame)
+        map_shape = tuple(int(n) for n in image.grey.shape)
+        world_map = _world_summary(world, perception.world_frame, image)
+    elif map_msg is not None:
         tactile_map = image_to_array(map_msg)
         map_shape = tuple(int(n) for n in tactile_map.shape)
         files["map"] = out_dir / "map.png"
@@ -443,12 +453,22 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     processed = int(getattr(perception, "received", 0))
     result = ScanResult(out_dir, outcome, message, duration, frames, processed,
                         int(getattr(perception, "dropped", 0)), int(getattr(perception, "malformed", 0)),
-                        len(contacts), map_shape, files, sweep_answer, dict(recorded or {}))
+                        len(contacts), map_shape, files, sweep_answer, dict(recorded or {}), world_map)
     if recorded:
         files["recording"] = out_dir / "recording"
     files["report"] = out_dir / "report.md"
     files["report"].write_text(_report(result, graph), encoding="utf-8")
     return result
+
+
+def _world_summary(world: Any, frame: str, image: Any) -> dict[str, Any]:
+    stats = world.stats
+    return {"frame": frame, "resolution_m": image.resolution, "origin": tuple(image.origin),
+            "frames_mapped": stats.mapped, "passes": stats.passes,
+            "latency_ms": None if stats.latency_s is None else stats.latency_s * 1e3,
+            "latency_estimated": stats.latency_estimated,
+            "pass_corrections_mm": [(dx * image.resolution * 1e3, dy * image.resolution * 1e3)
+                                    for dx, dy in stats.pass_corrections_px]}
 
 
 def _parameter(node: Any, name: str, default: Any) -> Any:
@@ -477,6 +497,16 @@ def _write_contacts(path: Path, contacts: Sequence[tuple[int, float, float, floa
             writer.writerow(row[:len(COLUMNS)])
 
 
+def _world_lines(world: Mapping[str, Any]) -> list[str]:
+    latency = "not found" if world["latency_ms"] is None else f"{world['latency_ms']:.1f} ms"
+    corrections = ", ".join(f"({dx:+.3f}, {dy:+.3f})" for dx, dy in world["pass_corrections_mm"]) or "none"
+    return [f"- world map in `{world['frame']}`: `map.png` + `map.yaml`, {world['resolution_m'] * 1e3:g} mm per pixel, "
+            f"origin ({world['origin'][0]:.4f}, {world['origin'][1]:.4f}) m; {world['frames_mapped']} frames "
+            f"mapped in {world['passes']} pass(es)",
+            f"- camera latency {'estimated from the data' if world['latency_estimated'] else 'as given'}: {latency}; "
+            f"pass corrections by registration (x, y mm): {corrections}"]
+
+
 def _f(value: float, fmt: str = "%.4f") -> str:
     value = float(value)
     return fmt % value if math.isfinite(value) else "nan"
@@ -497,6 +527,7 @@ def _report(result: ScanResult, graph: Graph) -> str:
         f"counted as dropped: {result.frames_dropped}; malformed: {result.frames_malformed}",
         f"- contacts: {result.contacts}",
         f"- map: {'x'.join(str(n) for n in result.map_shape) + ' px' if result.map_shape else 'none published'}",
+        *(_world_lines(result.world_map) if result.world_map else []),
         *([f"- recording: `recording/` ({', '.join(f'{t} {n}' for t, n in result.recorded.items())})"]
           if result.recorded else []),
         "",

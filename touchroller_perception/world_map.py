@@ -284,6 +284,10 @@ class LatencyEstimator:
         minimum. One bad window (a slip, a textureless start) does not move the median."""
         for window in self.windows:
             if window.latency is None and not window.solved:
+                # every candidate needs the poses of the window's frames: wait until TF has its last one
+                # (else the short latencies, the most recent poses, would be missing from the comparison)
+                if not np.isfinite(poses(np.asarray(window.stamps[-1:], np.int64))).all():
+                    continue
                 window.solved = True
                 self._solve_window(window, poses)
         good = [(w.latency, w.residual_px) for w in self.windows if w.latency is not None
@@ -363,7 +367,14 @@ class WorldMapper:
     # -- public --------------------------------------------------------------------------------------
     def push(self, image: np.ndarray, stamp_ns: int) -> None:
         """Take one frame (any image the strip stitcher takes)."""
-        band = self.strip.band(image)
+        self.push_band(self.strip.band(image), stamp_ns)
+
+    def band(self, image: np.ndarray) -> np.ndarray:
+        """The band `push_band` wants, cut from a frame (stateless after the first: another thread may cut)."""
+        return self.strip.band(image)
+
+    def push_band(self, band: np.ndarray, stamp_ns: int) -> None:
+        """`push` for a band cut with `band()`."""
         if self._weights is None:
             self._setup()
         step = self.strip.push_band(band, int(stamp_ns), self._arm_prior(int(stamp_ns)))
@@ -407,12 +418,20 @@ class WorldMapper:
                 self.canvas.layers[a0:a1, b0:b1, 1] += warped[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
         self._level = float(field.mean())
 
-    def map_image(self) -> WorldMapImage:
+    def map_image(self, crop: bool = True) -> WorldMapImage:
+        """The map for files and topics; `crop`: to what was mapped (a growing map's spare room goes;
+        a map with `bounds` keeps them)."""
         grey, weight = self.canvas.value(self._level)
+        mapped = weight > 0.05
+        origin = self.canvas.origin
+        if crop and not self.canvas.fixed and mapped.any():
+            rows, cols = np.flatnonzero(mapped.any(axis=1)), np.flatnonzero(mapped.any(axis=0))
+            r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+            grey, mapped = grey[r0:r1, c0:c1], mapped[r0:r1, c0:c1]
+            origin = (origin[0] + c0 * self.config.resolution, origin[1] + r0 * self.config.resolution)
         image = np.clip(grey + 0.5, 0, 255).astype(np.uint8)[::-1]
-        alpha = np.where(weight[::-1] > 0.05, 255, 0).astype(np.uint8)
-        return WorldMapImage(np.ascontiguousarray(image), np.ascontiguousarray(alpha), self.config.resolution,
-                             self.canvas.origin)
+        alpha = np.where(mapped[::-1], 255, 0).astype(np.uint8)
+        return WorldMapImage(np.ascontiguousarray(image), np.ascontiguousarray(alpha), self.config.resolution, origin)
 
     def coverage(self, bounds: tuple[float, float, float, float]) -> float:
         """Percent of the rectangle (x_min, y_min, x_max, y_max) mapped."""
@@ -517,8 +536,8 @@ class WorldMapper:
             if all(abs(event - e) > 300_000_000 for e in self._events):
                 self._events.append(event)
                 self._add_window(event)
-        added = len(self._estimator.windows) > windows
-        if self._estimator.windows and (added or (final and self.stats.latency_s is None)):
+        pending = any(not w.solved for w in self._estimator.windows)
+        if self._estimator.windows and (len(self._estimator.windows) > windows or pending or final):
             estimate = self._estimator.solve(self.poses)
             if estimate is not None:
                 self.stats.latency_s = estimate
@@ -538,7 +557,7 @@ class WorldMapper:
         poses = self.poses(stamps - (self._latency() or 0))
         heights = np.where(np.isfinite(poses).all(axis=(1, 2)), poses[:, 2, 3], np.inf)
         pressed = heights <= self._pressed_height + self.config.contact_tolerance
-        if pressed.sum() < 20:
+        if pressed.sum() < 12:
             return   # the roller was not down around it: no window (and not looked at again)
         positions = np.array([p for _, p in window])
         self._estimator.add_window([int(v) for v in stamps[pressed]], [float(v) for v in positions[pressed]])

@@ -5,7 +5,6 @@ import csv
 import os
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -64,10 +63,18 @@ def test_short_simulated_scan_writes_map_contacts_and_report(isolated_ros, tmp_p
     summary = capsys.readouterr().out
     assert "scan done" in summary and str(out) in summary
 
-    tactile_map = cv2.imread(str(out / "map.png"), cv2.IMREAD_UNCHANGED)
-    assert tactile_map is not None and tactile_map.std() > 0
-    rolled_px = 0.01 / (0.05 / 500.0)  # 1 cm at r / fy = 0.1 mm per pixel (config/touchroller.yaml)
-    assert tactile_map.shape[0] > 70 + 0.5 * rolled_px, "the map covers the roll, not just one band"
+    from touchroller_bringup.map_files import read_world_map
+
+    # a world map: grey + alpha in the robot's base frame, the roll along base x (image columns)
+    grey, alpha, meta = read_world_map(out / "map.yaml")
+    assert meta["frame_id"] == "base" and meta["resolution"] == pytest.approx(1e-4) and meta["image"] == "map.png"
+    tactile_map = grey
+    mapped_columns = np.flatnonzero((alpha > 0).any(axis=0))
+    rolled_px = 0.01 / 1e-4  # 1 cm at 0.1 mm per pixel
+    assert grey[alpha > 0].std() > 0
+    assert mapped_columns.size > 70 + 0.5 * rolled_px, "the map covers the roll, not just one band"
+    # the roll started at the default start pose: x 0.4 m (the band reaches ~3.5 mm behind it)
+    assert meta["origin"][0] + mapped_columns[0] * 1e-4 == pytest.approx(0.4 - 0.0035, abs=1.5e-3)
 
     from touchroller_bringup.commands.contacts import COLUMNS
 

@@ -1,8 +1,13 @@
-"""`touchroller map BAG --out map.png`: the stitched tactile map of a recording (docs/design.md).
+"""`touchroller map BAG --out map.png`: the tactile map of a recording (docs/design.md).
 
-The map is grey, at camera pixel scale (rows along the roll), or resampled to millimetres with
-`--metric`. `--method paper` reproduces the paper's integer MAE search for comparison. One pass over
-the bag; the flat field (what does not move with the surface) is applied to the whole map at the end.
+When the bag has /tf and /tf_static linking `--world-frame` to touchroller_cylinder, the map is one
+mosaic in the world frame (`touchroller_perception.world_map`): `map.png` (grey plus alpha) and
+`map.yaml` beside it (nav2 map_server format, `frame_id`); the camera's latency is estimated from the
+data unless `--latency` says it, and the passes are registered against each other unless
+`--no-register`. Without TF (or with `--strip`) it is the strip map: grey, at camera pixel scale
+(rows along the roll), or resampled to millimetres with `--metric`; `--method paper` reproduces the
+paper's integer MAE search for comparison. One pass over the bag either way; the flat field (what
+does not move with the surface) is applied to the whole map at the end.
 """
 from __future__ import annotations
 
@@ -44,6 +49,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="largest shift per frame searched, pixels (default: %(default)s, as the paper)")
     parser.add_argument("--steps", help="also write the per-frame registration as CSV "
                                         "(stamp_ns,shift_px,lateral_px,position_px,confidence,used_prior)")
+    parser.add_argument("--world-frame", default="base", help="world map: the frame it lies in (default: %(default)s)")
+    parser.add_argument("--cylinder-frame", default="touchroller_cylinder",
+                        help="world map: the roller's cylinder frame in the bag's TF (default: %(default)s)")
+    parser.add_argument("--resolution", type=float, default=1e-4, help="world map: metres per pixel (default: %(default)s)")
+    parser.add_argument("--latency", default="auto", help="world map: the camera's latency in seconds (what the "
+                                                          "stamps lag the exposure), or 'auto' to estimate it")
+    parser.add_argument("--no-register", action="store_true", help="world map: place by TF only, do not register "
+                                                                   "the passes against each other")
+    parser.add_argument("--strip", action="store_true", help="the strip map even when the bag has TF")
     parser.set_defaults(func=run)
 
 
@@ -62,13 +76,93 @@ def run(args: argparse.Namespace) -> int:
     if args.search < 1:
         raise UserError(f"--search must be at least 1 pixel, got {args.search}")
     camera = _load_camera(args.params)
+    world = not args.strip and _has_tf(args.bag)
+    if world:
+        _check_world_arguments(args, out, camera)
     # OpenCV's own thread pool costs more than it saves on a 70-row band; the second core reads the bag.
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
-        return _stitch_bag(args, out, camera)
+        return _world_map(args, out, camera) if world else _stitch_bag(args, out, camera)
     finally:
         cv2.setNumThreads(threads)
+
+
+def _has_tf(bag: str) -> bool:
+    from touchroller_bringup.bags import tf_topics
+
+    return set(tf_topics(bag)) == {"/tf", "/tf_static"}
+
+
+def _check_world_arguments(args: argparse.Namespace, out: Path, camera) -> None:
+    if out.suffix.lower() != ".png":
+        raise UserError(f"--out {out}: a world map is a PNG (grey and alpha) with map.yaml beside it")
+    if camera is None:
+        raise UserError("a world map needs a camera model for these images (--params CAL.yaml)")
+    if args.method != "default" or args.metric is not None or args.steps:
+        raise UserError("--method paper, --metric and --steps are for the strip map (add --strip)")
+    if not (math.isfinite(args.resolution) and 1e-6 <= args.resolution <= 0.01):
+        raise UserError(f"--resolution must be in [1e-6, 0.01] m per pixel, got {args.resolution}")
+    if args.latency != "auto":
+        try:
+            value = float(args.latency)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and 0 <= value <= 1.0):
+            raise UserError(f"--latency must be 'auto' or seconds in [0, 1], got {args.latency}")
+
+
+def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
+    from touchroller_bringup.bags import ImageRecord, read_images_and_tf
+    from touchroller_bringup.map_files import write_world_map
+    from touchroller_perception.stitching import StitcherConfig
+    from touchroller_perception.transforms import Transform, TransformBuffer
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
+
+    buffer = TransformBuffer(cache_ns=None)
+    config = WorldMapConfig(resolution=args.resolution, latency=None if args.latency == "auto" else float(args.latency),
+                            register=not args.no_register)
+    stitcher = StitcherConfig(band_rows=args.band_rows, search=args.search)
+    mapper = WorldMapper(camera, buffer_lookup(buffer, args.world_frame, args.cylinder_frame), config, stitcher)
+
+    def records() -> Iterator[tuple[str, object]]:
+        # The reader thread reads the bag and cuts the bands (GIL-free OpenCV); the main thread maps.
+        for record in read_images_and_tf(args.bag, args.topic):
+            if isinstance(record, ImageRecord):
+                if (camera.width, camera.height) != (record.image.shape[1], record.image.shape[0]):
+                    raise UserError(f"the camera model is for {camera.width}x{camera.height} images but the bag "
+                                    f"has {record.image.shape[1]}x{record.image.shape[0]}")
+                yield "image", (record.stamp_ns, mapper.band(record.image))
+            else:
+                yield "tf", record
+
+    frames = 0
+    for kind, item in _read_ahead(records()):
+        if kind == "tf":
+            try:
+                buffer.set_transform(item.parent, item.child, item.stamp_ns, Transform(item.translation, item.rotation),
+                                     static=item.static)
+            except ValueError:   # a malformed transform: skipped, as a TF listener would
+                continue
+        else:
+            stamp_ns, band = item
+            mapper.push_band(band, stamp_ns)
+            frames += 1
+    if frames == 0:
+        raise UserError(f"{args.bag} has no images on {args.topic}")
+    if args.world_frame not in buffer.frames or args.cylinder_frame not in buffer.frames:
+        raise UserError(f"the bag's TF has no {args.world_frame} -> {args.cylinder_frame} (frames: "
+                        f"{', '.join(sorted(buffer.frames)) or 'none'}); give --world-frame/--cylinder-frame or --strip")
+    mapper.finalise()
+    image = mapper.map_image()
+    png, yaml_path = write_world_map(out, image, args.world_frame)
+    stats = mapper.stats
+    latency = "not found" if stats.latency_s is None else f"{stats.latency_s * 1e3:.1f} ms"
+    print(f"{frames} frames -> {png} + {yaml_path.name} ({image.grey.shape[1]}x{image.grey.shape[0]} px at "
+          f"{image.resolution * 1e3:g} mm, origin ({image.origin[0]:.4f}, {image.origin[1]:.4f}) m in "
+          f"{args.world_frame}); {stats.mapped} frames mapped in {stats.passes} pass(es), camera latency "
+          f"{'estimated' if stats.latency_estimated else 'given'} {latency}")
+    return 0
 
 
 def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:

@@ -11,10 +11,16 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   `qos_overrides./touchroller/image_raw.subscription.{history,depth,reliability}`);
 * publishes one `geometry_msgs/PointStamped` per contact on `contacts`, frame
   `touchroller_cylinder`, stamped with the source image's stamp;
-* publishes the map on `map` (transient local, reliable, depth 1) at `map.publish_rate` Hz;
-  follows the sweep on `sweep_progress` (std_msgs/Float32, 0..1 of the roll): a new map when
-  a roll starts, and when it ends the map is finalised (whole-map flat field), published, and saved to
-  `map.save_path` if that is set;
+* publishes the map on `map` (transient local, reliable, depth 1) at `map.publish_rate` Hz: with
+  `map.world` and TF linking `world_frame` to touchroller_cylinder (/tf, /tf_static) one mosaic in the
+  world frame (`touchroller_perception.world_map`: placed by TF at the latency-corrected stamps,
+  refined by registration; mono8, row 0 the largest y, frame_id `world_frame`) with its resolution and
+  origin on `map_metadata` (nav_msgs/MapMetaData, as nav2's map_server); else the strip map of
+  `touchroller_perception.stitching` (frame touchroller_cylinder);
+  follows the sweep on `sweep_progress` (std_msgs/Float32, 0..1 of the rolling, all passes): a new
+  map when the sweep starts, and when it ends the map is finalised (whole-map flat field), published,
+  and saved to `map.save_path` if that is set (a world map: the PNG, grey plus alpha, and a nav2
+  map.yaml beside it);
 * `~/recapture_reference` (std_srvs/Trigger) re-captures the no-contact reference from the next
   `reference.frames` frames;
 * `/diagnostics`: frame rate, processing time, contacts/s, malformed frames, and frames missed: all
@@ -34,6 +40,7 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
+from nav_msgs.msg import MapMetaData
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -43,7 +50,9 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32
 
 from touchroller_bringup import names
+from touchroller_bringup.errors import UserError
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
+from touchroller_bringup.map_files import write_world_map
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
     OK,
@@ -55,11 +64,13 @@ from touchroller_bringup.ros_diagnostics import (
 )
 from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
 from touchroller_bringup.ros_services import create_trigger_service
-from touchroller_bringup.tf import TransformPublisher, camera_in_cylinder
+from touchroller_bringup.tf import TransformListener, TransformPublisher, camera_in_cylinder
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
 from touchroller_perception.stitching import Stitcher, StitcherConfig
+from touchroller_perception.transforms import TransformBuffer
+from touchroller_perception.world_map import WorldMapConfig, WorldMapImage, WorldMapper, buffer_lookup
 
 
 def image_qos() -> QoSProfile:
@@ -126,6 +137,11 @@ STITCHER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
 }
 
 
+# world-map parameters: a change starts a new map
+WORLD_PARAMETERS = ("world_frame", "map.world", "map.resolution", "map.bounds", "map.latency_estimate",
+                    "map.register")
+
+
 class PerceptionNode(Node):
     """Images -> contacts (PointStamped) and the tactile map; see the module docstring and docs/contacts.md."""
 
@@ -143,6 +159,9 @@ class PerceptionNode(Node):
         self.frame_id = self._contacts_frame_id()
         self.stitcher_config = self._stitcher_config()
         self.stitcher: Any = None
+        self.world: WorldMapper | None = None   # the world map, once TF links world_frame to the cylinder
+        self.world_frame = names.frame(str(self.get_parameter("world_frame").value), self.frame_prefix)
+        self.tf_listener = TransformListener(self, TransformBuffer(cache_ns=20_000_000_000))
         self._stitch_error_logged = False
         self._map_dirty = False
         self._map_timer = None
@@ -166,6 +185,7 @@ class PerceptionNode(Node):
 
         self.contacts_pub = self.create_publisher(PointStamped, names.CONTACTS, 10)
         self.map_pub = self.create_publisher(Image, names.MAP, MAP_QOS)
+        self.map_metadata_pub = self.create_publisher(MapMetaData, names.MAP_METADATA, MAP_QOS)
         self.progress_sub = self.create_subscription(Float32, names.SWEEP_PROGRESS, self._on_progress, 10)
         # Humble has no MessageInfo, so no drop count there
         on_image = self._on_image_with_info if _has_message_info() else self._on_image
@@ -188,8 +208,18 @@ class PerceptionNode(Node):
         defaults_map = StitcherConfig()
         for name, (field, description, lo, hi) in STITCHER_PARAMETERS.items():
             declare(self, name, getattr(defaults_map, field), description, min=lo, max=hi)
-        declare(self, "map.save_path", "", "PNG file the finished map is written to when a roll ends "
-                "(empty: not saved)")
+        declare(self, "map.save_path", "", "PNG file the finished map is written to when a sweep ends "
+                "(empty: not saved); a world map also writes map.yaml beside it (nav2 map_server format)")
+        declare(self, "world_frame", names.BASE_FRAME, "Frame of the world map (after frame_prefix): the robot's base")
+        declare(self, "map.world", True, "Map in world_frame when TF links it to touchroller_cylinder (else "
+                "the strip map along the roll)")
+        declare(self, "map.resolution", 1e-4, "World map: metres per pixel", min=1e-6, max=0.01)
+        declare(self, "map.bounds", [0.0, 0.0, 0.0, 0.0], "World map: [x_min, y_min, x_max, y_max] in world_frame, "
+                "m (the scan's rectangle and a margin); all 0: it grows with what is mapped")
+        declare(self, "map.latency_estimate", True, "World map: estimate the camera's latency (what stamps still "
+                "lag the exposure after camera.latency) from the image-registered motion against the arm's")
+        declare(self, "map.register", True, "World map: register each pass against the earlier ones where they "
+                "overlap")
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
                 min=0.0, max=100.0)
 
@@ -204,7 +234,8 @@ class PerceptionNode(Node):
         return StitcherConfig(**{STITCHER_PARAMETERS[name][0]: value for name, value in values.items()})
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config)):
+        for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config),
+                            (WORLD_PARAMETERS, self._world_config)):
             changes = {p.name: p.value for p in parameters if p.name in table}
             if changes:
                 try:
@@ -212,15 +243,17 @@ class PerceptionNode(Node):
                 except (TypeError, ValueError) as exc:
                     return SetParametersResult(successful=False, reason=str(exc))
         for p in parameters:
-            if p.name == "contacts.frame_id" and not str(p.value).strip():
-                return SetParametersResult(successful=False, reason="contacts.frame_id must not be empty")
+            if p.name in ("contacts.frame_id", "world_frame") and not str(p.value).strip():
+                return SetParametersResult(successful=False, reason=f"{p.name} must not be empty")
         return SetParametersResult(successful=True)
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:
         changed = {p.name for p in parameters}
         if changed & set(DETECTOR_PARAMETERS):
             self.detector.config = self._detector_config()
-        if changed & set(STITCHER_PARAMETERS):
+        if "world_frame" in changed:
+            self.world_frame = names.frame(str(self.get_parameter("world_frame").value), self.frame_prefix)
+        if changed & (set(STITCHER_PARAMETERS) | set(WORLD_PARAMETERS)):
             self.stitcher_config = self._stitcher_config()
             self.reset_map()   # a map is stitched one way throughout
         if "reference.frames" in changed:
@@ -229,6 +262,17 @@ class PerceptionNode(Node):
             self.frame_id = self._contacts_frame_id()
         if "map.publish_rate" in changed:
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+
+    def _world_config(self, overrides: dict[str, Any] | None = None) -> WorldMapConfig:
+        values = {name: self.get_parameter(name).value for name in WORLD_PARAMETERS}
+        values.update(overrides or {})
+        bounds = [float(v) for v in values["map.bounds"]]
+        if len(bounds) != 4:
+            raise ValueError(f"map.bounds is [x_min, y_min, x_max, y_max], got {bounds}")
+        return WorldMapConfig(resolution=float(values["map.resolution"]),
+                              bounds=None if not any(bounds) else (bounds[0], bounds[1], bounds[2], bounds[3]),
+                              latency=None if values["map.latency_estimate"] else 0.0,
+                              register=bool(values["map.register"]))
 
     def _contacts_frame_id(self) -> str:
         return names.frame(str(self.get_parameter("contacts.frame_id").value), self.frame_prefix)
@@ -242,8 +286,8 @@ class PerceptionNode(Node):
         self.lookup = SurfaceLookup(model)
         self.camera = model
         self._publish_camera_frame()
-        if self.stitcher is not None:
-            self.stitcher = None   # the map's band and scale follow the camera: start a new map
+        if self.stitcher is not None or self.world is not None:
+            self.stitcher = self.world = None   # the map's band and scale follow the camera: start a new map
         self.get_logger().info(f"camera model updated: theta={model.theta:g} rad, d={model.d:g} m")
 
     # ------------------------------------------------------------------ reference
@@ -346,16 +390,35 @@ class PerceptionNode(Node):
             return
         try:
             with self._map_lock:
-                if self.stitcher is None:
-                    self.stitcher = Stitcher(self.stitcher_config, camera=self.camera)
                 stamp_ns = stamp_to_ns(msg.header.stamp)
-                self.stitcher.push(image, stamp_ns)
+                if self.stitcher is None and self.world is None:
+                    self._start_map()
+                if self.world is not None:
+                    self.world.push(image, stamp_ns)
+                else:
+                    self.stitcher.push(image, stamp_ns)
                 self._map_dirty = True
         except Exception as exc:  # noqa: BLE001 - the map is optional; contacts must keep flowing
             if not self._stitch_error_logged:
                 self._stitch_error_logged = True
                 self.get_logger().error(f"tactile map disabled: {type(exc).__name__}: {exc}")
             self._set_map_rate(0.0)
+
+    def _start_map(self) -> None:
+        """A world map if TF links world_frame to the cylinder now, else the strip map."""
+        cylinder = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
+        if bool(self.get_parameter("map.world").value) and self.tf_listener.lookup(self.world_frame, cylinder) is not None:
+            listener = self.tf_listener
+            lookup = buffer_lookup(listener.buffer, self.world_frame, cylinder)
+
+            def poses(stamps: np.ndarray) -> np.ndarray:
+                with listener.lock:
+                    return lookup(stamps)
+
+            self.world = WorldMapper(self.camera, poses, self._world_config(), self.stitcher_config)
+            self.get_logger().info(f"world map in {self.world_frame} at {self.world.config.resolution * 1e3:g} mm/px")
+        else:
+            self.stitcher = Stitcher(self.stitcher_config, camera=self.camera)
 
     def _on_progress(self, msg: Float32) -> None:
         progress = float(msg.data)
@@ -371,24 +434,49 @@ class PerceptionNode(Node):
     def reset_map(self) -> None:
         """Start a new map with the next frame (called when a roll begins, so one map per roll)."""
         with self._map_lock:
-            self.stitcher = None
+            self.stitcher = self.world = None
             self._map_dirty = False
 
     def finish_map(self) -> None:
         """The roll ended: correct the whole map with its final flat field, publish it, and save it
         to `map.save_path` if set. Frames pushed afterwards extend the map as before."""
         with self._map_lock:
-            if self.stitcher is None:
+            if self.stitcher is None and self.world is None:
                 return
-            self.stitcher.finalise()
+            if self.world is not None:
+                self.world.finalise()
+                self._log_world_stats()
+            else:
+                self.stitcher.finalise()
             self._map_dirty = True
         tactile_map = self.publish_map()
         path = str(self.get_parameter("map.save_path").value)
         if path and tactile_map is not None:
             self._save_map(tactile_map, path)
 
+    def _log_world_stats(self) -> None:
+        assert self.world is not None
+        stats = self.world.stats
+        latency = "not found" if stats.latency_s is None else f"{stats.latency_s * 1e3:.1f} ms"
+        self.get_logger().info(
+            f"world map: {stats.mapped} of {stats.frames} frames mapped in {stats.passes} pass(es); camera "
+            f"latency {'estimated' if stats.latency_estimated else 'assumed'} {latency}; pass corrections "
+            + ", ".join(f"({dx * self.world.config.resolution * 1e3:+.2f}, {dy * self.world.config.resolution * 1e3:+.2f}) mm"
+                        for dx, dy in stats.pass_corrections_px))
+
     def _save_map(self, tactile_map: np.ndarray, path: str) -> None:
         import cv2
+
+        world = self.world
+        if world is not None:
+            try:
+                png, yaml_path = write_world_map(path, world.map_image(), self.world_frame)
+            except UserError as exc:
+                self.get_logger().error(f"map not saved: {exc}")
+                return
+            self.saved_maps += 1
+            self.get_logger().info(f"map saved: {png} and {yaml_path.name} ({tactile_map.shape[1]}x{tactile_map.shape[0]})")
+            return
 
         try:
             ok = cv2.imwrite(path, tactile_map)
@@ -404,21 +492,31 @@ class PerceptionNode(Node):
 
     def publish_map(self) -> np.ndarray | None:
         """Publish the map if it changed since the last publication; returns what was published."""
+        world_image: WorldMapImage | None = None
         with self._map_lock:
-            if self.stitcher is None or not self._map_dirty:
+            if (self.stitcher is None and self.world is None) or not self._map_dirty:
                 return None
             try:
-                tactile_map = self.stitcher.map_image()
+                if self.world is not None:
+                    world_image = self.world.map_image()
+                    tactile_map = world_image.grey
+                else:
+                    tactile_map = self.stitcher.map_image()
             except Exception as exc:  # noqa: BLE001
                 self.get_logger().warning(f"map not available: {exc}", throttle_duration_sec=10.0)
                 return None
             self._map_dirty = False
         from touchroller_bringup.image_conversion import array_to_image
 
+        if tactile_map.size == 0:   # nothing mapped yet (a world map waits for the roller to roll)
+            return None
         if tactile_map.dtype != np.uint8:
             tactile_map = np.clip(tactile_map, 0, 255).astype(np.uint8)
-        self.map_pub.publish(array_to_image(tactile_map, self.get_clock().now().nanoseconds,
-                                          frame_id=names.frame(names.CYLINDER_FRAME, self.frame_prefix)))
+        now = self.get_clock().now().nanoseconds
+        frame_id = self.world_frame if world_image is not None else names.frame(names.CYLINDER_FRAME, self.frame_prefix)
+        self.map_pub.publish(array_to_image(tactile_map, now, frame_id=frame_id))
+        if world_image is not None:
+            self.map_metadata_pub.publish(map_metadata(world_image, now))
         return tactile_map
 
     # ------------------------------------------------------------------ diagnostics
@@ -440,7 +538,13 @@ class PerceptionNode(Node):
             "reference_noise_std": self.detector.reference.noise_std if self.detector.reference else float("nan"),
             "difference_noise_std": _or_nan(self.detector.background.noise),
             "method": self.detector.config.method,
+            "map": "world" if self.world is not None else "strip" if self.stitcher is not None else "none",
         }
+        world = self.world
+        if world is not None:
+            values.update({"map_frames_mapped": world.stats.mapped, "map_passes": world.stats.passes,
+                           "map_latency_ms": _or_nan(None if world.stats.latency_s is None else world.stats.latency_s * 1e3),
+                           "map_latency_estimated": world.stats.latency_estimated})
         if self._last_refused:
             return Status(ERROR, f"frames do not match the reference: {self._last_refused}; "
                                  "call ~/recapture_reference", values)
@@ -449,6 +553,17 @@ class PerceptionNode(Node):
         if not self.detector.reference_ready:
             return Status(WARN, "capturing the no-contact reference", values)
         return Status(OK, "detecting contacts", values)
+
+
+def map_metadata(image: WorldMapImage, stamp_ns: int) -> MapMetaData:
+    """nav_msgs/MapMetaData of a world map (origin: the lower-left pixel's corner, as nav2 publishes)."""
+    meta = MapMetaData()
+    meta.map_load_time.sec, meta.map_load_time.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    meta.resolution = float(image.resolution)
+    meta.height, meta.width = (int(n) for n in image.grey.shape)
+    meta.origin.position.x, meta.origin.position.y = (float(v) for v in image.origin)
+    meta.origin.orientation.w = 1.0
+    return meta
 
 
 def _or_nan(value: float | None) -> float:

@@ -1,0 +1,124 @@
+"""`touchroller map` on recordings with TF: the world map (map.png + map.yaml), offline, as the scan maps it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from touchroller_bringup.bags import ImageRecord, TransformRecord, write_scan
+from touchroller_bringup.cli import main
+from touchroller_bringup.map_files import read_world_map, write_world_map
+from touchroller_perception.world_map import WorldMapImage
+
+sim = pytest.importorskip("touchroller_driver.sim")
+
+from touchroller_driver.arm import (  # noqa: E402
+    DEFAULT_MOUNT_RPY,
+    DEFAULT_MOUNT_XYZ,
+    DEFAULT_START_POSE,
+    mount_transform,
+    plan_raster,
+)
+from touchroller_driver.sim.sweep import simulate_sweep  # noqa: E402
+
+MOUNT = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+LATENCY = 0.03
+
+
+@pytest.fixture(scope="module")
+def scan_bag(tmp_path_factory):
+    """A one-pass scan (3 cm at 20 mm/s) filmed 30 ms late, recorded with /tf and /tf_static."""
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=1)
+    plan = plan_raster(DEFAULT_START_POSE, area=[0.45, -0.02, 0.03, 0.04], mount=MOUNT, speed=0.02, accel=0.1,
+                       depth=5e-4, clearance=0.002, approach_speed=0.005)
+    start = np.array(plan.segments[0].target)
+
+    def records():
+        yield TransformRecord("tool0", "touchroller_cylinder", 0, MOUNT.translation, MOUNT.rotation, True)
+        for event in simulate_sweep(sensor, plan, start, MOUNT, latency_s=LATENCY):
+            if event[0] == "tf":
+                yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
+            else:
+                yield ImageRecord(event[1], event[2])
+
+    path = tmp_path_factory.mktemp("scan") / "bag"
+    assert write_scan(path, records()) > 100
+    return path
+
+
+@pytest.mark.slow
+def test_a_recording_with_tf_maps_into_the_world_frame(scan_bag, tmp_path, capsys):
+    out = tmp_path / "map.png"
+    assert main(["map", str(scan_bag), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "map.yaml" in printed and "1 pass(es)" in printed
+    estimated = float(printed.split("camera latency estimated ")[1].split(" ms")[0])
+    assert estimated == pytest.approx(LATENCY * 1e3, abs=3.0)
+    grey, alpha, meta = read_world_map(tmp_path / "map.yaml")
+    assert set(meta) >= {"image", "resolution", "origin", "negate", "occupied_thresh", "free_thresh", "frame_id"}
+    assert meta["frame_id"] == "base" and meta["resolution"] == 1e-4 and meta["origin"][2] == 0.0
+    assert grey.shape == alpha.shape and set(np.unique(alpha)) == {0, 255}
+    mapped = alpha > 0
+    # the pass: 3 cm along x from 0.45 m (plus the band), the roller's width along y around y = 0
+    cols = np.flatnonzero(mapped.any(axis=0))
+    x0, x1 = meta["origin"][0] + cols[0] * 1e-4, meta["origin"][0] + (cols[-1] + 1) * 1e-4
+    assert x0 == pytest.approx(0.45 - 0.0035, abs=1e-3) and x1 == pytest.approx(0.48 + 0.0035, abs=1e-3)
+    rows = np.flatnonzero(mapped.any(axis=1))
+    y_top = meta["origin"][1] + grey.shape[0] * 1e-4 - rows[0] * 1e-4   # row 0 is the top (largest y)
+    assert y_top == pytest.approx(0.032, abs=1.5e-3)   # half of the 64 mm the camera sees along the axis
+    # the same recording maps to the same file again
+    again = tmp_path / "again.png"
+    assert main(["map", str(scan_bag), "--out", str(again)]) == 0
+    assert again.read_bytes() == out.read_bytes()
+    # told the latency, it is used as given
+    told = tmp_path / "told.png"
+    assert main(["map", str(scan_bag), "--out", str(told), "--latency", "0.03"]) == 0
+    assert "camera latency given 30.0 ms" in capsys.readouterr().out
+    # --strip: the strip map of the same recording, no yaml
+    strip = tmp_path / "strip.png"
+    assert main(["map", str(scan_bag), "--out", str(strip), "--strip"]) == 0
+    assert strip.is_file() and not (tmp_path / "strip.yaml").exists()
+
+
+def test_a_recording_without_tf_is_the_strip_map(bag_factory, tmp_path):
+    rng = np.random.default_rng(0)
+    bag = bag_factory([(k * 33_333_333, rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)) for k in range(12)])
+    out = tmp_path / "strip.png"
+    assert main(["map", str(bag), "--out", str(out)]) == 0
+    assert out.is_file() and not (tmp_path / "strip.yaml").exists()
+
+
+@pytest.mark.slow
+def test_world_map_arguments_are_checked(scan_bag, tmp_path, capsys):
+    for extra, message in ((["--out", str(tmp_path / "m.jpg")], "is a PNG"),
+                           (["--out", str(tmp_path / "m.png"), "--latency", "soon"], "--latency"),
+                           (["--out", str(tmp_path / "m.png"), "--metric"], "--strip"),
+                           (["--out", str(tmp_path / "m.png"), "--world-frame", "odom"], "no odom")):
+        assert main(["map", str(scan_bag), *extra]) == 2
+        assert message in capsys.readouterr().err
+
+
+def test_map_files_are_nav2_maps_written_whole(tmp_path, monkeypatch):
+    grey = np.arange(60, dtype=np.uint8).reshape(6, 10)
+    alpha = np.where(grey > 20, 255, 0).astype(np.uint8)
+    image = WorldMapImage(grey, alpha, 0.001, (0.5, -0.25))
+    png, yaml_path = write_world_map(tmp_path / "scan.png", image, "left/base")
+    meta = yaml.safe_load(yaml_path.read_text())
+    assert meta == {"image": "scan.png", "mode": "trinary", "resolution": 0.001, "origin": [0.5, -0.25, 0.0],
+                    "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.25, "frame_id": "left/base"}
+    back_grey, back_alpha, _ = read_world_map(yaml_path)
+    assert np.array_equal(back_grey, grey) and np.array_equal(back_alpha, alpha)
+    before = png.read_bytes()
+
+    def broken(*_args, **_kwargs):
+        raise OSError(28, "No space left on device")
+
+    import PIL.Image
+
+    monkeypatch.setattr(PIL.Image.Image, "save", broken)
+    from touchroller_bringup.errors import UserError
+
+    with pytest.raises(UserError, match="No space left"):
+        write_world_map(png, WorldMapImage(grey * 0, alpha, 0.001, (0.0, 0.0)), "base")
+    assert png.read_bytes() == before   # the old map stands, and no temporary file is left behind
+    assert {p.name for p in tmp_path.iterdir()} == {"scan.png", "scan.yaml"}

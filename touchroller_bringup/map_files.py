@@ -1,0 +1,84 @@
+"""Map files: `map.png` (8-bit grey plus alpha, alpha 0 where nothing was mapped) and `map.yaml` beside it
+in the nav2 map_server format (image, resolution, origin of the lower-left pixel's corner, negate,
+occupied_thresh, free_thresh) plus `frame_id`. Both are written whole or not at all (a temporary file
+renamed into place), so a failed write leaves an existing map as it was.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from touchroller_bringup.errors import UserError
+from touchroller_perception.world_map import WorldMapImage
+
+
+@dataclass(frozen=True)
+class MapYaml:
+    image: str
+    resolution: float
+    origin: tuple[float, float, float]
+    frame_id: str
+    negate: int = 0
+    occupied_thresh: float = 0.65
+    free_thresh: float = 0.25
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"image": self.image, "mode": "trinary", "resolution": float(self.resolution),
+                "origin": [float(v) for v in self.origin], "negate": int(self.negate),
+                "occupied_thresh": float(self.occupied_thresh), "free_thresh": float(self.free_thresh),
+                "frame_id": self.frame_id}
+
+
+def _replace(path: Path, write: Any) -> None:
+    """Write through a temporary file in the same folder, then rename it over `path`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(handle)
+    try:
+        write(Path(temporary))
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def write_png_grey_alpha(path: Path, grey: np.ndarray, alpha: np.ndarray) -> None:
+    from PIL import Image
+
+    stacked = np.dstack([grey, alpha]).astype(np.uint8)
+    _replace(path, lambda temporary: Image.fromarray(stacked, mode="LA").save(temporary, format="PNG"))
+
+
+def write_world_map(png: str | Path, image: WorldMapImage, frame_id: str) -> tuple[Path, Path]:
+    """map.png + map.yaml (same stem) for a world map; returns both paths. UserError on a bad path."""
+    png = Path(png)
+    if png.suffix.lower() != ".png":
+        raise UserError(f"a world map is written as PNG with a YAML beside it; got {png}")
+    if image.grey.size == 0:
+        raise UserError("the world map is empty: no frame was mapped (was the roller ever pressed and rolled?)")
+    meta = MapYaml(png.name, image.resolution, (image.origin[0], image.origin[1], 0.0), frame_id)
+    yaml_path = png.with_suffix(".yaml")
+    try:
+        write_png_grey_alpha(png, image.grey, image.alpha)
+        _replace(yaml_path, lambda temporary: temporary.write_text(yaml.safe_dump(meta.as_dict(), sort_keys=False),
+                                                                   encoding="utf-8"))
+    except OSError as exc:
+        raise UserError(f"cannot write the map to {png}: {exc.strerror or exc}") from None
+    return png, yaml_path
+
+
+def read_world_map(yaml_path: str | Path) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """(grey, alpha, the YAML) of a map written by `write_world_map`."""
+    from PIL import Image
+
+    yaml_path = Path(yaml_path)
+    meta = yaml.safe_load(yaml_path.read_text(encoding="utf-8"))
+    with Image.open(yaml_path.parent / meta["image"]) as picture:
+        la = np.asarray(picture.convert("LA"))
+    return la[..., 0].copy(), la[..., 1].copy(), meta
