@@ -52,7 +52,9 @@ def write_png_grey_alpha(path: Path, grey: np.ndarray, alpha: np.ndarray) -> Non
     from PIL import Image
 
     stacked = np.dstack([grey, alpha]).astype(np.uint8)
-    _replace(path, lambda temporary: Image.fromarray(stacked, mode="LA").save(temporary, format="PNG"))
+    # compress_level 1: a third of the time of the default for 10-20 % more bytes (these maps are noise-like)
+    _replace(path, lambda temporary: Image.fromarray(stacked, mode="LA").save(temporary, format="PNG",
+                                                                              compress_level=1))
 
 
 def write_world_map(png: str | Path, image: WorldMapImage, frame_id: str) -> tuple[Path, Path]:

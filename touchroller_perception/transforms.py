@@ -12,10 +12,9 @@ offline mapping and the latency estimate need). No rclpy here: the ROS side conv
 """
 from __future__ import annotations
 
-import bisect
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -191,53 +190,66 @@ def interpolate(a: Transform, b: Transform, fraction: float) -> Transform:
     return Transform(_vec3(t), _quat(slerp(a.rotation, b.rotation, fraction)))
 
 
-@dataclass
 class _Edge:
-    """The transforms of one child frame relative to its parent, sorted by stamp."""
+    """The transforms of one child frame relative to its parent, sorted by stamp, in growable arrays
+    (appending in time order, the usual case, is amortised O(1); lookups need no conversion)."""
 
-    parent: str
-    static: bool
-    stamps: list[int] = field(default_factory=list)
-    translations: list[tuple[float, float, float]] = field(default_factory=list)
-    rotations: list[tuple[float, float, float, float]] = field(default_factory=list)
-    _arrays: tuple[NDArray[np.int64], FloatArray, FloatArray] | None = None
-    _matrix: FloatArray | None = None
+    def __init__(self, parent: str, static: bool) -> None:
+        self.parent = parent
+        self.static = static
+        self._n = 0
+        self._stamps = np.zeros(16, np.int64)
+        self._translations = np.zeros((16, 3))
+        self._rotations = np.zeros((16, 4))
+        self._matrix: FloatArray | None = None
+
+    @property
+    def stamps(self) -> NDArray[np.int64]:
+        return self._stamps[:self._n]
 
     def add(self, stamp_ns: int, transform: Transform) -> None:
-        self._arrays = None
         self._matrix = None
         if self.static:
-            self.stamps, self.translations, self.rotations = [stamp_ns], [transform.translation], [transform.rotation]
-            return
-        if not self.stamps or stamp_ns > self.stamps[-1]:
-            i = len(self.stamps)
-        else:
-            i = bisect.bisect_left(self.stamps, stamp_ns)
-            if i < len(self.stamps) and self.stamps[i] == stamp_ns:   # the same stamp again: the newer wins
-                self.translations[i], self.rotations[i] = transform.translation, transform.rotation
+            self._n = 0
+        n = self._n
+        if n and stamp_ns <= self._stamps[n - 1]:
+            i = int(np.searchsorted(self._stamps[:n], stamp_ns))
+            if self._stamps[i] == stamp_ns:   # the same stamp again: the newer wins
+                self._translations[i], self._rotations[i] = transform.translation, transform.rotation
                 return
-        self.stamps.insert(i, stamp_ns)
-        self.translations.insert(i, transform.translation)
-        self.rotations.insert(i, transform.rotation)
+        else:
+            i = n
+        if n == len(self._stamps):
+            self._stamps = np.concatenate([self._stamps, np.zeros(n, np.int64)])
+            self._translations = np.concatenate([self._translations, np.zeros((n, 3))])
+            self._rotations = np.concatenate([self._rotations, np.zeros((n, 4))])
+        if i < n:   # out of order: shift the later samples up by one
+            for array in (self._stamps, self._translations, self._rotations):
+                array[i + 1:n + 1] = array[i:n].copy()
+        self._stamps[i] = stamp_ns
+        self._translations[i] = transform.translation
+        self._rotations[i] = transform.rotation
+        self._n = n + 1
 
     def prune(self, oldest_ns: int) -> None:
         """Drop samples before `oldest_ns`, keeping the one just before it (to interpolate from)."""
-        i = bisect.bisect_left(self.stamps, oldest_ns) - 1
+        i = int(np.searchsorted(self.stamps, oldest_ns)) - 1
         if i > 0 and not self.static:
-            del self.stamps[:i], self.translations[:i], self.rotations[:i]
-            self._arrays = None
+            keep = self._n - i
+            for array in (self._stamps, self._translations, self._rotations):
+                array[:keep] = array[i:self._n].copy()
+            self._n = keep
 
     def matrix(self) -> FloatArray:
         """The 4x4 of a static edge (its one sample)."""
         if self._matrix is None:
-            self._matrix = Transform(self.translations[0], self.rotations[0]).matrix()
+            t, q = self._translations[0], self._rotations[0]
+            self._matrix = Transform((t[0], t[1], t[2]), (q[0], q[1], q[2], q[3])).matrix()
         return self._matrix
 
     def arrays(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
-        if self._arrays is None:
-            self._arrays = (np.asarray(self.stamps, np.int64), np.asarray(self.translations, np.float64),
-                            np.asarray(self.rotations, np.float64))
-        return self._arrays
+        n = self._n
+        return self._stamps[:n], self._translations[:n], self._rotations[:n]
 
     def at(self, stamps: NDArray[np.int64], child: str,
            missing: bool = False) -> tuple[FloatArray, FloatArray]:
@@ -287,6 +299,7 @@ class TransformBuffer:
             raise ValueError(f"cache_ns must be > 0 or None, got {cache_ns}")
         self.cache_ns = cache_ns
         self._edges: dict[str, _Edge] = {}
+        self._chains: dict[tuple[str, str], tuple[list[str], list[str]]] = {}   # until the tree changes
 
     @property
     def frames(self) -> set[str]:
@@ -302,9 +315,10 @@ class TransformBuffer:
         edge = self._edges.get(child)
         if edge is None or edge.parent != parent or edge.static != static:
             edge = self._edges[child] = _Edge(parent, static)
+            self._chains.clear()
         edge.add(int(stamp_ns), transform)
         if self.cache_ns is not None and not static:
-            edge.prune(edge.stamps[-1] - self.cache_ns)
+            edge.prune(int(edge.stamps[-1]) - self.cache_ns)
 
     def parent(self, child: str) -> str | None:
         edge = self._edges.get(_frame(child))
@@ -313,9 +327,9 @@ class TransformBuffer:
     def time_range(self, child: str) -> tuple[int, int] | None:
         """(first, last) stamp of the child's dynamic transforms (None: unknown or static)."""
         edge = self._edges.get(_frame(child))
-        if edge is None or edge.static or not edge.stamps:
+        if edge is None or edge.static or not len(edge.stamps):
             return None
-        return edge.stamps[0], edge.stamps[-1]
+        return int(edge.stamps[0]), int(edge.stamps[-1])
 
     def _path(self, frame: str) -> list[str]:
         path = [frame]
@@ -328,6 +342,14 @@ class TransformBuffer:
 
     def _chain(self, target: str, source: str) -> tuple[list[str], list[str]]:
         """(frames from source up to the common ancestor, frames from target up to it), ancestors excluded."""
+        cached = self._chains.get((target, source))
+        if cached is not None:
+            return cached
+        chain = self._find_chain(target, source)
+        self._chains[(target, source)] = chain
+        return chain
+
+    def _find_chain(self, target: str, source: str) -> tuple[list[str], list[str]]:
         target, source = _frame(target), _frame(source)
         known = self.frames
         for name in (target, source):
@@ -343,7 +365,7 @@ class TransformBuffer:
     def latest_common_stamp(self, target: str, source: str) -> int | None:
         """The newest time at which every dynamic edge between the frames has data (None: all static)."""
         up_source, up_target = self._chain(target, source)
-        ends = [self._edges[f].stamps[-1] for f in up_source + up_target if not self._edges[f].static]
+        ends = [int(self._edges[f].stamps[-1]) for f in up_source + up_target if not self._edges[f].static]
         return min(ends) if ends else None
 
     def can_transform(self, target: str, source: str, stamp_ns: int | None = None) -> bool:

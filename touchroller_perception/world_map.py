@@ -314,6 +314,8 @@ class _Frame:
     band: np.ndarray
     field: np.ndarray | None
     step: StitchStep
+    pose: np.ndarray | None = None        # T_world_cylinder at stamp - pose_latency, once known
+    pose_latency: int | None = None
 
 
 @dataclass
@@ -354,7 +356,11 @@ class WorldMapper:
         self._recent: deque[tuple[int, float]] = deque(maxlen=600)
         self._events: list[int] = []   # arm times of starts and stops (ns)
         self._last_event_check = 0
+        self._track_cache: dict[int, tuple[float, float]] = {}   # stamp -> (height, arm roll in rows)
+        self._track_latency: int | None = None
+        self._reference_point: np.ndarray | None = None
         self._previous_stamp: int | None = None
+        self._previous_prior_pose: tuple[np.ndarray, int] | None = None
         self._estimator: LatencyEstimator | None = None
         # passes and their registration against the earlier ones
         self._in_contact = False
@@ -363,6 +369,7 @@ class WorldMapper:
         self._pass_offsets: list[tuple[float, float, float]] = []   # (dx, dy, score) this pass
         self._pass_delta = np.zeros(2)
         self._pass_buffer: list[tuple[_Frame, np.ndarray]] = []
+        self._pass_frames = 0
 
     # -- public --------------------------------------------------------------------------------------
     def push(self, image: np.ndarray, stamp_ns: int) -> None:
@@ -377,28 +384,31 @@ class WorldMapper:
         """`push` for a band cut with `band()`."""
         if self._weights is None:
             self._setup()
-        step = self.strip.push_band(band, int(stamp_ns), self._arm_prior(int(stamp_ns)))
-        frame = _Frame(int(stamp_ns), band, self.strip.flat_field_now(), step)
+        prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
+        step = self.strip.push_band(band, int(stamp_ns), prior)
+        frame = _Frame(int(stamp_ns), band, self.strip.flat_field_now(), step, pose, pose_latency)
         self.stats.frames += 1
         if step.confidence >= self.strip.config.min_confidence and not step.used_prior:
             self._recent.append((frame.stamp_ns, step.position_px))
         self._pending.append(frame)
         self._drain(final=False)
 
-    def _arm_prior(self, stamp_ns: int) -> float | None:
+    def _arm_prior(self, stamp_ns: int) -> tuple[float | None, np.ndarray | None, int | None]:
         """The arm's roll since the previous frame, band rows: the strip stitcher's motion prior, so a
         roll that starts before the flat field is known is not taken for the static gel pattern standing
-        still. At the latency estimate, or the largest latency while there is none (a pose known by now)."""
+        still. At the latency estimate, or the largest latency while there is none (a pose known by now).
+        Also (the frame's pose, its latency) when that is the latency the frame will be placed with."""
         previous, self._previous_stamp = self._previous_stamp, stamp_ns
-        if previous is None:
-            return None
         latency = self._latency()
         shift = round(self.config.max_latency * 1e9) if latency is None else latency
-        poses = self.poses(np.array([previous, stamp_ns], np.int64) - shift)
-        if not np.isfinite(poses).all():
-            return None
-        rows = _roll_coordinate(poses) / self.m_per_row
-        return float(rows[1] - rows[0])
+        pose = self.poses(np.array([stamp_ns - shift], np.int64))[0]
+        known = bool(np.isfinite(pose).all())
+        before, self._previous_prior_pose = self._previous_prior_pose, (pose, shift) if known else None
+        placed = (pose, shift) if known and latency is not None else (None, None)
+        if previous is None or not known or before is None or before[1] != shift:
+            return None, *placed
+        offset = before[0][:3, 3] - pose[:3, 3]   # where the earlier pose's origin lies along this one's rows
+        return float(pose[:3, 1] @ offset) / self.m_per_row, *placed
 
     def finalise(self) -> None:
         """Place what is still waiting, and re-weight the whole map with the final flat field."""
@@ -485,9 +495,15 @@ class WorldMapper:
         return None if self.stats.latency_s is None else round(self.stats.latency_s * 1e9)
 
     def _pose_now(self, frame: _Frame) -> np.ndarray | None:
+        """The frame's pose at the current latency (looked up once per latency)."""
         latency = self._latency() or 0
+        if frame.pose is not None and frame.pose_latency == latency:
+            return frame.pose
         pose = self.poses(np.array([frame.stamp_ns - latency], np.int64))[0]
-        return pose if np.isfinite(pose).all() else None
+        if not np.isfinite(pose).all():
+            return None
+        frame.pose, frame.pose_latency = pose, latency
+        return pose
 
     def _ready(self, frame: _Frame) -> np.ndarray | None:
         """The frame's pose when everything it needs is known, else None."""
@@ -500,18 +516,15 @@ class WorldMapper:
         """Learn the pressed height, find starts and stops of the roll, and (re)estimate the latency."""
         if len(self._recent) < 3:
             return
-        stamps = np.array([s for s, _ in self._recent], np.int64)
-        if stamps[-1] - self._last_event_check < 100_000_000 and not final:
+        newest = self._recent[-1][0]
+        if newest - self._last_event_check < 100_000_000 and not final:
             return
-        self._last_event_check = int(stamps[-1])
-        positions = np.array([p for _, p in self._recent])
-        latency = self._latency() or 0
-        poses = self.poses(stamps - latency)
-        known = np.isfinite(poses).all(axis=(1, 2))
+        self._last_event_check = int(newest)
+        stamps, positions, heights, arm_rows = self._track()
+        known = np.isfinite(heights)
         if known.sum() < 3:
             return
-        stamps, positions, poses = stamps[known], positions[known], poses[known]
-        arm_rows = _roll_coordinate(poses) / self.m_per_row
+        stamps, positions, heights, arm_rows = stamps[known], positions[known], heights[known], arm_rows[known]
         dt = np.diff(stamps) * 1e-9
         valid = dt > 0
         if not valid.any():
@@ -523,8 +536,7 @@ class WorldMapper:
         fast = np.abs(arm_speed) > 3.0   # rows per second: the arm rolls, not just settles
         agree = fast & (np.abs(image_speed - arm_speed) < 0.3 * np.abs(arm_speed) + 1.0)
         if agree.sum() >= 5:
-            heights = poses[agree, 2, 3]
-            self._pressed_height = float(np.median(heights))
+            self._pressed_height = float(np.median(heights[agree]))
             self.stats.pressed_height = self._pressed_height
         if self._estimator is None:
             return
@@ -542,6 +554,29 @@ class WorldMapper:
             if estimate is not None:
                 self.stats.latency_s = estimate
                 self.stats.latency_estimated = True
+
+    def _track(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray, FloatArray]:
+        """(stamps, image positions, roller heights, arm roll in rows) of the recent confident frames, the
+        poses at the current latency, looked up once per frame (again only when the latency changes)."""
+        latency = self._latency() or 0
+        if latency != self._track_latency:
+            self._track_latency = latency
+            self._track_cache.clear()
+        stamps = np.fromiter((s for s, _ in self._recent), np.int64, len(self._recent))
+        missing = np.array([s not in self._track_cache for s in stamps.tolist()])
+        if missing.any():
+            poses = self.poses(stamps[missing] - latency)
+            for stamp, pose in zip(stamps[missing].tolist(), poses, strict=True):
+                if np.isfinite(pose).all():
+                    if self._reference_point is None:
+                        self._reference_point = pose[:3, 3].copy()
+                    offset = self._reference_point - pose[:3, 3]
+                    self._track_cache[stamp] = (float(pose[2, 3]), float(pose[:3, 1] @ offset) / self.m_per_row)
+            while len(self._track_cache) > 2 * len(self._recent):   # drop the oldest (dicts keep insertion order)
+                self._track_cache.pop(next(iter(self._track_cache)))
+        values = [self._track_cache.get(s, (np.nan, np.nan)) for s in stamps.tolist()]
+        positions = np.fromiter((p for _, p in self._recent), np.float64, len(self._recent))
+        return stamps, positions, np.array([h for h, _ in values]), np.array([r for _, r in values])
 
     def _add_window(self, event_ns: int) -> None:
         """The frames around a start or stop of the arm, the roller pressed (an arm moving above the
@@ -577,9 +612,12 @@ class WorldMapper:
         if self._prior is None or not self.config.register:
             self._place(frame, pose, np.zeros(2))
             return
-        offset = self._register(frame, pose)
-        if offset is not None:
-            self._pass_offsets.append(offset)
+        # register the first frames of the pass, then every fourth (the correction is one shift per pass)
+        self._pass_frames += 1
+        if len(self._pass_offsets) < 10 or self._pass_frames % 4 == 0:
+            offset = self._register(frame, pose)
+            if offset is not None:
+                self._pass_offsets.append(offset)
         if len(self._pass_offsets) < 10 and len(self._pass_buffer) < 45:
             self._pass_buffer.append((frame, pose))
             return
@@ -590,6 +628,7 @@ class WorldMapper:
     def _start_pass(self) -> None:
         self.stats.passes += 1
         self._pass_offsets, self._pass_buffer, self._pass_delta = [], [], np.zeros(2)
+        self._pass_frames = 0
         if self.stats.passes > 1 and self.config.register:
             value, weight = self.canvas.value(self._level)
             self._prior = (value, weight, 0, 0)

@@ -104,6 +104,35 @@ def test_short_simulated_scan_writes_map_contacts_and_report(isolated_ros, tmp_p
 
 @pytest.mark.ros
 @pytest.mark.timeout(120)
+@pytest.mark.slow
+def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_remaps(isolated_ros, tmp_path, capsys):
+    """Two passes over a 3 x 9 cm rectangle of the large scene: one map.png + map.yaml in base covering the
+    rectangle; the recording (with /tf and /tf_static) re-maps offline to the same place."""
+    from touchroller_bringup.map_files import read_world_map
+
+    out = tmp_path / "scan"
+    area = (0.42, -0.045, 0.03, 0.09)
+    assert main(["scan", "scene:=large_surface", f"area:={','.join(map(str, area))}", "sweep_speed:=0.02",
+                 "sim.rate:=0.5", "--record", "--quiet", "--out", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    assert "2 pass(es)" in report and "camera latency estimated from the data" in report
+    grey, alpha, meta = read_world_map(out / "map.yaml")
+    assert meta["frame_id"] == "base"
+
+    def mapped_fraction(alpha: np.ndarray, meta: dict) -> float:
+        rows, cols = alpha.shape
+        x = meta["origin"][0] + (np.arange(cols) + 0.5) * meta["resolution"]
+        y = meta["origin"][1] + (rows - np.arange(rows) - 0.5) * meta["resolution"]
+        inside = ((x >= area[0]) & (x <= area[0] + area[2]))[None, :] & ((y >= area[1]) & (y <= area[1] + area[3]))[:, None]
+        return float((alpha[inside] > 0).mean())
+
+    assert mapped_fraction(alpha, meta) >= 0.98
+    assert main(["map", str(out / "recording"), "--out", str(tmp_path / "again.png")]) == 0
+    again, again_alpha, again_meta = read_world_map(tmp_path / "again.yaml")
+    assert again_meta["origin"][:2] == pytest.approx(meta["origin"][:2], abs=3e-4)
+    assert mapped_fraction(again_alpha, again_meta) >= 0.98
+
+
 def test_scan_in_its_own_namespace(isolated_ros, tmp_path, capsys):
     """--namespace left moves the whole graph: the recording holds /left/* and no /touchroller/* topic."""
     from touchroller_bringup.bags import read_images

@@ -1,0 +1,74 @@
+"""bench/world_map.py: its scores come from the map against the truth, its verdicts from the figures."""
+from __future__ import annotations
+
+import math
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+from touchroller_bringup.report import GOALS, load_bench_script
+
+
+def load_bench() -> ModuleType:
+    return load_bench_script("world_map")
+
+
+def variant(ssim: float, residual: float, latency: float | None, estimated: bool = True) -> dict:
+    return {"ssim": ssim, "coverage_percent": 99.5, "latency_ms": latency, "latency_estimated": estimated,
+            "mapped_frames": 100, "passes": 4, "pass_residual_mm": [(residual, 0.0)], "worst_residual_mm": residual,
+            "pass_corrections_mm": []}
+
+
+def fake_result(quick: bool = False, found_ms: float = 51.0, fps: float = 600.0, ratio: float = 1.4) -> dict:
+    scans = [{"latency_true_ms": true, "frames": 1800, "passes": 4, "live_push_ms_median": 1.5,
+              "live_push_ms_p90": 2.5,
+              "variants": {"tf_only": variant(0.6, 1.0, 0.0, estimated=False), "latency": variant(0.95, 0.05, found),
+                           "registration": variant(0.96, 0.04, found)}}
+             for true, found in ((0.0, 0.4), (50.0, found_ms))]
+    return {"provenance": {"command": ".venv/bin/python -m bench.world_map", "machine": "test", "measured": "now",
+                           "loadavg": "0 0 0"},
+            "quick": quick, "area": [0.4, -0.09, 0.24, 0.18], "speed_m_s": 0.02, "goals": {}, "scans": scans,
+            "speed": {"frames": 750, "bag_mb": 700.0, "repeats": 3, "read_s": 1.0, "map_s": 1.25,
+                      "command_fps": fps, "read_ratio": ratio}}
+
+
+def verdicts(result: dict) -> dict[str, bool | None]:
+    return {goal.text: goal.measure(result)[1] for goal in GOALS if goal.section == "world_map"}
+
+
+def test_goals_follow_the_figures():
+    good = verdicts(fake_result())
+    assert len(good) == 7 and all(good.values())
+    bad = verdicts(fake_result(found_ms=54.0, fps=400.0, ratio=2.0))
+    assert [text for text, met in bad.items() if met is False] == [
+        "Camera latency estimated within 3 ms of the truth (0-100 ms, not told)",
+        "`touchroller map` on a 3-pass recording >= 500 frames/s as a whole command (a new process)",
+        "`touchroller map` within 1.5x of reading the bag (new processes)"]
+    quick = verdicts(fake_result(quick=True, fps=400.0))
+    assert quick["`touchroller map` on a 3-pass recording >= 500 frames/s as a whole command (a new process)"] is None
+
+
+def test_markdown_lists_every_mapper_and_latency():
+    bench = load_bench()
+    text = bench.to_markdown(fake_result())
+    assert text.count("| TF only") == 2 and text.count("| + registration |") == 2
+    assert "51.0 ms" in text and "600 frames/s" in text and "1.40x" in text
+    summary = bench.summary(fake_result())
+    assert summary["latency_error_ms"] == pytest.approx(1.0) and summary["ssim"] == pytest.approx(0.96)
+
+
+def test_pass_shift_finds_a_known_displacement():
+    """The residual measure itself: a map shifted by a known amount against its truth."""
+    bench = load_bench()
+    from touchroller_perception.world_map import WorldCanvas
+
+    rng = np.random.default_rng(0)
+    import cv2
+
+    truth = cv2.GaussianBlur(rng.normal(128, 40, (300, 400)).astype(np.float32), (0, 0), 1.5)
+    shifted = np.roll(truth, (3, -2), axis=(0, 1))   # content moved up 3 rows (+y) and 2 columns left (-x)
+    canvas = WorldCanvas(1e-4, (0.0, 0.0, 0.04, 0.03), 10**7)
+    dx, dy = bench._pass_shift(shifted, truth, np.ones_like(truth), canvas, (0.005, 0.005, 0.035, 0.025), 1e-4)
+    assert (dx, dy) == (pytest.approx(0.2, abs=0.02), pytest.approx(-0.3, abs=0.02))
+    assert not math.isnan(dx)
