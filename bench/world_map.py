@@ -17,20 +17,20 @@ against reading the same bag alone (a new process too), best of N.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from bench._common import ROOT, provenance, provenance_markdown, results_path
+from bench._common import ROOT, Provenance, provenance, provenance_markdown, results_path, to_json
 
 FULL = {"area": [0.40, -0.09, 0.24, 0.18], "latencies": [0.0, 0.025, 0.05, 0.1], "speed_length": 0.12,
         "repeats": 3}
@@ -39,10 +39,62 @@ SPEED = 0.02          # m/s along the passes
 VARIANTS = {"tf_only": {"latency": 0.0, "register": False},
             "latency": {"latency": None, "register": False},
             "registration": {"latency": None, "register": True}}
-GOALS = {"ssim": 0.90, "residual_mm": 0.1, "coverage_percent": 98.0, "latency_ms": 3.0, "live_ms": 2.0,
-         "command_fps": 500.0, "read_ratio": 1.5}
 READ_SNIPPET = ("import sys\nfrom touchroller_bringup.bags import read_images_and_tf\n"
                 "n = sum(1 for r in read_images_and_tf(sys.argv[1]))\nprint(n)\n")
+
+
+@dataclass(frozen=True)
+class VariantScore:
+    """One mapper's map against the true surface in place."""
+
+    ssim: float
+    coverage_percent: float
+    latency_ms: float | None
+    latency_estimated: bool
+    mapped_frames: int
+    passes: int
+    pass_residual_mm: list[tuple[float, float]]   # (dx, dy) of each pass's central strip, mm
+    worst_residual_mm: float
+    pass_corrections_mm: list[tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class ScanScores:
+    """One raster filmed with one latency, mapped three ways (VARIANTS)."""
+
+    latency_true_ms: float
+    frames: int
+    passes: int
+    live_push_ms_median: float
+    live_push_ms_p90: float
+    variants: dict[str, VariantScore]
+
+
+@dataclass(frozen=True)
+class CommandSpeed:
+    frames: int
+    bag_mb: float
+    repeats: int
+    read_s: float
+    map_s: float
+
+    @property
+    def command_fps(self) -> float:
+        return self.frames / self.map_s
+
+    @property
+    def read_ratio(self) -> float:
+        return self.map_s / self.read_s
+
+
+@dataclass(frozen=True)
+class WorldMapResult:
+    provenance: Provenance
+    quick: bool
+    area: list[float]
+    speed_m_s: float
+    scans: list[ScanScores]
+    speed: CommandSpeed
 
 
 def _setup(area: list[float]):
@@ -62,7 +114,7 @@ def _setup(area: list[float]):
     return sensor, mount, plan
 
 
-def map_scan(area: list[float], latency: float) -> dict[str, Any]:
+def map_scan(area: list[float], latency: float) -> ScanScores:
     """One raster filmed `latency` late, mapped three ways; the scores of each."""
     from touchroller_driver.sim.sweep import simulate_sweep
     from touchroller_perception.transforms import TransformBuffer
@@ -92,16 +144,15 @@ def map_scan(area: list[float], latency: float) -> dict[str, Any]:
             mapper.push_band(band, event[1])
             if name == "registration":
                 push_ms.append((time.perf_counter() - begin) * 1e3)
-    out: dict[str, Any] = {"latency_true_ms": latency * 1e3, "frames": frames, "passes": len(plan.rolls),
-                           "live_push_ms_median": float(np.median(push_ms)),
-                           "live_push_ms_p90": float(np.percentile(push_ms, 90)), "variants": {}}
+    variants = {}
     for name, mapper in mappers.items():
         mapper.finalise()
-        out["variants"][name] = score(mapper, sensor, area, plan)
-    return out
+        variants[name] = score(mapper, sensor, area, plan)
+    return ScanScores(latency * 1e3, frames, len(plan.rolls), float(np.median(push_ms)),
+                      float(np.percentile(push_ms, 90)), variants)
 
 
-def score(mapper: Any, sensor: Any, area: list[float], plan: Any) -> dict[str, Any]:
+def score(mapper: Any, sensor: Any, area: list[float], plan: Any) -> VariantScore:
     from skimage.metrics import structural_similarity
 
     from touchroller_driver.sim.camera import surface_frame
@@ -122,13 +173,14 @@ def score(mapper: Any, sensor: Any, area: list[float], plan: Any) -> dict[str, A
         box = (area[0] + 0.005, y_mid - 0.012, area[0] + area[2] - 0.005, y_mid + 0.012)
         residuals.append(_pass_shift(grey, tactile, weight, mapper.canvas, box, resolution))
     stats = mapper.stats
-    return {"ssim": float(ssim_map[inside].mean()) if inside.any() else float("nan"),
-            "coverage_percent": mapper.coverage((area[0], area[1], area[0] + area[2], area[1] + area[3])),
-            "latency_ms": None if stats.latency_s is None else stats.latency_s * 1e3,
-            "latency_estimated": stats.latency_estimated, "mapped_frames": stats.mapped, "passes": stats.passes,
-            "pass_residual_mm": residuals,
-            "worst_residual_mm": max(math.hypot(dx, dy) for dx, dy in residuals) if residuals else float("nan"),
-            "pass_corrections_mm": [(dx * resolution * 1e3, dy * resolution * 1e3) for dx, dy in stats.pass_corrections_px]}
+    return VariantScore(
+        ssim=float(ssim_map[inside].mean()) if inside.any() else float("nan"),
+        coverage_percent=mapper.coverage((area[0], area[1], area[0] + area[2], area[1] + area[3])),
+        latency_ms=None if stats.latency_s is None else stats.latency_s * 1e3,
+        latency_estimated=stats.latency_estimated, mapped_frames=stats.mapped, passes=stats.passes,
+        pass_residual_mm=residuals,
+        worst_residual_mm=max(math.hypot(dx, dy) for dx, dy in residuals) if residuals else float("nan"),
+        pass_corrections_mm=[(dx * resolution * 1e3, dy * resolution * 1e3) for dx, dy in stats.pass_corrections_px])
 
 
 def _standard(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -193,7 +245,7 @@ def _timed(argv: list[str]) -> float:
     return time.perf_counter() - start
 
 
-def command_speed(length: float, repeats: int) -> dict[str, Any]:
+def command_speed(length: float, repeats: int) -> CommandSpeed:
     tmp = Path(tempfile.mkdtemp(prefix="world_map_speed_"))
     try:
         bag = tmp / "bag"
@@ -206,55 +258,63 @@ def command_speed(length: float, repeats: int) -> dict[str, Any]:
             best_read = min(best_read, _timed(reading))
             out = tmp / f"map{k}.png"
             best_map = min(best_map, _timed([*touchroller, "--out", str(out)]))
-        return {"frames": frames, "bag_mb": size_mb, "repeats": repeats, "read_s": best_read, "map_s": best_map,
-                "command_fps": frames / best_map, "read_ratio": best_map / best_read}
+        return CommandSpeed(frames, size_mb, repeats, best_read, best_map)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
 # ------------------------------------------------------------------------------------------------ report
-def run(quick: bool = False) -> dict[str, Any]:
+def run(quick: bool = False) -> WorldMapResult:
     size = QUICK if quick else FULL
     scans = [map_scan(size["area"], latency) for latency in size["latencies"]]
-    return {"provenance": provenance("world_map", quick), "quick": quick, "area": size["area"], "speed_m_s": SPEED,
-            "goals": GOALS, "scans": scans, "speed": command_speed(size["speed_length"], size["repeats"])}
+    return WorldMapResult(provenance("world_map", quick), quick, size["area"], SPEED, scans,
+                          command_speed(size["speed_length"], size["repeats"]))
 
 
-def summary(r: dict[str, Any]) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Summary:
     """The measures the report's goals read: worst over the latencies, default mapper (+ registration)."""
-    best = [s["variants"]["registration"] for s in r["scans"]]
-    errors = [abs(v["latency_ms"] - s["latency_true_ms"]) if v["latency_ms"] is not None else math.inf
-              for v, s in zip(best, r["scans"], strict=True)]
-    return {"ssim": min(v["ssim"] for v in best), "residual_mm": max(v["worst_residual_mm"] for v in best),
-            "coverage_percent": min(v["coverage_percent"] for v in best), "latency_error_ms": max(errors),
-            "live_ms": max(s["live_push_ms_median"] for s in r["scans"]),
-            "command_fps": r["speed"]["command_fps"], "read_ratio": r["speed"]["read_ratio"]}
+
+    ssim: float
+    residual_mm: float
+    coverage_percent: float
+    latency_error_ms: float
+    live_ms: float
+    latencies_ms: str
 
 
-def to_markdown(r: dict[str, Any]) -> str:
-    area = r["area"]
-    lines = [f"A {area[2] * 100:g} x {area[3] * 100:g} cm raster of `large_surface` at corner ({area[0]}, {area[1]}) m of "
-             f"`base`, {r['scans'][0]['passes']} passes at {r['speed_m_s'] * 1e3:g} mm/s, filmed by the simulated "
-             "sensor on the simulated arm with a camera latency the mapper is not told. Scores against the true "
-             "surface in place (no alignment); residual = each pass's central strip located in the truth.", "",
+def summary(r: WorldMapResult) -> Summary:
+    best = [(s, s.variants["registration"]) for s in r.scans]
+    errors = [abs(v.latency_ms - s.latency_true_ms) if v.latency_ms is not None else math.inf for s, v in best]
+    return Summary(min(v.ssim for _, v in best), max(v.worst_residual_mm for _, v in best),
+                   min(v.coverage_percent for _, v in best), max(errors), max(s.live_push_ms_median for s in r.scans),
+                   ", ".join(f"{s.latency_true_ms:.0f}" for s in r.scans))
+
+
+def to_markdown(r: WorldMapResult) -> str:
+    area = r.area
+    lines = [f"A {area[2] * 100:g} x {area[3] * 100:g} cm raster of `large_surface` at corner ({area[0]}, {area[1]}) m "
+             f"of `base`, {r.scans[0].passes} passes at {r.speed_m_s * 1e3:g} mm/s, filmed by the simulated sensor on "
+             "the simulated arm with a camera latency the mapper is not told. Scores against the true surface in "
+             "place (no alignment); residual = each pass's central strip located in the truth.", "",
              "| true latency | mapper | latency found | SSIM in place | coverage | worst pass residual | pass "
              "corrections (registration) |", "|---|---|---|---|---|---|---|"]
     names = {"tf_only": "TF only (latency 0)", "latency": "+ latency (estimated)", "registration": "+ registration"}
-    for scan in r["scans"]:
+    for scan in r.scans:
         for key, label in names.items():
-            v = scan["variants"][key]
-            found = "-" if v["latency_ms"] is None or not v["latency_estimated"] else f"{v['latency_ms']:.1f} ms"
-            corrections = ", ".join(f"({dx:+.2f}, {dy:+.2f})" for dx, dy in v["pass_corrections_mm"]) or "-"
-            lines.append(f"| {scan['latency_true_ms']:.0f} ms | {label} | {found} | {v['ssim']:.3f} | "
-                         f"{v['coverage_percent']:.1f} % | {v['worst_residual_mm']:.3f} mm | {corrections} |")
-    s = r["speed"]
-    lines += ["", "Live update (`WorldMapper.push_band`, + registration, per frame): median "
-                  + ", ".join(f"{scan['live_push_ms_median']:.2f} ms" for scan in r["scans"])
-              + f" (p90 {max(scan['live_push_ms_p90'] for scan in r['scans']):.2f} ms; on this machine, see provenance).",
-              f"`touchroller map` on a 3-pass recording ({s['frames']} frames, {s['bag_mb']:.0f} MB, /tf and "
-              f"/tf_static, sqlite3) as a new process: best of {s['repeats']}: {s['map_s']:.2f} s = "
-              f"{s['command_fps']:.0f} frames/s; reading the bag alone (a new process): {s['read_s']:.2f} s; "
-              f"ratio {s['read_ratio']:.2f}x.", "", provenance_markdown(r["provenance"])]
+            v = scan.variants[key]
+            found = "-" if v.latency_ms is None or not v.latency_estimated else f"{v.latency_ms:.1f} ms"
+            corrections = ", ".join(f"({dx:+.2f}, {dy:+.2f})" for dx, dy in v.pass_corrections_mm) or "-"
+            lines.append(f"| {scan.latency_true_ms:.0f} ms | {label} | {found} | {v.ssim:.3f} | "
+                         f"{v.coverage_percent:.1f} % | {v.worst_residual_mm:.3f} mm | {corrections} |")
+    s = r.speed
+    medians = ", ".join(f"{scan.live_push_ms_median:.2f} ms" for scan in r.scans)
+    lines += ["", f"Live update (`WorldMapper.push_band`, + registration, per frame): median {medians} "
+                  f"(p90 {max(scan.live_push_ms_p90 for scan in r.scans):.2f} ms; on this machine, see provenance).",
+              f"`touchroller map` on a 3-pass recording ({s.frames} frames, {s.bag_mb:.0f} MB, /tf and "
+              f"/tf_static, sqlite3) as a new process: best of {s.repeats}: {s.map_s:.2f} s = "
+              f"{s.command_fps:.0f} frames/s; reading the bag alone (a new process): {s.read_s:.2f} s; "
+              f"ratio {s.read_ratio:.2f}x.", "", provenance_markdown(r.provenance)]
     return "\n".join(lines)
 
 
@@ -267,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
     md.parent.mkdir(parents=True, exist_ok=True)
     md.write_text("# World map of a raster scan, and `touchroller map` on one\n\n" + to_markdown(result) + "\n",
                   encoding="utf-8")
-    js.write_text(json.dumps(result, indent=1, default=float) + "\n", encoding="utf-8")
+    js.write_text(to_json(result, indent=1) + "\n", encoding="utf-8")
     print(to_markdown(result))
     return 0
 

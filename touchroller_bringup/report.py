@@ -215,30 +215,20 @@ def _map_live(r: dict) -> tuple[str, bool]:
     return f"median {live['median_ms']:.3f} ms (p90 {live['p90_ms']:.3f} ms)", live["median_ms"] <= 1.0
 
 
-def _world(r: dict) -> dict:
-    """Worst over the latencies tried, the default mapper (+ registration)."""
-    best = [(s, s["variants"]["registration"]) for s in r["scans"]]
-    errors = [abs(v["latency_ms"] - s["latency_true_ms"]) if v["latency_ms"] is not None else float("inf")
-              for s, v in best]
-    return {"ssim": min(v["ssim"] for _, v in best), "residual": max(v["worst_residual_mm"] for _, v in best),
-            "coverage": min(v["coverage_percent"] for _, v in best), "latency": max(errors),
-            "live": max(s["live_push_ms_median"] for s in r["scans"]),
-            "latencies": ", ".join(f"{s['latency_true_ms']:.0f}" for s in r["scans"])}
-
-
 def _world_measure(key: str, fmt: str, goal: float, below: bool) -> Measure:
-    def measure(r: dict) -> tuple[str, bool]:
-        value = _world(r)[key]
-        return (f"{fmt.format(value)} (worst of true latencies {_world(r)['latencies']} ms)",
+    def measure(r: Any) -> tuple[str, bool]:
+        summary = load_bench_script("world_map").summary(r)
+        value = getattr(summary, key)
+        return (f"{fmt.format(value)} (worst of true latencies {summary.latencies_ms} ms)",
                 value <= goal if below else value >= goal)
     return measure
 
 
 def _world_speed(key: str, fmt: str, goal: float, below: bool) -> Measure:
-    def measure(r: dict) -> tuple[str, bool | None]:
-        value = r["speed"][key]
-        note = f"{r['speed']['frames']} frames, best of {r['speed']['repeats']}"
-        if r.get("quick"):
+    def measure(r: Any) -> tuple[str, bool | None]:
+        value = getattr(r.speed, key)
+        note = f"{r.speed.frames} frames, best of {r.speed.repeats}"
+        if r.quick:
             return f"{fmt.format(value)} ({note}; not judged on a quick run)", None
         return f"{fmt.format(value)} ({note})", value <= goal if below else value >= goal
     return measure
@@ -352,16 +342,16 @@ GOALS: tuple[Goal, ...] = (
     Goal(15, "World map in place vs the true surface: SSIM >= 0.90 over the mapped area", "world_map",
          _world_measure("ssim", "{:.3f}", 0.90, below=False)),
     Goal(15, "World map: each pass's residual shift <= 0.1 mm", "world_map",
-         _world_measure("residual", "{:.3f} mm", 0.1, below=True)),
+         _world_measure("residual_mm", "{:.3f} mm", 0.1, below=True)),
     Goal(15, "World map: coverage >= 98 % of the rectangle", "world_map",
-         _world_measure("coverage", "{:.1f} %", 98.0, below=False)),
+         _world_measure("coverage_percent", "{:.1f} %", 98.0, below=False)),
     Goal(15, "Camera latency estimated within 3 ms of the truth (0-100 ms, not told)", "world_map",
-         _world_measure("latency", "{:.1f} ms off", 3.0, below=True)),
+         _world_measure("latency_error_ms", "{:.1f} ms off", 3.0, below=True)),
     Goal(15, "Live world map update <= 2 ms per frame (median)", "world_map",
-         _world_measure("live", "{:.2f} ms", 2.0, below=True)),
-    Goal(15, "`touchroller map` on a 3-pass recording >= 500 frames/s as a whole command (a new process)",
+         _world_measure("live_ms", "{:.2f} ms", 2.0, below=True)),
+    Goal(15, "World map: `touchroller map` on a 3-pass recording >= 500 frames/s as a whole command (a new process)",
          "world_map", _world_speed("command_fps", "{:.0f} frames/s", 500.0, below=False)),
-    Goal(15, "`touchroller map` within 1.5x of reading the bag (new processes)", "world_map",
+    Goal(15, "World map: `touchroller map` within 1.5x of reading the bag (new processes)", "world_map",
          _world_speed("read_ratio", "{:.2f}x", 1.5, below=True)),
     Goal(6, "Calibration: theta within 0.1 deg (20 chessboard + 10 hemisphere images)", "calibration",
          _calib("theta_err_deg", "°", "theta_deg")),

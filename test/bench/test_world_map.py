@@ -14,23 +14,23 @@ def load_bench() -> ModuleType:
     return load_bench_script("world_map")
 
 
-def variant(ssim: float, residual: float, latency: float | None, estimated: bool = True) -> dict:
-    return {"ssim": ssim, "coverage_percent": 99.5, "latency_ms": latency, "latency_estimated": estimated,
-            "mapped_frames": 100, "passes": 4, "pass_residual_mm": [(residual, 0.0)], "worst_residual_mm": residual,
-            "pass_corrections_mm": []}
+def variant(bench: ModuleType, ssim: float, residual: float, latency: float | None, estimated: bool = True):
+    return bench.VariantScore(ssim=ssim, coverage_percent=99.5, latency_ms=latency, latency_estimated=estimated,
+                              mapped_frames=100, passes=4, pass_residual_mm=[(residual, 0.0)],
+                              worst_residual_mm=residual, pass_corrections_mm=[])
 
 
-def fake_result(quick: bool = False, found_ms: float = 51.0, fps: float = 600.0, ratio: float = 1.4) -> dict:
-    scans = [{"latency_true_ms": true, "frames": 1800, "passes": 4, "live_push_ms_median": 1.5,
-              "live_push_ms_p90": 2.5,
-              "variants": {"tf_only": variant(0.6, 1.0, 0.0, estimated=False), "latency": variant(0.95, 0.05, found),
-                           "registration": variant(0.96, 0.04, found)}}
+def fake_result(quick: bool = False, found_ms: float = 51.0, map_s: float = 1.25, read_s: float = 1.0):
+    bench = load_bench()
+    scans = [bench.ScanScores(true, 1800, 4, 1.5, 2.5,
+                              {"tf_only": variant(bench, 0.6, 1.0, 0.0, estimated=False),
+                               "latency": variant(bench, 0.95, 0.05, found),
+                               "registration": variant(bench, 0.96, 0.04, found)})
              for true, found in ((0.0, 0.4), (50.0, found_ms))]
-    return {"provenance": {"command": ".venv/bin/python -m bench.world_map", "machine": "test", "measured": "now",
-                           "loadavg": "0 0 0"},
-            "quick": quick, "area": [0.4, -0.09, 0.24, 0.18], "speed_m_s": 0.02, "goals": {}, "scans": scans,
-            "speed": {"frames": 750, "bag_mb": 700.0, "repeats": 3, "read_s": 1.0, "map_s": 1.25,
-                      "command_fps": fps, "read_ratio": ratio}}
+    from bench._common import Provenance
+
+    return bench.WorldMapResult(Provenance(".venv/bin/python -m bench.world_map", "test", "now", "0 0 0"), quick,
+                                [0.4, -0.09, 0.24, 0.18], 0.02, scans, bench.CommandSpeed(750, 700.0, 3, read_s, map_s))
 
 
 def verdicts(result: dict) -> dict[str, bool | None]:
@@ -40,22 +40,23 @@ def verdicts(result: dict) -> dict[str, bool | None]:
 def test_goals_follow_the_figures():
     good = verdicts(fake_result())
     assert len(good) == 7 and all(good.values())
-    bad = verdicts(fake_result(found_ms=54.0, fps=400.0, ratio=2.0))
+    bad = verdicts(fake_result(found_ms=54.0, map_s=2.0))
     assert [text for text, met in bad.items() if met is False] == [
         "Camera latency estimated within 3 ms of the truth (0-100 ms, not told)",
-        "`touchroller map` on a 3-pass recording >= 500 frames/s as a whole command (a new process)",
-        "`touchroller map` within 1.5x of reading the bag (new processes)"]
-    quick = verdicts(fake_result(quick=True, fps=400.0))
-    assert quick["`touchroller map` on a 3-pass recording >= 500 frames/s as a whole command (a new process)"] is None
+        "World map: `touchroller map` on a 3-pass recording >= 500 frames/s as a whole command (a new process)",
+        "World map: `touchroller map` within 1.5x of reading the bag (new processes)"]
+    quick = verdicts(fake_result(quick=True, map_s=2.0))
+    fps_goal = "World map: `touchroller map` on a 3-pass recording >= 500 frames/s as a whole command (a new process)"
+    assert quick[fps_goal] is None
 
 
 def test_markdown_lists_every_mapper_and_latency():
     bench = load_bench()
     text = bench.to_markdown(fake_result())
     assert text.count("| TF only") == 2 and text.count("| + registration |") == 2
-    assert "51.0 ms" in text and "600 frames/s" in text and "1.40x" in text
+    assert "51.0 ms" in text and "600 frames/s" in text and "1.25x" in text
     summary = bench.summary(fake_result())
-    assert summary["latency_error_ms"] == pytest.approx(1.0) and summary["ssim"] == pytest.approx(0.96)
+    assert summary.latency_error_ms == pytest.approx(1.0) and summary.ssim == pytest.approx(0.96)
 
 
 def test_pass_shift_finds_a_known_displacement():

@@ -123,7 +123,9 @@ def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_rem
         rows, cols = alpha.shape
         x = meta["origin"][0] + (np.arange(cols) + 0.5) * meta["resolution"]
         y = meta["origin"][1] + (rows - np.arange(rows) - 0.5) * meta["resolution"]
-        inside = ((x >= area[0]) & (x <= area[0] + area[2]))[None, :] & ((y >= area[1]) & (y <= area[1] + area[3]))[:, None]
+        along = (x >= area[0]) & (x <= area[0] + area[2])
+        across = (y >= area[1]) & (y <= area[1] + area[3])
+        inside = along[None, :] & across[:, None]
         return float((alpha[inside] > 0).mean())
 
     assert mapped_fraction(alpha, meta) >= 0.98

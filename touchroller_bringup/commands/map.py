@@ -52,7 +52,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--world-frame", default="base", help="world map: the frame it lies in (default: %(default)s)")
     parser.add_argument("--cylinder-frame", default="touchroller_cylinder",
                         help="world map: the roller's cylinder frame in the bag's TF (default: %(default)s)")
-    parser.add_argument("--resolution", type=float, default=1e-4, help="world map: metres per pixel (default: %(default)s)")
+    parser.add_argument("--resolution", type=float, default=1e-4,
+                        help="world map: metres per pixel (default: %(default)s)")
     parser.add_argument("--latency", default="auto", help="world map: the camera's latency in seconds (what the "
                                                           "stamps lag the exposure), or 'auto' to estimate it")
     parser.add_argument("--no-register", action="store_true", help="world map: place by TF only, do not register "
@@ -152,7 +153,8 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
         raise UserError(f"{args.bag} has no images on {args.topic}")
     if args.world_frame not in buffer.frames or args.cylinder_frame not in buffer.frames:
         raise UserError(f"the bag's TF has no {args.world_frame} -> {args.cylinder_frame} (frames: "
-                        f"{', '.join(sorted(buffer.frames)) or 'none'}); give --world-frame/--cylinder-frame or --strip")
+                        f"{', '.join(sorted(buffer.frames)) or 'none'}); give --world-frame/--cylinder-frame "
+                        "or --strip")
     mapper.finalise()
     image = mapper.map_image()
     png, yaml_path = write_world_map(out, image, args.world_frame)

@@ -407,7 +407,8 @@ class PerceptionNode(Node):
     def _start_map(self) -> None:
         """A world map if TF links world_frame to the cylinder now, else the strip map."""
         cylinder = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
-        if bool(self.get_parameter("map.world").value) and self.tf_listener.lookup(self.world_frame, cylinder) is not None:
+        linked = self.tf_listener.lookup(self.world_frame, cylinder) is not None
+        if bool(self.get_parameter("map.world").value) and linked:
             listener = self.tf_listener
             lookup = buffer_lookup(listener.buffer, self.world_frame, cylinder)
 
@@ -457,12 +458,12 @@ class PerceptionNode(Node):
     def _log_world_stats(self) -> None:
         assert self.world is not None
         stats = self.world.stats
+        mm = self.world.config.resolution * 1e3
         latency = "not found" if stats.latency_s is None else f"{stats.latency_s * 1e3:.1f} ms"
         self.get_logger().info(
             f"world map: {stats.mapped} of {stats.frames} frames mapped in {stats.passes} pass(es); camera "
             f"latency {'estimated' if stats.latency_estimated else 'assumed'} {latency}; pass corrections "
-            + ", ".join(f"({dx * self.world.config.resolution * 1e3:+.2f}, {dy * self.world.config.resolution * 1e3:+.2f}) mm"
-                        for dx, dy in stats.pass_corrections_px))
+            + ", ".join(f"({dx * mm:+.2f}, {dy * mm:+.2f}) mm" for dx, dy in stats.pass_corrections_px))
 
     def _save_map(self, tactile_map: np.ndarray, path: str) -> None:
         import cv2
@@ -475,7 +476,8 @@ class PerceptionNode(Node):
                 self.get_logger().error(f"map not saved: {exc}")
                 return
             self.saved_maps += 1
-            self.get_logger().info(f"map saved: {png} and {yaml_path.name} ({tactile_map.shape[1]}x{tactile_map.shape[0]})")
+            self.get_logger().info(f"map saved: {png} and {yaml_path.name} "
+                                   f"({tactile_map.shape[1]}x{tactile_map.shape[0]})")
             return
 
         try:
@@ -543,7 +545,8 @@ class PerceptionNode(Node):
         world = self.world
         if world is not None:
             values.update({"map_frames_mapped": world.stats.mapped, "map_passes": world.stats.passes,
-                           "map_latency_ms": _or_nan(None if world.stats.latency_s is None else world.stats.latency_s * 1e3),
+                           "map_latency_ms": float("nan") if world.stats.latency_s is None
+                           else world.stats.latency_s * 1e3,
                            "map_latency_estimated": world.stats.latency_estimated})
         if self._last_refused:
             return Status(ERROR, f"frames do not match the reference: {self._last_refused}; "
