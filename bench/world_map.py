@@ -12,7 +12,9 @@ normalised cross-correlation), and the latency estimate. Speed: the live update 
 against reading the same bag alone (a new process too), best of N.
 
 `python -m bench.world_map [--quick]` -> bench/results/world_map.md + .json (quick/ with --quick);
-`touchroller report` calls `run(quick)` and `to_markdown(result)`.
+`touchroller report` calls `run(quick)` and `to_markdown(result)`. `python -m bench.world_map --scan DIR
+[--area x,y,L,W]` scores the files of a real `touchroller scan scene:=large_surface area:=... --record`
+instead: its map.png + map.yaml against the truth in place, and its recording re-mapped by `touchroller map`.
 """
 from __future__ import annotations
 
@@ -318,10 +320,81 @@ def to_markdown(r: WorldMapResult) -> str:
     return "\n".join(lines)
 
 
+# ------------------------------------------------------------------------------------------------ a scan's files
+@dataclass(frozen=True)
+class ScanFiles:
+    """A `touchroller scan` output folder's world map against the true surface, and its recording re-mapped."""
+
+    folder: str
+    area: list[float]
+    ssim: float
+    coverage_percent: float
+    pass_residual_mm: list[tuple[float, float]]
+    remap_same_size: bool
+    remap_origin_difference_mm: float
+    remap_mapped_agreement: float      # share of pixels mapped in one that are mapped in both
+    remap_grey_mean_abs: float         # grey levels, over pixels mapped in both
+
+
+def evaluate_scan(folder: Path, area: list[float]) -> ScanFiles:
+    """Score a scan of `large_surface` (seed 0) over `area` from its files: map.yaml/map.png against the
+    truth in place, and `touchroller map` of its recording/ against the live map."""
+    from skimage.metrics import structural_similarity
+
+    from touchroller_bringup.map_files import read_world_map
+    from touchroller_driver.sim.camera import surface_frame
+    from touchroller_perception.world_map import WorldCanvas
+
+    sensor, _, plan = _setup(area)
+    grey, alpha, meta = read_world_map(folder / "map.yaml")
+    resolution = float(meta["resolution"])
+    rows, cols = grey.shape
+    canvas = WorldCanvas(resolution, (meta["origin"][0], meta["origin"][1], meta["origin"][0] + cols * resolution,
+                                      meta["origin"][1] + rows * resolution), 10**9)
+    value, weight = grey[::-1].astype(np.float32), (alpha[::-1] > 0).astype(np.float32)   # rows growing with y
+    _, tactile = sensor.world_truth(surface_frame(sensor.scene), canvas.origin, value.shape, resolution)
+    (c0, r0), (c1, r1) = (np.round(canvas.to_grid(np.array(p)) + 0.5).astype(int)
+                          for p in (area[:2], (area[0] + area[2], area[1] + area[3])))
+    c0, r0 = max(c0, 0), max(r0, 0)
+    mapped = weight[r0:r1, c0:c1] > 0
+    a = _standard(value[r0:r1, c0:c1], mapped)
+    b = _standard(tactile[r0:r1, c0:c1].astype(np.float32), mapped)
+    _, ssim_map = structural_similarity(a, b, data_range=255.0, full=True, win_size=7)
+    inside = cv2.erode(mapped.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    expected = (math.ceil(area[2] / resolution) * math.ceil(area[3] / resolution))
+    residuals = []
+    for raster_pass in plan.passes:
+        y_mid = area[1] + 0.5 * (raster_pass.across[0] + raster_pass.across[1])
+        box = (area[0] + 0.005, y_mid - 0.012, area[0] + area[2] - 0.005, y_mid + 0.012)
+        residuals.append(_pass_shift(value, tactile, weight, canvas, box, resolution))
+    again = Path(tempfile.mkdtemp(prefix="world_map_remap_")) / "map.png"
+    subprocess.run([sys.executable, "-m", "touchroller_bringup.cli", "map", str(folder / "recording"), "--out",
+                    str(again)], check=True, capture_output=True, cwd=ROOT)
+    grey2, alpha2, meta2 = read_world_map(again.with_suffix(".yaml"))
+    same = grey2.shape == grey.shape
+    shift = math.hypot(meta2["origin"][0] - meta["origin"][0], meta2["origin"][1] - meta["origin"][1]) * 1e3
+    agreement, grey_diff = float("nan"), float("nan")
+    if same:
+        one, two = alpha > 0, alpha2 > 0
+        agreement = float((one & two).sum() / max((one | two).sum(), 1))
+        both = one & two
+        grey_diff = float(np.abs(grey.astype(np.int32) - grey2)[both].mean()) if both.any() else float("nan")
+    shutil.rmtree(again.parent, ignore_errors=True)
+    return ScanFiles(str(folder), area, float(ssim_map[inside].mean()) if inside.any() else float("nan"),
+                     100.0 * float(mapped.sum()) / expected, residuals, same, shift, agreement, grey_diff)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a 2-pass raster at 2 latencies, one timing run")
+    parser.add_argument("--scan", type=Path, help="instead: score a `touchroller scan scene:=large_surface --record` "
+                                                  "output folder (map.yaml, recording/) over --area")
+    parser.add_argument("--area", default="0.40,-0.09,0.24,0.18", help="the scan's area:=x,y,length,width")
     args = parser.parse_args(argv)
+    if args.scan is not None:
+        files = evaluate_scan(args.scan, [float(v) for v in args.area.split(",")])
+        print(to_json(files, indent=1))
+        return 0
     result = run(args.quick)
     md, js = results_path("world_map", args.quick), results_path("world_map", args.quick, ".json")
     md.parent.mkdir(parents=True, exist_ok=True)

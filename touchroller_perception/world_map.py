@@ -73,19 +73,20 @@ class WorldMapConfig:
     search_px: the largest correction registration looks for, map pixels.
     contact_tolerance: frames with the roller within this of its pressed height are mapped, m.
     edge_taper: the weights fall to zero over this distance at the band's ends along the axis, m.
-    hold_frames: frames kept while their pose, the pressed height or the latency are not known yet.
+    hold_frames: frames kept while their pose, the pressed height or the latency are not known yet (as
+      float16: 90 KB each for 640-pixel-wide bands); the latency may need a whole pass's end to be found.
     """
 
     resolution: float = 1e-4
     bounds: tuple[float, float, float, float] | None = None
-    max_pixels: int = 40_000_000
+    max_pixels: int = 16_000_000
     latency: float | None = None
     max_latency: float = 0.2
     register: bool = True
     search_px: int = 6
     contact_tolerance: float = 2e-4
     edge_taper: float = 4e-3
-    hold_frames: int = 150
+    hold_frames: int = 600
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.resolution) and 1e-6 <= self.resolution <= 0.01):
@@ -342,7 +343,10 @@ class WorldMapper:
         self.config = config = config or WorldMapConfig()
         self.camera = camera
         self.poses = poses
-        self.strip = Stitcher((stitcher or StitcherConfig()).replace(history=1, live_map=False), camera=camera)
+        # The strip stitcher measures the image's roll (latency, contact) and keeps the flat field; it
+        # places nothing, so it needs no lateral tracking and registers on coarser columns (speed).
+        strip = stitcher or StitcherConfig(lateral=False, column_bin=8)
+        self.strip = Stitcher(strip.replace(history=1, live_map=False), camera=camera)
         self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels)
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
@@ -356,6 +360,7 @@ class WorldMapper:
         self._recent: deque[tuple[int, float]] = deque(maxlen=600)
         self._events: list[int] = []   # arm times of starts and stops (ns)
         self._last_event_check = 0
+        self._latest_stamp = 0
         self._track_cache: dict[int, tuple[float, float]] = {}   # stamp -> (height, arm roll in rows)
         self._track_latency: int | None = None
         self._reference_point: np.ndarray | None = None
@@ -385,13 +390,27 @@ class WorldMapper:
         if self._weights is None:
             self._setup()
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
-        step = self.strip.push_band(band, int(stamp_ns), prior)
-        frame = _Frame(int(stamp_ns), band, self.strip.flat_field_now(), step, pose, pose_latency)
         self.stats.frames += 1
+        self._latest_stamp = max(self._latest_stamp, int(stamp_ns))
+        if self._clearly_lifted(pose if pose is not None else self._previous_prior_pose):
+            # an arm moving above the surface (between passes): nothing to map, nothing to register
+            self.stats.not_in_contact += 1
+            self._drain(final=False)
+            return
+        step = self.strip.push_band(band, int(stamp_ns), prior)
+        frame = _Frame(int(stamp_ns), band.astype(np.float16), self.strip.flat_field_now(), step, pose, pose_latency)
         if step.confidence >= self.strip.config.min_confidence and not step.used_prior:
             self._recent.append((frame.stamp_ns, step.position_px))
         self._pending.append(frame)
         self._drain(final=False)
+
+    def _clearly_lifted(self, pose: Any) -> bool:
+        """The roller is more than a millimetre above its pressed height (known once a roll was seen)."""
+        if isinstance(pose, tuple):
+            pose = pose[0]
+        if pose is None or self._pressed_height is None:
+            return False
+        return float(pose[2, 3]) > self._pressed_height + 1e-3
 
     def _arm_prior(self, stamp_ns: int) -> tuple[float | None, np.ndarray | None, int | None]:
         """The arm's roll since the previous frame, band rows: the strip stitcher's motion prior, so a
@@ -474,6 +493,13 @@ class WorldMapper:
     # -- the queue -----------------------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
         self._find_events(final)
+        if final and self._pressed_height is None and self._pending:
+            # nothing agreed on the pressed height (a short or textureless roll): the lowest the roller went
+            stamps = np.array([f.stamp_ns for f in self._pending], np.int64) - (self._latency() or 0)
+            heights = self.poses(stamps)[:, 2, 3]
+            if np.isfinite(heights).any():
+                self._pressed_height = float(np.nanmin(heights))
+                self.stats.pressed_height = self._pressed_height
         while self._pending:
             frame = self._pending[0]
             ready = self._ready(frame)
@@ -516,7 +542,7 @@ class WorldMapper:
         """Learn the pressed height, find starts and stops of the roll, and (re)estimate the latency."""
         if len(self._recent) < 3:
             return
-        newest = self._recent[-1][0]
+        newest = self._latest_stamp
         if newest - self._last_event_check < 100_000_000 and not final:
             return
         self._last_event_check = int(newest)
@@ -535,9 +561,12 @@ class WorldMapper:
         image_speed[1:][valid] = np.diff(positions)[valid] / dt[valid]
         fast = np.abs(arm_speed) > 3.0   # rows per second: the arm rolls, not just settles
         agree = fast & (np.abs(image_speed - arm_speed) < 0.3 * np.abs(arm_speed) + 1.0)
-        if agree.sum() >= 5:
+        if agree.sum() >= 3:
             self._pressed_height = float(np.median(heights[agree]))
-            self.stats.pressed_height = self._pressed_height
+        elif final and self._pressed_height is None and fast.any():
+            # a roll too short (or too textureless) to agree on: the lowest height the arm moved at
+            self._pressed_height = float(heights[fast].min())
+        self.stats.pressed_height = self._pressed_height
         if self._estimator is None:
             return
         # starts and stops: the arm's speed along the rows crossing half its cruise, in agreeing stretches
@@ -585,7 +614,7 @@ class WorldMapper:
         lo = event_ns - self._estimator.before_ns
         hi = event_ns + self._estimator.after_ns
         window = [(s, p) for s, p in self._recent if lo <= s <= hi]
-        if not window or window[-1][0] < hi - 100_000_000 or self._pressed_height is None:
+        if not window or self._latest_stamp < hi or self._pressed_height is None:
             self._events.remove(event_ns)   # not enough known yet: found again later
             return
         stamps = np.array([s for s, _ in window], np.int64)

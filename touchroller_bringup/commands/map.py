@@ -123,7 +123,8 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     buffer = TransformBuffer(cache_ns=None)
     config = WorldMapConfig(resolution=args.resolution, latency=None if args.latency == "auto" else float(args.latency),
                             register=not args.no_register)
-    stitcher = StitcherConfig(band_rows=args.band_rows, search=args.search)
+    # the world mapper's strip stitcher only measures the roll (no lateral tracking, coarser columns)
+    stitcher = StitcherConfig(band_rows=args.band_rows, search=args.search, lateral=False, column_bin=8)
     mapper = WorldMapper(camera, buffer_lookup(buffer, args.world_frame, args.cylinder_frame), config, stitcher)
 
     def records() -> Iterator[tuple[str, object]]:

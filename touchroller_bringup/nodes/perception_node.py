@@ -167,6 +167,7 @@ class PerceptionNode(Node):
         self._map_timer = None
         self._map_lock = threading.Lock()   # `touchroller scan` finishes the map from its own thread
         self._rolling = False
+        self._finish_after_ns: int | None = None   # a world map is finished with the first frame after this
         self.saved_maps = 0
 
         self.frames = RateMeter()
@@ -361,6 +362,9 @@ class PerceptionNode(Node):
         if contacts:
             self._publish_contacts(msg, contacts)
         self._push_map(image, msg)
+        if self._finish_after_ns is not None and self.last_stamp_ns >= self._finish_after_ns:
+            self._finish_after_ns = None
+            self.finish_map()
         self.processing.add(time.perf_counter() - start)
 
     def _publish_contacts(self, msg: Image, contacts: list) -> None:
@@ -430,13 +434,17 @@ class PerceptionNode(Node):
             self.reset_map()
         elif self._rolling and progress >= 1.0:
             self._rolling = False
-            self.finish_map()
+            if self.world is None:
+                self.finish_map()
+            else:   # the frames of the sweep's last moments may still be on their way: finish after them
+                self._finish_after_ns = self.get_clock().now().nanoseconds
 
     def reset_map(self) -> None:
         """Start a new map with the next frame (called when a roll begins, so one map per roll)."""
         with self._map_lock:
             self.stitcher = self.world = None
             self._map_dirty = False
+            self._finish_after_ns = None
 
     def finish_map(self) -> None:
         """The roll ended: correct the whole map with its final flat field, publish it, and save it

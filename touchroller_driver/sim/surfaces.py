@@ -100,6 +100,14 @@ def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface:
         name = str(spec.get("image", "gravel.png"))
         unit = image_relief(name, rows, cols)
         desc = f"texture image {name}"
+    elif kind == "grain":  # sandpaper, leather: random relief at several scales, nowhere periodic
+        scales = [float(v) for v in spec.get("scales", [3e-4, 1e-3, 4e-3])]
+        unit = np.zeros((rows, cols))
+        for k, scale in enumerate(scales):
+            unit += _smooth_noise(rows, cols, scale / resolution, rng) / (k + 1)
+        unit -= unit.min()
+        unit = unit / unit.max() if unit.max() > 0 else unit
+        desc = "grain: random relief at " + ", ".join(f"{v * 1e3:g}" for v in scales) + " mm"
     elif kind == "stripes":  # validation target: thin ridges across the rolling direction
         period = float(spec.get("period", 5e-3))
         ridge = float(spec.get("ridge_width", 3e-4))
@@ -108,7 +116,7 @@ def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface:
         unit = np.repeat(profile[:, None], cols, axis=1)
         desc = f"ridges every {period * 1e3:.1f} mm"
     else:
-        raise ValueError(f"surface.kind must be flat, fabric, image or stripes, got {kind!r}")
+        raise ValueError(f"surface.kind must be flat, fabric, image, grain or stripes, got {kind!r}")
     return Surface((unit * relief).astype(np.float32), resolution, x0, y0, desc)
 
 
