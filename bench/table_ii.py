@@ -341,7 +341,9 @@ def calibrate_with_ours(chessboard: list[np.ndarray], reference: np.ndarray, pre
 
     intrinsics = cal.calibrate_intrinsics(chessboard)
     start = intrinsics.camera.replace(theta=0.0, d=0.0)
-    return cal.calibrate_extrinsics(presses, start, reference=reference, balance_rows=balance_rows).camera
+    config = cal.ExtrinsicsConfig(balance_rows=balance_rows)
+    return cal.calibrate_extrinsics(presses, start, config, reference=reference,
+                                    intrinsics_sigma=intrinsics.sigma).camera
 
 
 def _without_row_balance(chessboard: list[np.ndarray], reference: np.ndarray, presses: list[np.ndarray]) -> CameraModel:

@@ -29,9 +29,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     steps = parser.add_subparsers(dest="step", metavar="STEP", parser_class=type(parser))
     steps.required = True
 
-    intr = steps.add_parser("intrinsics", help="fx, fy, cx, cy and the 5 distortion coefficients",
-                            description="Zhang's method on chessboard views, with per-view errors and "
-                                        "rejection of bad or blurred views.")
+    intr = steps.add_parser("intrinsics", help="fx, fy, cx, cy and the lens distortion",
+                            description="Zhang's method on chessboard views, with per-view errors, "
+                                        "rejection of bad or blurred views, a distortion model chosen by "
+                                        "held-out views, and what the views cover (X / Y / size / skew bars "
+                                        "and the image corners).")
     _common(intr)
     intr.add_argument("--board", default="7x7", metavar="COLSxROWS",
                       help="inner corners of the chessboard (default 7x7)")
@@ -40,8 +42,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="parameters file whose cylinder and extrinsics values are kept (default: built-in)")
     intr.add_argument("--max-view-rms", type=float, default=1.0,
                       help="reject views whose reprojection RMS exceeds this (px) and 3x the median")
-    intr.add_argument("--distortion", choices=("full", "radial"), default="full",
-                      help="full: k1, k2, p1, p2, k3 (default); radial: tangential p1 = p2 = 0")
+    intr.add_argument("--distortion", choices=("auto", "k1", "k1k2", "radial", "k1k2p", "full"), default="auto",
+                      help="auto (default): k1, k2, p1, p2, plus k3 only when views held out of the fit need "
+                           "it; or a fixed model: k1, k1k2, radial (k1, k2, k3), k1k2p, full (k1, k2, p1, p2, k3)")
     intr.set_defaults(func=run_intrinsics)
 
     extr = steps.add_parser("extrinsics", help="theta and d from hemisphere-frame presses",
@@ -64,6 +67,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     extr.add_argument("--no-row-balance", action="store_true",
                       help="plain mean of theta (the paper) without the frame-shift correction")
     extr.add_argument("--max-view-rms", type=float, default=1.0, help="reject views above this RMS (px)")
+    extr.add_argument("--imprint-centre", choices=("shading", "centroid"), default="shading",
+                      help="shading (default): centres corrected for light from one side; centroid: the "
+                           "change-weighted centroid")
     extr.set_defaults(func=run_extrinsics)
 
     compare = steps.add_parser("compare", help="how far apart two calibrations put contacts",
@@ -140,15 +146,22 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     prior = _load_camera(args.params)
     images, _ = load_images(args.input, args.topic)
     try:
-        board = cal.Chessboard(columns=columns, rows=rows, square=args.square)
-        result = cal.calibrate_intrinsics(images, board, prior=prior, max_view_rms=args.max_view_rms,
-                                          distortion=args.distortion)
+        config = cal.IntrinsicsConfig(board=cal.Chessboard(columns=columns, rows=rows, square=args.square),
+                                      max_view_rms=args.max_view_rms, distortion=args.distortion)
+        result = cal.calibrate_intrinsics(images, config, prior=prior)
     except cal.CalibrationError as exc:
         raise UserError(f"calibrate intrinsics: {exc}") from None
     _write(args, result.camera, intrinsics=result)
     print(result.summary())
     for index, reason in sorted(result.rejected.items()):
         print(f"  rejected image {index}: {reason}")
+    for score in result.model_scores:
+        print(f"  distortion model {score.model}: held-out RMS {score.held_out_rms:.4f} px, "
+              f"{score.excess_se:+.1f} standard errors from the best{'  <- chosen' if score.chosen else ''}")
+    for line in result.coverage.lines():
+        print(f"  {line}")
+    for warning in result.warnings():
+        print(f"warning: {warning}")
     print(f"wrote {args.out}")
     return 0
 
@@ -179,20 +192,32 @@ def run_extrinsics(args: argparse.Namespace) -> int:
     try:
         frame = cal.HemisphereFrame(rows=rows, columns=columns, pitch_x=args.pitch[0], pitch_y=args.pitch[1],
                                     hemisphere_radius=args.hemisphere_radius, press_depth=args.press_depth)
-        result = cal.calibrate_extrinsics(images, camera, frame, reference=reference,
-                                          balance_rows=not args.no_row_balance, max_view_rms=args.max_view_rms)
+        config = cal.ExtrinsicsConfig(frame=frame, balance_rows=not args.no_row_balance,
+                                      max_view_rms=args.max_view_rms,
+                                      detector=cal.ImprintDetectorConfig(centre=args.imprint_centre))
+        result = cal.calibrate_extrinsics(images, camera, config, reference=reference,
+                                          intrinsics_sigma=_intrinsics_sigma(args.params))
     except cal.CalibrationError as exc:
         raise UserError(f"calibrate extrinsics: {exc}") from None
     _write(args, result.camera, extrinsics=result)
     print(result.summary())
-    if not args.no_row_balance:
-        plain = result.neglected["theta_plain_mean_deg"]
-        print(f"  paper's plain mean theta = {plain:.4f}° (row balance moved it by "
-              f"{math.degrees(result.theta) - plain:+.4f}°)")
+    plain = math.degrees(result.theta_plain_mean)
+    print(f"  paper's plain mean theta = {plain:.4f}° (the result is {math.degrees(result.theta) - plain:+.4f}° "
+          f"from it)")
     for index, reason in sorted(result.rejected.items()):
         print(f"  rejected image {index}: {reason}")
     print(f"wrote {args.out}")
     return 0
+
+
+def _intrinsics_sigma(params: Path) -> dict[str, float]:
+    """The intrinsics' one-sigma values an earlier `calibrate intrinsics` wrote (none for other files)."""
+    from touchroller_perception import calibration as cal
+
+    extras = cal.read_calibration_extras(str(params))
+    prefix = "calibration.sigma."
+    return {key[len(prefix):]: float(value) for key, value in extras.items()
+            if key.startswith(prefix) and key[len(prefix):] in ("fx", "fy", "cx", "cy")}
 
 
 def run_compare(args: argparse.Namespace) -> int:

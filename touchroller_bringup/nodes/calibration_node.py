@@ -15,6 +15,11 @@ Thin ROS shell around `touchroller_perception.calibration`:
   `camera_info` (transient local, so late subscribers get it);
 * `~/reset` drops all captured frames.
 
+While chessboard views are captured, the node tells the user what they cover, as ROS
+camera_calibration does: X / Y / size / skew progress bars and the image corners, in each
+`~/capture` reply (one line), in the log (the bars), and on `/diagnostics` (status
+"<node>: chessboard coverage", WARN until the bars are full and every image corner has been seen).
+
 The services are `std_srvs/srv/Trigger` (`ros2 service call /touchroller/calibration/solve
 std_srvs/srv/Trigger`).
 """
@@ -35,6 +40,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from touchroller_bringup import names
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
+from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, Status
 from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_perception import calibration as cal
@@ -62,8 +68,18 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
     "frame.hemisphere_radius": (0.001, "Hemisphere radius, m", 1e-5, 0.01),
     "frame.press_depth": (0.0005, "Depth the hemispheres press into the membrane at the contact line, m",
                           0.0, 0.01),
-    "row_balance": (True, "Correct each press for the frame's shift along y from the rows' imprint strengths",
-                    None, None),
+    "row_balance": (True, "Correct each press for the frame's shift along y from the rows' imprint strengths "
+                          "(applied only when the presses show it)", None, None),
+    "intrinsics.distortion": ("auto", "Distortion model: auto (k1, k2, p1, p2, plus k3 when held-out views need "
+                                      f"it) or one of {', '.join(cal.DISTORTION_MODELS)}", None, None),
+    "imprints.centre": ("shading", "Imprint centres: shading (corrected for light from one side) or centroid",
+                        None, None),
+}
+#: string parameters and the values they accept
+CHOICES: dict[str, tuple[str, ...]] = {
+    "target": TARGETS,
+    "intrinsics.distortion": ("auto", *cal.DISTORTION_MODELS),
+    "imprints.centre": cal.CENTRE_ESTIMATORS,
 }
 
 
@@ -79,6 +95,7 @@ class CalibrationNode(Node):
         self.add_post_set_parameters_callback(self._apply)
 
         self.captures: dict[str, list[np.ndarray]] = {t: [] for t in TARGETS}
+        self.board_corners: list[np.ndarray] = []      # corners of each captured chessboard view
         self.latest: tuple[int, np.ndarray] | None = None
         self._captured_stamps: set[int] = set()
         self.last_result: str = ""
@@ -90,13 +107,16 @@ class CalibrationNode(Node):
         for name, action in ((names.CAPTURE, self.capture), (names.SOLVE, self.solve), (names.RESET, self.reset)):
             create_trigger_service(self, f"~/{name}", action)
         self._remote_client = None
+        self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: chessboard coverage")
+        self.diagnostics.add(self._coverage_status)
         self.publish_camera_info(self.geometry.model)
 
     # ------------------------------------------------------------------ parameters
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         for p in parameters:
-            if p.name == "target" and p.value not in TARGETS:
-                return SetParametersResult(successful=False, reason=f"target must be one of {', '.join(TARGETS)}")
+            if p.name in CHOICES and p.value not in CHOICES[p.name]:
+                return SetParametersResult(successful=False,
+                                           reason=f"{p.name} must be one of {', '.join(CHOICES[p.name])}")
             if p.name == "image_topic" and not str(p.value).strip():
                 return SetParametersResult(successful=False, reason="image_topic must not be empty")
         return SetParametersResult(successful=True)
@@ -107,6 +127,8 @@ class CalibrationNode(Node):
                 self._subscribe(str(p.value))
             elif p.name == "perception_node":
                 self._remote_client = None
+            elif p.name.startswith("board."):
+                self._redetect_boards()
 
     def _subscribe(self, topic: str) -> None:
         if self.image_sub is not None:
@@ -125,6 +147,15 @@ class CalibrationNode(Node):
         g = self.get_parameter
         return cal.Chessboard(columns=g("board.columns").value, rows=g("board.rows").value,
                               square=g("board.square").value)
+
+    def _intrinsics_config(self) -> cal.IntrinsicsConfig:
+        distortion = str(self.get_parameter("intrinsics.distortion").value)
+        return cal.IntrinsicsConfig(board=self._board(), distortion=distortion)
+
+    def _extrinsics_config(self) -> cal.ExtrinsicsConfig:
+        detector = cal.ImprintDetectorConfig(centre=str(self.get_parameter("imprints.centre").value))
+        return cal.ExtrinsicsConfig(frame=self._frame(), detector=detector,
+                                    balance_rows=bool(self.get_parameter("row_balance").value))
 
     # ------------------------------------------------------------------ images and services
     def _on_image(self, msg: Image) -> None:
@@ -149,16 +180,48 @@ class CalibrationNode(Node):
             return False, f"not captured: {problem}"
         self._captured_stamps.add(stamp)
         self.captures[target].append(image)
-        return True, f"captured {target} image {len(self.captures[target])}"
+        message = f"captured {target} image {len(self.captures[target])}"
+        if target == "chessboard":
+            coverage = self.coverage()
+            self.get_logger().info("\n".join([message, *coverage.lines(), *coverage.warnings()]))
+            message += f"; {coverage.one_line()}"
+        return True, message
+
+    def coverage(self) -> cal.BoardCoverage:
+        """What the captured chessboard views cover (bars, image corners, map)."""
+        board = self._board()
+        views = self.captures["chessboard"]
+        size = (views[0].shape[1], views[0].shape[0]) if views else (self.geometry.model.width,
+                                                                      self.geometry.model.height)
+        return cal.board_coverage(self.board_corners, board.columns, board.rows, size)
+
+    def _coverage_status(self) -> Status:
+        if not self.board_corners:
+            return Status(OK, "no chessboard views captured", {"views": 0})
+        coverage = self.coverage()
+        values: dict[str, Any] = {"views": coverage.views}
+        values.update({bar.name: round(bar.progress, 3) for bar in coverage.bars})
+        values.update({"image_corners_seen": sum(coverage.corners_seen), "reach": round(coverage.reach, 3)})
+        warnings = coverage.warnings()
+        return Status(WARN if warnings else OK, "; ".join(warnings) or "views cover the image", values)
+
+    def _redetect_boards(self) -> None:
+        board = self._board()
+        found = (cal.find_chessboard(image, board).corners for image in self.captures["chessboard"])
+        self.board_corners = [corners for corners in found if corners is not None]
 
     def _check(self, target: str, image: np.ndarray) -> str | None:
         """Why the frame is useless as a view of `target` (checked at capture, so the user can press
-        again at once), or None."""
+        again at once), or None. A usable chessboard's corners are kept for the coverage."""
         try:
             if target == "chessboard":
-                return cal.find_chessboard(image, self._board()).reason
+                detection = cal.find_chessboard(image, self._board())
+                if detection.corners is not None:
+                    self.board_corners.append(detection.corners)
+                return detection.reason
             if target == "hemispheres":
-                detection = cal.find_imprints(image, self._frame(), reference=self._reference())
+                detection = cal.find_imprints(image, self._frame(), self._extrinsics_config().detector,
+                                              reference=self._reference())
                 if detection.found == 0:
                     return "no imprints: is the roller pressed on the frame?"
                 return detection.reason
@@ -173,6 +236,7 @@ class CalibrationNode(Node):
     def reset(self) -> tuple[bool, str]:
         for frames in self.captures.values():
             frames.clear()
+        self.board_corners.clear()
         self._captured_stamps.clear()
         return True, "dropped all captured images"
 
@@ -182,24 +246,42 @@ class CalibrationNode(Node):
             return False, ("nothing captured: set target to 'chessboard' or 'hemispheres' and call ~/capture "
                            "once per view")
         camera = self.geometry.model
-        intrinsics = extrinsics = None
+        intrinsics: cal.IntrinsicsResult | None = None
+        extrinsics: cal.ExtrinsicsResult | None = None
         try:
             if chessboards:
-                intrinsics = cal.calibrate_intrinsics(chessboards, self._board(), prior=camera)
+                intrinsics = cal.calibrate_intrinsics(chessboards, self._intrinsics_config(), prior=camera)
                 camera = intrinsics.camera
             if presses:
-                extrinsics = cal.calibrate_extrinsics(presses, camera, self._frame(), reference=self._reference(),
-                                                      balance_rows=bool(self.get_parameter("row_balance").value))
+                extrinsics = cal.calibrate_extrinsics(presses, camera, self._extrinsics_config(),
+                                                      reference=self._reference(),
+                                                      intrinsics_sigma=self._intrinsics_sigma(intrinsics))
                 camera = extrinsics.camera
         except cal.CalibrationError as exc:
             return False, f"calibration failed: {exc}"
         notes = [r.summary() for r in (intrinsics, extrinsics) if r is not None]
+        if intrinsics is not None:
+            notes += [f"warning: {w}" for w in intrinsics.warnings()]
         notes.append(self._write(camera, intrinsics, extrinsics))
         notes.append(self._send(camera, intrinsics is not None))
         self.set_parameters([Parameter(name, value=value) for name, value in _changed(camera, intrinsics is not None)])
         self.publish_camera_info(camera)
         self.last_result = "; ".join(n for n in notes if n)
         return True, self.last_result
+
+    def _intrinsics_sigma(self, intrinsics: cal.IntrinsicsResult | None) -> dict[str, float]:
+        """The intrinsics' sigmas: from this solve, else from the calibration file an earlier solve wrote."""
+        if intrinsics is not None:
+            return intrinsics.sigma
+        path = str(self.get_parameter("output_path").value)
+        if not path or not Path(path).exists():
+            return {}
+        try:
+            extras = cal.read_calibration_extras(path)
+        except (OSError, ValueError):
+            return {}
+        prefix = "calibration.sigma."
+        return {k[len(prefix):]: float(v) for k, v in extras.items() if k.startswith(prefix)}
 
     # ------------------------------------------------------------------ outputs
     def _write(self, camera: CameraModel, intrinsics: Any, extrinsics: Any) -> str:

@@ -11,11 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from touchroller_perception import calibration as cal
+from touchroller_perception.calibration.imprints import _order_grid
 from touchroller_perception.geometry import CameraModel
 
 TRUE_CAMERA = CameraModel(fx=512.0, fy=508.0, cx=322.0, cy=236.0,
                           distortion=(-0.08, 0.03, 0.0005, -0.0004, 0.0), theta=math.radians(2.0), d=0.0012)
 BOARD = cal.Chessboard(columns=6, rows=6, square=0.01)
+INTRINSICS = cal.IntrinsicsConfig(board=BOARD)
 FRAME = cal.HemisphereFrame()
 
 
@@ -105,7 +107,7 @@ def chessboards() -> list[np.ndarray]:
 
 
 def test_intrinsics_recover_the_camera(chessboards):
-    result = cal.calibrate_intrinsics(chessboards, BOARD)
+    result = cal.calibrate_intrinsics(chessboards, INTRINSICS)
     cam = result.camera
     assert result.rms < 0.2
     # the renderer's hard-edged squares bias corners by ~0.1 px; errors must match the reported sigma
@@ -120,26 +122,26 @@ def test_intrinsics_recover_the_camera(chessboards):
 
 def test_intrinsics_reject_a_bad_view(chessboards):
     bad = chessboard_views(TRUE_CAMERA.replace(fx=560.0, fy=560.0, distortion=(0.2, 0, 0, 0, 0)), 1, seed=7)[0]
-    result = cal.calibrate_intrinsics([*chessboards[:6], bad], BOARD)
+    result = cal.calibrate_intrinsics([*chessboards[:6], bad], INTRINSICS)
     assert 6 in result.rejected and "reprojection" in result.rejected[6]
     assert abs(result.camera.fx - TRUE_CAMERA.fx) < 1.5
 
 
 def test_intrinsics_single_view_is_an_error(chessboards):
     with pytest.raises(cal.CalibrationError, match="single"):
-        cal.calibrate_intrinsics(chessboards[:1], BOARD)
+        cal.calibrate_intrinsics(chessboards[:1], INTRINSICS)
 
 
 def test_intrinsics_blurred_frames_are_named(chessboards):
     blurred = [cv2.GaussianBlur(img, (0, 0), 4.0) for img in chessboards[:4]]
     with pytest.raises(cal.CalibrationError, match="blurred"):
-        cal.calibrate_intrinsics(blurred, BOARD)
+        cal.calibrate_intrinsics(blurred, INTRINSICS)
 
 
 def test_intrinsics_without_a_board_name_what_is_missing():
     empty = [np.full((480, 640), 128, np.uint8)] * 4
     with pytest.raises(cal.CalibrationError, match="no 6x6 chessboard found"):
-        cal.calibrate_intrinsics(empty, BOARD)
+        cal.calibrate_intrinsics(empty, INTRINSICS)
 
 
 def test_intrinsics_parallel_views_cannot_fix_the_focal_length():
@@ -147,7 +149,7 @@ def test_intrinsics_parallel_views_cannot_fix_the_focal_length():
     for shift in (-0.01, 0.0, 0.01):
         images.append(render_chessboard(TRUE_CAMERA, BOARD, [0.0, 0.0, 0.0], [shift - 0.025, -0.025, 0.15]))
     with pytest.raises(cal.CalibrationError, match="focal length|disagree"):
-        cal.calibrate_intrinsics(images, BOARD)
+        cal.calibrate_intrinsics(images, INTRINSICS)
 
 
 # --------------------------------------------------------------------------- extrinsics
@@ -169,15 +171,15 @@ def test_imprints_found_at_subpixel_positions_despite_one_sided_shading():
 def test_extrinsics_recover_theta_and_d():
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(6)]
     prior = TRUE_CAMERA.replace(theta=0.0, d=0.0)
-    result = cal.calibrate_extrinsics(images, prior, FRAME)
+    result = cal.calibrate_extrinsics(images, prior)
     assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
     assert abs(result.d - TRUE_CAMERA.d) < 0.05e-3
     assert result.rms < 0.2 and len(result.views) == 6
     assert result.camera.fx == prior.fx and result.camera.theta == result.theta
     # the truth has no neglected terms: the full pose agrees with the two-parameter one
-    assert abs(result.neglected["gamma_deg"]) < 0.2
-    assert abs(result.neglected["tx_mm"]) < 0.1
-    assert result.neglected["model_error_centre_mm"] < 0.1
+    assert abs(result.neglected.gamma_deg) < 0.2
+    assert abs(result.neglected.tx_mm) < 0.1
+    assert result.neglected.model_error_centre_mm < 0.1
 
 
 def test_extrinsics_report_a_neglected_yaw():
@@ -188,15 +190,15 @@ def test_extrinsics_report_a_neglected_yaw():
     # render by moving the points so that the paper's camera sees what a yawed camera would
     moved = (TRUE_CAMERA.R.T @ (yaw @ points.T)).T
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s, points=moved) for s in range(4)]
-    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME)
-    assert abs(result.neglected["gamma_deg"] - 1.5) < 0.1
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0))
+    assert abs(result.neglected.gamma_deg - 1.5) < 0.1
     assert all(abs(math.degrees(v.yaw) + 1.5) < 0.1 for v in result.views)
     assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
     assert abs(result.d - TRUE_CAMERA.d) < 0.05e-3
     assert result.rms < 0.2
     # without the frame's placement among the unknowns, the paper's two parameters cannot fit
-    plain = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME,
-                                     solve_placement=False, max_view_rms=10.0)
+    plain = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0),
+                                     cal.ExtrinsicsConfig(solve_placement=False, max_view_rms=10.0))
     assert plain.rms > 1.0
 
 
@@ -211,38 +213,38 @@ def test_row_balance_removes_the_frame_shift_along_y():
         depth = FRAME.press_depth - (layout[:, 1] + shift) ** 2 / (2 * plate_z)
         images.append(render_hemispheres(TRUE_CAMERA, FRAME, seed=k, points=points, strength=depth / FRAME.press_depth))
     prior = TRUE_CAMERA.replace(theta=0.0, d=0.0)
-    result = cal.calibrate_extrinsics(images, prior, FRAME)
-    plain = cal.calibrate_extrinsics(images, prior, FRAME, balance_rows=False)
+    result = cal.calibrate_extrinsics(images, prior)
+    plain = cal.calibrate_extrinsics(images, prior, cal.ExtrinsicsConfig(balance_rows=False))
     assert abs(math.degrees(plain.theta - TRUE_CAMERA.theta)) > 0.15      # mean shift 0.17 mm = 0.19 deg
     assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.05
-    assert result.neglected["row_balance_slope_deg"] > 0
+    assert result.row_balance.applied and result.row_balance.slope_deg > 0
 
 
 def test_extrinsics_reject_an_outlier_view():
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(5)]
     images.append(render_hemispheres(TRUE_CAMERA, FRAME, seed=9, shift_px=(0.0, 12.0)))   # frame slipped
-    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME)
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0))
     assert 5 in result.rejected and "outlier" in result.rejected[5]
     assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
 
 
 def test_extrinsics_single_view_is_an_error():
     with pytest.raises(cal.CalibrationError, match="single"):
-        cal.calibrate_extrinsics([render_hemispheres(TRUE_CAMERA, FRAME)], TRUE_CAMERA, FRAME)
+        cal.calibrate_extrinsics([render_hemispheres(TRUE_CAMERA, FRAME)], TRUE_CAMERA)
 
 
 def test_extrinsics_too_few_imprints_is_named():
     small = cal.HemisphereFrame(rows=2, columns=3)
     images = [render_hemispheres(TRUE_CAMERA, small, seed=s) for s in range(3)]
     with pytest.raises(cal.CalibrationError, match="too few imprints: found 6"):
-        cal.calibrate_extrinsics(images, TRUE_CAMERA, FRAME)
+        cal.calibrate_extrinsics(images, TRUE_CAMERA)
 
 
 def test_extrinsics_collinear_imprints_are_named():
     line = np.stack([np.linspace(-0.02, 0.02, 10), np.zeros(10), np.full(10, 0.05)], axis=-1)
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s, points=line) for s in range(3)]
     with pytest.raises(cal.CalibrationError, match="collinear"):
-        cal.calibrate_extrinsics(images, TRUE_CAMERA, FRAME)
+        cal.calibrate_extrinsics(images, TRUE_CAMERA)
 
 
 def test_a_one_row_frame_is_collinear():
@@ -253,13 +255,13 @@ def test_a_one_row_frame_is_collinear():
 def test_extrinsics_blurred_frames_are_named():
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s, smear_px=25) for s in range(3)]
     with pytest.raises(cal.CalibrationError, match="blurred"):
-        cal.calibrate_extrinsics(images, TRUE_CAMERA, FRAME)
+        cal.calibrate_extrinsics(images, TRUE_CAMERA)
 
 
 def test_extrinsics_with_a_no_contact_reference_frame():
     reference = render_hemispheres(TRUE_CAMERA, FRAME, points=np.empty((0, 3)), noise=0.0)
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(3)]
-    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME, reference=reference)
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), reference=reference)
     assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
 
 
@@ -290,7 +292,7 @@ def test_solve_view_recovers_exact_poses(theta, d, gamma, beta, t):
 # --------------------------------------------------------------------------- outputs
 def test_written_calibration_round_trips(tmp_path):
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(3)]
-    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), FRAME)
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0))
     path = tmp_path / "cal.yaml"
     cal.write_calibration(str(path), result.camera, extrinsics=result)
     loaded = CameraModel.from_yaml(path)
@@ -307,12 +309,12 @@ def test_camera_info_fields():
 
 
 def test_intrinsics_radial_model_holds_the_tangential_terms(chessboards):
-    result = cal.calibrate_intrinsics(chessboards, BOARD, distortion="radial")
+    result = cal.calibrate_intrinsics(chessboards, cal.IntrinsicsConfig(board=BOARD, distortion="radial"))
     assert result.camera.distortion[2] == 0.0 and result.camera.distortion[3] == 0.0
     # the true lens has a little tangential distortion, which the radial model has to absorb
     assert abs(result.camera.fx - TRUE_CAMERA.fx) < 3 * result.sigma["fx"] + 1.0
-    with pytest.raises(cal.CalibrationError, match="distortion must be one of"):
-        cal.calibrate_intrinsics(chessboards, BOARD, distortion="fisheye")
+    with pytest.raises(cal.CalibrationError, match="distortion must be auto or one of"):
+        cal.IntrinsicsConfig(board=BOARD, distortion="fisheye")
 
 
 @settings(max_examples=30, deadline=None)
@@ -323,7 +325,7 @@ def test_grid_order_ignores_detection_order_and_small_rotations(angle, shift, se
     c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
     pixels = layout @ np.array([[c, s], [-s, c]]) + np.array([320.0, 240.0]) + np.asarray(shift)
     permutation = np.random.default_rng(seed).permutation(len(pixels))
-    order, reason = cal._order_grid(pixels[permutation], FRAME.rows, FRAME.columns, 0.08)
+    order, reason = _order_grid(pixels[permutation], FRAME.rows, FRAME.columns, 0.08)
     assert reason is None
     assert np.array_equal(pixels[permutation][order], pixels)
 

@@ -1,0 +1,551 @@
+"""theta and d, the paper's extrinsics, from images of the roller pressed on a flat frame of
+hemispheres (paper, section III-C): subpixel imprint centres (`imprints`), a per-image pose
+solve, the frame's placement along y taken out by the row balance, the mean and its uncertainty
+over the images, and outlier rejection.
+
+What is the "reference coordinate"? The frame lies flat under the roller, centred below the
+axis, its rows parallel to it; the contact line of a flat surface is z = +r. A hemisphere at
+frame position (x, y) therefore presses the membrane at the cylinder point above it,
+(x, y, sqrt(r^2 - y^2)), so the frame's reference coordinates ARE the cylinder frame and a
+pose solve of these points gives the camera pose in `touchroller_cylinder` directly.
+
+Two solves per image:
+* the paper's two-parameter model (rotation theta about x, offset d along z; the other four
+  degrees of freedom fixed at zero), by least squares on the reprojection error through
+  `CameraModel.project`; this is what we report as theta and d.
+* the full six-degree pose by `cv2.solvePnP(SOLVEPNP_ITERATIVE)`, written as
+  R = Rx(theta) Ry(beta) Rz(gamma) (camera orientation in the cylinder frame, the paper's sign
+  for theta) and t = (tx, ty, tz): beta, gamma, tx and ty are what the paper neglects. They
+  include the frame's placement (an axial shift looks like tx, a yaw like gamma), and for a
+  narrow frame a rotation about x and a shift along y look almost alike (theta vs ty), so the
+  full pose is noisier than the two-parameter one. `ExtrinsicsResult.model_error_mm` turns them
+  into what matters: how far apart the two models put back-projected points on the membrane.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from touchroller_perception.calibration.common import (
+    CalibrationError,
+    FloatArray,
+    image_size,
+    inliers,
+    require_views,
+)
+from touchroller_perception.calibration.imprints import HemisphereFrame, ImprintDetectorConfig, find_imprints
+from touchroller_perception.geometry import CameraModel
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewPose:
+    index: int
+    theta: float            # rad, two-parameter model
+    d: float                # m, two-parameter model
+    rms: float              # px, two-parameter model
+    shift_x: float          # m, the frame's placement along the axis (nuisance, solved per image)
+    yaw: float              # rad, the frame's yaw about z (nuisance, solved per image)
+    full_theta: float       # rad, full pose R = Rx(theta) Ry(beta) Rz(gamma) of the nominal frame
+    beta: float             # rad
+    gamma: float            # rad
+    t: tuple[float, float, float]   # m, full pose translation (tx, ty, tz)
+    full_rms: float         # px
+    rvec: tuple[float, float, float]
+    row_strengths: tuple[float, float] = (math.nan, math.nan)   # summed imprint strength of the -y, +y rows
+    row_asymmetry: float = math.nan     # (S+ - S-) / median over the views of (S+ + S-); 0 when centred
+    frame_shift_y: float = math.nan     # m, the frame's shift along y implied by the row balance
+
+    def as_dict(self) -> dict[str, float]:
+        return {"index": self.index, "theta_deg": math.degrees(self.theta), "d_mm": self.d * 1e3,
+                "rms_px": self.rms, "frame_shift_x_mm": self.shift_x * 1e3, "frame_yaw_deg": math.degrees(self.yaw),
+                "full_theta_deg": math.degrees(self.full_theta),
+                "beta_deg": math.degrees(self.beta), "gamma_deg": math.degrees(self.gamma),
+                "tx_mm": self.t[0] * 1e3, "ty_mm": self.t[1] * 1e3, "tz_mm": self.t[2] * 1e3,
+                "full_rms_px": self.full_rms, "row_asymmetry": self.row_asymmetry,
+                "frame_shift_y_mm": self.frame_shift_y * 1e3}
+
+
+def full_pose_rotation(theta: float, beta: float, gamma: float) -> FloatArray:
+    """Cylinder -> camera rotation for the camera orientation Rx(theta) Ry(beta) Rz(gamma)."""
+    return Rotation.from_euler("XYZ", [theta, beta, gamma]).as_matrix().T
+
+
+def _triple(values: np.ndarray) -> tuple[float, float, float]:
+    flat = np.asarray(values, dtype=np.float64).ravel()
+    return float(flat[0]), float(flat[1]), float(flat[2])
+
+
+def _two_parameter_pose(camera: CameraModel, frame: HemisphereFrame, image_points: FloatArray,
+                        start: tuple[float, float],
+                        solve_placement: bool = True) -> tuple[float, float, float, float, float]:
+    """(theta, d, shift_x, yaw, RMS px): the paper's two-parameter pose of one image by
+    Levenberg-Marquardt on the reprojection error, from `start` (theta, d)."""
+    def residual(params: FloatArray) -> FloatArray:
+        theta, d, shift_x, yaw = params if solve_placement else (*params, 0.0, 0.0)
+        if abs(d) >= 0.99 * camera.radius:
+            return np.full(image_points.size, 1e6)
+        points = frame.reference_points(camera.radius, shift_x, 0.0, yaw)
+        uv, valid = camera.replace(theta=theta, d=d).project(points)
+        return np.where(valid[:, None], uv - image_points, 1e6).ravel()
+
+    initial = np.array([*start, 0.0, 0.0] if solve_placement else list(start))
+    scale = np.array([1e-2, 1e-3, 1e-3, 1e-2][:initial.size])
+    fit = least_squares(residual, initial, method="lm", x_scale=scale, xtol=1e-14, ftol=1e-14)
+    shift_x, yaw = (float(fit.x[2]), float(fit.x[3])) if solve_placement else (0.0, 0.0)
+    rms = float(np.sqrt(np.mean(np.sum(fit.fun.reshape(-1, 2) ** 2, axis=1))))
+    return float(fit.x[0]), float(fit.x[1]), shift_x, yaw, rms
+
+
+def solve_view(camera: CameraModel, frame: HemisphereFrame, image_points: FloatArray, index: int = 0,
+               solve_placement: bool = True) -> ViewPose:
+    """One image: the paper's (theta, d) by least squares on the reprojection error, with the
+    frame's axial shift and yaw as nuisance unknowns (a frame is never placed exactly; both are
+    separable from theta and d, unlike a shift along y, which looks like theta), and the full
+    iterative PnP pose of the nominal frame for the terms the paper neglects."""
+    image_points = np.asarray(image_points, dtype=np.float64)
+    theta, d, shift_x, yaw, rms = _two_parameter_pose(camera, frame, image_points, (camera.theta, camera.d),
+                                                      solve_placement)
+    object_points = frame.reference_points(camera.radius)
+    fitted = camera.replace(theta=theta, d=d)
+    rvec0, _ = cv2.Rodrigues(fitted.R)
+    tvec0 = fitted.t.reshape(3, 1).copy()
+    # start the full pose from the two-parameter one (planar PnP has a mirror solution)
+    dist = np.asarray(camera.distortion, dtype=np.float64)
+    ok, rvec, tvec = cv2.solvePnP(object_points, image_points, camera.K, dist, rvec0.copy(), tvec0,
+                                  useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)):
+        raise CalibrationError(f"image {index}: the pose solve did not converge")
+    # theta and ty nearly trade off for a narrow frame: polish to a tight tolerance
+    rvec, tvec = cv2.solvePnPRefineLM(object_points, image_points, camera.K, dist, rvec, tvec,
+                                      criteria=(cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-15))
+    projected, _ = cv2.projectPoints(object_points, rvec, tvec, camera.K, dist)
+    full_rms = float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image_points) ** 2, axis=1))))
+    rotation = cv2.Rodrigues(rvec)[0]
+    full_theta, beta, gamma = Rotation.from_matrix(rotation.T).as_euler("XYZ")
+    return ViewPose(index=index, theta=theta, d=d, rms=rms, shift_x=shift_x, yaw=yaw,
+                    full_theta=float(full_theta), beta=float(beta),
+                    gamma=float(gamma), t=_triple(tvec), full_rms=full_rms, rvec=_triple(rvec))
+
+
+# =========================================================================== extrinsics
+@dataclasses.dataclass(frozen=True)
+class ExtrinsicsConfig:
+    """How `calibrate_extrinsics` judges presses and combines them.
+
+    A view is rejected when its imprints are not all found, are collinear or smeared, its
+    reprojection RMS exceeds `max_view_rms` px, or its theta or d lies more than `outlier_sigma`
+    robust standard deviations from the others (or from the row-balance line). Fewer than
+    `min_views` usable views is an error. `solve_placement` solves the frame's axial shift and yaw
+    per image. `balance_rows` allows the row balance; it is applied only when the presses' own
+    scatter shows it (`row_balance_significance`: its slope in standard errors). Images without
+    any imprint (between presses) are skipped when `skip_empty`.
+    """
+
+    frame: HemisphereFrame = HemisphereFrame()
+    detector: ImprintDetectorConfig = ImprintDetectorConfig()
+    min_views: int = 2
+    max_view_rms: float = 1.0
+    outlier_sigma: float = 4.0
+    solve_placement: bool = True
+    balance_rows: bool = True
+    row_balance_significance: float = 3.0
+    skip_empty: bool = True
+
+    def __post_init__(self) -> None:
+        if self.min_views < 1:
+            raise CalibrationError(f"min_views must be at least 1, got {self.min_views}")
+        if not (self.max_view_rms > 0 and self.outlier_sigma > 0 and self.row_balance_significance >= 0):
+            raise CalibrationError("max_view_rms and outlier_sigma must be positive, row_balance_significance >= 0")
+
+
+@dataclasses.dataclass(frozen=True)
+class NeglectedTerms:
+    """Mean and spread over the presses of the full pose's terms the paper's model neglects, and
+    how far apart the two models put back-projected points on the membrane."""
+
+    full_theta_deg: float
+    full_theta_std_deg: float
+    beta_deg: float
+    beta_std_deg: float
+    gamma_deg: float
+    gamma_std_deg: float
+    tx_mm: float
+    tx_std_mm: float
+    ty_mm: float
+    ty_std_mm: float
+    tz_mm: float
+    tz_std_mm: float
+    full_rms_px: float
+    model_error_centre_mm: float     # mean over the central contact band
+    model_error_max_mm: float        # max over the image
+
+
+@dataclasses.dataclass(frozen=True)
+class RowBalance:
+    """Whether theta was corrected for the frame's placement along y, and the evidence."""
+
+    applied: bool
+    reason: str              # one line: why it was (not) applied
+    slope_deg: float         # d(theta)/d(row asymmetry) taken out, degrees (NaN when not fitted)
+    significance: float      # the fitted slope in standard errors (NaN when not fitted)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExtrinsicsResult:
+    camera: CameraModel               # the input intrinsics with theta and d replaced by the result
+    theta: float                      # rad
+    d: float                          # m
+    theta_std: float                  # rad, spread (sample std) of the views' corrected theta
+    d_std: float                      # m
+    theta_sigma: float                # rad, one-sigma uncertainty of theta (views + intrinsics)
+    d_sigma: float                    # m
+    theta_plain_mean: float           # rad, the paper's plain mean over the same views
+    row_balance: RowBalance
+    views: list[ViewPose]             # used views
+    rejected: dict[int, str]          # image index -> reason
+    image_count: int
+    neglected: NeglectedTerms
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(np.mean([v.rms**2 for v in self.views])))
+
+    def summary(self) -> str:
+        n = self.neglected
+        return (f"extrinsics from {len(self.views)}/{self.image_count} images: "
+                f"theta = {math.degrees(self.theta):.4f}° ± {math.degrees(self.theta_sigma):.4f}°, "
+                f"d = {self.d * 1e3:.4f} ± {self.d_sigma * 1e3:.4f} mm (one sigma), RMS {self.rms:.3f} px "
+                f"(full pose {n.full_rms_px:.3f} px); neglected: beta {n.beta_deg:.3f}°, "
+                f"gamma {n.gamma_deg:.3f}°, tx {n.tx_mm:.3f} mm, ty {n.ty_mm:.3f} mm; "
+                f"two-parameter model differs from the full pose by {n.model_error_centre_mm:.3f} mm "
+                f"in the contact band (max {n.model_error_max_mm:.3f} mm over the image); "
+                + ("row balance applied" if self.row_balance.applied else "paper's plain mean")
+                + f" ({self.row_balance.reason})")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The result as plain data, for the report file the CLI writes."""
+        return {
+            "theta_rad": self.theta, "theta_deg": math.degrees(self.theta),
+            "theta_std_deg": math.degrees(self.theta_std), "theta_sigma_deg": math.degrees(self.theta_sigma),
+            "theta_plain_mean_deg": math.degrees(self.theta_plain_mean),
+            "d_m": self.d, "d_mm": self.d * 1e3, "d_std_mm": self.d_std * 1e3, "d_sigma_mm": self.d_sigma * 1e3,
+            "rms_px": self.rms, "views_used": len(self.views), "images": self.image_count,
+            "row_balance": dataclasses.asdict(self.row_balance),
+            "rejected": {int(k): v for k, v in self.rejected.items()},
+            "neglected": dataclasses.asdict(self.neglected),
+            "views": [v.as_dict() for v in self.views],
+        }
+
+
+def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
+                         config: ExtrinsicsConfig = ExtrinsicsConfig(), reference: np.ndarray | None = None,
+                         intrinsics_sigma: Mapping[str, float] | None = None) -> ExtrinsicsResult:
+    """theta and d from hemisphere-frame images (the paper's averaging, with outlier rejection and
+    the row balance; see `ExtrinsicsConfig`).
+
+    `camera` carries the intrinsics and the prior theta, d that start the solves; `reference` is a
+    no-contact frame. `intrinsics_sigma` (one-sigma fx, fy, cx, cy in px, as `IntrinsicsResult.sigma`)
+    is propagated into theta_sigma and d_sigma: d scales with the focal length and theta moves with
+    cy, so the intrinsics often dominate the uncertainty.
+    """
+    frame = config.frame
+    images = list(images)
+    if not images:
+        raise CalibrationError("no hemisphere-frame images given")
+    image_size(images)
+    frame.reference_points(camera.radius)       # fails early if the frame does not fit the roller
+    views, points, rejected, total = _solve_views(images, camera, config, reference)
+    views = _with_row_asymmetry(views)
+    fit = _row_balance(views, config) if config.balance_rows else None
+    balance = _balance_verdict(fit, config, len(views))
+    views, rejected = _drop_outliers(views, fit if balance.applied else None, config, rejected)
+    require_views(len(views), config.min_views, total, rejected, "hemisphere-frame")
+    slope = fit.slope if (fit is not None and balance.applied) else 0.0
+    shifts = np.array([slope * v.row_asymmetry for v in views])
+    if balance.applied:
+        plate_z = camera.radius + frame.hemisphere_radius - frame.press_depth
+        views = [dataclasses.replace(v, frame_shift_y=-shift * plate_z) for v, shift in zip(views, shifts, strict=True)]
+    # each view's theta with its frame shift along y taken out (that shift turns the picture like theta does)
+    thetas = np.array([v.theta for v in views]) + shifts
+    ds = np.array([v.d for v in views])
+    theta, d = float(thetas.mean()), float(ds.mean())
+    theta_se, d_se = _standard_errors(views, thetas, ds, fit if balance.applied else None)
+    theta_intr, d_intr = _intrinsics_effect(camera, frame, views, points, intrinsics_sigma, config.solve_placement)
+    result_camera = camera.replace(theta=theta, d=d)
+    ddof = 1 if len(views) > 1 else 0
+    return ExtrinsicsResult(
+        camera=result_camera, theta=theta, d=d,
+        theta_std=float(thetas.std(ddof=ddof)), d_std=float(ds.std(ddof=ddof)),
+        theta_sigma=math.hypot(theta_se, theta_intr), d_sigma=math.hypot(d_se, d_intr),
+        theta_plain_mean=float(np.mean([v.theta for v in views])), row_balance=balance,
+        views=views, rejected=rejected, image_count=total,
+        neglected=_neglected_terms(result_camera, views, shifts))
+
+
+def _solve_views(images: Sequence[np.ndarray], camera: CameraModel, config: ExtrinsicsConfig,
+                 reference: np.ndarray | None) -> tuple[list[ViewPose], dict[int, FloatArray], dict[int, str], int]:
+    """Per image: imprints, the pose solve and the rows' strengths; (views, imprint centres by
+    image index, rejected, number of press images)."""
+    frame = config.frame
+    rejected: dict[int, str] = {}
+    views: list[ViewPose] = []
+    points: dict[int, FloatArray] = {}
+    empty = 0
+    for index, image in enumerate(images):
+        detection = find_imprints(image, frame, config.detector, reference)
+        if detection.found == 0 and config.skip_empty:
+            empty += 1          # a frame between presses, not a view
+            continue
+        if detection.centres is None:
+            rejected[index] = str(detection.reason)
+            continue
+        try:
+            view = solve_view(camera, frame, detection.centres, index, config.solve_placement)
+        except CalibrationError as exc:
+            rejected[index] = str(exc)
+            continue
+        if not view.rms <= config.max_view_rms:
+            rejected[index] = f"reprojection RMS {view.rms:.2f} px (limit {config.max_view_rms:.2f})"
+            continue
+        strengths = _per_membrane_area(detection.strengths, camera.replace(theta=view.theta, d=view.d),
+                                       frame.reference_points(camera.radius, view.shift_x, 0.0, view.yaw))
+        views.append(dataclasses.replace(view, row_strengths=_row_strengths(strengths, frame)))
+        points[index] = detection.centres
+    total = len(images) - empty
+    if total == 0:
+        raise CalibrationError(f"no imprints found in any of the {len(images)} hemisphere-frame images")
+    require_views(len(views), config.min_views, total, rejected, "hemisphere-frame")
+    return views, points, rejected, total
+
+
+def _drop_outliers(views: list[ViewPose], fit: _BalanceFit | None, config: ExtrinsicsConfig,
+                   rejected: dict[int, str]) -> tuple[list[ViewPose], dict[int, str]]:
+    """Views whose d, or whose theta (against the others, or against the row-balance line), is an outlier."""
+    d_ok = inliers(np.array([v.d for v in views]), config.outlier_sigma, 5e-6)
+    if fit is None:     # the paper's plain mean: theta outliers against the other views
+        keep = d_ok & inliers(np.array([v.theta for v in views]), config.outlier_sigma, math.radians(0.01))
+        why = "far from the other views"
+    else:
+        keep = d_ok & fit.inliers
+        why = "off the row-balance fit"
+    rejected = dict(rejected)
+    for view, ok in zip(views, keep, strict=True):
+        if not ok:
+            rejected[view.index] = f"outlier: theta {math.degrees(view.theta):.3f}°, d {view.d * 1e3:.3f} mm {why}"
+    return [v for v, ok in zip(views, keep, strict=True) if ok], rejected
+
+
+def _standard_errors(views: Sequence[ViewPose], thetas: FloatArray, ds: FloatArray,
+                     fit: _BalanceFit | None) -> tuple[float, float]:
+    """Standard errors of the mean theta and d from the views' scatter; with the row balance, the
+    slope's own uncertainty times the mean asymmetry is added to theta's."""
+    n = len(views)
+    if n < 2:
+        return math.nan, math.nan
+    theta_se = float(thetas.std(ddof=1)) / math.sqrt(n)
+    if fit is not None:
+        mean_asymmetry = float(np.mean([v.row_asymmetry for v in views]))
+        theta_se = math.hypot(fit.residual_std / math.sqrt(n), mean_asymmetry * fit.slope_se)
+    return theta_se, float(ds.std(ddof=1)) / math.sqrt(n)
+
+
+def _intrinsics_effect(camera: CameraModel, frame: HemisphereFrame, views: Sequence[ViewPose],
+                       points: Mapping[int, FloatArray], sigma: Mapping[str, float] | None,
+                       solve_placement: bool) -> tuple[float, float]:
+    """How far one sigma of the intrinsics moves the mean theta and d (rad, m), by re-solving the
+    views with each of fx, fy, cx, cy moved by its sigma. fx and fy come from the same views and
+    move together, so their effects add; cx and cy add in quadrature. Distortion is left out."""
+    if not sigma or not views:
+        return 0.0, 0.0
+    effect: dict[str, tuple[float, float]] = {}
+    for name in ("fx", "fy", "cx", "cy"):
+        step = float(sigma.get(name, 0.0))
+        if not (math.isfinite(step) and step > 0):
+            effect[name] = (0.0, 0.0)
+            continue
+        moved = camera.replace(**{name: getattr(camera, name) + step})
+        solved = [_two_parameter_pose(moved, frame, points[v.index], (v.theta, v.d), solve_placement)
+                  for v in views]
+        effect[name] = (float(np.mean([s[0] - v.theta for s, v in zip(solved, views, strict=True)])),
+                        float(np.mean([s[1] - v.d for s, v in zip(solved, views, strict=True)])))
+    theta = math.sqrt((effect["fx"][0] + effect["fy"][0]) ** 2 + effect["cx"][0] ** 2 + effect["cy"][0] ** 2)
+    d = math.sqrt((effect["fx"][1] + effect["fy"][1]) ** 2 + effect["cx"][1] ** 2 + effect["cy"][1] ** 2)
+    return theta, d
+
+
+def _per_membrane_area(strengths: FloatArray | None, camera: CameraModel, points: FloatArray) -> FloatArray | None:
+    """Strengths summed over pixels, divided by the pixels one mm^2 of membrane covers at each
+    imprint: the rows lie at different angles to the optical axis, so one row's imprints cover
+    ~1 % more pixels than the other's, which would read as a deeper press."""
+    if strengths is None:
+        return None
+    step = 1e-4
+    x, alpha = CameraModel.surface_coords(points)
+    arc = step / camera.radius
+    def pixels(x_at: FloatArray, alpha_at: FloatArray) -> FloatArray:
+        return camera.project(camera.surface_point(x_at, alpha_at))[0]
+
+    du = pixels(x + step, alpha) - pixels(x - step, alpha)
+    dv = pixels(x, alpha + arc) - pixels(x, alpha - arc)
+    pixels_per_m2 = np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]) / (2 * step) ** 2
+    return np.where(np.isfinite(pixels_per_m2) & (pixels_per_m2 > 0), strengths / pixels_per_m2 * 1e-6, np.nan)
+
+
+def _row_strengths(strengths: FloatArray | None, frame: HemisphereFrame) -> tuple[float, float]:
+    """Summed imprint strengths of the rows at -y and at +y."""
+    if strengths is None:
+        return (math.nan, math.nan)
+    y = frame.layout()[:, 1]
+    return float(strengths[y < -1e-12].sum()), float(strengths[y > 1e-12].sum())
+
+
+def _with_row_asymmetry(views: Sequence[ViewPose]) -> list[ViewPose]:
+    """The strength difference of the rows is close to linear in the frame's shift whatever the
+    press depth (a ratio is not: it falls with depth), so normalise by one common scale only."""
+    sums = [a + b for a, b in (v.row_strengths for v in views)]
+    scale = float(np.median(sums)) if sums and np.all(np.isfinite(sums)) else math.nan
+    return [dataclasses.replace(v, row_asymmetry=(v.row_strengths[1] - v.row_strengths[0]) / scale)
+            for v in views]
+
+
+@dataclasses.dataclass(frozen=True)
+class _BalanceFit:
+    slope: float                  # -d(theta)/d(asymmetry), rad; positive for a physical fit
+    slope_se: float               # its standard error
+    residual_std: float           # rad, scatter of theta about the line
+    inliers: NDArray[np.bool_]
+
+
+def _row_balance(views: Sequence[ViewPose], config: ExtrinsicsConfig,
+                 min_asymmetry_spread: float = 0.05) -> _BalanceFit | None:
+    """Fit theta_i = theta + s * a_i over the views (a_i: row asymmetry).
+
+    A frame shifted by e along y turns the picture like a rotation theta of e / plate_z, and no
+    pose solve can tell them apart. But the row nearer the contact line presses deeper and leaves
+    the stronger imprint, so the rows' strength asymmetry a_i measures the shift: a_i = 0 for a
+    centred frame (by symmetry, once the strengths are relative to the light each row gets and
+    per mm^2 of membrane), and theta at a = 0 is the camera's. The slope comes from the views'
+    own scatter (no model of imprint strength needed): a robust Theil-Sen line, outliers by their
+    residual, then least squares on the inliers. Returns None when the views do not vary enough
+    in a to fit a slope.
+    """
+    a = np.array([v.row_asymmetry for v in views])
+    theta = np.array([v.theta for v in views])
+    if len(views) < 3 or not np.all(np.isfinite(a)) or np.ptp(a) < min_asymmetry_spread:
+        return None
+    slope, intercept = _theil_sen(a, theta)
+    residual = theta - (intercept + slope * a)
+    scale = max(1.4826 * float(np.median(np.abs(residual))), math.radians(0.05))
+    keep = np.abs(residual) <= config.outlier_sigma * scale
+    if keep.sum() < 3 or np.ptp(a[keep]) < min_asymmetry_spread:
+        return None
+    slope, intercept = (float(c) for c in np.polyfit(a[keep], theta[keep], 1))
+    spread = theta[keep] - (intercept + slope * a[keep])
+    dof = int(keep.sum()) - 2
+    residual_std = float(np.sqrt((spread**2).sum() / dof)) if dof > 0 else math.nan
+    a_spread = float(((a[keep] - a[keep].mean()) ** 2).sum())
+    return _BalanceFit(slope=-slope, slope_se=residual_std / math.sqrt(a_spread) if a_spread > 0 else math.inf,
+                       residual_std=residual_std, inliers=keep)
+
+
+def _balance_verdict(fit: _BalanceFit | None, config: ExtrinsicsConfig, views: int) -> RowBalance:
+    """Use the row balance only where the presses show it: a slope of the physical sign, at least
+    `config.row_balance_significance` standard errors from zero (with 3 presses the residual has
+    one degree of freedom, so the test needs 4 or more to mean much). Otherwise the paper's plain
+    mean is the better estimate: correcting by a slope that is noise adds its noise to theta."""
+    if not config.balance_rows:
+        return RowBalance(False, "switched off", math.nan, math.nan)
+    if fit is None:
+        return RowBalance(False, f"the {views} presses hardly differ in row strength: theta includes the frame's "
+                          "placement error along y (1 mm = 1.1°); move the frame between 5 or more presses",
+                          math.nan, math.nan)
+    significance = fit.slope / fit.slope_se if fit.slope_se > 0 else math.inf
+    if not math.isfinite(fit.residual_std):
+        significance = math.nan
+    degrees = math.degrees(fit.slope)
+    if fit.slope <= 0:
+        return RowBalance(False, f"rows' strengths do not follow the placement (slope of the wrong sign, "
+                          f"{degrees:.2f}°)", degrees, significance)
+    if not significance >= config.row_balance_significance:
+        return RowBalance(False, f"slope {degrees:.2f}° is only {significance:.1f} standard errors from zero "
+                          f"(need {config.row_balance_significance:g})", degrees, significance)
+    return RowBalance(True, f"slope {degrees:.2f}° per unit asymmetry, {significance:.1f} standard errors",
+                      degrees, significance)
+
+
+def _theil_sen(x: FloatArray, y: FloatArray) -> tuple[float, float]:
+    """Median of the pairwise slopes and the median intercept (scipy.stats.theilslopes without the
+    ~0.5 s import of scipy.stats)."""
+    i, j = np.triu_indices(len(x), k=1)
+    dx = x[j] - x[i]
+    ok = dx != 0
+    slope = float(np.median((y[j] - y[i])[ok] / dx[ok])) if ok.any() else 0.0
+    return slope, float(np.median(y - slope * x))
+
+
+def _neglected_terms(camera: CameraModel, views: Sequence[ViewPose], theta_shift: FloatArray) -> NeglectedTerms:
+    """Mean and spread of the full poses. `theta_shift` (per view, rad) takes the frame's shift
+    along y out of the full pose's theta as the row balance did for the two-parameter theta, so
+    the comparison of the two models is about the camera, not the frame's placement."""
+    beta = np.array([v.beta for v in views])
+    gamma = np.array([v.gamma for v in views])
+    t = np.array([v.t for v in views]) * 1e3
+    full_theta = np.array([v.full_theta for v in views]) + np.asarray(theta_shift, dtype=np.float64)
+    ddof = 1 if len(views) > 1 else 0
+    rotation = full_pose_rotation(float(full_theta.mean()), float(beta.mean()), float(gamma.mean()))
+    error_centre, error_max = model_error_mm(camera, rotation, t.mean(axis=0) * 1e-3)
+    return NeglectedTerms(
+        full_theta_deg=math.degrees(full_theta.mean()), full_theta_std_deg=math.degrees(full_theta.std(ddof=ddof)),
+        beta_deg=math.degrees(beta.mean()), beta_std_deg=math.degrees(beta.std(ddof=ddof)),
+        gamma_deg=math.degrees(gamma.mean()), gamma_std_deg=math.degrees(gamma.std(ddof=ddof)),
+        tx_mm=float(t[:, 0].mean()), tx_std_mm=float(t[:, 0].std(ddof=ddof)),
+        ty_mm=float(t[:, 1].mean()), ty_std_mm=float(t[:, 1].std(ddof=ddof)),
+        tz_mm=float(t[:, 2].mean()), tz_std_mm=float(t[:, 2].std(ddof=ddof)),
+        full_rms_px=float(np.sqrt(np.mean([v.full_rms**2 for v in views]))),
+        model_error_centre_mm=error_centre, model_error_max_mm=error_max)
+
+
+def back_project_pose(camera: CameraModel, rotation: FloatArray, translation: FloatArray,
+                      uv: np.ndarray) -> FloatArray:
+    """Back-project pixels onto the membrane for a general pose (x_c = R X + t); NaN where invalid."""
+    xn, yn, valid = camera.undistort_normalised(uv)
+    direction = np.stack([xn, yn, np.ones_like(xn)], axis=-1) @ rotation      # R^T (xn, yn, 1)
+    origin = -rotation.T @ np.asarray(translation, dtype=np.float64)
+    dy, dz = direction[..., 1], direction[..., 2]
+    a = dy * dy + dz * dz
+    b = 2.0 * (origin[1] * dy + origin[2] * dz)
+    c0 = origin[1] ** 2 + origin[2] ** 2 - camera.radius**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = (-b + np.sqrt(b * b - 4.0 * a * c0)) / (2.0 * a)
+    points = origin + s[..., None] * direction
+    ok = valid & np.isfinite(s) & (s > 0) & (np.abs(points[..., 0]) <= 0.5 * camera.length)
+    points[~ok] = np.nan
+    return points
+
+
+def model_error_mm(camera: CameraModel, rotation: FloatArray, translation: FloatArray,
+                   band_px: float = 35.0, step: int = 8) -> tuple[float, float]:
+    """How far the two-parameter model's back-projection lies from the full pose's, in mm:
+    (mean in the central contact band |v - cy| <= band_px, max over the whole image)."""
+    us, vs = np.meshgrid(np.arange(0, camera.width, step, dtype=np.float64),
+                         np.arange(0, camera.height, step, dtype=np.float64))
+    uv = np.stack([us, vs], axis=-1)
+    two_param, _ = camera.back_project(uv)
+    full = back_project_pose(camera, rotation, translation, uv)
+    distance = 1e3 * np.linalg.norm(two_param - full, axis=-1)
+    finite = np.isfinite(distance)
+    if not finite.any():
+        return math.nan, math.nan
+    band = finite & (np.abs(vs - camera.cy) <= band_px)
+    centre = float(distance[band].mean()) if band.any() else math.nan
+    return centre, float(distance[finite].max())
+
+

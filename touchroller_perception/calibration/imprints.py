@@ -1,0 +1,354 @@
+"""The hemisphere frame and its imprints: where each hemisphere pressed the membrane, and how hard.
+
+`find_imprints` finds the frame's imprints in a press image, orders them as the frame's layout,
+and measures each one's centre (subpixel) and strength (how deep it pressed, for the row
+balance of `extrinsics`). Two things a roller's lighting does to imprints are handled here:
+
+* light from one side makes an imprint bright on one slope and dark on the other, which pulls a
+  change-weighted centroid away from the light: `_shading_symmetric_centre` measures the centre
+  from the part of the pattern that is symmetric under any directional light;
+* the light falls off across the membrane, so an absolute strength reads the brighter row as the
+  deeper one: strengths are taken relative to the no-contact reference's brightness.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from touchroller_perception.calibration.common import CalibrationError, FloatArray
+
+#: `ImprintDetectorConfig.centre`: "shading" corrects the centroid for one-sided light, "centroid" keeps it
+CENTRE_ESTIMATORS = ("shading", "centroid")
+#: `ImprintDetectorConfig.strength`: "relative" to the reference's brightness, or "absolute" grey levels
+STRENGTH_MEASURES = ("relative", "absolute")
+
+
+@dataclasses.dataclass(frozen=True)
+class HemisphereFrame:
+    """The paper's 3D-printed frame: `rows` x `columns` hemispheres on a flat plate.
+
+    Columns run along the roller axis (x), rows across it (y, the rolling direction); `pitch_x`
+    and `pitch_y` are centre distances in metres. The plate lies under the roller, the hemispheres
+    pressed `press_depth` into the membrane at y = 0. Defaults match the simulator's
+    `calibration_hemispheres` scene: 2 rows x 5 columns, 10 mm x 8 mm pitch, 1 mm hemispheres
+    (the paper gives the layout and the radius, not the pitch).
+    """
+
+    rows: int = 2
+    columns: int = 5
+    pitch_x: float = 0.010
+    pitch_y: float = 0.008
+    hemisphere_radius: float = 0.001
+    press_depth: float = 0.0005
+
+    def __post_init__(self) -> None:
+        if self.rows < 1 or self.columns < 1 or self.rows * self.columns < 4:
+            raise CalibrationError(f"a hemisphere frame needs at least 4 hemispheres, got {self.rows}x{self.columns}")
+        if self.rows < 2 or self.columns < 2:
+            raise CalibrationError(f"the frame's {self.rows}x{self.columns} hemispheres are collinear: "
+                                   "the pose solve needs at least 2 rows and 2 columns")
+        if not (self.pitch_x > 0 and self.pitch_y > 0 and self.hemisphere_radius > 0):
+            raise CalibrationError(f"frame pitches and hemisphere radius must be positive, got "
+                                   f"{self.pitch_x}, {self.pitch_y}, {self.hemisphere_radius}")
+
+    @property
+    def count(self) -> int:
+        return self.rows * self.columns
+
+    def layout(self) -> FloatArray:
+        """Hemisphere centres (rows*columns, 2) on the plate, row-major: rows by increasing y,
+        columns by increasing x, centred on the frame's middle."""
+        x = (np.arange(self.columns) - 0.5 * (self.columns - 1)) * self.pitch_x
+        y = (np.arange(self.rows) - 0.5 * (self.rows - 1)) * self.pitch_y
+        yy, xx = np.meshgrid(y, x, indexing="ij")
+        return np.stack([xx.ravel(), yy.ravel()], axis=-1)
+
+    def reference_points(self, radius: float, shift_x: float = 0.0, shift_y: float = 0.0,
+                         yaw: float = 0.0) -> FloatArray:
+        """Imprint centres (rows*columns, 3) in the cylinder frame for the frame placed at
+        (shift_x, shift_y) with `yaw` (rad, about z) relative to the centre below the axis.
+
+        A sphere pressed into a cylinder touches it on the line from the axis to the sphere's
+        centre, so the imprint centre is the membrane point at alpha = atan2(y, plate_z)."""
+        layout = self.layout()
+        c, s = math.cos(yaw), math.sin(yaw)
+        x = shift_x + c * layout[:, 0] - s * layout[:, 1]
+        y = shift_y + s * layout[:, 0] + c * layout[:, 1]
+        plate_z = radius + self.hemisphere_radius - self.press_depth
+        if np.max(np.abs(y)) >= 0.5 * radius:
+            raise CalibrationError(f"frame rows at |y| = {np.max(np.abs(y)) * 1e3:.1f} mm do not fit under a "
+                                   f"roller of radius {radius * 1e3:.1f} mm")
+        alpha = np.arctan2(y, plate_z)
+        return np.stack([x, radius * np.sin(alpha), radius * np.cos(alpha)], axis=-1)
+
+
+@dataclasses.dataclass(frozen=True)
+class ImprintDetectorConfig:
+    """How `find_imprints` finds and measures imprints.
+
+    Blobs with an area outside [`min_area`, `max_area`] px are not imprints; a median blob
+    elongation above `max_elongation` means motion blur; centres whose cloud is thinner than
+    `min_spread` (second / first singular value) are collinear. `centre` and `strength`: see
+    CENTRE_ESTIMATORS and STRENGTH_MEASURES. `window_scale`: the disc over which a centre is
+    refined and a strength summed, in median blob RMS radii.
+    """
+
+    min_area: float = 12.0
+    max_area: float = 8000.0
+    max_elongation: float = 1.8
+    min_spread: float = 0.08
+    centre: str = "shading"
+    strength: str = "relative"
+    window_scale: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.centre not in CENTRE_ESTIMATORS:
+            raise CalibrationError(f"centre must be one of {', '.join(CENTRE_ESTIMATORS)}, got {self.centre!r}")
+        if self.strength not in STRENGTH_MEASURES:
+            raise CalibrationError(f"strength must be one of {', '.join(STRENGTH_MEASURES)}, got {self.strength!r}")
+        if not (0 < self.min_area <= self.max_area):
+            raise CalibrationError(f"need 0 < min_area <= max_area, got {self.min_area}, {self.max_area}")
+        if not (self.max_elongation >= 1 and 0 < self.min_spread < 1 and self.window_scale >= 1):
+            raise CalibrationError("need max_elongation >= 1, 0 < min_spread < 1 and window_scale >= 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class ImprintDetection:
+    centres: FloatArray | None       # (rows*columns, 2) in frame order, None if unusable
+    elongation: float                # median ratio of the blobs' principal axes (1 = round)
+    found: int                       # blobs found
+    reason: str | None
+    strengths: FloatArray | None = None   # integrated change of each imprint relative to the reference, frame order
+
+
+def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDetectorConfig = ImprintDetectorConfig(),
+                  reference: np.ndarray | None = None) -> ImprintDetection:
+    """Subpixel imprint centres and strengths, ordered as `frame.reference_points`.
+
+    The change is the image minus the no-contact reference, per colour channel (without a
+    reference, a large median filter estimates the static background). Blobs: the change's
+    magnitude summed over the channels, binarised at a noise-adapted threshold, opened, closed and
+    filled; the strongest `frame.count` blobs are the imprints. Each blob's change-weighted
+    centroid starts its centre, which `_shading_symmetric_centre` then refines (unless
+    `config.centre` is "centroid"). Strengths are summed over equal discs (`_window_strengths`).
+    """
+    signed, background = _signed_change(image, reference)
+    change = cv2.GaussianBlur(np.abs(signed).sum(axis=2), (0, 0), 1.0)
+    sample = change[::3, ::3]        # statistics of a subsample: a full-image median costs ~10 ms
+    median = float(np.median(sample))
+    noise = 1.4826 * float(np.median(np.abs(sample - median))) + 1e-6
+    peak = float(np.percentile(sample, 99.95))
+    threshold = max(median + 6.0 * noise, median + 0.2 * (peak - median))
+    blobs = _blobs(change > threshold, np.maximum(change - median, 0.0), config)
+    found = len(blobs)
+    if found < frame.count:
+        return ImprintDetection(None, math.nan, found, f"too few imprints: found {found}, the "
+                                f"{frame.rows}x{frame.columns} frame has {frame.count}")
+    blobs = sorted(blobs, key=lambda b: -b.total)[:frame.count]
+    elongation = float(np.median([b.elongation for b in blobs]))
+    if elongation > config.max_elongation:
+        return ImprintDetection(None, elongation, found, f"blurred: imprints smeared {elongation:.1f}:1 "
+                                f"(> {config.max_elongation:.1f}:1); hold the roller still")
+    centres = np.array([b.centroid for b in blobs])
+    order, reason = _order_grid(centres, frame.rows, frame.columns, config.min_spread)
+    if order is None:
+        return ImprintDetection(None, elongation, found, reason)
+    window = config.window_scale * float(np.median([b.radius for b in blobs]))
+    if config.centre == "shading":
+        centres = np.array([_shading_symmetric_centre(signed, b.centroid, window) for b in blobs])
+    magnitude = _relative_change(signed, background) if config.strength == "relative" else \
+        cv2.GaussianBlur(np.abs(signed).sum(axis=2), (0, 0), 1.0)
+    strengths = _window_strengths(magnitude, centres, window)
+    return ImprintDetection(centres[order], elongation, found, None, strengths[order])
+
+
+def _blobs(mask: NDArray[np.bool_], weight: NDArray[np.float32], config: ImprintDetectorConfig) -> list[_Blob]:
+    """The filled connected components of `mask`, measured with `weight`."""
+    mask8 = mask.astype(np.uint8)
+    mask8 = cv2.morphologyEx(mask8, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
+    mask8 = cv2.morphologyEx(mask8, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7)))
+    contours, _ = cv2.findContours(mask8, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    filled = np.zeros_like(mask8)
+    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(filled, connectivity=8)
+    measured = (_measure_blob(label, labels, stats, weight, config.min_area, config.max_area)
+                for label in range(1, count))
+    return [blob for blob in measured if blob is not None]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Blob:
+    total: float                     # summed change magnitude (ranks the blobs)
+    centroid: tuple[float, float]    # change-weighted, px
+    radius: float                    # RMS radius of the change, px
+    elongation: float                # ratio of the principal axes
+
+
+def _measure_blob(label: int, labels: np.ndarray, stats: np.ndarray, weight: np.ndarray,
+                  min_area: float, max_area: float) -> _Blob | None:
+    area = stats[label, cv2.CC_STAT_AREA]
+    if not (min_area <= area <= max_area):
+        return None
+    x0, y0, w, h = (stats[label, k] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+    inside = labels[y0:y0 + h, x0:x0 + w] == label
+    w_roi = weight[y0:y0 + h, x0:x0 + w] * inside
+    total = float(w_roi.sum())
+    if total <= 0:
+        return None
+    vs, us = np.mgrid[y0:y0 + h, x0:x0 + w]
+    cu, cv_ = float((w_roi * us).sum() / total), float((w_roi * vs).sum() / total)
+    cov = np.cov(np.stack([us.ravel() - cu, vs.ravel() - cv_]), aweights=w_roi.ravel() + 1e-12, bias=True)
+    eig = np.linalg.eigvalsh(cov)
+    return _Blob(total=total, centroid=(cu, cv_), radius=math.sqrt(max(float(eig.sum()), 1e-12)),
+                 elongation=math.sqrt(max(eig[1], 1e-12) / max(eig[0], 1e-12)))
+
+
+def _shading_symmetric_centre(signed: NDArray[np.float32], start: tuple[float, float], radius: float,
+                              knot: float = 0.75, iterations: int = 12) -> tuple[float, float]:
+    """The centre of an imprint lit from one side, from its signed change (H, W, channels).
+
+    A light from one side brightens the imprint's slope that faces it and darkens the other, and
+    darkens both a little more where they are steep (Lambert's n.L falls as the normal tilts), so
+    the change's magnitude is larger on the far side and its centroid moves away from the light
+    (0.5 px for imprints lit at 35 degrees). Split the change around a centre c into its
+    isotropic part E(rho) and the rest: for a radially symmetric imprint under directional light
+    the rest is a dipole O(rho) cos(phi - light), whose square is point-symmetric about the true
+    centre, so its centroid is c. E, and the dipole's radial profiles (fitted beside it so they do
+    not leak into E), are free piecewise-linear functions of rho (knots every `knot` px): no model
+    of the imprint's profile or of the light is assumed. Iterate c <- centroid of the remainder
+    squared (tapered at the window's edge), within `radius` px. Keeps `start` where the window
+    leaves the image or the fit degenerates.
+    """
+    height, width = signed.shape[:2]
+    reach = int(math.ceil(radius)) + 2
+    knots = np.arange(0.0, radius + knot, knot)
+    centre = np.array(start, dtype=np.float64)
+    for _ in range(iterations):
+        u0, v0 = int(round(centre[0])), int(round(centre[1]))
+        if not (reach <= u0 < width - reach and reach <= v0 < height - reach):
+            return float(start[0]), float(start[1])
+        vs, us = np.mgrid[v0 - reach:v0 + reach + 1, u0 - reach:u0 + reach + 1]
+        du, dv = (us - centre[0]).ravel(), (vs - centre[1]).ravel()
+        rho = np.hypot(du, dv)
+        inside = rho <= radius
+        du, dv, rho = du[inside], dv[inside], rho[inside]
+        patch = signed[v0 - reach:v0 + reach + 1, u0 - reach:u0 + reach + 1].reshape(-1, signed.shape[2])[inside]
+        hats = np.clip(1.0 - np.abs(rho[:, None] - knots[None, :]) / knot, 0.0, None)
+        safe = np.maximum(rho, 1e-9)[:, None]
+        design = np.hstack([hats, hats * (du[:, None] / safe), hats * (dv[:, None] / safe)])
+        coefficients = _least_squares(design, patch.astype(np.float64))
+        remainder = patch - cv2.gemm(hats, coefficients[:knots.size], 1.0, None, 0.0)
+        edge = np.clip((radius - rho) / (0.4 * radius), 0.0, 1.0)
+        weights = (remainder**2).sum(axis=1) * edge * edge * (3.0 - 2.0 * edge)
+        total = float(weights.sum())
+        if not total > 0:
+            return float(start[0]), float(start[1])
+        moved = np.array([(weights * du).sum(), (weights * dv).sum()]) / total
+        centre = centre + moved
+        if float(np.abs(moved).max()) < 1e-3:
+            break
+    if not (np.all(np.isfinite(centre)) and np.hypot(*(centre - np.asarray(start))) <= 0.5 * radius):
+        return float(start[0]), float(start[1])
+    return float(centre[0]), float(centre[1])
+
+
+def _least_squares(design: FloatArray, values: FloatArray) -> FloatArray:
+    """Linear least squares by the normal equations (OpenCV, single-threaded) with a tiny ridge.
+    These systems are small (~700 x 60) and well conditioned; numpy's lstsq and matmul go through
+    threaded BLAS, which costs 10-100x more when other processes share the cores."""
+    gram = cv2.mulTransposed(design, True)
+    gram[np.diag_indices_from(gram)] += 1e-9 * float(np.trace(gram)) / gram.shape[0] + 1e-12
+    rhs = cv2.gemm(design, values, 1.0, None, 0.0, flags=cv2.GEMM_1_T)
+    ok, solution = cv2.solve(gram, rhs, flags=cv2.DECOMP_CHOLESKY)
+    if not ok:
+        ok, solution = cv2.solve(gram, rhs, flags=cv2.DECOMP_SVD)
+    return np.asarray(solution, dtype=np.float64)
+
+
+def _signed_change(image: np.ndarray, reference: np.ndarray | None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """(image - background, background), both (H, W, channels) float32."""
+    array = np.asarray(image)
+    if array.ndim == 2:
+        array = array[..., None]
+    array = array.astype(np.float32)
+    if reference is not None:
+        ref = np.asarray(reference)
+        if ref.shape[:2] != array.shape[:2]:
+            raise CalibrationError(f"reference frame is {ref.shape[1]}x{ref.shape[0]}, "
+                                   f"images are {array.shape[1]}x{array.shape[0]}")
+        ref = ref[..., None] if ref.ndim == 2 else ref
+        background = ref.astype(np.float32)
+    else:
+        # a median over ~5 imprint diameters, on a half-size image (cheap, and still far larger than an imprint)
+        small = cv2.resize(np.clip(array, 0, 255).astype(np.uint8), None, fx=0.5, fy=0.5,
+                           interpolation=cv2.INTER_AREA)
+        small = small[..., None] if small.ndim == 2 else small
+        planes = [cv2.medianBlur(np.ascontiguousarray(small[..., c]), 31) for c in range(small.shape[2])]
+        background = np.stack([cv2.resize(p, (array.shape[1], array.shape[0]), interpolation=cv2.INTER_LINEAR)
+                               for p in planes], axis=-1).astype(np.float32)
+    if background.shape[2] != array.shape[2]:
+        background = np.broadcast_to(background.mean(axis=2, keepdims=True), array.shape).astype(np.float32)
+    return array - background, background
+
+
+def _window_strengths(relative: NDArray[np.float32], centres: FloatArray, radius: float) -> FloatArray:
+    """Each imprint's relative change above the image's level, summed over a disc of `radius` px
+    (the same disc for every imprint: a threshold-cut blob would reach further around the imprint
+    with more light and so count it stronger)."""
+    level = float(np.median(relative[::3, ::3]))
+    reach = int(math.ceil(radius))
+    offsets = np.arange(-reach, reach + 1)
+    strengths = []
+    for u, v in centres:
+        us = np.clip(int(round(u)) + offsets, 0, relative.shape[1] - 1)
+        vs = np.clip(int(round(v)) + offsets, 0, relative.shape[0] - 1)
+        disc = (offsets[None, :] + round(u) - u) ** 2 + (offsets[:, None] + round(v) - v) ** 2 <= radius * radius
+        strengths.append(float((np.maximum(relative[np.ix_(vs, us)] - level, 0.0) * disc).sum()))
+    return np.array(strengths)
+
+
+def _relative_change(signed: NDArray[np.float32], background: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The change's magnitude relative to the background's brightness (a flat-field correction).
+
+    The light of a roller falls off across the membrane, and an imprint's change scales with the
+    light it gets: an absolute strength reads a brighter row as a deeper press (on an image lit
+    15 % more per 10 mm towards one row, as if the frame sat 0.18 mm off centre). Dividing by the
+    reference's brightness takes the light out (what remains is the share of ambient light that
+    does not shade)."""
+    brightness = np.maximum(background.sum(axis=2), 1.0)
+    return cv2.GaussianBlur(np.abs(signed).sum(axis=2) / brightness, (0, 0), 1.0)
+
+
+def _order_grid(centres: FloatArray, rows: int, columns: int,
+                min_spread: float) -> tuple[NDArray[np.intp] | None, str | None]:
+    """The permutation ordering blob centres row-major (rows by increasing v, columns by increasing u) using the
+    cloud's principal axes, so a tilted frame still sorts correctly."""
+    mean = centres.mean(axis=0)
+    _, singular, vt = np.linalg.svd(centres - mean, full_matrices=False)
+    if singular[1] < min_spread * singular[0]:
+        return None, (f"imprint centres are collinear (spread ratio {singular[1] / singular[0]:.3f} "
+                      f"< {min_spread}): the pose is undetermined")
+    long_axis = vt[0] if columns >= rows else vt[1]
+    if long_axis[0] < 0:
+        long_axis = -long_axis
+    across = np.array([-long_axis[1], long_axis[0]])   # +v for an axis along +u
+    along_c = (centres - mean) @ long_axis
+    across_c = (centres - mean) @ across
+    by_row = np.argsort(across_c, kind="stable")
+    ordered: list[int] = []
+    for r in range(rows):
+        members = by_row[r * columns:(r + 1) * columns]
+        ordered.extend(members[np.argsort(along_c[members], kind="stable")])
+    # the rows must separate: the gap between rows larger than the scatter within a row
+    row_values = across_c[by_row].reshape(rows, columns)
+    if rows > 1:
+        gap = np.min(row_values[1:].min(axis=1) - row_values[:-1].max(axis=1))
+        if gap <= 0:
+            return None, "imprints do not form the frame's grid (rows overlap)"
+    return np.asarray(ordered), None
+
+

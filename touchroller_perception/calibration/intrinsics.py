@@ -1,0 +1,373 @@
+"""Intrinsics and lens distortion from chessboard views (Zhang's method, OpenCV), with view
+rejection, a distortion model chosen by held-out views, and what the views cover.
+
+Why choose the distortion model: boards seen only in the middle of the image pin down the lens
+there and nowhere else, and OpenCV's 5 coefficients (k1, k2, p1, p2, k3) then fit the corners'
+noise with large k2 and k3 that extrapolate to many pixels of invented distortion in the image
+corners. `distortion="auto"` (the default) starts from k1, k2, p1, p2 and adds k3 only when the
+held-out views (k-fold: each view predicted by a fit without it) improve by more than one
+standard error of the paired difference. The tangential p1, p2 stay in: over a small part of the
+image they look like a shift of the principal point, so the held-out views cannot tell whether
+they are needed, and leaving them out when the lens has them moves the principal point instead
+(by a pixel on the bench's second renderer).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from touchroller_perception.calibration.common import (
+    CalibrationError,
+    FloatArray,
+    image_size,
+    require_views,
+)
+from touchroller_perception.calibration.coverage import BoardCoverage, board_coverage
+from touchroller_perception.geometry import CameraModel
+from touchroller_perception.images import to_grey
+
+DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
+#: distortion models by name -> cv2.calibrateCamera flags (fixed terms stay 0)
+DISTORTION_MODELS: dict[str, int] = {
+    "k1": cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
+    "k1k2": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
+    "radial": cv2.CALIB_ZERO_TANGENT_DIST,          # k1, k2, k3
+    "k1k2p": cv2.CALIB_FIX_K3,                      # k1, k2, p1, p2
+    "full": 0,                                      # k1, k2, p1, p2, k3
+}
+#: what `distortion="auto"` chooses between, simplest first
+AUTO_CANDIDATES = ("k1k2p", "full")
+
+
+@dataclasses.dataclass(frozen=True)
+class Chessboard:
+    """A planar chessboard: `columns` x `rows` INNER corners (OpenCV's convention), square side in m.
+    Defaults: the simulator's `calibration_chessboard` (7x7 inner corners, 12 mm squares)."""
+
+    columns: int = 7
+    rows: int = 7
+    square: float = 0.012
+
+    def __post_init__(self) -> None:
+        if self.columns < 2 or self.rows < 2:
+            raise CalibrationError(f"a chessboard needs at least 2x2 inner corners, got {self.columns}x{self.rows}")
+        if not (self.square > 0 and math.isfinite(self.square)):
+            raise CalibrationError(f"chessboard square size must be positive, got {self.square}")
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.columns, self.rows)
+
+    def object_points(self) -> NDArray[np.float32]:
+        """Corner coordinates on the board plane (z = 0), in OpenCV's detection order (row-major)."""
+        grid = np.mgrid[0:self.columns, 0:self.rows].T.reshape(-1, 2) * self.square
+        return np.hstack([grid, np.zeros((grid.shape[0], 1))]).astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class ChessboardDetection:
+    corners: FloatArray | None      # (N, 2) subpixel corners, None if not found
+    edge_width: float               # px, OpenCV's chessboard sharpness (NaN if no board)
+    reason: str | None              # why the view is unusable, None if usable
+
+
+def find_chessboard(image: np.ndarray, board: Chessboard, max_edge_width: float = 4.0) -> ChessboardDetection:
+    """Subpixel inner corners of `board` in `image` (findChessboardCornersSB), with a blur check."""
+    try:
+        gray = to_grey(image)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
+    # the classic detector + cornerSubPix takes ~1 ms a view; the sector-based one (~30-90 ms) is the fallback
+    found, corners = cv2.findChessboardCorners(
+        gray, board.pattern_size,
+        flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK)
+    if found and corners is not None:
+        corners = _refine_corners(gray, corners.reshape(-1, 2), board)
+    else:
+        found, corners = cv2.findChessboardCornersSB(gray, board.pattern_size,
+                                                     flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)
+    if not found or corners is None:
+        blur = _laplacian_sharpness(gray)
+        hint = " (the image looks blurred)" if blur < 20.0 else ""
+        return ChessboardDetection(None, math.nan, f"no {board.columns}x{board.rows} chessboard found{hint}")
+    corners = corners.reshape(-1, 2).astype(np.float64)
+    edge_width = float(cv2.estimateChessboardSharpness(gray, board.pattern_size, corners.astype(np.float32))[0][0])
+    if edge_width > max_edge_width:
+        return ChessboardDetection(None, edge_width,
+                                   f"blurred: chessboard edges {edge_width:.1f} px wide (> {max_edge_width:.1f})")
+    return ChessboardDetection(corners, edge_width, None)
+
+
+def _refine_corners(gray: np.ndarray, corners: np.ndarray, board: Chessboard) -> np.ndarray:
+    """cornerSubPix on a lightly smoothed image (a symmetric blur keeps an X-corner in place and
+    halves the noise-driven error: 0.09 -> 0.06 px on the simulator's boards), with a window of
+    ~45% of the smallest corner spacing (a window over two corners would pull them together)."""
+    grid = corners.reshape(board.rows, board.columns, 2)
+    spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
+                  np.linalg.norm(np.diff(grid, axis=1), axis=-1).min())
+    half = int(np.clip(0.45 * spacing, 2, 10))
+    smooth = cv2.GaussianBlur(gray, (0, 0), float(np.clip(0.1 * spacing, 0.5, 1.5)))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+    refined = cv2.cornerSubPix(smooth, corners.astype(np.float32).reshape(-1, 1, 2), (half, half), (-1, -1), criteria)
+    return refined.reshape(-1, 2)
+
+
+def _laplacian_sharpness(gray: np.ndarray) -> float:
+    return float(cv2.Laplacian(gray, cv2.CV_64F).var())
+
+
+@dataclasses.dataclass(frozen=True)
+class IntrinsicsConfig:
+    """How `calibrate_intrinsics` judges views and chooses the distortion model.
+
+    A view is rejected when the board is not found, the frame is blurred (edge width above
+    `max_edge_width` px), or, judged leave-one-out, its reprojection RMS exceeds both
+    `max_view_rms` and `outlier_factor` times the median view. The solve fails with fewer than
+    `min_views` usable views, or when the views do not fix the focal length (board normals all
+    within `min_tilt_spread_deg`, or sigma_f / f above `max_relative_focal_sigma`).
+    `distortion`: "auto" (held-out views choose, see the module), or one of DISTORTION_MODELS.
+    `folds`: how many groups of views the held-out test leaves out in turn.
+    """
+
+    board: Chessboard = Chessboard()
+    distortion: str = "auto"
+    min_views: int = 3
+    max_view_rms: float = 1.0
+    outlier_factor: float = 3.0
+    max_edge_width: float = 4.0
+    max_relative_focal_sigma: float = 0.005
+    min_tilt_spread_deg: float = 10.0
+    folds: int = 5
+
+    def __post_init__(self) -> None:
+        if self.distortion != "auto" and self.distortion not in DISTORTION_MODELS:
+            raise CalibrationError(f"distortion must be auto or one of {', '.join(DISTORTION_MODELS)}, "
+                                   f"got {self.distortion!r}")
+        if self.min_views < 3:
+            raise CalibrationError(f"min_views must be at least 3 (Zhang's method), got {self.min_views}")
+        if self.folds < 2:
+            raise CalibrationError(f"folds must be at least 2, got {self.folds}")
+        for name in ("max_view_rms", "outlier_factor", "max_edge_width", "max_relative_focal_sigma"):
+            if not getattr(self, name) > 0:
+                raise CalibrationError(f"{name} must be positive, got {getattr(self, name)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelScore:
+    """One candidate distortion model, judged by views it was not fitted on."""
+
+    model: str
+    held_out_rms: float      # px, RMS over the held-out views' corners
+    excess_se: float         # its mean squared error above the best candidate's, in standard errors
+    chosen: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class IntrinsicsResult:
+    camera: CameraModel                  # the prior with fx, fy, cx, cy, distortion, size replaced
+    rms: float                           # px, over the used views
+    per_view_rms: dict[int, float]       # image index -> px, used views only
+    rejected: dict[int, str]             # image index -> reason
+    sigma: dict[str, float]              # one-sigma of fx, fy, cx, cy (px) and the fitted k1..k3 (OpenCV)
+    image_count: int
+    distortion_model: str                # the model fitted (a DISTORTION_MODELS name)
+    model_scores: tuple[ModelScore, ...]  # the held-out comparison ("auto"); empty when the model was given
+    coverage: BoardCoverage              # what the used views cover
+
+    def summary(self) -> str:
+        c, s = self.camera, self.sigma
+        return (f"intrinsics from {len(self.per_view_rms)}/{self.image_count} views: "
+                f"fx={c.fx:.2f}±{s['fx']:.2f} fy={c.fy:.2f}±{s['fy']:.2f} "
+                f"cx={c.cx:.2f}±{s['cx']:.2f} cy={c.cy:.2f}±{s['cy']:.2f} px, "
+                f"distortion model {self.distortion_model} [{', '.join(f'{k:.4g}' for k in c.distortion)}], "
+                f"RMS {self.rms:.3f} px, {len(self.rejected)} rejected; {self.coverage.one_line()}")
+
+    def warnings(self) -> list[str]:
+        return self.coverage.warnings()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The result as plain data, for the report file the CLI writes."""
+        return {
+            "rms_px": self.rms,
+            "views_used": len(self.per_view_rms),
+            "images": self.image_count,
+            "per_view_rms_px": {int(k): float(v) for k, v in self.per_view_rms.items()},
+            "rejected": {int(k): v for k, v in self.rejected.items()},
+            "sigma": {k: float(v) for k, v in self.sigma.items()},
+            "distortion_model": self.distortion_model,
+            "model_scores": [dataclasses.asdict(score) for score in self.model_scores],
+            "coverage": {"bars": {bar.name: round(bar.progress, 3) for bar in self.coverage.bars},
+                         "corners_seen": list(self.coverage.corners_seen), "reach": self.coverage.reach,
+                         "warnings": self.coverage.warnings()},
+            "camera": self.camera.to_params(),
+        }
+
+
+def detect_chessboards(images: Sequence[np.ndarray], config: IntrinsicsConfig) -> tuple[dict[int, FloatArray],
+                                                                                       dict[int, str]]:
+    """Corners of every view where the board is found sharp, and why the others were not."""
+    corners: dict[int, FloatArray] = {}
+    rejected: dict[int, str] = {}
+    for index, image in enumerate(images):
+        found = find_chessboard(image, config.board, config.max_edge_width)
+        if found.corners is None:
+            rejected[index] = str(found.reason)
+        else:
+            corners[index] = found.corners
+    return corners, rejected
+
+
+def calibrate_intrinsics(images: Iterable[np.ndarray], config: IntrinsicsConfig = IntrinsicsConfig(),
+                         prior: CameraModel | None = None) -> IntrinsicsResult:
+    """Zhang's calibration (cv2.calibrateCameraExtended) with view rejection and model choice
+    (see `IntrinsicsConfig` and the module). `prior` supplies everything but the intrinsics."""
+    prior = prior or CameraModel()
+    images = list(images)
+    if not images:
+        raise CalibrationError("no chessboard images given")
+    size = image_size(images)
+    corners, rejected = detect_chessboards(images, config)
+    require_views(len(corners), config.min_views, len(images), rejected, "chessboard")
+    object_points = config.board.object_points()
+    screening = AUTO_CANDIDATES[0] if config.distortion == "auto" else config.distortion
+    corners = _reject_outlier_views(object_points, corners, size, DISTORTION_MODELS[screening], config, rejected)
+    views = [corners[i] for i in sorted(corners)]
+    scores: tuple[ModelScore, ...] = ()
+    model = config.distortion
+    if model == "auto":
+        scores = select_distortion_model(object_points, views, size, config.folds)
+        model = next(score.model for score in scores if score.chosen)
+    fit = _zhang(object_points, views, size, DISTORTION_MODELS[model])
+    _require_fixed_focal_length(fit, config)
+    k_matrix = fit.k_matrix
+    try:
+        camera = prior.replace(fx=k_matrix[0, 0], fy=k_matrix[1, 1], cx=k_matrix[0, 2], cy=k_matrix[1, 2],
+                               distortion=tuple(float(k) for k in fit.distortion), width=size[0], height=size[1])
+    except ValueError as exc:
+        raise CalibrationError(f"the intrinsics found are not a valid camera model: {exc}") from None
+    per_view = dict(zip(sorted(corners), (float(e) for e in fit.per_view), strict=True))
+    board = config.board
+    return IntrinsicsResult(camera=camera, rms=fit.rms, per_view_rms=per_view, rejected=rejected, sigma=fit.sigma,
+                            image_count=len(images), distortion_model=model, model_scores=scores,
+                            coverage=board_coverage(views, board.columns, board.rows, size))
+
+
+def _reject_outlier_views(object_points: NDArray[np.float32], corners: dict[int, FloatArray], size: tuple[int, int],
+                          flags: int, config: IntrinsicsConfig, rejected: dict[int, str]) -> dict[int, FloatArray]:
+    """Leave-one-out on the worst view, one at a time: a bad view drags the joint fit towards
+    itself, so judge it by how well the model fitted WITHOUT it predicts it."""
+    corners = dict(corners)
+    fit = _zhang(object_points, [corners[i] for i in sorted(corners)], size, flags)
+    while len(corners) > config.min_views:
+        indices = sorted(corners)
+        worst = indices[int(np.argmax(fit.per_view))]
+        rest = [i for i in indices if i != worst]
+        refit = _zhang(object_points, [corners[i] for i in rest], size, flags)
+        predicted = _view_rms(object_points, corners[worst], refit.k_matrix, refit.distortion)
+        limit = max(config.max_view_rms, config.outlier_factor * float(np.median(refit.per_view)))
+        if predicted <= limit:
+            break
+        rejected[worst] = f"reprojection RMS {predicted:.2f} px when left out (limit {limit:.2f})"
+        del corners[worst]
+        fit = refit
+    return corners
+
+
+def select_distortion_model(object_points: NDArray[np.float32], views: Sequence[FloatArray], size: tuple[int, int],
+                            folds: int = 5, candidates: Sequence[str] = AUTO_CANDIDATES) -> tuple[ModelScore, ...]:
+    """Score each candidate by k-fold held-out views and choose the simplest whose mean squared
+    error is within one standard error (of the paired per-view difference) of the best one's.
+    With fewer than 2 views per fold there is nothing to hold out: the simplest is chosen."""
+    folds = min(folds, len(views) // 2)
+    if folds < 2:
+        return tuple(ModelScore(m, math.nan, math.nan, i == 0) for i, m in enumerate(candidates))
+    errors = {model: _held_out_errors(object_points, views, size, DISTORTION_MODELS[model], folds)
+              for model in candidates}
+    best = min(candidates, key=lambda m: float(errors[m].mean()))
+    excess = {}
+    for model in candidates:
+        difference = errors[model] - errors[best]
+        spread = float(difference.std(ddof=1)) / math.sqrt(difference.size) if difference.size > 1 else 0.0
+        excess[model] = float(difference.mean()) / spread if spread > 0 else 0.0
+    chosen = next(m for m in candidates if excess[m] <= 1.0)
+    return tuple(ModelScore(m, math.sqrt(float(errors[m].mean())), excess[m], m == chosen) for m in candidates)
+
+
+def _held_out_errors(object_points: NDArray[np.float32], views: Sequence[FloatArray], size: tuple[int, int],
+                     flags: int, folds: int) -> FloatArray:
+    """Per view: its mean squared corner error when predicted by a fit on the other folds."""
+    errors = np.zeros(len(views))
+    for fold in range(folds):
+        held = list(range(fold, len(views), folds))
+        fit = _zhang(object_points, [v for i, v in enumerate(views) if i not in held], size, flags)
+        for i in held:
+            errors[i] = min(_view_rms(object_points, views[i], fit.k_matrix, fit.distortion) ** 2, 1e6)
+    return errors
+
+
+def _require_fixed_focal_length(fit: _ZhangFit, config: IntrinsicsConfig) -> None:
+    for name, focal in (("fx", fit.k_matrix[0, 0]), ("fy", fit.k_matrix[1, 1])):
+        if not fit.sigma[name] / focal <= config.max_relative_focal_sigma:
+            raise CalibrationError(
+                f"the chessboard views do not fix the focal length (sigma_{name} = {fit.sigma[name]:.1f} px): "
+                "tilt the board in different directions between views")
+    spread = _normal_spread_deg(fit.rvecs)
+    if spread < config.min_tilt_spread_deg:
+        raise CalibrationError(
+            f"the chessboard views are nearly parallel (board normals within {spread:.1f}° of each other, "
+            f"need {config.min_tilt_spread_deg:.0f}°): the focal length is undetermined; tilt the board between views")
+
+
+@dataclasses.dataclass(frozen=True)
+class _ZhangFit:
+    rms: float
+    k_matrix: FloatArray
+    distortion: FloatArray        # (5,)
+    sigma: dict[str, float]
+    per_view: FloatArray
+    rvecs: tuple[FloatArray, ...]
+
+
+def _zhang(object_points: NDArray[np.float32], image_points: Sequence[FloatArray], size: tuple[int, int],
+           flags: int = 0) -> _ZhangFit:
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    try:
+        rms, k_matrix, dist, rvecs, _, std_intr, _, per_view = cv2.calibrateCameraExtended(
+            [object_points] * len(image_points), [p.astype(np.float32).reshape(-1, 1, 2) for p in image_points],
+            size, None, np.zeros(5), flags=flags, criteria=criteria)
+    except cv2.error as exc:
+        message = str(exc).strip().splitlines()[-1] if str(exc).strip() else "OpenCV error"
+        raise CalibrationError(f"Zhang's solve failed on these views: {message}") from None
+    if not (math.isfinite(rms) and np.all(np.isfinite(k_matrix)) and np.all(np.isfinite(dist))):
+        raise CalibrationError("Zhang's solve did not converge on these views (non-finite result)")
+    std = np.asarray(std_intr, dtype=np.float64).ravel()
+    names = ("fx", "fy", "cx", "cy", *DISTORTION_NAMES)
+    sigma = {name: (float(std[i]) if i < std.size and math.isfinite(std[i]) else math.inf)
+             for i, name in enumerate(names)}
+    return _ZhangFit(rms=float(rms), k_matrix=np.asarray(k_matrix, dtype=np.float64),
+                     distortion=np.asarray(dist, dtype=np.float64).ravel()[:5], sigma=sigma,
+                     per_view=np.asarray(per_view, dtype=np.float64).ravel(),
+                     rvecs=tuple(np.asarray(r, dtype=np.float64) for r in rvecs))
+
+
+def _view_rms(object_points: np.ndarray, corners: FloatArray, k_matrix: FloatArray, dist: FloatArray) -> float:
+    ok, rvec, tvec = cv2.solvePnP(object_points, corners, k_matrix, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        return math.inf
+    projected, _ = cv2.projectPoints(object_points, rvec, tvec, k_matrix, dist)
+    return float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - corners) ** 2, axis=1))))
+
+
+def _normal_spread_deg(rvecs: Sequence[np.ndarray]) -> float:
+    """Largest angle between two views' board normals."""
+    normals = np.array([cv2.Rodrigues(np.asarray(r, dtype=np.float64))[0][:, 2] for r in rvecs])
+    cosines = np.clip(np.abs(normals @ normals.T), -1.0, 1.0)
+    return float(np.degrees(np.arccos(cosines.min())))
+
+
