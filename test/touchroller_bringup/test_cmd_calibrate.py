@@ -26,7 +26,10 @@ def test_calibrate_bags_end_to_end(scenes, bag_factory, tmp_path, capsys):
     chess, hemi, truth = scenes
     out = tmp_path / "cal.yaml"
     assert main(["calibrate", "intrinsics", str(bag_factory(chess)), "--out", str(out)]) == 0
-    assert "intrinsics from 12/12 views" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "intrinsics from 12/12 views" in printed
+    assert "distortion model k1k2p: held-out RMS" in printed and "<- chosen" in printed
+    assert "   X [" in printed and "skew [" in printed and "corners TL TR BL BR:" in printed
     intrinsics = CameraModel.from_yaml(out)
     assert abs(intrinsics.fx - truth.fx) < 1.5
     report = tmp_path / "report.yaml"

@@ -35,6 +35,36 @@ def _stats(rms: float, worst: float) -> dict:
     return {"rms": rms, "max": worst, "n": 3}
 
 
+def _calibration(second_theta_max: float = 0.07, seen_p95_max: float = 0.45, within: float = 0.9):
+    """A calib_bench result as its dataclasses hold it (only the figures the report reads matter)."""
+    bench = report.load_bench_script("calib_bench")
+    check = report.load_bench_script("calib_crosscheck")
+    stats = check.Stats
+
+    def views(n, fx, s):
+        return bench.IntrinsicsRow(n, "auto", stats(fx, 2 * fx, 3), stats(0.2, 0.3, 3), stats(0.2, 0.3, 3), 0.07, s, 0)
+
+    def presses(m, t, s):
+        return bench.PressesRow(m, stats(t, 1.5 * t, 3), stats(0.5, 0.7, 3), stats(0.01, 0.013, 3), 0.06, s)
+
+    full = bench.FullCalibration((), stats(0.04, 0.09, 3), stats(0.5, 0.7, 3), stats(0.03, 0.04, 3),
+                                 stats(0.07, 0.08, 3), stats(0.06, 0.1, 3), 0.3, 0.31, 3)
+    contacts = tuple(bench.ContactRow("exact sensor", camera, mean, 0.01, 0.1, 50) for camera, mean in
+                     (("truth", 0.004), ("ours (seed 0)", 0.065), ("uncalibrated (theta = d = 0)", 1.8)))
+    methods = tuple(check.MethodRow(model, check.OURS, stats(0.04, theta, 3), stats(0.01, 0.02, 3), (0.0, 0.0), 3)
+                    for model, theta in (("simulator", 0.03), ("second renderer", second_theta_max)))
+    rays = (check.RayRow("second renderer", "auto", stats(0.35, seen_p95_max, 3), stats(9.0, 12.0, 3), "k1k2p x3", 3),)
+    sigmas = (check.SigmaRow("second renderer", "theta", 20, within, 0.7),)
+    crosscheck = check.CrosscheckResult(3, 20, methods, rays, sigmas)
+    return bench.CalibBenchResult(
+        quick=False, seeds=3, provenance=PROVENANCE, goals=bench.Goals(),
+        intrinsics_vs_views=tuple(views(n, fx, s) for n, fx, s in ((5, 0.35, 0.02), (10, 0.27, 0.045),
+                                                                    (20, 0.17, 0.09), (40, 0.10, 0.19))),
+        extrinsics_vs_presses=tuple(presses(m, t, s) for m, t, s in ((2, 0.47, 0.04), (3, 0.03, 0.06),
+                                                                     (10, 0.02, 0.19))),
+        full=full, neglected_example=None, contacts=contacts, robustness=(), crosscheck=crosscheck)
+
+
 @pytest.fixture
 def results() -> dict[str, dict]:
     table_i = {
@@ -60,20 +90,7 @@ def results() -> dict[str, dict]:
                      {"setting": "colour fine", "median_ms": 1.5, "error_mm": 0.0039, "matched": 30, "missed": 0},
                      {"setting": "misses", "median_ms": 0.95, "error_mm": 0.001, "matched": 20, "missed": 10}],
     }
-    views = [{"views": n, "distortion": "full", "fx_err_px": _stats(fx, 2 * fx), "solve_s_median": s}
-             for n, fx, s in ((5, 0.35, 0.02), (10, 0.27, 0.045), (20, 0.17, 0.09), (40, 0.10, 0.19))]
-    presses = [{"presses": m, "theta_err_deg": _stats(t, 1.5 * t), "d_err_mm": _stats(0.01, 0.013),
-                "solve_s_median": s} for m, t, s in ((2, 0.47, 0.04), (3, 0.03, 0.06), (10, 0.02, 0.19))]
-    calibration = {
-        "seeds": 3, "goals": {"theta_deg": 0.1, "d_mm": 0.05, "rms_px": 0.2, "solve_s": 2.0},
-        "intrinsics_vs_views": views, "extrinsics_vs_presses": presses,
-        "full": {"theta_err_deg": _stats(0.04, 0.09), "d_err_mm": _stats(0.03, 0.04),
-                 "intrinsics_rms_px": _stats(0.07, 0.08), "extrinsics_rms_px": _stats(0.06, 0.1),
-                 "solve_s": {"median": 0.3, "max": 0.31}},
-        "contacts": {"exact sensor": {"truth": {"mean_mm": 0.004, "n": 50},
-                                      "ours (seed 0)": {"mean_mm": 0.065, "n": 50},
-                                      "uncalibrated (theta = d = 0)": {"mean_mm": 1.8, "n": 50}}},
-    }
+    calibration = _calibration()
     simulator = sim_bench.SimBenchResult(
         "surface_mapping/medium", "640x480 bgr8",
         (sim_bench.RenderRow("core only", (), 0.1, 300, 1.2, 1.2, 1.4, 830.0, 0.0),
@@ -154,6 +171,19 @@ def test_goals_are_judged_from_the_results(results, tmp_path):
     worse["table_i"]["table_i"]["5/default"]["ssim"] = [0.80]
     status = {row[0]: row[3] for row in _rows(report.goals_markdown(worse, tmp_path), "")[2:]}
     assert status["Map SSIM vs ground truth >= 0.85 at 15 s / 10 s / 5 s (worst seed)"] == "**NOT met**"
+
+
+def test_calibration_cross_check_goals_are_judged_from_the_results(results, tmp_path):
+    starts = ("Calibration on both imprint models", "Intrinsics, boards in the central half", "Calibration sigmas")
+
+    def statuses(calibration) -> list[str]:
+        rows = _rows(report.goals_markdown({**results, "calibration": calibration}, tmp_path), "")
+        return [next(row[3] for row in rows if row[0].startswith(start)) for start in starts]
+
+    assert statuses(results["calibration"]) == ["**met**"] * 3
+    assert statuses(_calibration(second_theta_max=0.12)) == ["**NOT met**", "**met**", "**met**"]
+    assert statuses(_calibration(seen_p95_max=0.6)) == ["**met**", "**NOT met**", "**met**"]
+    assert statuses(_calibration(within=0.6)) == ["**met**", "**met**", "**NOT met**"]
 
 
 def test_map_speed_goals_follow_the_best_of_n_new_process_figures(results, tmp_path):

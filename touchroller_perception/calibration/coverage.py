@@ -119,7 +119,8 @@ def board_coverage(corner_sets: Sequence[FloatArray], columns: int, rows: int, s
                                      & (np.abs(points[:, 1] - cv) <= CORNER_SHARE * height)))
                          for cv in (0.0, height - 1.0) for cu in (0.0, width - 1.0))
     centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
-    reach = float(np.max(np.linalg.norm(points - centre, axis=1)) / np.linalg.norm(centre)) if len(points) else 0.0
+    reach = min(float(np.max(np.linalg.norm(points - centre, axis=1)) / np.linalg.norm(centre)), 1.0) \
+        if len(points) else 0.0
     columns_g, rows_g = GRID
     cells = np.zeros((rows_g, columns_g), dtype=bool)
     if len(points):

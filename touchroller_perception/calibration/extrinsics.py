@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import cv2
@@ -83,11 +83,9 @@ def _triple(values: np.ndarray) -> tuple[float, float, float]:
     return float(flat[0]), float(flat[1]), float(flat[2])
 
 
-def _two_parameter_pose(camera: CameraModel, frame: HemisphereFrame, image_points: FloatArray,
-                        start: tuple[float, float],
-                        solve_placement: bool = True) -> tuple[float, float, float, float, float]:
-    """(theta, d, shift_x, yaw, RMS px): the paper's two-parameter pose of one image by
-    Levenberg-Marquardt on the reprojection error, from `start` (theta, d)."""
+def _pose_residual(camera: CameraModel, frame: HemisphereFrame, image_points: FloatArray,
+                   solve_placement: bool) -> Callable[[FloatArray], FloatArray]:
+    """Reprojection residuals (px, flattened) of the two-parameter pose (theta, d[, shift_x, yaw])."""
     def residual(params: FloatArray) -> FloatArray:
         theta, d, shift_x, yaw = params if solve_placement else (*params, 0.0, 0.0)
         if abs(d) >= 0.99 * camera.radius:
@@ -95,7 +93,15 @@ def _two_parameter_pose(camera: CameraModel, frame: HemisphereFrame, image_point
         points = frame.reference_points(camera.radius, shift_x, 0.0, yaw)
         uv, valid = camera.replace(theta=theta, d=d).project(points)
         return np.where(valid[:, None], uv - image_points, 1e6).ravel()
+    return residual
 
+
+def _two_parameter_pose(camera: CameraModel, frame: HemisphereFrame, image_points: FloatArray,
+                        start: tuple[float, float],
+                        solve_placement: bool = True) -> tuple[float, float, float, float, float]:
+    """(theta, d, shift_x, yaw, RMS px): the paper's two-parameter pose of one image by
+    Levenberg-Marquardt on the reprojection error, from `start` (theta, d)."""
+    residual = _pose_residual(camera, frame, image_points, solve_placement)
     initial = np.array([*start, 0.0, 0.0] if solve_placement else list(start))
     scale = np.array([1e-2, 1e-3, 1e-3, 1e-2][:initial.size])
     fit = least_squares(residual, initial, method="lm", x_scale=scale, xtol=1e-14, ftol=1e-14)
@@ -360,25 +366,38 @@ def _standard_errors(views: Sequence[ViewPose], thetas: FloatArray, ds: FloatArr
 def _intrinsics_effect(camera: CameraModel, frame: HemisphereFrame, views: Sequence[ViewPose],
                        points: Mapping[int, FloatArray], sigma: Mapping[str, float] | None,
                        solve_placement: bool) -> tuple[float, float]:
-    """How far one sigma of the intrinsics moves the mean theta and d (rad, m), by re-solving the
-    views with each of fx, fy, cx, cy moved by its sigma. fx and fy come from the same views and
-    move together, so their effects add; cx and cy add in quadrature. Distortion is left out."""
-    if not sigma or not views:
+    """How far one sigma of the intrinsics moves the mean theta and d (rad, m). Each view's pose
+    sensitivity comes from its least-squares solve linearised at the solution (Gauss-Newton:
+    d(pose) = -(J^T J)^-1 J^T d(residual)), with each of fx, fy, cx, cy moved by its sigma. fx and fy
+    come from the same views and move together, so their effects add; cx and cy add in quadrature.
+    Distortion is left out."""
+    steps = {name: float((sigma or {}).get(name, 0.0)) for name in ("fx", "fy", "cx", "cy")}
+    steps = {name: step for name, step in steps.items() if math.isfinite(step) and step > 0}
+    if not steps or not views:
         return 0.0, 0.0
-    effect: dict[str, tuple[float, float]] = {}
-    for name in ("fx", "fy", "cx", "cy"):
-        step = float(sigma.get(name, 0.0))
-        if not (math.isfinite(step) and step > 0):
-            effect[name] = (0.0, 0.0)
-            continue
-        moved = camera.replace(**{name: getattr(camera, name) + step})
-        solved = [_two_parameter_pose(moved, frame, points[v.index], (v.theta, v.d), solve_placement)
-                  for v in views]
-        effect[name] = (float(np.mean([s[0] - v.theta for s, v in zip(solved, views, strict=True)])),
-                        float(np.mean([s[1] - v.d for s, v in zip(solved, views, strict=True)])))
+    effect = {name: np.zeros(2) for name in ("fx", "fy", "cx", "cy")}
+    for view in views:
+        pose = np.array([view.theta, view.d, view.shift_x, view.yaw][:4 if solve_placement else 2])
+        residual = _pose_residual(camera, frame, points[view.index], solve_placement)
+        jacobian = _numeric_jacobian(residual, pose, np.array([1e-5, 1e-6, 1e-6, 1e-5])[:pose.size])
+        normal = np.linalg.pinv(jacobian.T @ jacobian) @ jacobian.T
+        base = residual(pose)
+        for name, step in steps.items():
+            moved = _pose_residual(camera.replace(**{name: getattr(camera, name) + step}), frame,
+                                   points[view.index], solve_placement)(pose)
+            effect[name] += -(normal @ (moved - base))[:2] / len(views)
     theta = math.sqrt((effect["fx"][0] + effect["fy"][0]) ** 2 + effect["cx"][0] ** 2 + effect["cy"][0] ** 2)
     d = math.sqrt((effect["fx"][1] + effect["fy"][1]) ** 2 + effect["cx"][1] ** 2 + effect["cy"][1] ** 2)
     return theta, d
+
+
+def _numeric_jacobian(function: Callable[[FloatArray], FloatArray], x: FloatArray, steps: FloatArray) -> FloatArray:
+    columns = []
+    for k, step in enumerate(steps):
+        delta = np.zeros_like(x)
+        delta[k] = step
+        columns.append((function(x + delta) - function(x - delta)) / (2 * step))
+    return np.stack(columns, axis=1)
 
 
 def _per_membrane_area(strengths: FloatArray | None, camera: CameraModel, points: FloatArray) -> FloatArray | None:

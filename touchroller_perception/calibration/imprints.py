@@ -94,7 +94,8 @@ class ImprintDetectorConfig:
     elongation above `max_elongation` means motion blur; centres whose cloud is thinner than
     `min_spread` (second / first singular value) are collinear. `centre` and `strength`: see
     CENTRE_ESTIMATORS and STRENGTH_MEASURES. `window_scale`: the disc over which a centre is
-    refined and a strength summed, in median blob RMS radii.
+    refined, `strength_window_scale`: the one over which a strength is summed (wide, so that the
+    slow tail of an imprint counts alike in both rows), in median blob RMS radii.
     """
 
     min_area: float = 12.0
@@ -103,7 +104,8 @@ class ImprintDetectorConfig:
     min_spread: float = 0.08
     centre: str = "shading"
     strength: str = "relative"
-    window_scale: float = 3.0
+    window_scale: float = 2.5
+    strength_window_scale: float = 4.0
 
     def __post_init__(self) -> None:
         if self.centre not in CENTRE_ESTIMATORS:
@@ -112,8 +114,9 @@ class ImprintDetectorConfig:
             raise CalibrationError(f"strength must be one of {', '.join(STRENGTH_MEASURES)}, got {self.strength!r}")
         if not (0 < self.min_area <= self.max_area):
             raise CalibrationError(f"need 0 < min_area <= max_area, got {self.min_area}, {self.max_area}")
-        if not (self.max_elongation >= 1 and 0 < self.min_spread < 1 and self.window_scale >= 1):
-            raise CalibrationError("need max_elongation >= 1, 0 < min_spread < 1 and window_scale >= 1")
+        if not (self.max_elongation >= 1 and 0 < self.min_spread < 1 and self.window_scale >= 1
+                and self.strength_window_scale >= 1):
+            raise CalibrationError("need max_elongation >= 1, 0 < min_spread < 1 and window scales >= 1")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,12 +160,13 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
     order, reason = _order_grid(centres, frame.rows, frame.columns, config.min_spread)
     if order is None:
         return ImprintDetection(None, elongation, found, reason)
-    window = config.window_scale * float(np.median([b.radius for b in blobs]))
+    radius = float(np.median([b.radius for b in blobs]))
     if config.centre == "shading":
-        centres = np.array([_shading_symmetric_centre(signed, b.centroid, window) for b in blobs])
+        centres = np.array([_shading_symmetric_centre(signed, b.centroid, config.window_scale * radius)
+                            for b in blobs])
     magnitude = _relative_change(signed, background) if config.strength == "relative" else \
         cv2.GaussianBlur(np.abs(signed).sum(axis=2), (0, 0), 1.0)
-    strengths = _window_strengths(magnitude, centres, window)
+    strengths = _window_strengths(magnitude, centres, config.strength_window_scale * radius)
     return ImprintDetection(centres[order], elongation, found, None, strengths[order])
 
 
@@ -249,7 +253,7 @@ def _shading_symmetric_centre(signed: NDArray[np.float32], start: tuple[float, f
             return float(start[0]), float(start[1])
         moved = np.array([(weights * du).sum(), (weights * dv).sum()]) / total
         centre = centre + moved
-        if float(np.abs(moved).max()) < 1e-3:
+        if float(np.abs(moved).max()) < 5e-3:
             break
     if not (np.all(np.isfinite(centre)) and np.hypot(*(centre - np.asarray(start))) <= 0.5 * radius):
         return float(start[0]), float(start[1])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
@@ -123,6 +124,23 @@ def test_rejects_an_unknown_target(graph):
     node = graph[0]
     result = node.set_parameters([Parameter("target", value="teapot")])[0]
     assert not result.successful and "target must be one of" in result.reason
+    for name in ("intrinsics.distortion", "imprints.centre"):
+        result = node.set_parameters([Parameter(name, value="teapot")])[0]
+        assert not result.successful and f"{name} must be one of" in result.reason
+
+
+def test_coverage_is_published_on_diagnostics(graph, spin_until):
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    node, _, helper, executor, _, _ = graph
+    arrays: list = []
+    helper.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
+    node.board_corners = [np.array([(200.0 + 20 * i, 180.0 + 20 * j) for j in range(7) for i in range(7)])]
+    assert spin_until(executor, lambda: any(s.name.endswith("chessboard coverage") for a in arrays
+                                            for s in a.status), timeout=20)
+    status = next(s for a in arrays for s in a.status if s.name.endswith("chessboard coverage"))
+    assert status.level == b"\x01" and "image corners not covered" in status.message
+    assert {kv.key for kv in status.values} >= {"views", "X", "Y", "size", "skew", "image_corners_seen", "reach"}
 
 
 def test_missing_perception_node_is_reported(graph, presses, spin_until):
@@ -148,9 +166,16 @@ def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, sp
     truth, references, pressed = presses
     boards = sim.SimulatedSensor(sim.load_scene("calibration_chessboard", **{"motion.views": 8}), seed=5)
     node.set_parameters([Parameter("target", value="chessboard")])
+    replies = []
     for frame in boards.frames():     # a later session: stamps after the presses' ones
         show(executor, spin_until, node, image_pub, sim.Frame(frame.stamp_ns + 10**12, frame.image))
-        assert call(executor, spin_until, helper, "capture").success
+        replies.append(call(executor, spin_until, helper, "capture"))
+        assert replies[-1].success
+    # every capture says what the views cover so far, as camera_calibration's bars do
+    assert all("coverage: X " in r.message and "image corners" in r.message for r in replies)
+    status = node._coverage_status()
+    assert status.values["views"] == 8 and set(status.values) >= {"X", "Y", "size", "skew", "image_corners_seen"}
+    assert (status.level == 1) == bool(node.coverage().warnings())
     node.set_parameters([Parameter("target", value="reference")])
     show(executor, spin_until, node, image_pub, references[0])
     assert call(executor, spin_until, helper, "capture").success

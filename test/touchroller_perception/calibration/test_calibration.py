@@ -337,3 +337,40 @@ def test_compare_cameras_measures_how_far_contacts_move():
     # a camera near the axis turned by 1 deg moves the seen membrane point by about r * 1 deg = 0.87 mm
     assert turned["dtheta_deg"] == pytest.approx(1.0)
     assert 0.75 < turned["contact_band_mean_mm"] < 1.0
+
+
+# --------------------------------------------------------------------------- evidence and uncertainty
+def test_row_balance_is_not_applied_when_the_presses_do_not_show_it():
+    """Presses that hardly differ give no slope to fit: the paper's plain mean, and the reason."""
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(5)]
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0))
+    assert not result.row_balance.applied and "hardly differ" in result.row_balance.reason
+    assert result.theta == pytest.approx(result.theta_plain_mean)
+    assert "paper's plain mean" in result.summary()
+    off = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0),
+                                   cal.ExtrinsicsConfig(balance_rows=False))
+    assert off.row_balance.reason == "switched off"
+
+
+def test_sigma_carries_the_intrinsics_uncertainty():
+    """d scales with the focal length and theta moves with cy: their sigmas reach theta and d."""
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(4)]
+    prior = TRUE_CAMERA.replace(theta=0.0, d=0.0)
+    alone = cal.calibrate_extrinsics(images, prior)
+    sigma = {"fx": 1.0, "fy": 1.0, "cx": 0.5, "cy": 0.5}
+    with_intrinsics = cal.calibrate_extrinsics(images, prior, intrinsics_sigma=sigma)
+    assert with_intrinsics.theta == alone.theta and with_intrinsics.d == alone.d
+    # cy by 0.5 px turns theta by about 0.5 / fy rad; fx, fy by 1 px move d by about (r + d) / f
+    assert math.degrees(with_intrinsics.theta_sigma) == pytest.approx(math.degrees(0.5 / TRUE_CAMERA.fy), rel=0.3)
+    assert with_intrinsics.d_sigma == pytest.approx((TRUE_CAMERA.radius + TRUE_CAMERA.d) / TRUE_CAMERA.fx, rel=0.3)
+    assert alone.d_sigma < 0.2 * with_intrinsics.d_sigma
+    written = cal.calibration_sigma(None, with_intrinsics)
+    assert written == {"theta": with_intrinsics.theta_sigma, "d": with_intrinsics.d_sigma}
+
+
+def test_intrinsics_result_says_what_the_views_cover(chessboards):
+    result = cal.calibrate_intrinsics(chessboards, INTRINSICS)
+    assert result.distortion_model in cal.AUTO_CANDIDATES
+    assert sum(score.chosen for score in result.model_scores) == 1
+    assert result.coverage.views == len(result.per_view_rms)
+    assert "coverage:" in result.summary() and result.warnings() == result.coverage.warnings()

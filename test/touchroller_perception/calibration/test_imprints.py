@@ -1,0 +1,95 @@
+"""Imprint centres and strengths under a roller's lighting: one-sided light and light that falls off."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from touchroller_perception import calibration as cal
+
+FRAME = cal.HemisphereFrame()
+SIZE = (480, 640)
+#: the frame's imprints on a 2x5 grid of pixels, row-major like the frame's layout
+GRID = np.array([(200.0 + 60.0 * c, 200.0 + 80.0 * r) for r in range(2) for c in range(5)])
+
+
+def lit_membrane(centres: np.ndarray, *, elevation_deg: float = 35.0, azimuth_deg: float = 90.0,
+                 falloff: float = 0.0, width: float = 3.0, height: float = 4.0, blur: float = 0.8,
+                 noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(image, reference): smooth dents (Gaussian, `width` px sigma, `height` px high: slopes up to
+    0.8) at `centres`, Lambert-shaded by one light at `elevation_deg` from `azimuth_deg` (90: from
+    +v), whose irradiance changes by `falloff` per 100 px along v; no ambient light."""
+    el, az = math.radians(elevation_deg), math.radians(azimuth_deg)
+    light = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    vv, uu = np.mgrid[0:SIZE[0], 0:SIZE[1]].astype(np.float64)
+    gu, gv = np.zeros(SIZE), np.zeros(SIZE)
+    for cu, cv in centres:
+        du, dv = uu - cu, vv - cv
+        bump = height * np.exp(-(du * du + dv * dv) / (2 * width**2))     # towards the camera
+        gu += -du / width**2 * bump
+        gv += -dv / width**2 * bump
+    irradiance = 180.0 * (1.0 + falloff * (vv - 240.0) / 100.0)
+    shade = (-gu * light[0] - gv * light[1] + light[2]) / np.sqrt(1 + gu * gu + gv * gv)
+    rng = np.random.default_rng(seed)
+
+    def finish(values: np.ndarray) -> np.ndarray:
+        grey = cv2.GaussianBlur(values.astype(np.float32), (0, 0), blur) + rng.normal(0, noise, SIZE)
+        return np.repeat(np.clip(np.rint(grey), 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+    return finish(irradiance * np.maximum(shade, 0.0)), finish(irradiance * light[2])
+
+
+@settings(max_examples=6, deadline=None)
+@given(offset=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)), elevation=st.sampled_from([35.0, 60.0]))
+def test_shading_centre_is_not_pulled_away_from_a_one_sided_light(offset, elevation):
+    centres = GRID + np.asarray(offset)
+    image, reference = lit_membrane(centres, elevation_deg=elevation)
+    shading = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(centre="shading"), reference=reference)
+    centroid = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(centre="centroid"), reference=reference)
+    # the centroid sits on the dark side, away from the light (from +v): a bias along v only
+    assert np.mean(centroid.centres[:, 1] - centres[:, 1]) < -0.25
+    error = shading.centres - centres
+    assert np.abs(error.mean(axis=0)).max() < 0.06 and np.abs(error).max() < 0.15
+
+
+def test_shading_centre_with_light_from_the_side_and_noise():
+    centres = GRID + np.array([0.3, 0.6])
+    image, reference = lit_membrane(centres, azimuth_deg=0.0, noise=2.0, seed=4)
+    found = cal.find_imprints(image, FRAME, reference=reference)
+    assert np.abs((found.centres - centres).mean(axis=0)).max() < 0.06
+
+
+def test_relative_strength_takes_the_light_falloff_out():
+    """Equal dents, the light 20 % stronger per 100 px along v: absolute strengths read the brighter
+    row as deeper pressed, relative ones do not."""
+    image, reference = lit_membrane(GRID, falloff=0.2)
+    relative = cal.find_imprints(image, FRAME, reference=reference).strengths
+    absolute = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(strength="absolute"),
+                                 reference=reference).strengths
+
+    def asymmetry(s: np.ndarray) -> float:
+        return float((s[5:].sum() - s[:5].sum()) / s.sum())
+
+    assert asymmetry(absolute) > 0.06
+    assert abs(asymmetry(relative)) < 0.01
+
+
+def test_deeper_dents_are_stronger():
+    image, reference = lit_membrane(GRID[:5], height=3.0)
+    deep, _ = lit_membrane(GRID[5:], height=4.5)
+    combined = np.minimum(image.astype(int) + deep.astype(int) - reference.astype(int), 255).clip(0).astype(np.uint8)
+    strengths = cal.find_imprints(combined, FRAME, reference=reference).strengths
+    assert strengths[5:].min() > strengths[:5].max()
+
+
+def test_detector_config_is_checked_when_made():
+    with pytest.raises(cal.CalibrationError, match="centre must be one of"):
+        cal.ImprintDetectorConfig(centre="peak")
+    with pytest.raises(cal.CalibrationError, match="strength must be one of"):
+        cal.ImprintDetectorConfig(strength="max")
+    with pytest.raises(cal.CalibrationError, match="min_area"):
+        cal.ImprintDetectorConfig(min_area=0)

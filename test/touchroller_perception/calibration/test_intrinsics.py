@@ -1,0 +1,66 @@
+"""Distortion model choice by held-out views, on synthetic corners (no rendering: fast)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from touchroller_perception import calibration as cal
+from touchroller_perception.geometry import CameraModel
+
+#: a wide lens whose k3 matters at the image corners
+LENS = CameraModel(fx=380.0, fy=380.0, cx=320.0, cy=240.0, distortion=(-0.3, 0.12, 0.0, 0.0, -0.03))
+BOARD = cal.Chessboard()
+
+
+def corner_views(camera: CameraModel, count: int, region: float, seed: int, noise: float = 0.05) -> list[np.ndarray]:
+    """Inner corners of `count` board poses whose corners all fall in the central `region` of the
+    image (in each direction), with Gaussian corner noise."""
+    rng = np.random.default_rng(seed)
+    objects = BOARD.object_points().astype(np.float64)
+    centre = np.array([(BOARD.columns - 1) / 2, (BOARD.rows - 1) / 2, 0.0]) * BOARD.square
+    size = np.array([camera.width, camera.height])
+    low, high = size * (0.5 - region / 2), size * (0.5 + region / 2)
+    views: list[np.ndarray] = []
+    while len(views) < count:
+        rotation = cv2.Rodrigues(np.radians(rng.uniform(-35, 35, 3) * np.array([1, 1, 0.5])))[0]
+        distance = rng.uniform(0.12, 0.3)
+        tvec = np.array([*rng.uniform(-0.5, 0.5, 2) * distance, distance]) - rotation @ centre
+        uv, _ = cv2.projectPoints(objects, cv2.Rodrigues(rotation)[0], tvec, camera.K, np.array(camera.distortion))
+        uv = uv.reshape(-1, 2)
+        if np.all(uv > low) and np.all(uv < high):
+            views.append(uv + rng.normal(0.0, noise, uv.shape))
+    return views
+
+
+def chosen(scores: tuple[cal.ModelScore, ...]) -> str:
+    assert sum(score.chosen for score in scores) == 1
+    return next(score.model for score in scores if score.chosen)
+
+
+def test_views_in_the_middle_do_not_buy_k3():
+    """Boards only in the central half cannot tell k3 from noise: the held-out views keep it out."""
+    scores = cal.select_distortion_model(BOARD.object_points(), corner_views(LENS, 20, 0.5, seed=1), (640, 480))
+    assert chosen(scores) == "k1k2p"
+    assert [s.model for s in scores] == list(cal.AUTO_CANDIDATES)
+
+
+def test_views_that_reach_the_corners_buy_k3_when_the_lens_has_it():
+    scores = cal.select_distortion_model(BOARD.object_points(), corner_views(LENS, 20, 1.0, seed=1), (640, 480))
+    assert chosen(scores) == "full"
+    full = next(s for s in scores if s.model == "full")
+    assert full.excess_se == 0.0 and all(s.excess_se > 1.0 for s in scores if s.model != "full")
+
+
+def test_too_few_views_to_hold_any_out_choose_the_simplest():
+    scores = cal.select_distortion_model(BOARD.object_points(), corner_views(LENS, 3, 1.0, seed=2), (640, 480))
+    assert chosen(scores) == "k1k2p" and all(np.isnan(s.held_out_rms) for s in scores)
+
+
+def test_config_is_checked_when_made():
+    with pytest.raises(cal.CalibrationError, match="distortion must be auto or one of"):
+        cal.IntrinsicsConfig(distortion="fisheye")
+    with pytest.raises(cal.CalibrationError, match="min_views"):
+        cal.IntrinsicsConfig(min_views=2)
+    with pytest.raises(cal.CalibrationError, match="folds"):
+        cal.IntrinsicsConfig(folds=1)
