@@ -22,10 +22,13 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   and saved to `map.save_path` if that is set (a world map: the PNG, grey plus alpha, and a nav2
   map.yaml beside it);
 * `~/recapture_reference` (std_srvs/Trigger) re-captures the no-contact reference from the next
-  `reference.frames` frames;
+  `reference.frames` frames (and starts a new map);
 * `/diagnostics`: frame rate, processing time, contacts/s, malformed frames, and frames missed: all
   sequence gaps (`frames_dropped`, mostly stale frames skipped while busy) and, of those, the ones DDS
-  reports lost in transport (`frames_lost_in_transport`).
+  reports lost in transport (`frames_lost_in_transport`). Bad input is never silent: a malformed frame
+  (dropped), a frame the map stage cannot take (skipped; the map goes on with the next) keep the status
+  WARN for `BAD_INPUT_HOLD_S`; a frame that does not match the reference is ERROR until one matches
+  again, and so is a map stage that fails on every frame.
 
 Geometry parameters (docs/design.md names) are declared by `touchroller_bringup.ros_params` and can be
 set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`).
@@ -137,6 +140,11 @@ STITCHER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
 }
 
 
+#: /diagnostics stays WARN this long after a malformed, refused or unmappable frame (published once a second)
+BAD_INPUT_HOLD_S = 10.0
+#: the map stage is reported as failing (ERROR) after this many frames in a row it could not map
+MAP_FAILING_FRAMES = 10
+
 # world-map parameters: a change starts a new map
 WORLD_PARAMETERS = ("world_frame", "map.world", "map.resolution", "map.bounds", "map.latency_estimate",
                     "map.register")
@@ -162,7 +170,6 @@ class PerceptionNode(Node):
         self.world: WorldMapper | None = None   # the world map, once TF links world_frame to the cylinder
         self.world_frame = names.frame(str(self.get_parameter("world_frame").value), self.frame_prefix)
         self.tf_listener = TransformListener(self, TransformBuffer(cache_ns=20_000_000_000))
-        self._stitch_error_logged = False
         self._map_dirty = False
         self._map_timer = None
         self._map_lock = threading.Lock()   # `touchroller scan` finishes the map from its own thread
@@ -177,7 +184,12 @@ class PerceptionNode(Node):
         self.last_stamp_ns = 0        # stamp of the newest image taken
         self.malformed = 0
         self.refused = 0              # frames whose format differs from the reference
+        self._last_malformed = ""     # why the latest malformed frame was dropped
         self._last_refused = ""       # why the latest frame was refused ("" once one is accepted again)
+        self.map_errors = 0           # frames the map stage failed on (skipped; the map goes on)
+        self._map_error = ""          # the latest map failure
+        self._map_failing = 0         # frames in a row the map stage failed on (0 once one is mapped)
+        self._last_bad: dict[str, float] = {}   # malformed / refused / map -> monotonic time of the latest
         self.dropped = 0              # sequence gaps: stale frames skipped while busy, plus any lost
         self.lost_in_transport: int | None = None   # DDS message_lost total; None if the RMW lacks it
         self.published_contacts = 0
@@ -301,6 +313,7 @@ class PerceptionNode(Node):
 
     def recapture_reference(self) -> None:
         self.detector.recapture()
+        self.reset_map()   # a new reference means new sensor conditions (maybe another frame size): a new map
         self.get_logger().info(f"recapturing the no-contact reference ({self.detector.reference_frames} frames)")
 
     # ------------------------------------------------------------------ images
@@ -347,6 +360,8 @@ class PerceptionNode(Node):
             image = image_to_array(msg)
         except ValueError as exc:
             self.malformed += 1
+            self._last_malformed = str(exc)
+            self._last_bad["malformed"] = time.monotonic()
             self.get_logger().warning(f"dropping malformed image: {exc}", throttle_duration_sec=5.0)
             return
         try:
@@ -355,6 +370,7 @@ class PerceptionNode(Node):
             # another size or encoding: the reference stays until the user captures a new one
             self.refused += 1
             self._last_refused = str(exc)
+            self._last_bad["refused"] = time.monotonic()
             self.get_logger().error(f"{exc}; call ~/recapture_reference once the sensor is free",
                                     throttle_duration_sec=5.0)
             return
@@ -403,10 +419,15 @@ class PerceptionNode(Node):
                     self.stitcher.push(image, stamp_ns)
                 self._map_dirty = True
         except Exception as exc:  # noqa: BLE001 - the map is optional; contacts must keep flowing
-            if not self._stitch_error_logged:
-                self._stitch_error_logged = True
-                self.get_logger().error(f"tactile map disabled: {type(exc).__name__}: {exc}")
-            self._set_map_rate(0.0)
+            # skip this frame, count it, say it (diagnostics WARN, ERROR while every frame fails); the
+            # next frame is mapped as before, so one bad frame never switches the map off
+            self.map_errors += 1
+            self._map_failing += 1
+            self._map_error = f"{type(exc).__name__}: {exc}"
+            self._last_bad["map"] = time.monotonic()
+            self.get_logger().warning(f"tactile map skipped a frame: {self._map_error}", throttle_duration_sec=5.0)
+            return
+        self._map_failing = 0
 
     def _start_map(self) -> None:
         """A world map if TF links world_frame to the cylinder now, else the strip map."""
@@ -556,11 +577,24 @@ class PerceptionNode(Node):
                            "map_latency_ms": float("nan") if world.stats.latency_s is None
                            else world.stats.latency_s * 1e3,
                            "map_latency_estimated": world.stats.latency_estimated})
+        values.update({"map_frames_failed": self.map_errors, "map_last_error": self._map_error or "none",
+                       "last_malformed": self._last_malformed or "none"})
         if self._last_refused:
             return Status(ERROR, f"frames do not match the reference: {self._last_refused}; "
                                  "call ~/recapture_reference", values)
+        if self._map_failing >= MAP_FAILING_FRAMES:
+            return Status(ERROR, f"tactile map failing on every frame ({self._map_failing} in a row): "
+                                 f"{self._map_error}", values)
         if self.received == 0:
             return Status(WARN, "no images received", values)
+        now = time.monotonic()
+        recent = [kind for kind, when in self._last_bad.items() if now - when <= BAD_INPUT_HOLD_S]
+        if recent:
+            said = {"malformed": f"{self.malformed} malformed frame(s) dropped (latest: {self._last_malformed})",
+                    "refused": f"{self.refused} frame(s) refused (did not match the reference)",
+                    "map": f"the tactile map skipped {self.map_errors} frame(s) (latest: {self._map_error})"}
+            return Status(WARN, "; ".join(said[kind] for kind in ("malformed", "refused", "map") if kind in recent),
+                          values)
         if not self.detector.reference_ready:
             return Status(WARN, "capturing the no-contact reference", values)
         return Status(OK, "detecting contacts", values)

@@ -114,10 +114,10 @@ def test_contacts_are_published_with_stamp_frame_and_position(graph, spin_until)
     # diagnostics: counts of what happened, published on /diagnostics
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from touchroller_bringup.ros_diagnostics import OK, status_values
+    from touchroller_bringup.ros_diagnostics import WARN, status_values
 
     status = node._diagnostic_status()
-    assert status.level == OK
+    assert status.level == WARN and "3 malformed" in status.message   # bad input is never silent
     assert status.values["frames_malformed"] == 3 and status.values["contacts_total"] == 3
     assert status.values["frames_received"] == 3 + 6
     arrays: list = []
@@ -354,9 +354,10 @@ def test_an_rmw_without_message_lost_still_subscribes_and_says_unknown(ros_conte
         node.destroy_node()
 
 
-def test_a_frame_of_another_size_or_encoding_is_refused_and_keeps_the_reference(graph, spin_until):
+def test_a_frame_of_another_size_or_encoding_is_refused_and_keeps_the_reference(graph, spin_until, monkeypatch):
+    import touchroller_bringup.nodes.perception_node as perception_node
     from touchroller_bringup.image_conversion import array_to_image
-    from touchroller_bringup.ros_diagnostics import ERROR, OK
+    from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN
 
     node, executor, image_pub, recapture, received = graph
     renderer = TapRenderer(CAMERA, seed=2)
@@ -375,4 +376,116 @@ def test_a_frame_of_another_size_or_encoding_is_refused_and_keeps_the_reference(
     uv, _ = CAMERA.project(CAMERA.surface_point(0.0, 0.1))
     send(executor, spin_until, node, image_pub, array_to_image(renderer.render([uv], rng), 3_000))
     assert spin_until(executor, lambda: len(received) == 1, timeout=20.0)
+    assert node._diagnostic_status().level == WARN   # for BAD_INPUT_HOLD_S: a 1 Hz diagnostics reader sees it
+    monkeypatch.setattr(perception_node, "BAD_INPUT_HOLD_S", 0.0)
+    assert node._diagnostic_status().level == OK
+
+
+@pytest.fixture
+def mapping(ros_context):
+    """A perception node with the strip map on (50 Hz), a 2-frame reference, and a frame source."""
+    from sensor_msgs.msg import Image
+
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+
+    overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
+    overrides += [Parameter("reference.frames", value=2), Parameter("map.publish_rate", value=50.0)]
+    node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
+    helper = rclpy_node("map_fault_helper", ros_context)
+    image_pub = helper.create_publisher(Image, IMAGE_TOPIC, 10)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(helper)
+    texture = np.random.default_rng(0).integers(0, 255, (CAMERA.height * 3, CAMERA.width, 3), dtype=np.uint8)
+    yield node, executor, image_pub, texture
+    executor.shutdown()
+    node.destroy_node()
+    helper.destroy_node()
+
+
+def _surface(texture, k):
+    return np.ascontiguousarray(texture[4 * k:4 * k + CAMERA.height])   # the surface slides 4 px a frame
+
+
+def test_one_frame_the_map_cannot_take_is_skipped_counted_and_warned_and_the_map_goes_on(mapping, spin_until):
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.ros_diagnostics import OK, WARN
+
+    node, executor, image_pub, texture = mapping
+    for k in range(4):
+        send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, k), 1_000_000 * (k + 1)))
+    assert node.stitcher is not None and node._diagnostic_status().level == OK
+    stitcher, push = node.stitcher, node.stitcher.push
+    failures = iter([RuntimeError("a frame the stitcher chokes on")])
+
+    def push_failing_once(image, stamp_ns, *args):
+        for exc in failures:
+            raise exc
+        return push(image, stamp_ns, *args)
+
+    stitcher.push = push_failing_once
+    send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, 4), 5_000_000))
+    status = node._diagnostic_status()
+    assert node.map_errors == 1 and status.level == WARN and "chokes" in status.message
+    assert status.values["map_frames_failed"] == 1
+    # the next frames are mapped again, into the same map, and it is published
+    node._map_dirty = False
+    for k in range(5, 8):
+        send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, k), 1_000_000 * (k + 1)))
+    assert node.stitcher is stitcher and node._map_timer is not None and node._map_dirty
+    assert spin_until(executor, lambda: not node._map_dirty, timeout=20.0)   # the map timer published it
+    assert node.map_errors == 1
+
+
+def test_a_map_stage_that_fails_every_frame_is_an_error_and_recovers_with_the_next_reference(
+        mapping, spin_until, monkeypatch):
+    """Frames of another size after a recapture: the strip map cannot take them (the camera model is
+    320x240); that is ERROR on /diagnostics, and back at the model's size the map works again."""
+    import touchroller_bringup.nodes.perception_node as perception_node
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.ros_diagnostics import ERROR, OK
+
+    failing_frames = getattr(perception_node, "MAP_FAILING_FRAMES", 10)
+
+    node, executor, image_pub, texture = mapping
+    for k in range(3):
+        send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, k), 1_000_000 * (k + 1)))
+    node.recapture_reference()
+    stamp = 10_000_000
+    for k in range(failing_frames + 2):   # a camera at half resolution
+        stamp += 1_000_000
+        send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, k)[::2, ::2], stamp))
+    status = node._diagnostic_status()
+    assert status.level == ERROR and "tactile map" in status.message, status
+    assert node.map_errors == failing_frames + 2   # every frame of that size, the reference frames too
+    node.recapture_reference()
+    for k in range(4):
+        stamp += 1_000_000
+        send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, k), stamp))
+    assert node._map_failing == 0 and node.stitcher is not None and node._map_timer is not None
+    assert node._diagnostic_status().level != ERROR
+    monkeypatch.setattr(perception_node, "BAD_INPUT_HOLD_S", 0.0)
+    assert node._diagnostic_status().level == OK
+
+
+def test_a_malformed_frame_shows_on_diagnostics(graph, spin_until, monkeypatch):
+    from sensor_msgs.msg import Image
+
+    import touchroller_bringup.nodes.perception_node as perception_node
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.ros_diagnostics import OK, WARN
+
+    node, executor, image_pub, _recapture, _received = graph
+    renderer = TapRenderer(CAMERA, seed=2)
+    rng = np.random.default_rng(1)
+    for i in range(3):
+        send(executor, spin_until, node, image_pub, array_to_image(renderer.render([], rng), 1_000 + i))
+    assert node._diagnostic_status().level == OK
+    bad = Image(height=CAMERA.height, width=CAMERA.width, encoding="bgr8", step=CAMERA.width * 3)
+    bad.data = bytes(1000)   # truncated pixel data
+    send(executor, spin_until, node, image_pub, bad)
+    send(executor, spin_until, node, image_pub, array_to_image(renderer.render([], rng), 2_000))  # a good one after
+    status = node._diagnostic_status()
+    assert node.malformed == 1 and status.level == WARN and "malformed" in status.message, status
+    monkeypatch.setattr(perception_node, "BAD_INPUT_HOLD_S", 0.0)
     assert node._diagnostic_status().level == OK
