@@ -276,9 +276,12 @@ class BandSampler:
         map_y = np.where(valid, v - v0, -10.0).astype(np.float32)
         self.maps = (map_x, map_y)  # float maps: as fast as fixed-point ones here, and exact
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
+    def __call__(self, image: np.ndarray, row0: int = 0) -> np.ndarray:
+        """The band of a frame, or of the frame's rows from `row0` on (they must hold `src_rows`)."""
         v0, v1 = self.src_rows
-        grey = to_grey(image[v0:v1])
+        if v0 < row0 or v1 - row0 > image.shape[0]:
+            raise ValueError(f"the band needs frame rows {v0} to {v1}, got {row0} to {row0 + image.shape[0]}")
+        grey = to_grey(image[v0 - row0:v1 - row0])
         if self.maps is not None:
             grey = cv2.remap(grey, self.maps[0], self.maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return grey.astype(np.float32)
@@ -343,6 +346,8 @@ class StitcherConfig:
       stitching); an offline caller that calls `finalise()` at the end can turn it off and save time.
     history: how many per-frame records (`steps`, `stamps`, `shifts`) to keep, the newest; None keeps
       all (offline evaluation). Bounded by default so a live stitcher's memory grows only with the map.
+    keep_map: build the strip map; False only measures the roll and learns the flat field (what the
+      world map, which places the bands itself, asks of it).
     """
 
     method: str = "default"
@@ -362,6 +367,7 @@ class StitcherConfig:
     min_confidence: float = 0.15
     live_map: bool = True
     history: int | None = DEFAULT_HISTORY
+    keep_map: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -625,20 +631,31 @@ class Stitcher:
             return None
         return 1e3 / self._sampler.mm_per_px
 
-    def band(self, image: np.ndarray) -> np.ndarray:
-        """The float32 grey band this stitcher registers, cut (or resampled) from a full frame."""
+    def band(self, image: np.ndarray, row0: int = 0, frame_height: int | None = None) -> np.ndarray:
+        """The float32 grey band this stitcher registers, cut (or resampled) from a full frame, or from
+        rows of one: `image` then holds frame rows from `row0` on of a frame `frame_height` rows high
+        (they must include `source_rows`)."""
         image = np.asarray(image)
         if image.ndim < 2 or image.size == 0:
             raise ValueError(f"expected a non-empty image, got shape {image.shape}")
         if image.dtype.kind == "f" and not np.isfinite(image).all():
             raise ValueError("the image has non-finite pixel values")
-        shape = (int(image.shape[0]), int(image.shape[1]))
+        shape = (int(image.shape[0] if frame_height is None else frame_height), int(image.shape[1]))
         if self._sampler is None:
             self.setup(shape)
         elif shape != self._shape:
             raise ValueError(f"frame size changed from {self._shape} to {shape}")
         assert self._sampler is not None
-        return self._sampler(image)
+        return self._sampler(image, row0)
+
+    def source_rows(self, shape: tuple[int, int]) -> tuple[int, int]:
+        """(first, end) of the rows of a frame of `shape` (rows, columns) the band is cut from."""
+        if self._sampler is None:
+            self.setup((int(shape[0]), int(shape[1])))
+        elif tuple(shape) != self._shape:
+            raise ValueError(f"frame size changed from {self._shape} to {tuple(shape)}")
+        assert self._sampler is not None
+        return self._sampler.src_rows
 
     def push(self, image: np.ndarray, stamp_ns: int, prior_px: float | None = None) -> StitchStep:
         """Register one frame against what came before and add it to the map.
@@ -842,6 +859,8 @@ class Stitcher:
         """Accumulate the raw band; with a background model also the flat field at the same place, so
         the map is sum(w * band) / sum(w * field): the static gain divides out pixel by pixel."""
         assert self._sampler is not None and self._column_weights is not None
+        if not self.config.keep_map:
+            return
         band, field = frame.band, frame.field
         top, left = self._sampler.row0 - frame.row, -frame.col
         subpixel = self.config.subpixel

@@ -53,12 +53,20 @@ def quaternion_conjugate(q: ArrayLike) -> FloatArray:
 
 def quaternion_to_matrix(q: ArrayLike) -> FloatArray:
     q = np.asarray(q, np.float64)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-    ], axis=-2)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, xw, yw, zw = x * y, x * z, y * z, x * w, y * w, z * w
+    m = np.empty(q.shape[:-1] + (3, 3))
+    m[..., 0, 0] = 1 - 2 * (yy + zz)
+    m[..., 0, 1] = 2 * (xy - zw)
+    m[..., 0, 2] = 2 * (xz + yw)
+    m[..., 1, 0] = 2 * (xy + zw)
+    m[..., 1, 1] = 1 - 2 * (xx + zz)
+    m[..., 1, 2] = 2 * (yz - xw)
+    m[..., 2, 0] = 2 * (xz - yw)
+    m[..., 2, 1] = 2 * (yz + xw)
+    m[..., 2, 2] = 1 - 2 * (xx + yy)
+    return m
 
 
 def matrix_to_quaternion(m: ArrayLike) -> FloatArray:
@@ -85,12 +93,13 @@ def slerp(a: ArrayLike, b: ArrayLike, fraction: ArrayLike) -> FloatArray:
     """Spherical interpolation from unit quaternion a (fraction 0) to b (1), the short way round."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     f = np.asarray(fraction, np.float64)[..., None]
-    dot = np.sum(a * b, axis=-1, keepdims=True)
-    b = np.where(dot < 0, -b, b)
-    dot = np.abs(dot)
-    if np.all(dot > 1.0 - 1e-10):   # samples of a smooth motion: normalised lerp is exact to ~1e-15
+    dot = np.einsum("...i,...i->...", a, b)[..., None]
+    if (dot < 0).any():
+        b = np.where(dot < 0, -b, b)
+        dot = np.abs(dot)
+    if (dot > 1.0 - 1e-10).all():   # samples of a smooth motion: normalised lerp is exact to ~1e-15
         q = a + f * (b - a)
-        return q / np.linalg.norm(q, axis=-1, keepdims=True)
+        return q / np.sqrt(np.einsum("...i,...i->...", q, q))[..., None]
     theta = np.arccos(np.clip(dot, -1.0, 1.0))
     sin = np.sin(theta)
     near = sin < 1e-9   # (almost) the same rotation: linear interpolation is exact enough
@@ -118,15 +127,15 @@ class Transform:
     rotation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
 
     def __post_init__(self) -> None:
-        t = tuple(float(v) for v in np.asarray(self.translation, np.float64).reshape(-1))
-        q = np.asarray(self.rotation, np.float64).reshape(-1)
-        norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
+        t = tuple(float(v) for v in _flat(self.translation))
+        q = tuple(float(v) for v in _flat(self.rotation))
+        norm = math.sqrt(sum(v * v for v in q)) if len(q) == 4 else 0.0
         if len(t) != 3 or not all(math.isfinite(v) for v in t):
             raise ValueError(f"a translation is 3 finite numbers, got {self.translation}")
         if not (math.isfinite(norm) and norm > 1e-9):
             raise ValueError(f"a rotation is a non-zero quaternion (x, y, z, w), got {self.rotation}")
         object.__setattr__(self, "translation", t)
-        object.__setattr__(self, "rotation", tuple(float(v) for v in q / norm))
+        object.__setattr__(self, "rotation", (q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm))
 
     @staticmethod
     def identity() -> Transform:
@@ -257,22 +266,21 @@ class _Edge:
         stamps outside the samples instead of an ExtrapolationError."""
         times, translations, rotations = self.arrays()
         n = len(stamps)
-        if missing and not self.static:
-            lo, hi = int(times[0]), int(times[-1])
+        lo, hi = int(times[0]), int(times[-1])
+        first, last = (int(stamps.min()), int(stamps.max())) if n else (lo, hi)
+        if missing and not self.static and (first < lo or last > hi):
             inside = (stamps >= lo) & (stamps <= hi)
-            if not inside.all():
-                trans = np.full((n, 3), np.nan)
-                rots = np.full((n, 4), np.nan)
-                if inside.any():
-                    trans[inside], rots[inside] = self.at(stamps[inside], child)
-                return trans, rots
+            trans = np.full((n, 3), np.nan)
+            rots = np.full((n, 4), np.nan)
+            if inside.any():
+                trans[inside], rots[inside] = self.at(stamps[inside], child)
+            return trans, rots
         if self.static or len(times) == 1:
-            if not self.static and np.any(stamps != times[0]):
+            if not self.static and (first != lo or last != lo):
                 raise ExtrapolationError(f"{self.parent} -> {child} has one sample (at {times[0]} ns); "
                                          f"cannot interpolate at {_first_outside(stamps, times[0], times[0])} ns")
             return np.repeat(translations[:1], n, axis=0), np.repeat(rotations[:1], n, axis=0)
-        lo, hi = int(times[0]), int(times[-1])
-        if np.any(stamps < lo) or np.any(stamps > hi):
+        if first < lo or last > hi:
             raise ExtrapolationError(f"{self.parent} -> {child} is known over [{lo}, {hi}] ns; "
                                      f"asked for {_first_outside(stamps, lo, hi)} ns")
         i = np.clip(np.searchsorted(times, stamps, side="right") - 1, 0, len(times) - 2)
@@ -280,6 +288,47 @@ class _Edge:
         f = (stamps - t0) / (t1 - t0).astype(np.float64)
         trans = translations[i] + f[:, None] * (translations[i + 1] - translations[i])
         return trans, slerp(rotations[i], rotations[i + 1], f)
+
+
+    def at_one(self, stamp: int, child: str, missing: bool = False) -> FloatArray:
+        """The 4x4 T_parent_child of a dynamic edge at one stamp (`at` for one time, in plain floats:
+        the perception node looks up one frame's pose at a time); all-NaN when `missing` allows."""
+        times, translations, rotations = self.arrays()
+        n = len(times)
+        if n == 1 and stamp == int(times[0]):
+            i, f = 0, 0.0
+        elif n >= 2 and int(times[0]) <= stamp <= int(times[-1]):
+            i = min(max(int(np.searchsorted(times, stamp, side="right")) - 1, 0), n - 2)
+            t0, t1 = int(times[i]), int(times[i + 1])
+            f = (stamp - t0) / (t1 - t0)
+        elif missing:
+            return np.full((4, 4), np.nan)
+        else:
+            self.at(np.array([stamp], np.int64), child)   # raises the ExtrapolationError
+            raise AssertionError("unreachable")
+        ta, qa = translations[i].tolist(), rotations[i].tolist()
+        if f == 0.0:
+            t, q = ta, qa
+        else:
+            tb, qb = translations[i + 1].tolist(), rotations[i + 1].tolist()
+            t = [a + f * (b - a) for a, b in zip(ta, tb, strict=True)]
+            dot = sum(a * b for a, b in zip(qa, qb, strict=True))
+            if dot < 0:
+                qb, dot = [-v for v in qb], -dot
+            if dot > 1.0 - 1e-10:   # normalised lerp, as `slerp` does for close samples
+                q = [a + f * (b - a) for a, b in zip(qa, qb, strict=True)]
+            else:
+                theta = math.acos(min(dot, 1.0))
+                sin = math.sin(theta)
+                wa, wb = math.sin((1.0 - f) * theta) / sin, math.sin(f * theta) / sin
+                q = [wa * a + wb * b for a, b in zip(qa, qb, strict=True)]
+            norm = math.sqrt(sum(v * v for v in q))
+            q = [v / norm for v in q]
+        x, y, z, w = q
+        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w), t[0]],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w), t[1]],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y), t[2]],
+                         [0.0, 0.0, 0.0, 1.0]])
 
 
 def _first_outside(stamps: NDArray[np.int64], lo: int, hi: int) -> int:
@@ -390,6 +439,9 @@ class TransformBuffer:
         stamps = stamps.reshape(-1)
         up_source, up_target = self._chain(target, source)
         common_source = self._chain_matrices(up_source, stamps, missing)
+        if not up_target:   # the target is the common ancestor (a lookup in the world frame)
+            out = common_source
+            return np.broadcast_to(out, (len(stamps), 4, 4)).copy() if out.ndim == 2 else out
         common_target = self._chain_matrices(up_target, stamps, missing)
         inverse = np.zeros_like(common_target)
         rotation_t = np.swapaxes(common_target[..., :3, :3], -1, -2)
@@ -404,19 +456,23 @@ class TransformBuffer:
     def _chain_matrices(self, frames: list[str], stamps: NDArray[np.int64], missing: bool) -> FloatArray:
         """T_common_frame0 for the path frames[0] -> ... -> the common ancestor: (4, 4) when all edges are
         static, else (N, 4, 4)."""
-        out: FloatArray = np.eye(4)
+        out: FloatArray | None = None   # None: the identity
         for child in frames:
             edge = self._edges[child]
             if edge.static:
-                out = edge.matrix() @ out
+                out = edge.matrix() if out is None else edge.matrix() @ out
+                continue
+            if len(stamps) == 1:
+                one = edge.at_one(int(stamps[0]), child, missing)[None]
+                out = one if out is None else np.matmul(one, out)
                 continue
             t, q = edge.at(stamps, child, missing)
             m = np.zeros((len(stamps), 4, 4))
             m[:, :3, :3] = quaternion_to_matrix(q)
             m[:, :3, 3] = t
             m[:, 3, 3] = 1.0
-            out = np.matmul(m, out)
-        return out
+            out = m if out is None else np.matmul(m, out)
+        return np.eye(4) if out is None else out
 
     def _compose(self, target: str, source: str, stamps: NDArray[np.int64],
                  missing: bool = False) -> tuple[FloatArray, FloatArray]:
@@ -434,6 +490,13 @@ class TransformBuffer:
         # T_target_source = inverse(T_common_target) T_common_source
         q_tc = quaternion_conjugate(q_ct)
         return rotate(q_tc, t_cs - t_ct), quaternion_multiply(q_tc, q_cs)
+
+
+def _flat(values: ArrayLike) -> Sequence[float]:
+    """Numbers as a flat sequence (a tuple or list of numbers as it is, else through numpy)."""
+    if isinstance(values, (tuple, list)) and all(isinstance(v, (int, float)) for v in values):
+        return values
+    return np.asarray(values, np.float64).reshape(-1).tolist()
 
 
 def _vec3(values: ArrayLike) -> tuple[float, float, float]:

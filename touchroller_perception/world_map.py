@@ -41,6 +41,7 @@ from touchroller_perception.geometry import CameraModel
 from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, taper
 
 FloatArray = NDArray[np.float64]
+_HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet): e.g.
 #: `TransformBuffer.lookup_many(world, cylinder, stamps, missing=True)`.
 PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
@@ -73,8 +74,8 @@ class WorldMapConfig:
     search_px: the largest correction registration looks for, map pixels.
     contact_tolerance: frames with the roller within this of its pressed height are mapped, m.
     edge_taper: the weights fall to zero over this distance at the band's ends along the axis, m.
-    hold_frames: frames kept while their pose, the pressed height or the latency are not known yet (as
-      float16: 90 KB each for 640-pixel-wide bands); the latency may need a whole pass's end to be found.
+    hold_frames: frames kept while their pose, the pressed height or the latency are not known yet (in
+      16 bits: 90 KB each for 640-pixel-wide bands); the latency may need a whole pass's end to be found.
     """
 
     resolution: float = 1e-4
@@ -125,14 +126,16 @@ class WorldMapImage:
 
 # ------------------------------------------------------------------------------------------------ canvas
 class WorldCanvas:
-    """Weighted sums on a grid of the world plane: layer 0 sum(w band), 1 sum(w field), 2 sum(w).
-    Cell (row r, column c) covers world x in origin_x + [c, c + 1] * res, y in origin_y + [r, r + 1] * res
-    (rows grow with y; images flip it). Grows geometrically unless fixed by `bounds`."""
+    """Weighted sums on a grid of the world plane: layer 0 sum(w band), 1 sum(w field), 2 sum(w), each a
+    plane of `layers` (3, rows, columns). Cell (row r, column c) covers world x in origin_x + [c, c + 1] *
+    res, y in origin_y + [r, r + 1] * res (rows grow with y; images flip it). Grows by at least `grow_px`
+    (or half its size) on the side that needs it, unless fixed by `bounds`."""
 
     def __init__(self, resolution: float, bounds: tuple[float, float, float, float] | None,
-                 max_pixels: int) -> None:
+                 max_pixels: int, grow_px: int = 512) -> None:
         self.resolution = resolution
         self.max_pixels = max_pixels
+        self.grow_px = grow_px
         self.fixed = bounds is not None
         if bounds is not None:
             x0, y0, x1, y1 = bounds
@@ -141,11 +144,11 @@ class WorldCanvas:
         else:
             cols, rows = 0, 0
             self.origin = (0.0, 0.0)
-        self.layers = np.zeros((rows, cols, 3), np.float32)
+        self.layers = np.zeros((3, rows, cols), np.float32)
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.layers.shape[0], self.layers.shape[1]
+        return self.layers.shape[1], self.layers.shape[2]
 
     def to_grid(self, xy: np.ndarray) -> np.ndarray:
         """World (x, y) -> fractional (column, row) where pixel centres are whole numbers."""
@@ -158,43 +161,112 @@ class WorldCanvas:
         if self.fixed or (rows and cols and c0 >= 0 and r0 >= 0 and c1 <= cols and r1 <= rows):
             return 0, 0
         if not rows or not cols:   # the first band: start around it with room to grow
-            pad = 256
+            pad = self.grow_px // 2
             new_c0, new_r0 = c0 - pad, r0 - pad
-            self.layers = np.zeros((r1 - r0 + 2 * pad, c1 - c0 + 2 * pad, 3), np.float32)
+            self.layers = np.zeros((3, r1 - r0 + 2 * pad, c1 - c0 + 2 * pad), np.float32)
             self.origin = (self.origin[0] + new_c0 * self.resolution, self.origin[1] + new_r0 * self.resolution)
             return -new_c0, -new_r0
-        left = max(0, -c0)
-        right = max(0, c1 - cols)
-        bottom = max(0, -r0)
-        top = max(0, r1 - rows)
-        left, right = (max(left, cols // 2) if left else 0), (max(right, cols // 2) if right else 0)
-        bottom, top = (max(bottom, rows // 2) if bottom else 0), (max(top, rows // 2) if top else 0)
+        need = (max(0, -c0), max(0, c1 - cols), max(0, -r0), max(0, r1 - rows))   # left, right, bottom, top
+        sizes = (cols, cols, rows, rows)
+        grow = [max(n, self.grow_px, size // 2) if n else 0 for n, size in zip(need, sizes, strict=True)]
+        left, right, bottom, top = grow
         if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
-            left, right, bottom, top = max(0, -c0), max(0, c1 - cols), max(0, -r0), max(0, r1 - rows)
+            left, right, bottom, top = need
             if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
                 raise MemoryError(f"the map would exceed {self.max_pixels} pixels at {self.resolution} m/px "
                                   "(set bounds or a coarser resolution)")
-        self.layers = np.pad(self.layers, ((bottom, top), (left, right), (0, 0)))
+        layers = np.zeros((3, rows + bottom + top, cols + left + right), np.float32)
+        layers[:, bottom:bottom + rows, left:left + cols] = self.layers
+        self.layers = layers
         self.origin = (self.origin[0] - left * self.resolution, self.origin[1] - bottom * self.resolution)
         return left, bottom
 
-    def add(self, warped: np.ndarray, c0: int, r0: int) -> None:
-        """Add a (h, w, 3) patch with its top-left... lowest cell at (column c0, row r0), clipped to the map."""
+    def add(self, planes: Sequence[np.ndarray | None], c0: int, r0: int) -> None:
+        """Add (h, w) patches to the layers (None: leave that layer), their lowest cell at (column c0, row
+        r0), clipped to the map."""
         rows, cols = self.shape
-        h, w = warped.shape[:2]
+        h, w = next(p for p in planes if p is not None).shape
         a0, b0 = max(r0, 0), max(c0, 0)
         a1, b1 = min(r0 + h, rows), min(c0 + w, cols)
         if a1 <= a0 or b1 <= b0:
             return
-        view = self.layers[a0:a1, b0:b1]
-        cv2.add(view, warped[a0 - r0:a1 - r0, b0 - c0:b1 - c0], dst=view)
+        for layer, plane in zip(self.layers, planes, strict=True):
+            if plane is not None:
+                view = layer[a0:a1, b0:b1]
+                cv2.add(view, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], dst=view)
 
     def value(self, level: float, min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
         """(flat-field-corrected map as float32 grey, weight), rows growing with y."""
-        band, flat, weight = self.layers[..., 0], self.layers[..., 1], self.layers[..., 2]
+        band, flat, weight = self.layers
         known = (weight > min_weight) & (flat > 1e-6)
         grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
-        return grey, np.where(known, weight, 0.0).astype(np.float32)
+        return grey, np.where(known, weight, np.float32(0.0))
+
+
+# ------------------------------------------------------------------------------------------------ placing
+@dataclass(frozen=True)
+class _Placement:
+    """Where a band landed on the map: for an axis-aligned roller (`axes` not None: transpose, flip rows,
+    flip columns) the oriented band at (c0, r0) blended by the 2x2 bilinear `kernel`; else the affine
+    `matrix` (band -> patch) of a (w, h) patch at (c0, r0)."""
+
+    c0: int
+    r0: int
+    axes: tuple[bool, bool, bool] | None
+    kernel: np.ndarray | None = None
+    matrix: np.ndarray | None = None
+    size: tuple[int, int] = (0, 0)
+
+    def moved(self, dc: int, dr: int) -> _Placement:
+        return dataclasses.replace(self, c0=self.c0 + dc, r0=self.r0 + dr)
+
+
+def _axes(matrix: np.ndarray) -> tuple[bool, bool, bool] | None:
+    """(transpose, flip rows, flip columns) when the affine's 2x2 part is a signed permutation to within
+    1e-6 (an error of 1e-3 px across a 640-column band), else None."""
+    a = matrix[:, :2]
+    r = np.round(a)
+    if np.abs(a - r).max() > 1e-6 or not (np.abs(r).sum(axis=0) == 1).all() or not (np.abs(r).sum(axis=1) == 1).all():
+        return None
+    if r[0, 0] == 0:   # map column from the band's row, map row from its column
+        return True, bool(r[1, 0] < 0), bool(r[0, 1] < 0)
+    return False, bool(r[1, 1] < 0), bool(r[0, 0] < 0)
+
+
+Axes = tuple[bool, bool, bool]   # (transpose, flip rows, flip columns)
+
+
+def _axis_aligned(matrix: np.ndarray, shape: tuple[int, int]) -> tuple[Axes, int, int, np.ndarray] | None:
+    """For an affine band (column j, row i) -> map (column, row) that only turns a band of `shape` (rows,
+    columns) by quarter turns and flips (`_axes`): (axes, column c0 and row r0 of the lowest cell of
+    `_blend(_orient(plane, axes), kernel)`, kernel) with which that equals the bilinear warp of the plane;
+    None for any other affine."""
+    axes = _axes(matrix)
+    if axes is None:
+        return None
+    transpose, flip_rows, flip_cols = axes
+    rows, cols = (shape[1], shape[0]) if transpose else shape
+    ox = matrix[0, 2] - (cols - 1 if flip_cols else 0)
+    oy = matrix[1, 2] - (rows - 1 if flip_rows else 0)
+    c0, r0 = math.floor(ox), math.floor(oy)
+    fx, fy = ox - c0, oy - r0
+    kernel = np.array([[fy * fx, fy * (1 - fx)], [(1 - fy) * fx, (1 - fy) * (1 - fx)]], np.float32)
+    return axes, c0, r0, kernel
+
+
+def _orient(plane: np.ndarray, axes: tuple[bool, bool, bool]) -> np.ndarray:
+    """The band plane turned to the map's axes, with a zero border of one pixel (for the bilinear blend)."""
+    transpose, flip_rows, flip_cols = axes
+    out = cv2.transpose(plane) if transpose else plane
+    if flip_rows or flip_cols:
+        out = cv2.flip(out, -1 if flip_rows and flip_cols else (0 if flip_rows else 1))
+    return cv2.copyMakeBorder(out, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+
+
+def _blend(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """An oriented, bordered plane moved by its subpixel phase: (h + 1, w + 1)."""
+    out = cv2.filter2D(padded, -1, kernel, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
+    return out[:-1, :-1]
 
 
 # ------------------------------------------------------------------------------------------------ latency
@@ -231,25 +303,22 @@ class LatencyEstimator:
         if len(stamps) >= 8:
             self.windows.append(_Window(list(stamps), list(positions)))
 
-    def _cost(self, windows: Sequence[_Window], latency_ns: int, poses: PoseLookup) -> float | None:
-        total, count = 0.0, 0
-        for window in windows:
-            stamps = np.asarray(window.stamps, np.int64) - latency_ns
-            transforms = poses(stamps)
-            if not np.isfinite(transforms).all():
-                return None
-            y = _roll_coordinate(transforms) / self.m_per_row
-            p = np.asarray(window.positions)
-            design = np.stack([np.ones_like(y), y], axis=1)
-            solution, *_ = np.linalg.lstsq(design, p, rcond=None)
-            residual = p - design @ solution
-            total += float(residual @ residual)
-            count += len(p)
-        return total / max(count, 1)
-
     def _scan(self, window: _Window, candidates: NDArray[np.int64], poses: PoseLookup) -> tuple[np.ndarray, int] | None:
-        costs = np.array([np.nan if (c := self._cost([window], int(v), poses)) is None else c
-                          for v in candidates])
+        """The window's cost (mean squared residual of the best line P = c + s Y, px^2) at each candidate
+        latency (NaN where a pose is missing), all candidates in one lookup; with the best's index."""
+        stamps = np.asarray(window.stamps, np.int64)
+        transforms = poses((stamps[None, :] - candidates[:, None]).reshape(-1))
+        transforms = transforms.reshape(len(candidates), len(stamps), 4, 4)
+        # where a point fixed in the world (the first pose's origin) lies along the cylinder's y axis
+        offsets = transforms[:, :1, :3, 3] - transforms[:, :, :3, 3]
+        y = np.einsum("cki,cki->ck", transforms[:, :, :3, 1], offsets) / self.m_per_row
+        p = np.asarray(window.positions, np.float64)
+        dy = y - y.mean(axis=1, keepdims=True)
+        dp = p - p.mean()
+        syy, syp, spp = (dy * dy).sum(axis=1), dy @ dp, float(dp @ dp)
+        slope_part = np.divide(syp * syp, syy, out=np.zeros_like(syy), where=syy > 1e-12)
+        costs = np.maximum(spp - slope_part, 0.0) / len(p)
+        costs[~np.isfinite(transforms).all(axis=(1, 2, 3))] = np.nan
         if not np.isfinite(costs).any():
             return None
         return costs, int(np.nanargmin(costs))
@@ -300,12 +369,51 @@ class LatencyEstimator:
         return self.estimate
 
 
-def _roll_coordinate(transforms: FloatArray) -> FloatArray:
-    """Where a point fixed in the world lies along the cylinder's y axis (the band's rows), m, at each
-    pose: the surface moves by this in the band as the roller rolls. The point: the first pose's origin."""
-    world_point = transforms[0, :3, 3]
-    rotations = transforms[:, :3, :3]
-    return np.einsum("nij,ni->nj", rotations, world_point[None, :] - transforms[:, :3, 3])[:, 1]
+class _Recent:
+    """The recent confident frames of the strip stitcher: stamps, image positions, and per frame the roller's
+    height and the arm's roll (band rows), filled in once their poses are known (NaN until then). Arrays
+    with room for twice `capacity`: appending is O(1), the oldest go once `capacity` is exceeded."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._stamps = np.zeros(2 * capacity, np.int64)
+        self._values = np.full((2 * capacity, 3), np.nan)   # position, height, arm roll
+        self._start = self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, stamp_ns: int, position: float) -> None:
+        if self._end == len(self._stamps):   # full: move the newest `capacity` to the front
+            keep = slice(self._end - self.capacity, self._end)
+            self._stamps[:self.capacity] = self._stamps[keep]
+            self._values[:self.capacity] = self._values[keep]
+            self._start, self._end = self._start - (self._end - self.capacity), self.capacity
+            self._start = max(self._start, 0)
+        self._stamps[self._end] = stamp_ns
+        self._values[self._end] = (position, np.nan, np.nan)
+        self._end += 1
+        if self._end - self._start > self.capacity:
+            self._start += 1
+
+    @property
+    def stamps(self) -> NDArray[np.int64]:
+        return self._stamps[self._start:self._end]
+
+    @property
+    def positions(self) -> FloatArray:
+        return self._values[self._start:self._end, 0]
+
+    @property
+    def heights(self) -> FloatArray:
+        return self._values[self._start:self._end, 1]
+
+    @property
+    def arm_rows(self) -> FloatArray:
+        return self._values[self._start:self._end, 2]
+
+    def forget_poses(self) -> None:
+        self._values[:, 1:] = np.nan
 
 
 # ------------------------------------------------------------------------------------------------ mapper
@@ -346,7 +454,7 @@ class WorldMapper:
         # The strip stitcher measures the image's roll (latency, contact) and keeps the flat field; it
         # places nothing, so it needs no lateral tracking and registers on coarser columns (speed).
         strip = stitcher or StitcherConfig(lateral=False, column_bin=8)
-        self.strip = Stitcher(strip.replace(history=1, live_map=False), camera=camera)
+        self.strip = Stitcher(strip.replace(history=1, live_map=False, keep_map=False), camera=camera)
         self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels)
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
@@ -355,13 +463,16 @@ class WorldMapper:
         self._heights: list[float] = []
         self._weights: np.ndarray | None = None   # band weights (rows x columns)
         self._level = 1.0
-        self._placements: list[tuple[np.ndarray, int, int, int, int]] = []   # (M, c0, r0, w, h) for finalise
+        self._placements: list[_Placement] = []   # where each band went, for finalise
+        self._weighted_field: tuple[np.ndarray, np.ndarray, dict] | None = None   # (field, w field, oriented)
+        self._oriented_weights: dict[tuple[bool, bool, bool], np.ndarray] = {}
+        self._level_field: np.ndarray | None = None
+        self._prior_weight_max = 1.0
         # latency windows: the recent confident (stamp, position) of the strip stitcher, and roll events
-        self._recent: deque[tuple[int, float]] = deque(maxlen=600)
+        self._recent = _Recent(600)
         self._events: list[int] = []   # arm times of starts and stops (ns)
         self._last_event_check = 0
         self._latest_stamp = 0
-        self._track_cache: dict[int, tuple[float, float]] = {}   # stamp -> (height, arm roll in rows)
         self._track_latency: int | None = None
         self._reference_point: np.ndarray | None = None
         self._previous_stamp: int | None = None
@@ -381,9 +492,14 @@ class WorldMapper:
         """Take one frame (any image the strip stitcher takes)."""
         self.push_band(self.strip.band(image), stamp_ns)
 
-    def band(self, image: np.ndarray) -> np.ndarray:
-        """The band `push_band` wants, cut from a frame (stateless after the first: another thread may cut)."""
-        return self.strip.band(image)
+    def band(self, image: np.ndarray, row0: int = 0, frame_height: int | None = None) -> np.ndarray:
+        """The band `push_band` wants, cut from a frame or from the frame's rows from `row0` on (see
+        `Stitcher.band`; stateless after the first: another thread may cut)."""
+        return self.strip.band(image, row0, frame_height)
+
+    def source_rows(self, shape: tuple[int, int]) -> tuple[int, int]:
+        """(first, end): the rows of a frame of `shape` (rows, columns) its band is cut from."""
+        return self.strip.source_rows(shape)
 
     def push_band(self, band: np.ndarray, stamp_ns: int) -> None:
         """`push` for a band cut with `band()`."""
@@ -398,11 +514,15 @@ class WorldMapper:
             self._drain(final=False)
             return
         step = self.strip.push_band(band, int(stamp_ns), prior)
-        frame = _Frame(int(stamp_ns), band.astype(np.float16), self.strip.flat_field_now(), step, pose, pose_latency)
+        frame = _Frame(int(stamp_ns), band, self.strip.flat_field_now(), step, pose, pose_latency)
         if step.confidence >= self.strip.config.min_confidence and not step.used_prior:
-            self._recent.append((frame.stamp_ns, step.position_px))
+            self._recent.append(frame.stamp_ns, step.position_px)
         self._pending.append(frame)
         self._drain(final=False)
+        if len(self._pending) > _HELD_FULL:   # a long wait (the latency not known yet): hold in 16 bits
+            held = self._pending[-_HELD_FULL - 1]
+            if held.band.dtype != np.uint16:   # grey 0..255 in steps of 1/256
+                held.band = cv2.multiply(held.band, 256.0, dtype=cv2.CV_16U)
 
     def _clearly_lifted(self, pose: Any) -> bool:
         """The roller is more than a millimetre above its pressed height (known once a roll was seen)."""
@@ -436,15 +556,20 @@ class WorldMapper:
         field = self.strip.flat_field_final()
         if field is None or self._weights is None or not self._placements:
             return
-        weighted = (field * self._weights).astype(np.float32)
-        self.canvas.layers[..., 1] = 0.0
-        for matrix, c0, r0, w, h in self._placements:
-            warped = cv2.warpAffine(weighted, matrix, (w, h), flags=cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            rows, cols = self.canvas.shape
-            a0, b0, a1, b1 = max(r0, 0), max(c0, 0), min(r0 + h, rows), min(c0 + w, cols)
-            if a1 > a0 and b1 > b0:
-                self.canvas.layers[a0:a1, b0:b1, 1] += warped[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
+        weighted = cv2.multiply(field.astype(np.float32), self._weights)
+        oriented: dict[tuple[bool, bool, bool], np.ndarray] = {}
+        self.canvas.layers[1] = 0.0
+        for placement in self._placements:
+            if placement.axes is not None:
+                if placement.axes not in oriented:
+                    oriented[placement.axes] = _orient(weighted, placement.axes)
+                assert placement.kernel is not None
+                plane = _blend(oriented[placement.axes], placement.kernel)
+            else:
+                assert placement.matrix is not None
+                plane = cv2.warpAffine(weighted, placement.matrix, placement.size, flags=cv2.INTER_LINEAR,
+                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            self.canvas.add([None, plane, None], placement.c0, placement.r0)
         self._level = float(field.mean())
 
     def map_image(self, crop: bool = True) -> WorldMapImage:
@@ -500,6 +625,7 @@ class WorldMapper:
             if np.isfinite(heights).any():
                 self._pressed_height = float(np.nanmin(heights))
                 self.stats.pressed_height = self._pressed_height
+        self._prefetch_poses()
         while self._pending:
             frame = self._pending[0]
             ready = self._ready(frame)
@@ -519,6 +645,19 @@ class WorldMapper:
         if self.latency_ns is not None:
             return self.latency_ns
         return None if self.stats.latency_s is None else round(self.stats.latency_s * 1e9)
+
+    def _prefetch_poses(self) -> None:
+        """Look up, in one go, the poses of the waiting frames that will need them at the current latency."""
+        latency = self._latency()
+        if latency is None or self._pressed_height is None:
+            return
+        frames = [f for f in self._pending if f.pose is None or f.pose_latency != latency]
+        if len(frames) < 2:
+            return
+        poses = self.poses(np.array([f.stamp_ns - latency for f in frames], np.int64))
+        for frame, pose in zip(frames, poses, strict=True):
+            if np.isfinite(pose).all():
+                frame.pose, frame.pose_latency = pose, latency
 
     def _pose_now(self, frame: _Frame) -> np.ndarray | None:
         """The frame's pose at the current latency (looked up once per latency)."""
@@ -588,24 +727,23 @@ class WorldMapper:
         """(stamps, image positions, roller heights, arm roll in rows) of the recent confident frames, the
         poses at the current latency, looked up once per frame (again only when the latency changes)."""
         latency = self._latency() or 0
+        recent = self._recent
         if latency != self._track_latency:
             self._track_latency = latency
-            self._track_cache.clear()
-        stamps = np.fromiter((s for s, _ in self._recent), np.int64, len(self._recent))
-        missing = np.array([s not in self._track_cache for s in stamps.tolist()])
-        if missing.any():
+            recent.forget_poses()
+        stamps, heights, rows = recent.stamps, recent.heights, recent.arm_rows
+        missing = np.flatnonzero(np.isnan(heights))
+        if len(missing):
             poses = self.poses(stamps[missing] - latency)
-            for stamp, pose in zip(stamps[missing].tolist(), poses, strict=True):
-                if np.isfinite(pose).all():
-                    if self._reference_point is None:
-                        self._reference_point = pose[:3, 3].copy()
-                    offset = self._reference_point - pose[:3, 3]
-                    self._track_cache[stamp] = (float(pose[2, 3]), float(pose[:3, 1] @ offset) / self.m_per_row)
-            while len(self._track_cache) > 2 * len(self._recent):   # drop the oldest (dicts keep insertion order)
-                self._track_cache.pop(next(iter(self._track_cache)))
-        values = [self._track_cache.get(s, (np.nan, np.nan)) for s in stamps.tolist()]
-        positions = np.fromiter((p for _, p in self._recent), np.float64, len(self._recent))
-        return stamps, positions, np.array([h for h, _ in values]), np.array([r for _, r in values])
+            known = np.isfinite(poses).all(axis=(1, 2))
+            if known.any():
+                found, poses = missing[known], poses[known]
+                if self._reference_point is None:
+                    self._reference_point = poses[0, :3, 3].copy()
+                offsets = self._reference_point[None, :] - poses[:, :3, 3]
+                heights[found] = poses[:, 2, 3]
+                rows[found] = np.einsum("ni,ni->n", poses[:, :3, 1], offsets) / self.m_per_row
+        return stamps.copy(), recent.positions.copy(), heights.copy(), rows.copy()
 
     def _add_window(self, event_ns: int) -> None:
         """The frames around a start or stop of the arm, the roller pressed (an arm moving above the
@@ -613,17 +751,17 @@ class WorldMapper:
         assert self._estimator is not None
         lo = event_ns - self._estimator.before_ns
         hi = event_ns + self._estimator.after_ns
-        window = [(s, p) for s, p in self._recent if lo <= s <= hi]
-        if not window or self._latest_stamp < hi or self._pressed_height is None:
+        inside = (self._recent.stamps >= lo) & (self._recent.stamps <= hi)
+        if not inside.any() or self._latest_stamp < hi or self._pressed_height is None:
             self._events.remove(event_ns)   # not enough known yet: found again later
             return
-        stamps = np.array([s for s, _ in window], np.int64)
+        stamps = self._recent.stamps[inside]
         poses = self.poses(stamps - (self._latency() or 0))
         heights = np.where(np.isfinite(poses).all(axis=(1, 2)), poses[:, 2, 3], np.inf)
         pressed = heights <= self._pressed_height + self.config.contact_tolerance
         if pressed.sum() < 12:
             return   # the roller was not down around it: no window (and not looked at again)
-        positions = np.array([p for _, p in window])
+        positions = self._recent.positions[inside]
         self._estimator.add_window([int(v) for v in stamps[pressed]], [float(v) for v in positions[pressed]])
 
     # -- placing -----------------------------------------------------------------------------------------
@@ -661,6 +799,7 @@ class WorldMapper:
         if self.stats.passes > 1 and self.config.register:
             value, weight = self.canvas.value(self._level)
             self._prior = (value, weight, 0, 0)
+            self._prior_weight_max = float(weight.max()) or 1.0
 
     def _end_pass(self) -> None:
         self._flush_pass_buffer()
@@ -706,8 +845,27 @@ class WorldMapper:
         c1, r1 = np.ceil(corners.max(axis=0)).astype(int) + 2
         return int(c0), int(r0), int(c1), int(r1)
 
-    def _warp(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
-        """(the frame's [w band, w field, w] on the map grid, the affine used, column, row of its corner)."""
+    def _band_planes(self, frame: _Frame) -> tuple[np.ndarray, np.ndarray]:
+        """(w band, w field) in band coordinates; w field is shared while the flat field stays the same."""
+        assert self._weights is not None
+        band = frame.band if frame.band.dtype != np.uint16 else cv2.multiply(frame.band, 1.0 / 256, dtype=cv2.CV_32F)
+        weighted = cv2.multiply(band, self._weights)
+        if frame.field is None:
+            return weighted, self._weights * np.float32(band.mean())
+        if self._weighted_field is None or self._weighted_field[0] is not frame.field:
+            self._weighted_field = (frame.field, cv2.multiply(frame.field, self._weights), {})
+        return weighted, self._weighted_field[1]
+
+    def _oriented(self, key: str, plane: np.ndarray, axes: tuple[bool, bool, bool]) -> np.ndarray:
+        """The constant planes (w; w field while the field stays) oriented once per orientation."""
+        cache = self._oriented_weights if key == "w" else (self._weighted_field[2] if self._weighted_field else {})
+        out = cache.get(axes)
+        if out is None:
+            out = cache[axes] = _orient(plane, axes)
+        return out
+
+    def _warp(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> tuple[list[np.ndarray], _Placement]:
+        """The frame's [w band, w field, w] on the map grid (lowest cell at the placement's c0, r0)."""
         assert self._weights is not None
         matrix = self._affine(pose)
         matrix[:, 2] += delta
@@ -715,41 +873,50 @@ class WorldMapper:
         shift = self.canvas.ensure(c0, r0, c1, r1)
         if shift != (0, 0):
             matrix[:, 2] += shift
-            c0, r0, c1, r1 = c0 + shift[0], r0 + shift[1], c1 + shift[0], r1 + shift[1]
-            self._placements = [(m + np.array([[0, 0, shift[0]], [0, 0, shift[1]]]), a + shift[0], b + shift[1], w, h)
-                                for m, a, b, w, h in self._placements]
+            self._placements = [placement.moved(*shift) for placement in self._placements]
             if self._prior is not None:
                 value, weight, cs, rs = self._prior
                 self._prior = (value, weight, cs + shift[0], rs + shift[1])
-        field = frame.field if frame.field is not None else np.full_like(frame.band, float(frame.band.mean()))
-        stack = cv2.merge([frame.band * self._weights, field * self._weights, self._weights])
+        weighted_band, weighted_field = self._band_planes(frame)
+        aligned = _axis_aligned(matrix, self._weights.shape)
+        if aligned is not None:
+            # an axis-aligned roller at the band's own scale: turn the band, then one bilinear 2x2 blend
+            axes, c0, r0, kernel = aligned
+            planes = [_blend(_orient(weighted_band, axes), kernel),
+                      _blend(self._oriented("field", weighted_field, axes), kernel),
+                      _blend(self._oriented("w", self._weights, axes), kernel)]
+            return planes, _Placement(c0, r0, axes, kernel=kernel)
+        c0, r0, c1, r1 = self._footprint(matrix)
         local = matrix.copy()
         local[:, 2] -= (c0, r0)
-        warped = cv2.warpAffine(stack, local, (c1 - c0, r1 - r0), flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return warped, local, c0, r0
+        size = (c1 - c0, r1 - r0)
+        planes = [cv2.warpAffine(plane, local, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                 borderValue=0) for plane in (weighted_band, weighted_field, self._weights)]
+        return planes, _Placement(c0, r0, None, matrix=local, size=size)
 
     def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
-        warped, local, c0, r0 = self._warp(frame, pose, delta)
-        self.canvas.add(warped, c0, r0)
-        self._placements.append((local, c0, r0, warped.shape[1], warped.shape[0]))
+        planes, placement = self._warp(frame, pose, delta)
+        self.canvas.add(planes, placement.c0, placement.r0)
+        self._placements.append(placement)
         self.stats.mapped += 1
         if frame.field is not None:
-            self._level = float(frame.field.mean())
+            self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
+            self._level_field = frame.field
 
     def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float] | None:
         """This frame's offset (columns, rows, score) against the earlier passes where they overlap."""
         assert self._prior is not None
-        warped, _, c0, r0 = self._warp(frame, pose, np.zeros(2))
+        (weighted_band, weighted_field, weights), placement = self._warp(frame, pose, np.zeros(2))
+        c0, r0 = placement.c0, placement.r0
         value, weight, cs, rs = self._prior
-        h, w = warped.shape[:2]
+        h, w = weights.shape
         pr0, pc0 = r0 - rs, c0 - cs
         rows, cols = value.shape
         if pr0 < 0 or pc0 < 0 or pr0 + h > rows or pc0 + w > cols:
             return None
         prior = value[pr0:pr0 + h, pc0:pc0 + w]
-        known = weight[pr0:pr0 + h, pc0:pc0 + w] > 0.3 * float(weight.max() or 1.0)
-        mine = warped[..., 2] > 0.3 * float(self._weights.max() if self._weights is not None else 1.0)
+        known = weight[pr0:pr0 + h, pc0:pc0 + w] > 0.3 * self._prior_weight_max
+        mine = weights > 0.3 * float(self._weights.max() if self._weights is not None else 1.0)
         both = known & mine
         s = self.config.search_px
         ys, xs = np.nonzero(both)
@@ -759,7 +926,7 @@ class WorldMapper:
         if a1 - a0 < 12 or b1 - b0 < 12 or not both[a0:a1, b0:b1].all():
             # the overlap is not a full rectangle: use its largest all-covered rows band
             return None
-        band = np.divide(warped[..., 0], warped[..., 1], out=np.zeros((h, w), np.float32), where=warped[..., 1] > 1e-6)
+        band = np.divide(weighted_band, weighted_field, out=np.zeros((h, w), np.float32), where=weighted_field > 1e-6)
         template = _highpass(band[a0:a1, b0:b1])
         search = _highpass(prior[a0 - s:a1 + s, b0 - s:b1 + s])
         scores = cv2.matchTemplate(search, template, cv2.TM_CCOEFF_NORMED)

@@ -68,3 +68,65 @@ def test_writer_refuses_to_overwrite_and_unknown_storage(bag_factory, rng, tmp_p
         write_images(bag, frames(rng, n=1))
     with pytest.raises(UserError, match="unknown bag storage"):
         write_images(tmp_path / "x", frames(rng, n=1), storage="rosbag1")
+
+
+def scan_records(rng, n=5, shape=(40, 24, 3)):
+    """Images and transforms interleaved as a recording holds them (two transforms share a message time)."""
+    from touchroller_bringup.bags import TransformRecord
+
+    out: list = [TransformRecord("tool0", "touchroller_cylinder", 0, (0.0, 0.0, -0.1), (1.0, 0.0, 0.0, 0.0), True)]
+    for i in range(n):
+        stamp = 1_700_000_000_000_000_000 + i * 33_333_333
+        out.append(TransformRecord("base", "tool0", stamp - 5_000_000, (0.4 + 0.001 * i, -0.02, 0.1 + 1e-4 * i),
+                                   (0.0, 1.0, 0.0, 0.0), False))
+        out.append(ImageRecord(stamp, rng.integers(0, 256, shape, dtype=np.uint8)))
+    return out
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_reading_only_some_rows_gives_those_rows_of_every_frame_and_the_same_transforms(tmp_path, rng, storage):
+    from touchroller_bringup.bags import read_images_and_tf, write_scan
+
+    written = scan_records(rng)
+    write_scan(tmp_path / "scan", written, storage=storage)
+    whole = list(read_images_and_tf(tmp_path / "scan"))
+    rows = list(read_images_and_tf(tmp_path / "scan", rows=(7, 19)))
+    assert [type(r) for r in whole] == [type(r) for r in written] == [type(r) for r in rows]
+    for w, a, b in zip(written, whole, rows, strict=True):
+        if isinstance(w, ImageRecord):
+            assert a.stamp_ns == b.stamp_ns == w.stamp_ns
+            np.testing.assert_array_equal(a.image, w.image)
+            assert a.frame_shape == b.frame_shape == (40, 24)
+            # sqlite3 reads the rows alone; MCAP (no partial reads) gives the whole frame
+            assert (b.row0, b.image.shape[0]) == ((7, 12) if storage == "sqlite3" else (0, 40))
+            np.testing.assert_array_equal(b.image, w.image[b.row0:b.row0 + b.image.shape[0]])
+        else:
+            assert a == b
+            assert (a.parent, a.child, a.stamp_ns, a.static) == (w.parent, w.child, w.stamp_ns, w.static)
+            assert a.translation == pytest.approx(w.translation) and a.rotation == pytest.approx(w.rotation)
+
+
+def test_tf_messages_parse_as_rosbags_deserialises_them():
+    """The hand parser against rosbags' deserialiser on a message of several transforms (odd-length names
+    move the alignment of what follows)."""
+    from rosbags.typesys.stores.ros2_kilted import builtin_interfaces__msg__Time as Time
+    from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__Quaternion as Quaternion
+    from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__Transform as TransformMsg
+    from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__TransformStamped as Stamped
+    from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__Vector3 as Vector3
+    from rosbags.typesys.stores.ros2_kilted import std_msgs__msg__Header as Header
+    from rosbags.typesys.stores.ros2_kilted import tf2_msgs__msg__TFMessage as TFMessage
+
+    from touchroller_bringup.bags import TF_TYPE, _parse_tf_cdr
+
+    names = [("base", "tool0"), ("a", "bc"), ("left/tool0", "left/touchroller_cylinder")]
+    transforms = [Stamped(header=Header(stamp=Time(sec=17 + i, nanosec=5 * i + 1), frame_id=parent),
+                          child_frame_id=child, transform=TransformMsg(translation=Vector3(x=0.1 * i, y=-0.2, z=3.0),
+                                                 rotation=Quaternion(x=0.0, y=0.6, z=0.0, w=0.8)))
+                  for i, (parent, child) in enumerate(names)]
+    raw = typestore().serialize_cdr(TFMessage(transforms=transforms), TF_TYPE)
+    parsed = _parse_tf_cdr(raw, static=False)
+    assert [(p.parent, p.child, p.stamp_ns) for p in parsed] == [
+        (parent, child, (17 + i) * 1_000_000_000 + 5 * i + 1) for i, (parent, child) in enumerate(names)]
+    assert [p.translation for p in parsed] == [(0.1 * i, -0.2, 3.0) for i in range(3)]
+    assert all(p.rotation == (0.0, 0.6, 0.0, 0.8) and not p.static for p in parsed)

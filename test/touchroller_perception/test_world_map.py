@@ -101,3 +101,27 @@ def test_config_is_checked():
         WorldMapConfig(bounds=(1.0, 0.0, 0.0, 1.0))
     with pytest.raises(ValueError, match="max_pixels"):
         WorldMapConfig(bounds=(0.0, 0.0, 10.0, 10.0))
+
+
+@pytest.mark.parametrize("turn", [((0, 1), (1, 0)), ((0, -1), (1, 0)), ((0, 1), (-1, 0)), ((0, -1), (-1, 0)),
+                                  ((1, 0), (0, 1)), ((-1, 0), (0, 1)), ((1, 0), (0, -1)), ((-1, 0), (0, -1))])
+def test_an_axis_aligned_band_lands_where_the_bilinear_warp_puts_it(turn):
+    """The fast placement (quarter turns and flips, then a 2x2 bilinear blend) against OpenCV's affine warp
+    of the same band, for every orientation and a subpixel offset; OpenCV rounds positions to 1/32 px."""
+    import cv2
+
+    from touchroller_perception.world_map import _axis_aligned, _blend, _orient
+
+    rng = np.random.default_rng(3)
+    plane = cv2.GaussianBlur(rng.normal(100, 30, (30, 50)).astype(np.float32), (0, 0), 2.0)
+    matrix = np.array([[turn[0][0], turn[0][1], 70.3], [turn[1][0], turn[1][1], 60.7]], np.float64)
+    axes, c0, r0, kernel = _axis_aligned(matrix, plane.shape)
+    patch = _blend(_orient(plane, axes), kernel)
+    warped = cv2.warpAffine(plane, matrix, (200, 200), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    h, w = patch.shape
+    assert 0 <= c0 and 0 <= r0 and c0 + w <= 200 and r0 + h <= 200
+    outside = warped.copy()
+    outside[r0:r0 + h, c0:c0 + w] = 0
+    assert np.abs(outside).max() == 0   # the patch holds all of the band
+    assert np.abs(patch - warped[r0:r0 + h, c0:c0 + w]).max() < 0.05   # grey levels (0.02 px off: 2)
+    assert _axis_aligned(matrix + np.array([[0, 1e-3, 0], [0, 0, 0]]), plane.shape) is None   # not a pure turn

@@ -127,14 +127,18 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     stitcher = StitcherConfig(band_rows=args.band_rows, search=args.search, lateral=False, column_bin=8)
     mapper = WorldMapper(camera, buffer_lookup(buffer, args.world_frame, args.cylinder_frame), config, stitcher)
 
+    rows = mapper.source_rows((camera.height, camera.width))
+
     def records() -> Iterator[tuple[str, object]]:
-        # The reader thread reads the bag and cuts the bands (GIL-free OpenCV); the main thread maps.
-        for record in read_images_and_tf(args.bag, args.topic):
+        # The reader thread reads the bag (only the band's rows where it can) and cuts the bands
+        # (GIL-free SQLite and OpenCV); the main thread maps.
+        for record in read_images_and_tf(args.bag, args.topic, rows=rows):
             if isinstance(record, ImageRecord):
-                if (camera.width, camera.height) != (record.image.shape[1], record.image.shape[0]):
+                height, width = record.frame_shape
+                if (camera.width, camera.height) != (width, height):
                     raise UserError(f"the camera model is for {camera.width}x{camera.height} images but the bag "
-                                    f"has {record.image.shape[1]}x{record.image.shape[0]}")
-                yield "image", (record.stamp_ns, mapper.band(record.image))
+                                    f"has {width}x{height}")
+                yield "image", (record.stamp_ns, mapper.band(record.image, record.row0, height))
             else:
                 yield "tf", record
 
