@@ -111,6 +111,31 @@ def _spin_until(executor_or_node: object, predicate: Callable[[], bool], timeout
             executor.shutdown()
 
 
+class NodeInitFailure(Exception):
+    """Raised by `fail_after_node_init` right after rclpy's Node.__init__ has returned."""
+
+
+@pytest.fixture
+def fail_after_node_init(monkeypatch: pytest.MonkeyPatch) -> Callable[[type], type[Exception]]:
+    """`fail_after_node_init(cls)`: the constructor of `cls` raises NodeInitFailure (returned) as soon as
+    rclpy's Node.__init__ returns. That is the worst place to fail part-way: from there on the context
+    tracks the node and destroys it at shutdown, before the subclass has set anything of its own."""
+    from rclpy.node import Node
+
+    original = Node.__init__
+
+    def arm(cls: type) -> type[Exception]:
+        def init(self: Node, *args: object, **kwargs: object) -> None:
+            original(self, *args, **kwargs)
+            if type(self) is cls:
+                raise NodeInitFailure(f"{cls.__name__} failed part-way")
+
+        monkeypatch.setattr(Node, "__init__", init)
+        return NodeInitFailure
+
+    return arm
+
+
 @pytest.fixture
 def spin_until() -> Callable[..., bool]:
     return _spin_until

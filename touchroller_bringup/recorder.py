@@ -154,16 +154,23 @@ class Recorder(Node):
 
     def __init__(self, path: str | Path, *, topics: Iterable[str] | None = None, storage: str = "sqlite3",
                  discovery_period: float = 0.2, node_name: str = "touchroller_recorder", **node_kwargs: Any) -> None:
+        # What close() and destroy_node use comes before Node.__init__: from there on the context tracks
+        # the node and destroys it at shutdown, also when the rest of this constructor raises.
         self.path = Path(path)
-        self._writer = _BagWriter(self.path, storage)  # raises UserError before any node exists
-        super().__init__(node_name, **node_kwargs)
         self.topics = None if topics is None else [t if t.startswith("/") else "/" + t for t in topics]
         self.counts: dict[str, int] = {}
         self._recorded_subscriptions: dict[str, Any] = {}
         self._warned: set[str] = set()
         self._lock = threading.Lock()
         self._closed = False
-        self._writer.start()
+        self._timer: Any = None
+        self._writer = _BagWriter(self.path, storage)
+        self._writer.start()   # opens the bag: UserError (e.g. a read-only folder) before any node exists
+        try:
+            super().__init__(node_name, **node_kwargs)
+        except BaseException:
+            self._writer.finish()
+            raise
         self._discover()
         self._timer = self.create_timer(discovery_period, self._discover)
 
@@ -222,7 +229,8 @@ class Recorder(Node):
             if self._closed:
                 return
             self._closed = True
-        self.destroy_timer(self._timer)
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
         for subscription in self._recorded_subscriptions.values():
             self.destroy_subscription(subscription)
         self._writer.finish()

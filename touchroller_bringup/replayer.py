@@ -61,6 +61,8 @@ class Replayer(Node):
         reader.close()
         if wanted is not None and (missing := wanted - {c.topic for c in connections}):
             raise UserError(f"bag {self.path} has no topic {', '.join(sorted(missing))}")
+        self._stop = threading.Event()   # what stop() uses, before the context tracks the node
+        self._thread: threading.Thread | None = None
         super().__init__(node_name, **node_kwargs)
         self._playback_publishers: dict[int, Any] = {}
         by_topic: dict[str, Any] = {}
@@ -76,9 +78,7 @@ class Replayer(Node):
         self.topics = sorted(by_topic)
         self.published = 0
         self.error: str | None = None
-        self._stop = threading.Event()
         self._done = threading.Event()
-        self._thread: threading.Thread | None = None
 
     @property
     def finished(self) -> bool:

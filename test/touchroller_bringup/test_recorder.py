@@ -108,6 +108,28 @@ def test_bad_output_is_one_clear_error(ros_context, tmp_path):
         Recorder(tmp_path / "new", storage="rosbag1", context=ros_context)
 
 
+def test_a_bag_that_cannot_be_opened_is_the_error_not_a_failing_cleanup(tmp_path):
+    """`touchroller record --out <read-only dir>` said `'Recorder' object has no attribute '_timer'`. As the
+    user runs it; a folder under a regular file fails for root too."""
+    (tmp_path / "file").write_text("not a folder")
+    done = subprocess.run([sys.executable, "-m", "touchroller_bringup.cli", "record", "--out",
+                           str(tmp_path / "file" / "bag"), "--duration", "1"], capture_output=True, text=True,
+                          timeout=120, env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and "cannot write bag" in done.stderr and "Error" in done.stderr, done.stderr
+    assert "AttributeError" not in done.stderr
+
+
+def test_failing_right_after_node_init_finalises_the_bag_and_shuts_down_cleanly(ros_context, tmp_path,
+                                                                                fail_after_node_init):
+    failure = fail_after_node_init(Recorder)
+    with pytest.raises(failure) as raised:
+        Recorder(tmp_path / "partial", context=ros_context)
+    ros_context.try_shutdown()   # destroys the half-built node, which the traceback keeps alive
+    assert raised.value is not None and not ros_context.ok()
+    assert (tmp_path / "partial" / "metadata.yaml").is_file()   # the writer was closed, not left open
+
+
 def test_subscription_qos_adapts_to_the_publishers():
     reliable = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
     best_effort = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)

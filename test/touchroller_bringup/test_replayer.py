@@ -162,6 +162,15 @@ def test_unknown_topic_missing_bag_and_bad_rate_are_one_line_errors(ros_context,
         Replayer(bag, rate=0.0, context=ros_context)
 
 
+def test_failing_right_after_node_init_shuts_down_cleanly(ros_context, tmp_path, fail_after_node_init):
+    bag = write_string_bag(tmp_path / "bag", [0])
+    failure = fail_after_node_init(Replayer)
+    with pytest.raises(failure) as raised:
+        Replayer(bag, context=ros_context)
+    ros_context.try_shutdown()   # destroys the half-built node, which the traceback keeps alive
+    assert raised.value is not None and not ros_context.ok()
+
+
 def test_cli_replay_plays_a_bag_and_reports_errors_in_one_line(ros_context, tmp_path, capsys):
     from touchroller_bringup.cli import main
 

@@ -91,3 +91,23 @@ def test_an_rcl_error_while_the_context_is_up_is_not_swallowed(ros_context, monk
     with pytest.raises(rclpy_implementation.RCLError, match="a real failure"):
         ros_main.run_node(lambda: Node("run_node_error_probe"))
     assert not rclpy.ok()     # shut down all the same
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize(("script", "arguments", "expected"), [
+    ("camera_node", ["-p", "extrinsics.theta:=10.0"], "extrinsics.theta out of range"),
+    ("perception_node", ["-p", "extrinsics.theta:=abc"], "extrinsics.theta"),
+    ("perception_node", ["-p", "extrinsics.d:=0.08"], "outside the tube"),
+    ("sweep_node", ["-p", "sweep.speed:=-5.0"], "sweep.speed out of range"),
+    ("calibration_node", ["--params-file", "not_yaml.yaml"], "Couldn't parse params file"),
+])
+def test_bad_start_up_parameters_are_one_line_and_exit_2(ros_context, tmp_path, script, arguments, expected):
+    """As a user starts a node: its console script with a bad value gave a 27-line traceback."""
+    (tmp_path / "not_yaml.yaml").write_text("a: [\n")
+    executable = os.path.join(os.path.dirname(sys.executable), script)
+    done = subprocess.run([executable, "--ros-args", *arguments], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=100, env=dict(os.environ))
+    assert done.returncode == 2, done.stderr
+    ours = [line for line in done.stderr.splitlines() if not line.startswith("[ERROR] [")]   # rcl logs its own
+    assert len(ours) == 1 and ours[0].startswith(f"{script}: error: ") and expected in ours[0], done.stderr
+    assert "Traceback" not in done.stderr and not done.stdout

@@ -223,6 +223,16 @@ def test_bad_parameter_value_names_the_node(isolated_ros, tmp_path, capsys):
 
 
 @pytest.mark.ros
+def test_a_node_that_fails_part_way_reports_its_own_error(isolated_ros, tmp_path, capsys):
+    """The camera node refuses theta 10 rad half-way through its constructor; the scan's cleanup then
+    destroyed the half-built node and said `'CameraNode' object has no attribute '_stop'` instead."""
+    assert main(["scan", "extrinsics.theta:=10.0", "--quiet", "--out", str(tmp_path / "x")]) == 2
+    err = error_text(capsys.readouterr().err)
+    assert err.startswith("touchroller: error: cannot start node /touchroller/camera") and "extrinsics.theta" in err
+    assert "AttributeError" not in err and "\n" not in err
+
+
+@pytest.mark.ros
 def test_an_integer_for_a_double_parameter_is_taken_as_a_double(isolated_ros, tmp_path, capsys):
     # sweep.speed:=1 reaches the node as 1.0 (and is then refused by the arm limit, before any motion)
     assert main(["scan", "sweep.speed:=1", "--quiet", "--out", str(tmp_path / "x")]) == 2

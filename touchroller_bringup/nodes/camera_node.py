@@ -87,13 +87,8 @@ class CameraNode(Node):
     def __init__(self, node_name: str = names.CAMERA_NODE, *, source: FrameSource | None = None,
                  autostart: bool = True, **node_kwargs: Any) -> None:
         node_kwargs.setdefault("namespace", names.DEFAULT_NAMESPACE)
-        super().__init__(node_name, **node_kwargs)
-        self._declare_parameters()
-        self.frame_prefix = declare_frame_prefix(self)
-        self.geometry = GeometryParameters(self, on_change=self._on_geometry)
-        self.add_on_set_parameters_callback(self._validate)
-        self.add_post_set_parameters_callback(self._apply)
-        self.frame_id = self._prefixed_frame_id()
+        # What destroy_node (stop) uses comes before Node.__init__: from there on the context tracks the
+        # node and destroys it at shutdown, also when the rest of this constructor raises.
         self._external_source = source is not None
         self.source: FrameSource | None = source
         self._opened = False
@@ -101,8 +96,16 @@ class CameraNode(Node):
         self._restart = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._image_msg = Image()
         self._lock = threading.Lock()  # guards source swaps against diagnostics reads
+        self._closed_stats = SourceStats()  # drops etc. of sources closed by a restart
+        super().__init__(node_name, **node_kwargs)
+        self._declare_parameters()
+        self.frame_prefix = declare_frame_prefix(self)
+        self.geometry = GeometryParameters(self, on_change=self._on_geometry)
+        self.add_on_set_parameters_callback(self._validate)
+        self.add_post_set_parameters_callback(self._apply)
+        self.frame_id = self._prefixed_frame_id()
+        self._image_msg = Image()
         self.published = 0
         self.malformed = 0
         self.rate_meter = RateMeter()
@@ -110,7 +113,6 @@ class CameraNode(Node):
         self._finished_logged = False
         self._streaming_logged = False
         self._last_error_log = 0.0
-        self._closed_stats = SourceStats()  # drops etc. of sources closed by a restart
 
         overrides = QoSOverridingOptions.with_default_policies()
         self.image_pub = self.create_publisher(Image, names.IMAGE, image_qos(), qos_overriding_options=overrides)

@@ -432,3 +432,23 @@ def coarse(image: np.ndarray) -> np.ndarray:
     """Grey, 8x smaller: the sensor noise averages out, the image content stays."""
     grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float64)
     return cv2.resize(grey, (grey.shape[1] // 8, grey.shape[0] // 8), interpolation=cv2.INTER_AREA)
+
+
+def test_a_bad_start_up_parameter_is_the_error_not_a_failing_cleanup(ros_context):
+    """`touchroller scan extrinsics.theta:=10.0` said `'CameraNode' object has no attribute '_stop'`: the
+    context destroys every node it tracks at shutdown, also one whose constructor raised part-way."""
+    from rclpy.exceptions import InvalidParameterValueException
+
+    with pytest.raises(InvalidParameterValueException, match="extrinsics.theta") as failure:
+        CameraNode(context=ros_context, autostart=False,
+                   parameter_overrides=[Parameter("extrinsics.theta", value=10.0)])
+    ros_context.try_shutdown()   # destroys the half-built node, which the traceback keeps alive
+    assert failure.value is not None and not ros_context.ok()
+
+
+def test_failing_right_after_node_init_shuts_down_cleanly(ros_context, fail_after_node_init):
+    failure = fail_after_node_init(CameraNode)
+    with pytest.raises(failure) as raised:
+        CameraNode(context=ros_context, autostart=False)
+    ros_context.try_shutdown()
+    assert raised.value is not None and not ros_context.ok()
