@@ -34,6 +34,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _fail(message: str, code: int = 1) -> int:
+    message = " ".join(message.split())   # one line, whatever the message (a YAML error spans several)
     print(f"touchroller: error: {message}" if not message.startswith("touchroller") else message,
           file=sys.stderr)
     return code

@@ -16,21 +16,25 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from touchroller_bringup import names
-from touchroller_perception.geometry import PARAMETER_NAMES, CameraModel
+from touchroller_perception.geometry import PARAMETER_NAMES, PARAMETER_RANGES, CameraModel
 
-# name -> (description, min, max)
+_GEOMETRY_DESCRIPTIONS = {
+    "camera.fx": "Focal length along u (image columns, the cylinder axis), pixels",
+    "camera.fy": "Focal length along v (image rows, around the cylinder), pixels",
+    "camera.cx": "Principal point u, pixels",
+    "camera.cy": "Principal point v, pixels",
+    "camera.distortion": "OpenCV distortion coefficients [k1, k2, p1, p2, k3]",
+    "camera.width": "Image width, pixels",
+    "camera.height": "Image height, pixels",
+    "cylinder.radius": "Radius r of the membrane surface y^2 + z^2 = r^2, metres",
+    "cylinder.length": "Length of the tube along x, metres",
+    "extrinsics.theta": "Camera rotation about the cylinder axis x (paper Eq. bigeq), radians",
+    "extrinsics.d": "Camera offset along z (paper Eq. bigeq), metres; |d| < radius",
+}
+# name -> (description, min, max); the ranges are the camera model's own (geometry.PARAMETER_RANGES)
 GEOMETRY_PARAMETERS: dict[str, tuple[str, float | None, float | None]] = {
-    "camera.fx": ("Focal length along u (image columns, the cylinder axis), pixels", 1.0, 100000.0),
-    "camera.fy": ("Focal length along v (image rows, around the cylinder), pixels", 1.0, 100000.0),
-    "camera.cx": ("Principal point u, pixels", -10000.0, 10000.0),
-    "camera.cy": ("Principal point v, pixels", -10000.0, 10000.0),
-    "camera.distortion": ("OpenCV distortion coefficients [k1, k2, p1, p2, k3]", None, None),
-    "camera.width": ("Image width, pixels", 1, 16384),
-    "camera.height": ("Image height, pixels", 1, 16384),
-    "cylinder.radius": ("Radius r of the membrane surface y^2 + z^2 = r^2, metres", 0.001, 1.0),
-    "cylinder.length": ("Length of the tube along x, metres", 0.001, 2.0),
-    "extrinsics.theta": ("Camera rotation about the cylinder axis x (paper Eq. bigeq), radians", -1.5, 1.5),
-    "extrinsics.d": ("Camera offset along z (paper Eq. bigeq), metres; |d| < radius", -1.0, 1.0),
+    name: (description, *(PARAMETER_RANGES[name][:2] if name in PARAMETER_RANGES else (None, None)))
+    for name, description in _GEOMETRY_DESCRIPTIONS.items()
 }
 assert set(GEOMETRY_PARAMETERS) == set(PARAMETER_NAMES)
 

@@ -38,6 +38,22 @@ _FIELD_OF_PARAMETER = {
     "cylinder.radius": "radius", "cylinder.length": "length",
     "extrinsics.theta": "theta", "extrinsics.d": "d",
 }
+#: The range (inclusive) and unit of each scalar parameter. The nodes declare these ranges
+#: (touchroller_bringup.ros_params) and a CameraModel outside them is refused, so a params file read
+#: without ROS (`touchroller contacts --params`, ...) is held to the same ranges: theta = 10 (degrees
+#: meant, radians read) would otherwise put every contact on the wrong side of the cylinder.
+PARAMETER_RANGES: dict[str, tuple[float, float, str]] = {
+    "camera.fx": (1.0, 100000.0, "px"),
+    "camera.fy": (1.0, 100000.0, "px"),
+    "camera.cx": (-10000.0, 10000.0, "px"),
+    "camera.cy": (-10000.0, 10000.0, "px"),
+    "camera.width": (1, 16384, "px"),
+    "camera.height": (1, 16384, "px"),
+    "cylinder.radius": (0.001, 1.0, "m"),
+    "cylinder.length": (0.001, 2.0, "m"),
+    "extrinsics.theta": (-1.5, 1.5, "rad"),
+    "extrinsics.d": (-1.0, 1.0, "m"),
+}
 #: Parameters whose uncertainty `contact_covariance` can propagate.
 CALIBRATION_PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "theta", "d", "radius")
 
@@ -73,6 +89,10 @@ class CameraModel:
         values = [self.fx, self.fy, self.cx, self.cy, self.theta, self.d, self.radius, self.length, *dist]
         if not all(math.isfinite(x) for x in values):
             raise ValueError("camera model parameters must be finite")
+        for name, (lo, hi, unit) in PARAMETER_RANGES.items():
+            value = getattr(self, _FIELD_OF_PARAMETER[name])
+            if not lo <= value <= hi:
+                raise ValueError(f"{name} = {value:g} {unit} is outside its range [{lo:g}, {hi:g}] {unit}")
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"focal lengths must be positive (fx={self.fx}, fy={self.fy})")
         if self.radius <= 0 or self.length <= 0:
@@ -101,10 +121,13 @@ class CameraModel:
         """Read a ROS 2 params file (`/**: ros__parameters: ...`, or any node name) or a flat mapping."""
         import yaml
 
-        with open(path, encoding="utf-8") as stream:
-            document = yaml.safe_load(stream)
+        try:
+            with open(path, encoding="utf-8") as stream:
+                document = yaml.safe_load(stream)
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            raise ValueError(f"not a YAML parameters file ({_one_line_yaml_error(exc)})") from None
         if not isinstance(document, Mapping):
-            raise ValueError(f"{path}: not a parameters file (expected a mapping)")
+            raise ValueError("not a parameters file (expected a mapping)")
         return cls.from_params(_ros_parameters(document))
 
     def to_yaml(self, path: str | Path, extra: Mapping[str, Any] | None = None) -> None:
@@ -362,6 +385,15 @@ def _fold_radius2(k1: float, k2: float, p1: float, p2: float, k3: float) -> floa
 
 
 # --------------------------------------------------------------------------- YAML helpers
+def _one_line_yaml_error(exc: Exception) -> str:
+    """`found unexpected end of stream at line 2, column 1` rather than PyYAML's multi-line report."""
+    problem = getattr(exc, "problem", None)
+    mark = getattr(exc, "problem_mark", None)
+    if problem and mark is not None:
+        return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def _flatten(params: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     flat: dict[str, Any] = {}
     for key, value in params.items():

@@ -57,6 +57,7 @@ _FLAT_FIELD_MEMORY = 300  # frames the live flat field averages over
 _MISMATCH_COST = 0.5
 _STILL_PX = 1.0  # less motion than this (px) counts as standing still
 DEFAULT_HISTORY = 1000  # per-frame records a Stitcher keeps unless told otherwise
+MAX_MAP_PIXELS = 256_000_000  # the most pixels a resampled (metric) map may have: 256 MB of grey
 
 
 @dataclass(frozen=True)
@@ -701,6 +702,9 @@ class Stitcher:
             raise ValueError("a metric map needs a camera model (geometry) to know mm per pixel")
         h, w = image.shape
         size = (max(1, round(w * col_mm / mm_per_px)), max(1, round(h * row_mm / mm_per_px)))
+        if size[0] * size[1] > MAX_MAP_PIXELS:
+            raise ValueError(f"the map at {mm_per_px:g} mm per pixel would be {size[0]}x{size[1]} px, more than "
+                             f"{MAX_MAP_PIXELS:,} pixels; choose a coarser scale")
         shrink = row_mm < mm_per_px
         return cv2.resize(image, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_CUBIC)
 

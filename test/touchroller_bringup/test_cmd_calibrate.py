@@ -100,3 +100,25 @@ def test_calibrate_compare(tmp_path, capsys):
     CameraModel(width=320, height=240, cx=159.5, cy=119.5).to_yaml(b)
     assert main(["calibrate", "compare", str(a), str(b)]) == 2
     assert "different image sizes" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["calibrate", "intrinsics", "{blank}", "--params", "{not_yaml}", "--out", "x.yaml"], "not a YAML parameters file"),
+    (["calibrate", "extrinsics", "{blank}", "--params", "{not_yaml}", "--out", "x.yaml"], "not a YAML parameters file"),
+    (["calibrate", "extrinsics", "{blank}", "--params", "{theta10}", "--out", "x.yaml"], "extrinsics.theta = 10 rad"),
+    (["calibrate", "extrinsics", "{blank}", "--params", "{good}", "--frame", "100000x100000", "--out", "x.yaml"],
+     "at most 50 rows and columns"),
+    (["calibrate", "intrinsics", "{blank}", "--board", "100000x100000", "--out", "x.yaml"], "at most 100x100"),
+])
+def test_bad_params_files_and_sizes_are_one_line_and_exit_2(argv, message, tmp_path, capsys):
+    """A params file that is not YAML exited 1 with PyYAML's report; --frame 100000x100000 tried 74.5 GiB."""
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))
+    files = {"not_yaml": "camera.fx: [\n", "theta10": "/**:\n  ros__parameters:\n    extrinsics.theta: 10\n",
+             "good": "/**:\n  ros__parameters:\n    camera.fx: 500.0\n"}
+    for name, text in files.items():
+        (tmp_path / f"{name}.yaml").write_text(text)
+    argv = [a.format(blank=blank, **{name: tmp_path / f"{name}.yaml" for name in files}) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err and "Traceback" not in err

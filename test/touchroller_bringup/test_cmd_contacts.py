@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import csv
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -127,3 +130,31 @@ def test_reference_from_another_recording(bag_factory, tmp_path, capsys):
                  "--out", str(tmp_path / "c.csv")])
     err = capsys.readouterr().err
     assert code == 2 and "does not match the reference" in err and len(err.strip().splitlines()) == 1
+
+
+def touchroller(*argv, cwd):
+    """The `touchroller` console script, run as a user runs it."""
+    executable = os.path.join(os.path.dirname(sys.executable), "touchroller")
+    return subprocess.run([executable, *map(str, argv)], cwd=cwd, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.parametrize("content, message", [
+    ("/**:\n  ros__parameters:\n    extrinsics.theta: 10\n", "extrinsics.theta = 10 rad is outside its range"),
+    ("camera.fx: [\n", "not a YAML parameters file"),
+    ("\tcamera.fx: 500\n", "not a YAML parameters file"),
+])
+def test_a_params_file_out_of_range_or_not_yaml_is_one_line_and_no_csv(tapped_bag, tmp_path, content, message):
+    """theta 10 (degrees meant) gave rc 0 and points on the far side of the cylinder; a file that is not
+    YAML gave PyYAML's multi-line report."""
+    bag, _ = tapped_bag
+    params = tmp_path / "cal.yaml"
+    params.write_text(content)
+    done = touchroller("contacts", bag, "--params", params, "--out", "c.csv", cwd=tmp_path)
+    assert done.returncode == 2 and message in done.stderr and len(done.stderr.splitlines()) == 1, done.stderr
+    assert not (tmp_path / "c.csv").exists()
+
+
+def test_reference_frames_are_bounded(tapped_bag, tmp_path, capsys):
+    bag, _ = tapped_bag
+    assert main(["contacts", str(bag), "--out", str(tmp_path / "c.csv"), "--reference-frames", "100000000"]) == 2
+    assert "--reference-frames must be in [1, 1000]" in capsys.readouterr().err

@@ -2,6 +2,10 @@
 from __future__ import annotations
 
 import csv
+import os
+import re
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -167,3 +171,40 @@ def test_read_ahead_keeps_order_raises_in_place_and_stops_early():
     reader.close()   # the consumer stops early (an error while stitching): the reader thread ends too
     assert not any(t.name == "bag-reader" and t.is_alive() for t in threading.enumerate())
     assert len(produced) <= 5
+
+
+def test_a_metric_scale_that_would_not_fit_in_memory_is_one_line_before_stitching(roll_bag, tmp_path):
+    """`touchroller map --metric 1e-6` tried to allocate 1.7 PB after stitching the whole bag."""
+    bag, _ = roll_bag
+    executable = os.path.join(os.path.dirname(sys.executable), "touchroller")
+    done = subprocess.run([executable, "map", str(bag), "--out", "m.png", "--metric", "1e-6"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert "--metric must be" in done.stderr and "[0.001, 10]" in done.stderr and len(done.stderr.splitlines()) == 1
+    assert not (tmp_path / "m.png").exists()
+
+
+def test_a_metric_map_past_the_pixel_bound_is_refused_before_it_is_allocated(roll_bag, tmp_path, capsys, monkeypatch):
+    from touchroller_perception import stitching
+
+    bag, _ = roll_bag
+    monkeypatch.setattr(stitching, "MAX_MAP_PIXELS", 100_000)   # the roll is 639x269 px at 0.1 mm/px
+    assert main(["map", str(bag), "--out", str(tmp_path / "m.png"), "--metric", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert re.search(r"would be 12\d\dx5\d\d px, more than 100,000 pixels", err) and "coarser" in err, err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "m.png").exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--band-rows", "100000000"], "--band-rows must be in [8, 4096]"),
+    (["--search", "100000000"], "--search must be in [1, 4096]"),
+    (["--params", "{tmp}/not_yaml.yaml"], "not a YAML parameters file"),
+])
+def test_sizes_and_params_are_checked_before_reading_the_bag(roll_bag, tmp_path, capsys, extra, message):
+    bag, _ = roll_bag
+    (tmp_path / "not_yaml.yaml").write_text("camera: {fx: 500\n")
+    argv = ["map", str(bag), "--out", str(tmp_path / "m.png")] + [a.replace("{tmp}", str(tmp_path)) for a in extra]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1

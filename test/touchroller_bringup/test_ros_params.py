@@ -8,7 +8,7 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from touchroller_bringup.ros_params import GEOMETRY_PARAMETERS, GeometryParameters, declare  # noqa: E402
-from touchroller_perception.geometry import CameraModel  # noqa: E402
+from touchroller_perception.geometry import PARAMETER_RANGES, CameraModel  # noqa: E402
 
 
 @pytest.fixture
@@ -25,6 +25,15 @@ def test_every_geometry_parameter_has_a_description_and_range(node):
         assert descriptor.description, name
         if name != "camera.distortion":
             assert descriptor.floating_point_range or descriptor.integer_range, name
+
+
+def test_the_declared_ranges_are_the_camera_models_own(node):
+    """One range per parameter: what a node accepts and what a params file read without ROS may hold."""
+    GeometryParameters(node)
+    for name, (lo, hi, _unit) in PARAMETER_RANGES.items():
+        descriptor = node.describe_parameter(name)
+        (declared,) = descriptor.floating_point_range or descriptor.integer_range
+        assert (declared.from_value, declared.to_value) == (lo, hi), name
 
 
 def test_update_is_validated_then_applied(node):

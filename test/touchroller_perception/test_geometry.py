@@ -8,7 +8,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from touchroller_perception.geometry import CameraModel
+from touchroller_perception.geometry import PARAMETER_RANGES, CameraModel
 
 thetas = st.floats(-math.radians(60), math.radians(60))
 offsets = st.floats(-0.9, 0.9)          # d as a fraction of r
@@ -219,3 +219,30 @@ def test_unknown_calibration_parameter_is_refused():
 ])
 def test_distortion_fold_radius(dist, fold):
     assert CameraModel(distortion=dist).max_undistorted_radius2 == pytest.approx(fold)
+
+
+@pytest.mark.parametrize("name", sorted(PARAMETER_RANGES))
+def test_each_parameter_is_held_to_the_range_the_nodes_declare(name):
+    """A params file read without ROS (`touchroller contacts --params`) meets the nodes' ranges: theta = 10
+    (degrees meant, radians read) put every contact on the other side of the cylinder."""
+    lo, hi, unit = PARAMETER_RANGES[name]
+    CameraModel.from_params({name: lo if name != "extrinsics.d" else -0.01})   # in range: taken
+    beyond = hi * 2 + 1
+    with pytest.raises(ValueError, match=rf"{name} = .* {unit} is outside its range \[{lo:g}, {hi:g}\]"):
+        CameraModel.from_params({name: int(beyond) if isinstance(lo, int) else beyond})
+
+
+def test_theta_in_degrees_from_a_params_file_is_refused(tmp_path):
+    path = tmp_path / "cal.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    extrinsics.theta: 10\n")
+    with pytest.raises(ValueError, match=r"extrinsics.theta = 10 rad is outside its range \[-1.5, 1.5\] rad"):
+        CameraModel.from_yaml(path)
+
+
+@pytest.mark.parametrize("content", [b"a: [\n", b"\x00\xff\xfe binary", b"key: value\n\tbad: tab\n"])
+def test_a_file_that_is_not_yaml_is_one_line(tmp_path, content):
+    path = tmp_path / "cal.yaml"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match="not a YAML parameters file") as raised:
+        CameraModel.from_yaml(path)
+    assert "\n" not in str(raised.value)

@@ -19,6 +19,7 @@ from touchroller_bringup.names import IMAGE_TOPIC
 POINT_COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z")          # docs/design.md, first
 CONTACT_COLUMNS = ("score", "area", "major_axis", "minor_axis", "angle", "confidence")
 COLUMNS = POINT_COLUMNS + CONTACT_COLUMNS + ("var_x", "var_y", "var_z")
+MAX_REFERENCE_FRAMES = 1000   # as the perception node's reference.frames
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -49,8 +50,8 @@ def run(args: argparse.Namespace) -> int:
     from touchroller_perception.contacts import ContactDetector, DetectorConfig
     from touchroller_perception.localisation import localise
 
-    if args.reference_frames < 1:
-        raise UserError(f"--reference-frames must be at least 1, got {args.reference_frames}")
+    if not 1 <= args.reference_frames <= MAX_REFERENCE_FRAMES:   # the frames are held in memory
+        raise UserError(f"--reference-frames must be in [1, {MAX_REFERENCE_FRAMES}], got {args.reference_frames}")
     if not (args.pixel_sigma >= 0 and math.isfinite(args.pixel_sigma)):
         raise UserError(f"--pixel-sigma must be a finite number >= 0, got {args.pixel_sigma}")
     camera = _load_camera(args.params) if args.params else None
@@ -119,7 +120,8 @@ def _load_camera(path: str):
     try:
         return CameraModel.from_yaml(path)
     except Exception as exc:  # noqa: BLE001 - YAML, type and range errors all mean a bad file
-        raise UserError(f"cannot read calibration {path}: {type(exc).__name__}: {exc}") from None
+        detail = str(exc) if isinstance(exc, ValueError | TypeError) else f"{type(exc).__name__}: {exc}"
+        raise UserError(f"cannot read calibration {path}: {detail}") from None
 
 
 def _rows(stamp_ns: int, contacts, camera, pixel_sigma: float, localise):

@@ -24,6 +24,7 @@ from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 
 DEFAULT_MM_PER_PX = 0.1
+METRIC_RANGE = (0.001, 10.0)   # mm per pixel: 1 um (a hundred times finer than the camera sees) to 1 cm
 T = TypeVar("T")
 
 
@@ -70,12 +71,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out} is a directory; give an image file name such as map.png")
     if not out.suffix or not cv2.haveImageWriter(str(out)):
         raise UserError(f"--out {out}: unknown image format; use .png, .tif, .jpg or .bmp")
-    if args.metric is not None and not (args.metric > 0 and math.isfinite(args.metric)):
-        raise UserError(f"--metric must be a positive number of millimetres per pixel, got {args.metric}")
-    if args.band_rows < 8:
-        raise UserError(f"--band-rows must be at least 8, got {args.band_rows}")
-    if args.search < 1:
-        raise UserError(f"--search must be at least 1 pixel, got {args.search}")
+    if args.metric is not None and not (METRIC_RANGE[0] <= args.metric <= METRIC_RANGE[1]):
+        raise UserError(f"--metric must be a positive number of millimetres per pixel in [{METRIC_RANGE[0]:g}, "
+                        f"{METRIC_RANGE[1]:g}], got {args.metric}")
+    if not 8 <= args.band_rows <= 4096:
+        raise UserError(f"--band-rows must be in [8, 4096], got {args.band_rows}")
+    if not 1 <= args.search <= 4096:
+        raise UserError(f"--search must be in [1, 4096] pixels, got {args.search}")
     camera = _load_camera(args.params)
     world = not args.strip and _has_tf(args.bag)
     if world:
@@ -152,7 +154,10 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                 continue
         else:
             stamp_ns, band = item
-            mapper.push_band(band, stamp_ns)
+            try:
+                mapper.push_band(band, stamp_ns)
+            except MemoryError as exc:   # the canvas would pass its pixel bound (WorldMapConfig.max_pixels)
+                raise UserError(str(exc)) from None
             frames += 1
     if frames == 0:
         raise UserError(f"{args.bag} has no images on {args.topic}")
@@ -202,7 +207,10 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
     if stitcher is None:
         raise UserError(f"{args.bag} has no images on {args.topic}")
     stitcher.finalise()
-    image = stitcher.map_image(args.metric)
+    try:
+        image = stitcher.map_image(args.metric)
+    except ValueError as exc:   # e.g. a metric map too large to allocate
+        raise UserError(f"--metric {args.metric}: {exc}") from None
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), image):
         raise UserError(f"cannot write {out}")
@@ -287,7 +295,8 @@ def _load_camera(path: str | None):
     try:
         return CameraModel.from_yaml(path)
     except Exception as exc:  # noqa: BLE001 - YAML, type and range errors all mean a bad file
-        raise UserError(f"cannot read calibration {path}: {type(exc).__name__}: {exc}") from None
+        detail = str(exc) if isinstance(exc, ValueError | TypeError) else f"{type(exc).__name__}: {exc}"
+        raise UserError(f"cannot read calibration {path}: {detail}") from None
 
 
 def _write_steps(path: Path, stitcher) -> None:

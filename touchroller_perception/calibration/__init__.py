@@ -30,6 +30,7 @@ from touchroller_perception.calibration.extrinsics import (
 )
 from touchroller_perception.calibration.imprints import (
                                                            CENTRE_ESTIMATORS,
+                                                           MAX_FRAME_SIDE,
                                                            STRENGTH_MEASURES,
                                                            HemisphereFrame,
                                                            ImprintDetection,
@@ -40,6 +41,7 @@ from touchroller_perception.calibration.intrinsics import (
                                                            AUTO_CANDIDATES,
                                                            DISTORTION_MODELS,
                                                            DISTORTION_NAMES,
+                                                           MAX_BOARD_SIDE,
                                                            Chessboard,
                                                            ChessboardDetection,
                                                            IntrinsicsConfig,
@@ -59,7 +61,8 @@ from touchroller_perception.calibration.outputs import (
 )
 
 __all__ = [
-    "AUTO_CANDIDATES", "CENTRE_ESTIMATORS", "DISTORTION_MODELS", "DISTORTION_NAMES", "STRENGTH_MEASURES",
+    "AUTO_CANDIDATES", "CENTRE_ESTIMATORS", "DISTORTION_MODELS", "DISTORTION_NAMES", "MAX_BOARD_SIDE",
+    "MAX_FRAME_SIDE", "STRENGTH_MEASURES",
     "BoardCoverage", "CalibrationError", "Chessboard", "ChessboardDetection", "CoverageBar", "ExtrinsicsConfig",
     "ExtrinsicsResult", "HemisphereFrame", "ImprintDetection", "ImprintDetectorConfig", "IntrinsicsConfig",
     "IntrinsicsResult", "ModelScore", "NeglectedTerms", "RowBalance", "ViewPose", "back_project_pose",

@@ -42,7 +42,9 @@ from touchroller_perception.calibration.common import (
     require_views,
 )
 from touchroller_perception.calibration.imprints import HemisphereFrame, ImprintDetectorConfig, find_imprints
-from touchroller_perception.geometry import CameraModel
+from touchroller_perception.geometry import PARAMETER_RANGES, CameraModel
+
+_THETA_LIMIT = PARAMETER_RANGES["extrinsics.theta"][1]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,7 +90,7 @@ def _pose_residual(camera: CameraModel, frame: HemisphereFrame, image_points: Fl
     """Reprojection residuals (px, flattened) of the two-parameter pose (theta, d[, shift_x, yaw])."""
     def residual(params: FloatArray) -> FloatArray:
         theta, d, shift_x, yaw = params if solve_placement else (*params, 0.0, 0.0)
-        if abs(d) >= 0.99 * camera.radius:
+        if abs(d) >= 0.99 * camera.radius or abs(theta) > _THETA_LIMIT:   # outside what a CameraModel takes
             return np.full(image_points.size, 1e6)
         points = frame.reference_points(camera.radius, shift_x, 0.0, yaw)
         uv, valid = camera.replace(theta=theta, d=d).project(points)

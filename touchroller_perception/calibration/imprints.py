@@ -27,6 +27,10 @@ CENTRE_ESTIMATORS = ("shading", "centroid")
 STRENGTH_MEASURES = ("relative", "absolute")
 
 
+#: Most hemisphere rows or columns of a frame: the sizes of what the solve allocates (the paper's is 2x5).
+MAX_FRAME_SIDE = 50
+
+
 @dataclasses.dataclass(frozen=True)
 class HemisphereFrame:
     """The paper's 3D-printed frame: `rows` x `columns` hemispheres on a flat plate.
@@ -46,6 +50,9 @@ class HemisphereFrame:
     press_depth: float = 0.0005
 
     def __post_init__(self) -> None:
+        if self.rows > MAX_FRAME_SIDE or self.columns > MAX_FRAME_SIDE:
+            raise CalibrationError(f"a hemisphere frame has at most {MAX_FRAME_SIDE} rows and columns, got "
+                                   f"{self.rows}x{self.columns}")
         if self.rows < 1 or self.columns < 1 or self.rows * self.columns < 4:
             raise CalibrationError(f"a hemisphere frame needs at least 4 hemispheres, got {self.rows}x{self.columns}")
         if self.rows < 2 or self.columns < 2:

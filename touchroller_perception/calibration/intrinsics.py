@@ -45,6 +45,10 @@ DISTORTION_MODELS: dict[str, int] = {
 AUTO_CANDIDATES = ("k1k2p", "full")
 
 
+#: Most inner corners along a chessboard side (printed boards have a dozen or two).
+MAX_BOARD_SIDE = 100
+
+
 @dataclasses.dataclass(frozen=True)
 class Chessboard:
     """A planar chessboard: `columns` x `rows` INNER corners (OpenCV's convention), square side in m.
@@ -55,6 +59,9 @@ class Chessboard:
     square: float = 0.012
 
     def __post_init__(self) -> None:
+        if self.columns > MAX_BOARD_SIDE or self.rows > MAX_BOARD_SIDE:
+            raise CalibrationError(f"a chessboard has at most {MAX_BOARD_SIDE}x{MAX_BOARD_SIDE} inner corners, got "
+                                   f"{self.columns}x{self.rows}")
         if self.columns < 2 or self.rows < 2:
             raise CalibrationError(f"a chessboard needs at least 2x2 inner corners, got {self.columns}x{self.rows}")
         if not (self.square > 0 and math.isfinite(self.square)):

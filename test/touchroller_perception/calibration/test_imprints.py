@@ -43,6 +43,13 @@ def lit_membrane(centres: np.ndarray, *, elevation_deg: float = 35.0, azimuth_de
     return finish(irradiance * np.maximum(shade, 0.0)), finish(irradiance * light[2])
 
 
+@pytest.mark.parametrize("rows, columns", [(100_000, 100_000), (2, cal.MAX_FRAME_SIDE + 1)])
+def test_a_frame_too_large_to_solve_is_refused_before_anything_is_allocated(rows, columns):
+    """`touchroller calibrate extrinsics --frame 100000x100000` tried to allocate 74.5 GiB."""
+    with pytest.raises(cal.CalibrationError, match=f"at most {cal.MAX_FRAME_SIDE} rows and columns"):
+        cal.HemisphereFrame(rows=rows, columns=columns)
+
+
 @settings(max_examples=6, deadline=None)
 @given(offset=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)), elevation=st.sampled_from([35.0, 60.0]))
 def test_shading_centre_is_not_pulled_away_from_a_one_sided_light(offset, elevation):

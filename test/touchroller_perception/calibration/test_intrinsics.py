@@ -57,6 +57,11 @@ def test_too_few_views_to_hold_any_out_choose_the_simplest():
     assert chosen(scores) == "k1k2p" and all(np.isnan(s.held_out_rms) for s in scores)
 
 
+def test_a_board_larger_than_any_printed_one_is_refused():
+    with pytest.raises(cal.CalibrationError, match=f"at most {cal.MAX_BOARD_SIDE}x{cal.MAX_BOARD_SIDE}"):
+        cal.Chessboard(columns=100_000, rows=7)
+
+
 def test_config_is_checked_when_made():
     with pytest.raises(cal.CalibrationError, match="distortion must be auto or one of"):
         cal.IntrinsicsConfig(distortion="fisheye")
