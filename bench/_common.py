@@ -16,12 +16,19 @@ import numpy as np
 
 from touchroller_bringup.report import loadavg
 from touchroller_bringup.report import machine_description as machine
+from touchroller_perception.files import atomic_path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 
 __all__ = ["RESULTS", "ROOT", "Provenance", "command", "loadavg", "machine", "provenance", "provenance_markdown",
            "results_path", "to_json"]
+
+
+def save_figure(fig: Any, path: Path, **kwargs: Any) -> None:
+    """`fig.savefig(path)`, whole or not at all (the format follows the suffix, as savefig's)."""
+    with atomic_path(path) as temporary:
+        fig.savefig(temporary, format=path.suffix.lstrip(".") or None, **kwargs)
 
 
 def results_path(name: str, quick: bool, suffix: str = ".md") -> Path:

@@ -34,9 +34,10 @@ from typing import Any
 import numpy as np
 
 from bench import calib_crosscheck as crosscheck
-from bench._common import Provenance, provenance, provenance_markdown, results_path, to_json
+from bench._common import Provenance, provenance, provenance_markdown, results_path, save_figure, to_json
 from bench.calib_crosscheck import Stats
 from touchroller_perception import calibration as cal
+from touchroller_perception.files import atomic_write_text
 from touchroller_perception.geometry import CameraModel
 
 
@@ -463,7 +464,7 @@ def figures(result: CalibBenchResult, out_dir: Path) -> list[Path]:
     ax.set_title("Contact error against calibration (exact sensor)", fontsize=10)
     fig.tight_layout()
     path = out_dir / "calib_bench.png"
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     second = out_dir / "calib_crosscheck.png"
     crosscheck.figure(result.crosscheck, second)
@@ -477,8 +478,8 @@ def main() -> int:
     result = run(quick=args.quick)
     out = results_path("calib_bench", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(markdown(result), encoding="utf-8")
-    out.with_suffix(".json").write_text(to_json(result, indent=1), encoding="utf-8")
+    atomic_write_text(out, markdown(result))
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
     figures(result, out.parent)
     print(markdown(result))
     return 0

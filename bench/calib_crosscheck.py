@@ -23,6 +23,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from bench import second_renderer as second
+from bench._common import save_figure
 from touchroller_perception import calibration as cal
 from touchroller_perception.geometry import CameraModel
 
@@ -332,5 +333,5 @@ def figure(result: CrosscheckResult, path) -> None:
     ax.set_title("Intrinsics: rays where the board was seen and over the image", fontsize=10)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

@@ -19,8 +19,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path
+from bench._common import provenance, provenance_markdown, results_path, save_figure
 from touchroller_perception.contacts import ContactDetector, DetectorConfig  # noqa: E402
+from touchroller_perception.files import atomic_write_text
 from touchroller_perception.localisation import SurfaceLookup, localise
 
 #: Detector settings compared for accuracy against time on the tap frames.
@@ -168,7 +169,7 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
     bx.legend(fontsize=7)
     fig.tight_layout()
     path = out_dir / "contacts_bench.png"
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return [path]
 
@@ -185,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         result["note"] = args.note
     out = Path(args.out) if args.out else results_path("contacts_bench", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("# Contact detection + localisation time per frame\n\n" + to_markdown(result), encoding="utf-8")
+    atomic_write_text(out, "# Contact detection + localisation time per frame\n\n" + to_markdown(result))
     for figure in figures(result, out.parent):
         print(f"wrote {figure}")
     print(f"wrote {out}")

@@ -21,9 +21,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path
+from bench._common import provenance, provenance_markdown, results_path, save_figure
 from bench.real_presses import SENSORS, Scorecard, available, load_presses, score
 from touchroller_perception.contacts import DetectorConfig
+from touchroller_perception.files import atomic_write_text
 
 METHODS = {"ours (colour)": DetectorConfig(), "paper's pipeline": DetectorConfig(method="paper")}
 #: the Mini's presses come in two runs at two indenter positions along u (see `label_scatter`)
@@ -170,7 +171,7 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
         ax.grid(alpha=0.3)
     fig.tight_layout()
     path = out_dir / "contacts_real.png"
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return [path]
 
@@ -183,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     result = run(quick=args.quick)
     out = Path(args.out) if args.out else results_path("contacts_real", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("# Contacts on real GelSight presses\n\n" + to_markdown(result), encoding="utf-8")
+    atomic_write_text(out, "# Contacts on real GelSight presses\n\n" + to_markdown(result))
     for figure in figures(result, out.parent):
         print(f"wrote {figure}")
     print(f"wrote {out}")

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bench._common import command, results_path, to_json
+from bench._common import command, results_path, save_figure, to_json
 from bench.table_ii import (
     explain_markdown,
     explain_paper_table,
@@ -22,6 +22,7 @@ from bench.table_ii import (
     table_ii_markdown,
 )
 from touchroller_driver.sim import SimulatedSensor, load_scene
+from touchroller_perception.files import atomic_write_text
 
 
 def run(quick: bool = False) -> dict[str, Any]:
@@ -67,7 +68,7 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
     ax.set_title("Table II cells: central angle x axial position")
     fig.tight_layout()
     paths = [out_dir / "contacts_table_ii_cells.png"]
-    fig.savefig(paths[0], dpi=110)
+    save_figure(fig, paths[0], dpi=110)
     plt.close(fig)
     example = _detection_example()
     if example is not None:
@@ -81,7 +82,7 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
         ax.axis("off")
         fig.tight_layout()
         paths.append(out_dir / "contacts_detection_example.png")
-        fig.savefig(paths[1], dpi=110)
+        save_figure(fig, paths[1], dpi=110)
         plt.close(fig)
     return paths
 
@@ -115,9 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     result = run(quick=args.quick)
     out = Path(args.out) if args.out else results_path("contacts_table_ii", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("# Contact localisation: the paper's Table II in simulation\n\n" + to_markdown(result),
-                   encoding="utf-8")
-    out.with_suffix(".json").write_text(to_json(result, indent=1), encoding="utf-8")
+    atomic_write_text(out, "# Contact localisation: the paper's Table II in simulation\n\n" + to_markdown(result))
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
     for figure in figures(result, out.parent):
         print(f"wrote {figure}")
     summary = result["table_ii"]["summary"]

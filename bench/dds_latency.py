@@ -36,6 +36,7 @@ import numpy as np
 from bench._common import machine, results_path, to_json  # one machine line for every bench and the report
 from touchroller_bringup import names
 from touchroller_bringup.image_conversion import stamp_to_ns
+from touchroller_perception.files import atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results"
@@ -719,8 +720,8 @@ def main(argv: list[str] | None = None) -> int:
     title = ("# DDS: the perception node's image QoS at 60 Hz" if args.qos
              else "# DDS latency: image published -> contact received")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(f"{title}\n\n{to_markdown(result)}")
-    out.with_suffix(".json").write_text(to_json(result, indent=1))
+    atomic_write_text(out, f"{title}\n\n{to_markdown(result)}")
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
     print(f"wrote {out}")
     return 0
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from bench import dds_latency as common
 from bench._common import to_json
+from touchroller_perception.files import atomic_write_text
 
 SLOW_PRELUDE = """
 import time as _time
@@ -153,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         print(lines[-1], flush=True)
     out = Path(args.out) if args.out else common.results_path("dds_slow_consumer", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
+    atomic_write_text(out, "\n".join(lines) + "\n")
     print(f"wrote {out}")
     return 0
 

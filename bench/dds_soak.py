@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from bench import dds_latency as common
+from touchroller_perception.files import atomic_write_text
 
 # Run in the perception process with --tracemalloc: Python/numpy allocations that grew between a snapshot
 # after warm-up and now, rewritten every few seconds (the process is terminated, not asked to report).
@@ -174,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     lines += ["", *details, ""]
     out = Path(args.out) if args.out else common.results_path("dds_soak", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines))
+    atomic_write_text(out, "\n".join(lines))
     print(f"wrote {out}")
     return 0
 

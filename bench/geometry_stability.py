@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from bench._common import Provenance, provenance, provenance_markdown, to_json
+from touchroller_perception.files import atomic_write_text
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 
 CASES: list[tuple[str, dict]] = [
@@ -133,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
     if args.json:
-        args.json.write_text(to_json(result, indent=1))
+        atomic_write_text(args.json, to_json(result, indent=1))
     print(to_markdown(result))
     return 0
 

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from bench._common import ROOT, loadavg, provenance, provenance_markdown, results_path, to_json
+from touchroller_perception.files import atomic_write_text
 
 HEAVY = ("skimage", "scipy", "matplotlib", "rclpy")
 READ_SNIPPET = ("import sys\nfrom touchroller_bringup.bags import read_images\n"
@@ -290,8 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     text = "# `touchroller map`: whole-command speed against reading the bag\n\n" + to_markdown(result)
     out = args.out or results_path("map_speed", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(to_json(result, indent=1), encoding="utf-8")
-    out.write_text(text, encoding="utf-8")
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
+    atomic_write_text(out, text)
     print(text)
     return 0
 

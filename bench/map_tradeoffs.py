@@ -34,7 +34,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path, to_json
+from bench._common import provenance, provenance_markdown, results_path, save_figure, to_json
+from touchroller_perception.files import atomic_write_text
 from touchroller_perception.metrics import (  # noqa: E402
     align_affine_3pt,
     compare_to_truth,
@@ -267,7 +268,7 @@ def plot(result: dict[str, Any], path: Path, hist_path: Path) -> None:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4), sharey=False)
@@ -284,7 +285,7 @@ def plot(result: dict[str, Any], path: Path, hist_path: Path) -> None:
         ax.legend(fontsize=8)
     axes[0].set_ylabel("frames")
     fig.tight_layout()
-    fig.savefig(hist_path, dpi=110)
+    save_figure(fig, hist_path, dpi=110)
     plt.close(fig)
 
 
@@ -399,8 +400,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out) if args.out else results_path("map_tradeoffs", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     plot(result, out.with_suffix(".png"), out.with_name("map_dy_histograms.png"))
-    out.write_text("# Surface mapping: Table I and what accuracy costs\n\n" + to_markdown(result), encoding="utf-8")
-    out.with_suffix(".json").write_text(to_json(result, indent=1), encoding="utf-8")
+    atomic_write_text(out, "# Surface mapping: Table I and what accuracy costs\n\n" + to_markdown(result))
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
     print(f"wrote {out}, {out.with_suffix('.png').name}, map_dy_histograms.png, {out.with_suffix('.json').name}")
     return 0
 

@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 from bench._common import Provenance, loadavg, provenance, provenance_markdown, results_path, to_json  # noqa: E402
 from touchroller_driver.sim import EFFECTS, SimulatedSensor, load_scene  # noqa: E402
 from touchroller_driver.sim.scenarios import timeline  # noqa: E402
+from touchroller_perception.files import atomic_write_text  # noqa: E402
 
 GOAL_FPS = 200.0
 
@@ -113,8 +114,8 @@ def run(quick: bool = False) -> SimBenchResult:
 def write(result: SimBenchResult) -> Path:
     path = results_path("sim_bench", result.quick)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.with_suffix(".json").write_text(to_json(result, indent=2))
-    path.write_text("# Simulator benchmark (`bench/sim_bench.py`)\n\n" + to_markdown(result))
+    atomic_write_text(path.with_suffix(".json"), to_json(result, indent=2))
+    atomic_write_text(path, "# Simulator benchmark (`bench/sim_bench.py`)\n\n" + to_markdown(result))
     return path
 
 

@@ -36,6 +36,7 @@ from touchroller_driver.sim.realistic import (
     fit_appearance,
 )
 from touchroller_perception.contacts import ContactDetector, DetectorConfig
+from touchroller_perception.files import atomic_path, atomic_write_text
 
 METHODS = {"ours (colour)": DetectorConfig(), "paper's pipeline": DetectorConfig(method="paper")}
 
@@ -177,7 +178,9 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
             cv2.putText(tile, f"{sensor} {label}", (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1)
         rows.append(np.hstack(tiles))
     path = out_dir / "sim_to_real.png"
-    cv2.imwrite(str(path), np.vstack(rows))
+    with atomic_path(path) as temporary:
+        if not cv2.imwrite(str(temporary), np.vstack(rows)):
+            raise OSError(f"cannot write {path}")
     return [path]
 
 
@@ -189,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     result = run(quick=args.quick)
     out = Path(args.out) if args.out else results_path("sim_to_real", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("# Simulated against real presses\n\n" + to_markdown(result), encoding="utf-8")
+    atomic_write_text(out, "# Simulated against real presses\n\n" + to_markdown(result))
     for figure in figures(result, out.parent):
         print(f"wrote {figure}")
     print(f"wrote {out}")

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from bench._common import ROOT, Provenance, provenance, provenance_markdown, results_path, to_json
+from touchroller_perception.files import atomic_write_text
 
 FULL = {"area": [0.40, -0.09, 0.24, 0.18], "latencies": [0.0, 0.025, 0.05, 0.1], "speed_length": 0.12,
         "repeats": 3}
@@ -398,9 +399,8 @@ def main(argv: list[str] | None = None) -> int:
     result = run(args.quick)
     md, js = results_path("world_map", args.quick), results_path("world_map", args.quick, ".json")
     md.parent.mkdir(parents=True, exist_ok=True)
-    md.write_text("# World map of a raster scan, and `touchroller map` on one\n\n" + to_markdown(result) + "\n",
-                  encoding="utf-8")
-    js.write_text(to_json(result, indent=1) + "\n", encoding="utf-8")
+    atomic_write_text(md, "# World map of a raster scan, and `touchroller map` on one\n\n" + to_markdown(result) + "\n")
+    atomic_write_text(js, to_json(result, indent=1) + "\n")
     print(to_markdown(result))
     return 0
 

@@ -5,8 +5,6 @@ renamed into place), so a failed write leaves an existing map as it was.
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,6 +13,7 @@ import numpy as np
 import yaml
 
 from touchroller_bringup.errors import UserError
+from touchroller_perception.files import atomic_path
 from touchroller_perception.world_map import WorldMapImage
 
 
@@ -38,14 +37,8 @@ class MapYaml:
 def _replace(path: Path, write: Any) -> None:
     """Write through a temporary file in the same folder, then rename it over `path`."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(handle)
-    try:
-        write(Path(temporary))
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as temporary:
+        write(temporary)
 
 
 def write_png_grey_alpha(path: Path, grey: np.ndarray, alpha: np.ndarray) -> None:

@@ -25,6 +25,7 @@ from typing import Any, Protocol, cast
 
 from touchroller_bringup.errors import UserError
 from touchroller_driver.paths import checkout_dir
+from touchroller_perception.files import atomic_write_text
 
 #: A section's result: the bench's frozen dataclass (or, for a section not typed yet, its dict).
 SectionResult = Any
@@ -697,6 +698,6 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
         settings_markdown(results),
         "",
     ]
-    out.write_text("\n".join(header + body), encoding="utf-8")
+    atomic_write_text(out, "\n".join(header + body))
     progress(f"report: wrote {out} in {total:.0f} s")
     return results

@@ -37,6 +37,7 @@ from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.graph import Graph, GraphError, build_graph
 from touchroller_bringup.image_conversion import stamp_to_ns
+from touchroller_perception.files import atomic_path, atomic_write, atomic_write_text
 
 # with `record`: these topics of the scan's namespace, and /diagnostics
 RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS,
@@ -445,8 +446,9 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
         tactile_map = image_to_array(map_msg)
         map_shape = tuple(int(n) for n in tactile_map.shape)
         files["map"] = out_dir / "map.png"
-        if not cv2.imwrite(str(files["map"]), tactile_map):
-            raise UserError(f"cannot write {files['map']}")
+        with atomic_path(files["map"]) as temporary:
+            if not cv2.imwrite(str(temporary), tactile_map):
+                raise UserError(f"cannot write {files['map']}")
     files["contacts"] = out_dir / "contacts.csv"
     _write_contacts(files["contacts"], contacts, getattr(perception, "camera", None),
                     float(_parameter(perception, "contacts.pixel_sigma", 0.3)))
@@ -457,7 +459,7 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     if recorded:
         files["recording"] = out_dir / "recording"
     files["report"] = out_dir / "report.md"
-    files["report"].write_text(_report(result, graph), encoding="utf-8")
+    atomic_write_text(files["report"], _report(result, graph))
     return result
 
 
@@ -488,7 +490,7 @@ def _write_contacts(path: Path, contacts: Sequence[tuple[int, float, float, floa
     else:
         uv = np.full((len(points), 2), np.nan)
         variances = np.full((len(points), 3), np.nan)
-    with open(path, "w", newline="", encoding="utf-8") as stream:
+    with atomic_write(path, newline="") as stream:
         writer = csv.writer(stream)
         writer.writerow(COLUMNS)
         for (stamp_ns, *_), (u, v), point, var in zip(contacts, uv, points, variances, strict=True):

@@ -134,9 +134,11 @@ class CameraModel:
         """Write a ROS 2 params file that serves any node name; `extra` adds parameters (e.g. uncertainties)."""
         import yaml
 
+        from touchroller_perception.files import atomic_write
+
         params: dict[str, Any] = self.to_params()
         params.update(extra or {})
-        with open(path, "w", encoding="utf-8") as stream:
+        with atomic_write(path) as stream:
             yaml.safe_dump({"/**": {"ros__parameters": params}}, stream, sort_keys=False)
 
     def replace(self, **changes: Any) -> CameraModel:

@@ -158,3 +158,21 @@ def test_reference_frames_are_bounded(tapped_bag, tmp_path, capsys):
     bag, _ = tapped_bag
     assert main(["contacts", str(bag), "--out", str(tmp_path / "c.csv"), "--reference-frames", "100000000"]) == 2
     assert "--reference-frames must be in [1, 1000]" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("failure, message", [
+    ("missing_bag", "no such bag"),
+    ("reference", "the reference needs 50"),
+])
+def test_a_failing_run_leaves_an_existing_csv_untouched(tapped_bag, tmp_path, failure, message):
+    """`contacts` opened (truncated) --out before it read the bag: a failing run destroyed the CSV."""
+    bag, _ = tapped_bag
+    out = tmp_path / "out" / "contacts.csv"
+    out.parent.mkdir()
+    out.write_text("stamp_ns,u,v,x,y,z\n1,2,3,4,5,6\n")
+    argv = [tmp_path / "no_such_bag" if failure == "missing_bag" else bag, "--out", out]
+    argv += ["--reference-frames", "50"] if failure == "reference" else []
+    done = touchroller("contacts", *argv, cwd=tmp_path)
+    assert done.returncode == 2 and message in done.stderr, done.stderr
+    assert out.read_text() == "stamp_ns,u,v,x,y,z\n1,2,3,4,5,6\n"
+    assert [p.name for p in out.parent.iterdir()] == ["contacts.csv"]

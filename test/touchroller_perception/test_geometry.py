@@ -246,3 +246,14 @@ def test_a_file_that_is_not_yaml_is_one_line(tmp_path, content):
     with pytest.raises(ValueError, match="not a YAML parameters file") as raised:
         CameraModel.from_yaml(path)
     assert "\n" not in str(raised.value)
+
+
+def test_a_params_file_is_replaced_whole_or_not_at_all(tmp_path):
+    """A write that fails half-way (here a value YAML cannot represent, as a full disk would) left a
+    truncated calibration file."""
+    path = tmp_path / "cal.yaml"
+    CameraModel(theta=0.1).to_yaml(path)
+    before = path.read_text()
+    with pytest.raises(Exception, match="cannot represent"):
+        CameraModel(theta=0.2).to_yaml(path, extra={"calibration.note": object()})
+    assert path.read_text() == before and [p.name for p in tmp_path.iterdir()] == ["cal.yaml"]

@@ -17,6 +17,7 @@ from typing import Any
 
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_perception.files import atomic_write
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -247,7 +248,7 @@ def _write(args: argparse.Namespace, camera, intrinsics=None, extrinsics=None) -
         if args.report is not None:
             report = {"intrinsics": intrinsics.to_dict() if intrinsics else None,
                       "extrinsics": extrinsics.to_dict() if extrinsics else None}
-            with open(args.report, "w", encoding="utf-8") as stream:
+            with atomic_write(args.report) as stream:
                 yaml.safe_dump(_plain(report), stream, sort_keys=False)
     except OSError as exc:
         raise UserError(f"cannot write {exc.filename}: {exc.strerror}") from None

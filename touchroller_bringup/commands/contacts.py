@@ -15,6 +15,7 @@ from pathlib import Path
 
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_perception.files import atomic_write
 
 POINT_COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z")          # docs/design.md, first
 CONTACT_COLUMNS = ("score", "area", "major_axis", "minor_axis", "angle", "confidence")
@@ -72,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out} is a directory; give a CSV file name")
     out.parent.mkdir(parents=True, exist_ok=True)
     frames = rows = 0
-    with open(out, "w", newline="", encoding="utf-8") as stream:
+    # written whole or not at all: a run that fails part-way leaves an existing CSV as it was
+    with atomic_write(out, newline="") as stream:
         writer = csv.writer(stream)
         writer.writerow(COLUMNS)
         for record in read_images(args.bag, args.topic):
@@ -84,9 +86,9 @@ def run(args: argparse.Namespace) -> int:
             for row in _rows(record.stamp_ns, contacts or [], camera, args.pixel_sigma, localise):
                 writer.writerow(row)
                 rows += 1
-    if frames < skipped:
-        raise UserError(f"{args.bag} has {frames} image(s) on {args.topic}; the reference needs "
-                        f"{args.reference_frames} (--reference-frames)")
+        if frames < skipped:
+            raise UserError(f"{args.bag} has {frames} image(s) on {args.topic}; the reference needs "
+                            f"{args.reference_frames} (--reference-frames)")
     where = "pixels and cylinder points" if camera else "pixels only (no --params: x y z are nan)"
     source = f"{args.reference_bag}" if args.reference_bag else "the recording's start"
     print(f"{rows} contacts in {frames - skipped} frames, reference of {args.reference_frames} frame(s) from "

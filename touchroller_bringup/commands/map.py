@@ -22,6 +22,7 @@ from typing import TypeVar
 
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_perception.files import atomic_path, atomic_write
 
 DEFAULT_MM_PER_PX = 0.1
 METRIC_RANGE = (0.001, 10.0)   # mm per pixel: 1 um (a hundred times finer than the camera sees) to 1 cm
@@ -212,8 +213,12 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
     except ValueError as exc:   # e.g. a metric map too large to allocate
         raise UserError(f"--metric {args.metric}: {exc}") from None
     out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), image):
-        raise UserError(f"cannot write {out}")
+    try:
+        with atomic_path(out) as temporary:
+            if not cv2.imwrite(str(temporary), image):
+                raise OSError("cv2.imwrite failed")
+    except OSError as exc:
+        raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
     if args.steps:
         _write_steps(Path(args.steps), stitcher)
     flagged = stitcher.prior_frames
@@ -302,7 +307,7 @@ def _load_camera(path: str | None):
 def _write_steps(path: Path, stitcher) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     stamps = stitcher.stamps
-    with open(path, "w", newline="", encoding="utf-8") as stream:
+    with atomic_write(path, newline="") as stream:
         writer = csv.writer(stream)
         writer.writerow(("stamp_ns", "shift_px", "lateral_px", "position_px", "confidence", "used_prior"))
         for stamp, s in zip(stamps, stitcher.steps, strict=True):

@@ -9,6 +9,7 @@ from typing import Any
 
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_perception.files import new_directory
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -65,22 +66,25 @@ def run(args: argparse.Namespace) -> int:
             truths.append(frame.truth)
             yield frame.stamp_ns, frame.image
 
-    count = write_images(args.out, records(), topic=args.topic, storage=args.storage)
-    all_times = _all_times(scene)
-    kept = {round(t["t"], 9) for t in truths}
-    dropped = [t for t in all_times if round(t, 9) not in kept]
-    extra = {}
-    if "comparison" in scene.data:
-        import cv2
+    with new_directory(args.out) as folder:   # the bag and its side files appear whole or not at all
+        count = write_images(folder, records(), topic=args.topic, storage=args.storage)
+        all_times = _all_times(scene)
+        kept = {round(t["t"], 9) for t in truths}
+        dropped = [t for t in all_times if round(t, 9) not in kept]
+        extra = {}
+        if "comparison" in scene.data:
+            import cv2
 
-        from touchroller_driver.sim.flat_sensor import flat_press_mosaic
+            from touchroller_driver.sim.flat_sensor import flat_press_mosaic
 
-        comparison = compare(scene.data["comparison"], scene.motion)
-        cv2.imwrite(str(args.out / "flat_sensor_presses.png"), flat_press_mosaic(sensor, scene.data["comparison"]))
-        # the ground-truth file carries the timing, its speed-up and the presses' image
-        extra["comparison"] = {**dataclasses.asdict(comparison), "speedup": comparison.speedup,
-                               "presses_image": "flat_sensor_presses.png"}
-    write_ground_truth(args.out, sensor, truths, dropped, extra)
+            comparison = compare(scene.data["comparison"], scene.motion)
+            if not cv2.imwrite(str(folder / "flat_sensor_presses.png"),
+                               flat_press_mosaic(sensor, scene.data["comparison"])):
+                raise UserError(f"cannot write {args.out / 'flat_sensor_presses.png'}")
+            # the ground-truth file carries the timing, its speed-up and the presses' image
+            extra["comparison"] = {**dataclasses.asdict(comparison), "speedup": comparison.speedup,
+                                   "presses_image": "flat_sensor_presses.png"}
+        write_ground_truth(folder, sensor, truths, dropped, extra)
     elapsed = time.perf_counter() - started
     print(f"simulate: {scene.name}{'/' + scene.data['variant'] if scene.data.get('variant') else ''}: "
           f"{count} frames ({len(dropped)} dropped) in {elapsed:.1f} s -> {args.out} "

@@ -509,12 +509,18 @@ class PerceptionNode(Node):
                                    f"({tactile_map.shape[1]}x{tactile_map.shape[0]})")
             return
 
+        from touchroller_perception.files import atomic_path
+
+        reason = "cv2.imwrite failed (missing folder or unknown extension?)"
         try:
-            ok = cv2.imwrite(path, tactile_map)
+            with atomic_path(path) as temporary:   # a failed save leaves the previous map as it was
+                if not cv2.imwrite(str(temporary), tactile_map):
+                    raise OSError(reason)
+            ok = True
+        except OSError as exc:
+            ok, reason = False, exc.strerror or str(exc)
         except cv2.error as exc:
             ok, reason = False, str(exc).strip().splitlines()[-1]
-        else:
-            reason = "cv2.imwrite failed (missing folder or unknown extension?)"
         if ok:
             self.saved_maps += 1
             self.get_logger().info(f"map saved: {path} ({tactile_map.shape[1]}x{tactile_map.shape[0]})")

@@ -20,6 +20,7 @@ import numpy as np
 import yaml
 
 from touchroller_driver.sim.render import SimulatedSensor
+from touchroller_perception.files import atomic_path, atomic_write
 
 
 def plain(value: Any) -> Any:
@@ -71,10 +72,14 @@ def write_ground_truth(out_dir: str | Path, sensor: SimulatedSensor, frames: lis
         "frames": frames,
     }
     if scene.motion.get("kind") == "roll":
-        np.save(out / "ground_truth_surface.npy", sensor.surface.height)
+        with atomic_write(out / "ground_truth_surface.npy", "wb") as stream:
+            np.save(stream, sensor.surface.height)
         truth_map = sensor.surface_map_truth()
-        cv2.imwrite(str(out / "ground_truth_surface.png"), truth_map.image)
-        cv2.imwrite(str(out / "ground_truth_tactile.png"), truth_map.tactile)
+        for name, image in (("ground_truth_surface.png", truth_map.image),
+                            ("ground_truth_tactile.png", truth_map.tactile)):
+            with atomic_path(out / name) as temporary:
+                if not cv2.imwrite(str(temporary), image):
+                    raise OSError(f"cannot write {out / name}")
         written["tactile_png"] = out / "ground_truth_tactile.png"
         written["surface_npy"] = out / "ground_truth_surface.npy"
         written["surface_png"] = out / "ground_truth_surface.png"
@@ -90,7 +95,7 @@ def write_ground_truth(out_dir: str | Path, sensor: SimulatedSensor, frames: lis
         document["board"] = {"pattern_size": list(board.pattern_size), "square_size": board.square,
                              "object_points": board.object_points()}
     document.update(extra or {})
-    with open(out / "ground_truth.yaml", "w", encoding="utf-8") as stream:
+    with atomic_write(out / "ground_truth.yaml") as stream:
         yaml.safe_dump(plain(document), stream, sort_keys=False, width=120)
     written["ground_truth"] = out / "ground_truth.yaml"
     return written

@@ -61,3 +61,21 @@ def test_simulate_errors_are_one_line(tmp_path, capsys, argv, message):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_run_that_fails_part_way_leaves_no_partial_recording(tmp_path, capsys, monkeypatch):
+    """A render interrupted after a few frames left a bag folder with part of the frames and no ground
+    truth; now the folder appears whole or not at all."""
+    from touchroller_driver.sim import SimulatedSensor
+
+    frames = SimulatedSensor.frames
+
+    def three_then_fail(self, *args, **kwargs):
+        for index, frame in enumerate(frames(self, *args, **kwargs)):
+            if index == 3:
+                raise KeyboardInterrupt
+            yield frame
+
+    monkeypatch.setattr(SimulatedSensor, "frames", three_then_fail)
+    assert main(["simulate", "surface_mapping", "--out", str(tmp_path / "bag"), *QUICK]) == 130
+    assert not list(tmp_path.iterdir())
