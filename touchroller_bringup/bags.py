@@ -5,6 +5,13 @@ topics; Image messages are parsed straight from their CDR bytes (one header, the
 pixel buffer), which is several times faster than a generic deserialiser on VGA frames.
 `read_images_and_tf(..., rows=(first, end))` reads only those image rows where the storage allows
 it (an uncompressed sqlite3 bag: SQLite's incremental blob reads), and parses TF messages by hand.
+
+Integrity: every MCAP file written here (`bag_writer`: the recorder, `write_images`, `write_scan`) stores
+the CRC-32 of each chunk, which rosbags' reader checks, so a flipped byte anywhere in a message is one
+line ("chunk checksum mismatch") instead of a wrong image. A chunk whose CRC is 0 (rosbags' own writer,
+or a file still being written) cannot be checked; nor can sqlite3 bags (SQLite keeps no checksum of
+the data): for those only what the messages say of themselves is verified (the CDR layout, and that an
+image's size, step and encoding agree with its byte count).
 """
 from __future__ import annotations
 
@@ -49,6 +56,58 @@ def typestore():
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS2_KILTED)
+
+
+def bag_writer(path: str | Path, storage: Storage = "sqlite3"):
+    """A rosbags Writer (not yet opened) for a new rosbag2 folder; with MCAP every chunk carries its CRC-32."""
+    from rosbags.rosbag2 import StoragePlugin
+
+    plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
+    if plugin is None:
+        raise UserError(f"unknown bag storage {storage!r} (use sqlite3 or mcap)")
+    path = Path(path)
+    if path.exists():
+        raise UserError(f"bag {path} already exists")
+    return _writer_class()(path, version=9, storage_plugin=plugin)
+
+
+def _writer_class():
+    """rosbags' Writer with an MCAP storage that fills in the chunk CRCs it leaves 0."""
+    from binascii import crc32
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.storage_mcap import McapWriter
+
+    class CrcMcapWriter(McapWriter):
+        # A chunk record is opcode (1 byte), length (8), message start and end time (8 + 8), uncompressed
+        # size (8), then the uncompressed CRC-32 (4): written 0 by McapWriter.close_chunk, set here.
+        CRC_OFFSET = 1 + 8 + 8 + 8 + 8
+
+        def close_chunk(self) -> None:
+            crc = crc32(self.chunk.bio.getbuffer())
+            start = self.bio.tell()
+            super().close_chunk()
+            end = self.bio.tell()
+            self.bio.seek(start + self.CRC_OFFSET)
+            self.bio.write(struct.pack("<I", crc))
+            self.bio.seek(end)
+
+    class CrcWriter(Writer):
+        STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: CrcMcapWriter}
+
+    return CrcWriter
+
+
+def mcap_chunk_crcs(path: str | Path) -> list[int]:
+    """The uncompressed CRC-32 stored in each chunk of an MCAP file, in file order (0: not stored)."""
+    data = Path(path).read_bytes()
+    crcs, at = [], 8   # after the magic: records of opcode (1 byte), content length (8), content
+    while at + 9 <= len(data) - 8:
+        opcode, length = data[at], struct.unpack_from("<Q", data, at + 1)[0]
+        if opcode == 0x06:   # chunk: message start and end time, uncompressed size, uncompressed CRC, ...
+            crcs.append(struct.unpack_from("<I", data, at + 9 + 24)[0])
+        at += 9 + length
+    return crcs
 
 
 def open_bag(path: str | Path):
@@ -335,22 +394,15 @@ def write_images(
     frame_id: str = names.CAMERA_FRAME,
 ) -> int:
     """Write images as sensor_msgs/Image to a new rosbag2 folder; returns the number written."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys.stores.ros2_kilted import builtin_interfaces__msg__Time as Time
     from rosbags.typesys.stores.ros2_kilted import sensor_msgs__msg__Image as Image
     from rosbags.typesys.stores.ros2_kilted import std_msgs__msg__Header as Header
 
     from touchroller_bringup.image_conversion import encoding_for
 
-    plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
-    if plugin is None:
-        raise UserError(f"unknown bag storage {storage!r} (use sqlite3 or mcap)")
-    path = Path(path)
-    if path.exists():
-        raise UserError(f"bag {path} already exists")
     store = typestore()
     count = 0
-    with Writer(path, version=9, storage_plugin=plugin) as writer:
+    with bag_writer(path, storage) as writer:
         connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store)
         for record in records:
             stamp_ns, image = (record.stamp_ns, record.image) if isinstance(record, ImageRecord) else record
@@ -376,7 +428,6 @@ def write_scan(
     """Write a scan as a recording would hold it: images (sensor_msgs/Image) and transforms (one
     tf2_msgs/TFMessage per record, on /tf or /tf_static as `static` says), logged in the order given
     (the order they would have arrived in); returns the number of images written."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys.stores.ros2_kilted import builtin_interfaces__msg__Time as Time
     from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__Quaternion as Quaternion
     from rosbags.typesys.stores.ros2_kilted import geometry_msgs__msg__Transform as TransformMsg
@@ -388,12 +439,6 @@ def write_scan(
 
     from touchroller_bringup.image_conversion import encoding_for
 
-    plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
-    if plugin is None:
-        raise UserError(f"unknown bag storage {storage!r} (use sqlite3 or mcap)")
-    path = Path(path)
-    if path.exists():
-        raise UserError(f"bag {path} already exists")
     store = typestore()
     images = 0
     last = 0
@@ -402,7 +447,7 @@ def write_scan(
         sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
         return Time(sec=sec, nanosec=nanosec)
 
-    with Writer(path, version=9, storage_plugin=plugin) as writer:
+    with bag_writer(path, storage) as writer:
         image_connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store)
         tf_connection = writer.add_connection("/tf", TF_TYPE, typestore=store)
         static_connection = writer.add_connection("/tf_static", TF_TYPE, typestore=store)

@@ -85,16 +85,12 @@ class _BagWriter(threading.Thread):
 
     def __init__(self, path: Path, storage: str) -> None:
         super().__init__(name="touchroller-bag-writer", daemon=True)
-        from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
 
-        plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
-        if plugin is None:
-            raise UserError(f"unknown bag storage {storage!r} (use sqlite3 or mcap)")
-        if path.exists():
-            raise UserError(f"bag {path} already exists")
+        from touchroller_bringup.bags import bag_writer
+
         self._typestore = get_typestore(Stores.ROS2_KILTED)
-        self._writer = Writer(path, version=9, storage_plugin=plugin)
+        self._writer = bag_writer(path, storage)   # MCAP chunks carry their CRC
         self._opened = threading.Event()
         self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._connections: dict[str, Any] = {}

@@ -130,3 +130,36 @@ def test_tf_messages_parse_as_rosbags_deserialises_them():
         (parent, child, (17 + i) * 1_000_000_000 + 5 * i + 1) for i, (parent, child) in enumerate(names)]
     assert [p.translation for p in parsed] == [(0.1 * i, -0.2, 3.0) for i in range(3)]
     assert all(p.rotation == (0.0, 0.6, 0.0, 0.8) and not p.static for p in parsed)
+
+
+def _flip_a_byte_in(storage_file, marker: bytes) -> None:
+    """Flip one byte inside the first occurrence of `marker` (a run of pixel values) in the file."""
+    data = bytearray(storage_file.read_bytes())
+    at = data.index(marker) + len(marker) // 2
+    data[at] ^= 0x01
+    storage_file.write_bytes(bytes(data))
+
+
+def test_a_flipped_payload_byte_in_an_mcap_we_wrote_is_one_line_not_a_wrong_image(bag_factory):
+    """A corrupt MCAP (payload bytes flipped) was read as if whole: the writer stored chunk CRC 0."""
+    images = [np.full((24, 32, 3), 90 + i, np.uint8) for i in range(6)]
+    bag = bag_factory([(1_000 * i, image) for i, image in enumerate(images)], storage="mcap")
+    assert [r.image.mean() for r in read_images(bag)] == [90 + i for i in range(6)]   # whole: read as written
+    _flip_a_byte_in(bag / f"{bag.name}.mcap", bytes([93]) * 64)
+    with pytest.raises(UserError, match="checksum mismatch"):
+        list(read_images(bag))
+
+
+def test_every_mcap_chunk_we_write_carries_its_crc(tmp_path):
+    """Large enough for several chunks (rosbags closes one per MiB), scan bags with TF included."""
+    from touchroller_bringup.bags import TransformRecord, mcap_chunk_crcs, write_scan
+
+    records = []
+    for i in range(8):
+        records.append(ImageRecord(1_000 * i, np.full((480, 640, 3), i, np.uint8)))
+        records.append(TransformRecord("base", "tool0", 1_000 * i, (0.0, 0.0, float(i)), (0.0, 0.0, 0.0, 1.0), False))
+    bag = tmp_path / "scan"
+    write_scan(bag, records, storage="mcap")
+    crcs = mcap_chunk_crcs(bag / "scan.mcap")
+    assert len(crcs) >= 3 and all(crcs)
+    assert len([r for r in read_images(bag)]) == 8

@@ -74,6 +74,11 @@ def test_records_images_and_latched_topics_with_their_qos(ros_context, spin_unti
     assert all(np.array_equal(r.image, f) for r, f in zip(records, frames, strict=True))
     receive_times = [t for topic, t, _ in messages if topic == "/touchroller/image_raw"]
     assert receive_times == sorted(receive_times)
+    if storage == "mcap":   # every chunk carries its CRC, which the reader checks
+        from touchroller_bringup.bags import mcap_chunk_crcs
+
+        crcs = mcap_chunk_crcs(tmp_path / "bag" / "bag.mcap")
+        assert crcs and all(crcs)
 
 
 def test_only_the_requested_topics_are_recorded(ros_context, spin_until, tmp_path):
