@@ -51,6 +51,7 @@ class ScanOptions:
     params_files: Sequence[Path] = ()
     overrides: Mapping[str, Any] = field(default_factory=dict)   # ROS parameters for every node declaring them
     reference_timeout_s: float = 30.0
+    discovery_s: float = 2.0   # how long discovery may take to show another graph in the namespace
     seed: int = 0
     progress: Callable[[str], None] | None = print
     record: bool = False
@@ -96,7 +97,6 @@ def run_scan(options: ScanOptions) -> ScanResult:
 
     try:
         graph = build_graph("scan", options.arguments, options.params_files)
-        classes = {spec.key: spec.load_class() for spec in graph.nodes}
     except GraphError as exc:
         raise UserError(str(exc)) from None
     say = options.progress or (lambda _text: None)
@@ -126,14 +126,22 @@ def run_scan(options: ScanOptions) -> ScanResult:
     spinner: threading.Thread | None = None
     stop_spinning = threading.Event()
     try:
-        sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
+        # The probe first: DDS discovery finds another graph in our namespace while the node classes
+        # import, and the scan stops before any of its nodes publishes an image or a transform.
         probe, collected, start_client = _make_probe(context, nodes, graph.namespace)
+        probe_made = time.monotonic()
+        try:
+            classes = {spec.key: spec.load_class() for spec in graph.nodes}
+        except GraphError as exc:
+            raise UserError(str(exc)) from None
+        _check_namespace_is_free(probe, graph.namespace, probe_made + options.discovery_s)
+        sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
         recorder = _make_recorder(out_dir, options, context, nodes, graph.namespace) if options.record else None
         for node in nodes:
             executor.add_node(node)
         spinner = threading.Thread(target=_spin, args=(executor, stop_spinning), name="scan-executor", daemon=True)
         spinner.start()
-        say(f"scan: graph up ({', '.join(n.get_name() for n in nodes[:-1])}); "
+        say(f"scan: graph up ({', '.join(n.get_name() for n in (sweep, camera, perception))}); "
             f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
         _wait_for_reference(perception, sweep, collected, options.reference_timeout_s)
         _check_namespace_is_ours(probe, graph.namespace)
@@ -325,16 +333,35 @@ def _wait_for_reference(perception: Any, sweep: Any, collected: _Collected, time
     raise UserError(f"no usable camera frames within {timeout:.0f} s ({collected.frames} received)")
 
 
+def _namespace_taken(namespace: str, seen: str) -> UserError:
+    return UserError(f"another TouchRoller graph runs in namespace /{namespace} on this ROS domain ({seen}): give "
+                     "this scan its own namespace (touchroller scan --namespace NAME) or its own ROS_DOMAIN_ID")
+
+
+def _check_namespace_is_free(probe: Any, namespace: str, until: float) -> None:
+    """Refuse to start when another graph (a scan, a launch file) has nodes in this namespace on this ROS
+    domain: our `~/start` call would start its sweep too, and our camera's images and our arm's
+    transforms (the same frame names) would mix with its own. Only the probe exists yet; discovery is
+    given until `until` (monotonic) to show the others."""
+    here = names.topic("x", namespace)
+    while True:
+        found = sorted(names.topic(name, ns) for name, ns in probe.get_node_names_and_namespaces()
+                       if names.topic("x", ns) == here)   # nodes in this very namespace
+        ours = names.topic(probe.get_name(), namespace)
+        if found.count(ours) > 1 or any(name != ours for name in found):
+            raise _namespace_taken(namespace, ", ".join(sorted(set(found))))
+        if time.monotonic() >= until:
+            return
+        time.sleep(0.05)
+
+
 def _check_namespace_is_ours(probe: Any, namespace: str) -> None:
-    """Refuse to start when another graph runs in this namespace on this ROS domain: our `~/start` call
-    would start its sweep too, and its images and contacts would mix with ours. Checked once the
-    reference is captured, so discovery has had the seconds that takes."""
+    """The same once the reference is captured, for two scans that started at the same moment (neither
+    saw the other yet): both stop before the arm moves."""
     full = names.topic(names.SWEEP_NODE, namespace)
     sweeps = [1 for name, ns in probe.get_node_names_and_namespaces() if names.topic(name, ns) == full]
     if len(sweeps) > 1:
-        raise UserError(f"another TouchRoller graph runs in namespace /{namespace} on this ROS domain ({full} "
-                        "exists twice): give this scan its own namespace (touchroller scan --namespace NAME) "
-                        "or its own ROS_DOMAIN_ID")
+        raise _namespace_taken(namespace, f"{full} exists twice")
 
 
 def _call_start(client: Any, sweep: Any) -> None:

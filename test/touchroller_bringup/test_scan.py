@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -148,22 +149,42 @@ def test_scan_in_its_own_namespace(isolated_ros, tmp_path, capsys):
 
 @pytest.mark.ros
 @pytest.mark.timeout(120)
-def test_a_second_graph_in_the_same_namespace_stops_the_scan_before_the_arm_moves(isolated_ros, tmp_path, capsys):
-    """Two scans on one ROS domain and namespace would start each other's sweep: the second one refuses."""
+def test_a_second_graph_in_the_same_namespace_stops_the_scan_before_it_publishes(isolated_ros, tmp_path, capsys):
+    """Two scans on one ROS domain and namespace: the second one's images and arm transforms (the same
+    frame names) reached the first graph for the seconds its reference took, before it refused; and its
+    ~/start call would have started the first one's sweep. It now stops before making its nodes."""
+    import threading
+
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
+    from sensor_msgs.msg import Image
+    from tf2_msgs.msg import TFMessage
 
     context = rclpy.context.Context()
     rclpy.init(context=context, args=[])
     other = Node("sweep", namespace="touchroller", context=context)   # what another scan's sweep node is
+    heard: list[object] = []
+    other.create_subscription(Image, "/touchroller/image_raw", heard.append, 10)
+    other.create_subscription(TFMessage, "/tf", heard.append, 10)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(other)
+    done = threading.Event()
+    spinner = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.05) for _ in iter(done.is_set, True)])
+    spinner.start()
     try:
         assert main(["scan", *SHORT, "--out", str(tmp_path / "x")]) == 2
+        time.sleep(0.5)   # anything it had published is delivered by now
     finally:
+        done.set()
+        spinner.join()
+        executor.shutdown()
         other.destroy_node()
         context.try_shutdown()
     err = error_text(capsys.readouterr().err)
-    assert "another TouchRoller graph runs in namespace /touchroller" in err and "--namespace" in err
-    assert "\n" not in err
+    assert "another TouchRoller graph runs in namespace /touchroller" in err and "/touchroller/sweep" in err
+    assert "--namespace" in err and "\n" not in err
+    assert not heard, f"the refused scan published {len(heard)} images or transforms into the other graph"
 
 
 @pytest.mark.ros

@@ -5,7 +5,7 @@ robot_ip, params_file, calibration_file, sweep_speed, sweep_length, scene, names
 parameter on every node of the graph that declares it (e.g. `sweep.depth:=0.0008`, `map.publish_rate:=5.0`).
 With no arguments: the simulated sensor and arm over the built-in `surface_mapping` scene, in the
 namespace `touchroller`. Two scans on one ROS domain need different namespaces (`--namespace left`) or
-different ROS_DOMAIN_IDs; a scan that finds its namespace taken stops before the arm moves.
+different ROS_DOMAIN_IDs; a scan that finds its namespace taken stops at start-up, before it publishes.
 """
 from __future__ import annotations
 
