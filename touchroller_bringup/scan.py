@@ -101,7 +101,8 @@ def run_scan(options: ScanOptions) -> ScanResult:
         raise UserError(str(exc)) from None
     say = options.progress or (lambda _text: None)
     out_dir = Path(options.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"--out {out_dir} is a file; give a folder")
 
     # rclpy's executor loop is CPU-bound Python; the camera's render and perception make dozens of
     # short GIL-releasing OpenCV calls per frame, and each waits up to the switch interval to get the
@@ -135,6 +136,7 @@ def run_scan(options: ScanOptions) -> ScanResult:
         except GraphError as exc:
             raise UserError(str(exc)) from None
         _check_namespace_is_free(probe, graph.namespace, probe_made + options.discovery_s)
+        out_dir.mkdir(parents=True, exist_ok=True)   # only now: a scan that cannot start leaves no folder
         sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
         recorder = _make_recorder(out_dir, options, context, nodes, graph.namespace) if options.record else None
         for node in nodes:

@@ -62,7 +62,7 @@ def test_contacts_without_calibration_give_nan_points(tapped_bag, tmp_path):
 @pytest.mark.parametrize("extra, message", [
     (["--params", "/nonexistent.yaml"], "no such calibration file"),
     (["--reference-frames", "50"], "the reference needs 50"),
-    (["--reference-frames", "0"], "at least 1"),
+    (["--reference-frames", "0"], "--reference-frames must be in [1, 1000]"),
     (["--topic", "/other"], "no topic /other"),
     (["--threshold-sigma", "-1"], "threshold_sigma must be positive"),
     (["--pixel-sigma", "nan"], "--pixel-sigma"),

@@ -185,6 +185,7 @@ def test_a_second_graph_in_the_same_namespace_stops_the_scan_before_it_publishes
     assert "another TouchRoller graph runs in namespace /touchroller" in err and "/touchroller/sweep" in err
     assert "--namespace" in err and "\n" not in err
     assert not heard, f"the refused scan published {len(heard)} images or transforms into the other graph"
+    assert not (tmp_path / "x").exists()   # nor left an empty output folder
 
 
 @pytest.mark.ros

@@ -155,7 +155,7 @@ def test_float32_input_is_computed_in_float64():
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"d": 0.05}, "outside the tube"),
-    ({"fx": 0.0}, "focal lengths"),
+    ({"fx": 0.0}, "camera.fx = 0 px is outside its range"),
     ({"distortion": (0.1, 0.2)}, "5 coefficients"),
     ({"theta": float("nan")}, "finite"),
 ])
