@@ -50,6 +50,23 @@ def test_goals_follow_the_figures():
     assert quick[fps_goal] is None
 
 
+def test_results_say_which_goals_are_met():
+    """The results file's goals table agrees with the report's verdicts, NOT met in bold, speed not judged
+    on a quick run."""
+    bench = load_bench()
+    bad = fake_result(found_ms=54.0, map_s=2.0)
+    table = [line for line in bench.to_markdown(bad).splitlines() if line.startswith("| ") and line.endswith(" |")
+             and ("met" in line or "not judged" in line)]
+    assert len(table) == 7
+    assert [line.split(" | ")[0][2:] for line in table if "**NOT met**" in line] == [
+        "latency estimated within 3 ms of the truth",
+        "`touchroller map` on a 3-pass recording >= 500 frames/s (a new process)",
+        "`touchroller map` within 1.5x of reading the bag (new processes)"]
+    assert [met for _, _, met in bench.goals(bad)] == list(verdicts(bad).values())
+    quick = bench.to_markdown(fake_result(quick=True, map_s=2.0))
+    assert quick.count("not judged (quick run)") == 2
+
+
 def test_markdown_lists_every_mapper_and_latency():
     bench = load_bench()
     text = bench.to_markdown(fake_result())
@@ -73,3 +90,19 @@ def test_pass_shift_finds_a_known_displacement():
     dx, dy = bench._pass_shift(shifted, truth, np.ones_like(truth), canvas, (0.005, 0.005, 0.035, 0.025), 1e-4)
     assert (dx, dy) == (pytest.approx(0.2, abs=0.02), pytest.approx(-0.3, abs=0.02))
     assert not math.isnan(dx)
+
+
+@pytest.mark.parametrize("rows, cols", [(0, 20), (0, -20), (-25, 3)])
+def test_pass_shift_measures_what_a_100_ms_latency_does_to_a_pass(rows, cols):
+    """A pass placed 100 ms late at 20 mm/s lies 2 mm (20 px) off: the measure must reach that far (it
+    searched only 1.5 mm once, and reported a 2 mm displacement as about 1.1 mm)."""
+    import cv2
+
+    from touchroller_perception.world_map import WorldCanvas
+
+    bench = load_bench()
+    truth = cv2.GaussianBlur(np.random.default_rng(1).normal(128, 40, (300, 400)).astype(np.float32), (0, 0), 1.5)
+    shifted = np.roll(truth, (rows, cols), axis=(0, 1))
+    canvas = WorldCanvas(1e-4, (0.0, 0.0, 0.04, 0.03), 10**7)
+    dx, dy = bench._pass_shift(shifted, truth, np.ones_like(truth), canvas, (0.005, 0.005, 0.035, 0.025), 1e-4)
+    assert (dx, dy) == (pytest.approx(-cols * 0.1, abs=0.02), pytest.approx(-rows * 0.1, abs=0.02))
