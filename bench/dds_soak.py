@@ -5,6 +5,11 @@ Camera node -> perception node -> contact probe, 640x480 bgr8 at `--fps` (defaul
 1000 frames (with two processes: the perception process and the camera process separately).
 Growth is measured from the sample after `--warmup` frames (allocators and caches settle) to the
 end, with a least-squares slope per 1000 frames. Results: bench/results/dds_soak.md.
+
+What it does not cover: the frames are a few synthetic images played from memory (`MemorySource`) by a
+camera node built in this process, and they do not roll, so the stitched map never grows past its first
+rows. `bench/soak.py` runs the real camera (the simulator's scene) and perception nodes as processes
+for a set number of frames, with the real map growing as it would.
 """
 from __future__ import annotations
 

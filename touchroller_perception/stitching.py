@@ -58,6 +58,7 @@ _MISMATCH_COST = 0.5
 _STILL_PX = 1.0  # less motion than this (px) counts as standing still
 DEFAULT_HISTORY = 1000  # per-frame records a Stitcher keeps unless told otherwise
 MAX_MAP_PIXELS = 256_000_000  # the most pixels a resampled (metric) map may have: 256 MB of grey
+DEFAULT_MAX_ROWS = 10_000  # map rows a live Stitcher keeps (1 m at 0.1 mm per row) unless told otherwise
 
 
 @dataclass(frozen=True)
@@ -89,9 +90,18 @@ class _Canvas:
     `placed[left]` holds, per canvas row, the total bilinear share of the bands whose integer corner
     landed at that (row, left): enough to re-fill a layer with one patch at every place a band went
     (`refill`, what `Stitcher.finalise` needs), in memory that grows with the map, not the frames.
+
+    With `max_rows` the map is a rolling window: once it spans more rows, the rows farthest from the
+    band just added are dropped (counted in `dropped_rows`) and the memory stays bounded whatever the
+    number of frames. Rows within a band's height of a cut may be approximate after `refill`.
     """
 
-    def __init__(self, cols: int, layers: int = 1, rows: int = 2048) -> None:
+    def __init__(self, cols: int, layers: int = 1, rows: int = 2048, max_rows: int | None = None) -> None:
+        self.max_rows = max_rows
+        self.dropped_rows = 0  # map rows dropped to keep within max_rows
+        self.band_cols: int | None = None  # width of the bands placed (all the same)
+        if max_rows is not None:
+            rows = min(rows, max_rows)
         self.layers = [np.zeros((rows, cols), np.float32) for _ in range(layers)]
         self.weight = np.zeros(rows, np.float32)
         self.placed: dict[int, np.ndarray] = {}
@@ -110,9 +120,11 @@ class _Canvas:
         grow_right = max(0, left + self.origin_col + width - cols)
         if not (grow_top or grow_bottom or grow_left or grow_right):
             return
-        # Grow geometrically so that a long scan reallocates O(log n) times.
-        pad_t = max(grow_top, rows) if grow_top else 0
-        pad_b = max(grow_bottom, rows) if grow_bottom else 0
+        # Grow geometrically so that a long scan reallocates O(log n) times (by at most a quarter of
+        # the bound when there is one: the window is trimmed long before that is used up).
+        step = rows if self.max_rows is None else max(min(rows, self.max_rows // 4), 1)
+        pad_t = max(grow_top, step) if grow_top else 0
+        pad_b = max(grow_bottom, step) if grow_bottom else 0
         pad_l = max(grow_left, 32) if grow_left else 0
         pad_r = max(grow_right, 32) if grow_right else 0
         self.layers = [np.pad(layer, ((pad_t, pad_b), (pad_l, pad_r))) for layer in self.layers]
@@ -159,7 +171,9 @@ class _Canvas:
         # The map's rows: those a band reached with a real share (a 1 % sliver of a row at the edge
         # would show as a dark line).
         first = itop + (fr > 0.95)
+        self.band_cols = w
         self._extend(first, itop + h + (fr > 0.05) - first, ileft + (fc > 1e-6), ileft + w)
+        self._bound(itop, h + 1)
 
     def paste(self, patch: np.ndarray, top: int, left: int) -> None:
         """Overwrite layer 0 (the paper's stitching: the newest patch wins)."""
@@ -169,6 +183,56 @@ class _Canvas:
         self.layers[0][r0:r0 + h, c0:c0 + w] = patch
         self.weight[r0:r0 + h] = 1.0
         self._extend(top, h, left, left + w)
+        self._bound(top, h)
+
+    def _bound(self, top: int, h: int) -> None:
+        """With `max_rows`: once the map spans more rows, keep three quarters of the bound around the band
+        just placed at map rows [top, top + h) -- the rows it came from first -- and free the rest."""
+        if self.max_rows is None or self.row_max - self.row_min <= self.max_rows:
+            return
+        budget = max(self.max_rows * 3 // 4 - h, 0)
+        below = max(top - int(self.row_min), 0)          # map rows before the band (lower indices)
+        above = max(int(self.row_max) - (top + h), 0)    # and after it
+        keep_below = min(below, max(budget - above, budget // 2))
+        keep_above = min(above, budget - keep_below)
+        lo, hi = top - keep_below, top + h + keep_above
+        self._trim(lo, hi, margin=h + 2)
+        if keep_below < below:   # rows near the cut lost part of their bands' shares
+            self.row_min = min(lo + h, top)
+        else:
+            self.row_min = max(self.row_min, lo)
+        self.row_max = min(self.row_max, hi)
+        self.dropped_rows += (below - keep_below) + (above - keep_above)
+
+    def _trim(self, lo: int, hi: int, margin: int) -> None:
+        """Keep map rows [lo, hi) (plus `margin` rows of room beyond either end, so a band placed just
+        inside still fits whole) and the columns the remaining bands cover; free everything else."""
+        rows, cols = self.layers[0].shape
+        r0 = max(lo - margin + self.origin_row, 0)
+        r1 = min(hi + margin + self.origin_row, rows)
+        keep_r0, keep_r1 = lo + self.origin_row, hi + self.origin_row   # placements kept: corners in here
+        placed = {}
+        for left, shares in self.placed.items():
+            kept = shares[r0:r1].copy()
+            kept[:max(keep_r0 - r0, 0)] = 0.0
+            kept[max(keep_r1 - r0, 0):] = 0.0
+            if kept.any():
+                placed[left] = kept
+        c0, c1 = 0, cols
+        if placed and self.band_cols is not None:   # columns: those the remaining bands reach, and room
+            c0 = max(min(placed) + self.origin_col - 32, 0)
+            c1 = min(max(placed) + self.origin_col + self.band_cols + 33, cols)
+            self.col_lo = max(placed)
+            self.col_hi = min(placed) + self.band_cols
+        self.layers = [np.ascontiguousarray(layer[r0:r1, c0:c1]) for layer in self.layers]
+        self.weight = self.weight[r0:r1].copy()
+        a, b = max(keep_r0 - r0, 0), max(keep_r1 - r0, 0)   # what dropped bands left in the margins goes too
+        for array in (*self.layers, self.weight):
+            array[:a] = 0.0
+            array[b:] = 0.0
+        self.placed = placed
+        self.origin_row -= r0
+        self.origin_col -= c0
 
     def _extend(self, top: int, h: int, col_lo: int, col_hi: int) -> None:
         self.row_min = min(self.row_min, top)
@@ -349,6 +413,10 @@ class StitcherConfig:
       all (offline evaluation). Bounded by default so a live stitcher's memory grows only with the map.
     keep_map: build the strip map; False only measures the roll and learns the flat field (what the
       world map, which places the bands itself, asks of it).
+    max_rows: the most map rows kept (at 0.1 mm per row the default is 1 m of surface): a longer map is a
+      rolling window of the rows nearest the newest band, the rest dropped (`Stitcher.dropped_rows`), so a
+      live stitcher fed frames for hours stays within a fixed memory. None: unbounded (offline tools
+      that stitch a recording whole).
     """
 
     method: str = "default"
@@ -369,6 +437,7 @@ class StitcherConfig:
     live_map: bool = True
     history: int | None = DEFAULT_HISTORY
     keep_map: bool = True
+    max_rows: int | None = DEFAULT_MAX_ROWS
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -387,6 +456,9 @@ class StitcherConfig:
             raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.history is not None and self.history < 1:
             raise ValueError(f"history must be >= 1 frame or None (all), got {self.history}")
+        if self.max_rows is not None and self.max_rows < 8 * self.band_rows:
+            raise ValueError(f"max_rows must be >= 8 x band_rows ({8 * self.band_rows}) or None (unbounded), "
+                             f"got {self.max_rows}")
         if self.centre_row is not None and not math.isfinite(self.centre_row):
             raise ValueError(f"centre_row must be finite or None, got {self.centre_row}")
 
@@ -594,6 +666,11 @@ class Stitcher:
         return self.config.history
 
     @property
+    def dropped_rows(self) -> int:
+        """Map rows dropped so far to keep the map within `config.max_rows`."""
+        return 0 if self._canvas is None else self._canvas.dropped_rows
+
+    @property
     def position_px(self) -> float:
         """Cumulative shift since the first frame (the last step's `position_px`)."""
         return self._position
@@ -741,7 +818,7 @@ class Stitcher:
             raise ValueError(f"flat_field shape {fixed.shape} differs from the band's {(rows, shape[1])}")
         self._shape = shape
         self._sampler = sampler
-        self._canvas = _Canvas(shape[1], layers=2 if config.shaded else 1)
+        self._canvas = _Canvas(shape[1], layers=2 if config.shaded else 1, max_rows=config.max_rows)
         self._column_weights = np.ascontiguousarray(np.repeat(self._weights[:, None], shape[1], axis=1))
 
     # -- the paper's method ------------------------------------------------------------------------
@@ -1081,7 +1158,7 @@ def stitch(images: Iterable[np.ndarray], config: StitcherConfig | None = None, *
     the texture to average out of it is stitched with the live estimate instead. Every frame's
     StitchStep is kept whatever `config.history` says.
     """
-    config = (config or StitcherConfig()).replace(history=None)
+    config = (config or StitcherConfig()).replace(history=None, max_rows=None)
     probe = Stitcher(config, camera=camera)
     bands = [probe.band(image) for image in images]
     if not bands or probe._shape is None:

@@ -21,7 +21,8 @@ mosaic in the world frame (`map` frame of nav2: x right, y up) at `config.resolu
   overlaps average without seams (`finalise()` re-weights everything with the final flat field).
 
 Frames wait (a bounded queue) until their pose, the pressed height and the latency are known. Memory
-is bounded by the map (a fixed rectangle given by `bounds`, else growing up to `max_pixels`), not by the
+is bounded by the map (a fixed rectangle given by `bounds`, else growing up to `max_pixels`; frames
+that would grow it further are left out and counted in `stats.beyond_max_pixels`), not by the
 number of frames. No rclpy here; the caller looks poses up (`touchroller_perception.transforms`).
 """
 from __future__ import annotations
@@ -160,8 +161,12 @@ class WorldCanvas:
         rows, cols = self.shape
         if self.fixed or (rows and cols and c0 >= 0 and r0 >= 0 and c1 <= cols and r1 <= rows):
             return 0, 0
-        if not rows or not cols:   # the first band: start around it with room to grow
+        if not rows or not cols:   # the first band: start around it with room to grow (within max_pixels)
             pad = self.grow_px // 2
+            while pad > 0 and (r1 - r0 + 2 * pad) * (c1 - c0 + 2 * pad) > self.max_pixels:
+                pad //= 2
+            if (r1 - r0 + 2 * pad) * (c1 - c0 + 2 * pad) > self.max_pixels:
+                raise MemoryError(f"one band needs more than {self.max_pixels} pixels at {self.resolution} m/px")
             new_c0, new_r0 = c0 - pad, r0 - pad
             self.layers = np.zeros((3, r1 - r0 + 2 * pad, c1 - c0 + 2 * pad), np.float32)
             self.origin = (self.origin[0] + new_c0 * self.resolution, self.origin[1] + new_r0 * self.resolution)
@@ -436,6 +441,7 @@ class MapStats:
     not_in_contact: int = 0
     no_pose: int = 0
     passes: int = 0
+    beyond_max_pixels: int = 0   # frames left out: mapping them would have grown the map past max_pixels
     pass_corrections_px: list[tuple[float, float]] = field(default_factory=list)
     latency_s: float | None = None
     latency_estimated: bool = False
@@ -895,7 +901,11 @@ class WorldMapper:
         return planes, _Placement(c0, r0, None, matrix=local, size=size)
 
     def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
-        planes, placement = self._warp(frame, pose, delta)
+        try:
+            planes, placement = self._warp(frame, pose, delta)
+        except MemoryError:   # the map keeps what it has; the caller sees the count (max_pixels bounds memory)
+            self.stats.beyond_max_pixels += 1
+            return
         self.canvas.add(planes, placement.c0, placement.r0)
         self._placements.append(placement)
         self.stats.mapped += 1
@@ -906,7 +916,10 @@ class WorldMapper:
     def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float] | None:
         """This frame's offset (columns, rows, score) against the earlier passes where they overlap."""
         assert self._prior is not None
-        (weighted_band, weighted_field, weights), placement = self._warp(frame, pose, np.zeros(2))
+        try:
+            (weighted_band, weighted_field, weights), placement = self._warp(frame, pose, np.zeros(2))
+        except MemoryError:   # beyond max_pixels: `_place` leaves it out and counts it
+            return None
         c0, r0 = placement.c0, placement.r0
         value, weight, cs, rs = self._prior
         h, w = weights.shape

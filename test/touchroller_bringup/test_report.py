@@ -9,7 +9,7 @@ from touchroller_bringup.report import SECTIONS, build_report
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)   # every section's quick run: ~4 min on a shared 2-core machine
+@pytest.mark.timeout(900)   # every section's quick run: ~5 min on a shared 2-core machine
 def test_quick_report_has_every_section_with_complete_tables(tmp_path):
     out = tmp_path / "RESULTS.md"
     results = build_report(out, quick=True, progress=lambda _line: None)

@@ -446,3 +446,44 @@ def test_live_history_is_bounded():
     assert Stitcher().history is not None  # what the perception node constructs is bounded
     with pytest.raises(ValueError, match="history"):
         StitcherConfig(history=0)
+
+
+def canvas_cells(stitcher: Stitcher) -> int:
+    """Values the stitcher's map holds: the layers, the row weights and the placement histogram."""
+    canvas = stitcher._canvas
+    return (sum(layer.size for layer in canvas.layers) + canvas.weight.size
+            + sum(shares.size for shares in canvas.placed.values()))
+
+
+def test_a_live_map_is_a_rolling_window_of_max_rows():
+    """Frames for ever (a camera left running with no sweep to start a new map) must not grow the map
+    without end: past `max_rows` the rows farthest from the newest band go, and are counted."""
+    frames, _, _ = roll(np.full(300, 6.0), noise=1.0, lateral=np.linspace(0.0, 12.0, 301))
+    max_rows = 8 * StitcherConfig().band_rows
+    bounded = Stitcher(StitcherConfig(max_rows=max_rows))
+    unbounded = Stitcher(StitcherConfig(max_rows=None))
+    cells = []
+    for k, image in enumerate(frames):
+        for stitcher in (bounded, unbounded):
+            stitcher.push(image, k * FRAME_NS)
+        if k % 50 == 49:
+            cells.append(canvas_cells(bounded))
+    full, window = unbounded.map_image(), bounded.map_image()
+    assert full.shape[0] > 3 * max_rows   # the roll is far longer than the window
+    assert 0 < window.shape[0] <= max_rows
+    assert max(cells[1:]) <= 2 * max_rows * (SHAPE[1] + 64) * 3
+    assert cells[-1] <= cells[2]   # the memory stopped growing with the frames
+    assert bounded.dropped_rows >= full.shape[0] - max_rows
+    assert unbounded.dropped_rows == 0
+    # The surface moves down the image, so the newest rows are at the top of the map: the window is
+    # the unbounded map's first rows (the columns may differ: the window's bands span wider than all).
+    rows = window.shape[0] - 2 * StitcherConfig().band_rows   # away from the cut
+    offset = bounded._canvas.col_lo - unbounded._canvas.col_lo
+    width = min(window.shape[1], full.shape[1])
+    a = window[:rows, max(-offset, 0):][:, :width - abs(offset)]
+    b = full[:rows, max(offset, 0):][:, :width - abs(offset)]
+    assert a.shape == b.shape and a.size > 0
+    assert np.abs(a.astype(int) - b.astype(int)).max() <= 1
+    assert Stitcher().config.max_rows is not None   # what the perception node constructs is bounded
+    with pytest.raises(ValueError, match="max_rows"):
+        StitcherConfig(max_rows=100)

@@ -125,3 +125,23 @@ def test_an_axis_aligned_band_lands_where_the_bilinear_warp_puts_it(turn):
     assert np.abs(outside).max() == 0   # the patch holds all of the band
     assert np.abs(patch - warped[r0:r0 + h, c0:c0 + w]).max() < 0.05   # grey levels (0.02 px off: 2)
     assert _axis_aligned(matrix + np.array([[0, 1e-3, 0], [0, 0, 0]]), plane.shape) is None   # not a pure turn
+
+
+@pytest.mark.slow
+def test_frames_past_max_pixels_are_left_out_and_counted(scans, sensor):
+    """A growing map (no bounds) that reaches max_pixels keeps what it has and counts what it leaves out,
+    rather than failing (the live node then switched its map off for good)."""
+    _, _, events = scans
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                         WorldMapConfig(max_pixels=200_000, latency=0.0))   # the raster needs ~600 000
+    for event in events[0.0]:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+        else:
+            mapper.push(event[2], event[1])
+    mapper.finalise()
+    assert mapper.stats.beyond_max_pixels > 0 and mapper.stats.mapped > 0
+    assert mapper.canvas.shape[0] * mapper.canvas.shape[1] <= 200_000
+    assert mapper.map_image().grey.size > 0

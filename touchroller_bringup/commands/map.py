@@ -279,9 +279,10 @@ def _make_stitcher(args: argparse.Namespace, camera, shape):
     if args.metric is not None and camera is None:
         raise UserError("--metric needs a camera model for these images (--params CAL.yaml)")
     try:
-        # Per-frame records only when --steps wants them: memory then does not grow with the bag.
+        # Per-frame records only when --steps wants them: memory then does not grow with the bag. The
+        # recording is mapped whole (no rolling window: that bounds a live node fed frames for hours).
         config = StitcherConfig(method=args.method, band_rows=args.band_rows, search=args.search, live_map=False,
-                                history=None if args.steps else 1)
+                                history=None if args.steps else 1, max_rows=None)
         return Stitcher(config, camera=camera)
     except ValueError as exc:
         raise UserError(str(exc)) from None

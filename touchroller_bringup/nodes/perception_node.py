@@ -137,6 +137,10 @@ STITCHER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "map.min_confidence": ("min_confidence", "Below this registration confidence the motion prior is used",
                            0.0, 1.0),
     "map.history": ("history", "Per-frame registration records kept (the newest)", 1, 1_000_000),
+    "map.max_rows": ("max_rows", "Strip map: the most rows kept (0.1 mm each with the default geometry); a longer "
+                     "map keeps the rows nearest the newest frame, drops the rest and says so on /diagnostics "
+                     "(memory stays bounded however long frames come without a sweep); at least 8 x map.band_rows",
+                     64, 10_000_000),
 }
 
 
@@ -577,7 +581,10 @@ class PerceptionNode(Node):
             "method": self.detector.config.method,
             "map": "world" if self.world is not None else "strip" if self.stitcher is not None else "none",
         }
-        world = self.world
+        world, stitcher = self.world, self.stitcher
+        dropped_rows = stitcher.dropped_rows if stitcher is not None else 0
+        beyond = world.stats.beyond_max_pixels if world is not None else 0
+        values.update({"map_rows_dropped": dropped_rows, "map_frames_beyond_max_pixels": beyond})
         if world is not None:
             values.update({"map_frames_mapped": world.stats.mapped, "map_passes": world.stats.passes,
                            "map_latency_ms": float("nan") if world.stats.latency_s is None
@@ -603,6 +610,11 @@ class PerceptionNode(Node):
                           values)
         if not self.detector.reference_ready:
             return Status(WARN, "capturing the no-contact reference", values)
+        if dropped_rows:
+            return Status(WARN, f"map longer than map.max_rows: its {dropped_rows} oldest rows dropped (a sweep "
+                                "starts a new map)", values)
+        if beyond:
+            return Status(WARN, f"world map at its size bound: {beyond} frames not mapped", values)
         return Status(OK, "detecting contacts", values)
 
 

@@ -489,3 +489,31 @@ def test_a_malformed_frame_shows_on_diagnostics(graph, spin_until, monkeypatch):
     assert node.malformed == 1 and status.level == WARN and "malformed" in status.message, status
     monkeypatch.setattr(perception_node, "BAD_INPUT_HOLD_S", 0.0)
     assert node._diagnostic_status().level == OK
+
+
+def test_a_map_past_max_rows_keeps_a_window_and_warns(ros_context):
+    """Frames with no sweep to start a new map: the strip map stays within map.max_rows, and
+    /diagnostics says that rows were dropped (WARN), not OK."""
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+    from touchroller_bringup.ros_diagnostics import WARN
+
+    overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
+    overrides += [Parameter("reference.frames", value=2), Parameter("map.publish_rate", value=1.0),
+                  Parameter("map.max_rows", value=560)]
+    node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
+    try:
+        assert not node.set_parameters([Parameter("map.max_rows", value=100)])[0].successful  # < 8 x band_rows
+        rng = np.random.default_rng(0)
+        frames = 150
+        texture = rng.integers(0, 255, (CAMERA.height + 8 * frames, CAMERA.width, 3), dtype=np.uint8)
+        for k in range(frames):   # the surface slides along v by 8 px a frame: 1200 rows in all
+            frame = np.ascontiguousarray(texture[8 * k:8 * k + CAMERA.height])
+            node._on_image(array_to_image(frame, 33_333_333 * (k + 1)))
+        assert node.stitcher is not None
+        assert 0 < node.stitcher.map_image().shape[0] <= 560
+        status = node._diagnostic_status()
+        assert status.level == WARN and "map.max_rows" in status.message
+        assert status.values["map_rows_dropped"] > 0
+    finally:
+        node.destroy_node()
