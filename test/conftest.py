@@ -181,3 +181,43 @@ def real_presses() -> Callable[..., object]:
         return cache[sensor]
 
     return load
+
+
+SILENT_SERVER = r'''
+import socket, sys, threading
+host, ports = sys.argv[1], [int(p) for p in sys.argv[2:]]
+held = []
+def accept(server):
+    while True:
+        held.append(server.accept()[0])   # accepted, never answered
+servers = []
+for port in ports:
+    server = socket.socket(); server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.bind((host, port)); server.listen(8); servers.append(server)
+    threading.Thread(target=accept, args=(server,), daemon=True).start()
+print("listening", flush=True)
+threading.Event().wait()
+'''
+
+
+@pytest.fixture
+def silent_ur_host() -> Iterator[str]:
+    """A free 127.0.1.x whose UR ports (RTDE, dashboard, script) accept TCP connections and never answer:
+    ur_rtde's constructors would wait there for ever with the GIL held."""
+    import subprocess
+    import sys
+
+    for attempt in range(10):
+        host = f"127.0.1.{(os.getpid() + 23 * attempt) % 250 + 1}"
+        server = subprocess.Popen([sys.executable, "-u", "-c", SILENT_SERVER, host, "30004", "29999", "30003",
+                                   "30002"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        if server.stdout.readline().strip() == "listening":
+            break
+        server.wait(timeout=5)
+    else:
+        pytest.skip("no free loopback address for the silent server")
+    try:
+        yield host
+    finally:
+        server.kill()
+        server.wait(timeout=5)

@@ -39,6 +39,7 @@ CLOCK = "/clock"                 # absolute: the simulated clock (use_sim_time),
 # -- services (std_srvs/Trigger), under their node: `<namespace>/<node>/<service>` -------------
 START = "start"                  # sweep: roll now
 STOP = "stop"                    # sweep: stop and lift
+RESET_FAULT = "reset_fault"      # sweep: clear an arm fault (unlock a protective stop, reconnect)
 RECAPTURE_REFERENCE = "recapture_reference"  # perception
 CAPTURE = "capture"              # calibration: take the current frame
 SOLVE = "solve"                  # calibration: solve and write the calibration

@@ -2,7 +2,8 @@
 
 Poses are UR TCP poses in the robot base frame: (x, y, z, rx, ry, rz), metres and a rotation vector
 (radians), z up. Every motion command is checked against `ArmLimits` before it is sent, and an arm that
-has faulted refuses further motion until it is reconnected. No rclpy here: the sweep node drives an
+has faulted refuses further motion until `reset_fault()` clears the fault (what a UR's dashboard
+"unlock protective stop" and a reconnect do). No rclpy here: the sweep node drives an
 `Arm` from its one worker thread.
 """
 from __future__ import annotations
@@ -118,6 +119,7 @@ class Arm(Protocol):
     def is_moving(self) -> bool: ...
     def stop(self) -> None: ...
     def fault(self) -> str | None: ...
+    def reset_fault(self) -> None: ...  # clear a fault (unlock a protective stop, reconnect) or raise ArmError
     def keepalive(self) -> None: ...  # at >= 10 Hz while connected: a real arm stops when calls cease
     def disconnect(self) -> None: ...
 
@@ -155,7 +157,8 @@ class SimulatedArm:
     """A kinematic arm: linear moves follow a trapezoid velocity profile in the time of `clock` (seconds:
     real time by default; the sweep node's simulated clock in simulation, which the simulated camera
     shares). It knows nothing of the sensor: the camera reads its pose (over TF). `stop()` halts
-    instantly (an idealisation); `inject_fault` stands in for a protective stop.
+    instantly (an idealisation); `inject_fault` stands in for a protective stop (or, not resettable, an
+    emergency stop still pressed) and `inject_disconnect` for a lost connection.
     """
 
     def __init__(self, start_pose: ArrayLike = DEFAULT_START_POSE, *, limits: ArmLimits | None = None,
@@ -166,6 +169,7 @@ class SimulatedArm:
         self._lock = threading.Lock()
         self._connected = False
         self._fault: str | None = None
+        self._fault_resettable = True
         self._move: _Move | None = None
         self._rest_pose = self.origin.copy()
         self._halted_fraction = 1.0  # progress of a move that was stopped part-way
@@ -215,15 +219,32 @@ class SimulatedArm:
         with self._lock:
             return self._fault
 
+    def reset_fault(self) -> None:
+        """Clear the fault and reconnect, as unlocking a protective stop does; ArmError while the cause
+        persists (an injected fault that is not resettable)."""
+        with self._lock:
+            if self._fault is not None and not self._fault_resettable:
+                raise ArmError(f"cannot reset: {self._fault}")
+            self._fault, self._fault_resettable = None, True
+            self._connected = True
+
     def keepalive(self) -> None:
         """Nothing to keep alive: the simulation stops with the process."""
 
     # -- simulation ----------------------------------------------------------------------------
-    def inject_fault(self, message: str = "protective stop") -> None:
-        """Behave like a protective stop: the arm halts where it is and refuses motion until reconnected."""
+    def inject_fault(self, message: str = "protective stop", *, resettable: bool = True) -> None:
+        """Behave like a protective stop: the arm halts where it is and refuses motion until `reset_fault()`
+        (which fails while `resettable` is False, as with an emergency stop still pressed)."""
         with self._lock:
             self._halt_locked(self.clock())
-            self._fault = message
+            self._fault, self._fault_resettable = message, resettable
+
+    def inject_disconnect(self) -> None:
+        """Behave like a lost connection: the arm halts and every command fails until `reset_fault()`."""
+        with self._lock:
+            self._halt_locked(self.clock())
+            self._connected = False
+            self._fault, self._fault_resettable = "lost the connection to the arm", True
 
     def pose_at(self, t: float) -> np.ndarray:
         with self._lock:
@@ -257,6 +278,7 @@ class SimulatedArm:
 # -- the sweep: a plan of linear moves and a sequencer that drives any Arm through it ---------------
 
 class SweepPhase(str, Enum):
+    CONNECTING = "connecting"   # the sweep node is opening the connection to the arm
     IDLE = "idle"
     MOVING = "moving"      # on the way to the start pose, pressing in, or lifting off
     SWEEPING = "sweeping"  # rolling along the surface at the sweep speed and depth
@@ -467,12 +489,19 @@ class SweepSequencer:
         self.plan, self._index = plan, -1
         self._status = SweepStatus(SweepPhase.MOVING, None, 0.0)
         self._next_segment()
+        if self._status.phase is SweepPhase.FAULT:   # the first command was refused: the sweep never started
+            raise ArmError(self._status.message)
 
     def stop(self, message: str = "stopped on request") -> None:
         was_active = self.active
         self.arm.stop()
         if was_active:
             self._status = self._make_status(SweepPhase.STOPPED, self._status.segment, message)
+
+    def clear(self) -> None:
+        """Back to IDLE after a sweep that ended (done, stopped or faulted), e.g. once a fault is reset."""
+        if not self.active:
+            self._status = SweepStatus(SweepPhase.IDLE, None, 0.0)
 
     def poll(self) -> SweepStatus:
         """Advance through the plan; call regularly (e.g. at 50 Hz) while a sweep runs."""

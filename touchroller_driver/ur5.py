@@ -2,7 +2,15 @@
 
 `rtde_receive` streams the robot state (TCP pose, safety mode); `rtde_control` uploads its control
 script and executes `moveL`. Limits are checked before a command is sent; a protective or emergency
-stop, or a lost connection, becomes `fault()` and refuses further motion until `connect()` again.
+stop, or a lost connection, becomes `fault()` and refuses further motion until `reset_fault()` (which
+unlocks a protective stop through the dashboard server, as the teach pendant's button does, and
+reconnects) or `connect()` again.
+
+ur_rtde's constructors connect with no timeout and hold the GIL while they wait: a host that accepts
+TCP on the UR ports and never answers would freeze the whole process for good. So `connect()` first
+probes the ports with the protocols' own greetings and a timeout (`probe_rtde`: the RTDE protocol
+version request on 30004; `probe_dashboard`: the dashboard server's welcome line on 29999, which the
+control interface opens too) and only then constructs the interfaces.
 All calls must come from one thread (the sweep node's worker): ur_rtde's interfaces are not shared.
 See docs/ur5.md for running against a real robot or URSim.
 """
@@ -10,6 +18,9 @@ from __future__ import annotations
 
 import ipaddress
 import math
+import socket
+import struct
+import time
 from typing import Any
 
 import numpy as np
@@ -41,15 +52,74 @@ RECEIVE_CALLS: dict[str, int] = {
 }
 CONSTRUCTOR_CALLS: dict[str, int] = {"RTDEControlInterface": 2, "RTDEReceiveInterface": 2}  # host, frequency
 
+DASHBOARD_CALLS: dict[str, int] = {"connect": 1, "unlockProtectiveStop": 0, "disconnect": 0}  # connect(timeout ms)
+
 STOP_DECELERATION = 0.5  # m/s^2: stopL's tool deceleration when the sweep is stopped
 WATCHDOG_HZ = 10.0  # the controller shuts our control script down if keepalive() stops coming this often
+CONNECT_TIMEOUT_S = 2.0  # each port probe's limit: a UR controller answers in milliseconds
+RTDE_PORT = 30004
+DASHBOARD_PORT = 29999
+RTDE_PROTOCOL_VERSION = 2
+DASHBOARD_WELCOME = "Connected: Universal Robots Dashboard Server"
+
+
+def _receive_exactly(sock: socket.socket, count: int, deadline: float) -> bytes:
+    data = b""
+    while len(data) < count:
+        sock.settimeout(max(deadline - time.monotonic(), 1e-3))
+        chunk = sock.recv(count - len(data))
+        if not chunk:
+            raise ConnectionError("the connection closed")
+        data += chunk
+    return data
+
+
+def _probe(host: str, port: int, timeout: float, what: str, exchange: Any) -> None:
+    """Open (host, port) and run `exchange(sock, deadline)` within `timeout` s; ArmError (one line) if
+    the port is closed, silent, or answers something else."""
+    deadline = time.monotonic() + timeout
+    try:
+        with socket.create_connection((host, port), timeout=timeout) as sock:
+            exchange(sock, deadline)
+    except TimeoutError:
+        raise ArmError(f"cannot connect to the UR at {host}: no {what} answer on port {port} within "
+                       f"{timeout:g} s") from None
+    except (OSError, ConnectionError) as exc:
+        raise ArmError(f"cannot connect to the UR at {host}: {what} on port {port}: {_one_line(exc)}") from None
+
+
+def probe_rtde(host: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
+    """The RTDE handshake's first step: request protocol version 2 and read the controller's accept."""
+    def exchange(sock: socket.socket, deadline: float) -> None:
+        sock.sendall(struct.pack(">HBH", 5, ord("V"), RTDE_PROTOCOL_VERSION))
+        size, kind = struct.unpack(">HB", _receive_exactly(sock, 3, deadline))
+        payload = _receive_exactly(sock, max(size - 3, 0), deadline)
+        if kind != ord("V") or not payload:
+            raise ConnectionError(f"not an RTDE answer (package type {kind})")
+        if payload[0] != 1:
+            raise ConnectionError(f"the controller refused RTDE protocol version {RTDE_PROTOCOL_VERSION}")
+
+    _probe(host, RTDE_PORT, timeout, "RTDE", exchange)
+
+
+def probe_dashboard(host: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
+    """The dashboard server greets every client with one line; read it."""
+    def exchange(sock: socket.socket, deadline: float) -> None:
+        line = b""
+        while not line.endswith(b"\n") and len(line) < 256:
+            line += _receive_exactly(sock, 1, deadline)
+        if not line.decode(errors="replace").startswith(DASHBOARD_WELCOME):
+            raise ConnectionError(f"not a UR dashboard server (it said {line[:60]!r})")
+
+    _probe(host, DASHBOARD_PORT, timeout, "dashboard", exchange)
 
 
 class UR5Arm:
     """ur_rtde implementation of `touchroller_driver.arm.Arm`."""
 
     def __init__(self, robot_ip: str, *, limits: ArmLimits | None = None, frequency: float = -1.0,
-                 check_reachability: bool = True, watchdog_hz: float = WATCHDOG_HZ) -> None:
+                 check_reachability: bool = True, watchdog_hz: float = WATCHDOG_HZ,
+                 connect_timeout: float = CONNECT_TIMEOUT_S) -> None:
         try:
             ipaddress.ip_address(robot_ip)
         except ValueError:
@@ -60,6 +130,9 @@ class UR5Arm:
         self.frequency = float(frequency)
         self.check_reachability = check_reachability
         self.watchdog_hz = float(watchdog_hz)  # 0 disables the watchdog
+        if not (math.isfinite(connect_timeout) and connect_timeout > 0):
+            raise ValueError(f"connect_timeout must be a number of seconds > 0, got {connect_timeout}")
+        self.connect_timeout = float(connect_timeout)
         self._control: Any = None
         self._receive: Any = None
         self._fault: str | None = None
@@ -69,14 +142,21 @@ class UR5Arm:
 
     # -- connection ----------------------------------------------------------------------------
     def connect(self) -> None:
-        """Open the receive stream, then the control interface (which uploads the control script)."""
+        """Open the receive stream, then the control interface (which uploads the control script), each
+        after probing its ports (a silent host fails here in `connect_timeout`, not in ur_rtde for ever)."""
         import rtde_control
         import rtde_receive
 
         self.disconnect()
         try:
+            probe_rtde(self.robot_ip, self.connect_timeout)
             self._receive = rtde_receive.RTDEReceiveInterface(self.robot_ip, self.frequency)
+            probe_dashboard(self.robot_ip, self.connect_timeout)
             self._control = rtde_control.RTDEControlInterface(self.robot_ip, self.frequency)
+        except ArmError as exc:
+            self.disconnect()
+            self._fault = str(exc)
+            raise
         except RuntimeError as exc:
             self.disconnect()
             message = f"cannot connect to the UR at {self.robot_ip}: {_one_line(exc)}"
@@ -87,6 +167,45 @@ class UR5Arm:
             self._fault = "the robot refused the communication watchdog"
             raise ArmError(self._fault)
         self._fault = None
+
+    def reset_fault(self) -> None:
+        """Clear a fault as the UR's dashboard does: a protective stop is unlocked through the dashboard
+        server (the controller allows it 5 s after the stop), then the interfaces reconnect (a protective
+        stop ends the control script). An emergency stop must be released on the teach pendant first;
+        ArmError (one line) when the fault remains."""
+        receive = self._receive
+        emergency = protective = False
+        if receive is not None:
+            try:
+                if receive.isConnected():
+                    emergency, protective = receive.isEmergencyStopped(), receive.isProtectiveStopped()
+            except RuntimeError:
+                pass   # the stream is gone: reconnecting tells
+        if emergency:
+            raise ArmError("emergency stop: release it on the teach pendant, then reset")
+        if protective:
+            self._unlock_protective_stop()
+        self._fault = None
+        self.connect()
+        fault = self.fault()
+        if fault is not None:
+            raise ArmError(f"the fault remains after the reset: {fault}")
+
+    def _unlock_protective_stop(self) -> None:
+        import dashboard_client
+
+        probe_dashboard(self.robot_ip, self.connect_timeout)
+        dashboard = dashboard_client.DashboardClient(self.robot_ip)
+        try:
+            dashboard.connect(round(self.connect_timeout * 1000))
+            dashboard.unlockProtectiveStop()
+        except RuntimeError as exc:
+            raise ArmError(f"unlocking the protective stop failed: {_one_line(exc)}") from exc
+        finally:
+            try:
+                dashboard.disconnect()
+            except RuntimeError:
+                pass
 
     def keepalive(self) -> None:
         """Kick the controller-side watchdog: if this process hangs or dies, the robot stops."""
@@ -187,4 +306,5 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-__all__ = ["CONSTRUCTOR_CALLS", "CONTROL_CALLS", "RECEIVE_CALLS", "UR5Arm"]
+__all__ = ["CONSTRUCTOR_CALLS", "CONTROL_CALLS", "DASHBOARD_CALLS", "RECEIVE_CALLS", "UR5Arm", "probe_dashboard",
+           "probe_rtde"]

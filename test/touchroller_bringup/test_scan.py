@@ -221,6 +221,27 @@ def test_unreachable_robot_fails_with_the_arm_error(isolated_ros, tmp_path, caps
     assert "cannot connect" in err and "127.0.0.213" in err and "\n" not in err
 
 
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_a_silent_robot_fails_the_scan_in_one_line_instead_of_freezing_it(isolated_ros, tmp_path, silent_ur_host):
+    """A host that accepts TCP on the UR ports and never answers froze `touchroller scan` for good (ur_rtde
+    waits with the GIL held). A child process, so that a freeze fails this test instead of hanging it."""
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "touchroller_bringup.cli", "scan", "use_sim:=false",
+               f"robot_ip:={silent_ur_host}", "camera_device:=/nonexistent/video99", "--quiet",
+               "--out", str(tmp_path / "x")]
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=90)
+    except subprocess.TimeoutExpired:
+        pytest.fail("touchroller scan froze on a silent robot")
+    assert done.returncode == 2, done.stderr[-2000:]
+    err = done.stderr.strip().splitlines()[-1]   # after the nodes' log lines, the command's error
+    assert err.startswith("touchroller: error: arm: cannot connect to the UR at " + silent_ur_host), err
+    assert "no RTDE answer" in err
+
+
 def test_default_output_folder_is_timestamped(monkeypatch, tmp_path):
     from touchroller_bringup import scan as scan_module
 

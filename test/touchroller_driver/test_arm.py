@@ -327,3 +327,47 @@ def test_sequencer_reports_progress_over_all_passes():
     progress = [p for _, p in seen]
     assert progress == sorted(progress)                          # never goes back
     assert any(roll == 1 and 0.5 < p < 1.0 for roll, p in seen)   # the second pass is the second half
+
+
+def test_reset_fault_clears_a_protective_stop_but_not_an_emergency_stop():
+    arm, clock = make_arm()
+    arm.inject_fault("protective stop")
+    with pytest.raises(ArmError, match="protective stop"):
+        arm.move_linear(START, 0.01, 0.1)
+    arm.reset_fault()
+    assert arm.fault() is None
+    arm.move_linear(np.array(START) + [0.01, 0, 0, 0, 0, 0], 0.01, 0.1)
+    arm.inject_fault("emergency stop", resettable=False)
+    with pytest.raises(ArmError, match="emergency stop"):
+        arm.reset_fault()
+    assert arm.fault() == "emergency stop"
+    arm.inject_fault("protective stop")   # the e-stop released, a protective stop left: that one resets
+    arm.reset_fault()
+    assert arm.fault() is None
+
+
+def test_a_lost_connection_is_a_fault_until_reset():
+    arm, clock = make_arm()
+    arm.move_linear(np.array(START) + [0.1, 0, 0, 0, 0, 0], 0.01, 0.1)
+    clock.t += 1.0
+    arm.inject_disconnect()
+    assert not arm.is_moving() and "lost the connection" in arm.fault()
+    with pytest.raises(ArmError):
+        arm.move_linear(START, 0.01, 0.1)
+    arm.reset_fault()
+    assert arm.fault() is None
+    arm.move_linear(START, 0.01, 0.1)
+
+
+def test_a_sweep_whose_first_command_is_refused_does_not_start():
+    """A refused first move (the arm gone, with no fault to say so beforehand) must fail `start`, not
+    answer success with the sweep already in FAULT."""
+    arm, clock = make_arm()
+    arm.disconnect()
+    assert arm.fault() is None
+    sequencer = SweepSequencer(arm)
+    with pytest.raises(ArmError, match="not connected"):
+        sequencer.start(plan_sweep(START, length=0.05, speed=0.01, accel=0.1, depth=0.0))
+    assert sequencer.status.phase is SweepPhase.FAULT and not sequencer.active
+    sequencer.clear()
+    assert sequencer.status.phase is SweepPhase.IDLE

@@ -19,6 +19,7 @@ from touchroller_driver.arm import Arm, ArmError, ArmLimitError, ArmLimits
 
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
+dashboard_client = pytest.importorskip("dashboard_client")
 
 # A loopback address nothing listens on (all of 127/8 is loopback on Linux): connection refused.
 REFUSED_HOST = "127.0.0.213"
@@ -55,6 +56,7 @@ def overload_arities(function, name: str) -> list[tuple[int, int]]:
 @pytest.mark.parametrize(("cls", "calls"), [
     (rtde_control.RTDEControlInterface, ur5.CONTROL_CALLS),
     (rtde_receive.RTDEReceiveInterface, ur5.RECEIVE_CALLS),
+    (dashboard_client.DashboardClient, ur5.DASHBOARD_CALLS),
 ])
 def test_every_call_exists_with_the_arity_we_use(cls, calls):
     for name, n_args in calls.items():
@@ -118,6 +120,8 @@ def connected_arm(monkeypatch):
     control.setWatchdog.return_value = True
     monkeypatch.setattr(rtde_control, "RTDEControlInterface", lambda host, freq: control)
     monkeypatch.setattr(rtde_receive, "RTDEReceiveInterface", lambda host, freq: receive)
+    monkeypatch.setattr(ur5, "probe_rtde", lambda host, timeout: None)   # no controller behind the doubles
+    monkeypatch.setattr(ur5, "probe_dashboard", lambda host, timeout: None)
     arm = ur5.UR5Arm("127.0.0.1", limits=ArmLimits(max_speed=0.05, max_accel=0.5))
     arm.connect()
     return arm, control, receive
@@ -181,9 +185,11 @@ def test_progress_follows_the_measured_tcp(connected_arm):
 
 # -- the real rtde_receive against a minimal RTDE server on loopback --------------------------------
 # The server runs in a subprocess: ur_rtde's pybind constructors hold the GIL while connecting, so a
-# server thread in this interpreter could never answer. It speaks RTDE v2: protocol version, controller
-# version, output recipe setup (answering each requested variable with its RTDE type), start, then data
-# packages at 100 Hz carrying a TCP pose and safety status bits that stdin commands change.
+# server thread in this interpreter could never answer. It speaks RTDE v2 on 30004 to any number of
+# clients (UR5Arm probes first): protocol version, controller version, output recipe setup (answering
+# each requested variable with its RTDE type), start, then data packages at 100 Hz carrying a TCP pose
+# and safety status bits that stdin commands change; and the dashboard server on 29999, whose "unlock
+# protective stop" clears the protective stop.
 FAKE_RTDE_SERVER = r'''
 import socket, struct, sys, threading, time
 HOST = sys.argv[1]
@@ -200,54 +206,77 @@ def kind(name):
     if name.startswith("output_int_register"): return "INT32"
     if name.startswith(("output_double_register", "standard_analog")): return "DOUBLE"
     return "VECTOR6D"
-state = {"pose": [0.0] * 6, "safety_bits": 1}
+state = {"pose": [0.0] * 6, "safety_bits": 1, "unlocks": 0}
 def commands():
     for line in sys.stdin:
         words = line.split()
         if words[:1] == ["protective"]: state["safety_bits"] = 1 | 4
         if words[:1] == ["pose"]: state["pose"] = [float(x) for x in words[1:7]]
 threading.Thread(target=commands, daemon=True).start()
-server = socket.socket(); server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-server.bind((HOST, 30004)); server.listen(1)
+def listen(port):
+    server = socket.socket(); server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.bind((HOST, port)); server.listen(8)
+    return server
+def rtde(conn):
+    # one RTDE client: protocol version, controller version, output recipe, start, data at 100 Hz
+    lock = threading.Lock()
+    def send(t, payload):
+        with lock: conn.sendall(struct.pack(">HB", len(payload) + 3, ord(t)) + payload)
+    def exact(n):
+        data = b""
+        while len(data) < n:
+            chunk = conn.recv(n - len(data))
+            if not chunk: raise EOFError
+            data += chunk
+        return data
+    names = []
+    def stream():
+        while True:
+            package = b"\x01"
+            for name in names:
+                fmt = FORMATS[kind(name)]
+                count = int(fmt[:-1] or 1)
+                values = {"actual_TCP_pose": state["pose"], "safety_status_bits": [state["safety_bits"]],
+                          "timestamp": [time.monotonic()]}.get(name, [0] * count)
+                package += struct.pack(">" + fmt, *values)
+            try: send("U", package)
+            except OSError: return
+            time.sleep(0.01)
+    try:
+        while True:
+            size, kind_byte = struct.unpack(">HB", exact(3))
+            payload, command = exact(size - 3), chr(kind_byte)
+            if command == "V": send("V", b"\x01")
+            elif command == "v": send("v", struct.pack(">IIII", 5, 15, 0, 0))
+            elif command == "O":
+                names = [n for n in payload[8:].decode().split(",") if n]
+                send("O", b"\x01" + ",".join(kind(n) for n in names).encode())
+            elif command == "S":
+                send("S", b"\x01"); threading.Thread(target=stream, daemon=True).start()
+            elif command == "P": send("P", b"\x01")
+    except (EOFError, OSError):
+        pass
+def dashboard(conn):
+    # the dashboard server: a welcome line, then one answer per command line
+    try:
+        conn.sendall(b"Connected: Universal Robots Dashboard Server\n")
+        for line in conn.makefile("rb"):
+            if line.strip() == b"unlock protective stop":
+                state["safety_bits"], state["unlocks"] = 1, state["unlocks"] + 1
+                conn.sendall(b"Protective stop releasing\n")
+            else:
+                conn.sendall(b"could not understand: '" + line.strip() + b"'\n")
+    except OSError:
+        pass
+def serve(server, handler):
+    while True:
+        conn, _ = server.accept()
+        threading.Thread(target=handler, args=(conn,), daemon=True).start()
+servers = [(listen(30004), rtde), (listen(29999), dashboard)]
+for server, handler in servers:
+    threading.Thread(target=serve, args=(server, handler), daemon=True).start()
 print("listening", flush=True)
-conn, _ = server.accept()
-lock = threading.Lock()
-def send(t, payload):
-    with lock: conn.sendall(struct.pack(">HB", len(payload) + 3, ord(t)) + payload)
-def exact(n):
-    data = b""
-    while len(data) < n:
-        chunk = conn.recv(n - len(data))
-        if not chunk: raise EOFError
-        data += chunk
-    return data
-names = []
-def stream():
-    while True:
-        package = b"\x01"
-        for name in names:
-            fmt = FORMATS[kind(name)]
-            count = int(fmt[:-1] or 1)
-            values = {"actual_TCP_pose": state["pose"], "safety_status_bits": [state["safety_bits"]],
-                      "timestamp": [time.monotonic()]}.get(name, [0] * count)
-            package += struct.pack(">" + fmt, *values)
-        try: send("U", package)
-        except OSError: return
-        time.sleep(0.01)
-try:
-    while True:
-        size, kind_byte = struct.unpack(">HB", exact(3))
-        payload, command = exact(size - 3), chr(kind_byte)
-        if command == "V": send("V", b"\x01")
-        elif command == "v": send("v", struct.pack(">IIII", 5, 15, 0, 0))
-        elif command == "O":
-            names = [n for n in payload[8:].decode().split(",") if n]
-            send("O", b"\x01" + ",".join(kind(n) for n in names).encode())
-        elif command == "S":
-            send("S", b"\x01"); threading.Thread(target=stream, daemon=True).start()
-        elif command == "P": send("P", b"\x01")
-except (EOFError, OSError):
-    pass
+threading.Event().wait()
 '''
 
 
@@ -317,3 +346,102 @@ def test_real_rtde_receive_reads_pose_and_protective_stop(fake_rtde_server, monk
         control.moveL.assert_not_called()
     finally:
         arm.disconnect()
+
+
+def test_reset_fault_unlocks_a_protective_stop_and_reconnects(connected_arm, monkeypatch):
+    arm, control, receive = connected_arm
+    dashboard = mock.create_autospec(dashboard_client.DashboardClient, instance=True)
+    monkeypatch.setattr(dashboard_client, "DashboardClient", lambda host: dashboard)
+    receive.isProtectiveStopped.return_value = True
+    assert "protective stop" in arm.fault()
+    dashboard.unlockProtectiveStop.side_effect = lambda: setattr(receive.isProtectiveStopped, "return_value", False)
+    control.setWatchdog.reset_mock()
+    arm.reset_fault()
+    dashboard.unlockProtectiveStop.assert_called_once_with()
+    control.setWatchdog.assert_called_once_with(ur5.WATCHDOG_HZ)   # reconnected: the control script again
+    assert arm.fault() is None
+    arm.move_linear(POSE, 0.02, 0.1)
+    control.moveL.assert_called_once()
+
+
+def test_reset_fault_refuses_an_emergency_stop_and_keeps_the_fault(connected_arm, monkeypatch):
+    arm, control, receive = connected_arm
+    dashboard = mock.create_autospec(dashboard_client.DashboardClient, instance=True)
+    monkeypatch.setattr(dashboard_client, "DashboardClient", lambda host: dashboard)
+    receive.isEmergencyStopped.return_value = True
+    assert arm.fault() == "emergency stop"
+    with pytest.raises(ArmError, match="teach pendant"):
+        arm.reset_fault()
+    dashboard.unlockProtectiveStop.assert_not_called()
+    assert arm.fault() == "emergency stop"
+    with pytest.raises(ArmError):
+        arm.move_linear(POSE, 0.02, 0.1)
+
+
+def test_a_failed_unlock_is_one_line_and_the_fault_stays(connected_arm, monkeypatch):
+    arm, control, receive = connected_arm
+    dashboard = mock.create_autospec(dashboard_client.DashboardClient, instance=True)
+    dashboard.unlockProtectiveStop.side_effect = RuntimeError("Cannot unlock protective stop until 5s after\n"
+                                                              "occurrence")
+    monkeypatch.setattr(dashboard_client, "DashboardClient", lambda host: dashboard)
+    receive.isProtectiveStopped.return_value = True
+    with pytest.raises(ArmError) as info:
+        arm.reset_fault()
+    assert "5s after occurrence" in str(info.value) and "\n" not in str(info.value)
+    assert "protective stop" in arm.fault()
+
+
+@pytest.mark.timeout(60)
+def test_real_clients_reset_a_protective_stop_on_the_fake_controller(fake_rtde_server, monkeypatch):
+    """The real rtde_receive and the real dashboard client against the fake controller: the protective stop
+    shows, `reset_fault` unlocks it through the dashboard server and reconnects, and the fault is gone."""
+    host, command = fake_rtde_server
+    control = mock.create_autospec(rtde_control.RTDEControlInterface, instance=True)
+    control.isConnected.return_value = True
+    control.setWatchdog.return_value = True
+    monkeypatch.setattr(rtde_control, "RTDEControlInterface", lambda h, f: control)  # receive stays real
+    arm = ur5.UR5Arm(host)
+    arm.connect()
+    try:
+        command("protective")
+        assert _wait_for(lambda: arm.fault() is not None)
+        assert "protective stop" in arm.fault()
+        arm.reset_fault()
+        assert arm.fault() is None
+        assert isinstance(arm._receive, rtde_receive.RTDEReceiveInterface)
+    finally:
+        arm.disconnect()
+
+
+@pytest.mark.timeout(120)
+def test_a_silent_host_is_a_one_line_error_not_a_frozen_process(silent_ur_host):
+    """ur_rtde's constructors would wait for ever with the GIL held; the probe gives up first. Run in a
+    child process: a frozen interpreter cannot even be interrupted, so the parent is the judge."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom touchroller_driver.ur5 import UR5Arm\nfrom touchroller_driver.arm import ArmError\n"
+            "arm = UR5Arm(sys.argv[1], connect_timeout=0.5)\n"
+            "try:\n    arm.connect()\nexcept ArmError as exc:\n"
+            "    print('ERROR', exc)\n    print('FAULT', arm.fault())\n")
+    try:
+        done = subprocess.run([sys.executable, "-c", code, silent_ur_host], capture_output=True, text=True,
+                              timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("connecting to a silent host froze the process")
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("ERROR cannot connect to the UR at " + silent_ur_host), done.stdout + done.stderr
+    assert "no RTDE answer" in lines[0]
+    assert lines[1] == "FAULT " + lines[0][len("ERROR "):]
+
+
+def test_probes_tell_a_controller_from_something_else(fake_rtde_server, silent_ur_host):
+    host, _ = fake_rtde_server
+    ur5.probe_rtde(host, 5.0)
+    ur5.probe_dashboard(host, 5.0)
+    with pytest.raises(ArmError, match="no RTDE answer on port 30004 within 0.2 s"):
+        ur5.probe_rtde(silent_ur_host, 0.2)
+    with pytest.raises(ArmError, match="no dashboard answer on port 29999"):
+        ur5.probe_dashboard(silent_ur_host, 0.2)
+    with pytest.raises(ArmError, match="cannot connect to the UR at 127.0.0.213: RTDE on port 30004"):
+        ur5.probe_rtde(REFUSED_HOST, 1.0)

@@ -3,7 +3,11 @@
 Safety: the arm moves only after `~/start` is called; every segment of the sweep is checked
 against `arm.max_speed`/`arm.max_accel` (read-only at run time) before the first command; all arm
 calls happen on one worker thread; a fault (protective/emergency stop, lost connection, refused
-command) stops the sweep and shows as ERROR on `/diagnostics`. Publishes the TCP pose
+command), during a sweep or while idle, stops the sweep, shows as ERROR on `/diagnostics` and stays
+until `~/reset_fault` clears it (the UR dashboard's "unlock protective stop", then a reconnect):
+meanwhile `~/start` answers failure. The worker thread connects to the arm (CONNECTING, WARN, on
+`/diagnostics`; a UR is probed with a timeout first), so the node answers services and publishes
+diagnostics while a robot is slow or silent. Publishes the TCP pose
 (`tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
 (`sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`; topics are relative to the node's
 namespace (`touchroller` by default, names in `touchroller_bringup.names`). TF: base -> tool0 on /tf
@@ -15,8 +19,8 @@ time, and publishes on /clock; the graph runs every node with use_sim_time, so t
 renders on the same clock as the arm (exact poses), and a sweep starts on a whole second of it, so the
 same sweep gives the same images.
 
-Services `~/start` and `~/stop` are std_srvs/Trigger (`ros2 service call /touchroller/sweep/start
-std_srvs/srv/Trigger`).
+Services `~/start`, `~/stop` and `~/reset_fault` are std_srvs/Trigger (`ros2 service call
+/touchroller/sweep/start std_srvs/srv/Trigger`).
 """
 from __future__ import annotations
 
@@ -112,8 +116,9 @@ class SweepNode(Node):
         self.sequencer = SweepSequencer(self.arm)
         self.finished = threading.Event()  # set when a started sweep ends (done, stopped or fault)
         self._state_lock = threading.Lock()
-        self._status = SweepStatus(SweepPhase.IDLE, None, 0.0, "waiting for ~/start")
+        self._status = SweepStatus(SweepPhase.CONNECTING, None, 0.0, "connecting to the arm")
         self._connection_error: str | None = None
+        self._fault: str | None = None   # latched until ~/reset_fault (the worker thread's)
         self._last_pose: np.ndarray | None = None
         self._commands: queue.Queue[_Command] = queue.Queue()
         self._shutdown = threading.Event()
@@ -131,6 +136,7 @@ class SweepNode(Node):
         self._pass_pub = self.create_publisher(UInt32MultiArray, names.SWEEP_PASS, 10)
         self._start_srv = self.create_service(Trigger, f"~/{names.START}", self._on_start)
         self._stop_srv = self.create_service(Trigger, f"~/{names.STOP}", self._on_stop)
+        self._reset_srv = self.create_service(Trigger, f"~/{names.RESET_FAULT}", self._on_reset_fault)
         simulated = isinstance(self.arm, SimulatedArm)
         hardware = "simulated arm" if simulated else f"UR at {self.get_parameter('robot_ip').value}"
         self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name(), hardware_id=hardware)
@@ -260,6 +266,9 @@ class SweepNode(Node):
     def _on_stop(self, request: Any, response: Any) -> Any:
         return self._answer(response, self._submit("stop"))
 
+    def _on_reset_fault(self, request: Any, response: Any) -> Any:
+        return self._answer(response, self._submit("reset_fault"))
+
     def _submit(self, name: str) -> _Command:
         command = _Command(name, threading.Event())
         self._commands.put(command)
@@ -286,8 +295,13 @@ class SweepNode(Node):
         command = self._submit("stop")
         return command.success, command.message
 
+    def request_reset_fault(self) -> tuple[bool, str]:
+        command = self._submit("reset_fault")
+        return command.success, command.message
+
     # -- the worker thread: the only thread that talks to the arm ----------------------------
     def _connect(self) -> None:
+        self._set_status(SweepStatus(SweepPhase.CONNECTING, None, 0.0, "connecting to the arm"))
         try:
             self.arm.connect()
         except ArmError as exc:
@@ -296,6 +310,7 @@ class SweepNode(Node):
             self.get_logger().error(str(exc))
         else:
             self._connection_error = None
+            self._set_status(SweepStatus(SweepPhase.IDLE, None, 0.0, "waiting for ~/start"))
 
     def _run_worker(self) -> None:
         self._connect()
@@ -324,11 +339,17 @@ class SweepNode(Node):
 
     def _execute(self, command: _Command) -> None:
         try:
+            if command.name == "reset_fault":
+                self._reset_fault(command)
+                return
             if command.name == "start":
                 if self._connection_error is not None:
                     self._connect()  # try again: the robot may have come up since
                     if self._connection_error is not None:
                         raise ArmError(self._connection_error)
+                if self._fault is not None:
+                    raise ArmError(f"arm faulted: {self._fault}; call ~/{names.RESET_FAULT} once the cause is "
+                                   "cleared")
                 plan = self._plan_from(dict(self.settings))
                 self.sequencer.start(plan)
                 self.finished.clear()
@@ -343,18 +364,54 @@ class SweepNode(Node):
         finally:
             command.done.set()
 
+    def _reset_fault(self, command: _Command) -> None:
+        """Clear a fault (the arm's own reset: unlock a protective stop, reconnect); the node's latched
+        fault goes only when the arm says it is healthy again."""
+        try:
+            if self._connection_error is not None:
+                self._connect()
+                if self._connection_error is not None:
+                    raise ArmError(self._connection_error)
+            self.arm.reset_fault()
+            fault = self.arm.fault()
+            if fault is not None:
+                raise ArmError(f"the fault remains: {fault}")
+        except (ArmError, RuntimeError) as exc:
+            command.success, command.message = False, str(exc)
+            self._fault = self._fault or str(exc)
+            self._set_status(SweepStatus(SweepPhase.FAULT, None, self.status.roll_progress, str(exc)))
+            return
+        was = self._fault
+        self._fault = None
+        self.sequencer.clear()
+        self._set_status(SweepStatus(SweepPhase.IDLE, None, 0.0, "waiting for ~/start"))
+        command.success = True
+        command.message = f"fault cleared ({was})" if was else "no fault to clear"
+
     def _step(self, was_active: bool) -> None:
         if self._connection_error is not None:
             return
         try:
             self.arm.keepalive()
             status = self.sequencer.poll()
+            if status.phase is not SweepPhase.FAULT and not self.sequencer.active:
+                fault = self.arm.fault()   # a protective stop while idle, a connection lost between sweeps
+                if fault is not None:
+                    status = SweepStatus(SweepPhase.FAULT, None, status.roll_progress, fault)
             pose = self.arm.tcp_pose()
         except (ArmError, RuntimeError) as exc:  # e.g. the connection dropped mid-call
             self.sequencer.stop(str(exc))
             status = SweepStatus(SweepPhase.FAULT, self.sequencer.status.segment,
                                  self.sequencer.status.roll_progress, str(exc))
             pose = None
+        if status.phase is SweepPhase.FAULT:
+            if self._fault is None:
+                self._fault = status.message or "arm fault"
+                if not was_active:
+                    self.get_logger().error(f"arm fault: {self._fault}")
+        elif self._fault is not None:
+            # latched: after a fault the sequencer reads IDLE/STOPPED, the node still says FAULT until reset
+            status = SweepStatus(SweepPhase.FAULT, status.segment, status.roll_progress, self._fault)
         self._set_status(status)
         if pose is not None:
             self._publish(pose, status)
@@ -432,7 +489,7 @@ class SweepNode(Node):
         status = self.status
         with self._state_lock:
             pose = self._last_pose
-        level = {SweepPhase.FAULT: ERROR, SweepPhase.STOPPED: WARN}.get(status.phase, OK)
+        level = {SweepPhase.FAULT: ERROR, SweepPhase.STOPPED: WARN, SweepPhase.CONNECTING: WARN}.get(status.phase, OK)
         plan = self.sequencer.plan
         values: dict[str, Any] = {"phase": status.phase.value, "segment": status.segment or "",
                                   "roll_progress": status.roll_progress,

@@ -92,7 +92,7 @@ class Harness:
                                        lambda m: self.progress.append(m.data), 50)
         self.probe.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
         self.clients = {name: self.probe.create_client(Trigger, names.service(names.SWEEP_NODE, name))
-                        for name in (names.START, names.STOP)}
+                        for name in (names.START, names.STOP, names.RESET_FAULT)}
 
     def call(self, spin_until, name: str):
         client = self.clients[name]
@@ -252,3 +252,101 @@ def test_shutting_the_context_down_mid_sweep_stops_the_arm(ros_context):
         np.testing.assert_allclose(arm.tcp_pose(), halted, rtol=0, atol=1e-9)
     finally:
         node.destroy_node()
+
+
+def sweep_errors(h: Harness) -> list[str]:
+    return [s.message for array in h.diagnostics for s in array.status
+            if s.name.endswith(names.SWEEP_NODE) and s.level == b"\x02"]
+
+
+def test_a_protective_stop_while_idle_shows_and_needs_a_reset(harness_factory, spin_until):
+    arm = sim_arm()
+    h = harness_factory(arm=arm)
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.IDLE, timeout=20.0)
+    arm.inject_fault("protective stop")
+    assert spin_until(h.executor, lambda: any("protective stop" in m for m in sweep_errors(h)), timeout=20.0)
+    assert h.node.status.phase is SweepPhase.FAULT
+    response = h.call(spin_until, "start")
+    assert not response.success and "protective stop" in response.message and names.RESET_FAULT in response.message
+    assert not arm.is_moving()
+    response = h.call(spin_until, names.RESET_FAULT)
+    assert response.success and "protective stop" in response.message
+    assert h.node.status.phase is SweepPhase.IDLE and arm.fault() is None
+    assert h.call(spin_until, "start").success
+    assert spin_until(h.executor, h.node.finished.is_set, timeout=20.0)
+    assert h.node.status.phase is SweepPhase.DONE
+
+
+def test_after_a_disconnect_mid_roll_start_fails_until_reset(harness_factory, spin_until):
+    arm = SlowRollArm()
+    h = harness_factory(arm=arm)
+    assert h.call(spin_until, "start").success
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.SWEEPING, timeout=20.0)
+    arm.inject_disconnect()
+    assert spin_until(h.executor, h.node.finished.is_set, timeout=20.0)
+    assert h.node.status.phase is SweepPhase.FAULT
+    assert not h.call(spin_until, "start").success   # the sweep has faulted: no success for a dead arm
+    assert spin_until(h.executor, lambda: any("lost the connection" in m for m in sweep_errors(h)), timeout=20.0)
+    assert h.call(spin_until, names.RESET_FAULT).success
+    arm.clock.set_rate(SPEEDUP)
+    assert h.call(spin_until, "start").success
+
+
+def test_a_fault_that_remains_is_not_reset(harness_factory, spin_until):
+    arm = sim_arm()
+    h = harness_factory(arm=arm)
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.IDLE, timeout=20.0)
+    arm.inject_fault("emergency stop", resettable=False)
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.FAULT, timeout=20.0)
+    response = h.call(spin_until, names.RESET_FAULT)
+    assert not response.success and "emergency stop" in response.message
+    assert h.node.status.phase is SweepPhase.FAULT
+    assert not h.call(spin_until, "start").success
+    assert h.call(spin_until, names.RESET_FAULT).success is False
+    arm.inject_fault("protective stop")   # released on the pendant; the protective stop that is left resets
+    assert h.call(spin_until, names.RESET_FAULT).success
+    assert h.call(spin_until, "start").success
+
+
+@pytest.mark.timeout(180)
+def test_a_silent_robot_leaves_the_node_responsive_and_sigint_ends_it(ros_context, spin_until, silent_ur_host):
+    """A host that accepts TCP on the UR ports and never answers: the sweep node (a process, as `ros2 run`
+    starts it) still publishes diagnostics (ERROR), answers ~/start (failure), and exits on SIGINT."""
+    import signal
+    import subprocess
+    import sys
+
+    process = subprocess.Popen([sys.executable, "-m", "touchroller_bringup.nodes.sweep_node", "--ros-args",
+                                "-p", "use_sim:=false", "-p", f"robot_ip:={silent_ur_host}"],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    probe = Node("silent_robot_probe", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(probe)
+    diagnostics: list[DiagnosticArray] = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+    start = probe.create_client(Trigger, names.service(names.SWEEP_NODE, names.START))
+    try:
+        def error_shown() -> bool:
+            return any(s.name.endswith(names.SWEEP_NODE) and s.level == b"\x02" and silent_ur_host in s.message
+                       for array in diagnostics for s in array.status)
+
+        assert spin_until(executor, error_shown, timeout=60.0), "no ERROR on /diagnostics"
+        message = next(s.message for array in diagnostics for s in array.status
+                       if s.name.endswith(names.SWEEP_NODE) and s.level == b"\x02")
+        assert "no RTDE answer" in message
+        assert spin_until(executor, start.service_is_ready, timeout=30.0)
+        future = start.call_async(Trigger.Request())
+        assert spin_until(executor, future.done, timeout=60.0), "~/start did not answer"
+        assert not future.result().success and silent_ur_host in future.result().message
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the sweep node ignored SIGINT")
+        assert "Traceback" not in process.stdout.read()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=10)
+        executor.shutdown()
+        probe.destroy_node()
