@@ -17,8 +17,10 @@ load on the machine than frames per second, which is shown beside it).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -33,7 +35,7 @@ import numpy as np
 from bench._common import ROOT, Provenance, loadavg, provenance, provenance_markdown, results_path, to_json
 
 FRAMES = 54_000            # 30 minutes of frames at 30 Hz
-QUICK_FRAMES = 2_500       # past the map's bound at the default camera rate, within a CI-sized run
+QUICK_FRAMES = 1_500       # past the map's bound at the default camera rate, within a CI-sized run
 GOAL_MB_PER_1000 = 5.0     # RSS growth per 1000 processed frames, after warm-up
 GOAL_STEADY = 1.25         # the last quarter's median ms per frame within this factor of the first quarter's
 DEFAULT_RATE = 3.0         # simulated seconds per second: 90 frames/s offered, about what one node takes
@@ -229,7 +231,7 @@ def measure(frames: int, rate: float, every_s: float, quick: bool, log_dir: Path
     warmup = min(5000, frames // 2)
     log_dir.mkdir(parents=True, exist_ok=True)
     samples: list[Sample] = []
-    messages: list[str] = []
+    messages: dict[str, str] = {}
     with reserve_domain_id() as lease:
         env = dict(os.environ, ROS_DOMAIN_ID=str(lease.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                    PYTHONUNBUFFERED="1")
@@ -251,8 +253,7 @@ def measure(frames: int, rate: float, every_s: float, quick: bool, log_dir: Path
                 if perception is None or camera is None:
                     continue
                 level, message, values = perception
-                if message not in messages:
-                    messages.append(message)
+                messages[_kind(message)] = message   # the latest of each kind (counts in it change)
                 samples.append(Sample(time.monotonic() - started, int(_number(values, "frames_received", 0)),
                                       int(_number(camera[2], "published", 0)), rss_mb(processes[1].pid),
                                       rss_mb(processes[0].pid), _number(values, "processing_ms_median"),
@@ -274,7 +275,23 @@ def measure(frames: int, rate: float, every_s: float, quick: bool, log_dir: Path
               trend(CAMERA, x, np.array([s.camera_mb for s in done]), warmup))
     first_ms, last_ms, first_fps, last_fps = quarters(done, warmup)
     return SoakResult(stamp, quick, frames, rate, warmup, done, memory, duration, first_ms, last_ms, first_fps,
-                      last_fps, tuple(messages), codes, loadavg())
+                      last_fps, tuple(messages.values()), codes, loadavg())
+
+
+def _kind(message: str) -> str:
+    """A diagnostics message without its numbers: one kind however the counts in it change."""
+    return re.sub(r"\d+", "#", message)
+
+
+def load(path: Path) -> SoakResult:
+    """A result written by `write` (its JSON), e.g. to render it again."""
+    data = json.loads(path.read_text())
+    data["provenance"] = Provenance(**data["provenance"])
+    data["samples"] = tuple(Sample(**s) for s in data["samples"])
+    data["memory"] = tuple(Trend(**t) for t in data["memory"])
+    data["messages"] = tuple(data["messages"])
+    data["exit_codes"] = tuple(data["exit_codes"])
+    return SoakResult(**data)
 
 
 def run(quick: bool = False) -> SoakResult:
@@ -316,9 +333,11 @@ def to_markdown(result: SoakResult) -> str:
         lines.append(f"| {t.process} | {t.start_mb:.1f} | {t.end_mb:.1f} | {t.peak_mb:.1f} | "
                      f"{t.slope_mb_per_1000:+.3f} |")
     dropped = result.samples[-1].map_rows_dropped if result.samples else 0
+    latest = list({_kind(m): m for m in result.messages}.values())
     lines += [
         "",
-        f"The perception node's diagnostics said: {'; '.join(repr(m) for m in result.messages)}. Map rows dropped "
+        f"The perception node's diagnostics said (the latest of each kind): {'; '.join(repr(m) for m in latest)}. "
+        "Map rows dropped "
         f"to stay within `map.max_rows`: {dropped}. Exit codes after SIGINT (camera, perception): "
         f"{', '.join('killed' if c is None else str(c) for c in result.exit_codes)}.",
         "",
