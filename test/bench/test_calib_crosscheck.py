@@ -35,6 +35,14 @@ def test_simulator_meets_the_goals_with_the_same_method():
     assert abs(theta) <= 0.1 and abs(d) <= 0.05
 
 
+def test_simulator_central_variant_is_the_same_case():
+    boards = check.simulator_boards(seed=1, views=8)
+    size = np.array([boards.camera.width, boards.camera.height])
+    assert all(np.all((c > 0.25 * size) & (c < 0.75 * size)) for c in boards.corners)
+    result = cal.calibrate_intrinsics(boards.images)
+    assert not result.coverage.corners_covered and result.distortion_model in ("k1k2", "radial")
+
+
 def test_central_boards_rays_right_where_seen_and_the_corners_warned():
     boards = check.second_boards(seed=2, views=12)
     auto = cal.calibrate_intrinsics(boards.images)
@@ -61,9 +69,31 @@ def test_sigma_rows_count_trials_within_two_sigma():
     presses = {"second renderer": [check.second_presses(seed=4, presses=6)]}
     boards = check.second_boards(seed=4, views=8)
     intrinsics = {"second renderer": [cal.calibrate_intrinsics(boards.images)]}
-    rows = check.sigma_rows(presses, intrinsics)
+    rows, whole = check.sigma_rows(presses, intrinsics)
     assert [r.parameter for r in rows] == list(check.SIGMA_PARAMETERS)
     assert all(r.trials == 1 and r.within_2_sigma in (0.0, 1.0) and r.median_abs_z >= 0 for r in rows)
+    assert [w.renderer for w in whole] == ["second renderer"] and whole[0].theta_err_deg.n == 1
+
+
+def test_sigma_verdict_is_the_binomial_spread_around_95_percent():
+    def verdict(within: float, trials: int) -> check.SigmaVerdict:
+        rows = (check.SigmaRow("r", "theta", trials, within, 0.7),)
+        return check.CrosscheckResult(1, 20, (), (), rows).sigma_verdict()
+
+    assert verdict(0.95, 100).met and verdict(0.92, 100).met
+    assert not verdict(0.85, 100).met            # sigmas too small
+    assert not verdict(1.0, 100).met             # too large: 100 of 100 is unlikely for right sigmas
+    assert verdict(1.0, 20).met                  # but not with 20 trials
+
+
+def test_floor_row_solves_from_the_true_corners_with_the_measured_noise():
+    boards = [check.second_boards(seed=2, views=8)]
+    auto = [cal.calibrate_intrinsics(boards[0].images)]
+    row = check.floor_row("second renderer", boards, auto, [2])
+    assert row.model.startswith(check.FLOOR) and "px per axis" in row.model
+    noise = float(row.model.split("(")[1].split()[0])
+    assert 0.005 < noise < 0.1                   # the detector's corner error, measured against the truth
+    assert 0 < row.seen_p95_px.max < 3.0
 
 
 def test_renderer_truth_is_the_true_camera():

@@ -28,8 +28,12 @@ def test_calibrate_bags_end_to_end(scenes, bag_factory, tmp_path, capsys):
     assert main(["calibrate", "intrinsics", str(bag_factory(chess)), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "intrinsics from 12/12 views" in printed
-    assert "distortion model k1k2p: held-out RMS" in printed and "<- chosen" in printed
+    # the simulated lens has no tangential terms: the fit shows none, so k1, k2 (+ k3 if held-out views want it)
+    assert "tangential p1, p2: Wald statistic" in printed and "no evidence for them, left out" in printed
+    assert "distortion model k1k2: held-out RMS" in printed and "<- chosen" in printed
     assert "   X [" in printed and "skew [" in printed and "corners TL TR BL BR:" in printed
+    # while the views are read, each one's state and the coverage so far
+    assert "view 1/12: board found; coverage: X " in printed and "view 12/12: board found" in printed
     intrinsics = CameraModel.from_yaml(out)
     assert abs(intrinsics.fx - truth.fx) < 1.5
     report = tmp_path / "report.yaml"
@@ -44,6 +48,20 @@ def test_calibrate_bags_end_to_end(scenes, bag_factory, tmp_path, capsys):
     assert "calibration.sigma.fx" in params and "calibration.sigma.theta" in params
     views = yaml.safe_load(report.read_text())["extrinsics"]["views"]
     assert len(views) == 6 and all(v["rms_px"] < 0.3 for v in views)
+
+
+def test_boards_in_the_middle_are_warned_about_while_reading_and_in_the_result(tmp_path, capsys):
+    central = sim.SimulatedSensor(sim.load_scene("calibration_chessboard", "central", **{"motion.views": 8}), seed=2)
+    folder = tmp_path / "boards"
+    folder.mkdir()
+    for k, frame in enumerate(central.frames()):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), frame.image)
+    assert main(["calibrate", "intrinsics", str(folder), "--out", str(tmp_path / "cal.yaml")]) == 0
+    printed = capsys.readouterr().out
+    progress = [line for line in printed.splitlines() if line.startswith("  view ")]
+    assert len(progress) == 8 and all("image corners 0/4" in line for line in progress)
+    assert "corners TL TR BL BR: . . . ." in printed
+    assert "warning: image corners not covered (top-left, top-right, bottom-left, bottom-right" in printed
 
 
 def test_calibrate_image_folder_with_reference(scenes, tmp_path, capsys):

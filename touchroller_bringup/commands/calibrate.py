@@ -149,13 +149,18 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     try:
         config = cal.IntrinsicsConfig(board=cal.Chessboard(columns=columns, rows=rows, square=args.square),
                                       max_view_rms=args.max_view_rms, distortion=args.distortion)
-        result = cal.calibrate_intrinsics(images, config, prior=prior)
+        result = cal.calibrate_intrinsics(images, config, prior=prior, on_view=_view_progress(len(images)))
     except cal.CalibrationError as exc:
         raise UserError(f"calibrate intrinsics: {exc}") from None
     _write(args, result.camera, intrinsics=result)
     print(result.summary())
     for index, reason in sorted(result.rejected.items()):
         print(f"  rejected image {index}: {reason}")
+    if math.isfinite(result.tangential_chi2) or result.model_scores:
+        kept = result.tangential_chi2 >= config.tangential_chi2
+        print(f"  tangential p1, p2: Wald statistic {result.tangential_chi2:.1f} "
+              f"({'>=' if kept else '<'} {config.tangential_chi2:g}, the 99 % point): "
+              + ("the fit shows them, kept" if kept else "no evidence for them, left out"))
     for score in result.model_scores:
         print(f"  distortion model {score.model}: held-out RMS {score.held_out_rms:.4f} px, "
               f"{score.excess_se:+.1f} standard errors from the best{'  <- chosen' if score.chosen else ''}")
@@ -165,6 +170,15 @@ def run_intrinsics(args: argparse.Namespace) -> int:
         print(f"warning: {warning}")
     print(f"wrote {args.out}")
     return 0
+
+
+def _view_progress(count: int):
+    """One line per view as it is examined: found or why not, and the coverage so far (the bars of
+    ROS camera_calibration, as percentages, and the image corners reached)."""
+    def show(index: int, detection: Any, coverage: Any) -> None:
+        state = "board found" if detection.corners is not None else f"rejected: {detection.reason}"
+        print(f"  view {index + 1}/{count}: {state}; {coverage.one_line()}", flush=True)
+    return show
 
 
 def run_extrinsics(args: argparse.Namespace) -> int:

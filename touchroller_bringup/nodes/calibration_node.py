@@ -262,6 +262,10 @@ class CalibrationNode(Node):
         notes = [r.summary() for r in (intrinsics, extrinsics) if r is not None]
         if intrinsics is not None:
             notes += [f"warning: {w}" for w in intrinsics.warnings()]
+            self.get_logger().info("\n".join([f"solved with distortion model {intrinsics.distortion_model}",
+                                               *intrinsics.coverage.lines()]))
+            for warning in intrinsics.warnings():
+                self.get_logger().warning(warning)
         notes.append(self._write(camera, intrinsics, extrinsics))
         notes.append(self._send(camera, intrinsics is not None))
         self.set_parameters([Parameter(name, value=value) for name, value in _changed(camera, intrinsics is not None)])

@@ -30,6 +30,10 @@ class ChessboardRenderer:
         self.square = float(m.get("square_size", 1.2e-2))
         self.distance = tuple(float(v) for v in m.get("distance", [0.14, 0.26]))
         self.max_tilt = math.radians(float(m.get("max_tilt_deg", 35.0)))
+        # the board (with its white margin) stays inside this central share of the image in each direction
+        self.region = float(m.get("region", 1.0))
+        if not 0.1 <= self.region <= 1.0:
+            raise ValueError(f"chessboard: motion.region must be in [0.1, 1], got {self.region}")
         self.paper, self.ink, self.wall = (float(v) for v in m.get("levels", [215.0, 30.0, 90.0]))
         cols, rows = self.pattern_size[0] + 1, self.pattern_size[1] + 1    # squares
         margin = 1
@@ -47,7 +51,16 @@ class ChessboardRenderer:
         # board origin (first inner corner) sits `margin + 1` squares in from the texture's corner
         self.origin_texel = (margin + 1) * _TEXELS_PER_SQUARE
         H, W = camera.height, camera.width
-        uu, vv = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+        # a pixel integrates the light over its area: `supersample`^2 rays per pixel, averaged (one ray
+        # per pixel point-samples the board's edges, which moves detected corners by ~0.1 px)
+        self.supersample = int(m.get("supersample", 3))
+        if not 1 <= self.supersample <= 8:
+            raise ValueError(f"chessboard: motion.supersample must be in [1, 8], got {self.supersample}")
+        s = self.supersample
+        offsets = (np.arange(s) + 0.5) / s - 0.5
+        us = (np.arange(W, dtype=np.float64)[:, None] + offsets[None, :]).ravel()
+        vs = (np.arange(H, dtype=np.float64)[:, None] + offsets[None, :]).ravel()
+        uu, vv = np.meshgrid(us, vs)
         xn, yn, valid = camera.undistort_normalised(np.stack([uu, vv], axis=-1))
         self._rays = np.stack([np.where(valid, xn, 0.0), np.where(valid, yn, 0.0), valid.astype(np.float64)], -1)
         small = rng.standard_normal((3, 4)).astype(np.float32)
@@ -68,7 +81,8 @@ class ChessboardRenderer:
         return uv
 
     def poses(self, count: int, rng: np.random.Generator) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """Varied board poses that keep the whole board in view (rejection sampling)."""
+        """Varied board poses that keep the whole board in view, or inside the central `region` of
+        the image (rejection sampling)."""
         nx, ny = self.pattern_size
         centre = np.array([(nx - 1) * self.square / 2.0, (ny - 1) * self.square / 2.0, 0.0])
         half = (np.array([nx + 1, ny + 1]) / 2.0 + self.margin) * self.square
@@ -84,17 +98,22 @@ class ChessboardRenderer:
             spin = rng.uniform(-math.radians(20.0), math.radians(20.0))
             R = _rot_z(spin) @ _rot_y(tilt[1]) @ _rot_x(tilt[0])
             distance = rng.uniform(*self.distance)
-            shift = rng.uniform(-0.25, 0.25, size=2) * distance
+            shift = rng.uniform(-0.25, 0.25, size=2) * distance * self.region
             tvec = np.array([shift[0], shift[1], distance]) - R @ centre
             pc = outline @ R.T + tvec
             if np.any(pc[:, 2] <= 0.02):
                 continue
             uv, ok = self.camera.project_normalised(pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2])
-            if not ok.all() or not self.camera.in_image(uv, margin=8.0).all():
+            if not ok.all() or not self.camera.in_image(uv, margin=8.0).all() or not self._in_region(uv):
                 continue
             rvec, _ = cv2.Rodrigues(R)
             produced += 1
             yield rvec.ravel(), tvec
+
+    def _in_region(self, uv: np.ndarray) -> bool:
+        size = np.array([self.camera.width, self.camera.height], dtype=np.float64)
+        lo, hi = size * (0.5 - self.region / 2), size * (0.5 + self.region / 2)
+        return bool(np.all((uv >= lo) & (uv <= hi)))
 
     def render(self, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
         R, _ = cv2.Rodrigues(np.asarray(rvec, np.float64))
@@ -110,6 +129,8 @@ class ChessboardRenderer:
         my = (by / self.texel + self.origin_texel - 0.5).astype(np.float32)
         grey = cv2.remap(self.texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=self.wall)
+        if self.supersample > 1:
+            grey = cv2.resize(grey, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA)
         grey = cv2.convertScaleAbs(grey * self._light)
         return cv2.merge([grey, grey, grey])
 

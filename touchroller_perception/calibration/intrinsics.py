@@ -4,18 +4,21 @@ rejection, a distortion model chosen by held-out views, and what the views cover
 Why choose the distortion model: boards seen only in the middle of the image pin down the lens
 there and nowhere else, and OpenCV's 5 coefficients (k1, k2, p1, p2, k3) then fit the corners'
 noise with large k2 and k3 that extrapolate to many pixels of invented distortion in the image
-corners. `distortion="auto"` (the default) starts from k1, k2, p1, p2 and adds k3 only when the
-held-out views (k-fold: each view predicted by a fit without it) improve by more than one
-standard error of the paired difference. The tangential p1, p2 stay in: over a small part of the
-image they look like a shift of the principal point, so the held-out views cannot tell whether
-they are needed, and leaving them out when the lens has them moves the principal point instead
-(by a pixel on the bench's second renderer).
+corners. `distortion="auto"` (the default) starts from k1, k2 and adds k3 only when the held-out
+views (k-fold: each view predicted by a fit without it) improve by more than one standard error
+of the paired difference. The tangential p1, p2 are a different case: over a small part of the
+image they look like a shift of the principal point, so held-out views predict equally well with
+or without them and cannot choose. Kept when the lens has none, they trade with the principal
+point and double its error (boards in the central half: 1.6 px of ray error instead of 0.8 on
+the simulator); left out when the lens has them, the principal point moves instead. So they are
+kept when the fit itself shows them: their Wald statistic (p / sigma_p, squared and summed)
+reaches the 99 % point of chi-square with 2 degrees of freedom.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import cv2
@@ -138,8 +141,13 @@ class IntrinsicsConfig:
     `max_view_rms` and `outlier_factor` times the median view. The solve fails with fewer than
     `min_views` usable views, or when the views do not fix the focal length (board normals all
     within `min_tilt_spread_deg`, or sigma_f / f above `max_relative_focal_sigma`).
-    `distortion`: "auto" (held-out views choose, see the module), or one of DISTORTION_MODELS.
-    `folds`: how many groups of views the held-out test leaves out in turn.
+    `distortion`: "auto" (the data choose, see the module), or one of DISTORTION_MODELS; "auto" keeps
+    the tangential p1, p2 when their Wald statistic (p1/sigma)^2 + (p2/sigma)^2 reaches
+    `tangential_chi2` (the 99 % point of chi-square with 2 degrees of freedom).
+    `folds`: how many groups of views the held-out test leaves out in turn. A view is also
+    rejected when, left out, one of its corners lies more than `corner_outlier_sigma` robust
+    standard deviations of all corners' residuals (and at least `min_corner_outlier` px) from the
+    fit: a single misdetected corner.
     """
 
     board: Chessboard = Chessboard()
@@ -151,6 +159,9 @@ class IntrinsicsConfig:
     max_relative_focal_sigma: float = 0.005
     min_tilt_spread_deg: float = 10.0
     folds: int = 5
+    corner_outlier_sigma: float = 8.0
+    min_corner_outlier: float = 1.0
+    tangential_chi2: float = 9.21
 
     def __post_init__(self) -> None:
         if self.distortion != "auto" and self.distortion not in DISTORTION_MODELS:
@@ -160,7 +171,8 @@ class IntrinsicsConfig:
             raise CalibrationError(f"min_views must be at least 3 (Zhang's method), got {self.min_views}")
         if self.folds < 2:
             raise CalibrationError(f"folds must be at least 2, got {self.folds}")
-        for name in ("max_view_rms", "outlier_factor", "max_edge_width", "max_relative_focal_sigma"):
+        for name in ("max_view_rms", "outlier_factor", "max_edge_width", "max_relative_focal_sigma",
+                     "corner_outlier_sigma", "min_corner_outlier"):
             if not getattr(self, name) > 0:
                 raise CalibrationError(f"{name} must be positive, got {getattr(self, name)}")
 
@@ -186,6 +198,7 @@ class IntrinsicsResult:
     distortion_model: str                # the model fitted (a DISTORTION_MODELS name)
     model_scores: tuple[ModelScore, ...]  # the held-out comparison ("auto"); empty when the model was given
     coverage: BoardCoverage              # what the used views cover
+    tangential_chi2: float = math.nan    # "auto": evidence for p1, p2 (Wald statistic); NaN when the model was given
 
     def summary(self) -> str:
         c, s = self.camera, self.sigma
@@ -209,6 +222,7 @@ class IntrinsicsResult:
             "sigma": {k: float(v) for k, v in self.sigma.items()},
             "distortion_model": self.distortion_model,
             "model_scores": [dataclasses.asdict(score) for score in self.model_scores],
+            "tangential_chi2": self.tangential_chi2,
             "coverage": {"bars": {bar.name: round(bar.progress, 3) for bar in self.coverage.bars},
                          "corners_seen": list(self.coverage.corners_seen), "reach": self.coverage.reach,
                          "warnings": self.coverage.warnings()},
@@ -216,9 +230,14 @@ class IntrinsicsResult:
         }
 
 
-def detect_chessboards(images: Sequence[np.ndarray], config: IntrinsicsConfig) -> tuple[dict[int, FloatArray],
-                                                                                       dict[int, str]]:
-    """Corners of every view where the board is found sharp, and why the others were not."""
+#: called after each view is examined: (image index, its detection, what the views found so far cover)
+ViewCallback = Callable[[int, ChessboardDetection, BoardCoverage], None]
+
+
+def detect_chessboards(images: Sequence[np.ndarray], config: IntrinsicsConfig,
+                       on_view: ViewCallback | None = None) -> tuple[dict[int, FloatArray], dict[int, str]]:
+    """Corners of every view where the board is found sharp, and why the others were not.
+    `on_view` sees each view as it is examined, with the coverage so far (for progress output)."""
     corners: dict[int, FloatArray] = {}
     rejected: dict[int, str] = {}
     for index, image in enumerate(images):
@@ -227,19 +246,24 @@ def detect_chessboards(images: Sequence[np.ndarray], config: IntrinsicsConfig) -
             rejected[index] = str(found.reason)
         else:
             corners[index] = found.corners
+        if on_view is not None:
+            size = (int(image.shape[1]), int(image.shape[0]))
+            on_view(index, found, board_coverage(list(corners.values()), config.board.columns, config.board.rows,
+                                                 size))
     return corners, rejected
 
 
 def calibrate_intrinsics(images: Iterable[np.ndarray], config: IntrinsicsConfig = IntrinsicsConfig(),
-                         prior: CameraModel | None = None) -> IntrinsicsResult:
+                         prior: CameraModel | None = None, on_view: ViewCallback | None = None) -> IntrinsicsResult:
     """Zhang's calibration (cv2.calibrateCameraExtended) with view rejection and model choice
-    (see `IntrinsicsConfig` and the module). `prior` supplies everything but the intrinsics."""
+    (see `IntrinsicsConfig` and the module). `prior` supplies everything but the intrinsics;
+    `on_view` is told of each view as it is examined, with the coverage so far."""
     prior = prior or CameraModel()
     images = list(images)
     if not images:
         raise CalibrationError("no chessboard images given")
     size = image_size(images)
-    corners, rejected = detect_chessboards(images, config)
+    corners, rejected = detect_chessboards(images, config, on_view)
     require_views(len(corners), config.min_views, len(images), rejected, "chessboard")
     object_points = config.board.object_points()
     screening = AUTO_CANDIDATES[0] if config.distortion == "auto" else config.distortion
@@ -247,8 +271,11 @@ def calibrate_intrinsics(images: Iterable[np.ndarray], config: IntrinsicsConfig 
     views = [corners[i] for i in sorted(corners)]
     scores: tuple[ModelScore, ...] = ()
     model = config.distortion
+    tangential = math.nan
     if model == "auto":
-        scores = select_distortion_model(object_points, views, size, config.folds)
+        tangential = _tangential_evidence(object_points, views, size)
+        candidates = AUTO_CANDIDATES if tangential >= config.tangential_chi2 else ("k1k2", "radial")
+        scores = select_distortion_model(object_points, views, size, config.folds, candidates)
         model = next(score.model for score in scores if score.chosen)
     fit = _zhang(object_points, views, size, DISTORTION_MODELS[model])
     _require_fixed_focal_length(fit, config)
@@ -262,28 +289,63 @@ def calibrate_intrinsics(images: Iterable[np.ndarray], config: IntrinsicsConfig 
     board = config.board
     return IntrinsicsResult(camera=camera, rms=fit.rms, per_view_rms=per_view, rejected=rejected, sigma=fit.sigma,
                             image_count=len(images), distortion_model=model, model_scores=scores,
-                            coverage=board_coverage(views, board.columns, board.rows, size))
+                            coverage=board_coverage(views, board.columns, board.rows, size),
+                            tangential_chi2=tangential)
+
+
+def _tangential_evidence(object_points: NDArray[np.float32], views: Sequence[FloatArray],
+                         size: tuple[int, int]) -> float:
+    """Wald statistic of the tangential terms in a k1, k2, p1, p2 fit: (p1/sigma_p1)^2 + (p2/sigma_p2)^2."""
+    fit = _zhang(object_points, views, size, DISTORTION_MODELS["k1k2p"])
+    statistic = 0.0
+    for index, name in ((2, "p1"), (3, "p2")):
+        sigma = fit.sigma[name]
+        if not (math.isfinite(sigma) and sigma > 0):
+            return math.nan          # not measurable: no evidence for the terms
+        statistic += (float(fit.distortion[index]) / sigma) ** 2
+    return statistic
 
 
 def _reject_outlier_views(object_points: NDArray[np.float32], corners: dict[int, FloatArray], size: tuple[int, int],
                           flags: int, config: IntrinsicsConfig, rejected: dict[int, str]) -> dict[int, FloatArray]:
     """Leave-one-out on the worst view, one at a time: a bad view drags the joint fit towards
-    itself, so judge it by how well the model fitted WITHOUT it predicts it."""
+    itself, so judge it by how well the model fitted WITHOUT it predicts it. A view is bad when
+    its RMS is (a blurred or warped view), or when one of its corners is (a corner the detector
+    put between the true ones: a few px off in a view whose RMS stays under a pixel, but enough to
+    move the principal point by a pixel). The worst view is the one with the largest corner
+    residual measured in robust standard deviations of all corners' residuals."""
     corners = dict(corners)
     fit = _zhang(object_points, [corners[i] for i in sorted(corners)], size, flags)
     while len(corners) > config.min_views:
         indices = sorted(corners)
-        worst = indices[int(np.argmax(fit.per_view))]
+        worst_corner = [float(r.max()) for r in fit.residuals]
+        worst = indices[int(np.argmax(worst_corner))] if max(worst_corner) > _corner_limit(fit, config) \
+            else indices[int(np.argmax(fit.per_view))]
         rest = [i for i in indices if i != worst]
         refit = _zhang(object_points, [corners[i] for i in rest], size, flags)
-        predicted = _view_rms(object_points, corners[worst], refit.k_matrix, refit.distortion)
+        errors = _view_errors(object_points, corners[worst], refit.k_matrix, refit.distortion)
+        predicted = float(np.sqrt(np.mean(errors**2)))
         limit = max(config.max_view_rms, config.outlier_factor * float(np.median(refit.per_view)))
-        if predicted <= limit:
+        corner_limit = _corner_limit(refit, config)
+        if predicted > limit:
+            rejected[worst] = f"reprojection RMS {predicted:.2f} px when left out (limit {limit:.2f})"
+        elif float(errors.max()) > corner_limit:
+            rejected[worst] = (f"corner {int(np.argmax(errors))} is {float(errors.max()):.2f} px off when the view "
+                               f"is left out (limit {corner_limit:.2f} px): a misdetected corner")
+        else:
             break
-        rejected[worst] = f"reprojection RMS {predicted:.2f} px when left out (limit {limit:.2f})"
         del corners[worst]
         fit = refit
     return corners
+
+
+def _corner_limit(fit: _ZhangFit, config: IntrinsicsConfig) -> float:
+    """How far a corner may lie from the fit: `corner_outlier_sigma` robust standard deviations of
+    the corner residuals (the median 2D residual is 1.18 sigma for Gaussian noise), at least
+    `min_corner_outlier` px."""
+    residuals = np.concatenate(fit.residuals) if fit.residuals else np.zeros(1)
+    sigma = float(np.median(residuals)) / 1.1774
+    return max(config.corner_outlier_sigma * sigma, config.min_corner_outlier)
 
 
 def select_distortion_model(object_points: NDArray[np.float32], views: Sequence[FloatArray], size: tuple[int, int],
@@ -339,13 +401,14 @@ class _ZhangFit:
     sigma: dict[str, float]
     per_view: FloatArray
     rvecs: tuple[FloatArray, ...]
+    residuals: tuple[FloatArray, ...] = ()     # per view: each corner's reprojection error, px
 
 
 def _zhang(object_points: NDArray[np.float32], image_points: Sequence[FloatArray], size: tuple[int, int],
            flags: int = 0) -> _ZhangFit:
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     try:
-        rms, k_matrix, dist, rvecs, _, std_intr, _, per_view = cv2.calibrateCameraExtended(
+        rms, k_matrix, dist, rvecs, tvecs, std_intr, _, per_view = cv2.calibrateCameraExtended(
             [object_points] * len(image_points), [p.astype(np.float32).reshape(-1, 1, 2) for p in image_points],
             size, None, np.zeros(5), flags=flags, criteria=criteria)
     except cv2.error as exc:
@@ -357,18 +420,27 @@ def _zhang(object_points: NDArray[np.float32], image_points: Sequence[FloatArray
     names = ("fx", "fy", "cx", "cy", *DISTORTION_NAMES)
     sigma = {name: (float(std[i]) if i < std.size and math.isfinite(std[i]) else math.inf)
              for i, name in enumerate(names)}
+    residuals = []
+    for points, rvec, tvec in zip(image_points, rvecs, tvecs, strict=True):
+        projected, _ = cv2.projectPoints(object_points, rvec, tvec, k_matrix, dist)
+        residuals.append(np.linalg.norm(projected.reshape(-1, 2) - np.asarray(points).reshape(-1, 2), axis=1))
     return _ZhangFit(rms=float(rms), k_matrix=np.asarray(k_matrix, dtype=np.float64),
                      distortion=np.asarray(dist, dtype=np.float64).ravel()[:5], sigma=sigma,
                      per_view=np.asarray(per_view, dtype=np.float64).ravel(),
-                     rvecs=tuple(np.asarray(r, dtype=np.float64) for r in rvecs))
+                     rvecs=tuple(np.asarray(r, dtype=np.float64) for r in rvecs), residuals=tuple(residuals))
 
 
 def _view_rms(object_points: np.ndarray, corners: FloatArray, k_matrix: FloatArray, dist: FloatArray) -> float:
+    return float(np.sqrt(np.mean(_view_errors(object_points, corners, k_matrix, dist) ** 2)))
+
+
+def _view_errors(object_points: np.ndarray, corners: FloatArray, k_matrix: FloatArray, dist: FloatArray) -> FloatArray:
+    """Each corner's distance (px) from its prediction by the model (k_matrix, dist) posed by PnP."""
     ok, rvec, tvec = cv2.solvePnP(object_points, corners, k_matrix, dist, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
-        return math.inf
+        return np.full(len(corners), math.inf)
     projected, _ = cv2.projectPoints(object_points, rvec, tvec, k_matrix, dist)
-    return float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - corners) ** 2, axis=1))))
+    return np.asarray(np.linalg.norm(projected.reshape(-1, 2) - corners, axis=1), dtype=np.float64)
 
 
 def _normal_spread_deg(rvecs: Sequence[np.ndarray]) -> float:

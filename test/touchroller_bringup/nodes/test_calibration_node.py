@@ -186,6 +186,7 @@ def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, sp
     solved = call(executor, spin_until, helper, "solve")
     assert solved.success, solved.message
     assert "intrinsics from 8/8 views" in solved.message and "setting 9 parameters" in solved.message
+    assert "coverage: X " in solved.message          # the result says what the views covered
     assert spin_until(executor, lambda: node.remote_result is not None, timeout=20)
     assert node.remote_result.successful, node.remote_result.reason
     model = perception.geometry.model

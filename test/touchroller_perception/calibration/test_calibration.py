@@ -120,6 +120,18 @@ def test_intrinsics_recover_the_camera(chessboards):
     assert np.linalg.norm(uv_true - uv_est) < 2.0
 
 
+def test_tangential_terms_are_kept_only_when_the_fit_shows_them(chessboards):
+    """TRUE_CAMERA's lens has p1, p2: the fit shows them (Wald statistic above the 99 % point) and
+    keeps them. A lens without them: they are left out, not fitted to the noise."""
+    with_tangential = cal.calibrate_intrinsics(chessboards, INTRINSICS)
+    assert with_tangential.tangential_chi2 >= INTRINSICS.tangential_chi2
+    assert with_tangential.distortion_model in ("k1k2p", "full")
+    plain_lens = TRUE_CAMERA.replace(distortion=(-0.08, 0.03, 0.0, 0.0, 0.0))
+    without = cal.calibrate_intrinsics(chessboard_views(plain_lens, 12, seed=1), INTRINSICS)
+    assert without.tangential_chi2 < INTRINSICS.tangential_chi2
+    assert without.distortion_model in ("k1k2", "radial") and without.camera.distortion[2:4] == (0.0, 0.0)
+
+
 def test_intrinsics_reject_a_bad_view(chessboards):
     bad = chessboard_views(TRUE_CAMERA.replace(fx=560.0, fy=560.0, distortion=(0.2, 0, 0, 0, 0)), 1, seed=7)[0]
     result = cal.calibrate_intrinsics([*chessboards[:6], bad], INTRINSICS)

@@ -69,3 +69,30 @@ def test_config_is_checked_when_made():
         cal.IntrinsicsConfig(min_views=2)
     with pytest.raises(cal.CalibrationError, match="folds"):
         cal.IntrinsicsConfig(folds=1)
+
+
+def test_a_view_with_one_misdetected_corner_is_rejected():
+    """One corner a few px off (the detector's failure on a steeply tilted board) keeps its view's RMS
+    under a pixel, yet moves the principal point; judged corner by corner, the view is dropped."""
+    from touchroller_perception.calibration import intrinsics
+
+    views = corner_views(LENS, 12, 0.8, seed=4, noise=0.03)
+    views[5] = views[5].copy()
+    views[5][17] += (3.0, -2.0)
+    corners = dict(enumerate(views))
+    config = cal.IntrinsicsConfig()
+    rejected: dict[int, str] = {}
+    kept = intrinsics._reject_outlier_views(BOARD.object_points(), corners, (640, 480),
+                                            cal.DISTORTION_MODELS["full"], config, rejected)
+    assert list(rejected) == [5] and "corner 17" in rejected[5] and "misdetected corner" in rejected[5]
+    assert sorted(kept) == [i for i in range(12) if i != 5]
+
+
+def test_clean_views_keep_every_corner():
+    from touchroller_perception.calibration import intrinsics
+
+    corners = dict(enumerate(corner_views(LENS, 12, 0.8, seed=4, noise=0.03)))
+    rejected: dict[int, str] = {}
+    kept = intrinsics._reject_outlier_views(BOARD.object_points(), corners, (640, 480),
+                                            cal.DISTORTION_MODELS["full"], cal.IntrinsicsConfig(), rejected)
+    assert rejected == {} and len(kept) == 12
