@@ -168,6 +168,35 @@ def score(presses: PressSet, config: DetectorConfig | None = None, indices: Sequ
     return Scorecard(presses.sensor, config.method, presses.mm_per_pixel, tuple(results))
 
 
+@dataclasses.dataclass(frozen=True)
+class StreamTime:
+    """Time per frame of a detector running over all presses in order, as a stream: the background
+    model's refits (every few frames, and after a large change) are included, spread over the frames."""
+
+    cpu_ms: float     # CPU time of the thread per frame, best pass: what the detector costs on one core
+    wall_ms: float    # wall time per frame, best pass: adds whatever else the machine ran meanwhile
+    passes: int
+
+
+def stream_time(presses: PressSet, config: DetectorConfig | None = None, passes: int = 10) -> StreamTime:
+    """Best of `passes` runs of one detector over the presses in order (one reference frame).
+
+    CPU time (`time.thread_time`) excludes the time the thread waits while other processes run, which
+    on a shared machine dominates the wall time; it still includes refits, cache misses and every
+    numpy/OpenCV call of the frame (OpenCV on the calling thread: `cv2.setNumThreads(1)`).
+    """
+    detector = _detector(presses, config or DetectorConfig())
+    cpu, wall = math.inf, math.inf
+    for _ in range(passes):
+        start_wall, start_cpu = time.perf_counter(), time.thread_time()
+        for frame in presses.presses:
+            detector.detect(frame)
+        cpu = min(cpu, time.thread_time() - start_cpu)
+        wall = min(wall, time.perf_counter() - start_wall)
+    n = max(len(presses), 1)
+    return StreamTime(1e3 * cpu / n, 1e3 * wall / n, passes)
+
+
 def _detector(presses: PressSet, config: DetectorConfig) -> ContactDetector:
     detector = ContactDetector(config, reference_frames=1)
     detector.set_reference([presses.background])

@@ -156,6 +156,10 @@ def _contacts_speed(workload_start: str) -> Measure:
     return measure
 
 
+def _mini(r: dict) -> dict:
+    return next(s for s in r["sensors"] if s["sensor"] == "gelsight_mini")
+
+
 def _real(r: dict, sensor: str = "gelsight_mini") -> dict:
     return next(s for s in r["sensors"] if s["sensor"] == sensor)["methods"][0]["all"]
 
@@ -386,12 +390,15 @@ GOALS: tuple[Goal, ...] = (
          lambda r: (f"{_real(r)['found']}/{_real(r)['presses']}", _real(r)["found"] == _real(r)["presses"])),
     Goal(13, "Real presses: median centre error <= 5 px (against hand labels)", "contacts_real",
          lambda r: (f"{_real(r)['median_px']:.2f} px ({_real(r)['median_mm']:.3f} mm); older GelSight (validation) "
-                    f"{_real(r, 'gelsight')['median_px']:.2f} px", _real(r)["median_px"] <= 5.0)),
+                    f"{_real(r, 'gelsight')['median_px']:.2f} px; the labels allow no less than "
+                    f"{_mini(r)['labels']['floor_median_px']:.2f} px", _real(r)["median_px"] <= 5.0)),
     Goal(13, "Real presses: no false contact", "contacts_real",
          lambda r: (f"{_real(r)['false_contacts']}; older GelSight {_real(r, 'gelsight')['false_contacts']} in "
                     f"{_real(r, 'gelsight')['presses']} frames", _real(r)["false_contacts"] == 0)),
-    Goal(13, "Real presses: <= 1 ms per 640x480 frame (median, best of repeats)", "contacts_real",
-         lambda r: (f"{_real(r)['median_ms']:.3f} ms", _real(r)["median_ms"] <= 1.0)),
+    Goal(13, "Real presses: <= 1 ms per 640x480 frame (CPU time over the stream, refits included, best pass)",
+         "contacts_real",
+         lambda r: (f"{_real(r)['cpu_ms']:.3f} ms (one frame's wall time {_real(r)['median_ms']:.3f} ms)",
+                    _real(r)["cpu_ms"] <= 1.0)),
     Goal(4, "project(back_project(pixel)) round trip < 1e-9 m across the valid image", "stability", _round_trip),
     Goal(4, "Invalid pixels return NaN + valid=False, never a wrong finite number", "stability", _invalid_is_nan),
     Goal(5, "Map SSIM vs ground truth >= 0.85 at 15 s / 10 s / 5 s (worst seed)", "table_i", _map_ssim),

@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 from touchroller_perception.images import to_grey
 
 METHODS = ("colour", "paper")
+MEDIAN_SAMPLES = 1536    # pixels per channel for the background's medians (see _sample)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -364,8 +365,9 @@ class BackgroundModel:
         frame = small_frame.astype(np.float32, copy=False)
         channels = frame.shape[2]
         raw = np.atleast_3d(cv2.subtract(frame, ref_small))
-        shift = _channel_medians(raw[::2, ::2])
-        raw_noise = _mad_noise(np.atleast_3d(cv2.subtract(raw[::2, ::2], _scalar(shift))))
+        sample = _sample(raw)
+        shift = _channel_medians(sample)
+        raw_noise = _mad_noise(np.atleast_3d(cv2.subtract(sample, _scalar(shift))))
         raw_threshold = max(cfg.min_threshold, cfg.threshold_sigma * raw_noise)
         if cfg.compensate_illumination:
             self.gain, self.offset = _illumination(frame, ref_small, raw_noise, raw_threshold)
@@ -379,7 +381,7 @@ class BackgroundModel:
             expected = np.atleast_3d(cv2.add(expected, self.field_small))
         self.expected_small = expected
         residual = np.atleast_3d(_blur(np.atleast_3d(cv2.subtract(frame, expected)), cfg.blur_sigma))
-        self.noise = _mad_noise(residual[::2, ::2])
+        self.noise = _mad_noise(_sample(residual))
         self._expected_full = None
         self.age = 0
 
@@ -394,6 +396,17 @@ class BackgroundModel:
                 expected = np.atleast_3d(cv2.add(expected, field))
             self._expected_full = expected
         return self._expected_full
+
+
+def _sample(image: np.ndarray, count: int = MEDIAN_SAMPLES) -> np.ndarray:
+    """Every k-th pixel of every k-th row, k chosen to keep about `count` pixels (at least as many).
+
+    Medians and MADs of the background need only a sample: over ~1500 pixels the MAD's own relative
+    spread is ~4%, and a partition of 1500 values costs a quarter of one of 6000.
+    """
+    height, width = image.shape[:2]
+    step = max(1, int(math.sqrt(height * width / count)))
+    return image[::step, ::step]
 
 
 def _mad_noise(residual: np.ndarray) -> float:

@@ -77,6 +77,7 @@ class RealAppearance:
     noise_std: np.ndarray          # (3,) per-frame noise std, grey levels
     noise_correlation_px: float    # Gaussian correlation length of the noise
     fit_rms: float                 # residual of the response fit, grey levels
+    centres: np.ndarray | None = None   # (n, 2) the fitted presses' centres after refinement (None: as given)
 
     def change(self, centre: Sequence[float], radius: float) -> np.ndarray:
         """The colour change (HxWx3 float32) a press at `centre` with contact `radius` makes (zero
@@ -97,23 +98,90 @@ def press_box(shape: tuple[int, int], centre: Sequence[float], radius: float) ->
 
 
 def fit_appearance(background: np.ndarray, presses: np.ndarray, centres: np.ndarray, radii: np.ndarray,
-                   indices: Sequence[int] | None = None) -> RealAppearance:
-    """Fits press shape, colour response and noise to real frames of presses with known centres and radii."""
+                   indices: Sequence[int] | None = None, refine_rounds: int = 0) -> RealAppearance:
+    """Fits press shape, colour response and noise to real frames of presses with known centres and radii.
+
+    With `refine_rounds` > 0 the centres are only a start: each round fits the appearance, then moves
+    each press's centre to where that appearance explains its frame best (`refine_centres`), and the
+    last fit uses the moved centres (`RealAppearance.centres`). Hand-placed centres are off by a few
+    pixels; a response fitted around them learns their offset as part of the sensor's colour
+    response (a press rendered with it is then not centred on its own centre).
+    """
     order = list(range(len(presses))) if indices is None else list(indices)
     if not order:
         raise ValueError("fit_appearance needs at least one press")
     base = np.asarray(background, np.float32)
+    current = np.array(centres, np.float64, copy=True)
+    for round_ in range(refine_rounds + 1):
+        rms, shape, response = _fit_shape_and_response(base, presses, current, radii, order)
+        if round_ == refine_rounds:
+            break
+        moved = refine_centres(base, presses, current, radii, order, shape, response)
+        if np.max(np.abs(moved[order] - current[order])) < 0.05:
+            current = moved
+            rms, shape, response = _fit_shape_and_response(base, presses, current, radii, order)
+            break
+        current = moved
+    std, correlation = _fit_noise(base, presses, current, radii, order)
+    return RealAppearance(base, shape, response.astype(np.float32), std, correlation, rms,
+                          current[order] if refine_rounds > 0 else None)
+
+
+def _fit_shape_and_response(background: np.ndarray, presses: np.ndarray, centres: np.ndarray, radii: np.ndarray,
+                            order: Sequence[int]) -> tuple[float, PressShape, np.ndarray]:
     best: tuple[float, PressShape, np.ndarray] | None = None
     for ball_ratio in BALL_RATIOS:
         for halo in HALOS:
             shape = PressShape(ball_ratio, halo)
-            response, rms = _fit_response(base, presses, centres, radii, order, shape)
+            response, rms = _fit_response(background, presses, centres, radii, order, shape)
             if best is None or rms < best[0]:
                 best = (rms, shape, response)
     assert best is not None
-    rms, shape, response = best
-    std, correlation = _fit_noise(base, presses, centres, radii, order)
-    return RealAppearance(base, shape, response.astype(np.float32), std, correlation, rms)
+    return best
+
+
+def press_residual(background: np.ndarray, frame: np.ndarray, centre: Sequence[float], radius: float,
+                   shape: PressShape, response: np.ndarray) -> float:
+    """RMS difference (grey levels) between a frame's change and the model's press at `centre`, within
+    REACH contact radii (every other row and column)."""
+    u0, v0, u1, v1 = press_box(background.shape[:2], centre, radius)
+    gx, gy, r = shape.slopes((v1 - v0, u1 - u0), centre, radius, (u0, v0))
+    near = r < REACH
+    near[1::2] = False
+    near[:, 1::2] = False
+    real = np.asarray(frame[v0:v1, u0:u1], np.float32)[near] - background[v0:v1, u0:u1][near]
+    model = _features(gx[near], gy[near]) @ np.asarray(response, np.float32)
+    return float(np.sqrt(np.mean((model - real) ** 2)))
+
+
+def refine_centres(background: np.ndarray, presses: np.ndarray, centres: np.ndarray, radii: np.ndarray,
+                   indices: Sequence[int], shape: PressShape, response: np.ndarray,
+                   step: float = 4.0, finest: float = 0.25) -> np.ndarray:
+    """Each press's centre (of `indices`) moved to where the model's press best explains its frame.
+
+    Compass search from the given centre: try a step along +-u and +-v, move while the residual
+    (`press_residual`) drops, halve the step when it does not, down to `finest` px. The radius stays.
+    Returns a copy of `centres` with the moved ones.
+    """
+    base = np.asarray(background, np.float32)
+    out = np.array(centres, np.float64, copy=True)
+    for i in indices:
+        radius = float(radii[i])
+        centre = out[i].copy()
+        best = press_residual(base, presses[i], centre, radius, shape, response)
+        size = step
+        while size >= finest:
+            moved = False
+            for du, dv in ((size, 0.0), (-size, 0.0), (0.0, size), (0.0, -size)):
+                trial = centre + (du, dv)
+                error = press_residual(base, presses[i], trial, radius, shape, response)
+                if error < best:
+                    best, centre, moved = error, trial, True
+                    break
+            if not moved:
+                size /= 2.0
+        out[i] = centre
+    return out
 
 
 def _fit_response(background: np.ndarray, presses: np.ndarray, centres: np.ndarray, radii: np.ndarray,

@@ -60,3 +60,20 @@ def test_on_real_presses_the_realistic_appearance_is_closer_than_the_ideal_one(r
     assert realistic["rms"] < 0.5 * ideal["rms"]
     frame = RealisticPressRenderer(appearance).render([(300.0, 200.0, 60.0)], np.random.default_rng(0))
     assert frame.shape == presses.background.shape and frame.dtype == np.uint8
+
+
+def test_refined_fit_moves_hand_placed_centres_back_onto_the_presses():
+    # labels a few pixels off, all to one side (as the GelSight Mini's hand labels are): a response fitted
+    # around them absorbs the offset; refining the centres finds the presses' own centres again
+    rng = np.random.default_rng(3)
+    truth, frames, centres, radii = _synthetic(rng)
+    no_contact = RealisticPressRenderer(truth).render([], rng)
+    labels = centres + np.array([3.0, -2.0]) + rng.uniform(-1.5, 1.5, centres.shape)
+    at_labels = fit_appearance(no_contact, frames, labels, radii)
+    refined = fit_appearance(no_contact, frames, labels, radii, refine_rounds=6)
+    assert at_labels.centres is None and refined.centres is not None
+    error_before = np.hypot(*(labels - centres).T)
+    error_after = np.hypot(*(refined.centres - centres).T)
+    assert np.median(error_before) > 3.0
+    assert np.median(error_after) < 1.0
+    assert refined.fit_rms < at_labels.fit_rms
