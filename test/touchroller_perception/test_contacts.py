@@ -328,6 +328,10 @@ def test_real_mini_presses_from_one_background_frame(real_presses):
     card = score(presses)
     assert card.found == len(presses) == 24
     assert card.false_contacts == 0
+    # Against these hand labels no detector that follows the pressed pattern can have a median below
+    # ~5.3 px (bench.contacts_real.error_floor), and the labels sit on average ~6 px from the place
+    # where the pattern has no slope (bench.contacts_real.model_check), which is where our centres are:
+    # ~9.3 px is what an unbiased detector scores here; 10 px fails a real loss of accuracy.
     assert card.median_px <= 10.0
     for result in card.results:
         contact = result.contact
