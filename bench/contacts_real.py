@@ -171,8 +171,10 @@ def model_check(presses: PressSet, ours_uv: np.ndarray, rounds: int) -> dict[str
                 np.hypot(*(presses.centres[held_out] - model_uv[held_out]).T)))}
 
 
-def run(quick: bool = False, model: bool = True) -> dict[str, Any]:
-    """The real-press section; `model` False leaves out the model check (the slow part: appearance fits)."""
+def run(quick: bool = False, model: bool | None = None) -> dict[str, Any]:
+    """The real-press section; the model check (the slow part: appearance fits) runs when `model` is True,
+    by default on full runs only."""
+    model = not quick if model is None else model
     stamp = provenance("contacts_real", quick)
     if not available():
         raise RuntimeError("the taxim wheel (real GelSight presses) is not installed: pip install -r requirements.txt")
@@ -261,7 +263,7 @@ def to_markdown(result: dict[str, Any]) -> str:
               "moves it by key presses in steps of a few pixels (every Mini label is even). The Mini's presses "
               "were made in two runs, each with the indenter at one place. Within a run the pressed pattern "
               "itself does not move (phase correlation of the difference images, all presses against the run's "
-              "first), our centres stay put, the labels scatter:", "",
+              "first); the spread of our centres and of the labels over the same presses:", "",
               "| presses | image moved, max px | std of our (u, v), px | std of the labels' (u, v), px | "
               "mean (u, v) ours / labels, px |", "|---|---|---|---|---|"]
     for r in labels["runs"]:

@@ -47,12 +47,12 @@ ROUNDS, QUICK_ROUNDS = 6, 1
 
 
 @functools.lru_cache(maxsize=8)
-def fitted(sensor: str, rounds: int = 0) -> tuple[PressSet, RealAppearance]:
-    """The sensor's presses and the appearance fitted on its even (tuning) presses: around the hand
-    labels (`rounds` 0), or around centres refined by the model over `rounds` rounds."""
+def fitted(sensor: str, rounds: int = 0, every: int = 1) -> tuple[PressSet, RealAppearance]:
+    """The sensor's presses and the appearance fitted on its even (tuning) presses (every `every`-th of
+    them): around the hand labels (`rounds` 0), or around centres refined by the model over `rounds` rounds."""
     presses = load_presses(sensor)
     return presses, fit_appearance(presses.background, presses.presses, presses.centres, presses.radii,
-                                   presses.tuning, refine_rounds=rounds)
+                                   presses.tuning[::every], refine_rounds=rounds)
 
 
 def model_centres(presses: PressSet, appearance: RealAppearance, indices) -> np.ndarray:
@@ -116,10 +116,12 @@ def run(quick: bool = False) -> dict[str, Any]:
         raise RuntimeError("the taxim wheel (real GelSight presses) is not installed: pip install -r requirements.txt")
     count = 16 if quick else 60
     rounds = QUICK_ROUNDS if quick else ROUNDS
+    every = 3 if quick else 1          # a quick run fits and compares a third of the presses
     sensors = []
     for sensor in SENSORS:
-        presses, at_labels = fitted(sensor)
-        _, refined = fitted(sensor, rounds)
+        presses, at_labels = fitted(sensor, 0, every)
+        _, refined = fitted(sensor, rounds, every)
+        held_out = presses.held_out[::every]
         ideal = IdealPressRenderer(presses.background.shape[:2], refined.shape)
         looks = {"ideal": ideal, "realistic, fitted at the labels": RealisticPressRenderer(at_labels),
                  "realistic, centres refined": RealisticPressRenderer(refined)}
@@ -129,15 +131,15 @@ def run(quick: bool = False) -> dict[str, Any]:
             for method, config in METHODS.items():
                 accuracy.append({"appearance": look, "method": method,
                                  **simulated_accuracy(renderer, truth, config, seed=2)})
-        places = model_centres(presses, refined, presses.held_out)
-        looks_realism = [{"appearance": look, "place": "labels", **realism(presses, renderer, presses.held_out)}
+        places = model_centres(presses, refined, held_out)
+        looks_realism = [{"appearance": look, "place": "labels", **realism(presses, renderer, held_out)}
                          for look, renderer in looks.items()]
         looks_realism.append({"appearance": "realistic, centres refined", "place": "the model's",
-                              **realism(presses, looks["realistic, centres refined"], presses.held_out, places)})
+                              **realism(presses, looks["realistic, centres refined"], held_out, places)})
         fits = [{"fit": name, "ball_ratio": a.shape.ball_ratio, "halo": a.shape.halo, "fit_rms": a.fit_rms,
                  "noise_std": [float(x) for x in a.noise_std], "noise_correlation_px": a.noise_correlation_px}
                 for name, a in (("at the labels", at_labels), (f"centres refined ({rounds} rounds)", refined))]
-        entry = {"sensor": sensor, "fitted_on": len(presses.tuning), "compared_on": len(presses.held_out),
+        entry = {"sensor": sensor, "fitted_on": len(presses.tuning[::every]), "compared_on": len(held_out),
                  "fits": fits, "realism": looks_realism, "accuracy": accuracy}
         sensors.append(entry)
         for r in looks_realism:
@@ -146,7 +148,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         for a in accuracy:
             print(f"{sensor:14s} {a['appearance']:32s} {a['method']:18s} {a['found']}/{a['presses']} "
                   f"median {a['median_px']:.2f} px", flush=True)
-    return {"sensors": sensors, "random_presses": count, "rounds": rounds, "quick": quick, "provenance": stamp}
+    return {"sensors": sensors, "random_presses": count, "rounds": rounds, "every": every, "quick": quick,
+            "provenance": stamp}
 
 
 def to_markdown(result: dict[str, Any]) -> str:
@@ -193,7 +196,7 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     for sensor in SENSORS:
-        presses, appearance = fitted(sensor, result["rounds"])
+        presses, appearance = fitted(sensor, result["rounds"], result["every"])
         i = presses.held_out[0]
         (u, v), radius = model_centres(presses, appearance, [i])[i], float(presses.radii[i])
         changes = [presses.presses[i].astype(np.float32) - presses.background,

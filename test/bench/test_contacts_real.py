@@ -2,6 +2,8 @@
 labels' scatter and the floor it puts under any detector's error, the model check)."""
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -55,7 +57,11 @@ def test_the_frames_support_our_centres_over_the_mini_labels(real_presses):
     presses = real_presses("gelsight_mini")
     card = score(presses)
     ours = np.array([(r.contact.u, r.contact.v) for r in card.results])
-    check = bench.model_check(presses, ours, rounds=1)
+    # the first ten presses (five fitted, five held out) keep the appearance fits short
+    keep = slice(0, 10)
+    few = dataclasses.replace(presses, presses=presses.presses[keep], centres=presses.centres[keep],
+                              radii=presses.radii[keep])
+    check = bench.model_check(few, ours[keep], rounds=1)
     assert check["rms_ours"] < check["rms_labels"]
     # centres found by the model alone (held-out presses) lie nearer ours than the labels
     assert check["ours_vs_model_held_out_median_px"] < 0.5 * check["labels_vs_model_held_out_median_px"]
