@@ -39,10 +39,10 @@ setup(
     entry_points={
         "console_scripts": [
             "touchroller = touchroller_bringup.cli:main",
-            "camera_node = touchroller_bringup.nodes.camera_node:main",
-            "sweep_node = touchroller_bringup.nodes.sweep_node:main",
-            "perception_node = touchroller_bringup.nodes.perception_node:main",
-            "calibration_node = touchroller_bringup.nodes.calibration_node:main",
+            "camera_node = touchroller_bringup.ros_main:camera_node",
+            "sweep_node = touchroller_bringup.ros_main:sweep_node",
+            "perception_node = touchroller_bringup.ros_main:perception_node",
+            "calibration_node = touchroller_bringup.ros_main:calibration_node",
         ],
     },
 )

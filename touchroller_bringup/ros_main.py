@@ -1,4 +1,15 @@
-"""The console-script entry shared by every node: init, spin, clean shutdown on Ctrl-C.
+"""The console-script entry shared by every node: init, spin, and an orderly shutdown on Ctrl-C.
+
+A terminal's Ctrl-C reaches a node twice under `ros2 launch` (from the terminal and from launch), at
+any moment: while the modules load, while the node is built, while it spins or while it is being
+destroyed. rclpy's own handler shuts the context down from the signal and raises KeyboardInterrupt
+wherever the main thread is, which left a traceback ("process has died") or a node cut off half-way
+through its cleanup (a sweep worker's arm stop). Here SIGINT and SIGTERM only ask to stop (`StopSignals`,
+installed before the node's module is imported): the node is built to the end, spinning ends between
+callbacks, the node's own stop path runs first (the sweep node stops the arm), then the node is
+destroyed and the context shut down, and the process exits 0. Further signals during that cleanup
+change nothing however many arrive (a user's second Ctrl-C under launch is the third and fourth
+signal); a process that must go at once is ended with SIGKILL (launch escalates to it by itself).
 
 Bad start-up input (a parameter out of its range or of the wrong type, a params file rcl cannot
 parse, a combination the node refuses) is one line on stderr and exit code 2, as in the
@@ -6,48 +17,118 @@ parse, a combination the node refuses) is one line on stderr and exit code 2, as
 """
 from __future__ import annotations
 
+import importlib
 import os
 import re
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
-import rclpy
-from rclpy.exceptions import NameValidationException, ParameterException
-from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.node import Node
-
-from touchroller_bringup.errors import UserError
-
-#: What a node's constructor raises for bad parameters or names: the user's input, not a bug.
-START_UP_ERRORS: tuple[type[BaseException], ...] = (ParameterException, NameValidationException, UserError,
-                                                     ValueError, TypeError)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
-def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -> None:
+class StopSignals:
+    """Stop signals (SIGINT, SIGTERM by default) set a flag instead of raising; `install()` once per
+    process (or per `touchroller` command), early, from the main thread."""
+
+    _installed: StopSignals | None = None
+
+    def __init__(self) -> None:
+        self.requested = threading.Event()
+        self.count = 0
+        self.last_signal: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    @classmethod
+    def install(cls, signals: Sequence[int] = STOP_SIGNALS) -> StopSignals:
+        """The process's handler (idempotent: the one installed first stays)."""
+        if cls._installed is None:
+            stop = cls()
+            for signum in signals:
+                stop._previous[signum] = signal.signal(signum, stop._on_signal)
+            cls._installed = stop
+        return cls._installed
+
+    @classmethod
+    def installed(cls) -> StopSignals | None:
+        return cls._installed
+
+    @classmethod
+    def uninstall(cls) -> None:
+        """Put the handlers back that `install()` replaced."""
+        stop, cls._installed = cls._installed, None
+        if stop is not None:
+            for signum, handler in stop._previous.items():
+                signal.signal(signum, handler)
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.last_signal).name if self.last_signal is not None else "a stop request"
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        self.count += 1
+        self.last_signal = signum
+        self.requested.set()
+
+
+def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) -> None:
+    """Build the node, spin it until SIGINT/SIGTERM (or the context is shut down), then stop it in order."""
+    ours = StopSignals.installed() is None   # the console scripts install it before the imports
+    stop = StopSignals.install()
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+    from rclpy.signals import SignalHandlerOptions
+
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except _rclpy.RCLError as exc:   # e.g. a --params-file that is not YAML
+        if ours:
+            StopSignals.uninstall()
         raise SystemExit(_start_up_failure(exc)) from None
+    node = None
+    executor = None
     try:
-        node = make_node()
-    except START_UP_ERRORS as exc:
-        rclpy.try_shutdown()
-        raise SystemExit(_start_up_failure(exc)) from None
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        if not stop.requested.is_set():   # Ctrl-C while the modules loaded: nothing to build
+            try:
+                node = make_node()
+            except start_up_errors() as exc:
+                raise SystemExit(_start_up_failure(exc)) from None
+        executor = SingleThreadedExecutor()
+        if node is not None:
+            executor.add_node(node)
+        while not stop.requested.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)   # a signal is seen within this, between callbacks
+    except ExternalShutdownException:
         pass
     except _rclpy.RCLError:
-        # Ctrl-C shuts the context down from the signal handler; landing between spin's context check
-        # and building its wait set, that surfaces as "the given context is not valid". Only then
-        # is it a clean exit: with the context still up, an RCLError is a real failure.
-        if node.context.ok():
+        # the context shut down by someone else while spin built its wait set ("the given context is
+        # not valid"): a clean exit; with the context still up, an RCLError is a real failure
+        if rclpy.ok():
             raise
     finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            if executor is not None:
+                executor.shutdown(timeout_sec=1.0)
+            if node is not None:
+                stop_node(node)
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+            if ours:   # called in-process (tests): the caller's handlers again
+                StopSignals.uninstall()
+
+
+def start_up_errors() -> tuple[type[BaseException], ...]:
+    """What a node's constructor raises for bad parameters or names: the user's input, not a bug."""
+    from rclpy.exceptions import NameValidationException, ParameterException
+
+    from touchroller_bringup.errors import UserError
+
+    return (ParameterException, NameValidationException, UserError, ValueError, TypeError)
 
 
 def _start_up_failure(exc: BaseException) -> int:
@@ -68,3 +149,35 @@ def one_line(exc: BaseException) -> str:
 def _program() -> str:
     name = Path(sys.argv[0]).name if sys.argv and sys.argv[0] not in ("", "-c") else ""
     return name or "touchroller node"
+
+
+def stop_node(node: Any) -> None:
+    """The node's own stop path before it is destroyed: the sweep node stops the arm."""
+    request_stop = getattr(node, "request_stop", None)
+    if request_stop is None:
+        return
+    try:
+        request_stop()
+    except Exception as exc:  # noqa: BLE001 - destroying the node still releases the arm
+        node.get_logger().warning(f"stopping before shutdown: {type(exc).__name__}: {exc}")
+
+
+def _entry(module: str) -> Callable[[], None]:
+    def main() -> None:
+        StopSignals.install()   # before the node's module (rclpy, OpenCV, ...) loads: seconds on a slow machine
+        importlib.import_module(module).main()
+
+    main.__name__ = main.__qualname__ = module.rsplit(".", 1)[-1]
+    main.module = module  # type: ignore[attr-defined]
+    return main
+
+
+# console scripts (setup.py): the handlers are up before the heavy imports
+camera_node = _entry("touchroller_bringup.nodes.camera_node")
+perception_node = _entry("touchroller_bringup.nodes.perception_node")
+sweep_node = _entry("touchroller_bringup.nodes.sweep_node")
+calibration_node = _entry("touchroller_bringup.nodes.calibration_node")
+
+
+if __name__ == "__main__":
+    sys.exit("usage: a node's console script (camera_node, perception_node, sweep_node, calibration_node)")

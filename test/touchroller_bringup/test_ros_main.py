@@ -56,11 +56,11 @@ def _output(process: subprocess.Popen) -> str:
     return process.communicate()[0]
 
 
-def test_ctrl_c_while_spin_builds_its_wait_set_is_a_clean_exit(ros_context, monkeypatch):
-    """SIGINT's handler shuts the context down; landing between spin's context check and building its
-    wait set, rclpy raises RCLError "the given context is not valid" (3 of 20 starts on a loaded
-    machine exited 1 with a traceback). With the context down, run_node treats it as Ctrl-C."""
+def test_an_rcl_error_after_the_context_went_down_is_a_clean_exit(ros_context, monkeypatch):
+    """Someone else shut the context down while spin built its wait set: rclpy raises RCLError "the
+    given context is not valid". With the context down, run_node treats it as a stop."""
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.impl.implementation_singleton import rclpy_implementation
     from rclpy.node import Node
 
@@ -68,26 +68,27 @@ def test_ctrl_c_while_spin_builds_its_wait_set_is_a_clean_exit(ros_context, monk
 
     made = []
 
-    def spin_hit_by_ctrl_c(node):
-        rclpy.shutdown()      # what rclpy's SIGINT handler does
+    def spin_hit_by_shutdown(self, timeout_sec=None):
+        rclpy.shutdown()
         raise rclpy_implementation.RCLError("failed to initialize wait set: the given context is not valid")
 
-    monkeypatch.setattr(ros_main.rclpy, "spin", spin_hit_by_ctrl_c)
+    monkeypatch.setattr(SingleThreadedExecutor, "spin_once", spin_hit_by_shutdown)
     ros_main.run_node(lambda: made.append(Node("run_node_ctrl_c_probe")) or made[-1])
     assert made and not made[0].context.ok()
 
 
 def test_an_rcl_error_while_the_context_is_up_is_not_swallowed(ros_context, monkeypatch):
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.impl.implementation_singleton import rclpy_implementation
     from rclpy.node import Node
 
     from touchroller_bringup import ros_main
 
-    def failing_spin(node):
+    def failing_spin(self, timeout_sec=None):
         raise rclpy_implementation.RCLError("a real failure")
 
-    monkeypatch.setattr(ros_main.rclpy, "spin", failing_spin)
+    monkeypatch.setattr(SingleThreadedExecutor, "spin_once", failing_spin)
     with pytest.raises(rclpy_implementation.RCLError, match="a real failure"):
         ros_main.run_node(lambda: Node("run_node_error_probe"))
     assert not rclpy.ok()     # shut down all the same
@@ -111,3 +112,105 @@ def test_bad_start_up_parameters_are_one_line_and_exit_2(ros_context, tmp_path, 
     ours = [line for line in done.stderr.splitlines() if not line.startswith("[ERROR] [")]   # rcl logs its own
     assert len(ours) == 1 and ours[0].startswith(f"{script}: error: ") and expected in ours[0], done.stderr
     assert "Traceback" not in done.stderr and not done.stdout
+
+
+def test_run_node_in_process_puts_the_callers_signal_handlers_back(ros_context, monkeypatch):
+    import signal
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from touchroller_bringup import ros_main
+
+    before = signal.getsignal(signal.SIGINT)
+    seen = []
+
+    def spin_until_a_stop_request(self, timeout_sec=None):
+        seen.append(signal.getsignal(signal.SIGINT))
+        if seen[0] == before:   # no handler of run_node's: a SIGINT would interrupt pytest itself
+            raise RuntimeError("run_node installed no SIGINT handler")
+        os.kill(os.getpid(), signal.SIGINT)   # a Ctrl-C: only asks to stop
+
+    monkeypatch.setattr(SingleThreadedExecutor, "spin_once", spin_until_a_stop_request)
+    ros_main.run_node(lambda: Node("run_node_signal_probe"))
+    assert seen and seen[0] != before and signal.getsignal(signal.SIGINT) == before
+
+
+def _run_python(code: str, tmp_path, timeout: float = 90.0) -> subprocess.CompletedProcess:
+    """`code` in a fresh interpreter (its own signal handlers and rclpy), in this test's ROS domain."""
+    return subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+PROBE_NODE = """
+import os, signal
+from rclpy.node import Node
+from touchroller_bringup.ros_main import run_node
+
+class Probe(Node):
+    def __init__(self):
+        super().__init__("ctrl_c_probe")
+        {construct}
+        print("constructed", flush=True)
+
+    def request_stop(self):
+        print("stop path", flush=True)
+
+    def destroy_node(self):
+        {destroy}
+        print("destroyed", flush=True)
+        super().destroy_node()
+
+run_node(Probe)
+print("returned", flush=True)
+"""
+CTRL_C_TWICE = "os.kill(os.getpid(), signal.SIGINT); os.kill(os.getpid(), signal.SIGINT)"
+
+
+def test_ctrl_c_twice_while_the_node_is_built_is_an_orderly_exit(ros_context, tmp_path):
+    """A terminal's Ctrl-C reaches a node under launch twice, here while its constructor runs: the node
+    is built to the end, never spun, stopped, destroyed; exit 0 and no traceback."""
+    done = _run_python(PROBE_NODE.format(construct=CTRL_C_TWICE, destroy="pass"), tmp_path)
+    output = done.stdout + done.stderr
+    assert done.returncode == 0 and "Traceback" not in output, output
+    assert done.stdout.split() == ["constructed", "stop", "path", "destroyed", "returned"], output
+
+
+def test_ctrl_c_twice_during_cleanup_lets_the_cleanup_finish(ros_context, tmp_path):
+    """The stop request ends spinning; two more Ctrl-C while the node is destroyed change nothing."""
+    construct = "self.create_timer(0.05, lambda: os.kill(os.getpid(), signal.SIGINT))"
+    done = _run_python(PROBE_NODE.format(construct=construct, destroy=CTRL_C_TWICE), tmp_path)
+    output = done.stdout + done.stderr
+    assert done.returncode == 0 and "Traceback" not in output, output
+    assert done.stdout.split() == ["constructed", "stop", "path", "destroyed", "returned"], output
+
+
+def test_sigterm_is_an_orderly_exit_too(ros_context, tmp_path):
+    construct = "self.create_timer(0.05, lambda: os.kill(os.getpid(), signal.SIGTERM))"
+    done = _run_python(PROBE_NODE.format(construct=construct, destroy="pass"), tmp_path)
+    assert done.returncode == 0 and "destroyed" in done.stdout and "Traceback" not in done.stderr, done
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("entry", ["camera_node", "sweep_node"])
+def test_ctrl_c_at_any_moment_of_a_real_node_start_is_clean(ros_context, tmp_path, entry):
+    """Two Ctrl-C (as launch and the terminal send them) after 0.1 to 3 s: while the node's modules load,
+    while it is built, or while it spins; every time exit 0, no traceback."""
+    for delay in (0.3, 1.0, 3.0):
+        code = (f"import os, signal, threading\nfrom touchroller_bringup import ros_main\n"
+                f"def ctrl_c():\n    {CTRL_C_TWICE}\n"
+                f"threading.Timer({delay}, ctrl_c).start()\nros_main.{entry}()\n")
+        done = _run_python(code, tmp_path)
+        output = done.stdout + done.stderr
+        assert done.returncode == 0 and "Traceback" not in output, (delay, output)
+
+
+def test_the_console_scripts_install_the_handlers_before_loading_the_node():
+    """setup.py points every node's console script at ros_main, whose handlers are up before the
+    node's module (rclpy, OpenCV) is imported."""
+    import re
+    from pathlib import Path
+
+    setup = (Path(__file__).resolve().parents[2] / "setup.py").read_text()
+    for name in ("camera_node", "perception_node", "sweep_node", "calibration_node"):
+        assert re.search(rf'"{name} = touchroller_bringup\.ros_main:{name}"', setup), name
