@@ -22,6 +22,7 @@ COMMANDS = (
     "simulate",
     "calibrate",
     "record",
+    "reindex",
     "replay",
     "bench",
     "report",

@@ -6,12 +6,19 @@ so callbacks stay short and nothing is dropped while the disk is busy. The offer
 of the publishers are stored in the bag's metadata, so `touchroller replay` (and `ros2 bag play`)
 can publish with them again. `close()` drains what is in flight and finalises the bag: stopping
 with Ctrl-C loses nothing that had arrived.
+
+A recording survives a kill up to its last second: the writer commits every `COMMIT_INTERVAL_S`
+(or `COMMIT_MESSAGES` messages), an sqlite3 transaction or an MCAP chunk flushed to the file, so
+after SIGKILL, a lost terminal or a crash `touchroller reindex BAG` (`bag_recovery`) makes all of
+it readable. A write that fails (a full disk) is reported at once through `failed` (the command
+stops and says it in one line); what was committed before is kept and indexed.
 """
 from __future__ import annotations
 
 import importlib
 import queue
 import threading
+import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -26,6 +33,9 @@ from touchroller_bringup.errors import UserError
 EXCLUDED_BY_DEFAULT = ("/rosout", "/parameter_events")
 INFINITE_SEC, INFINITE_NSEC = 2147483647, 4294967295  # how rosbag2 writes RMW_DURATION_INFINITE
 _INFINITE_NS = 2**63 - 1
+COMMIT_INTERVAL_S = 1.0    # a kill loses at most this much of a recording
+COMMIT_MESSAGES = 200      # ... or this many messages, whichever comes first
+_IDLE = ("idle",)
 
 
 def message_class(msgtype: str) -> Any:
@@ -89,13 +99,17 @@ class _BagWriter(threading.Thread):
 
         from touchroller_bringup.bags import bag_writer
 
+        self.path = path
         self._typestore = get_typestore(Stores.ROS2_KILTED)
         self._writer = bag_writer(path, storage)   # MCAP chunks carry their CRC
         self._opened = threading.Event()
         self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._connections: dict[str, Any] = {}
         self.written = 0
+        self.committed = 0          # messages on disk: a kill from now on loses none of them
         self.error: str | None = None
+        self.failed = threading.Event()   # set at once when a write fails (e.g. the disk is full)
+        self.recovered: str | None = None  # after a failure: what `reindex` made readable
 
     def start(self) -> None:
         """Start the thread and open the bag on it (sqlite objects must stay on one thread)."""
@@ -119,20 +133,34 @@ class _BagWriter(threading.Thread):
         try:
             self._writer.open()
         except Exception as exc:  # noqa: BLE001 - reported by start() as one line
-            self.error = f"{type(exc).__name__}: {exc}"
+            self.error = _one_line(exc)
             return
         finally:
             self._opened.set()
+        last_commit, uncommitted = time.monotonic(), 0
         try:
-            while (item := self._queue.get()) is not None:
+            while (item := self._next(last_commit)) is not None:
                 if self.error is not None:
                     continue  # keep draining so producers never block; the error is reported
                 try:
-                    self._handle(item)
+                    if item is not _IDLE:
+                        self._handle(item)
+                        uncommitted += 1
+                    now = time.monotonic()
+                    if uncommitted and (uncommitted >= COMMIT_MESSAGES or now - last_commit >= COMMIT_INTERVAL_S):
+                        self._commit()
+                        last_commit, uncommitted = now, 0
                 except Exception as exc:  # noqa: BLE001 - e.g. disk full: report once, stop writing
-                    self.error = f"{type(exc).__name__}: {exc}"
+                    self._fail(exc)
         finally:
-            self._writer.close()
+            self._close()
+
+    def _next(self, last_commit: float) -> tuple[Any, ...] | None:
+        """The next item, or _IDLE when the commit interval passes without one."""
+        try:
+            return self._queue.get(timeout=max(0.0, last_commit + COMMIT_INTERVAL_S - time.monotonic()))
+        except queue.Empty:
+            return _IDLE
 
     def _handle(self, item: tuple[Any, ...]) -> None:
         if item[0] == "topic":
@@ -143,6 +171,58 @@ class _BagWriter(threading.Thread):
             _, topic, stamp_ns, data = item
             self._writer.write(self._connections[topic], stamp_ns, data)
             self.written += 1
+
+    def _commit(self) -> None:
+        """Put everything written so far on disk: an sqlite3 commit, or the MCAP chunk in progress
+        closed and flushed to the file (rosbags' storage writers keep both open until close)."""
+        storage = self._writer.storage
+        if storage is None:
+            return
+        connection = getattr(storage, "conn", None)
+        if connection is not None:    # sqlite3
+            connection.commit()
+        else:                         # MCAP
+            if storage.chunk.bio.tell():
+                storage.close_chunk()
+            storage.bio.flush()
+        self.committed = self.written
+
+    def _fail(self, exc: BaseException) -> None:
+        self.error = _one_line(exc)
+        self.failed.set()
+
+    def _close(self) -> None:
+        """Finalise the bag; after a failure keep what was committed and index it (no traceback here:
+        a thread's exception would print one, e.g. a full disk while MCAP writes its summary)."""
+        try:
+            self._writer.close()
+            closed = True
+        except Exception as exc:  # noqa: BLE001 - reported through error / failed
+            closed = False
+            if self.error is None:
+                self._fail(exc)
+        if self.error is None:
+            return
+        if not closed:
+            storage, self._writer.storage = self._writer.storage, None
+            for handle in (getattr(storage, "conn", None), getattr(storage, "bio", None)):
+                try:
+                    if handle is not None:
+                        handle.close()
+                except Exception:  # noqa: BLE001, S110 - the disk is full: buffered bytes cannot be written
+                    pass
+        try:   # counts from what is on disk (a failed commit rolled back its messages)
+            from touchroller_bringup.bag_recovery import counts_by_topic, reindex
+
+            found = reindex(self.path)
+            self.recovered = f"{found.message_count} messages kept ({counts_by_topic(found)})"
+        except Exception as exc:  # noqa: BLE001 - e.g. no room even for metadata.yaml
+            self.recovered = f"not indexed ({_one_line(exc)}); run `touchroller reindex {self.path}` once there is room"
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 class Recorder(Node):
@@ -177,6 +257,11 @@ class Recorder(Node):
     @property
     def written(self) -> int:
         return self._writer.written
+
+    @property
+    def failed(self) -> threading.Event:
+        """Set at once when writing fails (e.g. the disk is full); `close()` then raises UserError."""
+        return self._writer.failed
 
     def _wanted(self, topic: str) -> bool:
         if self.topics is None:
@@ -231,7 +316,7 @@ class Recorder(Node):
             self.destroy_subscription(subscription)
         self._writer.finish()
         if self._writer.error:
-            raise UserError(f"writing bag {self.path} failed: {self._writer.error}")
+            raise UserError(f"writing bag {self.path} failed: {self._writer.error}; {self._writer.recovered}")
 
     def destroy_node(self) -> None:
         try:

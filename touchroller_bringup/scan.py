@@ -17,12 +17,18 @@ Topics are in the graph's namespace (`namespace:=...`, `touchroller` by default)
 - `report.md`: duration, frames, contacts, map size, skipped/dropped frames, the sweep's outcome;
 - with `record`: `recording/`, a rosbag2 folder of the namespace's topics and `/diagnostics`
   (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
+
+SIGINT (Ctrl-C), SIGTERM and SIGHUP stop the scan in order, at any moment: the arm first (the sweep
+node's stop), then the frames in flight through perception, the map finished, the recording closed,
+and map, contacts and report written with what there is (outcome `interrupted`). More signals change
+nothing (`ros_main.StopSignals`); SIGKILL ends it at once.
 """
 from __future__ import annotations
 
 import csv
 import math
 import os
+import signal
 import sys
 import threading
 import time
@@ -40,6 +46,7 @@ from touchroller_bringup.image_conversion import stamp_to_ns
 from touchroller_perception.files import atomic_path, atomic_write, atomic_write_text
 
 # with `record`: these topics of the scan's namespace, and /diagnostics
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS,
                    names.DIAGNOSTICS, names.TF, names.TF_STATIC)   # with TF a recording re-maps offline
 
@@ -61,7 +68,7 @@ class ScanOptions:
 @dataclass
 class ScanResult:
     out_dir: Path
-    outcome: str            # done, stopped, fault, timeout
+    outcome: str            # done, stopped, fault, timeout, interrupted (by a signal: `signal`)
     message: str
     duration_s: float
     frames_published: int
@@ -74,6 +81,7 @@ class ScanResult:
     sweep: str = ""         # what the sweep node answered to ~/start (length, speed, depth)
     recorded: dict[str, int] = field(default_factory=dict)  # topic -> messages in recording/
     world_map: dict[str, Any] | None = None   # the world map's frame, resolution, origin, latency, passes
+    signal: int | None = None   # the signal that interrupted the scan
 
     @property
     def ok(self) -> bool:
@@ -89,12 +97,40 @@ class _Collected:
     progress: float = 0.0
 
 
+class Interrupted(Exception):
+    """A stop signal arrived (raised by the waits of the scan's main thread)."""
+
+
+def _checker(stop: Any, recorder: Any = None) -> Callable[[], None]:
+    def check() -> None:
+        if stop is not None and stop.requested.is_set():
+            raise Interrupted(f"interrupted by {stop.name}")
+        if recorder is not None and recorder.failed.is_set():
+            raise UserError(f"recording {recorder.path} failed: {recorder._writer.error}")
+    return check
+
+
 def run_scan(options: ScanOptions) -> ScanResult:
     """Run the scan graph until the sweep ends; write map, contacts and report to `options.out_dir`."""
     import rclpy
     from rclpy.context import Context
     from rclpy.executors import MultiThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
+    from touchroller_bringup.ros_main import StopSignals
+
+    # our handlers, not rclpy's (they shut the context down and raise KeyboardInterrupt wherever the
+    # main thread is): a signal only asks to stop; installed only from the main thread (a CLI run)
+    stop = StopSignals.install(STOP_SIGNALS) if threading.current_thread() is threading.main_thread() else None
+    try:
+        return _run_scan(options, stop, rclpy, Context, MultiThreadedExecutor, SignalHandlerOptions)
+    finally:
+        if stop is not None:
+            StopSignals.uninstall()
+
+
+def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiThreadedExecutor: Any,  # noqa: N803
+              SignalHandlerOptions: Any) -> ScanResult:  # noqa: N803
     try:
         graph = build_graph("scan", options.arguments, options.params_files)
     except GraphError as exc:
@@ -117,7 +153,8 @@ def run_scan(options: ScanOptions) -> ScanResult:
     os.environ.update(graph.environment)
     context = Context()
     try:
-        rclpy.init(context=context, args=[])   # not sys.argv: rcl would take `name:=value` items for remaps
+        # not sys.argv: rcl would take `name:=value` items for remaps
+        rclpy.init(context=context, args=[], signal_handler_options=SignalHandlerOptions.NO)
     except BaseException:
         sys.setswitchinterval(switch_interval)
         _restore_environment(saved_environment)
@@ -126,9 +163,11 @@ def run_scan(options: ScanOptions) -> ScanResult:
     executor = MultiThreadedExecutor(num_threads=4, context=context)
     spinner: threading.Thread | None = None
     stop_spinning = threading.Event()
+    sweep = None
     try:
         # The probe first: DDS discovery finds another graph in our namespace while the node classes
         # import, and the scan stops before any of its nodes publishes an image or a transform.
+        check = _checker(stop)
         probe, collected, start_client = _make_probe(context, nodes, graph.namespace)
         probe_made = time.monotonic()
         try:
@@ -139,20 +178,27 @@ def run_scan(options: ScanOptions) -> ScanResult:
         out_dir.mkdir(parents=True, exist_ok=True)   # only now: a scan that cannot start leaves no folder
         sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
         recorder = _make_recorder(out_dir, options, context, nodes, graph.namespace) if options.record else None
+        check = _checker(stop, recorder)
         for node in nodes:
             executor.add_node(node)
         spinner = threading.Thread(target=_spin, args=(executor, stop_spinning), name="scan-executor", daemon=True)
         spinner.start()
         say(f"scan: graph up ({', '.join(n.get_name() for n in (sweep, camera, perception))}); "
             f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
-        _wait_for_reference(perception, sweep, collected, options.reference_timeout_s)
-        _check_namespace_is_ours(probe, graph.namespace)
-        if recorder is not None:
-            _wait_for_recorder(recorder, options.reference_timeout_s)
         started = time.monotonic()
-        _call_start(start_client, sweep)
-        # the perception node starts a new map when the roll starts (it follows /touchroller/sweep_progress)
-        outcome, message = _follow_sweep(sweep, collected, say)
+        try:
+            _wait_for_reference(perception, sweep, collected, options.reference_timeout_s, check)
+            _check_namespace_is_ours(probe, graph.namespace)
+            if recorder is not None:
+                _wait_for_recorder(recorder, options.reference_timeout_s, check)
+            started = time.monotonic()
+            _call_start(start_client, sweep, check)
+            # the perception node starts a new map when the roll starts (it follows /touchroller/sweep_progress)
+            outcome, message = _follow_sweep(sweep, collected, say, check)
+        except Interrupted as exc:
+            _stop_arm(sweep)   # the arm first
+            outcome, message = "interrupted", str(exc)
+            say(f"scan: {message}: arm stopped; writing what there is")
         duration = time.monotonic() - started
         _wait_for_perception(sweep, perception)
         _flush_map(perception, collected)
@@ -161,13 +207,12 @@ def run_scan(options: ScanOptions) -> ScanResult:
         if recorder is not None:
             recorder.close()  # drains and finalises the bag (UserError if writing failed)
             recorded = dict(recorder.counts)
-        return _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer, recorded)
-    except KeyboardInterrupt:
-        for node in nodes:
-            if hasattr(node, "request_stop"):
-                node.request_stop()
-        raise
+        result = _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer, recorded)
+        if stop is not None and outcome == "interrupted":
+            result.signal = stop.last_signal
+        return result
     finally:
+        _stop_arm(sweep)   # a sweep still moving (an error above): stopped before anything is destroyed
         stop_spinning.set()
         if spinner is not None:
             # Nodes must not be destroyed under a running spin_once (rclpy then raises in the thread):
@@ -180,6 +225,12 @@ def run_scan(options: ScanOptions) -> ScanResult:
         context.try_shutdown()
         sys.setswitchinterval(switch_interval)
         _restore_environment(saved_environment)
+
+
+def _stop_arm(sweep: Any) -> None:
+    """The sweep node's stop path (the arm halts) while the sweep is moving; waits for its answer."""
+    if sweep is not None and sweep.sequencer.active:
+        sweep.request_stop()
 
 
 def _restore_environment(saved: Mapping[str, str | None]) -> None:
@@ -270,11 +321,12 @@ def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: lis
     return recorder
 
 
-def _wait_for_recorder(recorder: Any, timeout: float) -> None:
+def _wait_for_recorder(recorder: Any, timeout: float, check: Callable[[], None] = lambda: None) -> None:
     """The recorder subscribes once it has seen a publisher; start the sweep only after it has."""
     deadline = time.monotonic() + timeout
     image_topic = recorder.topics[0]
     while image_topic not in recorder.counts:
+        check()
         if time.monotonic() > deadline:
             raise UserError(f"the recorder did not find {image_topic} within {timeout:.0f} s")
         time.sleep(0.02)
@@ -321,9 +373,11 @@ def _make_probe(context: Any, nodes: list[Any], namespace: str) -> tuple[Any, _C
 
 # -- running ----------------------------------------------------------------------------------------
 
-def _wait_for_reference(perception: Any, sweep: Any, collected: _Collected, timeout: float) -> None:
+def _wait_for_reference(perception: Any, sweep: Any, collected: _Collected, timeout: float,
+                        check: Callable[[], None] = lambda: None) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
+        check()
         status = sweep.status
         if status.phase.value == "fault":
             raise UserError(f"arm: {status.message}")
@@ -366,9 +420,12 @@ def _check_namespace_is_ours(probe: Any, namespace: str) -> None:
         raise _namespace_taken(namespace, f"{full} exists twice")
 
 
-def _call_start(client: Any, sweep: Any) -> None:
-    if not client.wait_for_service(timeout_sec=20.0):   # in-process, but discovery is slow on a loaded machine
-        raise UserError("the sweep node's ~/start service is not available")
+def _call_start(client: Any, sweep: Any, check: Callable[[], None] = lambda: None) -> None:
+    deadline = time.monotonic() + 20.0   # in-process, but discovery is slow on a loaded machine
+    while not client.wait_for_service(timeout_sec=0.1):
+        check()
+        if time.monotonic() > deadline:
+            raise UserError("the sweep node's ~/start service is not available")
     future = client.call_async(client.srv_type.Request())
     deadline = time.monotonic() + 10.0
     while not future.done() and time.monotonic() < deadline:
@@ -381,7 +438,8 @@ def _call_start(client: Any, sweep: Any) -> None:
         raise UserError(f"sweep refused to start: {message or sweep.status.message}")
 
 
-def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None]) -> tuple[str, str]:
+def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
+                  check: Callable[[], None] = lambda: None) -> tuple[str, str]:
     plan = sweep.sequencer.plan
     durations = 0.0
     if plan is not None:
@@ -397,6 +455,11 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None])
     deadline = started + 2.0 * durations + 20.0
     last_report = 0.0
     while not sweep.finished.wait(0.02):
+        try:
+            check()
+        except UserError:   # the recording failed: stop the arm, keep the error for the caller
+            sweep.request_stop()
+            raise
         now = time.monotonic()
         if now > deadline:
             sweep.request_stop()

@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -185,3 +186,138 @@ def test_cli_record_duration_and_bad_arguments(ros_context, tmp_path, capsys):
     assert main(["record", "--out", str(tmp_path / "x"), "--duration", "-1"]) == 2
     err = capsys.readouterr().err
     assert "already exists" in err and "--duration must be positive" in err and "Traceback" not in err
+
+
+def _start_recording(bag, storage, *, limit_bytes=None):
+    """`touchroller record` of /touchroller/image_raw in a child process; `limit_bytes` caps the size of
+    any file it writes (RLIMIT_FSIZE: writes beyond it fail with EFBIG, as on a full disk)."""
+    def limit():
+        if limit_bytes is not None:
+            import resource
+
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    return subprocess.Popen(
+        [sys.executable, "-m", "touchroller_bringup.cli", "record", "--out", str(bag), "--storage", storage,
+         "--topics", "/touchroller/image_raw"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ), preexec_fn=limit)
+
+
+def _image_publisher(ros_context, spin_until, process):
+    from sensor_msgs.msg import Image
+
+    talker = Node("image_talker", context=ros_context)
+    publisher = talker.create_publisher(Image, "/touchroller/image_raw",
+                                        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    assert spin_until(talker, lambda: publisher.get_subscription_count() == 1 or process.poll() is not None,
+                      timeout=30), "recorder never subscribed"
+    return talker, publisher
+
+
+def _on_disk(bag) -> int:
+    """Messages a reindex of a copy of `bag` finds now (0 while nothing is readable)."""
+    import shutil
+    import tempfile
+
+    from touchroller_bringup.bag_recovery import reindex
+
+    with tempfile.TemporaryDirectory() as scratch:
+        copy = Path(scratch) / "copy"
+        try:
+            shutil.copytree(bag, copy)
+            return reindex(copy).message_count
+        except (UserError, OSError):
+            return 0
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_killed_recording_keeps_everything_up_to_its_last_second(ros_context, spin_until, tmp_path, storage):
+    """SIGKILL (no handler runs): the writer had committed, so `touchroller reindex` recovers every
+    image, readable with our reader and with rosbags."""
+    from rosbags.rosbag2 import Reader
+
+    from touchroller_bringup.cli import main
+
+    bag = tmp_path / "killed"
+    process = _start_recording(bag, storage)
+    talker = None
+    try:
+        talker, publisher = _image_publisher(ros_context, spin_until, process)
+        sent = images(30)
+        for i, image in enumerate(sent):
+            publisher.publish(array_to_image(image, 1_000_000_000 + i))
+        assert publisher.wait_for_all_acked(Duration(seconds=10.0))
+        # the recorder commits within a second of the last message: wait until a copy of the bag has them
+        deadline = time.monotonic() + 60
+        while _on_disk(bag) < 30 and time.monotonic() < deadline and process.poll() is None:
+            time.sleep(0.2)
+        process.kill()
+        process.communicate(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        if talker is not None:
+            talker.destroy_node()
+    assert not (bag / "metadata.yaml").exists()    # killed: never finalised
+    assert main(["reindex", str(bag)]) == 0
+    recovered = list(read_images(bag))
+    assert len(recovered) == 30
+    for record, image in zip(recovered, sent, strict=True):
+        np.testing.assert_array_equal(record.image, image)
+    with Reader(bag) as reader:
+        assert [c.topic for c in reader.connections] == ["/touchroller/image_raw"]
+        assert sum(1 for _ in reader.messages()) == 30 == reader.message_count
+
+
+@pytest.mark.timeout(120)
+def test_sighup_finalises_the_recording(ros_context, spin_until, tmp_path):
+    """The terminal closed: the recording is finalised as on Ctrl-C (readable without reindex)."""
+    bag = tmp_path / "hangup"
+    process = _start_recording(bag, "mcap")
+    talker = None
+    try:
+        talker, publisher = _image_publisher(ros_context, spin_until, process)
+        for i, image in enumerate(images(5)):
+            publisher.publish(array_to_image(image, 1_000_000_000 + i))
+        assert publisher.wait_for_all_acked(Duration(seconds=10.0))
+        process.send_signal(signal.SIGHUP)
+        out, err = process.communicate(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        if talker is not None:
+            talker.destroy_node()
+    assert process.returncode == 0 and "Traceback" not in err, err
+    assert "recorded 5 messages" in out
+    assert len(list(read_images(bag))) == 5
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_full_disk_stops_the_recording_at_once_with_one_line_and_keeps_what_was_written(
+        ros_context, spin_until, tmp_path, storage):
+    bag = tmp_path / "full"
+    process = _start_recording(bag, storage, limit_bytes=400_000)   # room for ~150 images of 2.3 kB
+    talker = None
+    try:
+        talker, publisher = _image_publisher(ros_context, spin_until, process)
+        sent = images(20)
+        for i in range(2000):   # far more than fits; the recorder must stop by itself
+            if process.poll() is not None:
+                break
+            publisher.publish(array_to_image(sent[i % 20], 1_000_000_000 + i))
+            spin_until(talker, lambda: False, timeout=0.005)
+        out, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        if talker is not None:
+            talker.destroy_node()
+    # (the file-size limit also keeps Fast DDS from creating its shared-memory segments: it says so)
+    lines = [line for line in err.splitlines() if line.startswith("touchroller")]
+    assert process.returncode == 2, (out, err)
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"touchroller: error: writing bag {bag} failed: "), lines[0]
+    kept = list(read_images(bag))      # indexed by the recorder itself: readable at once
+    assert len(kept) > 0 and f"{len(kept)} messages kept" in lines[0], lines[0]

@@ -304,3 +304,51 @@ def test_fastdds_profile_is_in_the_environment_when_rclpy_starts_and_restored_af
     assert seen == dict.fromkeys(graph.FASTDDS_ENVIRONMENT, str(profile.resolve()))
     assert os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/the/users/own.xml"
     assert "FASTDDS_DEFAULT_PROFILES_FILE" not in os.environ
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("signals", [("SIGTERM",), ("SIGINT", "SIGINT")], ids=["sigterm", "ctrl_c_twice"])
+def test_a_signalled_scan_stops_the_arm_and_writes_what_it_has(isolated_ros, tmp_path, signals):
+    """SIGTERM (a service manager) or Ctrl-C twice mid-roll: the arm stops, and map, contacts, report and
+    the recording are written (the bag finalised: readable without reindex); exit 128 + the signal."""
+    import signal as signal_module
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from touchroller_bringup.bags import read_images
+
+    out = tmp_path / "scan"
+    process = subprocess.Popen([sys.executable, "-m", "touchroller_bringup.cli", "scan", "sweep_length:=0.2",
+                                "sweep_speed:=0.01", "--record", "--out", str(out)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(process.stdout), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 180
+        while not any("sweeping" in line for line in lines) and process.poll() is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert process.poll() is None, "".join(lines) + process.stderr.read()
+        for name in signals:
+            process.send_signal(getattr(signal_module, name))
+        err = process.stderr.read()
+        process.wait(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    reader.join(5)
+    signum = getattr(signal_module, signals[0])
+    assert process.returncode == 128 + signum, "".join(lines) + err
+    assert "Traceback" not in err and f"interrupted by {signals[0]}" in err, err
+    report = (out / "report.md").read_text()
+    assert "**interrupted**" in report
+    assert (out / "contacts.csv").is_file() and (out / "map.png").is_file()
+    assert len(list(read_images(out / "recording"))) > 0
+    assert "sweep stopped" in "".join(lines) or "arm stopped" in err

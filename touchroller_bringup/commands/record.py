@@ -1,8 +1,11 @@
 """`touchroller record --out BAG [--storage sqlite3|mcap] [--topics T ...] [--duration S]`.
 
 Like `ros2 bag record`: raw subscriptions into a rosbag2 folder with the publishers' QoS in its
-metadata. Ctrl-C (or SIGTERM) stops it between callbacks; what had arrived is written and the bag is finalised
-(a second Ctrl-C during that short drain changes nothing).
+metadata. Ctrl-C, SIGTERM or SIGHUP (the terminal closed) stop it between callbacks; what had arrived is
+written and the bag is finalised (a second signal during that short drain changes nothing). Killed
+(SIGKILL, a crash), the bag keeps all but its last second: `touchroller reindex BAG` makes it readable.
+A write that fails (a full disk) stops the recording at once: one line, exit 2, and what was written
+before is kept and indexed.
 """
 from __future__ import annotations
 
@@ -50,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
     # KeyboardInterrupt could land inside a callback. A flag stops the loop between callbacks instead.
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda signum, frame: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, lambda signum, frame: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     recorder = None
     try:
         recorder = Recorder(args.out, topics=args.topics, storage=args.storage, context=context)
@@ -58,10 +62,12 @@ def run(args: argparse.Namespace) -> int:
         executor.add_node(recorder)
         deadline = None if args.duration is None else time.monotonic() + args.duration
         print(f"recording to {args.out} ({args.storage}); Ctrl-C to stop", flush=True)
-        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+        while not stop.is_set() and not recorder.failed.is_set() \
+                and (deadline is None or time.monotonic() < deadline):
             executor.spin_once(timeout_sec=0.1)
-        drain(executor, lambda: recorder.message_count)
-        recorder.close()
+        if not recorder.failed.is_set():
+            drain(executor, lambda: recorder.message_count)
+        recorder.close()   # UserError (one line) when writing failed
         counts = ", ".join(f"{topic}: {n}" for topic, n in sorted(recorder.counts.items())) or "no topics seen"
         print(f"recorded {recorder.written} messages to {args.out} ({counts})")
         return 0

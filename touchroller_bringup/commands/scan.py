@@ -6,10 +6,14 @@ parameter on every node of the graph that declares it (e.g. `sweep.depth:=0.0008
 With no arguments: the simulated sensor and arm over the built-in `surface_mapping` scene, in the
 namespace `touchroller`. Two scans on one ROS domain need different namespaces (`--namespace left`) or
 different ROS_DOMAIN_IDs; a scan that finds its namespace taken stops at start-up, before it publishes.
+Ctrl-C, SIGTERM or SIGHUP stop the arm and write map, contacts, report (and the recording) with what
+there is; the exit code is then 128 + the signal's number.
 """
 from __future__ import annotations
 
 import argparse
+import signal
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -120,6 +124,9 @@ def run(args: argparse.Namespace) -> int:
     map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
     print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
           f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")
+    if result.outcome == "interrupted":
+        print(f"touchroller: scan {result.message}: arm stopped, outputs written to {result.out_dir}/", file=sys.stderr)
+        return 128 + int(result.signal or signal.SIGINT)
     if not result.ok:
         raise UserError(f"the sweep ended in {result.outcome}: {result.message} (outputs in {result.out_dir}/)")
     return 0

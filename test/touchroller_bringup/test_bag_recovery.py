@@ -1,0 +1,70 @@
+"""`touchroller reindex`: bags whose writer never closed them (no metadata.yaml, an MCAP file without
+footer or cut off anywhere) are made readable up to their last complete record."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from touchroller_bringup.bag_recovery import reindex
+from touchroller_bringup.bags import read_images, write_images
+from touchroller_bringup.cli import main
+from touchroller_bringup.errors import UserError
+
+
+def frames(n):
+    return [(1_000_000_000 + i * 10_000_000, np.full((48, 64, 3), i % 256, np.uint8)) for i in range(n)]
+
+
+def storage_file(bag):
+    return next(p for p in bag.iterdir() if p.suffix in (".db3", ".mcap"))
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_bag_without_metadata_is_reindexed_whole(tmp_path, storage, capsys):
+    bag = tmp_path / "bag"
+    write_images(bag, frames(300), storage=storage)
+    (bag / "metadata.yaml").unlink()
+    assert main(["reindex", str(bag)]) == 0
+    assert "300 messages (/touchroller/image_raw: 300)" in capsys.readouterr().out
+    assert [r.stamp_ns for r in read_images(bag)] == [s for s, _ in frames(300)]
+
+
+@pytest.mark.parametrize("fraction", [0.45, 0.6, 0.97, 0.999])
+def test_an_mcap_cut_off_anywhere_keeps_its_complete_chunks(tmp_path, fraction):
+    """Cut in a chunk, in the summary, in the footer: what was complete is read, in order, no more."""
+    from rosbags.rosbag2 import Reader
+
+    bag = tmp_path / "bag"
+    write_images(bag, frames(300), storage="mcap")
+    (bag / "metadata.yaml").unlink()
+    mcap = storage_file(bag)
+    size = mcap.stat().st_size
+    with open(mcap, "r+b") as stream:
+        stream.truncate(int(size * fraction))
+    found = reindex(bag)
+    kept = list(read_images(bag))
+    assert 0 < len(kept) == found.message_count <= 300 and found.repaired
+    assert [r.stamp_ns for r in kept] == [s for s, _ in frames(300)][:len(kept)]
+    for record in kept:
+        assert record.image[0, 0, 0] == (record.stamp_ns - 1_000_000_000) // 10_000_000 % 256
+    with Reader(bag) as reader:   # any rosbag2 reader: rosbags reads the file without its summary
+        assert reader.message_count == len(kept) == sum(1 for _ in reader.messages())
+    if fraction < 0.9:
+        assert len(kept) < 300
+    assert not reindex(bag).repaired   # closed now: a second reindex changes nothing
+
+
+def test_reindex_errors_are_one_line(tmp_path, capsys):
+    assert main(["reindex", str(tmp_path / "missing")]) == 2
+    (tmp_path / "empty").mkdir()
+    assert main(["reindex", str(tmp_path / "empty")]) == 2
+    (tmp_path / "notmcap").mkdir()
+    (tmp_path / "notmcap" / "notmcap.mcap").write_bytes(b"hello, not an MCAP file")
+    assert main(["reindex", str(tmp_path / "notmcap")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("touchroller: error: ") for line in err), err
+    assert "no such bag folder" in err[0] and "no .db3 or .mcap" in err[1] and "not an MCAP file" in err[2]
+    with pytest.raises(UserError, match="empty"):
+        (tmp_path / "zero").mkdir()
+        (tmp_path / "zero" / "zero.mcap").write_bytes(b"")
+        reindex(tmp_path / "zero")
