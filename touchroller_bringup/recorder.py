@@ -310,10 +310,10 @@ class Recorder(Node):
             if self._closed:
                 return
             self._closed = True
-        if self._timer is not None:
-            self.destroy_timer(self._timer)
-        for subscription in self._recorded_subscriptions.values():
-            self.destroy_subscription(subscription)
+        # The timer and subscriptions stay until destroy_node: `_closed` makes them no-ops, and
+        # destroying them here, under an executor spinning in another thread (touchroller scan), can
+        # hit one while spin adds it to its wait set ("cannot use Destroyable because destruction
+        # was requested", a thread traceback).
         self._writer.finish()
         if self._writer.error:
             raise UserError(f"writing bag {self.path} failed: {self._writer.error}; {self._writer.recovered}")
