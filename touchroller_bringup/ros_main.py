@@ -83,9 +83,12 @@ def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) ->
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
     from rclpy.signals import SignalHandlerOptions
 
+    from touchroller_bringup.errors import UserError
+
     try:
+        _check_params_files(sys.argv if args is None else args)   # before rcl, which logs a line of its own
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except _rclpy.RCLError as exc:   # e.g. a --params-file that is not YAML
+    except (_rclpy.RCLError, UserError) as exc:   # e.g. a --params-file that is not a params file
         if ours:
             StopSignals.uninstall()
         raise SystemExit(_start_up_failure(exc)) from None
@@ -129,6 +132,27 @@ def start_up_errors() -> tuple[type[BaseException], ...]:
     from touchroller_bringup.errors import UserError
 
     return (ParameterException, NameValidationException, UserError, ValueError, TypeError)
+
+
+def _check_params_files(argv: Sequence[str]) -> None:
+    """A `--params-file` that is missing or not YAML, as one UserError line."""
+    import yaml
+
+    from touchroller_bringup.errors import UserError
+
+    for flag, value in zip(argv, argv[1:], strict=False):
+        if flag != "--params-file":
+            continue
+        try:
+            with open(value, encoding="utf-8") as stream:
+                yaml.safe_load(stream)
+        except OSError as exc:
+            raise UserError(f"--params-file {value}: {exc.strerror or exc}") from None
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+            raise UserError(f"--params-file {value} is not YAML ({getattr(exc, 'problem', None) or exc}{where})") \
+                from None
 
 
 def _start_up_failure(exc: BaseException) -> int:
