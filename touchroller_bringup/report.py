@@ -691,15 +691,36 @@ def _commit() -> str:
     return head + (f" with uncommitted changes to {len(changed.splitlines())} tracked file(s)" if changed else "")
 
 
-def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
+def _recorded_path(section: Section, quick: bool) -> Path:
+    return checkout_dir() / "bench" / "results" / ("quick" if quick else "") / f"{section.script}.json"
+
+
+def _recorded_result(section: Section, module: ModuleType, quick: bool) -> Any:
+    """The bench's recorded result, read back by its `load`; a one-line error when there is none."""
+    path = _recorded_path(section, quick)
+    if not callable(getattr(module, "load", None)):
+        raise UserError(f"section {section.key!r} cannot be rendered from a recording (bench.{section.script} "
+                        "has no load); run it instead")
+    if not path.is_file():
+        raise UserError(f"no recorded result for section {section.key!r}: {path} is missing "
+                        f"(run `.venv/bin/python -m bench.{section.script}{' --quick' if quick else ''}` first)")
+    return module.load(path)
+
+
+def build_report(out: Path, quick: bool, only: tuple[str, ...] = (), recorded: tuple[str, ...] = (),
                  progress: Callable[[str], None] = print) -> dict[str, SectionResult]:
-    """Run the sections and write the report to `out` (Markdown) with figures beside it."""
+    """Run the sections and write the report to `out` (Markdown) with figures beside it.
+
+    Sections named in `recorded` are not run: their bench's recorded result (`bench/results/<script>.json`,
+    written by the bench's own command) is rendered instead, for benches that take longer than a report
+    should (the 30-minute soak). The section says so, and its provenance names the run that produced it."""
     sections = [s for s in SECTIONS if not only or s.key in only]
-    unknown = set(only) - {s.key for s in SECTIONS}
+    unknown = (set(only) | set(recorded)) - {s.key for s in SECTIONS}
     if unknown:
         raise UserError(f"unknown report section {sorted(unknown)[0]!r} "
                         f"(sections: {', '.join(s.key for s in SECTIONS)})")
     modules = {s.key: _load(s.script) for s in sections}      # fail before spending minutes
+    recorded_results = {s.key: _recorded_result(s, modules[s.key], quick) for s in sections if s.key in recorded}
     out.parent.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     results: dict[str, SectionResult] = {}
@@ -709,7 +730,7 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
         progress(f"report: {section.key} ({'quick' if quick else 'full'}) ...")
         t0 = time.perf_counter()
         module = modules[section.key]
-        result = module.run(quick=quick)
+        result = recorded_results[section.key] if section.key in recorded_results else module.run(quick=quick)
         seconds = time.perf_counter() - t0
         results[section.key] = result
         timings.append(f"{section.key} {seconds:.0f} s")
@@ -717,9 +738,12 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (),
         figures = getattr(module, "figures", None)
         for figure in (figures(result, out.parent) if callable(figures) else []):
             body += [f"![{figure.stem}]({figure.relative_to(out.parent).as_posix()})", ""]
-        body += [f"*Section produced by `bench/{section.script}.py` in {seconds:.1f} s.*", ""]
+        body += [f"*Section rendered from the recorded `{_recorded_path(section, quick).relative_to(checkout_dir())}`"
+                 f" (the run its provenance names), not re-run by this report.*" if section.key in recorded_results
+                 else f"*Section produced by `bench/{section.script}.py` in {seconds:.1f} s.*", ""]
     total = time.perf_counter() - started
-    command = " ".join(["touchroller report", *(["--quick"] if quick else []), *(["--only", *only] if only else [])])
+    command = " ".join(["touchroller report", *(["--quick"] if quick else []), *(["--only", *only] if only else []),
+                        *(["--recorded", *recorded] if recorded else [])])
     header = [
         "# TouchRoller ROS 2: results",
         "",

@@ -60,3 +60,28 @@ def test_unknown_section_is_refused(tmp_path):
 
     with pytest.raises(UserError, match="unknown report section"):
         build_report(tmp_path / "r.md", quick=True, only=("nope",))
+
+
+def test_a_recorded_section_is_rendered_from_its_bench_result_not_run(tmp_path):
+    import json
+
+    from touchroller_driver.paths import checkout_dir
+    recording = json.loads((checkout_dir() / "bench" / "results" / "soak.json").read_text())
+    out = tmp_path / "RESULTS.md"
+    build_report(out, quick=False, only=("soak",), recorded=("soak",), progress=lambda _: None)
+    text = out.read_text()
+    assert "## Soak: the camera and perception nodes as processes" in text
+    assert "rendered from the recorded `bench/results/soak.json`" in text
+    assert "`touchroller report --only soak --recorded soak`" in text
+    taken = recording["samples"][-1]["processed"]
+    assert f"{taken} frames taken by the perception node in {recording['duration_s']:.0f} s" in text
+
+
+def test_a_section_without_a_recording_loader_is_refused_in_one_line(tmp_path):
+    from touchroller_bringup.errors import UserError
+
+    with pytest.raises(UserError, match="cannot be rendered from a recording"):
+        build_report(tmp_path / "R.md", quick=False, only=("stability",), recorded=("stability",),
+                     progress=lambda _: None)
+    with pytest.raises(UserError, match="unknown report section 'nonsense'"):
+        build_report(tmp_path / "R.md", quick=False, recorded=("nonsense",), progress=lambda _: None)

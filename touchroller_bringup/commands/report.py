@@ -14,6 +14,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--quick", action="store_true", help="CI-sized runs (minutes); the default is the full run")
     parser.add_argument("--out", type=Path, default=None, help="report file (default: docs/RESULTS.md in the checkout)")
     parser.add_argument("--only", nargs="+", default=(), metavar="SECTION", help="only these sections")
+    parser.add_argument("--recorded", nargs="+", default=(), metavar="SECTION",
+                        help="render these sections from their bench's recorded result instead of running them "
+                             "(e.g. soak, whose full run takes about 45 minutes)")
     parser.set_defaults(func=run)
 
 
@@ -21,5 +24,5 @@ def run(args: argparse.Namespace) -> int:
     from touchroller_bringup.report import build_report
 
     out = args.out or checkout_dir() / "docs" / "RESULTS.md"
-    build_report(out, quick=args.quick, only=tuple(args.only))
+    build_report(out, quick=args.quick, only=tuple(args.only), recorded=tuple(args.recorded))
     return 0
