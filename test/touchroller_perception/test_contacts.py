@@ -146,8 +146,9 @@ def test_paper_pipeline_without_reference_thresholds_the_raw_grey_image():
 @given(u=st.floats(30, 290), v=st.floats(30, 210), radius=st.floats(5, 14), amplitude=st.floats(15, 80),
        lit=st.floats(0.3, 3.0), shade=st.floats(0.3, 3.0), azimuth=st.floats(0, 360), seed=st.integers(0, 99))
 def test_property_centre_error_is_subpixel(u, v, radius, amplitude, lit, shade, azimuth, seed):
-    # below this the weaker lobe peaks at ~3 noise std: detectable, but no longer sub-pixel
-    assume(amplitude * min(lit, shade) >= 10)
+    # a contact must clear min_score (12 noise std of the difference): a weaker lobe of 11 grey levels
+    # scores ~13 at radius 5 and may fall below it; from 14 grey levels it clears it with margin
+    assume(amplitude * min(lit, shade) >= 14)
     # a dent cut by the image border has no symmetric centre (the detector halves its confidence)
     assume(3 * radius <= min(u, v, SIZE[1] - 1 - u, SIZE[0] - 1 - v))
     det = _shared_detector()
