@@ -758,7 +758,7 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (), recorded: t
         "",
         "## Goals at a glance",
         "",
-        "Every quantitative goal of issues 3-7, 13 and 16, the figure this run measured for it, and whether it is "
+        "Every quantitative goal of issues 3-7 and 13-16, the figure this run measured for it, and whether it is "
         "met. Speed figures were measured on the machine above."
         + (" A status — is a figure without a verdict: a quick run times `touchroller map` on a short bag, where "
            "interpreter start weighs more than on the goal's >= 1000-frame recordings, so the full run judges it."
