@@ -14,6 +14,7 @@ polynomial, non-finite) come back as NaN with `valid == False`, never as a wrong
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import math
 from collections.abc import Mapping
@@ -128,7 +129,9 @@ class CameraModel:
             raise ValueError(f"not a YAML parameters file ({_one_line_yaml_error(exc)})") from None
         if not isinstance(document, Mapping):
             raise ValueError("not a parameters file (expected a mapping)")
-        return cls.from_params(_ros_parameters(document))
+        params = _ros_parameters(document)
+        _check_model_names(_flatten(params))
+        return cls.from_params(params)
 
     def to_yaml(self, path: str | Path, extra: Mapping[str, Any] | None = None) -> None:
         """Write a ROS 2 params file that serves any node name; `extra` adds parameters (e.g. uncertainties)."""
@@ -394,6 +397,21 @@ def _one_line_yaml_error(exc: Exception) -> str:
     if problem and mark is not None:
         return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
     return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _check_model_names(flat: Mapping[str, Any]) -> None:
+    """A file read for the camera model must name it: one with none of its parameters, or with a misspelt
+    one (`extrinsics.thetta`), would otherwise give the defaults silently."""
+    if not any(name in flat for name in _FIELD_OF_PARAMETER):
+        raise ValueError(f"no camera-model parameters in it (expected some of {', '.join(_FIELD_OF_PARAMETER)})")
+    for name in flat:
+        if name in _FIELD_OF_PARAMETER:
+            continue
+        # extrinsics.* and cylinder.* belong to the model alone; camera.* also holds driver settings
+        near = difflib.get_close_matches(name, list(_FIELD_OF_PARAMETER), n=1, cutoff=0.85)
+        if name.startswith(("extrinsics.", "cylinder.")) or near:
+            hint = f" (did you mean {near[0]}?)" if near else ""
+            raise ValueError(f"unknown camera-model parameter {name}{hint}")
 
 
 def _flatten(params: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

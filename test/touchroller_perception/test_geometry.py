@@ -257,3 +257,24 @@ def test_a_params_file_is_replaced_whole_or_not_at_all(tmp_path):
     with pytest.raises(Exception, match="cannot represent"):
         CameraModel(theta=0.2).to_yaml(path, extra={"calibration.note": object()})
     assert path.read_text() == before and [p.name for p in tmp_path.iterdir()] == ["cal.yaml"]
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    (":::\n", "no camera-model parameters"),
+    ("other.key: 1\n", "no camera-model parameters"),
+    ("camera.fx: 400.0\nextrinsics.thetta: 0.01\n", "unknown camera-model parameter extrinsics.thetta "
+                                                     r"\(did you mean extrinsics.theta\?\)"),
+    ("/**:\n  ros__parameters:\n    camera.fx: 400.0\n    camera.fxx: 410.0\n", "did you mean camera.fx"),
+    ("camera.fx: 400.0\ncylinder.diameter: 0.1\n", "unknown camera-model parameter cylinder.diameter"),
+])
+def test_a_params_file_that_does_not_name_the_model_rightly_is_refused(tmp_path, text, message):
+    path = tmp_path / "p.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        CameraModel.from_yaml(path)
+
+
+def test_a_params_file_with_driver_settings_and_extras_beside_the_model_is_read(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("camera.fx: 400.0\ncamera.latency: 0.03\ncalibration.sigma.theta: 0.001\nmap.metric: 0.1\n")
+    assert CameraModel.from_yaml(path).fx == 400.0
