@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from touchroller_bringup.errors import UserError
+from touchroller_perception.files import atomic_write
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_DATA_END = 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F
@@ -301,11 +302,8 @@ def _write_metadata(path: Path, storage: str, files: list[Path], topics: list[_T
                                   "duration": {"nanoseconds": 0}, "message_count": 0} for f in files[1:]]
     yaml = YAML(typ="safe")
     yaml.default_flow_style = False
-    text = BytesIO()
-    yaml.dump({"rosbag2_bagfile_information": information}, text)
-    temporary = path / "metadata.yaml.tmp"
-    temporary.write_bytes(text.getvalue())
-    os.replace(temporary, path / "metadata.yaml")
+    with atomic_write(path / "metadata.yaml", "wb") as stream:
+        yaml.dump({"rosbag2_bagfile_information": information}, stream)
 
 
 def counts_by_topic(found: RecoveredBag) -> str:
