@@ -13,6 +13,7 @@ import csv
 import math
 from pathlib import Path
 
+from touchroller_bringup.commands import read_calibration
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 from touchroller_perception.files import atomic_write
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--reference-frames must be in [1, {MAX_REFERENCE_FRAMES}], got {args.reference_frames}")
     if not (args.pixel_sigma >= 0 and math.isfinite(args.pixel_sigma)):
         raise UserError(f"--pixel-sigma must be a finite number >= 0, got {args.pixel_sigma}")
-    camera = _load_camera(args.params) if args.params else None
+    camera = read_calibration(args.params) if args.params else None
     changes = {"method": args.method}
     if args.threshold_sigma is not None:
         changes["threshold_sigma"] = args.threshold_sigma
@@ -112,18 +113,6 @@ def _reference_frames(bag: str, topic: str, count: int, read_images) -> list:
     except ValueError as exc:
         raise UserError(f"--reference-bag {bag}: {exc}") from None
     return frames
-
-
-def _load_camera(path: str):
-    from touchroller_perception.geometry import CameraModel
-
-    if not Path(path).is_file():
-        raise UserError(f"no such calibration file: {path}")
-    try:
-        return CameraModel.from_yaml(path)
-    except Exception as exc:  # noqa: BLE001 - YAML, type and range errors all mean a bad file
-        detail = str(exc) if isinstance(exc, ValueError | TypeError) else f"{type(exc).__name__}: {exc}"
-        raise UserError(f"cannot read calibration {path}: {detail}") from None
 
 
 def _rows(stamp_ns: int, contacts, camera, pixel_sigma: float, localise):

@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TypeVar
 
+from touchroller_bringup.commands import read_calibration
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 from touchroller_perception.files import atomic_path, atomic_write
@@ -289,20 +290,13 @@ def _make_stitcher(args: argparse.Namespace, camera, shape):
 
 
 def _load_camera(path: str | None):
+    """The `--params` calibration, else the default config's camera if there is one."""
     from touchroller_driver.paths import config_path
-    from touchroller_perception.geometry import CameraModel
 
-    explicit = path is not None
-    path = Path(path) if explicit else config_path("touchroller.yaml")
-    if not path.is_file():
-        if explicit:
-            raise UserError(f"no such calibration file: {path}")
-        return None
-    try:
-        return CameraModel.from_yaml(path)
-    except Exception as exc:  # noqa: BLE001 - YAML, type and range errors all mean a bad file
-        detail = str(exc) if isinstance(exc, ValueError | TypeError) else f"{type(exc).__name__}: {exc}"
-        raise UserError(f"cannot read calibration {path}: {detail}") from None
+    if path is not None:
+        return read_calibration(path)
+    default = config_path("touchroller.yaml")
+    return read_calibration(default) if default.is_file() else None
 
 
 def _write_steps(path: Path, stitcher) -> None:
