@@ -22,6 +22,10 @@ SIGINT (Ctrl-C), SIGTERM and SIGHUP stop the scan in order, at any moment: the a
 node's stop), then the frames in flight through perception, the map finished, the recording closed,
 and map, contacts and report written with what there is (outcome `interrupted`). More signals change
 nothing (`ros_main.StopSignals`); SIGKILL ends it at once.
+
+A recording that fails on the way (a full disk) stops the scan the same way: the arm stops, the bag keeps
+what it had committed (indexed, readable), and map, contacts and report are still written (outcome
+`recording failed`, the report says what the bag kept); the command then exits with the recorder's error.
 """
 from __future__ import annotations
 
@@ -68,7 +72,7 @@ class ScanOptions:
 @dataclass
 class ScanResult:
     out_dir: Path
-    outcome: str            # done, stopped, fault, timeout, interrupted (by a signal: `signal`)
+    outcome: str            # done, stopped, fault, timeout, interrupted (by a signal: `signal`), recording failed
     message: str
     duration_s: float
     frames_published: int
@@ -101,12 +105,16 @@ class Interrupted(Exception):
     """A stop signal arrived (raised by the waits of the scan's main thread)."""
 
 
+class RecordingFailed(UserError):
+    """The recorder stopped writing (e.g. a full disk): the scan stops the arm and writes what it has."""
+
+
 def _checker(stop: Any, recorder: Any = None) -> Callable[[], None]:
     def check() -> None:
         if stop is not None and stop.requested.is_set():
             raise Interrupted(f"interrupted by {stop.name}")
         if recorder is not None and recorder.failed.is_set():
-            raise UserError(f"recording {recorder.path} failed: {recorder._writer.error}")
+            raise RecordingFailed(f"recording {recorder.path} failed: {recorder._writer.error}")
     return check
 
 
@@ -195,9 +203,10 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
             _call_start(start_client, sweep, check)
             # the perception node starts a new map when the roll starts (it follows /touchroller/sweep_progress)
             outcome, message = _follow_sweep(sweep, collected, say, check)
-        except Interrupted as exc:
+        except (Interrupted, RecordingFailed) as exc:
             _stop_arm(sweep)   # the arm first
-            outcome, message = "interrupted", str(exc)
+            outcome = "interrupted" if isinstance(exc, Interrupted) else "recording failed"
+            message = str(exc)
             say(f"scan: {message}: arm stopped; writing what there is")
         duration = time.monotonic() - started
         _wait_for_perception(sweep, perception)
@@ -205,8 +214,11 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
         answer = sweep.last_answer[2] if sweep.last_answer else ""
         recorded: dict[str, int] = {}
         if recorder is not None:
-            recorder.close()  # drains and finalises the bag (UserError if writing failed)
-            recorded = dict(recorder.counts)
+            try:
+                recorder.close()  # drains and finalises the bag (UserError if writing failed)
+                recorded = dict(recorder.counts)
+            except UserError as exc:   # what the bag kept is in the message; the map must not be lost too
+                outcome, message = "recording failed", str(exc)
         result = _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer, recorded)
         if stop is not None and outcome == "interrupted":
             result.signal = stop.last_signal
@@ -457,7 +469,7 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
     while not sweep.finished.wait(0.02):
         try:
             check()
-        except UserError:   # the recording failed: stop the arm, keep the error for the caller
+        except RecordingFailed:   # stop the arm; the caller writes what there is
             sweep.request_stop()
             raise
         now = time.monotonic()

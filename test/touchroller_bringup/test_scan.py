@@ -104,6 +104,44 @@ def test_short_simulated_scan_writes_map_contacts_and_report(isolated_ros, tmp_p
 
 
 @pytest.mark.ros
+@pytest.mark.timeout(180)
+def test_a_recording_that_fails_mid_scan_stops_the_arm_and_still_writes_map_contacts_and_report(
+        isolated_ros, tmp_path, capsys, monkeypatch):
+    """The disk fills up while the scan records: the arm stops, the bag keeps what it had committed,
+    and map, contacts and report are written anyway; one line names the error and where the outputs are."""
+    import errno
+
+    from touchroller_bringup import recorder
+    from touchroller_bringup.bags import read_images
+
+    handle = recorder._BagWriter._handle
+    images = {"written": 0}
+
+    def fill_up(self, item):
+        if item[0] != "topic" and item[1].endswith("image_raw"):
+            if images["written"] >= 90:   # ~3 s into a 5 s roll
+                raise OSError(errno.ENOSPC, "No space left on device")
+            images["written"] += 1
+        handle(self, item)
+
+    monkeypatch.setattr(recorder._BagWriter, "_handle", fill_up)
+    out = tmp_path / "scan"
+    assert main(["scan", "sweep_length:=0.1", "sweep_speed:=0.02", "--quiet", "--record", "--out", str(out)]) == 2
+    err = error_text(capsys.readouterr().err)
+    assert len(err.splitlines()) == 1 and "No space left on device" in err and str(out) in err, err
+    report = (out / "report.md").read_text()
+    assert "**recording failed**" in report and "messages kept" in report
+    assert (out / "map.png").is_file() and (out / "map.yaml").is_file() and (out / "contacts.csv").is_file()
+    kept = list(read_images(out / "recording"))
+    assert 0 < len(kept) <= 90
+    # the arm stopped when the recording failed: the map does not reach the roll's end (10 cm at 0.1 mm/px)
+    from touchroller_bringup.map_files import read_world_map
+
+    _, alpha, _ = read_world_map(out / "map.yaml")
+    assert np.flatnonzero((alpha > 0).any(axis=0)).size < 0.9 * 1000
+
+
+@pytest.mark.ros
 @pytest.mark.timeout(120)
 @pytest.mark.slow
 def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_remaps(isolated_ros, tmp_path, capsys):

@@ -127,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
     if result.outcome == "interrupted":
         print(f"touchroller: scan {result.message}: arm stopped, outputs written to {result.out_dir}/", file=sys.stderr)
         return 128 + int(result.signal or signal.SIGINT)
+    if result.outcome == "recording failed":
+        raise UserError(f"{result.message}; arm stopped, map, contacts and report written to {result.out_dir}/")
     if not result.ok:
         raise UserError(f"the sweep ended in {result.outcome}: {result.message} (outputs in {result.out_dir}/)")
     return 0
