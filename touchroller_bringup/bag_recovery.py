@@ -16,6 +16,7 @@ Then metadata.yaml is written (rosbag2 version 9, the fields `rosbags` writes), 
 from __future__ import annotations
 
 import os
+import re
 import sqlite3
 import struct
 from collections.abc import Iterator
@@ -63,7 +64,7 @@ def reindex(path: str | Path) -> RecoveredBag:
         path = path.parent
     if not path.is_dir():
         raise UserError(f"no such bag folder: {path}")
-    files = sorted(p for p in path.iterdir() if p.suffix in (".db3", ".mcap") and p.is_file())
+    files = sorted((p for p in path.iterdir() if p.suffix in (".db3", ".mcap") and p.is_file()), key=_split_order)
     if not files:
         raise UserError(f"{path} has no .db3 or .mcap storage file to reindex")
     if len({p.suffix for p in files}) > 1:
@@ -72,6 +73,7 @@ def reindex(path: str | Path) -> RecoveredBag:
     topics: dict[str, _Topic] = {}
     start, end = 2**63 - 1, 0
     repaired, dropped = False, 0
+    per_file: list[_FileSpan] = []
     for file in files:
         if storage == "sqlite3":
             found, first, last = _scan_sqlite3(file)
@@ -84,9 +86,25 @@ def reindex(path: str | Path) -> RecoveredBag:
             if known is not topic:
                 known.count += topic.count
         start, end = min(start, first), max(end, last)
-    _write_metadata(path, storage, files, list(topics.values()), start, end)
+        per_file.append(_FileSpan(file.name, sum(t.count for t in found), first, last))
+    _write_metadata(path, storage, per_file, list(topics.values()), start, end)
     counts = {t.name: t.count for t in topics.values()}
     return RecoveredBag(path, storage, files[0], sum(counts.values()), counts, repaired, dropped)
+
+
+@dataclass
+class _FileSpan:
+    """One storage file's own messages: rosbag2 keeps count, start and duration per file."""
+    name: str
+    count: int
+    first: int     # earliest timestamp (2**63 - 1 when empty)
+    last: int
+
+
+def _split_order(file: Path) -> tuple[str, int, str]:
+    """rosbag2 names a split bag's files NAME_0, NAME_1, ..., NAME_10: order by that number, not as text."""
+    match = re.fullmatch(r"(.*?)_?(\d+)", file.stem)
+    return (match.group(1), int(match.group(2)), file.name) if match else (file.stem, -1, file.name)
 
 
 # -- sqlite3 ------------------------------------------------------------------------------------------
@@ -269,7 +287,7 @@ def _type_hash(msgtype: str) -> str:
         return ""
 
 
-def _write_metadata(path: Path, storage: str, files: list[Path], topics: list[_Topic], start: int,
+def _write_metadata(path: Path, storage: str, files: list[_FileSpan], topics: list[_Topic], start: int,
                     end: int) -> None:
     from rosbags.rosbag2.metadata import dump_qos_v9, parse_qos
     from ruamel.yaml import YAML
@@ -292,14 +310,12 @@ def _write_metadata(path: Path, storage: str, files: list[Path], topics: list[_T
             for t in topics],
         "compression_format": "",
         "compression_mode": "",
-        "files": [{"path": f.name, "starting_time": {"nanoseconds_since_epoch": start},
-                   "duration": {"nanoseconds": duration}, "message_count": count} for f in files[:1]],
+        "files": [{"path": f.name, "starting_time": {"nanoseconds_since_epoch": f.first if f.count else 0},
+                   "duration": {"nanoseconds": max(0, f.last - f.first) if f.count else 0},
+                   "message_count": f.count} for f in files],
         "custom_data": None,
         "ros_distro": "rosbags",
     }
-    if len(files) > 1:   # counts per file are not split here: one entry per file, totals on the first
-        information["files"] += [{"path": f.name, "starting_time": {"nanoseconds_since_epoch": start},
-                                  "duration": {"nanoseconds": 0}, "message_count": 0} for f in files[1:]]
     yaml = YAML(typ="safe")
     yaml.default_flow_style = False
     with atomic_write(path / "metadata.yaml", "wb") as stream:

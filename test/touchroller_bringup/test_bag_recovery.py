@@ -68,3 +68,30 @@ def test_reindex_errors_are_one_line(tmp_path, capsys):
         (tmp_path / "zero").mkdir()
         (tmp_path / "zero" / "zero.mcap").write_bytes(b"")
         reindex(tmp_path / "zero")
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_split_bag_is_reindexed_file_by_file_in_split_order(tmp_path, storage):
+    """rosbag2 splits a long recording into NAME_0 ... NAME_10: metadata.yaml lists them in that order
+    (not as text, where _10 comes before _2), each with its own message count, start and duration."""
+    from rosbags.rosbag2 import Reader
+    from ruamel.yaml import YAML
+
+    bag = tmp_path / "split"
+    bag.mkdir()
+    stamps = [s for s, _ in frames(33)]
+    for part in range(11):
+        piece = tmp_path / f"piece{part}"
+        write_images(piece, frames(33)[3 * part:3 * part + 3], storage=storage)
+        storage_file(piece).rename(bag / f"split_{part}{storage_file(piece).suffix}")
+    found = reindex(bag)
+    assert found.message_count == 33
+    info = YAML(typ="safe").load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    suffix = ".db3" if storage == "sqlite3" else ".mcap"
+    assert info["relative_file_paths"] == [f"split_{part}{suffix}" for part in range(11)]
+    assert [f["message_count"] for f in info["files"]] == [3] * 11
+    assert [f["starting_time"]["nanoseconds_since_epoch"] for f in info["files"]] == stamps[::3]
+    assert all(f["duration"]["nanoseconds"] == stamps[2] - stamps[0] for f in info["files"])
+    assert [r.stamp_ns for r in read_images(bag)] == stamps
+    with Reader(bag) as reader:
+        assert [timestamp for _, timestamp, _ in reader.messages()] == stamps
