@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from bench._common import provenance, provenance_markdown, results_path, save_figure
-from touchroller_perception.contacts import ContactDetector, DetectorConfig  # noqa: E402
+from touchroller_perception.contacts import BackgroundModel, ContactDetector, DetectorConfig
 from touchroller_perception.files import atomic_write_text
 from touchroller_perception.localisation import SurfaceLookup, localise
 
@@ -58,17 +58,23 @@ def sim_workloads(frames_per_kind: int):
 
 
 def time_workload(references, frames, truths, camera, lookup, config: DetectorConfig, repeats: int) -> dict[str, Any]:
-    detector = ContactDetector(config)
-    detector.set_reference(references)
-    detector.detect(frames[0])   # warm caches (downscaled reference)
-    times, counts, errors, missed = [], [], [], 0
+    """Each frame's time is its best over `repeats` passes over the same frames (a noisy machine only ever
+    adds time); every pass starts from a fresh detector, so each frame does the same work every time
+    (the background refits fall on the same frames)."""
+    best = np.full(len(frames), np.inf)
+    counts, errors, missed = [], [], 0
     for repeat in range(repeats):
+        detector = ContactDetector(config)
+        detector.set_reference(references)
+        detector.detect(frames[0])   # warm caches (downscaled reference)
+        detector.background = BackgroundModel()   # back to the state a stream starts in (the cache stays)
         for k, frame in enumerate(frames):
             start = time.perf_counter()
             contacts = detector.detect(frame)
             located = localise(camera, contacts, covariance=False, lookup=lookup)   # what the node does
-            times.append(time.perf_counter() - start)
-            counts.append(len(contacts))
+            best[k] = min(best[k], time.perf_counter() - start)
+            if repeat == 0:
+                counts.append(len(contacts))
             if truths is not None and repeat == 0:
                 for point in truths[k]:
                     distances = [np.linalg.norm(loc.point - np.asarray(point)) for loc in located if loc.valid]
@@ -76,7 +82,7 @@ def time_workload(references, frames, truths, camera, lookup, config: DetectorCo
                         errors.append(1e3 * min(distances))
                     else:
                         missed += 1
-    t = np.array(times) * 1e3
+    t = best * 1e3
     return {"median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "max_ms": float(t.max()),
             "frames_timed": len(t), "contacts_per_frame": float(np.mean(counts)),
             "error_mm": float(np.mean(errors)) if errors else float("nan"), "matched": len(errors), "missed": missed}
@@ -111,7 +117,10 @@ def to_markdown(result: dict[str, Any]) -> str:
     if result.get("note"):
         lines += [result["note"], ""]
     lines += [
-             f"OpenCV on one thread (cv2.setNumThreads(1)); frames: {result['source']}, 640x480 bgr8.", "",
+             f"OpenCV on one thread (cv2.setNumThreads(1)); frames: {result['source']}, 640x480 bgr8. "
+             "Each frame's time is its best of several passes over the same frames, each pass from a fresh "
+             "detector (the same work every time; load on the machine only adds time); median, p90 and max "
+             "are over the frames.", "",
              "| workload | median ms | p90 ms | max ms | frames timed | contacts/frame |",
              "|---|---|---|---|---|---|"]
     for r in result["speed"]:
@@ -125,9 +134,9 @@ def to_markdown(result: dict[str, Any]) -> str:
                      f"{r['contacts_per_frame']:.1f} blobs/frame)")
     lines += ["", "The rolling-over-fabric frames are a stress case, not a contact-localisation workload: the "
               "roller is in contact from the first frame, so the reference holds the band and the moving "
-              "texture shows up as many blobs (up to ~24 per frame). All blobs of a frame are refined at "
-              "full resolution in one batch (their windows packed into one mosaic), so the cost grows with "
-              "the blobs' pixels rather than with a dozen OpenCV/numpy calls per blob.", "",
+              "texture keeps about a fifth of the image changed and shows up as blobs. All blobs of a frame "
+              "are refined at full resolution in one batch (their windows packed into one mosaic), so the "
+              "cost grows with the blobs' pixels rather than with a dozen OpenCV/numpy calls per blob.", "",
               f"### Accuracy against time on the tap frames ({result['tap_frames']}, exact calibration)", "",
               "| detector setting | median ms | mean error mm | contacts found / missed |", "|---|---|---|---|"]
     for r in result["settings"]:
