@@ -293,12 +293,33 @@ def test_sighup_finalises_the_recording(ros_context, spin_until, tmp_path):
     assert len(list(read_images(bag))) == 5
 
 
+@pytest.fixture
+def small_filesystem(tmp_path):
+    """A real 1 MB tmpfs mounted for the test (root with the mount capability; skipped elsewhere)."""
+    mount_point = tmp_path / "tmpfs"
+    mount_point.mkdir()
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount_point)],
+                          capture_output=True, text=True, check=False)
+    if made.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {made.stderr.strip() or made.returncode}")
+    try:
+        yield mount_point
+    finally:
+        subprocess.run(["umount", "-l", str(mount_point)], check=False)
+
+
 @pytest.mark.timeout(120)
+@pytest.mark.parametrize("full", ["file_size_limit", "full_tmpfs"])
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
 def test_a_full_disk_stops_the_recording_at_once_with_one_line_and_keeps_what_was_written(
-        ros_context, spin_until, tmp_path, storage):
-    bag = tmp_path / "full"
-    process = _start_recording(bag, storage, limit_bytes=400_000)   # room for ~150 images of 2.3 kB
+        ros_context, spin_until, tmp_path, storage, full, request):
+    """A file-size limit (RLIMIT_FSIZE: EFBIG) and a real filesystem that fills up (ENOSPC)."""
+    if full == "full_tmpfs":
+        bag = request.getfixturevalue("small_filesystem") / "full"
+        process = _start_recording(bag, storage)   # 1 MB: room for ~400 images of 2.3 kB
+    else:
+        bag = tmp_path / "full"
+        process = _start_recording(bag, storage, limit_bytes=400_000)   # room for ~150 images of 2.3 kB
     talker = None
     try:
         talker, publisher = _image_publisher(ros_context, spin_until, process)
