@@ -159,7 +159,7 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     if math.isfinite(result.tangential_chi2) or result.model_scores:
         kept = result.tangential_chi2 >= config.tangential_chi2
         print(f"  tangential p1, p2: Wald statistic {result.tangential_chi2:.1f} "
-              f"({'>=' if kept else '<'} {config.tangential_chi2:g}, the 99 % point): "
+              f"({'>=' if kept else '<'} {config.tangential_chi2:g}, Akaike's 2 per term): "
               + ("the fit shows them, kept" if kept else "no evidence for them, left out"))
     for score in result.model_scores:
         print(f"  distortion model {score.model}: held-out RMS {score.held_out_rms:.4f} px, "

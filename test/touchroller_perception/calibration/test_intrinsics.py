@@ -1,6 +1,8 @@
 """Distortion model choice by held-out views, on synthetic corners (no rendering: fast)."""
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -149,3 +151,21 @@ def test_the_saddle_point_of_an_ideal_corner_is_the_corner():
     blob = np.full((60, 60), 200, np.uint8)
     cv2.circle(blob, (30, 30), 8, 30, -1)
     assert np.array_equal(intrinsics.saddle_points(blob, np.array([[30.4, 29.7]]), spacing=20.0), [[30.4, 29.7]])
+
+
+def test_weak_tangential_terms_are_kept_when_they_pay_for_themselves():
+    """A lens with p1, p2 seen only in the central half: left out, the principal point moves to the
+    centre of distortion (~p/k1, 0.7 px here) and every ray with it. On these views their Wald
+    statistic (7.2) is short of a 99 % significance test (9.21) but pays for their two parameters
+    by Akaike's criterion (4): they are kept, and the principal point stays within 0.5 px."""
+    lens = CameraModel(fx=380.0, fy=381.5, cx=323.0, cy=236.5, distortion=(-0.16, 0.045, 4.0e-4, -3.0e-4, 0.0))
+    views = corner_views(lens, 20, 0.5, seed=2, noise=0.06)
+    choice = cal.choose_distortion_model(BOARD.object_points(), views, (640, 480), cal.IntrinsicsConfig())
+    assert 4.0 < choice.tangential_chi2 < 9.21
+    assert choice.model in ("k1k2p", "full")
+    from touchroller_perception.calibration import intrinsics
+
+    for model, near in ((choice.model, True), ("k1k2", False)):
+        fit = intrinsics._zhang(BOARD.object_points(), views, (640, 480), cal.DISTORTION_MODELS[model])
+        offset = math.hypot(fit.k_matrix[0, 2] - lens.cx, fit.k_matrix[1, 2] - lens.cy)
+        assert (offset < 0.5) == near, (model, offset)
