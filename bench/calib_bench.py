@@ -356,10 +356,10 @@ def markdown(result: CalibBenchResult) -> str:
         lines.append(f"| {r.views} ({r.distortion}) | {r.fx_err_px.rms:.3f} / {r.fx_err_px.max:.3f} | "
                      f"{r.cx_err_px.rms:.3f} / {r.cx_err_px.max:.3f} | {r.cy_err_px.rms:.3f} / {r.cy_err_px.max:.3f} | "
                      f"{r.reprojection_rms_px:.3f} | {r.solve_s_median:.3f} |")
-    lines += ["", "`auto` (the default) fits k1, k2, adds p1, p2 when the fit shows them (Wald statistic at the 99 % "
-              "point of chi-square, 2 degrees of freedom) and k3 only when held-out views need it; `full` always "
-              "fits all 5 coefficients, `radial` holds p1 = p2 = 0. The solve time of `auto` includes its k-fold "
-              "comparison.", "",
+    lines += ["", "`auto` (the default) fits k1, k2, adds p1, p2 when the fit's evidence for them pays for their two "
+              "parameters (Wald statistic >= 4, Akaike's criterion) and k3 only when held-out views need it; `full` "
+              "always fits all 5 coefficients, `radial` holds p1 = p2 = 0. The solve time of `auto` includes its "
+              "k-fold comparison.", "",
               "d scales with the focal length (d + r = f x pitch / pixel pitch): 1 px of fx error at 380 px is "
               "0.14 mm of d, so d's accuracy is bought with chessboard views.", "",
               "## B. theta and d against the number of presses (true intrinsics)", "",

@@ -99,3 +99,25 @@ def test_floor_row_solves_from_the_true_corners_with_the_measured_noise():
 def test_renderer_truth_is_the_true_camera():
     presses = second.render_presses(0, 1)
     assert presses.camera == second.TRUE_CAMERA and len(presses.truth[0].centres_px) == 10
+
+
+def test_corner_noise_is_not_inflated_by_a_few_misdetected_corners():
+    rng = np.random.default_rng(0)
+    errors = rng.normal(0.0, 0.02, (2000, 2))
+    errors[:6] += 4.0                            # a few corners put between the true ones
+    assert abs(check.corner_noise(errors) - 0.02) < 0.002
+    assert np.sqrt(np.mean(errors**2)) > 0.1     # what a root mean square would have said
+
+
+def test_a_principal_point_error_is_a_rotation_and_theta_absorbs_only_the_one_across_the_roller():
+    truth = second.TRUE_CAMERA
+    seen = np.zeros((truth.height, truth.width), bool)
+    seen[120:360, 160:480] = True
+    along_u = check.ray_decomposition(truth.replace(cx=truth.cx + 1.0), truth, seen)
+    assert 0.9 < along_u.seen_p95 < 1.1
+    assert along_u.less_rotation_p95 < 0.1       # a shifted principal point turns the rays
+    assert along_u.less_theta_p95 > 0.9          # about y: not what theta (about x) absorbs
+    along_v = check.ray_decomposition(truth.replace(cy=truth.cy + 1.0), truth, seen)
+    assert along_v.less_theta_p95 < 0.1 and abs(along_v.rotation_deg[0]) > 0.1
+    shape = check.ray_decomposition(truth.replace(distortion=(-0.15, *truth.distortion[1:])), truth, seen)
+    assert shape.less_rotation_p95 > 0.5 * shape.seen_p95   # the distortion's shape is no rotation
