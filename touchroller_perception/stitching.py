@@ -650,6 +650,8 @@ class Stitcher:
         self._pending: _Pending | None = None
         self._splat_row = 0.0  # position of the last band added to the map
         self._travel = 0.0
+        self._unregistered: tuple[float, int | None] = (0.0, 0)   # motion (px, ns) taken unregistered since
+        # the last registered frame (`_push_unregistered`)
         self._typical_energy: float | None = None  # mean |feature| while tracking confidently
 
     # -- public ------------------------------------------------------------------------------------
@@ -742,8 +744,14 @@ class Stitcher:
         """
         return self.push_band(self.band(image), stamp_ns, prior_px)
 
-    def push_band(self, band: np.ndarray, stamp_ns: int, prior_px: float | None = None) -> StitchStep:
-        """`push` for a band already cut with `band()` (lets a caller make two passes over a recording)."""
+    def push_band(self, band: np.ndarray, stamp_ns: int, prior_px: float | None = None,
+                  register: bool = True) -> StitchStep:
+        """`push` for a band already cut with `band()` (lets a caller make two passes over a recording).
+
+        register: False moves the frame by `prior_px` (else the recent velocity) without registering the
+        image: a caller that knows the roll is steady saves the registration. The next registered frame
+        is located against the keyframe as usual, so a wrong guess is not carried on. Ignored without a
+        prior or a velocity, before the roller first moved, and by the paper's method."""
         sampler = self._sampler
         if sampler is None:
             raise ValueError("call band() or push() with a full frame first")
@@ -755,6 +763,9 @@ class Stitcher:
         dt = None if self._last_stamp is None else stamp_ns - self._last_stamp
         if self.config.method == "paper":
             step = self._push_paper(band)
+        elif not register and self._key is not None and self._moved and (
+                motion := self.predictor.predict(dt, prior_px)) is not None:
+            step = self._push_unregistered(band, motion, dt)
         else:
             step = self._push_default(band, dt, prior_px)
         self._last_stamp = stamp_ns
@@ -879,6 +890,10 @@ class Stitcher:
             return StitchStep(0.0, 0.0, False, 0.0, self._position)
         predicted = self.predictor.predict(dt, prior_px)
         pred_rel = None if predicted is None else self._position + predicted - key.row
+        # after frames moved unregistered (`_push_unregistered`) the image's shift is judged from the
+        # last registered frame, against the whole motion expected since
+        unregistered, unregistered_ns = self._unregistered
+        self._unregistered = (0.0, 0)
         rel, confidence, cost = self._register(feats, key, pred_rel, self._position - key.row)
         lat = self._lateral_pos - key.col
         if config.lateral and rel is not None:
@@ -888,13 +903,14 @@ class Stitcher:
         # A key that matches this frame this badly shows something else (a no-contact band before the
         # roller touched, a jump): its shift means nothing, and the frame becomes the new key below.
         confident = rel is not None and confidence >= config.min_confidence and cost <= _MISMATCH_COST
-        if confident and rel is not None and predicted is not None and abs(predicted) >= 1.0 and (
+        expected = None if predicted is None else predicted + unregistered
+        if confident and rel is not None and expected is not None and abs(expected) >= 1.0 and (
                 prior_px is not None or confidence < _WEAK_CONFIDENCE):
             # The arm (or, on a weak match, the recent velocity) says we roll but the image says we
             # stand still: the image sees only what does not move with the surface (a textureless
             # stretch over a dusty gel). Believe the motion. A real stop decelerates over frames.
-            image_shift = key.row + rel - self._position
-            confident = abs(image_shift) >= _STATIC_FRACTION * abs(predicted)
+            image_shift = key.row + rel - (self._position - unregistered)
+            confident = abs(image_shift) >= _STATIC_FRACTION * abs(expected)
         if not confident or rel is None:  # trust the motion prior, or stand still when there is none
             rel = self._position + (predicted or 0.0) - key.row
             lat = self._lateral_pos - key.col
@@ -904,7 +920,10 @@ class Stitcher:
         self._lateral_pos += lateral
         self._travel += abs(shift)
         if confident:
-            self.predictor.update(shift, dt)
+            if unregistered_ns != 0 and dt is not None and unregistered_ns is not None:
+                self.predictor.update(shift + unregistered, dt + unregistered_ns)
+            else:
+                self.predictor.update(shift, dt)
             self._typical_energy = energy if self._typical_energy is None else (
                 0.9 * self._typical_energy + 0.1 * energy)
         self._place(band, field, confident)
@@ -914,6 +933,19 @@ class Stitcher:
         if not config.keyframes or overlap < config.keyframe_overlap or not confident:
             self._key = _Keyframe(feats, full, _row_energy_cumsum(feats), self._position, self._lateral_pos)
         return StitchStep(shift, confidence, not confident and predicted is not None, lateral, self._position)
+
+    def _push_unregistered(self, band: np.ndarray, motion: float, dt: int | None) -> StitchStep:
+        """The frame moved by `motion` px (the caller's, or the recent velocity), not registered: the
+        keyframe and the velocity stay; the motion is provisional until the next registered frame."""
+        field = self.flat.field(self._travel) if self.config.background else None
+        self._position += motion
+        self._travel += abs(motion)
+        done, done_ns = self._unregistered
+        self._unregistered = (done + motion, None if dt is None or done_ns is None else done_ns + dt)
+        self._place(band, field, True)
+        if self.config.background:
+            self.flat.learn(band, self._position)
+        return StitchStep(motion, 0.0, True, 0.0, self._position)
 
     def _place(self, band: np.ndarray, field: np.ndarray | None, confident: bool) -> None:
         """Add the band to the map at the current position, unless it adds nothing.
@@ -983,7 +1015,7 @@ class Stitcher:
             half = max(2, config.local_search)
             local = np.arange(max(centre - half, -max_rel), min(centre + half, max_rel) + 1)
         candidates, costs, best = _search(feats, key.features, local, key.energy)
-        if local is not wide and (best < 0 or best in (0, len(costs) - 1)
+        if local is not wide and (best < 0 or best in (0, len(costs) - 1) or costs[best] > _MISMATCH_COST
                                   or _confidence(costs, best) < config.min_confidence):
             # The prediction was off (speed change, a dropped frame): search the whole range.
             candidates, costs, best = _search(feats, key.features, wide, key.energy)

@@ -43,6 +43,8 @@ from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchSte
 
 FloatArray = NDArray[np.float64]
 _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
+_EVENT_CHECK_NS = 250_000_000   # how often (stamp time) the pressed height, starts and stops are looked for
+_PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in this many is registered
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet): e.g.
 #: `TransformBuffer.lookup_many(world, cylinder, stamps, missing=True)`.
 PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
@@ -75,6 +77,10 @@ class WorldMapConfig:
     search_px: the largest correction registration looks for, map pixels.
     contact_tolerance: frames with the roller within this of its pressed height are mapped, m.
     edge_taper: the weights fall to zero over this distance at the band's ends along the axis, m.
+    steady_stride: while the roll is steady (the image's speed over the last registered frames unchanged,
+      and the arm's where it is known agreeing with it) the strip stitcher registers one frame in
+      `steady_stride` and the others take that motion; starts, stops and any disagreement are registered
+      frame by frame (they are what the latency and the pressed height are learnt from). 1: every frame.
     hold_frames: frames kept while their pose, the pressed height or the latency are not known yet (in
       16 bits: 90 KB each for 640-pixel-wide bands); the latency may need a whole pass's end to be found.
     """
@@ -88,6 +94,7 @@ class WorldMapConfig:
     search_px: int = 6
     contact_tolerance: float = 2e-4
     edge_taper: float = 4e-3
+    steady_stride: int = 3
     hold_frames: int = 600
 
     def __post_init__(self) -> None:
@@ -105,8 +112,8 @@ class WorldMapConfig:
             raise ValueError(f"latency must be in [0, 1] s or None (estimate it), got {self.latency}")
         if not (0 < self.max_latency <= 1.0):
             raise ValueError(f"max_latency must be in (0, 1] s, got {self.max_latency}")
-        if self.search_px < 1 or self.hold_frames < 1 or self.max_pixels < 10_000:
-            raise ValueError("search_px and hold_frames must be >= 1, max_pixels >= 10000")
+        if self.search_px < 1 or self.hold_frames < 1 or self.max_pixels < 10_000 or self.steady_stride < 1:
+            raise ValueError("search_px, hold_frames and steady_stride must be >= 1, max_pixels >= 10000")
         if not (self.contact_tolerance > 0 and self.edge_taper >= 0):
             raise ValueError("contact_tolerance must be > 0 and edge_taper >= 0")
 
@@ -483,6 +490,11 @@ class WorldMapper:
         self._reference_point: np.ndarray | None = None
         self._previous_stamp: int | None = None
         self._previous_prior_pose: tuple[np.ndarray, int] | None = None
+        self._registered: tuple[int, float, float | None] | None = None   # the last registered frame's
+        # (stamp, image position, image speed px/ns since the one before) while registrations are confident
+        self._steady = False      # the image's speed is unchanged over the last registered frames
+        self._steady_skipped = 0  # frames since the last registered one
+        self._frame_dt: int | None = None   # ns since the previous frame
         self._estimator: LatencyEstimator | None = None
         # passes and their registration against the earlier ones
         self._in_contact = False
@@ -519,7 +531,10 @@ class WorldMapper:
             self.stats.not_in_contact += 1
             self._drain(final=False)
             return
-        step = self.strip.push_band(band, int(stamp_ns), prior)
+        register = self._register_strip(prior, int(stamp_ns))
+        step = self.strip.push_band(band, int(stamp_ns), prior, register=register)
+        if register:
+            self._steady_after(step, int(stamp_ns))
         frame = _Frame(int(stamp_ns), band, self.strip.flat_field_now(), step, pose, pose_latency)
         if step.confidence >= self.strip.config.min_confidence and not step.used_prior:
             self._recent.append(frame.stamp_ns, step.position_px)
@@ -529,6 +544,41 @@ class WorldMapper:
             held = self._pending[-_HELD_FULL - 1]
             if held.band.dtype != np.uint16:   # grey 0..255 in steps of 1/256
                 held.band = cv2.multiply(held.band, 256.0, dtype=cv2.CV_16U)
+
+    def _register_strip(self, prior: float | None, stamp_ns: int) -> bool:
+        """Whether the strip stitcher registers this frame (`WorldMapConfig.steady_stride`): not while the
+        roll is steady and fewer than stride - 1 frames were left unregistered since the last registered
+        one; the arm's motion, where known, must agree with the image's speed."""
+        if not self._steady or self._steady_skipped >= self.config.steady_stride - 1 or self._registered is None:
+            self._steady_skipped = 0
+            return True
+        _, _, speed = self._registered
+        if speed is None:
+            self._steady_skipped = 0
+            return True
+        if prior is not None and self._frame_dt is not None:
+            expected = speed * self._frame_dt
+            if abs(prior - expected) > 0.1 * abs(expected) + 0.3:
+                self._steady_skipped = 0
+                return True
+        self._steady_skipped += 1
+        return False
+
+    def _steady_after(self, step: StitchStep, stamp_ns: int) -> None:
+        """Track the image's speed over the registered frames (`_register_strip`)."""
+        confident = not step.used_prior and step.confidence >= self.strip.config.min_confidence
+        last, self._registered = self._registered, None
+        self._steady = False
+        if confident:
+            speed = None
+            if last is not None and stamp_ns > last[0]:
+                span = stamp_ns - last[0]
+                speed = (step.position_px - last[1]) / span
+                previous = last[2]
+                # moving at least a pixel a frame, the speed within 5 % (+ 0.1 px) of the one before
+                self._steady = (previous is not None and abs(speed) * span >= 1.0
+                                and abs(speed - previous) * span <= 0.05 * abs(previous) * span + 0.1)
+            self._registered = (stamp_ns, step.position_px, speed)
 
     def _clearly_lifted(self, pose: Any) -> bool:
         """The roller is more than a millimetre above its pressed height (known once a roll was seen)."""
@@ -544,6 +594,7 @@ class WorldMapper:
         still. At the latency estimate, or the largest latency while there is none (a pose known by now).
         Also (the frame's pose, its latency) when that is the latency the frame will be placed with."""
         previous, self._previous_stamp = self._previous_stamp, stamp_ns
+        self._frame_dt = None if previous is None else stamp_ns - previous
         latency = self._latency()
         shift = round(self.config.max_latency * 1e9) if latency is None else latency
         pose = self.poses(np.array([stamp_ns - shift], np.int64))[0]
@@ -688,7 +739,7 @@ class WorldMapper:
         if len(self._recent) < 3:
             return
         newest = self._latest_stamp
-        if newest - self._last_event_check < 100_000_000 and not final:
+        if newest - self._last_event_check < _EVENT_CHECK_NS and not final:
             return
         self._last_event_check = int(newest)
         stamps, positions, heights, arm_rows = self._track()
@@ -785,9 +836,10 @@ class WorldMapper:
         if self._prior is None or not self.config.register:
             self._place(frame, pose, np.zeros(2))
             return
-        # register the first frames of the pass, then every fourth (the correction is one shift per pass)
+        # register the first frames of the pass, then one in _PASS_REGISTER_EVERY (the correction is one
+        # shift per pass, the median of its frames' offsets)
         self._pass_frames += 1
-        if len(self._pass_offsets) < 10 or self._pass_frames % 4 == 0:
+        if len(self._pass_offsets) < 10 or self._pass_frames % _PASS_REGISTER_EVERY == 0:
             offset = self._register(frame, pose)
             if offset is not None:
                 self._pass_offsets.append(offset)
@@ -873,6 +925,26 @@ class WorldMapper:
     def _warp(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> tuple[list[np.ndarray], _Placement]:
         """The frame's [w band, w field, w] on the map grid (lowest cell at the placement's c0, r0)."""
         assert self._weights is not None
+        placement = self._locate(pose, delta)
+        weighted_band, weighted_field = self._band_planes(frame)
+        return [self._on_map(placement, weighted_band), self._on_map(placement, weighted_field, "field"),
+                self._on_map(placement, self._weights, "w")], placement
+
+    def _on_map(self, placement: _Placement, plane: np.ndarray, constant: str | None = None) -> np.ndarray:
+        """A plane in band coordinates on the map grid at `placement`; `constant` names a plane that stays
+        the same over frames ("w", "field": oriented once per orientation)."""
+        if placement.axes is not None:
+            assert placement.kernel is not None
+            oriented = _orient(plane, placement.axes) if constant is None else self._oriented(constant, plane,
+                                                                                               placement.axes)
+            return _blend(oriented, placement.kernel)
+        assert placement.matrix is not None
+        return cv2.warpAffine(plane, placement.matrix, placement.size, flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def _locate(self, pose: np.ndarray, delta: np.ndarray) -> _Placement:
+        """Where the band of a frame at `pose`, moved by `delta` map pixels, lands (the map grown to hold it)."""
+        assert self._weights is not None
         matrix = self._affine(pose)
         matrix[:, 2] += delta
         c0, r0, c1, r1 = self._footprint(matrix)
@@ -883,22 +955,15 @@ class WorldMapper:
             if self._prior is not None:
                 value, weight, cs, rs = self._prior
                 self._prior = (value, weight, cs + shift[0], rs + shift[1])
-        weighted_band, weighted_field = self._band_planes(frame)
         aligned = _axis_aligned(matrix, self._weights.shape)
         if aligned is not None:
             # an axis-aligned roller at the band's own scale: turn the band, then one bilinear 2x2 blend
             axes, c0, r0, kernel = aligned
-            planes = [_blend(_orient(weighted_band, axes), kernel),
-                      _blend(self._oriented("field", weighted_field, axes), kernel),
-                      _blend(self._oriented("w", self._weights, axes), kernel)]
-            return planes, _Placement(c0, r0, axes, kernel=kernel)
+            return _Placement(c0, r0, axes, kernel=kernel)
         c0, r0, c1, r1 = self._footprint(matrix)
         local = matrix.copy()
         local[:, 2] -= (c0, r0)
-        size = (c1 - c0, r1 - r0)
-        planes = [cv2.warpAffine(plane, local, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                 borderValue=0) for plane in (weighted_band, weighted_field, self._weights)]
-        return planes, _Placement(c0, r0, None, matrix=local, size=size)
+        return _Placement(c0, r0, None, matrix=local, size=(c1 - c0, r1 - r0))
 
     def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
         try:
@@ -915,11 +980,13 @@ class WorldMapper:
 
     def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float] | None:
         """This frame's offset (columns, rows, score) against the earlier passes where they overlap."""
-        assert self._prior is not None
+        assert self._prior is not None and self._weights is not None
         try:
-            (weighted_band, weighted_field, weights), placement = self._warp(frame, pose, np.zeros(2))
+            placement = self._locate(pose, np.zeros(2))
         except MemoryError:   # beyond max_pixels: `_place` leaves it out and counts it
             return None
+        # the overlap is judged on the weights alone; the band is put on the map only when it is usable
+        weights = self._on_map(placement, self._weights, "w")
         c0, r0 = placement.c0, placement.r0
         value, weight, cs, rs = self._prior
         h, w = weights.shape
@@ -939,6 +1006,9 @@ class WorldMapper:
         if a1 - a0 < 12 or b1 - b0 < 12 or not both[a0:a1, b0:b1].all():
             # the overlap is not a full rectangle: use its largest all-covered rows band
             return None
+        weighted_band, weighted_field = (self._on_map(placement, plane, constant)
+                                         for plane, constant in zip(self._band_planes(frame), (None, "field"),
+                                                                    strict=True))
         band = np.divide(weighted_band, weighted_field, out=np.zeros((h, w), np.float32), where=weighted_field > 1e-6)
         template = _highpass(band[a0:a1, b0:b1])
         search = _highpass(prior[a0 - s:a1 + s, b0 - s:b1 + s])

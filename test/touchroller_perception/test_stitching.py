@@ -138,6 +138,29 @@ def test_textureless_stretch_falls_back_on_prior_and_flags_it():
     assert abs(steps[-1].position_px - pos[-1]) < 2.0
 
 
+def test_unregistered_frames_take_the_prior_and_the_next_registered_frame_finds_the_truth():
+    """A caller sure of a steady roll skips registering frames (`register=False`): they move by the prior.
+    When the roll slowed meanwhile (the prior lags it: 5 px a frame while the surface moves 2.5), the next
+    registered frame is still located on the image, against the keyframe, not left where the prior put it."""
+    shifts = np.r_[np.full(12, 5.0), np.full(12, 2.5)]
+    frames, pos, _ = roll(shifts)
+    stitcher = Stitcher()
+    steps = []
+    for k, frame in enumerate(frames):
+        register = k % 3 == 0 or k < 6
+        steps.append(stitcher.push_band(stitcher.band(frame), k * FRAME_NS, prior_px=5.0, register=register))
+        if not register:
+            assert steps[-1].used_prior and steps[-1].shift_px == 5.0
+    registered = [k for k in range(len(frames)) if k % 3 == 0 or k < 6]
+    errors = np.abs(estimated(steps) - pos)[registered]
+    assert errors.max() < 0.5
+    assert not any(steps[k].used_prior for k in registered[1:])
+    # without a prior or a recent velocity there is nothing to move an unregistered frame by: registered
+    fresh = Stitcher()
+    fresh.push(frames[0], 0)
+    assert not fresh.push_band(fresh.band(frames[1]), FRAME_NS, register=False).used_prior
+
+
 def test_textureless_without_prior_uses_recent_velocity():
     frames, pos, _ = roll(np.full(60, 2.5), flat_rows=(-40, 140), noise=1.0)
     _, steps = stitch(frames)

@@ -94,6 +94,20 @@ def test_without_latency_the_estimate_is_zero_and_registration_changes_nothing(s
     assert all(abs(dx) < 0.3 and abs(dy) < 0.3 for dx, dy in mapper.stats.pass_corrections_px)
 
 
+@pytest.mark.slow
+def test_steady_rolling_is_registered_one_frame_in_three_and_maps_as_well(scans, sensor):
+    """`steady_stride`: while the roll is steady most frames take the motion instead of being registered;
+    the starts and stops, which the latency is found from, are still registered frame by frame."""
+    _, _, events = scans
+    every = run(events[0.04], sensor, steady_stride=1)
+    steady = run(events[0.04], sensor)
+    assert steady.config.steady_stride == 3
+    assert steady.strip.prior_frames - every.strip.prior_frames > 0.3 * steady.strip.frames
+    assert steady.stats.latency_s == pytest.approx(0.04, abs=0.003)
+    assert steady.stats.mapped == every.stats.mapped
+    assert in_place_ssim(steady, sensor) >= in_place_ssim(every, sensor) - 0.01
+
+
 def test_config_is_checked():
     with pytest.raises(ValueError, match="resolution"):
         WorldMapConfig(resolution=0.0)
@@ -101,6 +115,8 @@ def test_config_is_checked():
         WorldMapConfig(bounds=(1.0, 0.0, 0.0, 1.0))
     with pytest.raises(ValueError, match="max_pixels"):
         WorldMapConfig(bounds=(0.0, 0.0, 10.0, 10.0))
+    with pytest.raises(ValueError, match="steady_stride"):
+        WorldMapConfig(steady_stride=0)
 
 
 @pytest.mark.parametrize("turn", [((0, 1), (1, 0)), ((0, -1), (1, 0)), ((0, 1), (-1, 0)), ((0, -1), (-1, 0)),
