@@ -152,6 +152,13 @@ def test_read_ahead_keeps_order_raises_in_place_and_stops_early():
         for item in _read_ahead(failing(), depth=2):
             seen.append(item)
     assert seen == [0, 1, 2, 3, 4]
+    # in batches: the same items in the same order, the last short batch and the error in place
+    assert list(_read_ahead(iter(range(100)), depth=3, batch=8)) == list(range(100))
+    seen = []
+    with pytest.raises(ValueError, match="truncated"):
+        for item in _read_ahead(failing(), depth=2, batch=3):
+            seen.append(item)
+    assert seen == [0, 1, 2, 3, 4]
 
     produced = []
 

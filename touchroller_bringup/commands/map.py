@@ -144,15 +144,19 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                                     f"has {width}x{height}")
                 yield "image", (record.stamp_ns, mapper.band(record.image, record.row0, height))
             else:
-                yield "tf", record
+                try:
+                    transform = Transform(record.translation, record.rotation)
+                except ValueError:   # a malformed transform: skipped, as a TF listener would
+                    continue
+                yield "tf", (record, transform)
 
     frames = 0
-    for kind, item in _read_ahead(records()):
+    for kind, item in _read_ahead(records(), batch=8):
         if kind == "tf":
+            record, transform = item
             try:
-                buffer.set_transform(item.parent, item.child, item.stamp_ns, Transform(item.translation, item.rotation),
-                                     static=item.static)
-            except ValueError:   # a malformed transform: skipped, as a TF listener would
+                buffer.set_transform(record.parent, record.child, record.stamp_ns, transform, static=record.static)
+            except ValueError:   # a malformed transform (a frame its own parent, an empty name): skipped
                 continue
         else:
             stamp_ns, band = item
@@ -231,38 +235,50 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
     return 0
 
 
-def _read_ahead(records: Iterator[T], depth: int = 8) -> Iterator[T]:
+def _read_ahead(records: Iterator[T], depth: int = 8, batch: int = 1) -> Iterator[T]:
     """`records`, produced by a second thread a few items ahead: SQLite reads and OpenCV both release
-    the GIL, so reading the bag overlaps with stitching instead of adding to it. Errors surface in order."""
+    the GIL, so reading the bag overlaps with stitching instead of adding to it. Errors surface in order.
+    `batch` items go through the queue together (fewer hand-overs between the threads)."""
     items: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
     done = object()
 
+    def put(chunk: list) -> bool:
+        while not stop.is_set():
+            try:
+                items.put((chunk, None), timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
     def produce() -> None:
+        chunk: list = []
         try:
             for item in records:
-                while not stop.is_set():
-                    try:
-                        items.put((item, None), timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
+                chunk.append(item)
+                if len(chunk) >= batch:
+                    if not put(chunk):
+                        return
+                    chunk = []
+            if chunk and not put(chunk):
+                return
             items.put((done, None))
         except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer's thread
+            if chunk:
+                put(chunk)
             items.put((done, exc))
 
     reader = threading.Thread(target=produce, name="bag-reader", daemon=True)
     reader.start()
     try:
         while True:
-            item, error = items.get()
-            if item is done:
+            chunk, error = items.get()
+            if chunk is done:
                 if error is not None:
                     raise error
                 return
-            yield item
+            yield from chunk
     finally:
         stop.set()
         reader.join(timeout=5.0)
