@@ -5,6 +5,8 @@ renamed into place), so a failed write leaves an existing map as it was.
 """
 from __future__ import annotations
 
+import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,13 +43,28 @@ def _replace(path: Path, write: Any) -> None:
         write(temporary)
 
 
-def write_png_grey_alpha(path: Path, grey: np.ndarray, alpha: np.ndarray) -> None:
-    from PIL import Image
+def png_grey_alpha(grey: np.ndarray, alpha: np.ndarray) -> bytes:
+    """An 8-bit grey-plus-alpha PNG (colour type 4) of two (rows, columns) uint8 images: every row unfiltered,
+    zlib level 1. These maps are noise-like: filtering and harder compression save 10-20 % of the bytes
+    for twice the time (and PIL's import); any PNG reader reads it."""
+    if grey.shape != alpha.shape or grey.ndim != 2 or grey.size == 0:
+        raise ValueError(f"grey and alpha must be the same non-empty 2-D shape, got {grey.shape} and {alpha.shape}")
+    rows, cols = grey.shape
+    raw = np.zeros((rows, 1 + 2 * cols), np.uint8)   # each row: filter type 0, then grey, alpha, grey, alpha...
+    raw[:, 1::2] = grey
+    raw[:, 2::2] = alpha
 
-    stacked = np.dstack([grey, alpha]).astype(np.uint8)
-    # compress_level 1: a third of the time of the default for 10-20 % more bytes (these maps are noise-like)
-    _replace(path, lambda temporary: Image.fromarray(stacked, mode="LA").save(temporary, format="PNG",
-                                                                              compress_level=1))
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", cols, rows, 8, 4, 0, 0, 0)   # 8 bits, grey + alpha, deflate, no interlace
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw.tobytes(), 1))
+            + chunk(b"IEND", b""))
+
+
+def write_png_grey_alpha(path: Path, grey: np.ndarray, alpha: np.ndarray) -> None:
+    data = png_grey_alpha(np.asarray(grey, np.uint8), np.asarray(alpha, np.uint8))
+    _replace(path, lambda temporary: Path(temporary).write_bytes(data))
 
 
 def write_world_map(png: str | Path, image: WorldMapImage, frame_id: str) -> tuple[Path, Path]:

@@ -1,6 +1,9 @@
 """`touchroller map` on recordings with TF: the world map (map.png + map.yaml), offline, as the scan maps it."""
 from __future__ import annotations
 
+from pathlib import Path
+
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -109,14 +112,18 @@ def test_map_files_are_nav2_maps_written_whole(tmp_path, monkeypatch):
                     "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.25, "frame_id": "left/base"}
     back_grey, back_alpha, _ = read_world_map(yaml_path)
     assert np.array_equal(back_grey, grey) and np.array_equal(back_alpha, alpha)
+    import PIL.Image
+
+    with PIL.Image.open(png) as picture:
+        assert picture.mode == "LA" and picture.size == (10, 6)   # 8-bit grey plus alpha, as nav2 reads it
+    unchanged = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)   # another reader: OpenCV's (grey + alpha as BGRA)
+    assert np.array_equal(unchanged[..., 0], grey) and np.array_equal(unchanged[..., 3], alpha)
     before = png.read_bytes()
 
     def broken(*_args, **_kwargs):
         raise OSError(28, "No space left on device")
 
-    import PIL.Image
-
-    monkeypatch.setattr(PIL.Image.Image, "save", broken)
+    monkeypatch.setattr(Path, "write_bytes", broken)
     from touchroller_bringup.errors import UserError
 
     with pytest.raises(UserError, match="No space left"):
