@@ -20,7 +20,11 @@ mosaic in the world frame (`map` frame of nav2: x right, y up) at `config.resolu
   axis, and the map is sum(w * band) / sum(w * flat field): the static gel pattern divides out and
   overlaps average without seams (`finalise()` re-weights everything with the final flat field).
 
-Frames wait (a bounded queue) until their pose, the pressed height and the latency are known. Memory
+A frame is taken only once the poses reach its stamp (it waits, in arrival order, up to `wait_frames`
+of them): every pose the mapper looks up for it then lies at or before that stamp, so the map does
+not depend on whether a frame or its pose arrived first (a live graph where the image may come before
+its TF, or a recording read in the order it was written). Frames then wait (a bounded queue) until
+their pose, the pressed height and the latency are known. Memory
 is bounded by the map (a fixed rectangle given by `bounds`, else growing up to `max_pixels`; frames
 that would grow it further are left out and counted in `stats.beyond_max_pixels`), not by the
 number of frames. No rclpy here; the caller looks poses up (`touchroller_perception.transforms`).
@@ -83,6 +87,8 @@ class WorldMapConfig:
       frame by frame (they are what the latency and the pressed height are learnt from). 1: every frame.
     hold_frames: frames kept while their pose, the pressed height or the latency are not known yet (in
       16 bits: 90 KB each for 640-pixel-wide bands); the latency may need a whole pass's end to be found.
+    wait_frames: frames kept until the poses reach their stamp; beyond this many the oldest is taken
+      with what is known (poses that stopped coming).
     """
 
     resolution: float = 1e-4
@@ -96,6 +102,7 @@ class WorldMapConfig:
     edge_taper: float = 4e-3
     steady_stride: int = 3
     hold_frames: int = 600
+    wait_frames: int = 30
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.resolution) and 1e-6 <= self.resolution <= 0.01):
@@ -112,8 +119,10 @@ class WorldMapConfig:
             raise ValueError(f"latency must be in [0, 1] s or None (estimate it), got {self.latency}")
         if not (0 < self.max_latency <= 1.0):
             raise ValueError(f"max_latency must be in (0, 1] s, got {self.max_latency}")
-        if self.search_px < 1 or self.hold_frames < 1 or self.max_pixels < 10_000 or self.steady_stride < 1:
-            raise ValueError("search_px, hold_frames and steady_stride must be >= 1, max_pixels >= 10000")
+        if (self.search_px < 1 or self.hold_frames < 1 or self.max_pixels < 10_000 or self.steady_stride < 1
+                or self.wait_frames < 0):
+            raise ValueError("search_px, hold_frames and steady_stride must be >= 1, wait_frames >= 0, "
+                             "max_pixels >= 10000")
         if not (self.contact_tolerance > 0 and self.edge_taper >= 0):
             raise ValueError("contact_tolerance must be > 0 and edge_taper >= 0")
 
@@ -471,6 +480,7 @@ class WorldMapper:
         self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels)
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
+        self._inbox: deque[tuple[np.ndarray, int]] = deque()   # frames whose stamp the poses do not reach yet
         self._pending: deque[_Frame] = deque()
         self._pressed_height: float | None = None
         self._heights: list[float] = []
@@ -523,6 +533,16 @@ class WorldMapper:
         """`push` for a band cut with `band()`."""
         if self._weights is None:
             self._setup()
+        self._inbox.append((band, int(stamp_ns)))
+        while self._inbox:
+            band, stamp_ns = self._inbox[0]
+            if len(self._inbox) <= self.config.wait_frames and not np.isfinite(
+                    self.poses(np.array([stamp_ns], np.int64))).all():
+                return   # its pose has not arrived yet
+            self._inbox.popleft()
+            self._take_band(band, stamp_ns)
+
+    def _take_band(self, band: np.ndarray, stamp_ns: int) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
         self.stats.frames += 1
         self._latest_stamp = max(self._latest_stamp, int(stamp_ns))
@@ -608,6 +628,8 @@ class WorldMapper:
 
     def finalise(self) -> None:
         """Place what is still waiting, and re-weight the whole map with the final flat field."""
+        while self._inbox:
+            self._take_band(*self._inbox.popleft())
         self._drain(final=True)
         self._flush_pass_buffer()
         field = self.strip.flat_field_final()

@@ -161,3 +161,28 @@ def test_frames_past_max_pixels_are_left_out_and_counted(scans, sensor):
     assert mapper.stats.beyond_max_pixels > 0 and mapper.stats.mapped > 0
     assert mapper.canvas.shape[0] * mapper.canvas.shape[1] <= 200_000
     assert mapper.map_image().grey.size > 0
+
+
+def _reordered(events, tf_lead_ns: int):
+    """The same frames and transforms, each image delivered once TF reaches its stamp + `tf_lead_ns`
+    (negative: before its own pose has arrived, as a live graph may deliver it)."""
+    images = [e for e in events if e[0] != "tf"]
+    out, waiting = [], list(images)
+    for event in (e for e in events if e[0] == "tf"):
+        while waiting and waiting[0][1] + tf_lead_ns < event[1]:
+            out.append(waiting.pop(0))
+        out.append(event)
+    return out + waiting
+
+
+@pytest.mark.slow
+def test_the_map_does_not_depend_on_whether_a_frame_or_its_pose_arrives_first(scans, sensor):
+    """Live, perception may take an image before the TF of its time (both come through one executor);
+    read from a recording, the TF is usually ahead. The map must be the same either way."""
+    _, _, events = scans
+    ahead = run(_reordered(events[0.04], 100_000_000), sensor)      # TF 100 ms ahead of every frame
+    behind = run(_reordered(events[0.04], -20_000_000), sensor)     # every frame 20 ms ahead of its pose
+    assert behind.stats.mapped == ahead.stats.mapped and behind.stats.no_pose == 0
+    assert behind.stats.latency_s == ahead.stats.latency_s
+    np.testing.assert_array_equal(behind.map_image().grey, ahead.map_image().grey)
+    assert in_place_ssim(behind, sensor) >= 0.90
