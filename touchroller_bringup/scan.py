@@ -241,7 +241,7 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
 
 def _stop_arm(sweep: Any) -> None:
     """The sweep node's stop path (the arm halts) while the sweep is moving; waits for its answer."""
-    if sweep is not None and sweep.sequencer.active:
+    if sweep is not None and getattr(sweep, "active", sweep.sequencer.active):
         sweep.request_stop()
 
 
@@ -452,7 +452,7 @@ def _call_start(client: Any, sweep: Any, check: Callable[[], None] = lambda: Non
 
 def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
                   check: Callable[[], None] = lambda: None) -> tuple[str, str]:
-    plan = sweep.sequencer.plan
+    plan = getattr(sweep, "plan", sweep.sequencer.plan)   # also a simulated sweep waiting for its whole second
     durations = 0.0
     if plan is not None:
         from touchroller_driver.motion import TrapezoidProfile

@@ -29,6 +29,10 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   (dropped), a frame the map stage cannot take (skipped; the map goes on with the next) keep the status
   WARN for `BAD_INPUT_HOLD_S`; a frame that does not match the reference is ERROR until one matches
   again, and so is a map stage that fails on every frame.
+* publishes on `image_done` (std_msgs/Header) the stamp up to which it is done: the newest image it
+  has finished with (taken or refused), once its TF reaches that time too (the arm's poses of the frames
+  it maps); the simulated scan's clock follows it (`sweep` node, `sim.lockstep`), so a loaded machine
+  slows the simulation down instead of making perception miss frames or map them without their poses.
 
 Geometry parameters (docs/design.md names) are declared by `touchroller_bringup.ros_params` and can be
 set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`).
@@ -50,7 +54,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
-from std_msgs.msg import Float32
+from std_msgs.msg import Float32, Header
 
 from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
@@ -72,7 +76,7 @@ from touchroller_perception.contacts import METHODS, ContactDetector, DetectorCo
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
 from touchroller_perception.stitching import Stitcher, StitcherConfig
-from touchroller_perception.transforms import TransformBuffer
+from touchroller_perception.transforms import TransformBuffer, TransformError
 from touchroller_perception.world_map import WorldMapConfig, WorldMapImage, WorldMapper, buffer_lookup
 
 
@@ -173,7 +177,10 @@ class PerceptionNode(Node):
         self.stitcher: Any = None
         self.world: WorldMapper | None = None   # the world map, once TF links world_frame to the cylinder
         self.world_frame = names.frame(str(self.get_parameter("world_frame").value), self.frame_prefix)
-        self.tf_listener = TransformListener(self, TransformBuffer(cache_ns=20_000_000_000))
+        self.tf_listener = TransformListener(self, TransformBuffer(cache_ns=20_000_000_000),
+                                             on_update=self._on_transforms)
+        self._done_ns = 0             # the stamp last published on image_done
+        self._done_frame_id = ""
         self._map_dirty = False
         self._map_timer = None
         self._map_lock = threading.Lock()   # `touchroller scan` finishes the map from its own thread
@@ -203,6 +210,8 @@ class PerceptionNode(Node):
         self.contacts_pub = self.create_publisher(PointStamped, names.CONTACTS, 10)
         self.map_pub = self.create_publisher(Image, names.MAP, MAP_QOS)
         self.map_metadata_pub = self.create_publisher(MapMetaData, names.MAP_METADATA, MAP_QOS)
+        self.done_pub = self.create_publisher(Header, names.IMAGE_DONE, QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
         self.progress_sub = self.create_subscription(Float32, names.SWEEP_PROGRESS, self._on_progress, 10)
         # Humble has no MessageInfo, so no drop count there
         on_image = self._on_image_with_info if _has_message_info() else self._on_image
@@ -356,6 +365,41 @@ class PerceptionNode(Node):
         self._on_image(msg)
 
     def _on_image(self, msg: Image) -> None:
+        try:
+            self._take_image(msg)
+        finally:   # taken, refused or dropped: perception is done with it (the simulated clock may go on)
+            self._done_frame_id = msg.header.frame_id
+            self._report_done()
+
+    def _on_transforms(self, static: bool) -> None:
+        if not static and self.last_stamp_ns:
+            self._report_done()
+
+    def _report_done(self) -> None:
+        """Publish on image_done the newest image stamp this node is done with, held back to the newest
+        time its TF links world_frame to the cylinder (when it does): the poses of the frames it maps
+        must be here before the simulated clock moves on (TF and images share the executor)."""
+        done = self.last_stamp_ns
+        cylinder = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
+        with self.tf_listener.lock:
+            try:
+                linked = self.tf_listener.buffer.latest_common_stamp(self.world_frame, cylinder)
+            except TransformError:   # no such chain (no arm on TF): the images alone
+                linked = None
+        if linked is not None:
+            done = min(done, linked)
+        if done <= self._done_ns:
+            return
+        self._done_ns = done
+        header = Header(frame_id=self._done_frame_id)
+        header.stamp.sec, header.stamp.nanosec = divmod(int(done), 1_000_000_000)
+        try:
+            self.done_pub.publish(header)
+        except Exception:  # noqa: BLE001 - the context went down while the frame was processed
+            if self.context.ok():
+                raise
+
+    def _take_image(self, msg: Image) -> None:
         start = time.perf_counter()
         self.received += 1
         self.last_stamp_ns = stamp_to_ns(msg.header.stamp)

@@ -17,7 +17,12 @@ With `use_sim` the arm is simulated on a simulated clock (`touchroller_driver.si
 this node's arm loop advances one tick (1 / `sweep.publish_rate`) per pass, paced to `sim.rate` x real
 time, and publishes on /clock; the graph runs every node with use_sim_time, so the simulated camera
 renders on the same clock as the arm (exact poses), and a sweep starts on a whole second of it, so the
-same sweep gives the same images.
+same sweep gives the same images. With `sim.lockstep` the clock also waits for the frames: it moves on
+only while the camera's frames (`camera_info`) are no more than `sim.max_lead` s behind it and the
+perception node has finished them (`image_done`), so on a loaded machine simulated time runs slower
+and every frame is rendered, delivered and processed as on an idle one
+(`touchroller_driver.sim.clock.FrameGate`). `~/start` answers at once; the simulated sweep begins on the
+clock's next whole second.
 
 Services `~/start`, `~/stop` and `~/reset_fault` are std_srvs/Trigger (`ros2 service call
 /touchroller/sweep/start std_srvs/srv/Trigger`).
@@ -27,6 +32,7 @@ from __future__ import annotations
 import math
 import queue
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -34,10 +40,13 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import Float32, UInt32MultiArray
+from sensor_msgs.msg import CameraInfo
+from std_msgs.msg import Float32, Header, UInt32MultiArray
 from std_srvs.srv import Trigger
 
 from touchroller_bringup import names
@@ -64,10 +73,13 @@ from touchroller_driver.arm import (
     raster_coverage,
     simulated_arm_origin,
 )
-from touchroller_driver.sim.clock import SimClock
+from touchroller_driver.sim.clock import FrameGate, SimClock
 from touchroller_perception.transforms import Transform
 
 COMMAND_TIMEOUT_S = 5.0
+#: sim.lockstep: wall seconds without any frame published or finished before the clock goes on regardless
+#: (a camera or perception that stopped must not freeze the simulation; said on the log)
+LOCKSTEP_STALL_S = 10.0
 
 # Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
 SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
@@ -112,6 +124,10 @@ class SweepNode(Node):
                                     max_accel=min(self.limits.max_accel, arm.limits.max_accel))
         self.sim_clock: SimClock | None = None   # use_sim: the one clock of the simulated arm and camera
         self._clock_pub: Any = None
+        self.frame_gate: FrameGate | None = None   # use_sim and sim.lockstep: the clock waits for the frames
+        self._deferred: SweepPlan | None = None    # simulated: a started sweep waiting for the whole second
+        self._consumer_checked = -1.0
+        self._consumer = False
         self.arm: Arm = arm if arm is not None else self._make_arm()
         self.sequencer = SweepSequencer(self.arm)
         self.finished = threading.Event()  # set when a started sweep ends (done, stopped or fault)
@@ -176,6 +192,13 @@ class SweepNode(Node):
                 "from and lifts back to, m", min=0.0, max=0.05)
         declare(self, "sim.rate", 1.0, "use_sim: simulated seconds per wall-clock second of the simulated clock "
                 "(published on /clock; the simulated camera renders on it)", min=0.1, max=20.0, read_only=True)
+        declare(self, "sim.lockstep", True, "use_sim: the simulated clock waits for the frames: never more than "
+                "sim.max_lead s past a frame the camera has not published or the perception node has not finished "
+                "(camera_info, image_done), so a loaded machine makes the simulation slower, not different",
+                read_only=True)
+        declare(self, "sim.max_lead", 0.05, "use_sim and sim.lockstep: how far the simulated clock may run ahead of "
+                "the oldest frame perception has not finished (and of the camera's next frame), s; frames in "
+                "flight are about max_lead x fps", min=0.0, max=10.0, read_only=True)
         declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose, /tf and progress messages, "
                 "with use_sim the simulated clock's tick, "
                 "watchdog kicks (>= 10 Hz), Hz", min=10.0, max=500.0,
@@ -254,10 +277,50 @@ class SweepNode(Node):
             rate_hz = float(self.get_parameter("sweep.publish_rate").value)
             self.sim_clock = SimClock(rate_hz, rate=float(self.get_parameter("sim.rate").value))
             self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10)
+            if self.get_parameter("sim.lockstep").value:
+                # at least one tick: the tick after a frame's stamp must be allowed (its pose on TF)
+                self._follow_frames(max(float(self.get_parameter("sim.max_lead").value), 1.0 / rate_hz))
             return SimulatedArm(rest, limits=self.limits, clock=self.sim_clock.now)
         from touchroller_driver.ur5 import UR5Arm
 
         return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits)
+
+    def _follow_frames(self, lead_s: float) -> None:
+        """sim.lockstep: the camera's frames (camera_info, one per image, same stamp) and the ones the
+        perception node finished (image_done) feed the clock's FrameGate; in their own callback group, so
+        they arrive while a service callback waits for the arm thread."""
+        gate = self.frame_gate = FrameGate(round(lead_s * 1e9))
+        group = MutuallyExclusiveCallbackGroup()
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.create_subscription(CameraInfo, names.CAMERA_INFO, lambda msg: gate.published(_stamp_ns(msg.header)),
+                                 qos, callback_group=group)
+        self.create_subscription(Header, names.IMAGE_DONE, lambda msg: gate.finished(_stamp_ns(msg)), qos,
+                                 callback_group=group)
+
+    def _consumer_present(self) -> bool:
+        """A perception node publishes image_done (asked of the ROS graph at most twice a second)."""
+        now = time.monotonic()
+        if now - self._consumer_checked >= 0.5:
+            self._consumer_checked = now
+            self._consumer = self.count_publishers(names.IMAGE_DONE) > 0
+        return self._consumer
+
+    def _wait_for_frames(self) -> None:
+        """sim.lockstep: hold the clock's next tick until the frame gate allows it; a command (a stop) or
+        shutdown does not wait, and nothing moving for LOCKSTEP_STALL_S lets the clock go on (logged)."""
+        gate, clock = self.frame_gate, self.sim_clock
+        assert gate is not None and clock is not None
+        since, events = time.monotonic(), gate.events
+        while not gate.allows(clock.next_ns(), self._consumer_present()):
+            if not self._commands.empty() or self._shutdown.is_set() or not self.context.ok():
+                return
+            if gate.events != events:
+                since, events = time.monotonic(), gate.events
+            elif time.monotonic() - since > LOCKSTEP_STALL_S:
+                self.get_logger().warning(f"sim.lockstep: no frame published or finished for {LOCKSTEP_STALL_S:g} s; "
+                                          "the simulated clock goes on", throttle_duration_sec=30.0)
+                return
+            gate.wait(0.05)
 
     # -- services (executor thread): hand the request to the worker and wait for its answer ----
     def _on_start(self, request: Any, response: Any) -> Any:
@@ -321,16 +384,14 @@ class SweepNode(Node):
                 command = self._commands.get(timeout=period) if self.sim_clock is None else self._commands.get_nowait()
             except queue.Empty:
                 command = None
-            if command is not None and command.name == "start" and self.sim_clock is not None \
-                    and not self.sim_clock.on_whole_second():
-                # Simulated, a sweep starts on a whole second of the clock: the frame grid of any
-                # whole-number frame rate lines up with it, so the same sweep gives the same images.
-                self._commands.queue.appendleft(command)
-                command = None
             was_active = self.sequencer.active
             if command is not None:
                 self._execute(command)
+            if self._deferred is not None and self.sim_clock is not None and self.sim_clock.on_whole_second():
+                self._begin(self._deferred)
             if self.sim_clock is not None:
+                if self.frame_gate is not None:
+                    self._wait_for_frames()
                 self.sim_clock.advance(self._shutdown)
             self._step(was_active or self.sequencer.active)
             if self.sim_clock is not None:
@@ -351,18 +412,43 @@ class SweepNode(Node):
                     raise ArmError(f"arm faulted: {self._fault}; call ~/{names.RESET_FAULT} once the cause is "
                                    "cleared")
                 plan = self._plan_from(dict(self.settings))
-                self.sequencer.start(plan)
+                if self.sim_clock is not None and not self.sim_clock.on_whole_second():
+                    # Simulated, a sweep starts on a whole second of the clock: the frame grid of any
+                    # whole-number frame rate lines up with it, so the same sweep gives the same images.
+                    # Answered now (the service must not wait for the clock, which may wait for frames).
+                    if self.sequencer.active or self._deferred is not None:
+                        raise ArmError("a sweep is already running")
+                    fault = self.arm.fault()
+                    if fault is not None:
+                        raise ArmError(f"arm faulted: {fault}")
+                    self._deferred = plan
+                else:
+                    self.sequencer.start(plan)
                 self.finished.clear()
                 command.success = True
                 command.message = (f"sweep started: {plan.length:.4g} m at {self.settings['sweep.speed']:.4g} m/s, "
                                    f"depth {self.settings['sweep.depth']:.4g} m")
             else:
+                if self._deferred is not None:   # stopped before it began
+                    self._deferred = None
+                    self.finished.set()
                 self.sequencer.stop()
                 command.success, command.message = True, "arm stopped"
         except (ArmError, ValueError) as exc:
             command.success, command.message = False, str(exc)
         finally:
             command.done.set()
+
+    def _begin(self, plan: SweepPlan) -> None:
+        """Start a deferred sweep (simulated: on the clock's whole second)."""
+        self._deferred = None
+        try:
+            self.sequencer.start(plan)
+        except ArmError as exc:
+            self._fault = str(exc)
+            self._set_status(SweepStatus(SweepPhase.FAULT, None, 0.0, str(exc)))
+            self.get_logger().error(f"sweep fault: {exc}")
+            self.finished.set()
 
     def _reset_fault(self, command: _Command) -> None:
         """Clear a fault (the arm's own reset: unlock a protective stop, reconnect); the node's latched
@@ -480,6 +566,17 @@ class SweepNode(Node):
             return self._status
 
     @property
+    def plan(self) -> SweepPlan | None:
+        """The plan of the sweep started last (also while a simulated one waits for its whole second)."""
+        deferred = self._deferred
+        return deferred if deferred is not None else self.sequencer.plan
+
+    @property
+    def active(self) -> bool:
+        """A started sweep has not ended (moving, or simulated and waiting for its whole second)."""
+        return self._deferred is not None or self.sequencer.active
+
+    @property
     def last_pose(self) -> np.ndarray | None:
         """The TCP pose last read by the arm thread (other threads must not call the arm)."""
         with self._state_lock:
@@ -509,6 +606,10 @@ class SweepNode(Node):
         if worker is not None and worker.is_alive():
             worker.join(timeout=COMMAND_TIMEOUT_S)
         super().destroy_node()
+
+
+def _stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
 def main(args: list[str] | None = None) -> None:

@@ -7,12 +7,17 @@ move starts on the tick that notices the previous one ended; the camera renders 
 `frame_time_ns(k, fps)`, a grid fixed to whole seconds, which the ticks also hit when the tick rate is
 a multiple of the frame rate. Given the same commands the images are the same, whatever the load.
 In ROS the owner publishes it on /clock and the nodes run with use_sim_time.
+
+`FrameGate` says when the owner may move the clock on: not past the frames its consumers have not
+taken yet, so a slow or loaded machine makes simulated time run slower instead of making the camera
+fall behind the arm or a consumer miss frames.
 """
 from __future__ import annotations
 
 import math
 import threading
 import time
+from collections import deque
 from fractions import Fraction
 
 NS = 1_000_000_000
@@ -59,6 +64,11 @@ class SimClock:
         """Seconds (what `SimulatedArm` takes as its clock)."""
         return self._now_ns / NS
 
+    def next_ns(self) -> int:
+        """The time of the next tick (where `step` or `advance` will move to)."""
+        with self._lock:
+            return self._start_ns + frame_time_ns(self._ticks + 1, self.tick_hz)
+
     def on_whole_second(self) -> bool:
         return self._now_ns % NS == 0
 
@@ -86,3 +96,68 @@ class SimClock:
             self._ticks += 1
             self._now_ns = self._start_ns + frame_time_ns(self._ticks, self.tick_hz)
             return self._now_ns
+
+
+class FrameGate:
+    """When a simulated clock may move on, given the frames a camera published on it and the ones a
+    consumer (the perception node) has finished; thread-safe (events come from callbacks, the owner asks).
+
+    With a consumer: not more than `lead_ns` past the oldest published frame it has not finished (it
+    finishes frames without the clock, so this never deadlocks). Without one, or with nothing
+    unfinished: not more than `lead_ns` past the camera's next frame (newest + frame interval, the
+    smallest interval seen between published stamps), so the camera cannot fall behind the arm either.
+    Free until the camera has published twice. Stamps are the frames' (latency included); monotonic.
+    """
+
+    def __init__(self, lead_ns: int, memory: int = 1000) -> None:
+        if lead_ns < 0:
+            raise ValueError(f"lead must be >= 0 ns, got {lead_ns}")
+        self.lead_ns = int(lead_ns)
+        self._unfinished: deque[int] = deque(maxlen=memory)
+        self._newest: int | None = None
+        self._interval: int | None = None
+        self._finished: int | None = None
+        self._changed = threading.Condition()
+        self.events = 0   # published + finished reports so far (a waiting owner sees whether anything moved)
+
+    def published(self, stamp_ns: int) -> None:
+        with self._changed:
+            stamp_ns = int(stamp_ns)
+            if self._newest is not None:
+                if stamp_ns <= self._newest:
+                    return
+                step = stamp_ns - self._newest
+                self._interval = step if self._interval is None else min(self._interval, step)
+            self._newest = stamp_ns
+            if self._finished is None or stamp_ns > self._finished:
+                self._unfinished.append(stamp_ns)
+            self.events += 1
+            self._changed.notify_all()
+
+    def finished(self, stamp_ns: int) -> None:
+        with self._changed:
+            stamp_ns = int(stamp_ns)
+            if self._finished is None or stamp_ns > self._finished:
+                self._finished = stamp_ns
+            while self._unfinished and self._unfinished[0] <= self._finished:
+                self._unfinished.popleft()
+            self.events += 1
+            self._changed.notify_all()
+
+    def limit_ns(self, consumer: bool) -> int | None:
+        """The latest time the clock may move to now (None: no limit)."""
+        with self._changed:
+            if consumer and self._unfinished:
+                return self._unfinished[0] + self.lead_ns
+            if self._newest is None or self._interval is None:
+                return None
+            return self._newest + self._interval + self.lead_ns
+
+    def allows(self, t_ns: int, consumer: bool) -> bool:
+        limit = self.limit_ns(consumer)
+        return limit is None or t_ns <= limit
+
+    def wait(self, timeout: float) -> None:
+        """Until the next published or finished report, or `timeout` seconds."""
+        with self._changed:
+            self._changed.wait(timeout)
