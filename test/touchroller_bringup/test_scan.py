@@ -200,17 +200,18 @@ def test_a_recording_that_fails_mid_scan_stops_the_arm_and_still_writes_map_cont
 
 
 @pytest.mark.ros
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)
 @pytest.mark.slow
 def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_remaps(isolated_ros, tmp_path, capsys):
     """Two passes over a 3 x 9 cm rectangle of the large scene: one map.png + map.yaml in base covering the
-    rectangle; the recording (with /tf and /tf_static) re-maps offline to the same place."""
+    rectangle, where the true surface is; the recording (with /tf and /tf_static) re-maps offline to the
+    same map, pixel for pixel."""
     from touchroller_bringup.map_files import read_world_map
 
     out = tmp_path / "scan"
     area = (0.42, -0.045, 0.03, 0.09)
     assert main(["scan", "scene:=large_surface", f"area:={','.join(map(str, area))}", "sweep_speed:=0.02",
-                 "sim.rate:=0.5", "--record", "--quiet", "--out", str(out)]) == 0
+                 "--record", "--quiet", "--out", str(out)]) == 0
     report = (out / "report.md").read_text()
     assert "2 pass(es)" in report and "camera latency estimated from the data" in report
     grey, alpha, meta = read_world_map(out / "map.yaml")
@@ -228,8 +229,17 @@ def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_rem
     assert mapped_fraction(alpha, meta) >= 0.98
     assert main(["map", str(out / "recording"), "--out", str(tmp_path / "again.png")]) == 0
     again, again_alpha, again_meta = read_world_map(tmp_path / "again.yaml")
-    assert again_meta["origin"][:2] == pytest.approx(meta["origin"][:2], abs=3e-4)
-    assert mapped_fraction(again_alpha, again_meta) >= 0.98
+    # The same frames with the same poses through the same mapper: the same map. Measured: identical
+    # (max difference 0 grey levels, every mapped pixel in both) in 3 scans, unloaded and at load ~13 on
+    # 2 cores; before the live map kept the roll's approach it differed by up to 5 grey levels at the
+    # passes' ends (mean 0.38) and mapped 2 frames fewer.
+    assert again.shape == grey.shape and again_meta["origin"] == meta["origin"]
+    np.testing.assert_array_equal(again_alpha, alpha)
+    np.testing.assert_array_equal(again, grey)
+    # against the true surface in place (no alignment): SSIM 0.954 measured (0.15 when the live map
+    # placed its frames before their poses had arrived)
+    similarity, mapped = in_place_ssim(out / "map.yaml", "large_surface")
+    assert mapped > 0.98 and similarity >= 0.9, (similarity, mapped)
 
 
 def test_scan_in_its_own_namespace(isolated_ros, tmp_path, capsys):

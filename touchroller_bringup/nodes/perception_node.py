@@ -18,9 +18,10 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   origin on `map_metadata` (nav_msgs/MapMetaData, as nav2's map_server); else the strip map of
   `touchroller_perception.stitching` (frame touchroller_cylinder);
   follows the sweep on `sweep_progress` (std_msgs/Float32, 0..1 of the rolling, all passes): a new
-  map when the sweep starts, and when it ends the map is finalised (whole-map flat field), published,
-  and saved to `map.save_path` if that is set (a world map: the PNG, grey plus alpha, and a nav2
-  map.yaml beside it);
+  map when the roll starts (a world map that has mapped nothing yet keeps the approach, so that it is
+  the map `touchroller map` makes of a recording of the scan), and when it ends the map is finalised
+  (whole-map flat field), published, and saved to `map.save_path` if that is set (a world map: the PNG,
+  grey plus alpha, and a nav2 map.yaml beside it);
 * `~/recapture_reference` (std_srvs/Trigger) re-captures the no-contact reference from the next
   `reference.frames` frames (and starts a new map);
 * `/diagnostics`: frame rate, processing time, contacts/s, malformed frames, and frames missed: all
@@ -500,7 +501,10 @@ class PerceptionNode(Node):
             return
         if not self._rolling and 0.0 < progress < 1.0:
             self._rolling = True
-            self.reset_map()
+            # A new map per roll; a world map that has mapped nothing yet keeps what it has (the approach:
+            # it maps from where the arm first moved, as `touchroller map` does from a recording of the scan)
+            if self.world is None or self.world.stats.mapped > 0:
+                self.reset_map()
         elif self._rolling and progress >= 1.0:
             self._rolling = False
             if self.world is None:
