@@ -10,7 +10,8 @@ Two steps, as in the paper (section III-C):
    (`imprints` finds and measures them), with the frame's placement taken out by the row balance
    and an uncertainty that includes the intrinsics'.
 
-`outputs` writes the docs/design.md parameters file with the sigmas. Nothing here imports rclpy.
+`uncertainty` gives the sigmas their meaning (docs/calibration.md, "Uncertainty"). `outputs`
+writes the docs/design.md parameters file with the sigmas. Nothing here imports rclpy.
 Degenerate input raises `CalibrationError` with one line naming what is missing, never a silently
 wrong result. The names below are the package's interface.
 """
@@ -61,10 +62,11 @@ from touchroller_perception.calibration.outputs import (
                                                            read_calibration_extras,
                                                            write_calibration,
 )
+from touchroller_perception.calibration.uncertainty import INTRINSIC_NAMES, jackknife_std, view_clustered_covariance
 
 __all__ = [
-    "AUTO_CANDIDATES", "CENTRE_ESTIMATORS", "DISTORTION_MODELS", "DISTORTION_NAMES", "MAX_BOARD_SIDE",
-    "MAX_FRAME_SIDE", "STRENGTH_MEASURES",
+    "AUTO_CANDIDATES", "CENTRE_ESTIMATORS", "DISTORTION_MODELS", "DISTORTION_NAMES", "INTRINSIC_NAMES",
+    "MAX_BOARD_SIDE", "MAX_FRAME_SIDE", "STRENGTH_MEASURES",
     "BoardCoverage", "CalibrationError", "Chessboard", "ChessboardDetection", "CoverageBar", "ExtrinsicsConfig",
     "ExtrinsicsResult", "HemisphereFrame", "ImprintDetection", "ImprintDetectorConfig", "IntrinsicsConfig",
     "IntrinsicsResult", "ModelChoice", "ModelScore", "NeglectedTerms", "RowBalance", "ViewPose",
@@ -72,5 +74,5 @@ __all__ = [
     "camera_info_fields", "choose_distortion_model", "compare_cameras", "detect_chessboards", "find_chessboard",
     "find_imprints", "full_pose_rotation",
     "model_error_mm", "read_calibration_extras", "select_distortion_model", "solve_view",
-    "write_calibration",
+    "jackknife_std", "view_clustered_covariance", "write_calibration",
 ]

@@ -36,6 +36,7 @@ from touchroller_perception.calibration.common import (
     require_views,
 )
 from touchroller_perception.calibration.coverage import BoardCoverage, board_coverage
+from touchroller_perception.calibration.uncertainty import INTRINSIC_NAMES, view_clustered_covariance
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.images import to_grey
 
@@ -252,12 +253,14 @@ class IntrinsicsResult:
     rms: float                           # px, over the used views
     per_view_rms: dict[int, float]       # image index -> px, used views only
     rejected: dict[int, str]             # image index -> reason
-    sigma: dict[str, float]              # one-sigma of fx, fy, cx, cy (px) and the fitted k1..k3 (OpenCV)
+    sigma: dict[str, float]              # one-sigma of fx, fy, cx, cy (px) and k1..k3 (`intrinsics_uncertainty`)
     image_count: int
     distortion_model: str                # the model fitted (a DISTORTION_MODELS name)
     model_scores: tuple[ModelScore, ...]  # the held-out comparison ("auto"); empty when the model was given
     coverage: BoardCoverage              # what the used views cover
     tangential_chi2: float = math.nan    # "auto": evidence for p1, p2 (Wald statistic); NaN when the model was given
+    #: covariance of (fx, fy, cx, cy, k1, k2, p1, p2, k3), `intrinsics_uncertainty`
+    covariance: FloatArray = dataclasses.field(default_factory=lambda: np.full((9, 9), math.nan), compare=False)
 
     def summary(self) -> str:
         c, s = self.camera, self.sigma
@@ -340,10 +343,11 @@ def calibrate_intrinsics(images: Iterable[np.ndarray], config: IntrinsicsConfig 
         raise CalibrationError(f"the intrinsics found are not a valid camera model: {exc}") from None
     per_view = dict(zip(sorted(corners), (float(e) for e in fit.per_view), strict=True))
     board = config.board
-    return IntrinsicsResult(camera=camera, rms=fit.rms, per_view_rms=per_view, rejected=rejected, sigma=fit.sigma,
+    covariance, sigma = intrinsics_uncertainty(object_points, views, size, fit, model)
+    return IntrinsicsResult(camera=camera, rms=fit.rms, per_view_rms=per_view, rejected=rejected, sigma=sigma,
                             image_count=len(images), distortion_model=model, model_scores=choice.scores,
                             coverage=board_coverage(views, board.columns, board.rows, size),
-                            tangential_chi2=choice.tangential_chi2)
+                            tangential_chi2=choice.tangential_chi2, covariance=covariance)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -363,6 +367,56 @@ def choose_distortion_model(object_points: NDArray[np.float32], views: Sequence[
     candidates = AUTO_CANDIDATES if tangential >= config.tangential_chi2 else ("k1k2", "radial")
     scores = select_distortion_model(object_points, views, size, config.folds, candidates)
     return ModelChoice(next(score.model for score in scores if score.chosen), scores, tangential)
+
+
+def free_intrinsics(flags: int) -> tuple[bool, ...]:
+    """Which of `uncertainty.INTRINSIC_NAMES` a Zhang fit with these flags solves for."""
+    return (True, True, True, True, True, not flags & cv2.CALIB_FIX_K2, not flags & cv2.CALIB_ZERO_TANGENT_DIST,
+            not flags & cv2.CALIB_ZERO_TANGENT_DIST, not flags & cv2.CALIB_FIX_K3)
+
+
+#: the next larger distortion model: what a model may have left out (see `intrinsics_uncertainty`)
+LARGER_MODEL: dict[str, str | None] = {"k1": "k1k2", "k1k2": "k1k2p", "radial": "full", "k1k2p": "full", "full": None}
+
+
+def intrinsics_uncertainty(object_points: NDArray[np.float32], views: Sequence[FloatArray], size: tuple[int, int],
+                           fit: _ZhangFit, model: str) -> tuple[FloatArray, dict[str, float]]:
+    """The covariance of (fx, fy, cx, cy, k1, k2, p1, p2, k3) that `IntrinsicsResult` reports, and
+    the one-sigma it gives each term (OpenCV's where the covariance cannot be computed).
+
+    Two parts. The spread: the fit's covariance clustered by view (`uncertainty`), which holds
+    when corner errors are correlated within a view. The model: a distortion model that leaves out
+    a term the lens has is biased, most in the principal point (the tangential terms trade with
+    it), and no spread within the data shows that. The difference delta between the fit and the
+    next larger model's fit (`LARGER_MODEL`) measures it, and delta delta^T is added: when the
+    smaller model is right, delta is noise whose expected square is the larger model's extra
+    variance, so the sigma becomes about the larger model's; when it is wrong, delta carries the
+    bias. The largest model gets no such term."""
+    flags = DISTORTION_MODELS[model]
+    free = free_intrinsics(flags)
+    covariance = view_clustered_covariance(object_points, views, fit.rvecs, fit.tvecs, fit.k_matrix,
+                                           fit.distortion, free)
+    larger = LARGER_MODEL.get(model)
+    if larger is not None:
+        try:
+            other = _zhang(object_points, views, size, DISTORTION_MODELS[larger])
+        except CalibrationError:
+            other = None
+        if other is not None:
+            delta = _parameter_vector(other) - _parameter_vector(fit)
+            covariance = covariance + np.outer(delta, delta)
+    sigma = dict(fit.sigma)
+    for i, name in enumerate(INTRINSIC_NAMES):
+        variance = float(covariance[i, i])
+        if (free[i] or variance > 0) and math.isfinite(variance) and variance > 0:
+            sigma[name] = math.sqrt(variance)
+    return covariance, sigma
+
+
+def _parameter_vector(fit: _ZhangFit) -> FloatArray:
+    """(fx, fy, cx, cy, k1, k2, p1, p2, k3) of a fit."""
+    k = fit.k_matrix
+    return np.r_[k[0, 0], k[1, 1], k[0, 2], k[1, 2], fit.distortion[:5]]
 
 
 def _tangential_evidence(object_points: NDArray[np.float32], views: Sequence[FloatArray],
@@ -474,6 +528,7 @@ class _ZhangFit:
     per_view: FloatArray
     rvecs: tuple[FloatArray, ...]
     residuals: tuple[FloatArray, ...] = ()     # per view: each corner's reprojection error, px
+    tvecs: tuple[FloatArray, ...] = ()
 
 
 def _zhang(object_points: NDArray[np.float32], image_points: Sequence[FloatArray], size: tuple[int, int],
@@ -499,7 +554,8 @@ def _zhang(object_points: NDArray[np.float32], image_points: Sequence[FloatArray
     return _ZhangFit(rms=float(rms), k_matrix=np.asarray(k_matrix, dtype=np.float64),
                      distortion=np.asarray(dist, dtype=np.float64).ravel()[:5], sigma=sigma,
                      per_view=np.asarray(per_view, dtype=np.float64).ravel(),
-                     rvecs=tuple(np.asarray(r, dtype=np.float64) for r in rvecs), residuals=tuple(residuals))
+                     rvecs=tuple(np.asarray(r, dtype=np.float64) for r in rvecs), residuals=tuple(residuals),
+                     tvecs=tuple(np.asarray(t, dtype=np.float64) for t in tvecs))
 
 
 def _view_rms(object_points: np.ndarray, corners: FloatArray, k_matrix: FloatArray, dist: FloatArray) -> float:
