@@ -226,7 +226,7 @@ def full_calibration(seed: int, views: int, presses: int, sensor_overrides: dict
     start = time.perf_counter()
     intrinsics = cal.calibrate_intrinsics(images)
     extrinsics = cal.calibrate_extrinsics(pressed, intrinsics.camera.replace(theta=0.0, d=0.0), reference=reference,
-                                          intrinsics_sigma=intrinsics.sigma)
+                                          intrinsics_covariance=intrinsics.covariance)
     seconds = time.perf_counter() - start
     run = SeedRun(seed=seed, theta_err_deg=math.degrees(extrinsics.theta - truth.theta),
                   paper_plain_mean_theta_err_deg=math.degrees(extrinsics.theta_plain_mean - truth.theta),

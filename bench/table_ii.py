@@ -343,7 +343,7 @@ def calibrate_with_ours(chessboard: list[np.ndarray], reference: np.ndarray, pre
     start = intrinsics.camera.replace(theta=0.0, d=0.0)
     config = cal.ExtrinsicsConfig(balance_rows=balance_rows)
     return cal.calibrate_extrinsics(presses, start, config, reference=reference,
-                                    intrinsics_sigma=intrinsics.sigma).camera
+                                    intrinsics_covariance=intrinsics.covariance).camera
 
 
 def _without_row_balance(chessboard: list[np.ndarray], reference: np.ndarray, presses: list[np.ndarray]) -> CameraModel:

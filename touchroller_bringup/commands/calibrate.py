@@ -232,7 +232,7 @@ def _intrinsics_sigma(params: Path) -> dict[str, float]:
     extras = cal.read_calibration_extras(str(params))
     prefix = "calibration.sigma."
     return {key[len(prefix):]: float(value) for key, value in extras.items()
-            if key.startswith(prefix) and key[len(prefix):] in ("fx", "fy", "cx", "cy")}
+            if key.startswith(prefix) and key[len(prefix):] in cal.INTRINSIC_NAMES}
 
 
 def run_compare(args: argparse.Namespace) -> int:

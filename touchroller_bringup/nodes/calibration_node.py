@@ -253,9 +253,10 @@ class CalibrationNode(Node):
                 intrinsics = cal.calibrate_intrinsics(chessboards, self._intrinsics_config(), prior=camera)
                 camera = intrinsics.camera
             if presses:
-                extrinsics = cal.calibrate_extrinsics(presses, camera, self._extrinsics_config(),
-                                                      reference=self._reference(),
-                                                      intrinsics_sigma=self._intrinsics_sigma(intrinsics))
+                extrinsics = cal.calibrate_extrinsics(
+                    presses, camera, self._extrinsics_config(), reference=self._reference(),
+                    intrinsics_sigma=self._intrinsics_sigma(intrinsics),
+                    intrinsics_covariance=intrinsics.covariance if intrinsics is not None else None)
                 camera = extrinsics.camera
         except cal.CalibrationError as exc:
             return False, f"calibration failed: {exc}"

@@ -42,6 +42,7 @@ from touchroller_perception.calibration.common import (
     require_views,
 )
 from touchroller_perception.calibration.imprints import HemisphereFrame, ImprintDetectorConfig, find_imprints
+from touchroller_perception.calibration.uncertainty import INTRINSIC_NAMES, jackknife_std
 from touchroller_perception.geometry import PARAMETER_RANGES, CameraModel
 
 _THETA_LIMIT = PARAMETER_RANGES["extrinsics.theta"][1]
@@ -221,6 +222,10 @@ class ExtrinsicsResult:
     rejected: dict[int, str]          # image index -> reason
     image_count: int
     neglected: NeglectedTerms
+    theta_press_sigma: float = math.nan   # rad, the presses' share of theta_sigma (jackknife over presses)
+    d_press_sigma: float = math.nan       # m
+    #: d(theta, d) / d(intrinsic) over `uncertainty.INTRINSIC_NAMES`, (9, 2): propagates an intrinsics covariance
+    intrinsics_gradient: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((9, 2)), compare=False)
 
     @property
     def rms(self) -> float:
@@ -255,14 +260,17 @@ class ExtrinsicsResult:
 
 def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
                          config: ExtrinsicsConfig = ExtrinsicsConfig(), reference: np.ndarray | None = None,
-                         intrinsics_sigma: Mapping[str, float] | None = None) -> ExtrinsicsResult:
+                         intrinsics_sigma: Mapping[str, float] | None = None,
+                         intrinsics_covariance: FloatArray | None = None) -> ExtrinsicsResult:
     """theta and d from hemisphere-frame images (the paper's averaging, with outlier rejection and
     the row balance; see `ExtrinsicsConfig`).
 
     `camera` carries the intrinsics and the prior theta, d that start the solves; `reference` is a
-    no-contact frame. `intrinsics_sigma` (one-sigma fx, fy, cx, cy in px, as `IntrinsicsResult.sigma`)
-    is propagated into theta_sigma and d_sigma: d scales with the focal length and theta moves with
-    cy, so the intrinsics often dominate the uncertainty.
+    no-contact frame. The intrinsics' uncertainty is propagated into theta_sigma and d_sigma (d
+    scales with the focal length and theta moves with cy, so the intrinsics often dominate it):
+    `intrinsics_covariance` (as `IntrinsicsResult.covariance`, with its correlations), else
+    `intrinsics_sigma` (one-sigma values by name, as a parameters file keeps them); neither: the
+    presses' share alone.
     """
     frame = config.frame
     images = list(images)
@@ -286,7 +294,10 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
     ds = np.array([v.d for v in views])
     theta, d = float(thetas.mean()), float(ds.mean())
     theta_se, d_se = _standard_errors(views, thetas, ds, fit if balance.applied else None)
-    theta_intr, d_intr = _intrinsics_effect(camera, frame, views, points, intrinsics_sigma, config.solve_placement)
+    gradient = _intrinsics_gradient(camera, frame, views, points, config.solve_placement)
+    covariance = intrinsics_covariance if intrinsics_covariance is not None else \
+        intrinsics_covariance_from_sigma(intrinsics_sigma)
+    theta_intr, d_intr = _intrinsics_effect(gradient, covariance)
     result_camera = camera.replace(theta=theta, d=d)
     ddof = 1 if len(views) > 1 else 0
     return ExtrinsicsResult(
@@ -295,7 +306,8 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
         theta_sigma=math.hypot(theta_se, theta_intr), d_sigma=math.hypot(d_se, d_intr),
         theta_plain_mean=float(np.mean([v.theta for v in views])), row_balance=balance,
         views=views, rejected=rejected, image_count=total,
-        neglected=_neglected_terms(result_camera, views, shifts))
+        neglected=_neglected_terms(result_camera, views, shifts),
+        theta_press_sigma=theta_se, d_press_sigma=d_se, intrinsics_gradient=gradient)
 
 
 def _solve_views(images: Sequence[np.ndarray], camera: CameraModel, config: ExtrinsicsConfig,
@@ -353,44 +365,78 @@ def _drop_outliers(views: list[ViewPose], fit: _BalanceFit | None, config: Extri
 
 def _standard_errors(views: Sequence[ViewPose], thetas: FloatArray, ds: FloatArray,
                      fit: _BalanceFit | None) -> tuple[float, float]:
-    """Standard errors of the mean theta and d from the views' scatter; with the row balance, the
-    slope's own uncertainty times the mean asymmetry is added to theta's."""
+    """Standard errors of theta and d from the presses, by the jackknife over presses: the
+    estimate redone with each press left out (with the row balance, its slope refitted too, so a
+    press that leans on the slope counts as much as it moves the result; the analytic standard
+    error of an intercept assumes every press scatters alike). For d, and for theta's plain mean,
+    this is the usual standard error of a mean."""
     n = len(views)
     if n < 2:
         return math.nan, math.nan
-    theta_se = float(thetas.std(ddof=1)) / math.sqrt(n)
-    if fit is not None:
-        mean_asymmetry = float(np.mean([v.row_asymmetry for v in views]))
-        theta_se = math.hypot(fit.residual_std / math.sqrt(n), mean_asymmetry * fit.slope_se)
-    return theta_se, float(ds.std(ddof=1)) / math.sqrt(n)
+    keep = np.ones(n, dtype=bool)
+    theta_out, d_out = [], []
+    raw = np.array([v.theta for v in views])
+    a = np.array([v.row_asymmetry for v in views])
+    for i in range(n):
+        keep[:] = True
+        keep[i] = False
+        d_out.append(float(ds[keep].mean()))
+        if fit is None:
+            theta_out.append(float(thetas[keep].mean()))
+        elif np.ptp(a[keep]) > 0 and keep.sum() >= 2:
+            slope, intercept = np.polyfit(a[keep], raw[keep], 1)
+            theta_out.append(float(intercept))
+    theta_se = jackknife_std(np.array(theta_out)) if len(theta_out) == n else math.nan
+    return theta_se, jackknife_std(np.array(d_out))
 
 
-def _intrinsics_effect(camera: CameraModel, frame: HemisphereFrame, views: Sequence[ViewPose],
-                       points: Mapping[int, FloatArray], sigma: Mapping[str, float] | None,
-                       solve_placement: bool) -> tuple[float, float]:
-    """How far one sigma of the intrinsics moves the mean theta and d (rad, m). Each view's pose
-    sensitivity comes from its least-squares solve linearised at the solution (Gauss-Newton:
-    d(pose) = -(J^T J)^-1 J^T d(residual)), with each of fx, fy, cx, cy moved by its sigma. fx and fy
-    come from the same views and move together, so their effects add; cx and cy add in quadrature.
-    Distortion is left out."""
-    steps = {name: float((sigma or {}).get(name, 0.0)) for name in ("fx", "fy", "cx", "cy")}
-    steps = {name: step for name, step in steps.items() if math.isfinite(step) and step > 0}
-    if not steps or not views:
-        return 0.0, 0.0
-    effect = {name: np.zeros(2) for name in ("fx", "fy", "cx", "cy")}
+#: finite-difference steps of the intrinsics (`uncertainty.INTRINSIC_NAMES`) for the pose sensitivities
+_INTRINSIC_STEPS = (0.1, 0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-4, 1e-4, 1e-3)
+
+
+def _intrinsics_gradient(camera: CameraModel, frame: HemisphereFrame, views: Sequence[ViewPose],
+                         points: Mapping[int, FloatArray], solve_placement: bool) -> FloatArray:
+    """d(mean theta, mean d) / d(intrinsic), (9, 2) over `uncertainty.INTRINSIC_NAMES`. Each view's
+    pose sensitivity comes from its least-squares solve linearised at the solution (Gauss-Newton:
+    d(pose) = -(J^T J)^-1 J^T d(residual)), with each intrinsic parameter moved in turn."""
+    gradient = np.zeros((len(INTRINSIC_NAMES), 2))
     for view in views:
         pose = np.array([view.theta, view.d, view.shift_x, view.yaw][:4 if solve_placement else 2])
         residual = _pose_residual(camera, frame, points[view.index], solve_placement)
         jacobian = _numeric_jacobian(residual, pose, np.array([1e-5, 1e-6, 1e-6, 1e-5])[:pose.size])
         normal = np.linalg.pinv(jacobian.T @ jacobian) @ jacobian.T
         base = residual(pose)
-        for name, step in steps.items():
-            moved = _pose_residual(camera.replace(**{name: getattr(camera, name) + step}), frame,
-                                   points[view.index], solve_placement)(pose)
-            effect[name] += -(normal @ (moved - base))[:2] / len(views)
-    theta = math.sqrt((effect["fx"][0] + effect["fy"][0]) ** 2 + effect["cx"][0] ** 2 + effect["cy"][0] ** 2)
-    d = math.sqrt((effect["fx"][1] + effect["fy"][1]) ** 2 + effect["cx"][1] ** 2 + effect["cy"][1] ** 2)
-    return theta, d
+        for k, (name, step) in enumerate(zip(INTRINSIC_NAMES, _INTRINSIC_STEPS, strict=True)):
+            moved = _pose_residual(_moved_intrinsic(camera, name, step), frame, points[view.index],
+                                   solve_placement)(pose)
+            gradient[k] += -(normal @ (moved - base))[:2] / len(views) / step
+    return gradient
+
+
+def intrinsics_covariance_from_sigma(sigma: Mapping[str, float] | None) -> FloatArray:
+    """A covariance over `uncertainty.INTRINSIC_NAMES` from one-sigma values alone (what a
+    parameters file keeps): fx and fy come from the same views and move together (correlation 1),
+    the other terms independent; missing or non-finite sigmas count as 0."""
+    values = np.array([float((sigma or {}).get(name, 0.0)) for name in INTRINSIC_NAMES])
+    values = np.where(np.isfinite(values) & (values > 0), values, 0.0)
+    covariance = np.diag(values**2)
+    covariance[0, 1] = covariance[1, 0] = values[0] * values[1]
+    return covariance
+
+
+def _intrinsics_effect(gradient: FloatArray, covariance: FloatArray) -> tuple[float, float]:
+    """One sigma of (theta, d) from the intrinsics: sqrt of the diagonal of g^T C g."""
+    variance = np.diag(gradient.T @ np.nan_to_num(np.asarray(covariance, dtype=np.float64)) @ gradient)
+    return math.sqrt(max(float(variance[0]), 0.0)), math.sqrt(max(float(variance[1]), 0.0))
+
+
+def _moved_intrinsic(camera: CameraModel, name: str, step: float) -> CameraModel:
+    """`camera` with one of `uncertainty.INTRINSIC_NAMES` moved by `step`."""
+    if name in ("fx", "fy", "cx", "cy"):
+        return camera.replace(**{name: getattr(camera, name) + step})
+    distortion = list(camera.distortion) + [0.0] * (5 - len(camera.distortion))
+    distortion[INTRINSIC_NAMES.index(name) - 4] += step
+    return camera.replace(distortion=tuple(distortion))
 
 
 def _numeric_jacobian(function: Callable[[FloatArray], FloatArray], x: FloatArray, steps: FloatArray) -> FloatArray:

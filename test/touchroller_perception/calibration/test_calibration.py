@@ -386,3 +386,41 @@ def test_intrinsics_result_says_what_the_views_cover(chessboards):
     assert sum(score.chosen for score in result.model_scores) == 1
     assert result.coverage.views == len(result.per_view_rms)
     assert "coverage:" in result.summary() and result.warnings() == result.coverage.warnings()
+
+
+def test_sigma_propagates_the_intrinsics_covariance_including_distortion():
+    """The intrinsics' covariance reaches theta and d through the pose solves' gradient: the same as
+    the sigmas alone for a covariance built from them, and a distortion term (which the sigmas of a
+    parameters file before did not carry) moves d as far as re-solving with it moved does."""
+    from touchroller_perception.calibration.extrinsics import intrinsics_covariance_from_sigma
+
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(4)]
+    prior = TRUE_CAMERA.replace(theta=0.0, d=0.0)
+    sigma = {"fx": 1.0, "fy": 1.0, "cx": 0.5, "cy": 0.5}
+    by_sigma = cal.calibrate_extrinsics(images, prior, intrinsics_sigma=sigma)
+    by_covariance = cal.calibrate_extrinsics(images, prior,
+                                             intrinsics_covariance=intrinsics_covariance_from_sigma(sigma))
+    assert by_covariance.theta_sigma == pytest.approx(by_sigma.theta_sigma, rel=1e-6)
+    assert by_covariance.d_sigma == pytest.approx(by_sigma.d_sigma, rel=1e-6)
+    step = 0.02
+    k1_only = np.zeros((9, 9))
+    k1_only[4, 4] = step**2
+    with_k1 = cal.calibrate_extrinsics(images, prior, intrinsics_covariance=k1_only)
+    k1, *rest = prior.distortion
+    moved = cal.calibrate_extrinsics(images, prior.replace(distortion=(k1 + step, *rest)))
+    intrinsic_part = math.sqrt(with_k1.d_sigma**2 - with_k1.d_press_sigma**2)
+    assert abs(moved.d - with_k1.d) > 3 * with_k1.d_press_sigma
+    assert intrinsic_part == pytest.approx(abs(moved.d - with_k1.d), rel=0.2)
+
+
+def test_press_sigma_is_the_jackknife_over_presses():
+    """Without the row balance the jackknife of the mean is the standard error of the mean; with it,
+    the intercept redone with each press left out."""
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(5)]
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0))
+    assert not result.row_balance.applied
+    thetas = np.array([v.theta for v in result.views])
+    ds = np.array([v.d for v in result.views])
+    assert result.theta_press_sigma == pytest.approx(thetas.std(ddof=1) / math.sqrt(thetas.size), rel=1e-9)
+    assert result.d_press_sigma == pytest.approx(ds.std(ddof=1) / math.sqrt(ds.size), rel=1e-9)
+    assert result.theta_sigma == pytest.approx(result.theta_press_sigma)
