@@ -375,8 +375,10 @@ def free_intrinsics(flags: int) -> tuple[bool, ...]:
             not flags & cv2.CALIB_ZERO_TANGENT_DIST, not flags & cv2.CALIB_FIX_K3)
 
 
-#: the next larger distortion model: what a model may have left out (see `intrinsics_uncertainty`)
-LARGER_MODEL: dict[str, str | None] = {"k1": "k1k2", "k1k2": "k1k2p", "radial": "full", "k1k2p": "full", "full": None}
+#: the next larger distortion models, one term group more each: what a model may have left out
+#: (see `intrinsics_uncertainty`)
+LARGER_MODELS: dict[str, tuple[str, ...]] = {"k1": ("k1k2",), "k1k2": ("k1k2p", "radial"), "radial": ("full",),
+                                             "k1k2p": ("full",), "full": ()}
 
 
 def intrinsics_uncertainty(object_points: NDArray[np.float32], views: Sequence[FloatArray], size: tuple[int, int],
@@ -387,8 +389,9 @@ def intrinsics_uncertainty(object_points: NDArray[np.float32], views: Sequence[F
     Two parts. The spread: the fit's covariance clustered by view (`uncertainty`), which holds
     when corner errors are correlated within a view. The model: a distortion model that leaves out
     a term the lens has is biased, most in the principal point (the tangential terms trade with
-    it), and no spread within the data shows that. The difference delta between the fit and the
-    next larger model's fit (`LARGER_MODEL`) measures it, and delta delta^T is added: when the
+    it, the radial terms with the focal length), and no spread within the data shows that. The
+    difference delta between the fit and each next larger model's fit (`LARGER_MODELS`: the tangential
+    terms or k3 added) measures it, and delta delta^T is added: when the
     smaller model is right, delta is noise whose expected square is the larger model's extra
     variance, so the sigma becomes about the larger model's; when it is wrong, delta carries the
     bias. The largest model gets no such term."""
@@ -396,15 +399,13 @@ def intrinsics_uncertainty(object_points: NDArray[np.float32], views: Sequence[F
     free = free_intrinsics(flags)
     covariance = view_clustered_covariance(object_points, views, fit.rvecs, fit.tvecs, fit.k_matrix,
                                            fit.distortion, free)
-    larger = LARGER_MODEL.get(model)
-    if larger is not None:
+    for larger in LARGER_MODELS.get(model, ()):
         try:
             other = _zhang(object_points, views, size, DISTORTION_MODELS[larger])
         except CalibrationError:
-            other = None
-        if other is not None:
-            delta = _parameter_vector(other) - _parameter_vector(fit)
-            covariance = covariance + np.outer(delta, delta)
+            continue
+        delta = _parameter_vector(other) - _parameter_vector(fit)
+        covariance = covariance + np.outer(delta, delta)
     sigma = dict(fit.sigma)
     for i, name in enumerate(INTRINSIC_NAMES):
         variance = float(covariance[i, i])

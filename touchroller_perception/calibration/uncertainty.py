@@ -10,11 +10,12 @@ averaging out, and OpenCV's sigmas come out too small (the true principal point 
 in half of the trials on data rendered with a lens the model does not match).
 
 `view_clustered_covariance` treats each view as one independent sample instead of each corner:
-the sandwich (cluster-robust) covariance A^-1 B A^-1 with A = J^T J and B the sum over views of
-(J_v^T r_v)(J_v^T r_v)^T (the views' score vectors). Correlations inside a view, of any form, are
-carried by the score; only independence between views is assumed. With independent corner noise
-and a right model it agrees with OpenCV's on average. It is the linearised form of the jackknife
-over views, at the cost of one Jacobian rather than one refit per view.
+the jackknife over views (how far the intrinsics move when each view is left out, with its pose),
+computed from the fit's Jacobian and residuals by the Sherman-Morrison-Woodbury identity instead of
+one refit per view (exact for a linear model: the cluster-robust covariance with the leverage
+correction, CR3). Correlations inside a view, of any form, are carried by that view's residuals;
+only independence between views is assumed. With independent corner noise and a right model it
+agrees with OpenCV's on average.
 """
 from __future__ import annotations
 
@@ -33,12 +34,13 @@ INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 def view_clustered_covariance(object_points: np.ndarray, image_points: Sequence[np.ndarray],
                               rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray], k_matrix: FloatArray,
                               distortion: FloatArray, free: Sequence[bool]) -> FloatArray:
-    """Covariance (9 x 9, `INTRINSIC_NAMES` order) of the intrinsics of a Zhang fit, clustered by view.
+    """Covariance (9 x 9, `INTRINSIC_NAMES` order) of the intrinsics of a Zhang fit, clustered by
+    view: the jackknife over views, each view left out with its pose, linearised at the fit (exact
+    for a linear model; no refits).
 
     `free` (9 flags) marks the parameters the fit solved for; the others were held and get zero
-    rows and columns. Every view's pose (6 parameters) is solved jointly and profiled out. Small
-    samples: the cluster count G and the parameter count p scale B by G / (G - 1) * (n - 1) / (n - p)
-    (CR1, the usual correction). Returns NaN when the views do not determine the parameters.
+    rows and columns. Every view's pose (6 parameters) is profiled out. Returns NaN when the views
+    do not determine the parameters.
     """
     free_mask = np.asarray(free, dtype=bool)
     if free_mask.size != len(INTRINSIC_NAMES):
@@ -62,21 +64,30 @@ def view_clustered_covariance(object_points: np.ndarray, image_points: Sequence[
     # A is block-arrow shaped (intrinsics x everything, one 6 x 6 block per view's pose): profile
     # the poses out view by view (Schur complement) instead of inverting A whole
     schur = np.zeros((n_intrinsic, n_intrinsic))
-    projected_scores = np.zeros((views, n_intrinsic))
-    for v, ((intrinsic, pose), residual) in enumerate(zip(blocks, residuals, strict=True)):
-        pose_normal = pose.T @ pose
+    profiled = []
+    for intrinsic, pose in blocks:
         try:
-            cross = np.linalg.solve(pose_normal, pose.T @ intrinsic).T       # A_Iv A_vv^-1
+            within = intrinsic - pose @ np.linalg.solve(pose.T @ pose, pose.T @ intrinsic)
         except np.linalg.LinAlgError:
             return np.full((len(INTRINSIC_NAMES), len(INTRINSIC_NAMES)), math.nan)
-        schur += intrinsic.T @ intrinsic - cross @ (pose.T @ intrinsic)
-        projected_scores[v] = intrinsic.T @ residual - cross @ (pose.T @ residual)
+        schur += within.T @ within
+        profiled.append(within)
     try:
         inverse = np.linalg.inv(schur)
     except np.linalg.LinAlgError:
         return np.full((len(INTRINSIC_NAMES), len(INTRINSIC_NAMES)), math.nan)
-    scatter = projected_scores.T @ projected_scores * views / (views - 1) * (rows - 1) / (rows - n_params)
-    clustered = inverse @ scatter @ inverse
+    # each view left out in turn (with its pose): the intrinsics move by
+    # -S^-1 J_v^T (I - H_v)^-1 r_v, H_v = J_v S^-1 J_v^T its leverage (Sherman-Morrison-Woodbury)
+    moves = np.zeros((views, n_intrinsic))
+    for v, (within, residual) in enumerate(zip(profiled, residuals, strict=True)):
+        leverage = within @ inverse @ within.T
+        try:
+            weighted = np.linalg.solve(np.eye(leverage.shape[0]) - leverage, residual)
+        except np.linalg.LinAlgError:
+            return np.full((len(INTRINSIC_NAMES), len(INTRINSIC_NAMES)), math.nan)
+        moves[v] = inverse @ (within.T @ weighted)
+    centred = moves - moves.mean(axis=0)
+    clustered = centred.T @ centred * (views - 1) / views
     out = np.zeros((len(INTRINSIC_NAMES), len(INTRINSIC_NAMES)))
     out[np.ix_(free_mask, free_mask)] = clustered
     return out
