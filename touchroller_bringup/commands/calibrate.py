@@ -65,6 +65,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="no-contact frames at the start of the input used as reference "
                            "(default 5 for a bag, 0 for images)")
     extr.add_argument("--reference", type=Path, help="a no-contact reference image instead")
+    extr.add_argument("--dark", type=Path,
+                      help="a no-contact image with the sensor's lights off: imprint strengths are then measured "
+                           "against the light alone (an uneven gel or ambient light no longer biases theta)")
     extr.add_argument("--no-row-balance", action="store_true",
                       help="plain mean of theta (the paper) without the frame-shift correction")
     extr.add_argument("--max-view-rms", type=float, default=1.0, help="reject views above this RMS (px)")
@@ -201,6 +204,11 @@ def run_extrinsics(args: argparse.Namespace) -> int:
         if count:
             reference = np.median(np.stack(images[:count]), axis=0).astype(np.uint8)
             images = images[count:]
+    dark = None
+    if args.dark is not None:
+        import cv2
+
+        dark = _read_image(args.dark, cv2)
     if reference is None:
         print("note: no no-contact reference (--reference or --reference-frames): the imprint background is "
               "estimated per image, which is less precise and can mistake specks for imprints")
@@ -210,7 +218,7 @@ def run_extrinsics(args: argparse.Namespace) -> int:
         config = cal.ExtrinsicsConfig(frame=frame, balance_rows=not args.no_row_balance,
                                       max_view_rms=args.max_view_rms,
                                       detector=cal.ImprintDetectorConfig(centre=args.imprint_centre))
-        result = cal.calibrate_extrinsics(images, camera, config, reference=reference,
+        result = cal.calibrate_extrinsics(images, camera, config, reference=reference, dark=dark,
                                           intrinsics_sigma=_intrinsics_sigma(args.params))
     except cal.CalibrationError as exc:
         raise UserError(f"calibrate extrinsics: {exc}") from None

@@ -5,8 +5,9 @@ Thin ROS shell around `touchroller_perception.calibration`:
 * subscribes `image_topic` (default `image_raw`, relative to the node's namespace, `touchroller` by
   default) and keeps the latest frame;
 * `~/capture` stores the latest frame (a new one each time) as a view of the current `target`:
-  `chessboard` (intrinsics), `hemispheres` (theta and d) or `reference` (a no-contact frame,
-  subtracted from the hemisphere images);
+  `chessboard` (intrinsics), `hemispheres` (theta and d), `reference` (a no-contact frame,
+  subtracted from the hemisphere images) or `dark` (a no-contact frame with the sensor's lights
+  off: the row balance then measures imprints against the light alone);
 * `~/solve` calibrates from what was captured (intrinsics first if there are chessboard views, then
   theta and d), sets the result on the running perception node through
   `<perception_node>/set_parameters_atomically` (a relative name: the perception node in the same
@@ -46,7 +47,7 @@ from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_perception import calibration as cal
 from touchroller_perception.geometry import CameraModel
 
-TARGETS = ("chessboard", "hemispheres", "reference")
+TARGETS = ("chessboard", "hemispheres", "reference", "dark")
 CAMERA_INFO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -229,8 +230,8 @@ class CalibrationNode(Node):
             return str(exc)
         return None
 
-    def _reference(self) -> np.ndarray | None:
-        references = self.captures["reference"]
+    def _reference(self, target: str = "reference") -> np.ndarray | None:
+        references = self.captures[target]
         return np.median(np.stack(references), axis=0).astype(np.uint8) if references else None
 
     def reset(self) -> tuple[bool, str]:
@@ -255,6 +256,7 @@ class CalibrationNode(Node):
             if presses:
                 extrinsics = cal.calibrate_extrinsics(
                     presses, camera, self._extrinsics_config(), reference=self._reference(),
+                    dark=self._reference("dark"),
                     intrinsics_sigma=self._intrinsics_sigma(intrinsics),
                     intrinsics_covariance=intrinsics.covariance if intrinsics is not None else None)
                 camera = extrinsics.camera

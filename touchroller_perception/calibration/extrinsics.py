@@ -261,13 +261,16 @@ class ExtrinsicsResult:
 def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
                          config: ExtrinsicsConfig = ExtrinsicsConfig(), reference: np.ndarray | None = None,
                          intrinsics_sigma: Mapping[str, float] | None = None,
-                         intrinsics_covariance: FloatArray | None = None) -> ExtrinsicsResult:
+                         intrinsics_covariance: FloatArray | None = None,
+                         dark: np.ndarray | None = None) -> ExtrinsicsResult:
     """theta and d from hemisphere-frame images (the paper's averaging, with outlier rejection and
     the row balance; see `ExtrinsicsConfig`).
 
     `camera` carries the intrinsics and the prior theta, d that start the solves; `reference` is a
-    no-contact frame. The intrinsics' uncertainty is propagated into theta_sigma and d_sigma (d
-    scales with the focal length and theta moves with cy, so the intrinsics often dominate it):
+    no-contact frame, `dark` one with the sensor's lights off (it lets the row balance tell the
+    light from a background the light does not make: `imprints._light`). The intrinsics'
+    uncertainty is propagated into theta_sigma and d_sigma (d scales with the focal length and
+    theta moves with cy, so the intrinsics often dominate it):
     `intrinsics_covariance` (as `IntrinsicsResult.covariance`, with its correlations), else
     `intrinsics_sigma` (one-sigma values by name, as a parameters file keeps them); neither: the
     presses' share alone.
@@ -278,7 +281,7 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
         raise CalibrationError("no hemisphere-frame images given")
     image_size(images)
     frame.reference_points(camera.radius)       # fails early if the frame does not fit the roller
-    views, points, rejected, total = _solve_views(images, camera, config, reference)
+    views, points, rejected, total = _solve_views(images, camera, config, reference, dark)
     views = _with_row_asymmetry(views)
     fit = _row_balance(views, config) if config.balance_rows else None
     balance = _balance_verdict(fit, config, len(views))
@@ -311,7 +314,8 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
 
 
 def _solve_views(images: Sequence[np.ndarray], camera: CameraModel, config: ExtrinsicsConfig,
-                 reference: np.ndarray | None) -> tuple[list[ViewPose], dict[int, FloatArray], dict[int, str], int]:
+                 reference: np.ndarray | None,
+                 dark: np.ndarray | None = None) -> tuple[list[ViewPose], dict[int, FloatArray], dict[int, str], int]:
     """Per image: imprints, the pose solve and the rows' strengths; (views, imprint centres by
     image index, rejected, number of press images)."""
     frame = config.frame
@@ -320,7 +324,7 @@ def _solve_views(images: Sequence[np.ndarray], camera: CameraModel, config: Extr
     points: dict[int, FloatArray] = {}
     empty = 0
     for index, image in enumerate(images):
-        detection = find_imprints(image, frame, config.detector, reference)
+        detection = find_imprints(image, frame, config.detector, reference, dark)
         if detection.found == 0 and config.skip_empty:
             empty += 1          # a frame between presses, not a view
             continue

@@ -8,7 +8,8 @@ balance of `extrinsics`). Two things a roller's lighting does to imprints are ha
   change-weighted centroid away from the light: `_shading_symmetric_centre` measures the centre
   from the part of the pattern that is symmetric under any directional light;
 * the light falls off across the membrane, so an absolute strength reads the brighter row as the
-  deeper one: strengths are taken relative to the no-contact reference's brightness.
+  deeper one: strengths are taken relative to the light (`_relative_energy`): the no-contact
+  reference's brightness, or, given a frame with the lights off, the reference minus it (`_light`).
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from touchroller_perception.calibration.common import CalibrationError, FloatArr
 
 #: `ImprintDetectorConfig.centre`: "shading" corrects the centroid for one-sided light, "centroid" keeps it
 CENTRE_ESTIMATORS = ("shading", "centroid")
-#: `ImprintDetectorConfig.strength`: "relative" to the reference's brightness, or "absolute" grey levels
+#: `ImprintDetectorConfig.strength`: "relative" to the light (energy), or "absolute" grey levels
 STRENGTH_MEASURES = ("relative", "absolute")
 
 
@@ -132,11 +133,11 @@ class ImprintDetection:
     elongation: float                # median ratio of the blobs' principal axes (1 = round)
     found: int                       # blobs found
     reason: str | None
-    strengths: FloatArray | None = None   # integrated change of each imprint relative to the reference, frame order
+    strengths: FloatArray | None = None   # each imprint's summed change (`ImprintDetectorConfig.strength`), frame order
 
 
 def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDetectorConfig = ImprintDetectorConfig(),
-                  reference: np.ndarray | None = None) -> ImprintDetection:
+                  reference: np.ndarray | None = None, dark: np.ndarray | None = None) -> ImprintDetection:
     """Subpixel imprint centres and strengths, ordered as `frame.reference_points`.
 
     The change is the image minus the no-contact reference, per colour channel (without a
@@ -145,6 +146,8 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
     filled; the strongest `frame.count` blobs are the imprints. Each blob's change-weighted
     centroid starts its centre, which `_shading_symmetric_centre` then refines (unless
     `config.centre` is "centroid"). Strengths are summed over equal discs (`_window_strengths`).
+    `dark`: a no-contact frame with the sensor's lights off; "relative" strengths are then taken
+    relative to the light alone (reference - dark), see `_light`.
     """
     signed, background = _signed_change(image, reference)
     change = cv2.GaussianBlur(np.abs(signed).sum(axis=2), (0, 0), 1.0)
@@ -171,9 +174,12 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
     if config.centre == "shading":
         centres = np.array([_shading_symmetric_centre(signed, b.centroid, config.window_scale * radius)
                             for b in blobs])
-    magnitude = _relative_change(signed, background) if config.strength == "relative" else \
-        cv2.GaussianBlur(np.abs(signed).sum(axis=2), (0, 0), 1.0)
-    strengths = _window_strengths(magnitude, centres, config.strength_window_scale * radius)
+    if config.strength == "relative":
+        strengths = _window_strengths(_relative_energy(signed, _light(background, dark)), centres,
+                                      config.strength_window_scale * radius, clip=False)
+    else:
+        magnitude = cv2.GaussianBlur(np.abs(signed).sum(axis=2), (0, 0), 1.0)
+        strengths = _window_strengths(magnitude, centres, config.strength_window_scale * radius)
     return ImprintDetection(centres[order], elongation, found, None, strengths[order])
 
 
@@ -306,11 +312,13 @@ def _signed_change(image: np.ndarray, reference: np.ndarray | None) -> tuple[NDA
     return array - background, background
 
 
-def _window_strengths(relative: NDArray[np.float32], centres: FloatArray, radius: float) -> FloatArray:
-    """Each imprint's relative change above the image's level, summed over a disc of `radius` px
+def _window_strengths(relative: NDArray[np.float32], centres: FloatArray, radius: float,
+                      clip: bool = True) -> FloatArray:
+    """Each imprint's change above the image's level (`clip`: the median, and nothing below it counted;
+    else as it is, for a change whose noise floor is already out), summed over a disc of `radius` px
     (the same disc for every imprint: a threshold-cut blob would reach further around the imprint
     with more light and so count it stronger)."""
-    level = float(np.median(relative[::3, ::3]))
+    level = float(np.median(relative[::3, ::3])) if clip else 0.0
     reach = int(math.ceil(radius))
     offsets = np.arange(-reach, reach + 1)
     strengths = []
@@ -318,20 +326,50 @@ def _window_strengths(relative: NDArray[np.float32], centres: FloatArray, radius
         us = np.clip(int(round(u)) + offsets, 0, relative.shape[1] - 1)
         vs = np.clip(int(round(v)) + offsets, 0, relative.shape[0] - 1)
         disc = (offsets[None, :] + round(u) - u) ** 2 + (offsets[:, None] + round(v) - v) ** 2 <= radius * radius
-        strengths.append(float((np.maximum(relative[np.ix_(vs, us)] - level, 0.0) * disc).sum()))
+        window = relative[np.ix_(vs, us)] - level
+        strengths.append(float(((np.maximum(window, 0.0) if clip else window) * disc).sum()))
     return np.array(strengths)
 
 
-def _relative_change(signed: NDArray[np.float32], background: NDArray[np.float32]) -> NDArray[np.float32]:
-    """The change's magnitude relative to the background's brightness (a flat-field correction).
+def _light(background: NDArray[np.float32], dark: np.ndarray | None) -> NDArray[np.float32]:
+    """What of the no-contact background the sensor's lights make: the background minus the frame
+    with the lights off, when there is one; else the whole background.
+
+    Only the light scales an imprint's shading. A background the light does not make (ambient
+    light, an uneven gel that glows or absorbs independently of the LEDs) makes the reference
+    brighter without making imprints stronger; divided by the whole reference, a row over a
+    brighter patch reads weaker. A single lit reference cannot tell the two apart (a gel texture
+    that scales the light, as dust in front of an LED does, must stay in; one that adds to it must
+    come out), a frame with the lights off can."""
+    if dark is None:
+        return background
+    off = np.asarray(dark)
+    if off.shape[:2] != background.shape[:2]:
+        raise CalibrationError(f"the lights-off frame is {off.shape[1]}x{off.shape[0]}, "
+                               f"images are {background.shape[1]}x{background.shape[0]}")
+    off = (off[..., None] if off.ndim == 2 else off).astype(np.float32)
+    if off.shape[2] != background.shape[2]:
+        off = np.broadcast_to(off.mean(axis=2, keepdims=True), background.shape)
+    return np.asarray(background - off, dtype=np.float32)
+
+
+def _relative_energy(signed: NDArray[np.float32], light: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The change's energy relative to the light, per pixel: sum over the channels of
+    (change^2 - noise^2) / light^2 (a flat-field correction).
 
     The light of a roller falls off across the membrane, and an imprint's change scales with the
     light it gets: an absolute strength reads a brighter row as a deeper press (on an image lit
     15 % more per 10 mm towards one row, as if the frame sat 0.18 mm off centre). Dividing by the
-    reference's brightness takes the light out (what remains is the share of ambient light that
-    does not shade)."""
-    brightness = np.maximum(background.sum(axis=2), 1.0)
-    return cv2.GaussianBlur(np.abs(signed).sum(axis=2) / brightness, (0, 0), 1.0)
+    light takes it out, per channel (each colour's light may fall off its own way). The noise is
+    the same in grey levels everywhere, so it must come out before dividing, or it counts more
+    where the light is weaker: squared, its share is one constant per channel (the median square
+    of the change over the image, which imprints hardly touch, / 0.4549, the median of chi-square
+    with 1 degree of freedom), and subtracting it leaves no bias (the magnitude's floor, |change|,
+    depends on the signal under it and cannot be taken out exactly)."""
+    change = signed.astype(np.float64)
+    noise = np.median(change[::3, ::3].reshape(-1, change.shape[2]) ** 2, axis=0) / 0.4549
+    energy = (change**2 - noise) / np.maximum(light.astype(np.float64), 1.0) ** 2
+    return np.asarray(energy.sum(axis=2), dtype=np.float32)
 
 
 def _order_grid(centres: FloatArray, rows: int, columns: int,

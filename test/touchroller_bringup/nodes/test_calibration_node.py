@@ -101,6 +101,11 @@ def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
         show(executor, spin_until, node, image_pub, frame)
         assert call(executor, spin_until, helper, "capture").success
     assert len(node.captures["hemispheres"]) == 4 and len(node.captures["reference"]) == 3
+    # a lights-off frame (here: black, as if the gel had no background of its own) goes to the row balance
+    node.set_parameters([Parameter("target", value="dark")])
+    show(executor, spin_until, node, image_pub, sim.Frame(pressed[-1].stamp_ns + 1, 0 * references[0].image))
+    assert call(executor, spin_until, helper, "capture").success
+    assert len(node.captures["dark"]) == 1
 
     solved = call(executor, spin_until, helper, "solve")
     assert solved.success, solved.message

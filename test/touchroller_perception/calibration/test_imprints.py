@@ -19,10 +19,11 @@ GRID = np.array([(200.0 + 60.0 * c, 200.0 + 80.0 * r) for r in range(2) for c in
 
 def lit_membrane(centres: np.ndarray, *, elevation_deg: float = 35.0, azimuth_deg: float = 90.0,
                  falloff: float = 0.0, width: float = 3.0, height: float = 4.0, blur: float = 0.8,
-                 noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                 noise: float = 0.0, seed: int = 0, ambient: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(image, reference): smooth dents (Gaussian, `width` px sigma, `height` px high: slopes up to
     0.8) at `centres`, Lambert-shaded by one light at `elevation_deg` from `azimuth_deg` (90: from
-    +v), whose irradiance changes by `falloff` per 100 px along v; no ambient light."""
+    +v), whose irradiance changes by `falloff` per 100 px along v, over an `ambient` background
+    (grey levels, per pixel or one value) that the light does not make."""
     el, az = math.radians(elevation_deg), math.radians(azimuth_deg)
     light = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
     vv, uu = np.mgrid[0:SIZE[0], 0:SIZE[1]].astype(np.float64)
@@ -40,7 +41,7 @@ def lit_membrane(centres: np.ndarray, *, elevation_deg: float = 35.0, azimuth_de
         grey = cv2.GaussianBlur(values.astype(np.float32), (0, 0), blur) + rng.normal(0, noise, SIZE)
         return np.repeat(np.clip(np.rint(grey), 0, 255).astype(np.uint8)[..., None], 3, axis=2)
 
-    return finish(irradiance * np.maximum(shade, 0.0)), finish(irradiance * light[2])
+    return finish(ambient + irradiance * np.maximum(shade, 0.0)), finish(ambient + irradiance * light[2])
 
 
 @pytest.mark.parametrize("rows, columns", [(100_000, 100_000), (2, cal.MAX_FRAME_SIDE + 1)])
@@ -83,6 +84,35 @@ def test_relative_strength_takes_the_light_falloff_out():
 
     assert asymmetry(absolute) > 0.06
     assert abs(asymmetry(relative)) < 0.01
+
+
+def test_a_lights_off_frame_tells_the_light_from_an_uneven_background():
+    """Equal dents under an even light, over a background that is brighter towards +v but is not
+    light (an uneven gel, ambient light): relative to the whole reference the darker row reads as
+    the deeper pressed; relative to the light alone (reference minus a lights-off frame) it does not."""
+    vv = np.mgrid[0:SIZE[0], 0:SIZE[1]][0].astype(np.float64)
+    ambient = 20.0 + 40.0 * (vv - 120.0) / 360.0
+    image, reference = lit_membrane(GRID, ambient=ambient, noise=1.0, seed=3)
+    dark = np.repeat(np.clip(np.rint(ambient), 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+    def asymmetry(s: np.ndarray) -> float:
+        return float((s[5:].sum() - s[:5].sum()) / s.sum())
+
+    whole = cal.find_imprints(image, FRAME, reference=reference).strengths
+    light = cal.find_imprints(image, FRAME, reference=reference, dark=dark).strengths
+    assert asymmetry(whole) < -0.03
+    assert abs(asymmetry(light)) < 0.01
+    with pytest.raises(cal.CalibrationError, match="lights-off frame"):
+        cal.find_imprints(image, FRAME, reference=reference, dark=dark[:100])
+
+
+def test_strength_noise_floor_does_not_favour_the_darker_row():
+    """Equal dents, the light 20 % stronger per 100 px along v, read noise: the noise floor is the
+    same in grey levels everywhere, so counted relative to the light it would add more to the
+    darker row; it is taken out before dividing."""
+    image, reference = lit_membrane(GRID, falloff=0.2, noise=3.0, seed=5)
+    strengths = cal.find_imprints(image, FRAME, reference=reference).strengths
+    assert abs(float((strengths[5:].sum() - strengths[:5].sum()) / strengths.sum())) < 0.01
 
 
 def test_deeper_dents_are_stronger():
