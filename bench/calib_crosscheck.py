@@ -5,7 +5,8 @@ Three questions, each answered on both renderers (`touchroller_driver.sim` and
 
 G. theta and d from 10 presses with the true intrinsics, per imprint-centre estimator and row
    strength (the previous method: centroid + absolute strength; ours: shading-symmetric centre +
-   relative strength), beside the paper's plain mean: which part of the method fails where, why.
+   strength relative to the light, with a lights-off frame), beside the paper's plain mean: which
+   part of the method fails where, why.
 H. intrinsics from 20 chessboard views: ray error p95 where the board was seen and over the whole
    image, per distortion model, with the coverage warning. Both renderers keep every board in the
    central half of the image (the simulator's scene variant `central`); the simulator's default
@@ -40,13 +41,14 @@ from touchroller_perception.geometry import CameraModel
 IMPRINT_MODELS = ("simulator", "second renderer")
 #: renderers of table H: both with boards in the central half, and the simulator's boards to the corners
 RAY_RENDERERS = ("simulator", "second renderer", "simulator, boards to the corners")
-#: (label, imprint-centre estimator, row strength, row balance) compared in table G
+#: (label, imprint-centre estimator, row strength, row balance, lights-off frame) compared in table G
 METHODS = (
-    ("paper's plain mean", "shading", "relative", False),
-    ("previous: centroid, absolute strength", "centroid", "absolute", True),
-    ("centroid, relative strength", "centroid", "relative", True),
-    ("shading centre, absolute strength", "shading", "absolute", True),
-    ("ours: shading centre, relative strength", "shading", "relative", True),
+    ("paper's plain mean", "shading", "relative", False, False),
+    ("previous: centroid, absolute strength", "centroid", "absolute", True, False),
+    ("centroid, relative strength", "centroid", "relative", True, False),
+    ("shading centre, absolute strength", "shading", "absolute", True, False),
+    ("shading centre, relative strength", "shading", "relative", True, False),
+    ("ours: shading centre, relative to the light (lights-off frame)", "shading", "relative", True, True),
 )
 OURS = METHODS[-1][0]
 #: distortion models compared in table H ("auto" is what calibrate_intrinsics does by default)
@@ -160,6 +162,7 @@ class Presses:
     images: list[np.ndarray]
     centres_px: list[np.ndarray]    # true imprint centres per press
     camera: CameraModel
+    dark: np.ndarray | None = None  # no contact, the sensor's lights off
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,17 +176,24 @@ class Boards:
 def simulator_presses(seed: int, presses: int = 10) -> Presses:
     from touchroller_driver.sim import SimulatedSensor, load_scene
 
-    sensor = SimulatedSensor(load_scene("calibration_hemispheres", **{"motion.presses": presses}), seed=1000 + seed)
-    frames = list(sensor.frames())
-    reference = np.median(np.stack([f.image for f in frames if f.truth.get("phase") == "reference"]), axis=0)
+    def references(**overrides: float) -> tuple[SimulatedSensor, list, np.ndarray]:
+        sensor = SimulatedSensor(load_scene("calibration_hemispheres", **{"motion.presses": presses, **overrides}),
+                                 seed=1000 + seed)
+        frames = list(sensor.frames())
+        still = np.median(np.stack([f.image for f in frames if f.truth.get("phase") == "reference"]), axis=0)
+        return sensor, frames, still.astype(np.uint8)
+
+    sensor, frames, reference = references()
+    _, _, dark = references(**{"sensor.light_gain": 0.0, "motion.presses": 0})
     pressed = [f for f in frames if f.truth.get("phase") == "press"]
-    return Presses(reference.astype(np.uint8), [f.image for f in pressed],
-                   [np.array([c["pixel"] for c in f.truth["contacts"]]) for f in pressed], sensor.camera)
+    return Presses(reference, [f.image for f in pressed],
+                   [np.array([c["pixel"] for c in f.truth["contacts"]]) for f in pressed], sensor.camera, dark)
 
 
 def second_presses(seed: int, presses: int = 10) -> Presses:
     rendered = second.render_presses(seed, presses)
-    return Presses(rendered.reference, rendered.images, [t.centres_px for t in rendered.truth], rendered.camera)
+    return Presses(rendered.reference, rendered.images, [t.centres_px for t in rendered.truth], rendered.camera,
+                   rendered.dark)
 
 
 def simulator_boards(seed: int, views: int = 20, variant: str | None = "central") -> Boards:
@@ -228,13 +238,13 @@ def method_rows(data: dict[str, list[Presses]]) -> list[MethodRow]:
     for model, sets in data.items():
         bias = {centre: np.mean(np.concatenate([e for p in sets for e in _centre_errors(p, centre)]), axis=0)
                 for centre in {m[1] for m in METHODS}}
-        for label, centre, strength, balance in METHODS:
+        for label, centre, strength, balance, lights_off in METHODS:
             config = cal.ExtrinsicsConfig(detector=cal.ImprintDetectorConfig(centre=centre, strength=strength),
                                           balance_rows=balance)
             theta, d, balanced = [], [], 0
             for p in sets:
                 result = cal.calibrate_extrinsics(p.images, p.camera.replace(theta=0.0, d=0.0), config,
-                                                  reference=p.reference)
+                                                  reference=p.reference, dark=p.dark if lights_off else None)
                 theta.append(math.degrees(result.theta - p.camera.theta))
                 d.append(1e3 * (result.d - p.camera.d))
                 balanced += result.row_balance.applied
@@ -399,8 +409,8 @@ def sigma_rows(presses: dict[str, list[Presses]], intrinsics: dict[str, list[cal
         z: dict[str, list[float]] = {name: [] for name in SIGMA_PARAMETERS}
         theta_err, d_err, fx_err = [], [], []
         for p, intr in sets:
-            extr = cal.calibrate_extrinsics(p.images, intr.camera.replace(theta=0.0, d=0.0),
-                                            reference=p.reference, intrinsics_covariance=intr.covariance)
+            extr = cal.calibrate_extrinsics(p.images, intr.camera.replace(theta=0.0, d=0.0), reference=p.reference,
+                                            dark=p.dark, intrinsics_covariance=intr.covariance)
             sigma = cal.calibration_sigma(intr, extr)
             theta_err.append(math.degrees(extr.camera.theta - p.camera.theta))
             d_err.append(1e3 * (extr.camera.d - p.camera.d))
@@ -440,8 +450,11 @@ def markdown(result: CrosscheckResult) -> list[str]:
              f"{result.seeds} seeds per imprint model. The simulator's imprints are sphere caps under three "
              "coloured lights 120° apart; the second renderer's are Hertzian (contact radius sqrt(R delta), a 1/rho "
              "tail) under one light at 35° elevation from the image's +v side whose irradiance falls 15 % per 10 mm "
-             "away from it, over an ambient share of ~19 %; its frame is placed by hand within ±1 mm. Centre bias: "
-             "mean (u, v) error of the imprint centres against the truth.", "",
+             "away from it, over an ambient share of ~19 % and an uneven gel (±6 grey levels) that the light does not "
+             "make; its frame is placed by hand within ±1 mm. The simulator's background scales with its lights. "
+             "Both renderers also render a frame with the lights off: 'relative to the light' divides by the "
+             "reference minus it, the other rows by the whole reference. Centre bias: mean (u, v) error of the "
+             "imprint centres against the truth.", "",
              "| imprint model | method | theta err RMS / max (°) | d err RMS / max (mm) | centre bias u, v (px) "
              "| row balance applied |", "|---|---|---|---|---|---|"]
     for r in result.methods:

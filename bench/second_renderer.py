@@ -153,6 +153,7 @@ class PressSet:
     images: list[np.ndarray]          # bgr8, one per press
     truth: list[PressTruth]
     camera: CameraModel
+    dark: np.ndarray | None = None    # bgr8, no contact with the light off (median of 5 frames)
 
 
 def hertz_displacement(rho: np.ndarray, approach: float, sphere_radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -210,6 +211,11 @@ class PressRenderer:
         stack = np.stack([self._finish(self._shade(flat, flat)) for _ in range(frames)])
         return np.median(stack, axis=0).astype(np.uint8)
 
+    def dark(self, frames: int = 5) -> np.ndarray:
+        """No contact with the light off: the gel's background alone (ambient, unevenness, specks)."""
+        stack = np.stack([self._finish(self.background.copy()) for _ in range(frames)])
+        return np.median(stack, axis=0).astype(np.uint8)
+
     def press(self, shift: tuple[float, float], yaw: float, depth: float) -> tuple[np.ndarray, PressTruth]:
         """One press: the plate `depth` into the membrane at its centre line, placed at `shift`, `yaw`."""
         r, radius = self.camera.radius, self.layout.hemisphere_radius
@@ -252,7 +258,8 @@ def render_presses(seed: int, presses: int = 10, *, look: Look = Look(), placeme
         image, truth = renderer.press((float(shift[0]), float(shift[1])), yaw, depth)
         images.append(image)
         truths.append(truth)
-    return PressSet(reference=renderer.reference(), images=images, truth=truths, camera=camera)
+    reference = renderer.reference()
+    return PressSet(reference=reference, images=images, truth=truths, camera=camera, dark=renderer.dark())
 
 
 # =========================================================================== chessboard views
