@@ -10,12 +10,14 @@ averaging out, and OpenCV's sigmas come out too small (the true principal point 
 in half of the trials on data rendered with a lens the model does not match).
 
 `view_clustered_covariance` treats each view as one independent sample instead of each corner:
-the jackknife over views (how far the intrinsics move when each view is left out, with its pose),
-computed from the fit's Jacobian and residuals by the Sherman-Morrison-Woodbury identity instead of
-one refit per view (exact for a linear model: the cluster-robust covariance with the leverage
-correction, CR3). Correlations inside a view, of any form, are carried by that view's residuals;
-only independence between views is assumed. With independent corner noise and a right model it
-agrees with OpenCV's on average.
+the cluster-robust (sandwich) covariance, built from each view's score J_v^T r_v, the sum of what
+its corners' residuals say about the intrinsics. Correlations inside a view, of any form, are
+carried by that sum; only independence between views is assumed. A fit pulls towards every view, so
+a view's residuals are smaller than its errors; each view's residual is scaled up by its leverage
+first ((I - H_v)^-1/2, Bell and McCaffrey's bias-reduced form, CR2), which makes the covariance
+exactly OpenCV's on average when corner noise is independent and the model right. It is close to
+the jackknife over views (CR3, slightly larger) at the cost of one Jacobian instead of a refit
+per view.
 """
 from __future__ import annotations
 
@@ -35,8 +37,8 @@ def view_clustered_covariance(object_points: np.ndarray, image_points: Sequence[
                               rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray], k_matrix: FloatArray,
                               distortion: FloatArray, free: Sequence[bool]) -> FloatArray:
     """Covariance (9 x 9, `INTRINSIC_NAMES` order) of the intrinsics of a Zhang fit, clustered by
-    view: the jackknife over views, each view left out with its pose, linearised at the fit (exact
-    for a linear model; no refits).
+    view: the sandwich S^-1 (sum over views of u_v u_v^T) S^-1, S the intrinsics' normal matrix with
+    the poses profiled out, u_v a view's score with its leverage taken out (CR2).
 
     `free` (9 flags) marks the parameters the fit solved for; the others were held and get zero
     rows and columns. Every view's pose (6 parameters) is profiled out. Returns NaN when the views
@@ -76,18 +78,16 @@ def view_clustered_covariance(object_points: np.ndarray, image_points: Sequence[
         inverse = np.linalg.inv(schur)
     except np.linalg.LinAlgError:
         return np.full((len(INTRINSIC_NAMES), len(INTRINSIC_NAMES)), math.nan)
-    # each view left out in turn (with its pose): the intrinsics move by
-    # -S^-1 J_v^T (I - H_v)^-1 r_v, H_v = J_v S^-1 J_v^T its leverage (Sherman-Morrison-Woodbury)
-    moves = np.zeros((views, n_intrinsic))
+    # each view's score J_v^T r_v, its residual first scaled by (I - H_v)^-1/2, H_v = J_v S^-1 J_v^T
+    # the view's leverage on the intrinsics: a fit pulls towards every view, so a view's residual
+    # is smaller than its error, by just that much for independent noise (bias-reduced, CR2)
+    scores = np.zeros((views, n_intrinsic))
     for v, (within, residual) in enumerate(zip(profiled, residuals, strict=True)):
-        leverage = within @ inverse @ within.T
-        try:
-            weighted = np.linalg.solve(np.eye(leverage.shape[0]) - leverage, residual)
-        except np.linalg.LinAlgError:
-            return np.full((len(INTRINSIC_NAMES), len(INTRINSIC_NAMES)), math.nan)
-        moves[v] = inverse @ (within.T @ weighted)
-    centred = moves - moves.mean(axis=0)
-    clustered = centred.T @ centred * (views - 1) / views
+        values, vectors = np.linalg.eigh(within @ inverse @ within.T)
+        shrink = 1.0 / np.sqrt(np.clip(1.0 - values, 1e-6, None)) - 1.0
+        scaled = residual + vectors @ (shrink * (vectors.T @ residual))
+        scores[v] = within.T @ scaled
+    clustered = inverse @ (scores.T @ scores) @ inverse
     out = np.zeros((len(INTRINSIC_NAMES), len(INTRINSIC_NAMES)))
     out[np.ix_(free_mask, free_mask)] = clustered
     return out
