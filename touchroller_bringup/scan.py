@@ -464,7 +464,8 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
             durations += TrapezoidProfile(distance, segment.speed, segment.accel).duration
             position = segment.target
     started = time.monotonic()
-    deadline = started + 2.0 * durations + 20.0
+    limit = 2.0 * durations + 20.0
+    elapsed = SweepTime(getattr(sweep, "sim_clock", None))
     last_report = 0.0
     while not sweep.finished.wait(0.02):
         try:
@@ -473,9 +474,9 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
             sweep.request_stop()
             raise
         now = time.monotonic()
-        if now > deadline:
+        if elapsed.beyond(limit):
             sweep.request_stop()
-            return "timeout", f"the sweep did not end within {2.0 * durations + 20.0:.0f} s; stopped"
+            return "timeout", f"the sweep did not end within {limit:.0f} s{elapsed.unit}; stopped"
         if now - last_report >= 1.0:
             last_report = now
             status = sweep.status
@@ -489,6 +490,28 @@ def _follow_sweep(sweep: Any, collected: _Collected, say: Callable[[str], None],
     status = sweep.status
     say(f"scan: sweep {status.phase.value}: {status.message}")
     return status.phase.value, status.message
+
+
+class SweepTime:
+    """How long the sweep has run, against its time limit: simulated seconds when the arm is simulated (the
+    clock waits for the frames on a loaded machine, so the wall clock says nothing), else wall seconds. A
+    simulated clock that does not move for `stall_s` wall seconds is beyond any limit."""
+
+    def __init__(self, sim_clock: Any = None, stall_s: float = 60.0) -> None:
+        self.clock = sim_clock
+        self.stall_s = stall_s
+        self.unit = " of simulated time" if sim_clock is not None else ""
+        self._started_wall = self._moved_wall = time.monotonic()
+        self._started_ns = self._last_ns = sim_clock.now_ns() if sim_clock is not None else 0
+
+    def beyond(self, limit_s: float) -> bool:
+        now = time.monotonic()
+        if self.clock is None:
+            return now - self._started_wall > limit_s
+        sim_ns = self.clock.now_ns()
+        if sim_ns != self._last_ns:
+            self._last_ns, self._moved_wall = sim_ns, now
+        return (sim_ns - self._started_ns) * 1e-9 > limit_s or now - self._moved_wall > self.stall_s
 
 
 def _wait_for_perception(sweep: Any, perception: Any, timeout: float = 30.0) -> None:

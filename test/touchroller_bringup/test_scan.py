@@ -458,3 +458,34 @@ def test_a_signalled_scan_stops_the_arm_and_writes_what_it_has(isolated_ros, tmp
     assert (out / "contacts.csv").is_file() and (out / "map.png").is_file()
     assert len(list(read_images(out / "recording"))) > 0
     assert "sweep stopped" in "".join(lines) or "arm stopped" in err
+
+
+def test_a_simulated_sweep_is_timed_on_the_simulated_clock_not_the_wall(monkeypatch):
+    """On a loaded machine the simulated clock waits for the frames: a sweep that takes ten times its
+    simulated duration on the wall is not a timeout; a simulated clock that stopped is."""
+    from touchroller_bringup import scan
+
+    wall = [100.0]
+    monkeypatch.setattr(scan.time, "monotonic", lambda: wall[0])
+
+    class Clock:
+        ns = 5_000_000_000
+
+        def now_ns(self) -> int:
+            return self.ns
+
+    clock = Clock()
+    simulated = scan.SweepTime(clock, stall_s=60.0)
+    for _ in range(30):   # 300 s on the wall, 15 s simulated, limit 20 s
+        wall[0] += 10.0
+        clock.ns += 500_000_000
+        assert not simulated.beyond(20.0)
+    clock.ns += 6_000_000_000
+    assert simulated.beyond(20.0) and "simulated" in simulated.unit
+    stalled = scan.SweepTime(clock, stall_s=60.0)
+    wall[0] += 61.0
+    assert stalled.beyond(20.0)
+    on_hardware = scan.SweepTime(None)
+    assert not on_hardware.beyond(20.0)
+    wall[0] += 21.0
+    assert on_hardware.beyond(20.0)
