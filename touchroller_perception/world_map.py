@@ -32,6 +32,7 @@ number of frames. No rclpy here; the caller looks poses up (`touchroller_percept
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -708,7 +709,8 @@ class WorldMapper:
         while self._pending:
             frame = self._pending[0]
             ready = self._ready(frame)
-            if ready is None and not final and len(self._pending) <= self.config.hold_frames:
+            if (ready is None and not final and len(self._pending) <= self.config.hold_frames
+                    and not self._never_posed(frame)):
                 return
             self._pending.popleft()
             if self._pressed_height is None:   # held too long and nothing rolled yet: a lead-in, not mapped
@@ -719,6 +721,15 @@ class WorldMapper:
                 self.stats.no_pose += 1
                 continue
             self._take(frame, pose)
+
+    def _never_posed(self, frame: _Frame) -> bool:
+        """Everything but the frame's pose is known and a later frame has its pose: TF began after this
+        frame's exposure (or has a gap there), so the frame will not be placed and holds no one back."""
+        latency = self._latency()
+        if latency is None or self._pressed_height is None:
+            return False
+        return any(later.pose is not None and later.pose_latency == latency
+                   for later in itertools.islice(self._pending, 1, None))
 
     def _latency(self) -> int | None:
         if self.latency_ns is not None:

@@ -108,6 +108,34 @@ def test_steady_rolling_is_registered_one_frame_in_three_and_maps_as_well(scans,
     assert in_place_ssim(steady, sensor) >= in_place_ssim(every, sensor) - 0.01
 
 
+@pytest.mark.slow
+def test_a_frame_exposed_before_tf_began_holds_no_one_back(scans, sensor):
+    """The first frames were exposed before the arm's first transform: they can never be placed, and the
+    frames after them are placed as their poses come (the live map grows while rolling), not at the end."""
+    _, _, events = scans
+    first_image = next(e[1] for e in events[0.04] if e[0] != "tf")
+    late = [e for e in events[0.04] if e[0] != "tf" or e[1] >= first_image]
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    bounds = (AREA[0] - 0.01, AREA[1] - 0.01, AREA[0] + AREA[2] + 0.01, AREA[1] + AREA[3] + 0.01)
+    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                         WorldMapConfig(bounds=bounds))
+    images = sum(1 for e in late if e[0] != "tf")
+    pushed, mapped_halfway = 0, None
+    for event in late:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+            continue
+        mapper.push(event[2], event[1])
+        pushed += 1
+        if pushed == images // 2:
+            mapped_halfway = mapper.stats.mapped
+    mapper.finalise()
+    assert mapper.stats.no_pose >= 1 and mapper.stats.latency_s == pytest.approx(0.04, abs=0.003)
+    assert mapped_halfway is not None and mapped_halfway > 0.25 * images
+    assert in_place_ssim(mapper, sensor) >= 0.90
+
+
 def test_config_is_checked():
     with pytest.raises(ValueError, match="resolution"):
         WorldMapConfig(resolution=0.0)
