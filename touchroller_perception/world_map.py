@@ -513,6 +513,7 @@ class WorldMapper:
         self._prior: tuple[np.ndarray, np.ndarray, int, int] | None = None   # (value, weight, c-shift, r-shift)
         self._pass_offsets: list[tuple[float, float, float]] = []   # (dx, dy, score) this pass
         self._pass_delta = np.zeros(2)
+        self._delta_offsets = 0   # how many of the pass's offsets `_pass_delta` is the median of
         self._pass_buffer: list[tuple[_Frame, np.ndarray]] = []
         self._pass_frames = 0
 
@@ -886,6 +887,7 @@ class WorldMapper:
     def _start_pass(self) -> None:
         self.stats.passes += 1
         self._pass_offsets, self._pass_buffer, self._pass_delta = [], [], np.zeros(2)
+        self._delta_offsets = 0
         self._pass_frames = 0
         if self.stats.passes > 1 and self.config.register:
             value, weight = self.canvas.value(self._level)
@@ -899,9 +901,10 @@ class WorldMapper:
         self._in_contact = False
 
     def _update_delta(self) -> None:
-        if self._pass_offsets:
+        if self._pass_offsets and len(self._pass_offsets) != self._delta_offsets:   # new offsets since
             offsets = np.array(self._pass_offsets)
             self._pass_delta = np.median(offsets[:, :2], axis=0)
+            self._delta_offsets = len(self._pass_offsets)
 
     def _flush_pass_buffer(self) -> None:
         if not self._pass_buffer:
