@@ -386,8 +386,8 @@ class LatencyEstimator:
                 and w.residual_px is not None and w.residual_px <= self.max_residual_px]
         if not good:
             return None
-        self.estimate = float(np.median([latency for latency, _ in good]))
-        self.residual_px = float(np.median([residual for _, residual in good]))
+        self.estimate = _median([latency for latency, _ in good])
+        self.residual_px = _median([residual for _, residual in good])
         return self.estimate
 
 
@@ -792,7 +792,7 @@ class WorldMapper:
         fast = np.abs(arm_speed) > 3.0   # rows per second: the arm rolls, not just settles
         agree = fast & (np.abs(image_speed - arm_speed) < 0.3 * np.abs(arm_speed) + 1.0)
         if agree.sum() >= 3:
-            self._pressed_height = float(np.median(heights[agree]))
+            self._pressed_height = _median(heights[agree])
         elif final and self._pressed_height is None and fast.any():
             # a roll too short (or too textureless) to agree on: the lowest height the arm moved at
             self._pressed_height = float(heights[fast].min())
@@ -800,7 +800,7 @@ class WorldMapper:
         if self._estimator is None:
             return
         # starts and stops: the arm's speed along the rows crossing half its cruise, in agreeing stretches
-        moving = np.abs(arm_speed) > max(0.5 * np.percentile(np.abs(arm_speed), 90), 3.0)
+        moving = np.abs(arm_speed) > max(0.5 * _percentile(np.abs(arm_speed), 90), 3.0)
         windows = len(self._estimator.windows)
         for k in np.flatnonzero(moving[1:] != moving[:-1]) + 1:
             event = int(stamps[k])
@@ -903,7 +903,7 @@ class WorldMapper:
     def _update_delta(self) -> None:
         if self._pass_offsets and len(self._pass_offsets) != self._delta_offsets:   # new offsets since
             offsets = np.array(self._pass_offsets)
-            self._pass_delta = np.median(offsets[:, :2], axis=0)
+            self._pass_delta = np.array([_median(offsets[:, 0]), _median(offsets[:, 1])])
             self._delta_offsets = len(self._pass_offsets)
 
     def _flush_pass_buffer(self) -> None:
@@ -1056,6 +1056,28 @@ class WorldMapper:
         fy = _parabola_peak(scores[by - 1:by + 2, bx])
         # the template sits at (bx + fx - s, by + fy - s) in the prior: move the frame by that much
         return float(bx + fx - s), float(by + fy - s), float(best)
+
+
+def _median(values: Sequence[float] | np.ndarray) -> float:
+    """np.median of finite values, the same number, without np.median's import of numpy.ma (tens of
+    milliseconds of a command's start-up)."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    half = len(v) // 2
+    if len(v) % 2:
+        return float(np.partition(v, half)[half])
+    part = np.partition(v, [half - 1, half])
+    return float(np.mean(part[half - 1:half + 1]))
+
+
+def _percentile(values: np.ndarray, q: float) -> float:
+    """np.percentile(values, q) (linear interpolation, finite values): the same number, without numpy.ma."""
+    v = np.sort(np.asarray(values, np.float64).reshape(-1))
+    virtual = (q / 100) * (len(v) - 1)
+    lo = min(max(math.floor(virtual), 0), len(v) - 1)
+    hi = min(lo + 1, len(v) - 1)
+    t = virtual - lo
+    a, b = float(v[lo]), float(v[hi])
+    return b - (b - a) * (1 - t) if t >= 0.5 else a + (b - a) * t
 
 
 def _highpass(image: np.ndarray) -> np.ndarray:

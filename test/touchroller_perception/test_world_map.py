@@ -136,6 +136,19 @@ def test_a_frame_exposed_before_tf_began_holds_no_one_back(scans, sensor):
     assert in_place_ssim(mapper, sensor) >= 0.90
 
 
+def test_median_and_percentile_are_numpys_to_the_bit():
+    """The mapper's own median and 90th percentile (numpy's import numpy.ma, tens of milliseconds of a
+    command's start-up) give numpy's numbers exactly: odd and even counts, any scale."""
+    from touchroller_perception.world_map import _median, _percentile
+
+    rng = np.random.default_rng(7)
+    for n in [*range(1, 30), 600]:
+        for scale in (1e-4, 1.0, 1e4):
+            values = rng.normal(size=n) * scale
+            assert _median(values) == float(np.median(values))
+            assert _percentile(values, 90) == float(np.percentile(values, 90))
+
+
 def test_config_is_checked():
     with pytest.raises(ValueError, match="resolution"):
         WorldMapConfig(resolution=0.0)
