@@ -28,6 +28,20 @@ def test_unknown_subcommand_and_missing_arguments_are_one_line(capsys):
         assert err.count("\n") == 1 and err.startswith("touchroller")
 
 
+def test_a_command_line_naming_a_subcommand_builds_only_its_parser(capsys):
+    """`touchroller map ...` imports none of the other commands' modules (start-up time); its own help and
+    errors are as with the whole parser."""
+    only = cli.build_parser(only="map")
+    (action,) = only._subparsers._group_actions
+    assert list(action.choices) == ["map"]
+    with pytest.raises(SystemExit) as info:
+        cli.main(["map", "--help"])
+    assert info.value.code == 0 and "usage: touchroller map" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as info:
+        cli.main(["map"])
+    assert info.value.code == 2 and "the following arguments are required" in capsys.readouterr().err
+
+
 def test_user_errors_and_unexpected_errors_never_show_a_traceback(monkeypatch, capsys):
     def boom(_args):
         raise UserError("the bag is empty")
@@ -37,7 +51,7 @@ def test_user_errors_and_unexpected_errors_never_show_a_traceback(monkeypatch, c
 
     for func, code, text in ((boom, 2, "the bag is empty"), (crash, 1, "RuntimeError: something deep")):
         parser = cli.build_parser()
-        monkeypatch.setattr(cli, "build_parser", lambda parser=parser, func=func: _with_func(parser, func))
+        monkeypatch.setattr(cli, "build_parser", lambda only=None, parser=parser, func=func: _with_func(parser, func))
         assert cli.main(["bench", "--list"]) == code
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and text in err and "Traceback" not in err
