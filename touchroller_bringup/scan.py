@@ -651,8 +651,9 @@ def _report(result: ScanResult, graph: Graph) -> str:
         f"- {result.sweep or 'sweep'}; {'simulated' if graph.arguments['use_sim'] == 'true' else 'UR5'} arm",
         f"- sweep duration: {result.duration_s:.2f} s (from ~/start to the end of the sweep)",
         f"- frames published by the camera: {result.frames_published} ({rate:.1f} Hz)",
-        f"- frames processed by perception: {result.frames_processed} ({skipped} not processed: its "
-        f"keep-last depth-1 queue skips stale frames when it is busy); publication-sequence gaps it "
+        f"- frames processed by perception: {result.frames_processed} ({skipped} not processed; with a "
+        f"camera its keep-last depth-1 queue skips stale frames when it is busy, simulated the clock waits "
+        f"for it); publication-sequence gaps it "
         f"counted as dropped: {result.frames_dropped}; malformed: {result.frames_malformed}",
         f"- contacts: {result.contacts}",
         f"- map: {'x'.join(str(n) for n in result.map_shape) + ' px' if result.map_shape else 'none published'}",
