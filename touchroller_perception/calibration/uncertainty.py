@@ -6,8 +6,7 @@ residual variance, which is right when every corner's error is independent noise
 right. Neither holds: a detector's corner error has a pattern that repeats along a board's edges,
 and a distortion model with fewer terms than the lens (or one fitted only in the middle of the
 image) leaves a smooth residual over each view. Errors then add up within a view instead of
-averaging out, and OpenCV's sigmas come out too small (the true principal point outside 2 sigma
-in half of the trials on data rendered with a lens the model does not match).
+averaging out, and OpenCV's sigmas come out too small (bench `calib_crosscheck`, table I).
 
 `view_clustered_covariance` treats each view as one independent sample instead of each corner:
 the cluster-robust (sandwich) covariance, built from each view's score J_v^T r_v, the sum of what
