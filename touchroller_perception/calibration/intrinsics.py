@@ -6,17 +6,17 @@ there and nowhere else, and OpenCV's 5 coefficients (k1, k2, p1, p2, k3) then fi
 noise with large k2 and k3 that extrapolate to many pixels of invented distortion in the image
 corners. `distortion="auto"` (the default) starts from k1, k2 and adds k3 only when the held-out
 views (k-fold: each view predicted by a fit without it) improve by more than one standard error
-of the paired difference. The tangential p1, p2 are a different case: over a small part of the
-image they look like a shift of the centre of distortion, so held-out views predict equally well
-with or without them and cannot choose. Left out when the lens has them, the fit moves the
-principal point to the centre of distortion instead: p ~ 4e-4 under k1 = -0.16 is a shift of
-~p/k1 (0.7 px at f = 380 px), every ray off by as much. Kept when the lens has none, they trade
-with the principal point and add its noise (0.1 px more of ray error on the simulator's boards in
-the central half). The question is which model predicts the rays better, so they are kept when
-the fit's own evidence for them pays for their two parameters by Akaike's criterion: their Wald
-statistic (p / sigma_p, squared and summed) reaches 2 per parameter, 4. (A significance test at
-the 99 % point, 9.21, asks whether the lens has them at all, and left the second renderer's p1, p2
-out on one seed in ten.)
+of the paired difference, and only when the views reach the image corners (k3 acts there). The
+tangential p1, p2 are a different case: over a small part of the image they look like a shift
+of the centre of distortion, so held-out views predict equally well with or without them and
+cannot choose. Left out when the lens has them, the fit moves the principal point to the
+centre of distortion instead (about p / k1 away: p ~ 4e-4 under k1 = -0.16 is 0.7 px at
+f = 380 px), and every ray with it. Kept when the lens has none, they trade with the principal
+point and add to its noise. The question is which model predicts the rays better, so they are
+kept when the fit's own evidence for them pays for their two parameters by Akaike's criterion:
+their Wald statistic (p / sigma_p, squared and summed) reaches 2 per parameter, 4. (A
+significance test at the 99 % point, 9.21, asks whether the lens has them at all, and leaves
+weak but real terms out.)
 """
 from __future__ import annotations
 
@@ -360,11 +360,19 @@ class ModelChoice:
 def choose_distortion_model(object_points: NDArray[np.float32], views: Sequence[FloatArray], size: tuple[int, int],
                             config: IntrinsicsConfig) -> ModelChoice:
     """The distortion model `config.distortion` names, or for "auto" the one the views choose: p1, p2
-    when their Wald statistic reaches `config.tangential_chi2`, then k3 by held-out views."""
+    when their Wald statistic reaches `config.tangential_chi2`, then k3 by held-out views, but only
+    when the views cover the image corners. k3 (r^6) acts mostly far from the centre: boards that
+    never reach the corners cannot pin it where it acts, and within the area they cover k1, k2
+    absorb it, so the held-out views can only buy it by a chance fraction of a standard error, and
+    it then extrapolates to pixels of invented distortion beyond the boards (where a calibration's
+    other measurements, the hemisphere imprints, may well lie). The coverage warns there."""
     if config.distortion != "auto":
         return ModelChoice(config.distortion, (), math.nan)
     tangential = _tangential_evidence(object_points, views, size)
-    candidates = AUTO_CANDIDATES if tangential >= config.tangential_chi2 else ("k1k2", "radial")
+    candidates: tuple[str, ...] = AUTO_CANDIDATES if tangential >= config.tangential_chi2 else ("k1k2", "radial")
+    board = config.board
+    if not board_coverage(views, board.columns, board.rows, size).corners_covered:
+        candidates = candidates[:1]
     scores = select_distortion_model(object_points, views, size, config.folds, candidates)
     return ModelChoice(next(score.model for score in scores if score.chosen), scores, tangential)
 

@@ -15,7 +15,8 @@ LENS = CameraModel(fx=380.0, fy=380.0, cx=320.0, cy=240.0, distortion=(-0.3, 0.1
 BOARD = cal.Chessboard()
 
 
-def corner_views(camera: CameraModel, count: int, region: float, seed: int, noise: float = 0.05) -> list[np.ndarray]:
+def corner_views(camera: CameraModel, count: int, region: float, seed: int, noise: float = 0.05,
+                 spread: float = 0.5) -> list[np.ndarray]:
     """Inner corners of `count` board poses whose corners all fall in the central `region` of the
     image (in each direction), with Gaussian corner noise."""
     rng = np.random.default_rng(seed)
@@ -27,7 +28,7 @@ def corner_views(camera: CameraModel, count: int, region: float, seed: int, nois
     while len(views) < count:
         rotation = cv2.Rodrigues(np.radians(rng.uniform(-35, 35, 3) * np.array([1, 1, 0.5])))[0]
         distance = rng.uniform(0.12, 0.3)
-        tvec = np.array([*rng.uniform(-0.5, 0.5, 2) * distance, distance]) - rotation @ centre
+        tvec = np.array([*rng.uniform(-spread, spread, 2) * distance, distance]) - rotation @ centre
         uv, _ = cv2.projectPoints(objects, cv2.Rodrigues(rotation)[0], tvec, camera.K, np.array(camera.distortion))
         uv = uv.reshape(-1, 2)
         if np.all(uv > low) and np.all(uv < high):
@@ -169,3 +170,14 @@ def test_weak_tangential_terms_are_kept_when_they_pay_for_themselves():
         fit = intrinsics._zhang(BOARD.object_points(), views, (640, 480), cal.DISTORTION_MODELS[model])
         offset = math.hypot(fit.k_matrix[0, 2] - lens.cx, fit.k_matrix[1, 2] - lens.cy)
         assert (offset < 0.5) == near, (model, offset)
+
+
+def test_k3_is_offered_only_when_the_views_reach_the_image_corners():
+    config = cal.IntrinsicsConfig()
+    middle = cal.choose_distortion_model(BOARD.object_points(), corner_views(LENS, 20, 0.5, seed=1), (640, 480),
+                                         config)
+    assert middle.model == "k1k2p" and [s.model for s in middle.scores] == ["k1k2p"]
+    views = corner_views(LENS, 20, 1.0, seed=4, spread=1.0)
+    assert cal.board_coverage(views, BOARD.columns, BOARD.rows, (640, 480)).corners_covered
+    everywhere = cal.choose_distortion_model(BOARD.object_points(), views, (640, 480), config)
+    assert everywhere.model == "full" and [s.model for s in everywhere.scores] == list(cal.AUTO_CANDIDATES)
