@@ -344,10 +344,11 @@ class BackgroundModel:
     1.4826 x the median absolute deviation of the blurred remaining difference, per channel (the
     RMS over channels is `noise`). Measured on the difference itself, the noise needs only one
     reference frame and includes what the model does not explain (texture, compression).
-    A large part of the image newly over the threshold between fits (an exposure step) refits at once:
-    `flood_fraction` more of the image than right after the last fit (`settled_fraction`). Measured
-    against what the fit itself left, a change the model cannot explain (a roll over a textured surface
-    keeps a fifth of the image changed) does not refit every frame for nothing.
+    A large part of the image over the threshold between fits (more than `flood_fraction`: an exposure
+    step) refits at once. When such a refit leaves as much of the image changed (a roll over a textured
+    surface keeps a fifth of it changed: no gain, offset or smooth field explains that), that share is
+    `unexplained_fraction`, and only `flood_fraction` more than it refits again before the next
+    scheduled fit, instead of a useless refit on every frame.
     """
 
     gain: np.ndarray | None = None
@@ -359,7 +360,7 @@ class BackgroundModel:
     refit_every: int = 8
     flood_fraction: float = 0.2
     quiet_frames: int = 0                      # frames in a row without any candidate blob
-    settled_fraction: float = 0.0              # share of the image over the threshold right after the last fit
+    unexplained_fraction: float = 0.0          # share over the threshold that the last flood refit left
     _expected_full: np.ndarray | None = None
 
     def due(self) -> bool:
@@ -478,14 +479,15 @@ def _detect_colour(frame: np.ndarray, ref: NoContactReference, cfg: DetectorConf
     state.age += 1
     small, small_sq, above, small_threshold = _small_difference(small_frame, state, cfg)
     changed = np.count_nonzero(above) / above.size
-    if not fitted_now and changed > state.settled_fraction + state.flood_fraction:
+    if fitted_now and changed <= state.flood_fraction:
+        state.unexplained_fraction = 0.0
+    elif not fitted_now and changed > state.unexplained_fraction + state.flood_fraction:
         # much of the image changed at once: an exposure step rather than contacts; refit now
         state.fit(small_frame, ref.small(s)[0], cfg, s)
         state.age = 1
         small, small_sq, above, small_threshold = _small_difference(small_frame, state, cfg)
-        fitted_now, changed = True, np.count_nonzero(above) / above.size
-    if fitted_now:
-        state.settled_fraction = changed
+        left = np.count_nonzero(above) / above.size
+        state.unexplained_fraction = left if left > state.flood_fraction else 0.0
     # 2) candidates: blobs of the closed mask, large enough and significant enough
     candidates = _candidates_of(above, small_sq, s, cfg) if above.any() else []
     state.quiet_frames = state.quiet_frames + 1 if not candidates else 0

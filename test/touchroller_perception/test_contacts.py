@@ -353,7 +353,7 @@ def test_real_validation_presses_of_another_gelsight(real_presses):
     card = score(presses)
     assert card.found == len(presses) == 48
     assert card.median_px <= 5.0
-    assert card.false_per_frame <= 0.1
+    assert card.false_contacts == 0   # a press covering a sixth of the image must not hide an exposure change
     paper = score(presses, DetectorConfig(method="paper"))
     assert paper.median_px > 4 * card.median_px
 
