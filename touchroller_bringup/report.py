@@ -283,7 +283,7 @@ def _calib_whole(r: Any) -> tuple[str, bool]:   # bench.calib_bench.CalibBenchRe
     check, goals = r.crosscheck, r.goals
     rows = [check.whole_row(renderer) for renderer in ("simulator", "second renderer")]
     text = "; ".join(f"{row.renderer}: theta worst {row.theta_err_deg.max:.3f}°, d worst {row.d_err_mm.max:.3f} mm"
-                     for row in rows) + f" ({check.seeds} seeds each, {check.views} views + 10 presses)"
+                     for row in rows) + f" ({rows[0].theta_err_deg.n} seeds each, {check.views} views + 10 presses)"
     return text, all(row.theta_err_deg.max <= goals.theta_deg and row.d_err_mm.max <= goals.d_mm for row in rows)
 
 
