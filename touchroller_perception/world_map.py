@@ -531,6 +531,14 @@ class WorldMapper:
         """(first, end): the rows of a frame of `shape` (rows, columns) its band is cut from."""
         return self.strip.source_rows(shape)
 
+    @property
+    def band_shape(self) -> tuple[int, int]:
+        """(rows, columns) of the bands `band()` cuts; known once it or `source_rows` saw a frame's size."""
+        sampler = self.strip.sampler
+        if sampler is None:
+            raise ValueError("the band's size is known once a frame's size is (source_rows or band)")
+        return sampler.rows, sampler.cols
+
     def push_band(self, band: np.ndarray, stamp_ns: int) -> None:
         """`push` for a band cut with `band()`."""
         if self._weights is None:

@@ -93,6 +93,35 @@ def test_a_recording_without_tf_is_the_strip_map(bag_factory, tmp_path):
 
 
 @pytest.mark.slow
+def test_the_reader_process_and_the_reader_thread_make_the_same_map(scan_bag, tmp_path, monkeypatch, capsys):
+    from touchroller_bringup import forked_reader
+
+    forked = tmp_path / "forked.png"
+    assert main(["map", str(scan_bag), "--out", str(forked)]) == 0
+    monkeypatch.setattr(forked_reader, "fork_available", lambda: False)   # as on a system without fork
+    threaded = tmp_path / "threaded.png"
+    assert main(["map", str(scan_bag), "--out", str(threaded)]) == 0
+    assert threaded.read_bytes() == forked.read_bytes()
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0].split(" -> ")[0] == printed[1].split(" -> ")[0]   # the same frames
+
+
+def test_frames_of_another_size_than_the_camera_model_are_one_line(tmp_path, capsys):
+    """The reader (another process) finds it; the command says it as any other bad input."""
+    def records():
+        yield TransformRecord("tool0", "touchroller_cylinder", 0, MOUNT.translation, MOUNT.rotation, True)
+        for k in range(5):
+            yield TransformRecord("base", "tool0", k * 10_000_000, (0.4 + k * 1e-4, 0.0, 0.1), (1.0, 0.0, 0.0, 0.0),
+                                  False)
+            yield ImageRecord(k * 10_000_000, np.zeros((240, 320, 3), np.uint8))
+
+    bag = tmp_path / "small"
+    write_scan(bag, records())
+    assert main(["map", str(bag), "--out", str(tmp_path / "m.png")]) == 2
+    assert "the camera model is for 640x480 images but the bag has 320x240" in capsys.readouterr().err
+
+
+@pytest.mark.slow
 def test_world_map_arguments_are_checked(scan_bag, tmp_path, capsys):
     for extra, message in ((["--out", str(tmp_path / "m.jpg")], "is a PNG"),
                            (["--out", str(tmp_path / "m.png"), "--latency", "soon"], "--latency"),

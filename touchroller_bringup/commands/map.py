@@ -16,9 +16,9 @@ import csv
 import math
 import queue
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from touchroller_bringup.commands import read_calibration
 from touchroller_bringup.errors import UserError
@@ -133,35 +133,34 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
 
     rows = mapper.source_rows((camera.height, camera.width))
 
-    def records() -> Iterator[tuple[str, object]]:
-        # The reader thread reads the bag (only the band's rows where it can) and cuts the bands
-        # (GIL-free SQLite and OpenCV); the main thread maps.
+    def records() -> Iterator[tuple[object, Any]]:
+        # The reader reads the bag (only the band's rows where it can) and cuts the bands: (stamp, band)
+        # for a frame, ((record, transform), None) for a transform.
         for record in read_images_and_tf(args.bag, args.topic, rows=rows):
             if isinstance(record, ImageRecord):
                 height, width = record.frame_shape
                 if (camera.width, camera.height) != (width, height):
                     raise UserError(f"the camera model is for {camera.width}x{camera.height} images but the bag "
                                     f"has {width}x{height}")
-                yield "image", (record.stamp_ns, mapper.band(record.image, record.row0, height))
+                yield record.stamp_ns, mapper.band(record.image, record.row0, height)
             else:
                 try:
                     transform = Transform(record.translation, record.rotation)
                 except ValueError:   # a malformed transform: skipped, as a TF listener would
                     continue
-                yield "tf", (record, transform)
+                yield (record, transform), None
 
     frames = 0
-    for kind, item in _read_ahead(records(), batch=8):
-        if kind == "tf":
+    for item, band in _reader(records, mapper.band_shape):
+        if band is None:
             record, transform = item
             try:
                 buffer.set_transform(record.parent, record.child, record.stamp_ns, transform, static=record.static)
             except ValueError:   # a malformed transform (a frame its own parent, an empty name): skipped
                 continue
         else:
-            stamp_ns, band = item
             try:
-                mapper.push_band(band, stamp_ns)
+                mapper.push_band(band, item)
             except MemoryError as exc:   # the canvas would pass its pixel bound (WorldMapConfig.max_pixels)
                 raise UserError(str(exc)) from None
             frames += 1
@@ -233,6 +232,16 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
     print(f"{frames} frames -> {out} ({image.shape[1]}x{image.shape[0]} px, travel {travel:.1f} px{scale}, "
           f"method {args.method}{note})")
     return 0
+
+
+def _reader(records: Callable[[], Iterator[T]], band_shape: tuple[int, int]) -> Iterator[T]:
+    """`records()` run by a second process where the system can fork (its own GIL: reading and mapping
+    really overlap, see `touchroller_bringup.forked_reader`), else by a second thread."""
+    from touchroller_bringup.forked_reader import fork_available, read_forked
+
+    if fork_available():
+        return read_forked(records, band_shape)  # type: ignore[arg-type]
+    return _read_ahead(records(), batch=8)
 
 
 def _read_ahead(records: Iterator[T], depth: int = 8, batch: int = 1) -> Iterator[T]:

@@ -1,0 +1,87 @@
+"""`read_forked`: a reader in a forked child, its arrays handed over in shared memory."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from touchroller_bringup.errors import UserError
+from touchroller_bringup.forked_reader import ReaderProcessError, fork_available, read_forked
+
+pytestmark = pytest.mark.skipif(not fork_available(), reason="the reader process needs fork (Linux)")
+SHAPE = (7, 5)
+
+
+def _items(count: int, every: int = 3):
+    """Payloads 0..count-1; every `every`-th one has no array, the others an array that says its number."""
+    for k in range(count):
+        yield (k, os.getpid()), None if k % every == 0 else np.full(SHAPE, k, np.float32)
+
+
+def test_items_arrive_in_order_with_their_arrays_through_a_ring_smaller_than_the_stream():
+    got = list(read_forked(lambda: _items(200), SHAPE, slots=4, batch=3))
+    assert [payload[0] for payload, _ in got] == list(range(200))
+    assert all(payload[1] != os.getpid() for payload, _ in got)   # produced by another process
+    # checked after the whole stream: each array is the parent's own copy, not a view of a slot reused since
+    for (k, _), array in got:
+        if k % 3 == 0:
+            assert array is None
+        else:
+            assert array.shape == SHAPE and array.dtype == np.float32 and (array == k).all()
+
+
+def test_an_error_in_the_reader_is_raised_after_the_items_before_it():
+    def failing():
+        yield from _items(10)
+        raise UserError("bag is truncated")
+
+    seen = []
+    with pytest.raises(UserError, match="bag is truncated"):
+        for payload, _ in read_forked(failing, SHAPE, slots=4, batch=3):
+            seen.append(payload[0])
+    assert seen == list(range(10))
+
+    class Unpicklable(Exception):
+        def __reduce__(self):
+            raise TypeError("not picklable")
+
+    def odd():
+        yield from _items(2)
+        raise Unpicklable("odd failure")
+
+    with pytest.raises(RuntimeError, match="Unpicklable: odd failure"):
+        list(read_forked(odd, SHAPE))
+
+
+def test_an_array_of_another_shape_is_refused():
+    def wrong():
+        yield 0, np.zeros((3, 3), np.float32)
+
+    with pytest.raises(ValueError, match="does not fit"):
+        list(read_forked(wrong, SHAPE))
+
+
+def test_a_reader_that_dies_is_an_error_not_a_hang():
+    def dying():
+        yield from _items(5)
+        os._exit(3)
+
+    with pytest.raises(ReaderProcessError):
+        list(read_forked(dying, SHAPE, slots=4, batch=2))
+
+
+def test_a_consumer_that_stops_early_ends_the_reader():
+    def endless():
+        k = 0
+        while True:
+            yield (k, os.getpid()), np.full(SHAPE, k, np.float32)
+            k += 1
+
+    reader = read_forked(endless, SHAPE, slots=4, batch=2)
+    (first, child), _ = next(reader)
+    assert first == 0 and child != os.getpid()
+    os.kill(child, 0)   # the reader is running (blocked on the full ring)
+    reader.close()
+    with pytest.raises(ProcessLookupError):   # ended and reaped: no process, not even a zombie
+        os.kill(child, 0)
