@@ -249,6 +249,15 @@ class _Edge:
                 array[:keep] = array[i:self._n].copy()
             self._n = keep
 
+    def covers(self, stamp_ns: int) -> bool:
+        """Whether `at(..., missing=True)` has a value at `stamp_ns` (within the samples; a static edge always)."""
+        n = self._n
+        if self.static:
+            return True
+        if n >= 2:
+            return int(self._stamps[0]) <= stamp_ns <= int(self._stamps[n - 1])
+        return n == 1 and stamp_ns == int(self._stamps[0])
+
     def matrix(self) -> FloatArray:
         """The 4x4 of a static edge (its one sample)."""
         if self._matrix is None:
@@ -416,6 +425,16 @@ class TransformBuffer:
         up_source, up_target = self._chain(target, source)
         ends = [int(self._edges[f].stamps[-1]) for f in up_source + up_target if not self._edges[f].static]
         return min(ends) if ends else None
+
+    def covers(self, target: str, source: str, stamp_ns: int) -> bool:
+        """Whether `lookup_many(target, source, [stamp_ns], missing=True)` finds the transform (no NaN): the
+        frames are connected and every moving edge between them has samples around the stamp. Nothing is
+        interpolated: a caller that only asks whether TF has reached a time pays for no lookup."""
+        try:
+            up_source, up_target = self._chain(target, source)
+        except TransformError:
+            return False
+        return all(self._edges[child].covers(stamp_ns) for child in up_source + up_target)
 
     def can_transform(self, target: str, source: str, stamp_ns: int | None = None) -> bool:
         try:

@@ -55,17 +55,29 @@ _PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in
 PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
 
 
-def buffer_lookup(buffer: Any, world: str, cylinder: str) -> PoseLookup:
-    """A PoseLookup over a `touchroller_perception.transforms.TransformBuffer` (unknown frames: NaN)."""
-    from touchroller_perception.transforms import TransformError
+class BufferPoses:
+    """A PoseLookup over a `touchroller_perception.transforms.TransformBuffer` (unknown frames: NaN), which
+    also answers `covers(stamp)`: whether the pose at a stamp is known, without interpolating it (the
+    mapper asks that of every frame, often twice, before it looks the pose up)."""
 
-    def lookup(stamps: NDArray[np.int64]) -> FloatArray:
+    def __init__(self, buffer: Any, world: str, cylinder: str) -> None:
+        self.buffer, self.world, self.cylinder = buffer, world, cylinder
+
+    def __call__(self, stamps: NDArray[np.int64]) -> FloatArray:
+        from touchroller_perception.transforms import TransformError
+
         try:
-            return buffer.lookup_many(world, cylinder, stamps, missing=True)
+            return self.buffer.lookup_many(self.world, self.cylinder, stamps, missing=True)
         except TransformError:
             return np.full((len(stamps), 4, 4), np.nan)
 
-    return lookup
+    def covers(self, stamp_ns: int) -> bool:
+        return bool(self.buffer.covers(self.world, self.cylinder, stamp_ns))
+
+
+def buffer_lookup(buffer: Any, world: str, cylinder: str) -> BufferPoses:
+    """A PoseLookup over a `touchroller_perception.transforms.TransformBuffer` (unknown frames: NaN)."""
+    return BufferPoses(buffer, world, cylinder)
 
 
 @dataclass(frozen=True)
@@ -246,13 +258,16 @@ class _Placement:
 def _axes(matrix: np.ndarray) -> tuple[bool, bool, bool] | None:
     """(transpose, flip rows, flip columns) when the affine's 2x2 part is a signed permutation to within
     1e-6 (an error of 1e-3 px across a 640-column band), else None."""
-    a = matrix[:, :2]
-    r = np.round(a)
-    if np.abs(a - r).max() > 1e-6 or not (np.abs(r).sum(axis=0) == 1).all() or not (np.abs(r).sum(axis=1) == 1).all():
+    # plain floats: this runs for every frame placed, and numpy's calls on a 2x2 cost more than its arithmetic
+    (a, b, _), (c, d, _) = matrix.tolist()
+    ra, rb, rc, rd = round(a), round(b), round(c), round(d)
+    if max(abs(a - ra), abs(b - rb), abs(c - rc), abs(d - rd)) > 1e-6:
         return None
-    if r[0, 0] == 0:   # map column from the band's row, map row from its column
-        return True, bool(r[1, 0] < 0), bool(r[0, 1] < 0)
-    return False, bool(r[1, 1] < 0), bool(r[0, 0] < 0)
+    if not (abs(ra) + abs(rb) == abs(rc) + abs(rd) == abs(ra) + abs(rc) == abs(rb) + abs(rd) == 1):
+        return None   # not one non-zero in each row and each column
+    if ra == 0:   # map column from the band's row, map row from its column
+        return True, rc < 0, rb < 0
+    return False, rd < 0, ra < 0
 
 
 Axes = tuple[bool, bool, bool]   # (transpose, flip rows, flip columns)
@@ -268,8 +283,8 @@ def _axis_aligned(matrix: np.ndarray, shape: tuple[int, int]) -> tuple[Axes, int
         return None
     transpose, flip_rows, flip_cols = axes
     rows, cols = (shape[1], shape[0]) if transpose else shape
-    ox = matrix[0, 2] - (cols - 1 if flip_cols else 0)
-    oy = matrix[1, 2] - (rows - 1 if flip_rows else 0)
+    ox = float(matrix[0, 2]) - (cols - 1 if flip_cols else 0)
+    oy = float(matrix[1, 2]) - (rows - 1 if flip_rows else 0)
     c0, r0 = math.floor(ox), math.floor(oy)
     fx, fy = ox - c0, oy - r0
     kernel = np.array([[fy * fx, fy * (1 - fx)], [(1 - fy) * fx, (1 - fy) * (1 - fx)]], np.float32)
@@ -546,11 +561,16 @@ class WorldMapper:
         self._inbox.append((band, int(stamp_ns)))
         while self._inbox:
             band, stamp_ns = self._inbox[0]
-            if len(self._inbox) <= self.config.wait_frames and not np.isfinite(
-                    self.poses(np.array([stamp_ns], np.int64))).all():
+            if len(self._inbox) <= self.config.wait_frames and not self._pose_known(stamp_ns):
                 return   # its pose has not arrived yet
             self._inbox.popleft()
             self._take_band(band, stamp_ns)
+
+    def _pose_known(self, stamp_ns: int) -> bool:
+        covers = getattr(self.poses, "covers", None)   # a BufferPoses answers without interpolating
+        if covers is not None:
+            return bool(covers(stamp_ns))
+        return bool(np.isfinite(self.poses(np.array([stamp_ns], np.int64))).all())
 
     def _take_band(self, band: np.ndarray, stamp_ns: int) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
@@ -926,26 +946,24 @@ class WorldMapper:
         """2x3: band (column j, row i) -> map grid (column, row), pixel centres on whole numbers."""
         sampler = self.strip.sampler
         assert sampler is not None and sampler.centre_u is not None
-        rows = sampler.rows
-        r = self.camera.radius
-        rotation, translation = pose[:3, :3], pose[:3, 3]
+        # plain floats (per frame placed: numpy's calls on 3-vectors cost more than their arithmetic)
+        (r00, r01, r02, tx), (r10, r11, r12, ty), _, _ = pose.tolist()
+        r, mc, mr, res = self.camera.radius, self.m_per_col, self.m_per_row, self.config.resolution
         # cylinder point of band pixel (j, i): (x0 + j mc, y0 + i mr, r)
-        x0, y0 = -sampler.centre_u * self.m_per_col, -(rows - 1) / 2.0 * self.m_per_row
-        origin = rotation @ np.array([x0, y0, r]) + translation
-        dj, di = rotation[:, 0] * self.m_per_col, rotation[:, 1] * self.m_per_row
-        res = self.config.resolution
+        x0, y0 = -sampler.centre_u * mc, -(sampler.rows - 1) / 2.0 * mr
         ox, oy = self.canvas.origin
-        return np.array([[dj[0] / res, di[0] / res, (origin[0] - ox) / res - 0.5],
-                         [dj[1] / res, di[1] / res, (origin[1] - oy) / res - 0.5]])
+        return np.array([[r00 * mc / res, r01 * mr / res, (r00 * x0 + r01 * y0 + r02 * r + tx - ox) / res - 0.5],
+                         [r10 * mc / res, r11 * mr / res, (r10 * x0 + r11 * y0 + r12 * r + ty - oy) / res - 0.5]])
 
     def _footprint(self, matrix: np.ndarray) -> tuple[int, int, int, int]:
+        """(c0, r0, c1, r1): the map cells the band's corners fall in, with a cell to spare around."""
         sampler = self.strip.sampler
         assert sampler is not None
-        corners = np.array([[0, 0, 1], [sampler.cols - 1, 0, 1], [0, sampler.rows - 1, 1],
-                            [sampler.cols - 1, sampler.rows - 1, 1]], np.float64) @ matrix.T
-        c0, r0 = np.floor(corners.min(axis=0)).astype(int) - 1
-        c1, r1 = np.ceil(corners.max(axis=0)).astype(int) + 2
-        return int(c0), int(r0), int(c1), int(r1)
+        (a, b, c), (d, e, f) = matrix.tolist()
+        w, h = sampler.cols - 1, sampler.rows - 1
+        xs = (c, a * w + c, b * h + c, a * w + b * h + c)
+        ys = (f, d * w + f, e * h + f, d * w + e * h + f)
+        return math.floor(min(xs)) - 1, math.floor(min(ys)) - 1, math.ceil(max(xs)) + 2, math.ceil(max(ys)) + 2
 
     def _band_planes(self, frame: _Frame) -> tuple[np.ndarray, np.ndarray]:
         """(w band, w field) in band coordinates; w field is shared while the flat field stays the same."""

@@ -111,6 +111,26 @@ def test_no_extrapolation_and_no_unknown_frames():
     assert np.allclose(latest, buffer.lookup("base", "sensor", 10 ** 9).translation)
 
 
+def test_covers_says_whether_a_lookup_finds_the_transform():
+    buffer = make_tree()
+    buffer.set_transform("base", "probe", 300_000_000, Transform((0.0, 1.0, 0.0)))   # a moving edge, one sample
+    buffer.set_transform("elsewhere", "camera", 0, Transform(), static=True)
+    stamps = [-1, 0, 1, 99_999_999, 100_000_000, 250_000_000, 299_999_999, 300_000_000, 300_000_001,
+              999_999_999, 1_000_000_000, 1_000_000_001, 10 ** 18]
+    pairs = [("base", "sensor"), ("table", "sensor"), ("sensor", "table"), ("tool0", "sensor"), ("base", "table"),
+             ("base", "probe"), ("sensor", "probe"), ("base", "camera"), ("base", "nowhere")]
+    seen = set()
+    for target, source in pairs:
+        for stamp in stamps:
+            try:
+                found = bool(np.isfinite(buffer.lookup_many(target, source, [stamp], missing=True)).all())
+            except ConnectivityError:
+                found = False
+            assert buffer.covers(target, source, stamp) == found, (target, source, stamp)
+            seen.add(found)
+    assert seen == {True, False}
+
+
 def test_static_edges_hold_at_any_time_and_frames_ignore_a_leading_slash():
     buffer = TransformBuffer()
     buffer.set_transform("/base", "tool0", 5, Transform((1.0, 2.0, 3.0)), static=True)
