@@ -1,6 +1,7 @@
 """`touchroller map` on recordings with TF: the world map (map.png + map.yaml), offline, as the scan maps it."""
 from __future__ import annotations
 
+import gc
 from pathlib import Path
 
 import cv2
@@ -119,6 +120,7 @@ def test_frames_of_another_size_than_the_camera_model_are_one_line(tmp_path, cap
     write_scan(bag, records())
     assert main(["map", str(bag), "--out", str(tmp_path / "m.png")]) == 2
     assert "the camera model is for 640x480 images but the bag has 320x240" in capsys.readouterr().err
+    assert gc.get_freeze_count() == 0   # the command froze its set-up objects for the garbage collector; no more
 
 
 @pytest.mark.slow

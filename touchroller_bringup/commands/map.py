@@ -12,8 +12,11 @@ does not move with the surface) is applied to the whole map at the end.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import gc
 import math
+import os
 import queue
 import threading
 from collections.abc import Callable, Iterator
@@ -66,6 +69,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # numpy's work here is on 4x4 matrices and short vectors: OpenBLAS's worker thread would only spin
+    # on the second core (that the reader uses) after start-up. Read when numpy is first imported.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     import cv2
 
     out = Path(args.out)
@@ -151,19 +157,21 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                 yield (record, transform), None
 
     frames = 0
-    for item, band in _reader(records, mapper.band_shape):
-        if band is None:
-            record, transform = item
-            try:
-                buffer.set_transform(record.parent, record.child, record.stamp_ns, transform, static=record.static)
-            except ValueError:   # a malformed transform (a frame its own parent, an empty name): skipped
-                continue
-        else:
-            try:
-                mapper.push_band(band, item)
-            except MemoryError as exc:   # the canvas would pass its pixel bound (WorldMapConfig.max_pixels)
-                raise UserError(str(exc)) from None
-            frames += 1
+    with _set_up_objects_frozen():
+        for item, band in _reader(records, mapper.band_shape):
+            if band is None:
+                record, transform = item
+                try:
+                    buffer.set_transform(record.parent, record.child, record.stamp_ns, transform,
+                                         static=record.static)
+                except ValueError:   # a malformed transform (a frame its own parent, an empty name): skipped
+                    continue
+            else:
+                try:
+                    mapper.push_band(band, item)
+                except MemoryError as exc:   # the canvas would pass its pixel bound (WorldMapConfig.max_pixels)
+                    raise UserError(str(exc)) from None
+                frames += 1
     if frames == 0:
         raise UserError(f"{args.bag} has no images on {args.topic}")
     if args.world_frame not in buffer.frames or args.cylinder_frame not in buffer.frames:
@@ -232,6 +240,18 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
     print(f"{frames} frames -> {out} ({image.shape[1]}x{image.shape[0]} px, travel {travel:.1f} px{scale}, "
           f"method {args.method}{note})")
     return 0
+
+
+@contextlib.contextmanager
+def _set_up_objects_frozen() -> Iterator[None]:
+    """The objects made so far (the imports' modules, the mapper) live as long as the command: the garbage
+    collector leaves them alone while the mapping makes and drops its small per-frame objects (and does not
+    write to their pages, which a forked reader shares)."""
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 def _reader(records: Callable[[], Iterator[T]], band_shape: tuple[int, int]) -> Iterator[T]:
