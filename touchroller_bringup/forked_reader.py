@@ -125,10 +125,13 @@ def _produce(produce: Callable[[], Iterator[Item]], ring: _Ring, data_w: int, wa
             chunk.append((payload, slot))
             if len(chunk) >= batch:
                 send(False)
+        send(True)
     except Exception as exc:  # noqa: BLE001 - raised again in the parent, after the items before it
-        send(True, _picklable(exc))
-        return
-    send(True)
+        try:
+            send(True, _picklable(exc))
+        except Exception:  # noqa: BLE001 - the items themselves do not pickle: the error alone
+            chunk.clear()
+            send(True, _picklable(exc))
 
 
 def _picklable(exc: BaseException) -> BaseException:

@@ -54,6 +54,17 @@ def test_an_error_in_the_reader_is_raised_after_the_items_before_it():
         list(read_forked(odd, SHAPE))
 
 
+def test_a_payload_that_does_not_pickle_is_an_error_that_says_so():
+    def odd():
+        yield from _items(2)
+        yield (lambda: None), None   # a lambda does not pickle
+
+    with pytest.raises(Exception, match="pickle"):
+        list(read_forked(odd, SHAPE, batch=1))
+    with pytest.raises(Exception, match="pickle"):   # and in a batch with good items before it
+        list(read_forked(odd, SHAPE, batch=8))
+
+
 def test_an_array_of_another_shape_is_refused():
     def wrong():
         yield 0, np.zeros((3, 3), np.float32)
