@@ -57,6 +57,20 @@ def test_central_boards_rays_right_where_seen_and_the_corners_warned():
     assert any("image corners not covered" in w for w in auto.warnings())
 
 
+@pytest.mark.parametrize("renderer", ["simulator", "second renderer"])
+def test_corners_refined_on_the_board_plane_are_nearer_the_truth_on_both_renderers(renderer):
+    """The default corner path (refined on the board's plane) against the previous one (refined in
+    the image), on the views of each renderer: nearer the true corners on both, not on one only."""
+    boards = check.BOARDS[renderer](5, 8)
+
+    def error(corners: str) -> float:
+        found, _ = cal.chessboard_corners(boards.images, cal.IntrinsicsConfig(corners=corners))
+        return float(np.sqrt(np.mean(np.concatenate([check._matched(c, boards.corners[i])
+                                                      for i, c in found.items()]) ** 2)))
+
+    assert error("fronto_parallel") < 0.9 * error("image")
+
+
 def test_method_table_compares_the_methods_on_both_imprint_models():
     rows = check.method_rows({"second renderer": [check.second_presses(seed=3, presses=6)]})
     assert [r.method for r in rows] == [m[0] for m in check.METHODS]

@@ -40,6 +40,7 @@ from touchroller_perception.calibration.imprints import (
 )
 from touchroller_perception.calibration.intrinsics import (
                                                            AUTO_CANDIDATES,
+                                                           CORNER_METHODS,
                                                            DISTORTION_MODELS,
                                                            DISTORTION_NAMES,
                                                            MAX_BOARD_SIDE,
@@ -50,9 +51,11 @@ from touchroller_perception.calibration.intrinsics import (
                                                            ModelChoice,
                                                            ModelScore,
                                                            calibrate_intrinsics,
+                                                           chessboard_corners,
                                                            choose_distortion_model,
                                                            detect_chessboards,
                                                            find_chessboard,
+                                                           fronto_parallel_corners,
                                                            select_distortion_model,
 )
 from touchroller_perception.calibration.outputs import (
@@ -65,14 +68,16 @@ from touchroller_perception.calibration.outputs import (
 from touchroller_perception.calibration.uncertainty import INTRINSIC_NAMES, jackknife_std, view_clustered_covariance
 
 __all__ = [
-    "AUTO_CANDIDATES", "CENTRE_ESTIMATORS", "DISTORTION_MODELS", "DISTORTION_NAMES", "INTRINSIC_NAMES",
+    "AUTO_CANDIDATES", "CENTRE_ESTIMATORS", "CORNER_METHODS", "DISTORTION_MODELS", "DISTORTION_NAMES",
+    "INTRINSIC_NAMES",
     "MAX_BOARD_SIDE", "MAX_FRAME_SIDE", "STRENGTH_MEASURES",
     "BoardCoverage", "CalibrationError", "Chessboard", "ChessboardDetection", "CoverageBar", "ExtrinsicsConfig",
     "ExtrinsicsResult", "HemisphereFrame", "ImprintDetection", "ImprintDetectorConfig", "IntrinsicsConfig",
     "IntrinsicsResult", "ModelChoice", "ModelScore", "NeglectedTerms", "RowBalance", "ViewPose",
     "back_project_pose", "board_coverage", "calibrate_extrinsics", "calibrate_intrinsics", "calibration_sigma",
-    "camera_info_fields", "choose_distortion_model", "compare_cameras", "detect_chessboards", "find_chessboard",
-    "find_imprints", "full_pose_rotation",
+    "camera_info_fields", "chessboard_corners", "choose_distortion_model", "compare_cameras", "detect_chessboards",
+    "find_chessboard",
+    "find_imprints", "fronto_parallel_corners", "full_pose_rotation",
     "model_error_mm", "read_calibration_extras", "select_distortion_model", "solve_view",
     "jackknife_std", "view_clustered_covariance", "write_calibration",
 ]

@@ -53,6 +53,9 @@ DISTORTION_MODELS: dict[str, int] = {
 AUTO_CANDIDATES = ("k1k2p", "full")
 
 
+#: how `IntrinsicsConfig.corners` places the corners: in the image, or refined on the board's plane
+CORNER_METHODS = ("image", "fronto_parallel")
+
 #: Most inner corners along a chessboard side (printed boards have a dozen or two).
 MAX_BOARD_SIDE = 100
 
@@ -148,7 +151,8 @@ SADDLE_BLUR_SHARE = 0.15
 SADDLE_WINDOW_SHARE = 0.3
 
 
-def saddle_points(gray: np.ndarray, corners: np.ndarray, spacing: float, iterations: int = 5) -> np.ndarray:
+def saddle_points(gray: np.ndarray, corners: np.ndarray, spacing: float, iterations: int = 5,
+                  blur_share: float = SADDLE_BLUR_SHARE, window_share: float = SADDLE_WINDOW_SHARE) -> np.ndarray:
     """Each X-corner moved to the saddle point of a quadratic surface fitted (Gaussian-weighted
     least squares) to the smoothed image around it, iterated on the moved window.
 
@@ -159,8 +163,8 @@ def saddle_points(gray: np.ndarray, corners: np.ndarray, spacing: float, iterati
     of the corner spacing, at least 0.7 px) makes the quadratic fit the blurred junction; the window
     stays well inside the neighbouring corners. A corner whose fit is no saddle (both curvatures of
     one sign: not an X-junction) or that would move by more than the window is left where it was."""
-    half = int(round(np.clip(SADDLE_WINDOW_SHARE * spacing, 2, 15)))
-    smooth = cv2.GaussianBlur(np.asarray(gray, dtype=np.float32), (0, 0), max(SADDLE_BLUR_SHARE * spacing, 0.7))
+    half = int(round(np.clip(window_share * spacing, 2, 15)))
+    smooth = cv2.GaussianBlur(np.asarray(gray, dtype=np.float32), (0, 0), max(blur_share * spacing, 0.7))
     ys, xs = np.mgrid[-half:half + 1, -half:half + 1].astype(np.float64)
     x, y = xs.ravel(), ys.ravel()
     weight = np.exp(-(x * x + y * y) / (2.0 * (half / 2.0) ** 2))
@@ -188,6 +192,113 @@ def saddle_points(gray: np.ndarray, corners: np.ndarray, spacing: float, iterati
     return out
 
 
+#: fronto-parallel refinement: canonical image pixels per board square, the saddle fit's smoothing and
+#: window as shares of a square, the order of the illumination's polynomial and the share of each
+#: square's middle it is fitted to
+FRONTO_PIXELS_PER_SQUARE = 32
+FRONTO_BLUR_SHARE = 0.2
+FRONTO_WINDOW_SHARE = 0.45
+FRONTO_LIGHT_ORDER = 3
+FRONTO_LIGHT_CORE = 0.5
+
+
+def fronto_parallel_corners(gray: np.ndarray, corners: FloatArray, k_matrix: FloatArray, distortion: FloatArray,
+                            board: Chessboard) -> FloatArray:
+    """The inner corners of one view refined in the board's own plane (Datta, Kim and Kanade,
+    "Accurate camera calibration using iterative refinement of control points", 2009): the view
+    is posed with the lens (k_matrix, distortion) of a first calibration, resampled onto the board
+    plane (a fronto-parallel image with `FRONTO_PIXELS_PER_SQUARE` per square, the squares and one
+    square of margin), each corner is found there by the saddle-point fit (`saddle_points`), and
+    the found positions are mapped back into the image through the same pose and lens.
+
+    Why: in the image, perspective and the lens make the board's squares unequal around a corner,
+    so only a small window around it is point-symmetric and the saddle fit must stay small (0.3 of
+    the smallest spacing): it averages few pixels. On the board plane every interior corner is a
+    centre of symmetry of the whole pattern to the next corners, so the window can span almost half
+    a square in every view, tilted or not. The mapping back uses the same pose and lens as the
+    resampling, so an error of the first calibration moves the resampled pattern and the found
+    corner together and cancels to first order; the search starts from the grid's ideal positions,
+    so a corner the detector put between the true ones is found again.
+
+    A larger window also sees more of the illumination's gradient, which adds a linear term to the
+    fit and moves the saddle point: the view is divided by the light, estimated on the board plane
+    from the middles of the dark and of the light squares separately (`_divide_by_light`), before
+    the fit."""
+    square = board.square
+    objects = board.object_points().astype(np.float64)
+    ok, rvec, tvec = cv2.solvePnP(objects, np.asarray(corners, np.float64).reshape(-1, 1, 2), k_matrix, distortion,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        return np.asarray(corners, dtype=np.float64)
+    pps = FRONTO_PIXELS_PER_SQUARE
+    low = -2.0                                  # the squares start one square before the first corner
+    width, height = (board.columns + 3) * pps, (board.rows + 3) * pps
+    bx, by = np.meshgrid((np.arange(width) + 0.5) / pps + low, (np.arange(height) + 0.5) / pps + low)
+    u, v = _project_plane(bx * square, by * square, rvec, tvec, k_matrix, distortion)
+    canonical = cv2.remap(np.asarray(gray, dtype=np.float32), u.astype(np.float32), v.astype(np.float32),
+                          cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    canonical = _divide_by_light(canonical, bx, by, board)
+    ideal = (objects[:, :2] / square - low) * pps - 0.5
+    found = saddle_points(canonical, ideal, float(pps), blur_share=FRONTO_BLUR_SHARE,
+                          window_share=FRONTO_WINDOW_SHARE)
+    on_board = (found + 0.5) / pps + low
+    back, _ = cv2.projectPoints(np.column_stack([on_board * square, np.zeros(len(on_board))]), rvec, tvec, k_matrix,
+                                distortion)
+    return np.asarray(back.reshape(-1, 2), dtype=np.float64)
+
+
+def _project_plane(x: np.ndarray, y: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, k_matrix: FloatArray,
+                   distortion: FloatArray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels of the board-plane points (x, y, 0) (m): OpenCV's projection with k1, k2, p1, p2, k3,
+    written out (cv2.projectPoints is several times slower on a whole image of points)."""
+    rotation = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0]
+    t = np.asarray(tvec, dtype=np.float64).ravel()
+    cx = rotation[0, 0] * x + rotation[0, 1] * y + t[0]
+    cy = rotation[1, 0] * x + rotation[1, 1] * y + t[1]
+    cz = rotation[2, 0] * x + rotation[2, 1] * y + t[2]
+    xn, yn = cx / cz, cy / cz
+    k1, k2, p1, p2, k3 = (float(k) for k in np.r_[np.asarray(distortion, dtype=np.float64).ravel(), np.zeros(5)][:5])
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+    return k_matrix[0, 0] * xd + k_matrix[0, 1] * yd + k_matrix[0, 2], k_matrix[1, 1] * yd + k_matrix[1, 2]
+
+
+def _divide_by_light(canonical: np.ndarray, bx: np.ndarray, by: np.ndarray, board: Chessboard) -> np.ndarray:
+    """The fronto-parallel image (board coordinates bx, by in squares per pixel) rescaled so that the
+    dark squares read 0 and the light ones 1 everywhere. The light under each kind of square is a
+    polynomial of order `FRONTO_LIGHT_ORDER` in the board's coordinates, fitted (least squares) to the
+    middles of that kind of square only: a smooth light needs few terms over one board, and a fit,
+    unlike a local average, does not lean towards the side with more squares at the board's edge."""
+    column, row = np.floor(bx), np.floor(by)
+    middle = (np.abs(bx - column - 0.5) < FRONTO_LIGHT_CORE / 2) & (np.abs(by - row - 0.5) < FRONTO_LIGHT_CORE / 2)
+    middle &= (column >= -1) & (column < board.columns) & (row >= -1) & (row < board.rows)
+    even = (column + row) % 2 == 0
+    if not (middle & even).any() or not (middle & ~even).any():
+        return canonical
+    dark_is_even = float(canonical[middle & even].mean()) < float(canonical[middle & ~even].mean())
+    # coordinates scaled to about [-1, 1] over the board, for a well-conditioned fit; the fit sees
+    # every 4th pixel of the middles in each direction (plenty for a few smooth terms)
+    x = (bx[0] - (board.columns - 1) / 2) / ((board.columns + 1) / 2)
+    y = (by[:, 0] - (board.rows - 1) / 2) / ((board.rows + 1) / 2)
+    powers = [(i, j) for i in range(FRONTO_LIGHT_ORDER + 1) for j in range(FRONTO_LIGHT_ORDER + 1 - i)]
+    xs, ys = np.meshgrid(x[::4], y[::4])
+    terms = np.stack([xs**i * ys**j for i, j in powers], axis=-1)
+    sampled = canonical[::4, ::4].astype(np.float64)
+
+    def light(mask: np.ndarray) -> np.ndarray:
+        fit = np.linalg.lstsq(terms[mask[::4, ::4]], sampled[mask[::4, ::4]], rcond=None)[0]
+        coefficients = np.zeros((FRONTO_LIGHT_ORDER + 1, FRONTO_LIGHT_ORDER + 1))
+        for (i, j), value in zip(powers, fit, strict=True):
+            coefficients[i, j] = value
+        return np.asarray(np.polynomial.polynomial.polygrid2d(x, y, coefficients).T, dtype=np.float32)
+
+    dark = light(middle & (even == dark_is_even))
+    bright = light(middle & (even != dark_is_even))
+    return np.asarray((canonical - dark) / np.maximum(bright - dark, 1e-3), dtype=np.float32)
+
+
 def _laplacian_sharpness(gray: np.ndarray) -> float:
     return float(cv2.Laplacian(gray, cv2.CV_64F).var())
 
@@ -208,10 +319,14 @@ class IntrinsicsConfig:
     rejected when, left out, one of its corners lies more than `corner_outlier_sigma` robust
     standard deviations of all corners' residuals (and at least `min_corner_outlier` px) from the
     fit: a single misdetected corner.
+    `corners`: "fronto_parallel" (the default) refines every view's corners on the board's plane
+    with the lens of a first calibration (`fronto_parallel_corners`); "image" keeps the corners
+    found in the image (findChessboardCorners, cornerSubPix, `saddle_points`).
     """
 
     board: Chessboard = Chessboard()
     distortion: str = "auto"
+    corners: str = "fronto_parallel"
     min_views: int = 3
     max_view_rms: float = 1.0
     outlier_factor: float = 3.0
@@ -227,6 +342,8 @@ class IntrinsicsConfig:
         if self.distortion != "auto" and self.distortion not in DISTORTION_MODELS:
             raise CalibrationError(f"distortion must be auto or one of {', '.join(DISTORTION_MODELS)}, "
                                    f"got {self.distortion!r}")
+        if self.corners not in CORNER_METHODS:
+            raise CalibrationError(f"corners must be one of {', '.join(CORNER_METHODS)}, got {self.corners!r}")
         if self.min_views < 3:
             raise CalibrationError(f"min_views must be at least 3 (Zhang's method), got {self.min_views}")
         if self.folds < 2:
@@ -315,6 +432,35 @@ def detect_chessboards(images: Sequence[np.ndarray], config: IntrinsicsConfig,
     return corners, rejected
 
 
+def refine_on_the_board(images: Sequence[np.ndarray], corners: dict[int, FloatArray], size: tuple[int, int],
+                        config: IntrinsicsConfig) -> dict[int, FloatArray]:
+    """Every view's corners refined on the board's plane (`fronto_parallel_corners`) with the lens of
+    a first calibration on the image corners (the distortion model that screens the views: k1, k2,
+    p1, p2 for "auto"). The first calibration only places the resampling; where it fails the image
+    corners are kept."""
+    if len(corners) < config.min_views:
+        return dict(corners)
+    screening = AUTO_CANDIDATES[0] if config.distortion == "auto" else config.distortion
+    try:
+        first = _zhang(config.board.object_points(), [corners[i] for i in sorted(corners)], size,
+                       DISTORTION_MODELS[screening])
+    except CalibrationError:
+        return dict(corners)
+    return {i: fronto_parallel_corners(to_grey(images[i]), found, first.k_matrix, first.distortion, config.board)
+            for i, found in corners.items()}
+
+
+def chessboard_corners(images: Sequence[np.ndarray], config: IntrinsicsConfig = IntrinsicsConfig()
+                       ) -> tuple[dict[int, FloatArray], dict[int, str]]:
+    """The corners `calibrate_intrinsics` calibrates from (per `config.corners`), before any view is
+    rejected by the fit, and why the other views were not used."""
+    images = list(images)
+    corners, rejected = detect_chessboards(images, config)
+    if config.corners == "fronto_parallel":
+        corners = refine_on_the_board(images, corners, image_size(images), config)
+    return corners, rejected
+
+
 def calibrate_intrinsics(images: Iterable[np.ndarray], config: IntrinsicsConfig = IntrinsicsConfig(),
                          prior: CameraModel | None = None, on_view: ViewCallback | None = None) -> IntrinsicsResult:
     """Zhang's calibration (cv2.calibrateCameraExtended) with view rejection and model choice
@@ -329,6 +475,8 @@ def calibrate_intrinsics(images: Iterable[np.ndarray], config: IntrinsicsConfig 
     require_views(len(corners), config.min_views, len(images), rejected, "chessboard")
     object_points = config.board.object_points()
     screening = AUTO_CANDIDATES[0] if config.distortion == "auto" else config.distortion
+    if config.corners == "fronto_parallel":
+        corners = refine_on_the_board(images, corners, size, config)
     corners = _reject_outlier_views(object_points, corners, size, DISTORTION_MODELS[screening], config, rejected)
     views = [corners[i] for i in sorted(corners)]
     choice = choose_distortion_model(object_points, views, size, config)

@@ -101,11 +101,16 @@ def test_clean_views_keep_every_corner():
     assert rejected == {} and len(kept) == 12
 
 
-def rendered_board(seed: int, tilt_deg: float = 30.0, noise: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+PINHOLE = np.array([[380.0, 0.0, 320.0], [0.0, 380.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+def rendered_board(seed: int, tilt_deg: float = 30.0, noise: float = 2.0,
+                   light: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """A tilted 7x7 board through a pinhole, area-averaged over 4x4 samples per pixel, lightly blurred,
-    with read noise: the image and its true inner corners (OpenCV's order)."""
+    with read noise: the image and its true inner corners (OpenCV's order). `light`: the
+    illumination falls by this share from the image's left edge to its right and its top to its bottom."""
     rng = np.random.default_rng(seed)
-    k_matrix = np.array([[380.0, 0.0, 320.0], [0.0, 380.0, 240.0], [0.0, 0.0, 1.0]])
+    k_matrix = PINHOLE
     rotation = cv2.Rodrigues(np.radians([tilt_deg, -0.6 * tilt_deg, 12.0]) + rng.uniform(-3, 3, 3) * np.pi / 180)[0]
     centre = np.array([(BOARD.columns - 1) / 2, (BOARD.rows - 1) / 2, 0.0]) * BOARD.square
     tvec = np.array([*rng.uniform(-0.01, 0.01, 2), 0.22]) - rotation @ centre
@@ -118,6 +123,7 @@ def rendered_board(seed: int, tilt_deg: float = 30.0, noise: float = 2.0) -> tup
     squares = (bx >= -1) & (bx < BOARD.columns) & (by >= -1) & (by < BOARD.rows)
     board = (bx >= -2) & (bx < BOARD.columns + 1) & (by >= -2) & (by < BOARD.rows + 1)
     value = np.where(board, np.where(squares & ((np.floor(bx) + np.floor(by)) % 2 == 0), 35.0, 205.0), 110.0)
+    value = value * (1.0 - light * (0.5 * us / (640 * s) + 0.5 * vs / (480 * s)))
     grey = cv2.GaussianBlur(value.reshape(480, s, 640, s).mean(axis=(1, 3)).astype(np.float32), (0, 0), 0.6)
     grey = np.clip(np.rint(grey + rng.normal(0.0, noise, grey.shape)), 0, 255).astype(np.uint8)
     grid = np.column_stack([BOARD.object_points()[:, :2] / BOARD.square, np.ones(BOARD.columns * BOARD.rows)])
@@ -152,6 +158,52 @@ def test_the_saddle_point_of_an_ideal_corner_is_the_corner():
     blob = np.full((60, 60), 200, np.uint8)
     cv2.circle(blob, (30, 30), 8, 30, -1)
     assert np.array_equal(intrinsics.saddle_points(blob, np.array([[30.4, 29.7]]), spacing=20.0), [[30.4, 29.7]])
+
+
+def test_corners_refined_on_the_board_plane_are_nearer_the_truth_under_uneven_light():
+    """On tilted boards under light that falls by 40 % across the image, the corners refined on the
+    board's plane (the view resampled fronto-parallel, divided by the light, a window of almost half
+    a square) are nearer the true corners than those refined in the image (0.013 against 0.019 px
+    RMS here), with no bias."""
+    image_errors, plane_errors = [], []
+    for seed in range(3):
+        image, truth = rendered_board(seed, light=0.4)
+        found = cal.find_chessboard(image, BOARD)
+        assert found.corners is not None
+        order = np.linalg.norm(found.corners[:, None] - truth[None], axis=-1).argmin(axis=1)
+        refined = cal.fronto_parallel_corners(image, found.corners, PINHOLE, np.zeros(5), BOARD)
+        image_errors.append(found.corners - truth[order])
+        plane_errors.append(refined - truth[order])
+    image_rms, plane_rms = (float(np.sqrt(np.mean(np.concatenate(e) ** 2))) for e in (image_errors, plane_errors))
+    assert plane_rms < 0.8 * image_rms, (plane_rms, image_rms)
+    assert np.abs(np.concatenate(plane_errors).mean(axis=0)).max() < 0.004
+
+
+def test_a_corner_misplaced_in_the_image_is_found_again_on_the_board_plane():
+    """The search on the board's plane starts from the grid's ideal positions, not from the image's
+    corners: one corner 3 px off (the detector's rare miss) comes back to the junction."""
+    image, truth = rendered_board(1, noise=1.0)
+    found = cal.find_chessboard(image, BOARD)
+    assert found.corners is not None
+    order = np.linalg.norm(found.corners[:, None] - truth[None], axis=-1).argmin(axis=1)
+    corners = found.corners.copy()
+    corners[17] += (3.0, -1.5)
+    refined = cal.fronto_parallel_corners(image, corners, PINHOLE, np.zeros(5), BOARD)
+    assert np.abs(refined - truth[order]).max() < 0.05
+
+
+def test_the_corner_path_is_chosen_in_the_config():
+    assert cal.IntrinsicsConfig().corners == "fronto_parallel"
+    assert set(cal.CORNER_METHODS) == {"image", "fronto_parallel"}
+    with pytest.raises(cal.CalibrationError, match="corners"):
+        cal.IntrinsicsConfig(corners="edges")
+    images = [rendered_board(seed, noise=1.0)[0] for seed in range(3)]
+    in_image, _ = cal.chessboard_corners(images, cal.IntrinsicsConfig(corners="image"))
+    detected, _ = cal.detect_chessboards(images, cal.IntrinsicsConfig())
+    assert all(np.array_equal(in_image[i], detected[i]) for i in detected)
+    on_plane, _ = cal.chessboard_corners(images)
+    assert sorted(on_plane) == sorted(detected)
+    assert all(0 < np.abs(on_plane[i] - detected[i]).max() < 0.5 for i in detected)
 
 
 def test_weak_tangential_terms_are_kept_when_they_pay_for_themselves():
