@@ -11,7 +11,7 @@ really run side by side, on the second core.
 the payload is pickled and sent through a pipe in batches; the array (None, or of the given shape and
 dtype: a band) is written into one slot of a ring of shared memory and copied out by the parent, so the
 pixels are never copied through the kernel. The parent counts the slots it has freed in the shared
-memory and wakes the child through a second pipe when the ring was full. An exception in `produce` is
+memory and wakes the child through a second pipe once half the ring is free. An exception in `produce` is
 raised in the parent after the items before it; a consumer that stops early ends the child.
 POSIX only (`fork_available`); the caller keeps a thread for other systems.
 """
@@ -143,7 +143,12 @@ def _picklable(exc: BaseException) -> BaseException:
 
 
 def _consume(ring: _Ring, stream: Any, wake_w: int) -> Iterator[Item]:
-    taken = 0
+    taken = woken = 0
+    # The child usually runs ahead and waits on a full ring. Waking it costs the parent a context switch
+    # (often half a millisecond on a busy machine), so it is woken once half the ring is free again, not
+    # for every batch. That cannot leave it waiting for good: a waiting child has sent a full ring, which
+    # the parent takes whole.
+    every = max(1, len(ring.slots) // 2)
     while True:
         header = stream.read(_HEADER.size)
         body = stream.read(_HEADER.unpack(header)[0]) if len(header) == _HEADER.size else b""
@@ -154,8 +159,9 @@ def _consume(ring: _Ring, stream: Any, wake_w: int) -> Iterator[Item]:
         for payload, slot in chunk:
             items.append((payload, None if slot is None else ring.slots[slot].copy()))
             taken += slot is not None
-        if items and ring.taken[0] != taken:
-            ring.taken[0] = taken
+        ring.taken[0] = taken
+        if taken - woken >= every:
+            woken = taken
             try:
                 os.write(wake_w, b"\0")   # wake a child waiting for slots (a full pipe has bytes to wake it)
             except (BlockingIOError, BrokenPipeError):   # bytes are waiting already; the child has finished

@@ -19,8 +19,10 @@ def _items(count: int, every: int = 3):
         yield (k, os.getpid()), None if k % every == 0 else np.full(SHAPE, k, np.float32)
 
 
-def test_items_arrive_in_order_with_their_arrays_through_a_ring_smaller_than_the_stream():
-    got = list(read_forked(lambda: _items(200), SHAPE, slots=4, batch=3))
+@pytest.mark.parametrize(("slots", "batch"), [(4, 3), (1, 1), (2, 1), (3, 3), (5, 2), (64, 8)])
+def test_items_arrive_in_order_with_their_arrays_through_a_ring_smaller_than_the_stream(slots, batch):
+    # the child waits on a full ring and is woken once half of it is free: no ring and batch size may hang
+    got = list(read_forked(lambda: _items(200), SHAPE, slots=slots, batch=batch))
     assert [payload[0] for payload, _ in got] == list(range(200))
     assert all(payload[1] != os.getpid() for payload, _ in got)   # produced by another process
     # checked after the whole stream: each array is the parent's own copy, not a view of a slot reused since
