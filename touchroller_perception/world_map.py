@@ -159,7 +159,12 @@ class WorldCanvas:
     """Weighted sums on a grid of the world plane: layer 0 sum(w band), 1 sum(w field), 2 sum(w), each a
     plane of `layers` (3, rows, columns). Cell (row r, column c) covers world x in origin_x + [c, c + 1] *
     res, y in origin_y + [r, r + 1] * res (rows grow with y; images flip it). Grows by at least `grow_px`
-    (or half its size) on the side that needs it, unless fixed by `bounds`."""
+    (or half its size) on the side that needs it, unless fixed by `bounds`.
+
+    A growing map's `layers` is a window of a larger zeroed allocation (room on every side, within
+    `max_pixels`): growing into that room moves the window, without copying the sums or allocating again,
+    and the pages of the room are not touched (not made resident) until bands land there. `used()` is the
+    rectangle of cells bands were ever added to: everything outside it is zero."""
 
     def __init__(self, resolution: float, bounds: tuple[float, float, float, float] | None,
                  max_pixels: int, grow_px: int = 512) -> None:
@@ -174,15 +179,48 @@ class WorldCanvas:
         else:
             cols, rows = 0, 0
             self.origin = (0.0, 0.0)
-        self.layers = np.zeros((3, rows, cols), np.float32)
+        self._backing = np.zeros((3, rows, cols), np.float32)
+        self._offset = (0, 0)   # (row, column) of the window's cell (0, 0) in the allocation
+        self.layers = self._backing
+        self._used: list[int] | None = None   # [row0, row1, column0, column1] in the allocation
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.layers.shape[1], self.layers.shape[2]
 
+    def used(self) -> tuple[int, int, int, int] | None:
+        """(row0, row1, column0, column1): the cells bands were added to (the rest is zero); None: none."""
+        if self._used is None:
+            return None
+        ro, co = self._offset
+        r0, r1, c0, c1 = self._used
+        return r0 - ro, r1 - ro, c0 - co, c1 - co
+
     def to_grid(self, xy: np.ndarray) -> np.ndarray:
         """World (x, y) -> fractional (column, row) where pixel centres are whole numbers."""
         return (np.asarray(xy) - np.asarray(self.origin)) / self.resolution - 0.5
+
+    def _window(self, row0: int, col0: int, rows: int, cols: int) -> None:
+        """Make the canvas rows x cols cells whose cell (0, 0) is the old one's (row0, col0): within the
+        allocation if it has room, else in a new one with room on every side (the sums copied)."""
+        ro, co = self._offset[0] + row0, self._offset[1] + col0
+        _, total_rows, total_cols = self._backing.shape
+        if not (ro >= 0 and co >= 0 and ro + rows <= total_rows and co + cols <= total_cols):
+            room = max(rows, cols)
+            while room > 0 and (rows + 2 * room) * (cols + 2 * room) > self.max_pixels:
+                room //= 2
+            backing = np.zeros((3, rows + 2 * room, cols + 2 * room), np.float32)
+            old_rows, old_cols = self.shape
+            if self._used is not None:   # only the cells bands reached can be non-zero
+                r0, r1, c0, c1 = self.used()  # type: ignore[misc]
+                backing[:, room - row0 + r0:room - row0 + r1, room - col0 + c0:room - col0 + c1] = \
+                    self.layers[:, r0:r1, c0:c1]
+                self._used = [room - row0 + r0, room - row0 + r1, room - col0 + c0, room - col0 + c1]
+            elif old_rows and old_cols:
+                backing[:, room - row0:room - row0 + old_rows, room - col0:room - col0 + old_cols] = self.layers
+            self._backing, ro, co = backing, room, room
+        self._offset = (ro, co)
+        self.layers = self._backing[:, ro:ro + rows, co:co + cols]
 
     def ensure(self, c0: int, r0: int, c1: int, r1: int) -> tuple[int, int]:
         """Make columns [c0, c1) and rows [r0, r1) exist (growing, unless fixed); returns the shift of
@@ -197,7 +235,9 @@ class WorldCanvas:
             if (r1 - r0 + 2 * pad) * (c1 - c0 + 2 * pad) > self.max_pixels:
                 raise MemoryError(f"one band needs more than {self.max_pixels} pixels at {self.resolution} m/px")
             new_c0, new_r0 = c0 - pad, r0 - pad
-            self.layers = np.zeros((3, r1 - r0 + 2 * pad, c1 - c0 + 2 * pad), np.float32)
+            self._backing = np.zeros((3, 0, 0), np.float32)
+            self._offset, self._used = (0, 0), None
+            self._window(0, 0, r1 - r0 + 2 * pad, c1 - c0 + 2 * pad)
             self.origin = (self.origin[0] + new_c0 * self.resolution, self.origin[1] + new_r0 * self.resolution)
             return -new_c0, -new_r0
         need = (max(0, -c0), max(0, c1 - cols), max(0, -r0), max(0, r1 - rows))   # left, right, bottom, top
@@ -209,9 +249,7 @@ class WorldCanvas:
             if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
                 raise MemoryError(f"the map would exceed {self.max_pixels} pixels at {self.resolution} m/px "
                                   "(set bounds or a coarser resolution)")
-        layers = np.zeros((3, rows + bottom + top, cols + left + right), np.float32)
-        layers[:, bottom:bottom + rows, left:left + cols] = self.layers
-        self.layers = layers
+        self._window(-bottom, -left, rows + bottom + top, cols + left + right)
         self.origin = (self.origin[0] - left * self.resolution, self.origin[1] - bottom * self.resolution)
         return left, bottom
 
@@ -228,10 +266,34 @@ class WorldCanvas:
             if plane is not None:
                 view = layer[a0:a1, b0:b1]
                 cv2.add(view, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], dst=view)
+        ro, co = self._offset
+        used = self._used
+        if used is None:
+            self._used = [a0 + ro, a1 + ro, b0 + co, b1 + co]
+        else:
+            if a0 + ro < used[0]:
+                used[0] = a0 + ro
+            if a1 + ro > used[1]:
+                used[1] = a1 + ro
+            if b0 + co < used[2]:
+                used[2] = b0 + co
+            if b1 + co > used[3]:
+                used[3] = b1 + co
 
     def value(self, level: float, min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
         """(flat-field-corrected map as float32 grey, weight), rows growing with y."""
-        band, flat, weight = self.layers
+        grey, weight = np.zeros(self.shape, np.float32), np.zeros(self.shape, np.float32)
+        box = self.used()
+        if box is not None:
+            r0, r1, c0, c1 = box
+            grey[r0:r1, c0:c1], weight[r0:r1, c0:c1] = self.value_in(level, box, min_weight)
+        return grey, weight
+
+    def value_in(self, level: float, box: tuple[int, int, int, int],
+                 min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+        """`value` over rows [row0, row1) and columns [column0, column1) of the canvas."""
+        r0, r1, c0, c1 = box
+        band, flat, weight = self.layers[:, r0:r1, c0:c1]
         known = (weight > min_weight) & (flat > 1e-6)
         grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
         return grey, np.where(known, weight, np.float32(0.0))
@@ -525,7 +587,7 @@ class WorldMapper:
         # passes and their registration against the earlier ones
         self._in_contact = False
         self._last_contact_ns: int | None = None
-        self._prior: tuple[np.ndarray, np.ndarray, int, int] | None = None   # (value, weight, c-shift, r-shift)
+        self._prior: _Prior | None = None   # the map as the earlier passes left it, for registration
         self._pass_offsets: list[tuple[float, float, float]] = []   # (dx, dy, score) this pass
         self._pass_delta = np.zeros(2)
         self._delta_offsets = 0   # how many of the pass's offsets `_pass_delta` is the median of
@@ -667,7 +729,9 @@ class WorldMapper:
             return
         weighted = cv2.multiply(field.astype(np.float32), self._weights)
         oriented: dict[tuple[bool, bool, bool], np.ndarray] = {}
-        self.canvas.layers[1] = 0.0
+        box = self.canvas.used()
+        if box is not None:   # layer 1 is zero elsewhere
+            self.canvas.layers[1, box[0]:box[1], box[2]:box[3]] = 0.0
         for placement in self._placements:
             if placement.axes is not None:
                 if placement.axes not in oriented:
@@ -684,17 +748,27 @@ class WorldMapper:
     def map_image(self, crop: bool = True) -> WorldMapImage:
         """The map for files and topics; `crop`: to what was mapped (a growing map's spare room goes;
         a map with `bounds` keeps them)."""
-        grey, weight = self.canvas.value(self._level)
-        mapped = weight > 0.05
         origin = self.canvas.origin
+        box = self.canvas.used()
+        if box is None:
+            grey, weight = self.canvas.value(self._level)
+            box = (0, grey.shape[0], 0, grey.shape[1])
+        else:   # the value where bands were added: zero elsewhere
+            grey, weight = self.canvas.value_in(self._level, box)
+        mapped = weight > 0.05
+        b0, c0 = box[0], box[2]
         if crop and not self.canvas.fixed and mapped.any():
             rows, cols = np.flatnonzero(mapped.any(axis=1)), np.flatnonzero(mapped.any(axis=0))
-            r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-            grey, mapped = grey[r0:r1, c0:c1], mapped[r0:r1, c0:c1]
-            origin = (origin[0] + c0 * self.config.resolution, origin[1] + r0 * self.config.resolution)
-        image = np.clip(grey + 0.5, 0, 255).astype(np.uint8)[::-1]
-        alpha = np.where(mapped[::-1], 255, 0).astype(np.uint8)
-        return WorldMapImage(np.ascontiguousarray(image), np.ascontiguousarray(alpha), self.config.resolution, origin)
+            r0, r1, k0, k1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+            grey, mapped = grey[r0:r1, k0:k1], mapped[r0:r1, k0:k1]
+            origin = (origin[0] + (c0 + k0) * self.config.resolution, origin[1] + (b0 + r0) * self.config.resolution)
+            image, alpha = _grey_alpha(grey, mapped)
+        else:   # the whole canvas
+            shape = self.canvas.shape
+            image, alpha = np.zeros(shape, np.uint8), np.zeros(shape, np.uint8)
+            flipped = (slice(shape[0] - box[1], shape[0] - box[0]), slice(box[2], box[3]))
+            image[flipped], alpha[flipped] = _grey_alpha(grey, mapped)
+        return WorldMapImage(image, alpha, self.config.resolution, origin)
 
     def coverage(self, bounds: tuple[float, float, float, float]) -> float:
         """Percent of the rectangle (x_min, y_min, x_max, y_max) mapped."""
@@ -918,9 +992,12 @@ class WorldMapper:
         self._delta_offsets = 0
         self._pass_frames = 0
         if self.stats.passes > 1 and self.config.register:
-            value, weight = self.canvas.value(self._level)
-            self._prior = (value, weight, 0, 0)
-            self._prior_weight_max = float(weight.max()) or 1.0
+            # the value where bands were added (zero elsewhere): the canvas can be much larger
+            rows, cols = self.canvas.shape
+            box = self.canvas.used() or (0, 0, 0, 0)
+            value, weight = self.canvas.value_in(self._level, box)
+            self._prior = _Prior(value, weight, box[0], box[2], rows, cols)
+            self._prior_weight_max = (float(weight.max()) if weight.size else 0.0) or 1.0
 
     def _end_pass(self) -> None:
         self._flush_pass_buffer()
@@ -1015,8 +1092,7 @@ class WorldMapper:
             matrix[:, 2] += shift
             self._placements = [placement.moved(*shift) for placement in self._placements]
             if self._prior is not None:
-                value, weight, cs, rs = self._prior
-                self._prior = (value, weight, cs + shift[0], rs + shift[1])
+                self._prior = self._prior.moved(*shift)
         aligned = _axis_aligned(matrix, self._weights.shape)
         if aligned is not None:
             # an axis-aligned roller at the band's own scale: turn the band, then one bilinear 2x2 blend
@@ -1050,14 +1126,12 @@ class WorldMapper:
         # the overlap is judged on the weights alone; the band is put on the map only when it is usable
         weights = self._on_map(placement, self._weights, "w")
         c0, r0 = placement.c0, placement.r0
-        value, weight, cs, rs = self._prior
         h, w = weights.shape
-        pr0, pc0 = r0 - rs, c0 - cs
-        rows, cols = value.shape
-        if pr0 < 0 or pc0 < 0 or pr0 + h > rows or pc0 + w > cols:
+        patch = self._prior.patch(r0, c0, h, w)
+        if patch is None:
             return None
-        prior = value[pr0:pr0 + h, pc0:pc0 + w]
-        known = weight[pr0:pr0 + h, pc0:pc0 + w] > 0.3 * self._prior_weight_max
+        prior, prior_weight = patch
+        known = prior_weight > 0.3 * self._prior_weight_max
         mine = weights > 0.3 * float(self._weights.max() if self._weights is not None else 1.0)
         both = known & mine
         s = self.config.search_px
@@ -1082,6 +1156,51 @@ class WorldMapper:
         fy = _parabola_peak(scores[by - 1:by + 2, bx])
         # the template sits at (bx + fx - s, by + fy - s) in the prior: move the frame by that much
         return float(bx + fx - s), float(by + fy - s), float(best)
+
+
+@dataclass(frozen=True)
+class _Prior:
+    """The map's value and weight at a pass's start (what registration compares the pass's frames with):
+    the canvas then was `rows` x `columns`, its cells (r, c) now at (r + r_shift, c + c_shift); computed
+    only over rows [row0, row0 + value rows) and columns [column0, ...) (zero elsewhere)."""
+
+    value: np.ndarray
+    weight: np.ndarray
+    row0: int
+    col0: int
+    rows: int
+    cols: int
+    r_shift: int = 0
+    c_shift: int = 0
+
+    def moved(self, dc: int, dr: int) -> _Prior:
+        return dataclasses.replace(self, r_shift=self.r_shift + dr, c_shift=self.c_shift + dc)
+
+    def patch(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(value, weight) of the canvas's cells [r0, r0 + h) x [c0, c0 + w) as they were at the pass's
+        start; None unless they all existed then."""
+        pr0, pc0 = r0 - self.r_shift, c0 - self.c_shift
+        if pr0 < 0 or pc0 < 0 or pr0 + h > self.rows or pc0 + w > self.cols:
+            return None
+        lr0, lc0 = pr0 - self.row0, pc0 - self.col0
+        rows, cols = self.value.shape
+        if lr0 >= 0 and lc0 >= 0 and lr0 + h <= rows and lc0 + w <= cols:
+            return self.value[lr0:lr0 + h, lc0:lc0 + w], self.weight[lr0:lr0 + h, lc0:lc0 + w]
+        value, weight = np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
+        a0, a1 = max(lr0, 0), min(lr0 + h, rows)
+        b0, b1 = max(lc0, 0), min(lc0 + w, cols)
+        if a1 > a0 and b1 > b0:
+            value[a0 - lr0:a1 - lr0, b0 - lc0:b1 - lc0] = self.value[a0:a1, b0:b1]
+            weight[a0 - lr0:a1 - lr0, b0 - lc0:b1 - lc0] = self.weight[a0:a1, b0:b1]
+        return value, weight
+
+
+def _grey_alpha(grey: np.ndarray, mapped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Image rows (row 0 the top, largest y) of a value and its mapped cells: grey rounded to uint8
+    (clipped to 0..255), alpha 255 where mapped."""
+    image = np.add(grey, np.float32(0.5))
+    np.clip(image, 0, 255, out=image)
+    return cv2.flip(image.astype(np.uint8), 0), cv2.flip(mapped.view(np.uint8), 0) * np.uint8(255)
 
 
 def _median(values: Sequence[float] | np.ndarray) -> float:

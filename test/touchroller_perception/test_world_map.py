@@ -227,3 +227,112 @@ def test_the_map_does_not_depend_on_whether_a_frame_or_its_pose_arrives_first(sc
     assert behind.stats.latency_s == ahead.stats.latency_s
     np.testing.assert_array_equal(behind.map_image().grey, ahead.map_image().grey)
     assert in_place_ssim(behind, sensor) >= 0.90
+
+
+def _naive_sums(patches, shape_hint=(4000, 4000)):
+    """The sums of (plane, column, row) patches on an unbounded grid: (sums, lowest column, lowest row)."""
+    c_lo = min(c for _, c, _ in patches)
+    r_lo = min(r for _, _, r in patches)
+    out = np.zeros((3, *shape_hint), np.float32)
+    for plane, c, r in patches:
+        h, w = plane.shape
+        out[:, r - r_lo:r - r_lo + h, c - c_lo:c - c_lo + w] += plane
+    return out, c_lo, r_lo
+
+
+def test_a_growing_canvas_keeps_its_sums_and_knows_where_bands_were_added():
+    """Growing moves a window over a larger allocation (and past it, into a new one): the sums, the origin
+    and `used()` are those of a canvas that had every cell from the start."""
+    from touchroller_perception.world_map import WorldCanvas
+
+    rng = np.random.default_rng(5)
+    canvas = WorldCanvas(1e-4, None, max_pixels=6_000_000, grow_px=64)
+    patches = []
+    off_c = off_r = 0   # canvas index of grid cell (0, 0)
+    allocations, grown = {}, 0   # (kept alive: ids are not reused)
+    # a walk that grows the canvas on every side, far enough to need a new allocation
+    for k, (c, r) in enumerate([(0, 0), (-300, 40), (500, -200), (900, 700), (-800, -900), (100, 1200)]):
+        plane = rng.uniform(1, 2, (40, 60)).astype(np.float32)
+        dc, dr = canvas.ensure(c + off_c, r + off_r, c + off_c + 60, r + off_r + 40)
+        off_c, off_r = off_c + dc, off_r + dr
+        grown += k > 0 and canvas.layers.base is not None and id(canvas.layers.base) in allocations
+        allocations[id(canvas.layers.base)] = canvas.layers.base
+        assert canvas.origin == pytest.approx((-off_c * 1e-4, -off_r * 1e-4))
+        patches.append((plane, c, r))
+        canvas.add([plane, plane * 2, None], c + off_c, r + off_r)
+        expected, c_lo, r_lo = _naive_sums(patches)
+        r0, r1, c0, c1 = canvas.used()
+        assert (r0, c0) == (r_lo + off_r, c_lo + off_c)
+        np.testing.assert_array_equal(canvas.layers[0, r0:r1, c0:c1], expected[0, :r1 - r0, :c1 - c0])
+        np.testing.assert_array_equal(canvas.layers[1, r0:r1, c0:c1], 2 * expected[0, :r1 - r0, :c1 - c0])
+        assert not canvas.layers[2].any()
+        outside = canvas.layers.copy()
+        outside[:, r0:r1, c0:c1] = 0
+        assert not outside.any()   # nothing but the added cells
+        assert canvas.layers.base is not None   # a window of an allocation
+    assert len(allocations) > 1 and grown > 0   # grown within an allocation, and into a new one
+    assert canvas.shape[0] * canvas.shape[1] <= 6_000_000
+
+
+def test_the_value_where_bands_were_added_is_the_whole_canvas_value():
+    from touchroller_perception.world_map import WorldCanvas
+
+    rng = np.random.default_rng(6)
+    canvas = WorldCanvas(1e-4, None, max_pixels=1_000_000)
+    canvas.ensure(0, 0, 50, 30)
+    weights = rng.uniform(0, 1, (30, 50)).astype(np.float32)
+    weights[:5] = 0   # some cells known to no band
+    canvas.add([weights * 90, weights * 0.8, weights], 7, 9)
+    grey, weight = canvas.value(100.0)
+    box = canvas.used()
+    assert box is not None
+    r0, r1, c0, c1 = box
+    part = canvas.value_in(100.0, box)
+    np.testing.assert_array_equal(grey[r0:r1, c0:c1], part[0])
+    np.testing.assert_array_equal(weight[r0:r1, c0:c1], part[1])
+    assert not grey[:r0].any() and not weight[:, c1:].any()
+    known = weights > 1e-3
+    np.testing.assert_allclose(part[0][known], 90 * 100 / 0.8, rtol=1e-5)
+    assert not part[0][~known].any()
+
+
+def test_a_registration_prior_outside_what_was_mapped_reads_as_unmapped():
+    """The prior is computed where bands were added; a patch partly outside it is zero there, and one
+    outside the canvas of the pass's start is refused, as when the prior covered the whole canvas."""
+    from touchroller_perception.world_map import _Prior
+
+    rng = np.random.default_rng(7)
+    full_value, full_weight = np.zeros((2, 100, 120), np.float32)
+    full_value[20:60, 30:90] = rng.uniform(1, 2, (40, 60))
+    full_weight[20:60, 30:90] = rng.uniform(0.5, 1, (40, 60))
+    prior = _Prior(full_value[20:60, 30:90].copy(), full_weight[20:60, 30:90].copy(), 20, 30, 100, 120)
+    moved = prior.moved(5, 3)   # the canvas grew: 5 columns on the left, 3 rows at the bottom
+    for r0, c0, h, w in [(25, 40, 10, 10), (10, 20, 30, 80), (0, 0, 100, 120), (55, 85, 20, 30)]:
+        value, weight = moved.patch(r0 + 3, c0 + 5, h, w)
+        np.testing.assert_array_equal(value, full_value[r0:r0 + h, c0:c0 + w])
+        np.testing.assert_array_equal(weight, full_weight[r0:r0 + h, c0:c0 + w])
+    assert moved.patch(2, 5, 10, 10) is None and moved.patch(3, 4, 10, 10) is None
+    assert moved.patch(3 + 95, 5, 6, 10) is None and moved.patch(3, 5 + 111, 10, 10) is None
+
+
+def test_map_image_of_a_fixed_map_keeps_its_bounds_and_a_growing_one_is_cropped():
+    from touchroller_perception.world_map import WorldCanvas, WorldMapper
+
+    rng = np.random.default_rng(8)
+    band = rng.uniform(0.5, 1, (20, 30)).astype(np.float32)
+    images = {}
+    for bounds in ((0.0, 0.0, 0.01, 0.008), None):
+        mapper = WorldMapper.__new__(WorldMapper)   # the canvas and the map's level only
+        mapper.config = WorldMapConfig(bounds=bounds)
+        mapper.canvas = WorldCanvas(1e-4, bounds, 10**6)
+        mapper._level = 100.0
+        mapper.canvas.ensure(10, 15, 40, 35)
+        mapper.canvas.add([band * 1.2, band, band], 10, 15)
+        images[bounds is None] = mapper.map_image(), mapper.canvas.origin
+    (fixed, _), (grown, origin) = images[False], images[True]
+    assert fixed.grey.shape == (80, 100) and fixed.origin == (0.0, 0.0)
+    assert fixed.alpha[80 - 35:80 - 15, 10:40].all() and fixed.alpha.sum() == 255 * 20 * 30
+    np.testing.assert_array_equal(fixed.grey[80 - 35:80 - 15, 10:40], grown.grey)
+    assert (fixed.grey[80 - 35:80 - 15, 10:40] == 120).all() and grown.alpha.all()
+    assert grown.grey.shape == (20, 30)
+    assert grown.origin == pytest.approx((origin[0] + 10 * 1e-4, origin[1] + 15 * 1e-4))
