@@ -22,6 +22,24 @@ def scenes():
             hemi.camera)
 
 
+def test_intrinsics_corner_path_is_chosen_on_the_command_line(scenes, bag_factory, tmp_path, capsys):
+    """--corners image keeps the corners found in the image (the previous path); the default refines
+    them on the board's plane: both calibrate, from different corners."""
+    chess, _, truth = scenes
+    bag = bag_factory(chess)
+    cameras = {}
+    for corners in ("image", None):
+        out = tmp_path / f"{corners}.yaml"
+        extra = ["--corners", corners] if corners else []
+        assert main(["calibrate", "intrinsics", str(bag), "--out", str(out), *extra]) == 0
+        cameras[corners] = CameraModel.from_yaml(out)
+        assert abs(cameras[corners].fx - truth.fx) < 1.5
+    assert cameras["image"].fx != cameras[None].fx
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["calibrate", "intrinsics", str(bag), "--out", str(tmp_path / "x.yaml"), "--corners", "edges"])
+
+
 def test_calibrate_bags_end_to_end(scenes, bag_factory, tmp_path, capsys):
     chess, hemi, truth = scenes
     out = tmp_path / "cal.yaml"

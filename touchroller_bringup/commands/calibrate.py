@@ -46,6 +46,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     intr.add_argument("--distortion", choices=("auto", "k1", "k1k2", "radial", "k1k2p", "full"), default="auto",
                       help="auto (default): k1, k2, p1, p2, plus k3 only when views held out of the fit need "
                            "it; or a fixed model: k1, k1k2, radial (k1, k2, k3), k1k2p, full (k1, k2, p1, p2, k3)")
+    intr.add_argument("--corners", choices=("fronto_parallel", "image"), default="fronto_parallel",
+                      help="fronto_parallel (default): the corners refined on the board's plane with the lens of a "
+                           "first fit; image: the corners as found in the image (the previous path, for comparison)")
     intr.set_defaults(func=run_intrinsics)
 
     extr = steps.add_parser("extrinsics", help="theta and d from hemisphere-frame presses",
@@ -151,7 +154,8 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     images, _ = load_images(args.input, args.topic)
     try:
         config = cal.IntrinsicsConfig(board=cal.Chessboard(columns=columns, rows=rows, square=args.square),
-                                      max_view_rms=args.max_view_rms, distortion=args.distortion)
+                                      max_view_rms=args.max_view_rms, distortion=args.distortion,
+                                      corners=args.corners)
         result = cal.calibrate_intrinsics(images, config, prior=prior, on_view=_view_progress(len(images)))
     except cal.CalibrationError as exc:
         raise UserError(f"calibrate intrinsics: {exc}") from None
