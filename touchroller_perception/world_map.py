@@ -266,6 +266,21 @@ class WorldCanvas:
             if plane is not None:
                 view = layer[a0:a1, b0:b1]
                 cv2.add(view, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], dst=view)
+        self._mark(a0, a1, b0, b1)
+
+    def add_stack(self, planes: np.ndarray, c0: int, r0: int) -> None:
+        """`add` of a (3, h, w) stack of the three layers' patches."""
+        rows, cols = self.shape
+        _, h, w = planes.shape
+        a0, b0 = max(r0, 0), max(c0, 0)
+        a1, b1 = min(r0 + h, rows), min(c0 + w, cols)
+        if a1 <= a0 or b1 <= b0:
+            return
+        view = self.layers[:, a0:a1, b0:b1]
+        np.add(view, planes[:, a0 - r0:a1 - r0, b0 - c0:b1 - c0], out=view)
+        self._mark(a0, a1, b0, b1)
+
+    def _mark(self, a0: int, a1: int, b0: int, b1: int) -> None:
         ro, co = self._offset
         used = self._used
         if used is None:
@@ -360,6 +375,23 @@ def _orient(plane: np.ndarray, axes: tuple[bool, bool, bool]) -> np.ndarray:
     if flip_rows or flip_cols:
         out = cv2.flip(out, -1 if flip_rows and flip_cols else (0 if flip_rows else 1))
     return cv2.copyMakeBorder(out, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+
+
+def _orient_into(plane: np.ndarray, axes: tuple[bool, bool, bool], out: np.ndarray) -> None:
+    """`_orient(plane, axes)` without its border, written into `out` (e.g. the inside of a bordered buffer)."""
+    transpose, flip_rows, flip_cols = axes
+    code = -1 if flip_rows and flip_cols else (0 if flip_rows else 1)
+    if transpose:
+        written = cv2.transpose(plane, dst=out)
+        if flip_rows or flip_cols:
+            written = cv2.flip(out, code, dst=out)
+    elif flip_rows or flip_cols:
+        written = cv2.flip(plane, code, dst=out)
+    else:
+        np.copyto(out, plane)
+        written = out
+    if not np.shares_memory(written, out):   # OpenCV made a new array instead of writing into `out`
+        raise AssertionError("_orient_into: the output was not written in place")
 
 
 def _blend(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -567,6 +599,8 @@ class WorldMapper:
         self._placements: list[_Placement] = []   # where each band went, for finalise
         self._weighted_field: tuple[np.ndarray, np.ndarray, dict] | None = None   # (field, w field, oriented)
         self._oriented_weights: dict[tuple[bool, bool, bool], np.ndarray] = {}
+        # per orientation: (the w field it holds, the stacked planes `_blend_stack` blends)
+        self._stacks: dict[tuple[bool, bool, bool], tuple[np.ndarray, np.ndarray]] = {}
         self._level_field: np.ndarray | None = None
         self._prior_weight_max = 1.0
         # latency windows: the recent confident (stamp, position) of the strip stitcher, and roll events
@@ -1042,9 +1076,13 @@ class WorldMapper:
         ys = (f, d * w + f, e * h + f, d * w + e * h + f)
         return math.floor(min(xs)) - 1, math.floor(min(ys)) - 1, math.ceil(max(xs)) + 2, math.ceil(max(ys)) + 2
 
-    def _band_planes(self, frame: _Frame) -> tuple[np.ndarray, np.ndarray]:
-        """(w band, w field) in band coordinates; w field is shared while the flat field stays the same."""
+    def _band_planes(self, frame: _Frame, field_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(w band, w field) in band coordinates; w field is shared while the flat field stays the same.
+        `field_only`: the frame has a field and only w field is wanted (the first may be the band)."""
         assert self._weights is not None
+        if field_only and frame.field is not None and self._weighted_field is not None \
+                and self._weighted_field[0] is frame.field:
+            return frame.band, self._weighted_field[1]
         band = frame.band if frame.band.dtype != np.uint16 else cv2.multiply(frame.band, 1.0 / 256, dtype=cv2.CV_32F)
         weighted = cv2.multiply(band, self._weights)
         if frame.field is None:
@@ -1061,13 +1099,33 @@ class WorldMapper:
             out = cache[axes] = _orient(plane, axes)
         return out
 
-    def _warp(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> tuple[list[np.ndarray], _Placement]:
-        """The frame's [w band, w field, w] on the map grid (lowest cell at the placement's c0, r0)."""
-        assert self._weights is not None
-        placement = self._locate(pose, delta)
-        weighted_band, weighted_field = self._band_planes(frame)
-        return [self._on_map(placement, weighted_band), self._on_map(placement, weighted_field, "field"),
-                self._on_map(placement, self._weights, "w")], placement
+    def _blend_stack(self, frame: _Frame, placement: _Placement) -> np.ndarray:
+        """(3, h + 1, w + 1): the frame's w band, w field and w on the map grid at an axis-aligned
+        `placement` (a frame with a flat field): the same numbers as `_on_map` of each, in one bilinear
+        blend of the three oriented planes stacked in a buffer kept per orientation."""
+        assert self._weights is not None and placement.axes is not None and placement.kernel is not None
+        assert frame.field is not None
+        axes = placement.axes
+        _, weighted_field = self._band_planes(frame, field_only=True)
+        stack = self._stacks.get(axes)
+        if stack is None or stack[0] is not weighted_field:
+            buffer = stack[1] if stack is not None else None
+            oriented_w = self._oriented("w", self._weights, axes)
+            h, w = oriented_w.shape
+            if buffer is None:
+                buffer = np.zeros((3, h, w), np.float32)   # each plane with its zero border
+                buffer[2] = oriented_w
+            buffer[1] = self._oriented("field", weighted_field, axes)
+            self._stacks[axes] = stack = (weighted_field, buffer)
+        buffer = stack[1]
+        _, h, w = buffer.shape
+        inner = buffer[0, 1:-1, 1:-1]
+        band = frame.band if frame.band.dtype != np.uint16 else cv2.multiply(frame.band, 1.0 / 256, dtype=cv2.CV_32F)
+        _orient_into(band, axes, inner)
+        cv2.multiply(inner, buffer[2, 1:-1, 1:-1], dst=inner)
+        blended = cv2.filter2D(buffer.reshape(3 * h, w), -1, placement.kernel, anchor=(0, 0),
+                               borderType=cv2.BORDER_CONSTANT)
+        return blended.reshape(3, h, w)[:, :-1, :-1]
 
     def _on_map(self, placement: _Placement, plane: np.ndarray, constant: str | None = None) -> np.ndarray:
         """A plane in band coordinates on the map grid at `placement`; `constant` names a plane that stays
@@ -1105,11 +1163,18 @@ class WorldMapper:
 
     def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
         try:
-            planes, placement = self._warp(frame, pose, delta)
+            placement = self._locate(pose, delta)
         except MemoryError:   # the map keeps what it has; the caller sees the count (max_pixels bounds memory)
             self.stats.beyond_max_pixels += 1
             return
-        self.canvas.add(planes, placement.c0, placement.r0)
+        if placement.axes is not None and frame.field is not None:
+            self.canvas.add_stack(self._blend_stack(frame, placement), placement.c0, placement.r0)
+        else:
+            assert self._weights is not None
+            weighted_band, weighted_field = self._band_planes(frame)
+            planes = [self._on_map(placement, weighted_band), self._on_map(placement, weighted_field, "field"),
+                      self._on_map(placement, self._weights, "w")]
+            self.canvas.add(planes, placement.c0, placement.r0)
         self._placements.append(placement)
         self.stats.mapped += 1
         if frame.field is not None:

@@ -336,3 +336,33 @@ def test_map_image_of_a_fixed_map_keeps_its_bounds_and_a_growing_one_is_cropped(
     assert (fixed.grey[80 - 35:80 - 15, 10:40] == 120).all() and grown.alpha.all()
     assert grown.grey.shape == (20, 30)
     assert grown.origin == pytest.approx((origin[0] + 10 * 1e-4, origin[1] + 15 * 1e-4))
+
+
+@pytest.mark.parametrize("turn", [((0, 1), (1, 0)), ((0, -1), (1, 0)), ((0, 1), (-1, 0)), ((0, -1), (-1, 0)),
+                                  ((1, 0), (0, 1)), ((-1, 0), (0, 1)), ((1, 0), (0, -1)), ((-1, 0), (0, -1))])
+def test_the_three_layers_blended_together_are_each_layer_blended_alone(turn):
+    """A frame with a flat field at an axis-aligned placement: w band, w field and w blended in one stacked
+    buffer (kept per orientation, its field planes renewed when the field changes) are, to the bit, each
+    plane oriented and blended on its own."""
+    from touchroller_perception.world_map import _axis_aligned, _Frame, _Placement
+
+    rng = np.random.default_rng(9)
+    mapper = WorldMapper.__new__(WorldMapper)   # the placing state only
+    mapper._weights = rng.uniform(0, 1, (30, 50)).astype(np.float32)
+    mapper._weighted_field, mapper._oriented_weights, mapper._stacks = None, {}, {}
+    matrix = np.array([[turn[0][0], turn[0][1], 70.3], [turn[1][0], turn[1][1], 60.7]], np.float64)
+    axes, c0, r0, kernel = _axis_aligned(matrix, mapper._weights.shape)
+    placement = _Placement(c0, r0, axes, kernel=kernel)
+    fields = [rng.uniform(50, 200, (30, 50)).astype(np.float32) for _ in range(2)]
+    for k in range(4):
+        band = rng.uniform(0, 255, (30, 50)).astype(np.float32)
+        if k == 3:   # a band held in 16 bits
+            band = (band * 256).astype(np.uint16)
+        frame = _Frame(k, band, fields[k // 2], None)
+        stacked = mapper._blend_stack(frame, placement)
+        weighted_band, weighted_field = mapper._band_planes(frame)
+        alone = [mapper._on_map(placement, weighted_band), mapper._on_map(placement, weighted_field, "field"),
+                 mapper._on_map(placement, mapper._weights, "w")]
+        assert stacked.shape == (3, *alone[0].shape)
+        for layer, plane in zip(stacked, alone, strict=True):
+            np.testing.assert_array_equal(layer, plane)
