@@ -170,26 +170,43 @@ def saddle_points(gray: np.ndarray, corners: np.ndarray, spacing: float, iterati
     weight = np.exp(-(x * x + y * y) / (2.0 * (half / 2.0) ** 2))
     design = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1) * weight[:, None]
     solve = np.linalg.pinv(design)                         # (6, window) weighted least squares
-    out = np.asarray(corners, dtype=np.float64).reshape(-1, 2).copy()
-    size = (2 * half + 1, 2 * half + 1)
-    for k, start in enumerate(out.copy()):
-        point = start.copy()
-        for _ in range(iterations):
-            patch = cv2.getRectSubPix(smooth, size, (float(point[0]), float(point[1])))
-            a, b, c, d, e, _ = solve @ (patch.astype(np.float64).ravel() * weight)
-            hessian = np.array([[2.0 * a, b], [b, 2.0 * c]])
-            if np.linalg.det(hessian) >= 0:          # not a saddle
-                point = start
-                break
-            step = np.linalg.solve(hessian, -np.array([d, e]))
-            point = point + step
-            if np.linalg.norm(point - start) > half:
-                point = start
-                break
-            if np.linalg.norm(step) < 1e-4:
-                break
-        out[k] = point
-    return out
+    # all corners at once, each iterated until its step is below 1e-4 px (or it is given up)
+    start = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    point = start.copy()
+    active = np.ones(len(point), dtype=bool)
+    for _ in range(iterations):
+        if not active.any():
+            break
+        patches = _bilinear_patches(smooth, point[active], half).reshape(int(active.sum()), -1)
+        a, b, c, d, e, _ = ((patches * weight) @ solve.T).T
+        det = 4.0 * a * c - b * b                   # of the Hessian [[2a, b], [b, 2c]]
+        saddle = det < 0                            # else not a saddle: left where it was
+        safe = np.where(saddle, det, -1.0)
+        step = np.stack([-(2.0 * c * d - b * e) / safe, -(2.0 * a * e - b * d) / safe], axis=1)
+        moved = point[active] + step
+        far = np.linalg.norm(moved - start[active], axis=1) > half
+        index = np.flatnonzero(active)
+        given_up = ~saddle | far
+        point[index] = np.where(given_up[:, None], start[index], moved)
+        active[index] = ~given_up & (np.linalg.norm(step, axis=1) >= 1e-4)
+    return point
+
+
+def _bilinear_patches(image: np.ndarray, centres: np.ndarray, half: int) -> np.ndarray:
+    """(N, 2 half + 1, 2 half + 1) windows of `image` centred on each (x, y) of `centres`, bilinearly
+    interpolated with the border replicated: cv2.getRectSubPix for many centres in one go."""
+    offsets = np.arange(-half, half + 1, dtype=np.float64)
+    x = centres[:, 0, None, None] + offsets[None, None, :]
+    y = centres[:, 1, None, None] + offsets[None, :, None]
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+    height, width = image.shape[:2]
+    xa, xb = np.clip(x0, 0, width - 1).astype(np.intp), np.clip(x0 + 1, 0, width - 1).astype(np.intp)
+    ya, yb = np.clip(y0, 0, height - 1).astype(np.intp), np.clip(y0 + 1, 0, height - 1).astype(np.intp)
+    pixels = np.asarray(image)   # gathered values meet float64 weights: interpolated in float64
+    top = pixels[ya, xa] * (1.0 - fx) + pixels[ya, xb] * fx
+    bottom = pixels[yb, xa] * (1.0 - fx) + pixels[yb, xb] * fx
+    return top * (1.0 - fy) + bottom * fy
 
 
 #: fronto-parallel refinement: canonical image pixels per board square, the saddle fit's smoothing and

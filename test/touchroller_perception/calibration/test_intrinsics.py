@@ -160,6 +160,32 @@ def test_the_saddle_point_of_an_ideal_corner_is_the_corner():
     assert np.array_equal(intrinsics.saddle_points(blob, np.array([[30.4, 29.7]]), spacing=20.0), [[30.4, 29.7]])
 
 
+def test_saddle_windows_are_those_of_get_rect_sub_pix():
+    """The saddle fit takes all corners' windows in one go; each is cv2.getRectSubPix's (bilinear,
+    border replicated), also for centres by and beyond the image's edge."""
+    from touchroller_perception.calibration import intrinsics
+
+    rng = np.random.default_rng(3)
+    image = cv2.GaussianBlur(rng.uniform(0, 255, (40, 50)).astype(np.float32), (0, 0), 1.5)
+    centres = np.vstack([rng.uniform([0.0, 0.0], [49.0, 39.0], (20, 2)), [[0.3, 0.2], [48.7, 38.9], [-2.5, 41.25]]])
+    patches = intrinsics._bilinear_patches(image, centres, 4)
+    for centre, patch in zip(centres, patches, strict=True):
+        expected = cv2.getRectSubPix(image, (9, 9), (float(centre[0]), float(centre[1])))
+        np.testing.assert_allclose(patch, expected, atol=1e-3)
+
+
+def test_a_corner_on_non_finite_pixels_is_left_where_it_was():
+    from touchroller_perception.calibration import intrinsics
+
+    image, truth = rendered_board(0, noise=0.0)
+    grey = image.astype(np.float32)
+    u, v = np.round(truth[0]).astype(int)
+    grey[v - 3:v + 4, u - 3:u + 4] = np.nan
+    refined = intrinsics.saddle_points(grey, truth + 0.3, spacing=15.0)
+    assert np.array_equal(refined[0], truth[0] + 0.3)
+    assert np.all(np.isfinite(refined)) and np.abs(refined[1:] - truth[1:]).max() < 0.1
+
+
 def test_corners_refined_on_the_board_plane_are_nearer_the_truth_under_uneven_light():
     """On tilted boards under light that falls by 40 % across the image, the corners refined on the
     board's plane (the view resampled fronto-parallel, divided by the light, a window of almost half
