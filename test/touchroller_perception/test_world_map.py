@@ -366,3 +366,16 @@ def test_the_three_layers_blended_together_are_each_layer_blended_alone(turn):
         assert stacked.shape == (3, *alone[0].shape)
         for layer, plane in zip(stacked, alone, strict=True):
             np.testing.assert_array_equal(layer, plane)
+
+
+def test_a_stack_of_the_three_layers_adds_as_the_planes_do():
+    from touchroller_perception.world_map import WorldCanvas
+
+    rng = np.random.default_rng(10)
+    canvases = [WorldCanvas(1e-4, (0.0, 0.0, 0.01, 0.008), 10**6) for _ in range(2)]
+    for c0, r0 in [(10, 20), (-5, 70), (90, -3)]:   # inside, and clipped at the map's sides
+        planes = rng.uniform(0, 1, (3, 25, 15)).astype(np.float32)
+        canvases[0].add(list(planes), c0, r0)
+        canvases[1].add_stack(planes, c0, r0)
+    np.testing.assert_array_equal(canvases[0].layers, canvases[1].layers)
+    assert canvases[0].used() == canvases[1].used() == (0, 80, 0, 100)
