@@ -73,6 +73,9 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
                           "(applied only when the presses show it)", None, None),
     "intrinsics.distortion": ("auto", "Distortion model: auto (k1, k2, p1, p2, plus k3 when held-out views need "
                                       f"it) or one of {', '.join(cal.DISTORTION_MODELS)}", None, None),
+    "intrinsics.corners": ("fronto_parallel", "Chessboard corners: fronto_parallel (refined on the board's plane "
+                                              "with the lens of a first fit) or image (as found in the image)",
+                           None, None),
     "imprints.centre": ("shading", "Imprint centres: shading (corrected for light from one side) or centroid",
                         None, None),
 }
@@ -80,6 +83,7 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
 CHOICES: dict[str, tuple[str, ...]] = {
     "target": TARGETS,
     "intrinsics.distortion": ("auto", *cal.DISTORTION_MODELS),
+    "intrinsics.corners": cal.CORNER_METHODS,
     "imprints.centre": cal.CENTRE_ESTIMATORS,
 }
 
@@ -151,7 +155,8 @@ class CalibrationNode(Node):
 
     def _intrinsics_config(self) -> cal.IntrinsicsConfig:
         distortion = str(self.get_parameter("intrinsics.distortion").value)
-        return cal.IntrinsicsConfig(board=self._board(), distortion=distortion)
+        return cal.IntrinsicsConfig(board=self._board(), distortion=distortion,
+                                    corners=str(self.get_parameter("intrinsics.corners").value))
 
     def _extrinsics_config(self) -> cal.ExtrinsicsConfig:
         detector = cal.ImprintDetectorConfig(centre=str(self.get_parameter("imprints.centre").value))

@@ -129,9 +129,16 @@ def test_rejects_an_unknown_target(graph):
     node = graph[0]
     result = node.set_parameters([Parameter("target", value="teapot")])[0]
     assert not result.successful and "target must be one of" in result.reason
-    for name in ("intrinsics.distortion", "imprints.centre"):
+    for name in ("intrinsics.distortion", "intrinsics.corners", "imprints.centre"):
         result = node.set_parameters([Parameter(name, value="teapot")])[0]
         assert not result.successful and f"{name} must be one of" in result.reason
+
+
+def test_the_corner_path_is_a_parameter(graph):
+    node = graph[0]
+    assert node._intrinsics_config().corners == "fronto_parallel"
+    assert node.set_parameters([Parameter("intrinsics.corners", value="image")])[0].successful
+    assert node._intrinsics_config().corners == "image"
 
 
 def test_coverage_is_published_on_diagnostics(graph, spin_until):
