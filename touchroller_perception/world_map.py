@@ -1201,10 +1201,11 @@ class WorldMapper:
         mine = weights > 0.3 * float(self._weights.max() if self._weights is not None else 1.0)
         both = known & mine
         s = self.config.search_px
-        ys, xs = np.nonzero(both)
-        if len(ys) < 400:
+        if np.count_nonzero(both) < 400:
             return None
-        a0, a1, b0, b1 = ys.min() + s, ys.max() - s, xs.min() + s, xs.max() - s
+        # the overlap's bounding rows and columns (np.nonzero's index arrays cost 5x as much)
+        ys, xs = np.flatnonzero(both.any(axis=1)), np.flatnonzero(both.any(axis=0))
+        a0, a1, b0, b1 = int(ys[0]) + s, int(ys[-1]) - s, int(xs[0]) + s, int(xs[-1]) - s
         if a1 - a0 < 12 or b1 - b0 < 12 or not both[a0:a1, b0:b1].all():
             # the overlap is not a full rectangle: use its largest all-covered rows band
             return None
