@@ -376,6 +376,6 @@ def test_a_stack_of_the_three_layers_adds_as_the_planes_do():
     for c0, r0 in [(10, 20), (-5, 70), (90, -3)]:   # inside, and clipped at the map's sides
         planes = rng.uniform(0, 1, (3, 25, 15)).astype(np.float32)
         canvases[0].add(list(planes), c0, r0)
-        canvases[1].add_stack(planes, c0, r0)
+        canvases[1].add(planes, c0, r0)   # the (3, h, w) stack itself
     np.testing.assert_array_equal(canvases[0].layers, canvases[1].layers)
     assert canvases[0].used() == canvases[1].used() == (0, 80, 0, 100)
