@@ -370,6 +370,12 @@ class IntrinsicsConfig:
             if not getattr(self, name) > 0:
                 raise CalibrationError(f"{name} must be positive, got {getattr(self, name)}")
 
+    @property
+    def screening_model(self) -> str:
+        """The distortion model of the fits that screen the views and place the board-plane refinement:
+        the given one, or for "auto" the smallest candidate (k1, k2, p1, p2)."""
+        return AUTO_CANDIDATES[0] if self.distortion == "auto" else self.distortion
+
 
 @dataclasses.dataclass(frozen=True)
 class ModelScore:
@@ -457,10 +463,9 @@ def refine_on_the_board(images: Sequence[np.ndarray], corners: dict[int, FloatAr
     corners are kept."""
     if len(corners) < config.min_views:
         return dict(corners)
-    screening = AUTO_CANDIDATES[0] if config.distortion == "auto" else config.distortion
     try:
         first = _zhang(config.board.object_points(), [corners[i] for i in sorted(corners)], size,
-                       DISTORTION_MODELS[screening])
+                       DISTORTION_MODELS[config.screening_model])
     except CalibrationError:
         return dict(corners)
     return {i: fronto_parallel_corners(to_grey(images[i]), found, first.k_matrix, first.distortion, config.board)
@@ -491,10 +496,10 @@ def calibrate_intrinsics(images: Iterable[np.ndarray], config: IntrinsicsConfig 
     corners, rejected = detect_chessboards(images, config, on_view)
     require_views(len(corners), config.min_views, len(images), rejected, "chessboard")
     object_points = config.board.object_points()
-    screening = AUTO_CANDIDATES[0] if config.distortion == "auto" else config.distortion
     if config.corners == "fronto_parallel":
         corners = refine_on_the_board(images, corners, size, config)
-    corners = _reject_outlier_views(object_points, corners, size, DISTORTION_MODELS[screening], config, rejected)
+    corners = _reject_outlier_views(object_points, corners, size, DISTORTION_MODELS[config.screening_model],
+                                    config, rejected)
     views = [corners[i] for i in sorted(corners)]
     choice = choose_distortion_model(object_points, views, size, config)
     model = choice.model
