@@ -11,7 +11,8 @@ storage file holds everything up to its last second; `reindex` makes that readab
   Footer without a summary (valid MCAP: readers then scan the data section); a chunk cut off half-way
   is dropped whole. Topics come from the channel records, counts and times from the message records.
 
-Then metadata.yaml is written (rosbag2 version 9, the fields `rosbags` writes), atomically.
+Then metadata.yaml is written, atomically, in the form of the QoS text the storage holds
+(`touchroller_bringup.bag_format`: Humble's version 5, or version 9 for a bag written for Jazzy or Kilted).
 """
 from __future__ import annotations
 
@@ -26,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 from touchroller_bringup.errors import UserError
-from touchroller_perception.files import atomic_write
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_DATA_END = 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F
@@ -58,7 +58,8 @@ class RecoveredBag:
 
 
 def reindex(path: str | Path) -> RecoveredBag:
-    """Make the bag at `path` readable again; UserError (one line) when there is nothing to recover."""
+    """Make the bag at `path` readable again; UserError (one line) when there is nothing to recover.
+    The metadata takes the form of the QoS text the storage holds (`bag_format.stored_form`)."""
     path = Path(path)
     if path.is_file():
         path = path.parent
@@ -87,7 +88,10 @@ def reindex(path: str | Path) -> RecoveredBag:
                 known.count += topic.count
         start, end = min(start, first), max(end, last)
         per_file.append(_FileSpan(file.name, sum(t.count for t in found), first, last))
-    _write_metadata(path, storage, per_file, list(topics.values()), start, end)
+    from touchroller_bringup.bag_format import stored_form
+
+    distro = stored_form([t.offered_qos_profiles for t in topics.values()])
+    _write_metadata(path, storage, per_file, list(topics.values()), start, end, distro)
     counts = {t.name: t.count for t in topics.values()}
     return RecoveredBag(path, storage, files[0], sum(counts.values()), counts, repaired, dropped)
 
@@ -288,9 +292,10 @@ def _type_hash(msgtype: str) -> str:
 
 
 def _write_metadata(path: Path, storage: str, files: list[_FileSpan], topics: list[_Topic], start: int,
-                    end: int) -> None:
+                    end: int, distro: str) -> None:
     from rosbags.rosbag2.metadata import dump_qos_v9, parse_qos
-    from ruamel.yaml import YAML
+
+    from touchroller_bringup import bag_format
 
     count = sum(t.count for t in topics)
     start = start if count else 0
@@ -314,12 +319,9 @@ def _write_metadata(path: Path, storage: str, files: list[_FileSpan], topics: li
                    "duration": {"nanoseconds": max(0, f.last - f.first) if f.count else 0},
                    "message_count": f.count} for f in files],
         "custom_data": None,
-        "ros_distro": "rosbags",
+        "ros_distro": distro,
     }
-    yaml = YAML(typ="safe")
-    yaml.default_flow_style = False
-    with atomic_write(path / "metadata.yaml", "wb") as stream:
-        yaml.dump({"rosbag2_bagfile_information": information}, stream)
+    bag_format.write_metadata(path, bag_format.metadata(information, distro))
 
 
 def counts_by_topic(found: RecoveredBag) -> str:

@@ -58,9 +58,12 @@ def typestore():
     return get_typestore(Stores.ROS2_KILTED)
 
 
-def bag_writer(path: str | Path, storage: Storage = "sqlite3"):
-    """A rosbags Writer (not yet opened) for a new rosbag2 folder; with MCAP every chunk carries its CRC-32."""
+def bag_writer(path: str | Path, storage: Storage = "sqlite3", distro: str = "auto"):
+    """A rosbags Writer (not yet opened) for a new rosbag2 folder that `distro`'s rosbag2 reads
+    (`touchroller_bringup.bag_format`); with MCAP every chunk carries its CRC-32."""
     from rosbags.rosbag2 import StoragePlugin
+
+    from touchroller_bringup import bag_format
 
     plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
     if plugin is None:
@@ -68,7 +71,10 @@ def bag_writer(path: str | Path, storage: Storage = "sqlite3"):
     path = Path(path)
     if path.exists():
         raise UserError(f"bag {path} already exists")
-    return _writer_class()(path, version=9, storage_plugin=plugin)
+    distro = bag_format.resolve(distro)
+    writer = _writer_class()(path, version=bag_format.writer_version(distro), storage_plugin=plugin)
+    writer.distro = distro
+    return writer
 
 
 def _writer_class():
@@ -94,6 +100,19 @@ def _writer_class():
 
     class CrcWriter(Writer):
         STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: CrcMcapWriter}
+        distro = "kilted"
+
+        def add_connection(self, topic, msgtype, *, offered_qos_profiles=(), **kwargs):  # type: ignore[no-untyped-def]
+            from touchroller_bringup.bag_format import offered_qos
+
+            return super().add_connection(topic, msgtype, **kwargs,
+                                          offered_qos_profiles=offered_qos(list(offered_qos_profiles), self.distro))
+
+        def close(self) -> None:
+            from touchroller_bringup.bag_format import rewrite_metadata
+
+            super().close()
+            rewrite_metadata(self.path, self.distro)
 
     return CrcWriter
 
@@ -386,12 +405,24 @@ def _parse_image_cdr(raw: bytes | memoryview) -> tuple[int, np.ndarray]:
     return stamp_ns, image_to_array(msg)
 
 
+def offered_qos(latched: bool = False):
+    """The QoS our publishers offer (reliable; transient local for latched topics such as /tf_static), as
+    a bag stores it, so `ros2 bag play` offers the same."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    unspecified = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, 1 if latched else 10, QosReliability.RELIABLE,
+               QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE, unspecified, unspecified,
+               QosLiveliness.AUTOMATIC, unspecified, False)
+
+
 def write_images(
     path: str | Path,
     records: Iterable[ImageRecord | tuple[int, np.ndarray]],
     topic: str = IMAGE_TOPIC,
     storage: Storage = "sqlite3",
     frame_id: str = names.CAMERA_FRAME,
+    distro: str = "auto",
 ) -> int:
     """Write images as sensor_msgs/Image to a new rosbag2 folder; returns the number written."""
     from rosbags.typesys.stores.ros2_kilted import builtin_interfaces__msg__Time as Time
@@ -402,8 +433,8 @@ def write_images(
 
     store = typestore()
     count = 0
-    with bag_writer(path, storage) as writer:
-        connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store)
+    with bag_writer(path, storage, distro) as writer:
+        connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store, offered_qos_profiles=[offered_qos()])
         for record in records:
             stamp_ns, image = (record.stamp_ns, record.image) if isinstance(record, ImageRecord) else record
             image = np.ascontiguousarray(image)
@@ -424,6 +455,7 @@ def write_scan(
     topic: str = IMAGE_TOPIC,
     storage: Storage = "sqlite3",
     frame_id: str = names.CAMERA_FRAME,
+    distro: str = "auto",
 ) -> int:
     """Write a scan as a recording would hold it: images (sensor_msgs/Image) and transforms (one
     tf2_msgs/TFMessage per record, on /tf or /tf_static as `static` says), logged in the order given
@@ -447,10 +479,12 @@ def write_scan(
         sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
         return Time(sec=sec, nanosec=nanosec)
 
-    with bag_writer(path, storage) as writer:
-        image_connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store)
-        tf_connection = writer.add_connection("/tf", TF_TYPE, typestore=store)
-        static_connection = writer.add_connection("/tf_static", TF_TYPE, typestore=store)
+    with bag_writer(path, storage, distro) as writer:
+        image_connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store,
+                                                 offered_qos_profiles=[offered_qos()])
+        tf_connection = writer.add_connection("/tf", TF_TYPE, typestore=store, offered_qos_profiles=[offered_qos()])
+        static_connection = writer.add_connection("/tf_static", TF_TYPE, typestore=store,
+                                                  offered_qos_profiles=[offered_qos(latched=True)])
         for record in records:
             last = max(last, int(record.stamp_ns))   # log time: when it arrived, in the order given
             if isinstance(record, ImageRecord):

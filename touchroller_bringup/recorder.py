@@ -93,7 +93,7 @@ def subscription_qos(offered: Sequence[QoSProfile], depth: int = 100) -> QoSProf
 class _BagWriter(threading.Thread):
     """Owns the rosbags Writer; every call on it happens on this thread, in arrival order."""
 
-    def __init__(self, path: Path, storage: str) -> None:
+    def __init__(self, path: Path, storage: str, distro: str = "auto") -> None:
         super().__init__(name="touchroller-bag-writer", daemon=True)
         from rosbags.typesys import Stores, get_typestore
 
@@ -101,7 +101,8 @@ class _BagWriter(threading.Thread):
 
         self.path = path
         self._typestore = get_typestore(Stores.ROS2_KILTED)
-        self._writer = bag_writer(path, storage)   # MCAP chunks carry their CRC
+        self._writer = bag_writer(path, storage, distro)   # MCAP chunks carry their CRC
+        self.distro = self._writer.distro
         self._opened = threading.Event()
         self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._connections: dict[str, Any] = {}
@@ -229,7 +230,8 @@ class Recorder(Node):
     """Records `topics` (all but /rosout and /parameter_events when None) to a new bag at `path`."""
 
     def __init__(self, path: str | Path, *, topics: Iterable[str] | None = None, storage: str = "sqlite3",
-                 discovery_period: float = 0.2, node_name: str = "touchroller_recorder", **node_kwargs: Any) -> None:
+                 distro: str = "auto", discovery_period: float = 0.2, node_name: str = "touchroller_recorder",
+                 **node_kwargs: Any) -> None:
         # What close() and destroy_node use comes before Node.__init__: from there on the context tracks
         # the node and destroys it at shutdown, also when the rest of this constructor raises.
         self.path = Path(path)
@@ -240,7 +242,7 @@ class Recorder(Node):
         self._lock = threading.Lock()
         self._closed = False
         self._timer: Any = None
-        self._writer = _BagWriter(self.path, storage)
+        self._writer = _BagWriter(self.path, storage, distro)
         self._writer.start()   # opens the bag: UserError (e.g. a read-only folder) before any node exists
         try:
             super().__init__(node_name, **node_kwargs)

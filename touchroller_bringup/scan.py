@@ -67,6 +67,7 @@ class ScanOptions:
     progress: Callable[[str], None] | None = print
     record: bool = False
     storage: str = "sqlite3"
+    bag_format: str = "auto"      # touchroller_bringup.bag_format: which distribution's rosbag2 reads the recording
 
 
 @dataclass
@@ -328,7 +329,7 @@ def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: lis
     if path.exists():
         raise UserError(f"{path} already exists; choose another --out")
     topics = [names.topic(name, namespace) for name in RECORDED_TOPICS]
-    recorder = Recorder(path, topics=topics, storage=options.storage, context=context)
+    recorder = Recorder(path, topics=topics, storage=options.storage, distro=options.bag_format, context=context)
     nodes.append(recorder)
     return recorder
 

@@ -14,6 +14,7 @@ import signal
 import threading
 import time
 
+from touchroller_bringup import bag_format
 from touchroller_bringup.errors import UserError
 
 
@@ -23,6 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Record topics (all but /rosout and /parameter_events unless --topics) until Ctrl-C or --duration.")
     parser.add_argument("--out", "-o", required=True, help="new bag folder to write")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="storage plugin")
+    parser.add_argument("--bag-format", choices=bag_format.CHOICES, default="auto", help=bag_format.HELP)
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="topics to record (default: all)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     parser.set_defaults(func=run)
@@ -57,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
                 for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     recorder = None
     try:
-        recorder = Recorder(args.out, topics=args.topics, storage=args.storage, context=context)
+        recorder = Recorder(args.out, topics=args.topics, storage=args.storage, distro=args.bag_format,
+                            context=context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(recorder)
         deadline = None if args.duration is None else time.monotonic() + args.duration

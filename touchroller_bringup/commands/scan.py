@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from touchroller_bringup import bag_format
 from touchroller_bringup.errors import UserError
 
 
@@ -49,6 +50,8 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                         help="also record the graph's topics to OUT/recording (rosbag2)")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default=None,
                         help="storage of the --record bag (default sqlite3)")
+    parser.add_argument("--bag-format", choices=bag_format.CHOICES, default=None,
+                        help="the --record bag: " + bag_format.HELP)
 
 
 class _RestParser(argparse.ArgumentParser):
@@ -65,6 +68,7 @@ def _reparse(args: argparse.Namespace) -> argparse.Namespace:
     parsed.quiet = parsed.quiet or args.quiet
     parsed.record = parsed.record or args.record
     parsed.storage = parsed.storage or args.storage or "sqlite3"
+    parsed.bag_format = parsed.bag_format or args.bag_format or "auto"
     parsed.namespace = parsed.namespace if parsed.namespace is not None else args.namespace
     return parsed
 
@@ -120,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or Path("scan_output") / time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     progress = None if args.quiet else (lambda line: print(line, flush=True))
     result = run_scan(ScanOptions(out_dir=out, arguments=arguments, params_files=files, overrides=overrides,
-                                  seed=args.seed, progress=progress, record=args.record, storage=args.storage))
+                                  seed=args.seed, progress=progress, record=args.record, storage=args.storage,
+                                  bag_format=args.bag_format))
     map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
     print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
           f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")

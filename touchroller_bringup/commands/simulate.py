@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from touchroller_bringup import bag_format
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 from touchroller_perception.files import new_directory
@@ -22,6 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output bag folder (must not exist)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3")
+    parser.add_argument("--bag-format", choices=bag_format.CHOICES, default="auto", help=bag_format.HELP)
     parser.add_argument("--variant", help="a variant the scene defines (e.g. slow, medium, fast, paper)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a scene value, dotted keys, YAML values (e.g. motion.duration=5)")
@@ -67,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
             yield frame.stamp_ns, frame.image
 
     with new_directory(args.out) as folder:   # the bag and its side files appear whole or not at all
-        count = write_images(folder, records(), topic=args.topic, storage=args.storage)
+        count = write_images(folder, records(), topic=args.topic, storage=args.storage, distro=args.bag_format)
         all_times = _all_times(scene)
         kept = {round(t["t"], 9) for t in truths}
         dropped = [t for t in all_times if round(t, 9) not in kept]
