@@ -114,6 +114,7 @@ class Graph:
     nodes: tuple[NodeSpec, ...]
     arguments: Mapping[str, str]
     environment: Mapping[str, str] = field(default_factory=dict)  # set for every node's process
+    rviz_config: str | None = None   # rviz:=true: the RViz 2 config to open beside the graph
 
     def node(self, key: str) -> NodeSpec:
         for spec in self.nodes:
@@ -162,6 +163,8 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
         LaunchArgument("scene", "surface_mapping", "Simulator scene when use_sim is true"),
         LaunchArgument("map_file", "", "PNG the perception node writes the finished map to when the roll "
                        "ends (perception map.save_path); empty: not saved (touchroller scan writes map.png anyway)"),
+        LaunchArgument("rviz", "false", "Open RViz 2 with config/rviz/touchroller.rviz (robot TF, contacts, the "
+                       "tactile image and map) where RViz 2 is installed", _BOOL),
     ),
     "calibrate": (
         LaunchArgument("use_sim", "true", "Simulated calibration scene (true) or a V4L2 camera (false)", _BOOL),
@@ -330,4 +333,5 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
                   "loop": args["loop"] == "true",
                   "wait_for_subscribers": 1}   # perception: it must see the first (reference) frames
         nodes = (spec(CAMERA, "camera", camera), spec(PERCEPTION, "perception", replay_perception(namespace)))
-    return Graph(launch, nodes, args, _environment(args))
+    rviz = str(config_path("rviz", "touchroller.rviz")) if args.get("rviz") == "true" else None
+    return Graph(launch, nodes, args, _environment(args), rviz)

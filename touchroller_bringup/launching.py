@@ -40,4 +40,21 @@ def _actions(context: Any, launch: str) -> list[Any]:
     values = {arg.name: LaunchConfiguration(arg.name).perform(context) for arg in graph.LAUNCH_ARGUMENTS[launch]}
     built = graph.build_graph(launch, values)
     environment = [SetEnvironmentVariable(name, value) for name, value in built.environment.items()]
-    return [*environment, *(Node(**spec.launch_kwargs()) for spec in built.nodes)]
+    return [*environment, *(Node(**spec.launch_kwargs()) for spec in built.nodes), *_viewers(built)]
+
+
+def _viewers(built: graph.Graph) -> list[Any]:
+    """RViz 2 with the graph's config when rviz:=true and RViz 2 is installed; else a line saying so."""
+    if built.rviz_config is None:
+        return []
+    from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+    from launch.actions import LogInfo
+    from launch_ros.actions import Node
+
+    try:
+        get_package_share_directory("rviz2")
+    except (PackageNotFoundError, OSError):   # OSError: no ament index at all (AMENT_PREFIX_PATH unset)
+        return [LogInfo(msg=f"rviz:=true, but RViz 2 (package rviz2) is not installed here; on a machine that has "
+                            f"it: rviz2 -d {built.rviz_config}")]
+    return [Node(package="rviz2", executable="rviz2", name="rviz2", arguments=["-d", built.rviz_config],
+                 output="screen")]

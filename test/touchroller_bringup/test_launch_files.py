@@ -70,6 +70,7 @@ def _stub_modules(monkeypatch):
     modules["launch.actions"].DeclareLaunchArgument = type("DeclareLaunchArgument", (_Recorder,), {})
     modules["launch.actions"].OpaqueFunction = type("OpaqueFunction", (_Recorder,), {})
     modules["launch.actions"].SetEnvironmentVariable = type("SetEnvironmentVariable", (_Recorder,), {})
+    modules["launch.actions"].LogInfo = type("LogInfo", (_Recorder,), {})
     modules["launch.substitutions"].LaunchConfiguration = LaunchConfiguration
     modules["launch_ros.actions"].Node = type("Node", (_Recorder,), {})
     for name, module in modules.items():
@@ -95,7 +96,7 @@ def _example_values(launch: str, tmp_path: Path) -> dict[str, str]:
     if launch == "scan":
         values |= {"use_sim": "false", "camera_device": "/dev/v4l/by-id/usb-cam", "robot_ip": "127.0.0.1",
                    "sweep_speed": "0.02", "sweep_length": "0.08", "area": "0.4,0.0,0.1,0.08",
-                   "scene": "surface_mapping", "map_file": str(tmp_path / "roll.png")}
+                   "scene": "surface_mapping", "map_file": str(tmp_path / "roll.png"), "rviz": "true"}
     elif launch == "calibrate":
         values |= {"use_sim": "true", "camera_device": "", "output_file": str(tmp_path / "out.yaml"),
                    "scene": "calibration_hemispheres"}
@@ -132,8 +133,10 @@ def test_stubbed_launch_matches_the_graph(path, monkeypatch, tmp_path):
     assert built[:len(environment)] == environment
     assert {a.args[0]: a.args[1] for a in environment} == expected.environment
     assert "FASTDDS_DEFAULT_PROFILES_FILE" in expected.environment
-    nodes = built[len(environment):]
+    nodes = built[len(environment):len(environment) + len(expected.nodes)]
     assert [n.kwargs for n in nodes] == [spec.launch_kwargs() for spec in expected.nodes]
+    viewers = built[len(environment) + len(expected.nodes):]
+    assert [type(a).__name__ for a in viewers] == (["LogInfo"] if launch == "scan" else [])   # no RViz 2 here
     assert {n.kwargs["namespace"] for n in nodes} == {"/left"}
     for node in nodes:  # the user's files come after the defaults, in order
         assert node.kwargs["parameters"][-3:-1] == [str(Path(values["params_file"]).resolve()),
@@ -160,3 +163,28 @@ def test_with_real_launch(path, ros_tools):
 
     nodes = [a for a in opaque.execute(context) if isinstance(a, Node)]
     assert len(nodes) == len(graph.build_graph(launch, dict(context.launch_configurations)).nodes)
+
+
+@pytest.mark.parametrize("installed", [True, False])
+def test_rviz_true_opens_the_shipped_config_where_rviz_is_installed(monkeypatch, tmp_path, installed):
+    import ament_index_python.packages as packages
+
+    path = LAUNCH_DIR / "scan.launch.py"
+    module = _load(path, monkeypatch)
+    if installed:
+        real = packages.get_package_share_directory
+        monkeypatch.setattr(packages, "get_package_share_directory",
+                            lambda name, *a: str(tmp_path) if name == "rviz2" else real(name, *a))
+    opaque = next(a for a in module.generate_launch_description().args[0] if type(a).__name__ == "OpaqueFunction")
+    values = {arg.name: arg.default for arg in graph.LAUNCH_ARGUMENTS["scan"]} | {"rviz": "true"}
+    built = opaque.kwargs["function"](FakeContext(values), *opaque.kwargs.get("args", ()))
+    config = graph.build_graph("scan", values).rviz_config
+    assert config and Path(config).is_file()
+    last = built[-1]
+    if installed:
+        assert last.kwargs["package"] == "rviz2" and last.kwargs["arguments"] == ["-d", config]
+    else:
+        assert type(last).__name__ == "LogInfo" and config in last.kwargs["msg"]
+    values["rviz"] = "false"
+    assert all(type(a).__name__ != "LogInfo" and a.kwargs.get("package") != "rviz2"
+               for a in opaque.kwargs["function"](FakeContext(values), *opaque.kwargs.get("args", ())))
