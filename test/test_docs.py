@@ -75,3 +75,17 @@ def test_each_figure_image_is_committed_once() -> None:
     names = [p.name for p in images]
     assert sorted({n for n in names if names.count(n) > 1}) == []
     assert all(p.parent == Path("docs") for p in images), images   # beside RESULTS.md, which shows them
+
+
+def test_every_contacts_csv_column_list_in_the_docs_is_the_files():
+    """A column list quoted in a page (`stamp_ns,u,v,...`) is the CSV's header, or its start then `...`."""
+    from touchroller_bringup.commands.contacts import COLUMNS
+
+    header = ",".join(COLUMNS)
+    quoted = [(page.name, m.group(1)) for page in HAND_WRITTEN
+              for m in re.finditer(r"`(stamp_ns,u,v[^`]*)`", page.read_text(encoding="utf-8"))]
+    assert len(quoted) >= 4
+    for name, columns in quoted:
+        start = columns.removesuffix(",...")
+        assert header == columns or (columns.endswith(",...") and header.startswith(start + ",")) \
+            or header.startswith(columns + ","), (name, columns)

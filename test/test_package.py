@@ -83,3 +83,48 @@ def test_config_is_found_in_the_checkout_without_an_index(monkeypatch):
     from touchroller_driver import paths
 
     assert paths.config_path("touchroller.yaml").is_file()
+
+
+# Where each third-party module a runtime package imports comes from on a ROS 2 machine: the rosdep key
+# package.xml must name (`rosdep install` installs it), or None for what package.xml documents as pip-only.
+ROSDEP_KEYS = {
+    "numpy": "python3-numpy", "cv2": "python3-opencv", "yaml": "python3-yaml", "scipy": "python3-scipy",
+    "skimage": "python3-skimage", "PIL": "python3-pil", "rosbags": "python3-rosbags-pip",
+    # rosbags' own dependencies, installed with it
+    "ruamel": "python3-rosbags-pip", "lz4": "python3-rosbags-pip", "compression": "python3-rosbags-pip",
+    "backports": "python3-rosbags-pip",
+    # ur_rtde has no rosdep key: named in a package.xml comment and docs/ur5.md (pip install ur_rtde)
+    "rtde_control": None, "rtde_receive": None, "dashboard_client": None,
+}
+OWN = {"touchroller_bringup", "touchroller_perception", "touchroller_driver"}
+
+
+def _runtime_imports() -> set[str]:
+    import ast
+
+    found: set[str] = set()
+    for package in OWN:
+        for path in (ROOT / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.Import):
+                    found |= {alias.name.split(".")[0] for alias in node.names}
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    found.add(node.module.split(".")[0])
+    return found - set(sys.stdlib_module_names) - OWN - {"__future__"}
+
+
+def test_package_xml_names_what_rosdep_must_install_for_every_runtime_import():
+    from catkin_pkg.package import parse_package
+
+    declared = {d.name for d in parse_package(ROOT / "package.xml").exec_depends}
+    missing = []
+    for module in sorted(_runtime_imports()):
+        if module in ROSDEP_KEYS:
+            key = ROSDEP_KEYS[module]
+            if key is not None and key not in declared:
+                missing.append(f"{module} ({key})")
+        elif module not in declared:   # ROS packages: rclpy, launch, *_msgs ... are their own keys
+            missing.append(module)
+    assert missing == []
+    assert "pip install ur_rtde" in (ROOT / "package.xml").read_text()
+    assert "pip install ur_rtde" in (ROOT / "docs" / "ur5.md").read_text()

@@ -138,6 +138,10 @@ def open_bag(path: str | Path):
         raise UserError(f"no such bag: {path}")
     if path.is_file():   # a bare .db3/.mcap file: rosbags wants the folder with metadata.yaml
         path = path.parent
+    if path.is_dir() and not (path / "metadata.yaml").exists() \
+            and any(p.suffix in (".db3", ".mcap") for p in path.iterdir()):
+        raise UserError(f"bag {path} has no metadata.yaml (its recorder was killed?): run `touchroller reindex {path}` "
+                        "to make it readable")
     try:
         reader = Reader(path)
         reader.open()

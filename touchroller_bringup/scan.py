@@ -195,7 +195,8 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
         say(f"scan: graph up ({', '.join(n.get_name() for n in (sweep, camera, perception))}); "
             f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
         if graph.rviz_config:
-            say(f"scan: rviz:=true starts RViz 2 under `ros2 launch`; beside this scan run: rviz2 -d {graph.rviz_config}")
+            say("scan: rviz:=true starts RViz 2 under `ros2 launch`; beside this scan run: "
+                f"rviz2 -d {graph.rviz_config}")
         started = time.monotonic()
         try:
             _wait_for_reference(perception, sweep, collected, options.reference_timeout_s, check)

@@ -95,3 +95,15 @@ def test_a_split_bag_is_reindexed_file_by_file_in_split_order(tmp_path, storage)
     assert [r.stamp_ns for r in read_images(bag)] == stamps
     with Reader(bag) as reader:
         assert [timestamp for _, timestamp, _ in reader.messages()] == stamps
+
+
+@pytest.mark.parametrize("command", ["map", "contacts"])
+def test_a_bag_without_metadata_names_reindex_as_the_way_out(tmp_path, capsys, command):
+    bag = tmp_path / "bag"
+    write_images(bag, frames(20))
+    (bag / "metadata.yaml").unlink()
+    out = tmp_path / ("map.png" if command == "map" else "contacts.csv")
+    assert main([command, str(bag), "--out", str(out)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and f"touchroller reindex {bag}" in error
+    assert main(["reindex", str(bag)]) == 0
