@@ -1,0 +1,309 @@
+"""URDriverArm against a fake ur_robot_driver (fake_ur_driver.py beside this file): raster, faults, stop, reset.
+
+A real ur_robot_driver is not installable here; the fake mimics its topics, QoS and habits (see its
+docstring), so these tests show the back end's logic over the real ROS transport, not a real robot.
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+pytest.importorskip("rclpy")
+pytest.importorskip("ur_dashboard_msgs.msg")
+
+from touchroller_bringup.ur_driver_arm import (  # noqa: E402
+    UR_DRIVER_PARAMETERS,
+    URDriverArm,
+    URDriverConfig,
+    make_ur_driver_arm,
+    movel_program,
+    stopl_program,
+)
+from touchroller_driver.arm import (  # noqa: E402
+    DEFAULT_MOUNT_RPY,
+    DEFAULT_MOUNT_XYZ,
+    DEFAULT_START_POSE,
+    Arm,
+    ArmError,
+    ArmLimitError,
+    SweepPhase,
+    SweepSequencer,
+    mount_transform,
+    plan_raster,
+)
+
+_spec = importlib.util.spec_from_file_location("fake_ur_driver", Path(__file__).with_name("fake_ur_driver.py"))
+assert _spec is not None and _spec.loader is not None
+fake_ur_driver = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(fake_ur_driver)
+FakeURDriver = fake_ur_driver.FakeURDriver
+parse_program = fake_ur_driver.parse_program
+
+REST = np.array(DEFAULT_START_POSE) + np.array([0.0, 0.0, 0.005, 0.0, 0.0, 0.0])
+# generous for a loaded machine: the behaviour is tested, not the timing
+CONFIG = URDriverConfig(driver_timeout=1.0, connect_timeout=10.0, start_timeout=3.0, stall_timeout=3.0)
+
+
+def wait_for(predicate, timeout: float = 15.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return bool(predicate())
+        time.sleep(0.01)
+    return True
+
+
+@pytest.fixture
+def driver(ros_context):
+    fake = FakeURDriver(ros_context, REST)
+    yield fake
+    fake.close()
+
+
+@pytest.fixture
+def arm(ros_context, driver):
+    arm = URDriverArm(CONFIG, context=ros_context)
+    arm.connect()
+    yield arm
+    arm.disconnect()
+
+
+def run(sequencer: SweepSequencer, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while sequencer.active and time.monotonic() < deadline:
+        sequencer.poll()
+        time.sleep(0.02)
+
+
+def small_raster():
+    return plan_raster(DEFAULT_START_POSE, area=[0.4, 0.0, 0.02, 0.1], mount=mount_transform(DEFAULT_MOUNT_XYZ,
+                       DEFAULT_MOUNT_RPY), speed=0.05, accel=0.5, depth=0.0005, approach_speed=0.05,
+                       clearance=0.002)
+
+
+# -- the programs ------------------------------------------------------------------------------
+
+finite = st.floats(min_value=-10.0, max_value=10.0, allow_nan=False, allow_infinity=False)
+
+
+@given(st.lists(finite, min_size=6, max_size=6), st.floats(1e-6, 1.0), st.floats(1e-6, 5.0))
+def test_movel_program_carries_the_exact_pose_speed_and_acceleration(pose, speed, accel):
+    kind, values = parse_program(movel_program(pose, speed, accel))
+    assert kind == "movel"
+    assert values == (*[float(v) for v in pose], accel, speed)   # URScript's order: a=, then v=
+
+
+def test_stopl_program_and_bad_values_never_become_script():
+    assert parse_program(stopl_program(0.5)) == ("stopl", (0.5,))
+    with pytest.raises(ArmLimitError):
+        movel_program([0.4, 0.0, math.nan, math.pi, 0.0, 0.0], 0.01, 0.1)
+    with pytest.raises(ArmError):
+        movel_program([0.4, 0.0, 0.2, math.pi, 0.0, 0.0], math.inf, 0.1)
+    with pytest.raises(ArmError):
+        stopl_program(0.0)
+
+
+def test_config_refuses_bad_values_in_one_line():
+    for bad in ({"driver_timeout": math.nan}, {"connect_timeout": -1.0}, {"script_topic": ""},
+                {"tool_frame": "base"}, {"still_tolerance": 1.0}, {"base_frame": "my base"},
+                {"stall_timeout": True}):
+        with pytest.raises(ValueError) as excinfo:
+            URDriverConfig(**bad)
+        assert "\n" not in str(excinfo.value) and "ur_driver." in str(excinfo.value)
+
+
+def test_parameter_table_declares_every_field_and_the_factory_reads_it(ros_context):
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from touchroller_driver.arm import ArmLimits
+
+    node = rclpy.create_node("factory", context=ros_context, parameter_overrides=[
+        Parameter("ur_driver.tool_frame", value="flange"), Parameter("ur_driver.driver_timeout", value=0.25)])
+    try:
+        arm = make_ur_driver_arm(node, ArmLimits(max_speed=0.05))
+        assert isinstance(arm, Arm)
+        assert arm.config.tool_frame == "flange" and arm.config.driver_timeout == 0.25
+        assert arm.limits.max_speed == 0.05
+        for name in UR_DRIVER_PARAMETERS:
+            descriptor = node.describe_parameter(name)
+            assert descriptor.description and descriptor.read_only
+    finally:
+        node.destroy_node()
+    node = rclpy.create_node("factory_bad", context=ros_context, parameter_overrides=[
+        Parameter("ur_driver.base_frame", value="tool0")])
+    try:
+        with pytest.raises(ValueError, match="ur_driver.base_frame and ur_driver.tool_frame"):
+            make_ur_driver_arm(node, ArmLimits())
+    finally:
+        node.destroy_node()
+
+
+# -- against the fake driver -------------------------------------------------------------------
+
+def test_a_raster_through_the_driver_ends_where_planned(ros_context):
+    fake = FakeURDriver(ros_context, REST, chain=True)   # base -> tool0 through base_link, as the real tree
+    arm = URDriverArm(CONFIG, context=ros_context)
+    try:
+        arm.connect()
+        assert np.allclose(arm.tcp_pose(), REST, atol=1e-9)
+        assert arm.program_running is True   # the driver's External Control program held the robot
+        plan = small_raster()
+        assert len(plan.passes) == 2
+        sequencer = SweepSequencer(arm)
+        sequencer.start(plan)
+        run(sequencer)
+        assert sequencer.status.phase is SweepPhase.DONE, sequencer.status
+        assert sequencer.status.roll_progress == 1.0
+        final = plan.segments[-1].target
+        assert np.allclose(fake.pose(), final, atol=1e-9)
+        assert np.allclose(arm.tcp_pose()[:3], final[:3], atol=CONFIG.arrive_tolerance)
+        moves = fake.moves()
+        assert len(moves) == len(plan.segments)   # one movel per segment, each the planned one
+        for (x, y, z, rx, ry, rz, a, v), segment in zip(moves, plan.segments, strict=True):
+            assert (x, y, z, rx, ry, rz) == tuple(segment.target) and (a, v) == (segment.accel, segment.speed)
+        assert arm.program_running is False   # our programs replaced it, as they do on a real robot
+        assert arm.fault() is None
+    finally:
+        arm.disconnect()
+        fake.close()
+
+
+def test_a_protective_stop_mid_pass_is_a_fault_and_the_sequence_stops(driver, arm):
+    sequencer = SweepSequencer(arm)
+    plan = small_raster()
+    sequencer.start(plan)
+    assert wait_for(lambda: sequencer.poll().phase is SweepPhase.SWEEPING and arm.progress() > 0.1)
+    driver.inject_protective_stop()
+    run(sequencer)
+    assert sequencer.status.phase is SweepPhase.FAULT
+    assert "protective stop" in sequencer.status.message
+    sent = len(driver.programs)
+    halted = driver.pose()
+    time.sleep(0.3)
+    assert len(driver.programs) == sent   # nothing more is sent
+    assert np.array_equal(driver.pose(), halted)
+    assert len(driver.moves()) < len(plan.segments)
+    with pytest.raises(ArmError, match="protective stop"):
+        arm.move_linear(plan.segments[-1].target, 0.01, 0.1)
+    assert len(driver.programs) == sent
+
+
+def test_a_silent_driver_is_a_fault_within_the_timeout(ros_context, driver):
+    arm = URDriverArm(URDriverConfig(driver_timeout=0.3, connect_timeout=10.0), context=ros_context)
+    try:
+        arm.connect()
+        assert arm.fault() is None
+        driver.go_silent()
+        silent_at = time.monotonic()
+        assert wait_for(lambda: arm.fault() is not None)
+        assert time.monotonic() - silent_at >= 0.3 - 0.05   # not before the timeout: it was healthy until then
+        assert "lost the UR driver" in arm.fault()
+        with pytest.raises(ArmError, match="lost the UR driver"):
+            arm.move_linear(REST, 0.01, 0.1)
+        assert driver.programs == []
+    finally:
+        arm.disconnect()
+
+
+def test_no_driver_fails_connect_in_one_line(ros_context):
+    arm = URDriverArm(URDriverConfig(connect_timeout=0.3), context=ros_context)
+    try:
+        with pytest.raises(ArmError) as excinfo:
+            arm.connect()
+        assert "no UR driver" in str(excinfo.value) and "\n" not in str(excinfo.value)
+        assert arm.fault() == str(excinfo.value)
+    finally:
+        arm.disconnect()
+
+
+def test_stop_mid_move_halts_and_stop_when_idle_sends_nothing(driver, arm):
+    arm.stop()   # idle: the driver's External Control program is not ours to stop
+    assert driver.programs == [] and arm.sent == []
+    target = REST + np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0])
+    arm.move_linear(target, 0.01, 0.1)
+    assert wait_for(lambda: arm.progress() > 0.05)
+    assert arm.is_moving()
+    arm.stop()
+    assert not arm.is_moving()
+    assert wait_for(lambda: driver.executed and driver.executed[-1][0] == "stopl")
+    halted = driver.pose()
+    time.sleep(0.3)
+    assert np.array_equal(driver.pose(), halted)
+    assert np.linalg.norm(halted[:3] - target[:3]) > 0.01
+    assert 0.0 < arm.progress() < 1.0
+    assert arm.fault() is None   # a stop on request is no fault
+    arm.stop()   # again: nothing of ours moves any more
+    assert sum(p.count("stopl") for p in arm.sent) == 1
+
+
+def test_reset_refuses_while_the_protective_stop_persists_then_clears_it(driver, arm):
+    driver.inject_protective_stop()
+    assert wait_for(lambda: arm.fault() is not None)
+    with pytest.raises(ArmError, match="persists") as excinfo:
+        arm.reset_fault()
+    assert "\n" not in str(excinfo.value)
+    assert arm.fault() is not None
+    driver.unlockable = True   # the cause is gone; the controller allows the unlock now
+    arm.reset_fault()
+    assert arm.fault() is None
+    target = REST + np.array([0.0, 0.0, 0.002, 0.0, 0.0, 0.0])
+    arm.move_linear(target, 0.01, 0.1)
+    assert wait_for(lambda: not arm.is_moving() or arm.fault() is not None)
+    assert arm.fault() is None
+    assert np.allclose(driver.pose(), target, atol=1e-9)
+
+
+def test_reset_after_the_stop_was_cleared_on_the_pendant_and_refusal_for_an_emergency_stop(driver, arm):
+    driver.inject_emergency_stop()
+    assert wait_for(lambda: arm.fault() is not None)
+    assert "emergency stop" in arm.fault()
+    with pytest.raises(ArmError, match="teach pendant"):
+        arm.reset_fault()
+    driver.clear_on_pendant()
+    assert wait_for(lambda: arm._safety_mode == 1)   # noqa: SLF001 - the driver's news has arrived
+    arm.reset_fault()
+    assert arm.fault() is None
+
+
+def test_a_movel_the_robot_does_not_run_is_a_fault(ros_context):
+    fake = FakeURDriver(ros_context, REST, execute=False)   # not in remote control: programs are not run
+    arm = URDriverArm(URDriverConfig(start_timeout=0.3, connect_timeout=10.0, driver_timeout=1.0),
+                      context=ros_context)
+    try:
+        arm.connect()
+        arm.move_linear(REST + np.array([0.01, 0, 0, 0, 0, 0]), 0.01, 0.1)
+        assert wait_for(lambda: arm.fault() is not None)
+        assert "did not start the movel" in arm.fault()
+    finally:
+        arm.disconnect()
+        fake.close()
+
+
+def test_external_control_taking_the_robot_back_mid_move_is_a_fault(driver, arm):
+    arm.move_linear(REST + np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]), 0.01, 0.1)
+    assert wait_for(lambda: arm.progress() > 0.02)
+    driver.start_external_control()
+    assert wait_for(lambda: arm.fault() is not None)
+    assert "External Control program started" in arm.fault()
+
+
+def test_a_nan_pose_is_refused_before_anything_is_published(driver, arm):
+    for bad in ([0.4, 0.0, math.nan, math.pi, 0.0, 0.0], [0.4, 0.0, 0.2, math.pi, math.inf, 0.0], [0.4, 0.0]):
+        with pytest.raises(ArmLimitError):
+            arm.move_linear(bad, 0.01, 0.1)
+    with pytest.raises(ArmLimitError):
+        arm.move_linear(REST, 5.0, 0.1)   # over arm.max_speed
+    with pytest.raises(ArmLimitError):
+        arm.move_linear(REST, math.nan, 0.1)
+    assert arm.sent == []
+    time.sleep(0.2)
+    assert driver.programs == []
+    assert arm.fault() is None
