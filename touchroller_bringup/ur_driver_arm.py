@@ -6,7 +6,8 @@ driver's `urscript_interface/script_command` (std_msgs/String), the tool pose is
 robot_state_publisher publishes (`base -> tool0`, chained through whatever the driver's tree holds), and
 the robot's state from its `io_and_status_controller`: `safety_mode` (ur_dashboard_msgs/SafetyMode),
 `robot_mode` (ur_dashboard_msgs/RobotMode) and `robot_program_running` (std_msgs/Bool), all three
-published on change with transient-local QoS, so a late subscriber gets the current value at once.
+published on change with transient-local QoS, so a late subscriber gets the current value at once (the
+program state changes from a default false: nothing on it means false).
 
 What the driver gives and what it does not, and so how this back end works:
 
@@ -245,7 +246,7 @@ class URDriverArm:
 
     # -- connection ----------------------------------------------------------------------------
     def connect(self) -> None:
-        """Create the node, wait (up to `connect_timeout`) for the driver's TF, modes, program state and
+        """Create the node, wait (up to `connect_timeout`) for the driver's TF, safety and robot modes and
         script subscriber; ArmError (one line) naming what is missing."""
         self.disconnect()
         self._fault = None
@@ -278,7 +279,8 @@ class URDriverArm:
     # -- state ---------------------------------------------------------------------------------
     @property
     def program_running(self) -> bool | None:
-        """The driver's External Control program runs (ros2_control/MoveIt hold the robot); None: unknown."""
+        """The driver's External Control program runs (ros2_control/MoveIt hold the robot). None: nothing
+        received, which means false (the driver publishes it on change from false, latched)."""
         with self._lock:
             return self._program_running
 
@@ -462,13 +464,13 @@ class URDriverArm:
         cfg = self.config
         with self._lock:
             pose_age = time.monotonic() - self._pose_time
-            state = {"safety mode": self._safety_mode, "robot mode": self._robot_mode,
-                     "program state": self._program_running}
+            # not robot_program_running: upstream publishes it on change from false, so a driver whose
+            # External Control program never ran has published nothing on it
+            state = {"safety mode": self._safety_mode, "robot mode": self._robot_mode}
             safety, robot = self._safety_mode, self._robot_mode
         if pose_age > cfg.driver_timeout:
             return f"{cfg.base_frame} -> {cfg.tool_frame} on TF"
-        topics = {"safety mode": cfg.safety_mode_topic, "robot mode": cfg.robot_mode_topic,
-                  "program state": cfg.program_running_topic}
+        topics = {"safety mode": cfg.safety_mode_topic, "robot mode": cfg.robot_mode_topic}
         for what, value in state.items():
             if value is None:
                 return f"{what} on {topics[what]}"
@@ -501,7 +503,7 @@ class URDriverArm:
     # subscription callbacks (executor thread)
     def _on_program_running(self, message: Any) -> None:
         with self._lock:
-            if message.data and self._program_running is False:
+            if message.data and not self._program_running:   # None: nothing published yet, i.e. false
                 self._program_starts += 1
             self._program_running = bool(message.data)
 

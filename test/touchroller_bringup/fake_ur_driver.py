@@ -9,7 +9,8 @@ What it mimics (the upstream driver's, as documented and as its io_and_status_co
 - `/tf`: `base -> tool0` at 125 Hz, stamped with the node's clock; with `chain=True` as the real tree
   is shaped: `base_link -> base` on /tf_static (a half turn about z, as ur_description has it) and
   `base_link -> tool0` on /tf, so the arm has to chain the lookup.
-- `/io_and_status_controller/{safety_mode,robot_mode,robot_program_running}`: latched, on change.
+- `/io_and_status_controller/{safety_mode,robot_mode,robot_program_running}`: latched, on change (the
+  program state from a default false: nothing is published while the External Control program never ran).
 - `/dashboard_client/unlock_protective_stop` (std_srvs/Trigger): unlocks only when `unlockable`.
 Not mimicked: timing of a real controller, stopl's deceleration (the simulated arm halts at once),
 joint limits, singularities, speed scaling.
@@ -82,7 +83,8 @@ class FakeURDriver:
         self.set_safety_mode(SafetyMode.NORMAL)
         self._mode_pub.publish(RobotMode(mode=RobotMode.RUNNING))
         self.program_running = program_running
-        self._running_pub.publish(Bool(data=program_running))
+        if program_running:   # upstream publishes on change from a default false: nothing while never running
+            self._running_pub.publish(Bool(data=True))
         node.create_timer(1.0 / rate_hz, self._publish_tf)
         self._executor = SingleThreadedExecutor(context=context)
         self._executor.add_node(node)

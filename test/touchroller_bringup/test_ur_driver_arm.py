@@ -273,6 +273,23 @@ def test_reset_after_the_stop_was_cleared_on_the_pendant_and_refusal_for_an_emer
     assert arm.fault() is None
 
 
+def test_a_driver_whose_external_control_program_never_ran_is_usable(ros_context):
+    fake = FakeURDriver(ros_context, REST, program_running=False)   # publishes nothing on robot_program_running
+    arm = URDriverArm(CONFIG, context=ros_context)
+    try:
+        arm.connect()
+        assert arm.program_running is None
+        target = REST + np.array([0.0, 0.002, 0.0, 0.0, 0.0, 0.0])
+        arm.move_linear(target, 0.01, 0.1, asynchronous=False)
+        assert np.allclose(fake.pose(), target, atol=1e-9) and arm.fault() is None
+        fake.start_external_control()   # between moves: not ours to judge
+        assert wait_for(lambda: arm.program_running is True)
+        assert arm.fault() is None
+    finally:
+        arm.disconnect()
+        fake.close()
+
+
 def test_a_movel_the_robot_does_not_run_is_a_fault(ros_context):
     fake = FakeURDriver(ros_context, REST, execute=False)   # not in remote control: programs are not run
     arm = URDriverArm(URDriverConfig(start_timeout=0.3, connect_timeout=10.0, driver_timeout=1.0),
@@ -307,3 +324,37 @@ def test_a_nan_pose_is_refused_before_anything_is_published(driver, arm):
     time.sleep(0.2)
     assert driver.programs == []
     assert arm.fault() is None
+
+
+def test_the_sweep_node_as_it_is_runs_a_sweep_and_latches_a_fault_through_the_driver_arm(ros_context, driver):
+    """The sweep node takes any Arm (`arm=`): its services drive URDriverArm as they drive the others."""
+    from rclpy.parameter import Parameter
+
+    from touchroller_bringup.nodes.sweep_node import SweepNode
+
+    arm = URDriverArm(CONFIG, context=ros_context)
+    node = SweepNode(arm=arm, context=ros_context, parameter_overrides=[
+        Parameter("publish_tf", value=False), Parameter("sweep.length", value=0.01),
+        Parameter("sweep.speed", value=0.05), Parameter("sweep.approach_speed", value=0.05),
+        Parameter("sweep.start_pose", value=list(DEFAULT_START_POSE))])
+    try:
+        assert wait_for(lambda: node.status.phase is SweepPhase.IDLE), node.status
+        assert node.request_start()[0]
+        assert node.finished.wait(30.0)
+        assert node.status.phase is SweepPhase.DONE, node.status
+        end = np.array(DEFAULT_START_POSE) + np.array([0.01, 0.0, 0.002, 0.0, 0.0, 0.0])   # rolled, lifted
+        assert np.allclose(driver.pose(), end, atol=1e-9)
+        assert node.request_stop()[0]
+        assert not any("stopl" in p for p in driver.programs)   # idle: nothing of ours to stop
+        driver.inject_protective_stop()
+        assert wait_for(lambda: node.status.phase is SweepPhase.FAULT)
+        ok, message = node.request_start()
+        assert not ok and "reset_fault" in message
+        ok, message = node.request_reset_fault()
+        assert not ok and "persists" in message
+        driver.unlockable = True
+        ok, message = node.request_reset_fault()
+        assert ok, message
+        assert node.status.phase is SweepPhase.IDLE
+    finally:
+        node.destroy_node()
