@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from typing import Any
@@ -90,7 +91,8 @@ class URDriverConfig:
     base_frame: str = "base"
     tool_frame: str = "tool0"
     driver_timeout: float = 0.5      # s without a fresh base -> tool0 on TF: the driver is lost
-    connect_timeout: float = 5.0     # s connect()/reset_fault() wait for the driver's topics and services
+    connect_timeout: float = 5.0     # s connect() waits for the driver's topics
+    reset_timeout: float = 3.0       # s the whole of reset_fault() may take (within the sweep node's 5 s answer)
     start_timeout: float = 1.0       # s a published movel has to start moving the tool
     stall_timeout: float = 1.0       # s the tool may stand still short of the movel's target
     arrive_tolerance: float = 2e-4   # m from the target at which a movel counts as done (once settled)
@@ -112,8 +114,8 @@ class URDriverConfig:
             raise ValueError(f"ur_driver.unlock_service must be a service name or empty, got {self.unlock_service!r}")
         if self.base_frame == self.tool_frame:
             raise ValueError(f"ur_driver.base_frame and ur_driver.tool_frame are both {self.base_frame!r}")
-        for name in ("driver_timeout", "connect_timeout", "start_timeout", "stall_timeout", "arrive_tolerance",
-                     "settle_time", "still_tolerance", "stop_deceleration"):
+        for name in ("driver_timeout", "connect_timeout", "reset_timeout", "start_timeout", "stall_timeout",
+                     "arrive_tolerance", "settle_time", "still_tolerance", "stop_deceleration"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
                                                                                      and value > 0):
@@ -142,8 +144,11 @@ UR_DRIVER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
                              "frame_prefix)", None, None),
     "ur_driver.driver_timeout": ("driver_timeout", "arm.backend ur_driver: seconds without a fresh base -> tool "
                                  "transform before the driver counts as lost (a fault)", 0.01, 60.0),
-    "ur_driver.connect_timeout": ("connect_timeout", "arm.backend ur_driver: seconds connecting and resetting "
-                                  "wait for the driver's topics and services", 0.1, 120.0),
+    "ur_driver.connect_timeout": ("connect_timeout", "arm.backend ur_driver: seconds connecting waits for the "
+                                  "driver's TF, modes and script subscriber", 0.1, 120.0),
+    "ur_driver.reset_timeout": ("reset_timeout", "arm.backend ur_driver: seconds ~/reset_fault may take in all "
+                                "(unlock, then the driver reporting the robot healthy); below the sweep node's "
+                                "5 s service answer", 0.1, 4.5),
     "ur_driver.start_timeout": ("start_timeout", "arm.backend ur_driver: seconds a sent movel has to start "
                                 "moving the tool (else a fault: remote control off, script refused)", 0.05, 60.0),
     "ur_driver.stall_timeout": ("stall_timeout", "arm.backend ur_driver: seconds the tool may stand still short "
@@ -186,7 +191,7 @@ def format_number(value: float) -> str:
     """A finite float as URScript reads it: positional, no exponent, exact to the float's shortest repr."""
     if not math.isfinite(value):
         raise ArmError(f"non-finite value {value} in a URScript program")
-    return str(np.format_float_positional(float(value), trim="-"))
+    return str(np.format_float_positional(float(value), trim="0"))
 
 
 def movel_program(target: ArrayLike, speed: float, accel: float) -> str:
@@ -229,27 +234,32 @@ class URDriverArm:
         self._script_pub: Any = None
         self._unlock: Any = None
         self._tf: TransformListener | None = None
-        self._lock = threading.Lock()   # the state below is written by the executor thread
-        self._pose: np.ndarray | None = None
-        self._pose_stamp: int | None = None
-        self._pose_time = -math.inf      # monotonic time of the newest fresh pose
-        self._still_pose: np.ndarray | None = None
-        self._still_since = -math.inf    # monotonic time the tool last moved by more than still_tolerance
-        self._safety_mode: int | None = None
-        self._robot_mode: int | None = None
-        self._program_running: bool | None = None
-        self._program_starts = 0         # External Control program false -> true transitions seen
+        self._lock = threading.Lock()   # the driver's state, written by the executor thread
+        self._clear_driver_state()
         self._fault: str | None = None
         self._move: _Move | None = None
         self._halted_fraction = 1.0
-        self.sent: list[str] = []        # every program published (newest last), for diagnostics and tests
+        self.sent: deque[str] = deque(maxlen=100)   # the programs published last (newest last)
+
+    def _clear_driver_state(self) -> None:
+        with self._lock:
+            self._pose: np.ndarray | None = None
+            self._pose_stamp: int | None = None
+            self._pose_time = -math.inf      # monotonic time of the newest fresh pose
+            self._still_pose: np.ndarray | None = None
+            self._still_since = -math.inf    # monotonic time the tool last moved by more than still_tolerance
+            self._safety_mode: int | None = None
+            self._robot_mode: int | None = None
+            self._program_running: bool | None = None
+            self._program_starts = 0         # External Control program false -> true transitions seen
 
     # -- connection ----------------------------------------------------------------------------
     def connect(self) -> None:
         """Create the node, wait (up to `connect_timeout`) for the driver's TF, safety and robot modes and
         script subscriber; ArmError (one line) naming what is missing."""
         self.disconnect()
-        self._fault = None
+        self._fault, self._move, self._halted_fraction = None, None, 1.0
+        self._clear_driver_state()   # nothing from an earlier connection counts (a restarted driver's clock)
         self._open()
         missing = self._wait_for_driver(self.config.connect_timeout)
         if missing:
@@ -398,14 +408,15 @@ class URDriverArm:
         if self._node is None:
             self.connect()
             return
+        self.stop()   # a program of ours that may still run is stopped first
+        deadline = time.monotonic() + self.config.reset_timeout
         with self._lock:
             safety = self._safety_mode
         if safety in EMERGENCY_STOPS:
             raise ArmError(f"emergency stop ({SAFETY_MODES[safety]}): release it on the teach pendant, then reset")
         if safety == PROTECTIVE_STOP:
-            self._unlock_protective_stop()
-        self._move = None
-        missing = self._wait_for_driver(self.config.connect_timeout, healthy=True)
+            self._unlock_protective_stop(deadline)
+        missing = self._wait_for_driver(max(deadline - time.monotonic(), 0.0), healthy=True)
         self._fault = None
         fault = self.fault()
         if fault is not None:
@@ -481,19 +492,20 @@ class URDriverArm:
                     f"{ROBOT_MODES.get(robot if robot is not None else -2, robot)})")
         return ""
 
-    def _unlock_protective_stop(self) -> None:
+    def _unlock_protective_stop(self, deadline: float) -> None:
         service = self.config.unlock_service
         if self._unlock is None:
             raise ArmError("protective stop: unlock it on the teach pendant once its cause is clear (ur_driver."
                            "unlock_service is empty), then reset")
-        if not self._unlock.wait_for_service(timeout_sec=self.config.connect_timeout):
+        if not self._unlock.wait_for_service(timeout_sec=max(deadline - time.monotonic(), 0.01)):
             raise ArmError(f"protective stop: {service} is not offered (start the driver's dashboard client, or "
                            "unlock on the teach pendant), then reset")
         done = threading.Event()
         future = self._unlock.call_async(Trigger.Request())
         future.add_done_callback(lambda _: done.set())
-        if not done.wait(self.config.connect_timeout):
-            raise ArmError(f"protective stop: {service} did not answer within {self.config.connect_timeout:g} s")
+        if not done.wait(max(deadline - time.monotonic(), 0.01)):
+            raise ArmError(f"protective stop: {service} did not answer within ur_driver.reset_timeout "
+                           f"({self.config.reset_timeout:g} s)")
         answer = future.result()
         if answer is None or not answer.success:
             why = " ".join(str(getattr(answer, "message", "")).split()) or "no reason given"
