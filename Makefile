@@ -8,7 +8,8 @@ STAMP := $(VENV)/.installed
 setup: $(STAMP)
 
 # Re-install only when the pins or the package metadata change. Message packages without a wheel
-# (tf2_msgs) are built from interfaces/ only when the venv cannot import them (a ROS install can).
+# (tf2_msgs, ur_dashboard_msgs) are built from interfaces/ only when the venv cannot import them (a ROS
+# install can).
 $(STAMP): requirements.txt setup.py setup.cfg package.xml $(wildcard interfaces/*/msg/*.msg)
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	@echo "Setting up $(VENV) (pinned versions from requirements.txt)..."

@@ -221,6 +221,10 @@ class _Move:
 class URDriverArm:
     """`touchroller_driver.arm.Arm` through ur_robot_driver's topics (see the module docstring)."""
 
+    #: the driver's robot_state_publisher publishes base -> tool0: a node driving this arm must not publish it
+    #: too (tool0 would have two parents)
+    publishes_tool_tf = True
+
     def __init__(self, config: URDriverConfig | None = None, *, limits: ArmLimits | None = None,
                  context: Any = None, node_name: str = "touchroller_ur_driver_arm") -> None:
         self.config = config or URDriverConfig()

@@ -361,3 +361,32 @@ def test_the_sweep_node_as_it_is_runs_a_sweep_and_latches_a_fault_through_the_dr
         assert node.status.phase is SweepPhase.IDLE
     finally:
         node.destroy_node()
+
+
+def test_the_sweep_node_builds_the_driver_arm_from_arm_backend(ros_context, driver):
+    """`arm.backend: ur_driver` (the sweep node's wiring): the node makes a URDriverArm with the ur_driver.*
+    parameters, leaves base -> tool0 to the driver and runs a sweep through it."""
+    from rclpy.parameter import Parameter
+
+    from touchroller_bringup.nodes.sweep_node import SweepNode
+
+    probe = SweepNode(context=ros_context, node_name="probe_sweep")
+    wired = probe.has_parameter("arm.backend")
+    probe.destroy_node()
+    if not wired:
+        pytest.skip("the sweep node has no arm.backend parameter yet (wired at merge)")
+    node = SweepNode(context=ros_context, parameter_overrides=[
+        Parameter("use_sim", value=False), Parameter("arm.backend", value="ur_driver"),
+        Parameter("ur_driver.driver_timeout", value=CONFIG.driver_timeout),
+        Parameter("sweep.length", value=0.01), Parameter("sweep.speed", value=0.05),
+        Parameter("sweep.approach_speed", value=0.05), Parameter("sweep.start_pose", value=list(DEFAULT_START_POSE))])
+    try:
+        assert isinstance(node.arm, URDriverArm)
+        assert node.arm.config.driver_timeout == CONFIG.driver_timeout
+        assert not node._publish_tf   # noqa: SLF001 - the driver publishes base -> tool0
+        assert wait_for(lambda: node.status.phase is SweepPhase.IDLE), node.status
+        assert node.request_start()[0]
+        assert node.finished.wait(30.0)
+        assert node.status.phase is SweepPhase.DONE, node.status
+    finally:
+        node.destroy_node()
