@@ -39,6 +39,7 @@ Tested against a fake driver only (test/touchroller_bringup/fake_ur_driver.py): 
 from __future__ import annotations
 
 import math
+import re
 import threading
 import time
 from collections import deque
@@ -75,6 +76,8 @@ LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=R
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SCRIPT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: a fully qualified or relative ROS name: segments of letters, digits and _, not starting with a digit
+_ROS_NAME = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 MOVE_PROGRAM = "touchroller_move"
 STOP_PROGRAM = "touchroller_stop"
 
@@ -106,12 +109,17 @@ class URDriverConfig:
     def validate(self) -> None:
         """ValueError (one line) naming the first bad value."""
         for name in ("script_topic", "program_running_topic", "safety_mode_topic", "robot_mode_topic",
-                     "base_frame", "tool_frame"):
+                     "unlock_service"):
+            value = getattr(self, name)
+            if not isinstance(value, str) or not (_ROS_NAME.fullmatch(value) or (name == "unlock_service"
+                                                                                  and value == "")):
+                empty = " or empty" if name == "unlock_service" else ""
+                raise ValueError(f"ur_driver.{name} must be a ROS topic or service name{empty} (letters, digits, "
+                                 f"_ and /, e.g. /io_and_status_controller/safety_mode), got {value!r}")
+        for name in ("base_frame", "tool_frame"):
             value = getattr(self, name)
             if not isinstance(value, str) or not value.strip() or any(c.isspace() for c in value):
-                raise ValueError(f"ur_driver.{name} must be a non-empty name without spaces, got {value!r}")
-        if not isinstance(self.unlock_service, str) or any(c.isspace() for c in self.unlock_service):
-            raise ValueError(f"ur_driver.unlock_service must be a service name or empty, got {self.unlock_service!r}")
+                raise ValueError(f"ur_driver.{name} must be a non-empty frame id without spaces, got {value!r}")
         if self.base_frame == self.tool_frame:
             raise ValueError(f"ur_driver.base_frame and ur_driver.tool_frame are both {self.base_frame!r}")
         for name in ("driver_timeout", "connect_timeout", "reset_timeout", "start_timeout", "stall_timeout",
@@ -264,7 +272,12 @@ class URDriverArm:
         self.disconnect()
         self._fault, self._move, self._halted_fraction = None, None, 1.0
         self._clear_driver_state()   # nothing from an earlier connection counts (a restarted driver's clock)
-        self._open()
+        try:
+            self._open()
+        except Exception as exc:  # noqa: BLE001 - rclpy refusing a name or the context: one line, no traceback
+            self.disconnect()
+            self._fault = f"cannot subscribe to the UR driver: {' '.join(str(exc).split())}"
+            raise ArmError(self._fault) from exc
         missing = self._wait_for_driver(self.config.connect_timeout)
         if missing:
             message = f"no UR driver: {missing} within {self.config.connect_timeout:g} s (is ur_robot_driver running?)"
@@ -280,7 +293,8 @@ class URDriverArm:
         if self._spinner is not None:
             self._spinner.join(timeout=2.0)
         try:
-            self._executor.shutdown()
+            if self._executor is not None:
+                self._executor.shutdown()
             self._node.destroy_node()
         except Exception:  # noqa: BLE001 - the context is already gone: nothing left to release
             pass
@@ -435,7 +449,7 @@ class URDriverArm:
         from ur_dashboard_msgs.msg import RobotMode, SafetyMode
 
         context = self._context
-        node = rclpy.create_node(self._node_name, context=context, start_parameter_services=False)
+        node = self._node = rclpy.create_node(self._node_name, context=context, start_parameter_services=False)
         cfg = self.config
         self._script_pub = node.create_publisher(String, cfg.script_topic, SCRIPT_QOS)
         node.create_subscription(Bool, cfg.program_running_topic, self._on_program_running, LATCHED_QOS)
@@ -445,7 +459,7 @@ class URDriverArm:
         self._tf = TransformListener(node, TransformBuffer(cache_ns=2_000_000_000), on_update=self._on_tf)
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
-        self._node, self._executor = node, executor
+        self._executor = executor
         self._spinning.set()
         self._spinner = threading.Thread(target=self._spin, name="ur-driver-arm", daemon=True)
         self._spinner.start()

@@ -113,7 +113,8 @@ def test_stopl_program_and_bad_values_never_become_script():
 def test_config_refuses_bad_values_in_one_line():
     for bad in ({"driver_timeout": math.nan}, {"reset_timeout": 0.0}, {"connect_timeout": -1.0}, {"script_topic": ""},
                 {"tool_frame": "base"}, {"still_tolerance": 1.0}, {"base_frame": "my base"},
-                {"stall_timeout": True}):
+                {"stall_timeout": True}, {"safety_mode_topic": "/io//safety"}, {"script_topic": "1abc"},
+                {"unlock_service": "no spaces"}):
         with pytest.raises(ValueError) as excinfo:
             URDriverConfig(**bad)
         assert "\n" not in str(excinfo.value) and "ur_driver." in str(excinfo.value)
