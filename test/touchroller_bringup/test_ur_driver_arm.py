@@ -391,3 +391,17 @@ def test_the_sweep_node_builds_the_driver_arm_from_arm_backend(ros_context, driv
         assert node.status.phase is SweepPhase.DONE, node.status
     finally:
         node.destroy_node()
+
+
+@given(st.lists(finite, min_size=3, max_size=3), st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3),
+       st.floats(0.0, math.pi - 1e-6))
+def test_the_pose_read_from_tf_is_the_ur_rotation_vector(translation, axis, angle):
+    from touchroller_bringup.ur_driver_arm import _rotation_vector
+    from touchroller_perception.transforms import Transform
+
+    axis_array = np.asarray(axis)
+    if np.linalg.norm(axis_array) < 1e-3:
+        axis_array = np.array([1.0, 0.0, 0.0])
+    rotation = axis_array / np.linalg.norm(axis_array) * angle
+    read = _rotation_vector(Transform.from_rotation_vector(translation, rotation))
+    assert np.allclose(read, rotation, atol=1e-6)
