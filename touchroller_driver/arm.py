@@ -131,6 +131,7 @@ class Arm(Protocol):
     def reset_fault(self) -> None: ...  # clear a fault (unlock a protective stop, reconnect) or raise ArmError
     def keepalive(self) -> None: ...  # at >= 10 Hz while connected: a real arm stops when calls cease
     def disconnect(self) -> None: ...
+    def abort(self) -> None: ...  # from ANY thread: give up a blocking call under way (it raises ArmError)
 
 
 @dataclass(frozen=True)
@@ -239,6 +240,9 @@ class SimulatedArm:
 
     def keepalive(self) -> None:
         """Nothing to keep alive: the simulation stops with the process."""
+
+    def abort(self) -> None:
+        """Nothing blocks here: every call returns at once."""
 
     # -- simulation ----------------------------------------------------------------------------
     def inject_fault(self, message: str = "protective stop", *, resettable: bool = True) -> None:

@@ -80,6 +80,9 @@ from touchroller_perception.transforms import Transform
 #: how long a service waits for its answer; a start not accepted by then is cancelled (it never moves the arm)
 COMMAND_TIMEOUT_S = 5.0
 UR5_REACH_M = 0.85   # a UR5's reach from its base (the datasheet's 850 mm)
+#: shutting down (a stop signal, the node destroyed): how long the arm thread gets to stop the arm before a
+#: call it is stuck in is given up (`Arm.abort`: the ur_rtde process ends, the robot's watchdog stops it)
+SHUTDOWN_STOP_S = 0.5
 #: sim.lockstep: wall seconds without any frame published or finished before the clock goes on regardless
 #: (a camera or perception that stopped must not freeze the simulation; said on the log)
 LOCKSTEP_STALL_S = 10.0
@@ -199,6 +202,9 @@ class SweepNode(Node):
     def _declare_parameters(self) -> None:
         declare(self, "use_sim", True, "Use the simulated arm instead of a UR5 (read at start-up)", read_only=True)
         declare(self, "robot_ip", "192.168.1.10", "IP address of the UR controller (ur_rtde)", read_only=True)
+        declare(self, "robot_timeout", 10.0, "Longest a ur_rtde interface may take to connect (the control "
+                "interface uploads its script), s; a UR that greets and then stays silent is given up after it",
+                min=0.5, max=120.0, read_only=True)
         declare(self, "arm.max_speed", 0.1, "Hard limit on any commanded tool speed, m/s", min=1e-4, max=1.0,
                 read_only=True)
         declare(self, "arm.max_accel", 0.5, "Hard limit on any commanded tool acceleration, m/s^2",
@@ -314,8 +320,8 @@ class SweepNode(Node):
         limit = float(self.get_parameter("sweep.max_duration").value)
         duration = plan_duration(plan, from_pose)
         if not duration <= limit:
-            raise ArmError(f"the sweep would take {duration:.0f} s{'' if from_pose is None else ' from where the arm is'}"
-                           f", more than sweep.max_duration ({limit:g} s)")
+            where = "" if from_pose is None else " from where the arm is"
+            raise ArmError(f"the sweep would take {duration:.0f} s{where}, more than sweep.max_duration ({limit:g} s)")
         return plan
 
     def _make_arm(self) -> Arm:
@@ -330,7 +336,8 @@ class SweepNode(Node):
             return SimulatedArm(rest, limits=self.limits, clock=self.sim_clock.now)
         from touchroller_driver.ur5 import UR5Arm
 
-        return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits)
+        return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits,
+                      open_timeout=float(self.get_parameter("robot_timeout").value))
 
     def _follow_frames(self, lead_s: float) -> None:
         """sim.lockstep: the camera's frames (camera_info, one per image, same stamp) and the ones the
@@ -374,27 +381,54 @@ class SweepNode(Node):
         return self._answer(response, self._submit("start"))
 
     def _on_stop(self, request: Any, response: Any) -> Any:
-        return self._answer(response, self._submit("stop"))
+        return self._answer(response, self._stop())
 
     def _on_reset_fault(self, request: Any, response: Any) -> Any:
         return self._answer(response, self._submit("reset_fault"))
 
-    def _submit(self, name: str) -> _Command:
+    def _stopping(self) -> bool:
+        """Shutting down: the node is being destroyed, its context is down, or a stop signal arrived."""
+        from touchroller_bringup.ros_main import StopSignals
+
+        signals = StopSignals.installed()
+        return self._shutdown.is_set() or not self.context.ok() or (signals is not None and signals.requested.is_set())
+
+    def _submit(self, name: str, timeout: float | None = None) -> _Command:
         """Hand a request over (a start to the planner, the rest to the arm thread) and wait for its
-        answer. A start not answered within COMMAND_TIMEOUT_S is abandoned: the arm thread then drops it
-        without moving the arm. One the arm thread has committed to is waited for (its first motion
-        command is under way, itself bounded by the arm's call timeouts)."""
+        answer. A request not answered within `timeout` (COMMAND_TIMEOUT_S), or while shutting down, is
+        abandoned: a start is then dropped without moving the arm. One the arm thread has committed to is
+        waited for (its first motion command is under way, itself bounded by the arm's call timeouts)."""
         command = _Command(name, threading.Event())
         (self._planning if name == "start" else self._commands).put(command)
-        if not command.done.wait(COMMAND_TIMEOUT_S):
+        deadline = time.monotonic() + (COMMAND_TIMEOUT_S if timeout is None else timeout)
+        while not command.done.wait(0.05):
+            stopping = name != "stop" and self._stopping()
+            if not stopping and time.monotonic() < deadline:
+                continue
             if command.abandon():
                 command.success = False
-                command.message = (f"{name} not answered within {COMMAND_TIMEOUT_S:g} s (planning or the arm "
-                                   "thread was busy); cancelled, the arm does not move for it")
+                waited = COMMAND_TIMEOUT_S if timeout is None else timeout
+                why = "the node is shutting down" if stopping else f"not answered within {waited:g} s"
+                command.message = f"{name} {why} (planning or the arm thread was busy); cancelled" + \
+                    (", the arm does not move for it" if name == "start" else "")
                 return command
-            while not command.done.wait(0.1):
+            while not command.done.wait(0.05):   # committed: its first motion command is under way
                 if self._shutdown.is_set():
                     break
+            return command
+        return command
+
+    def _stop(self) -> _Command:
+        """Stop the arm. A stop the arm thread does not answer in time (COMMAND_TIMEOUT_S; SHUTDOWN_STOP_S
+        when shutting down) gives up the call it is stuck in (`Arm.abort`: a UR's ur_rtde process ends and
+        the robot's communication watchdog stops the control script); the stop then runs."""
+        command = self._submit("stop", SHUTDOWN_STOP_S if self._stopping() else COMMAND_TIMEOUT_S)
+        if not command.done.is_set():
+            self.arm.abort()
+            if command.done.wait(1.0):
+                command.message = f"arm stopped (the arm thread was stuck: {command.message})"
+            else:
+                command.message = "the arm thread did not answer stop; its connection to the arm was given up"
         return command
 
     def _answer(self, response: Any, command: _Command) -> Any:
@@ -413,7 +447,7 @@ class SweepNode(Node):
         return command.success, command.message
 
     def request_stop(self) -> tuple[bool, str]:
-        command = self._submit("stop")
+        command = self._stop()
         return command.success, command.message
 
     def request_reset_fault(self) -> tuple[bool, str]:
@@ -680,9 +714,14 @@ class SweepNode(Node):
         # Also called by the context's cleanup on a node whose __init__ failed half-way.
         if hasattr(self, "_shutdown"):
             self._shutdown.set()
-        for thread in (getattr(self, "_planner", None), getattr(self, "_worker", None)):
-            if thread is not None and thread.is_alive():
-                thread.join(timeout=COMMAND_TIMEOUT_S)
+        planner, worker = getattr(self, "_planner", None), getattr(self, "_worker", None)
+        if planner is not None and planner.is_alive():
+            planner.join(timeout=1.0)
+        if worker is not None and worker.is_alive():
+            worker.join(timeout=1.0)   # it stops and releases the arm on its way out
+            if worker.is_alive():   # stuck in an arm call: give the call up (the robot's watchdog stops it)
+                self.arm.abort()
+                worker.join(timeout=COMMAND_TIMEOUT_S)
         super().destroy_node()
 
 

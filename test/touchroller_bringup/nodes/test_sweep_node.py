@@ -444,3 +444,52 @@ def test_the_node_process_refuses_bad_start_up_values_in_one_line(argument):
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "sweep parameters refused" in lines[0] and "Traceback" not in done.stderr
+
+
+@pytest.mark.timeout(180)
+def test_a_robot_that_greets_then_stalls_leaves_the_node_responsive_and_sigint_ends_it(ros_context, spin_until,
+                                                                                       half_alive_ur_host):
+    """The host passes the start-up probes, then ur_rtde's constructor waits for ever (it froze the whole
+    node, SIGINT included): now ERROR on /diagnostics, ~/start and ~/reset_fault answer failure, and SIGINT
+    (sent while a ~/start retries the connection) ends the process."""
+    import signal
+    import subprocess
+    import sys
+
+    process = subprocess.Popen([sys.executable, "-m", "touchroller_bringup.nodes.sweep_node", "--ros-args",
+                                "-p", "use_sim:=false", "-p", f"robot_ip:={half_alive_ur_host}",
+                                "-p", "robot_timeout:=1.0"],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    probe = Node("half_alive_probe", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(probe)
+    diagnostics: list[DiagnosticArray] = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+    clients = {name: probe.create_client(Trigger, names.service(names.SWEEP_NODE, name))
+               for name in (names.START, names.RESET_FAULT)}
+    try:
+        def errors() -> list[str]:
+            return [s.message for array in diagnostics for s in array.status
+                    if s.name.endswith(names.SWEEP_NODE) and s.level == b"\x02"]
+
+        assert spin_until(executor, lambda: bool(errors()), timeout=60.0), "no ERROR on /diagnostics"
+        assert half_alive_ur_host in errors()[0] and "RTDEReceiveInterface" in errors()[0], errors()[0]
+        for name in (names.RESET_FAULT, names.START):
+            assert spin_until(executor, clients[name].service_is_ready, timeout=30.0)
+            future = clients[name].call_async(Trigger.Request())
+            assert spin_until(executor, future.done, timeout=60.0), f"~/{name} did not answer"
+            assert not future.result().success and half_alive_ur_host in future.result().message
+        clients[names.START].call_async(Trigger.Request())   # a start retrying the connection ...
+        time.sleep(0.5)
+        process.send_signal(signal.SIGINT)   # ... and Ctrl-C meanwhile
+        try:
+            process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the sweep node ignored SIGINT")
+        assert "Traceback" not in process.stdout.read()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=10)
+        executor.shutdown()
+        probe.destroy_node()
