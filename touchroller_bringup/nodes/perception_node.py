@@ -59,10 +59,10 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32, Header
 
 from touchroller_bringup import names
-from touchroller_bringup.publisher_filter import PublisherFilter
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.map_files import write_world_map
+from touchroller_bringup.publisher_filter import PublisherFilter
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
     OK,
