@@ -233,8 +233,8 @@ class UR5Arm:
             try:
                 if receive.isConnected():
                     emergency, protective = receive.isEmergencyStopped(), receive.isProtectiveStopped()
-            except RuntimeError:
-                pass   # the stream is gone: reconnecting tells
+            except (RuntimeError, ArmError):
+                pass   # the stream (or the ur_rtde process) is gone: reconnecting tells
         if emergency:
             raise ArmError("emergency stop: release it on the teach pendant, then reset")
         if protective:

@@ -1,13 +1,18 @@
 """The sweep node: rolls the sensor over a surface with an arm (UR5 via ur_rtde, or simulated).
 
-Safety: the arm moves only after `~/start` is called; every segment of the sweep is checked
-against `arm.max_speed`/`arm.max_accel` (read-only at run time) before the first command; all arm
-calls happen on one worker thread; a fault (protective/emergency stop, lost connection, refused
-command), during a sweep or while idle, stops the sweep, shows as ERROR on `/diagnostics` and stays
-until `~/reset_fault` clears it (the UR dashboard's "unlock protective stop", then a reconnect):
+Safety (docs/ur5.md, "Safety rules"): the arm moves only after `~/start` answered success. A start is
+planned and checked whole on a planner thread (every segment against `arm.max_speed`/`arm.max_accel`/
+`arm.reach`, read-only at run time; at most MAX_PASSES passes; at most `sweep.max_duration` from where the
+arm is), then the arm thread commits to it just before the first motion command; a start its caller
+stopped waiting for (COMMAND_TIMEOUT_S, or shutdown) is abandoned instead, and never moves the arm.
+Start-up parameter values get the on-set callback's checks (one line, exit 2). All arm calls happen on
+one worker thread; a fault (protective/emergency stop, lost connection, refused command, a robot that
+stopped answering), during a sweep or while idle, stops the sweep, shows as ERROR on `/diagnostics` and
+stays until `~/reset_fault` clears it (the UR dashboard's "unlock protective stop", then a reconnect):
 meanwhile `~/start` answers failure. The worker thread connects to the arm (CONNECTING, WARN, on
-`/diagnostics`; a UR is probed with a timeout first), so the node answers services and publishes
-diagnostics while a robot is slow or silent. Publishes the TCP pose
+`/diagnostics`; a UR is probed with a timeout first, and ur_rtde runs in a child process with deadlines),
+so the node answers services, publishes diagnostics and ends on SIGINT while a robot is slow or silent; a
+stop or a shutdown the arm thread cannot answer gives its arm call up (`Arm.abort`). Publishes the TCP pose
 (`tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
 (`sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`; topics are relative to the node's
 namespace (`touchroller` by default, names in `touchroller_bringup.names`). TF: base -> tool0 on /tf
