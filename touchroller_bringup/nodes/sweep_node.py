@@ -416,6 +416,9 @@ class SweepNode(Node):
                 why = "the node is shutting down" if stopping else f"not answered within {waited:g} s"
                 command.message = f"{name} {why} (planning or the arm thread was busy); cancelled" + \
                     (", the arm does not move for it" if name == "start" else "")
+                status = self.status
+                if status.phase in (SweepPhase.CONNECTING, SweepPhase.FAULT) and status.message:
+                    command.message += f"; the arm: {status.message}"   # e.g. a robot that stays silent
                 return command
             while not command.done.wait(0.05):   # committed: its first motion command is under way
                 if self._shutdown.is_set():
