@@ -563,3 +563,30 @@ def test_frames_published_is_the_camera_nodes_own_count():
     collected = scan_module._Collected(frames=127)
     assert scan_module._published(SimpleNamespace(published=131), collected) == 131
     assert scan_module._published(None, collected) == 127
+
+
+def test_once_the_graph_is_up_only_its_own_nodes_may_publish_on_its_topics():
+    """The second check (before the arm moves): a publisher that appeared since start-up, and one whose node
+    discovery has not named yet, stop the scan; the scan's own nodes do not."""
+    from types import SimpleNamespace
+
+    from touchroller_bringup import scan as scan_module
+
+    def endpoint(name: str, namespace: str) -> SimpleNamespace:
+        return SimpleNamespace(node_name=name, node_namespace=namespace)
+
+    publishers = {"/touchroller/sweep_progress": [endpoint("sweep", "/touchroller")],
+                  "/touchroller/image_raw": [endpoint("camera", "/touchroller")]}
+    nodes = [("sweep", "/touchroller"), ("camera", "/touchroller")]
+    probe = SimpleNamespace(get_publishers_info_by_topic=lambda topic: publishers.get(topic, []),
+                            get_node_names_and_namespaces=lambda: nodes)
+    ours = [SimpleNamespace(get_fully_qualified_name=lambda n=f"{ns}/{name}": n) for name, ns in nodes]
+    topics = scan_module._graph_topics(graph.build_graph("scan", {}))
+    assert "/clock" in topics and "/touchroller/sweep_progress" in topics
+    scan_module._check_namespace_is_ours(probe, "touchroller", topics, ours)   # only ours: no error
+    publishers["/touchroller/sweep_progress"].append(endpoint("touchroller_replayer", "/"))
+    with pytest.raises(UserError, match=r"/touchroller/sweep_progress \(/touchroller_replayer\)"):
+        scan_module._check_namespace_is_ours(probe, "touchroller", topics, ours)
+    publishers["/touchroller/sweep_progress"][-1] = endpoint(scan_module.UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_")
+    with pytest.raises(UserError, match="a node not discovered yet"):
+        scan_module._check_namespace_is_ours(probe, "touchroller", topics, ours)
