@@ -221,3 +221,16 @@ def silent_ur_host() -> Iterator[str]:
     finally:
         server.kill()
         server.wait(timeout=5)
+
+
+@pytest.fixture
+def half_alive_ur_host() -> Iterator[str]:
+    """A free 127.0.2.x that answers the RTDE protocol-version request and the dashboard's welcome line, then
+    nothing (bench.hostile.fake_ur): every start-up probe passes and ur_rtde's constructors wait for ever."""
+    from bench.hostile.fake_ur import half_alive_ur_host as serve
+
+    try:
+        with serve() as host:
+            yield host
+    except RuntimeError as exc:
+        pytest.skip(str(exc))

@@ -7,6 +7,7 @@ the damage and then reports one clear line.
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Iterable
@@ -19,6 +20,17 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProf
 from touchroller_bringup.bags import open_bag
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.recorder import message_class, qos_time_to_duration
+
+#: --rate's range: a thousand times slower than recorded (a gap of a second then lasts 17 min) up to a
+#: million times faster (in effect as fast as the messages can be published)
+MIN_RATE, MAX_RATE = 1e-3, 1e6
+
+
+def check_rate(rate: float) -> float:
+    """`rate` as a float, or UserError (one line) unless it is a number in [MIN_RATE, MAX_RATE]."""
+    if not (math.isfinite(rate) and MIN_RATE <= rate <= MAX_RATE):
+        raise UserError(f"--rate must be positive, between {MIN_RATE:g} and {MAX_RATE:g}, got {rate:g}")
+    return float(rate)
 
 
 def playback_qos(offered: list[Any]) -> QoSProfile:
@@ -51,10 +63,8 @@ class Replayer(Node):
     def __init__(self, path: str | Path, *, rate: float = 1.0, loop: bool = False,
                  topics: Iterable[str] | None = None, node_name: str = "touchroller_replayer",
                  **node_kwargs: Any) -> None:
-        if not rate > 0:
-            raise UserError(f"--rate must be positive, got {rate}")
         self.path = Path(path)
-        self.rate, self.loop = float(rate), loop
+        self.rate, self.loop = check_rate(rate), loop
         reader = open_bag(self.path)  # UserError before any node exists
         wanted = None if topics is None else {t if t.startswith("/") else "/" + t for t in topics}
         connections = [c for c in reader.connections if wanted is None or c.topic in wanted]

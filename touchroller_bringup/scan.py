@@ -53,6 +53,9 @@ from touchroller_perception.files import atomic_path, atomic_write, atomic_write
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS,
                    names.DIAGNOSTICS, names.TF, names.TF_STATIC)   # with TF a recording re-maps offline
+# the topics of the scan's namespace that only its own nodes may publish (and /clock when simulated)
+GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.TCP_POSE,
+                names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
 
 
 @dataclass
@@ -76,8 +79,8 @@ class ScanResult:
     outcome: str            # done, stopped, fault, timeout, interrupted (by a signal: `signal`), recording failed
     message: str
     duration_s: float
-    frames_published: int
-    frames_processed: int
+    frames_published: int   # by the camera node, from its start to the end of the scan
+    frames_processed: int   # taken by the perception node over the same time
     frames_dropped: int
     frames_malformed: int
     contacts: int
@@ -87,6 +90,7 @@ class ScanResult:
     recorded: dict[str, int] = field(default_factory=dict)  # topic -> messages in recording/
     world_map: dict[str, Any] | None = None   # the world map's frame, resolution, origin, latency, passes
     signal: int | None = None   # the signal that interrupted the scan
+    frames_during_sweep: int | None = None   # published from ~/start to the end of the sweep
 
     @property
     def ok(self) -> bool:
@@ -148,6 +152,23 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
     out_dir = Path(options.out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out {out_dir} is a file; give a folder")
+    made_out_dir = not out_dir.exists()
+    try:
+        return _run_graph(options, stop, rclpy, Context, MultiThreadedExecutor, SignalHandlerOptions, graph, say,
+                          out_dir)
+    except UserError:
+        # refused (a parameter, the arm, another graph, ...): no folder of ours left behind, empty or with a
+        # recording of a scan that never swept (a scan that ran writes its outputs and returns instead)
+        if made_out_dir and out_dir.is_dir() and not (out_dir / "report.md").exists():
+            import shutil
+
+            shutil.rmtree(out_dir, ignore_errors=True)
+        raise
+
+
+def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiThreadedExecutor: Any,  # noqa: N803
+               SignalHandlerOptions: Any, graph: Graph, say: Callable[[str], None],  # noqa: N803
+               out_dir: Path) -> ScanResult:
 
     # rclpy's executor loop is CPU-bound Python; the camera's render and perception make dozens of
     # short GIL-releasing OpenCV calls per frame, and each waits up to the switch interval to get the
@@ -183,9 +204,10 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
             classes = {spec.key: spec.load_class() for spec in graph.nodes}
         except GraphError as exc:
             raise UserError(str(exc)) from None
-        _check_namespace_is_free(probe, graph.namespace, probe_made + options.discovery_s)
-        out_dir.mkdir(parents=True, exist_ok=True)   # only now: a scan that cannot start leaves no folder
+        topics = _graph_topics(graph)
+        _check_namespace_is_free(probe, graph.namespace, probe_made + options.discovery_s, topics)
         sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
+        out_dir.mkdir(parents=True, exist_ok=True)   # only now: a scan that cannot start leaves no folder
         recorder = _make_recorder(out_dir, options, context, nodes, graph.namespace) if options.record else None
         check = _checker(stop, recorder)
         for node in nodes:
@@ -198,12 +220,14 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
             say("scan: rviz:=true starts RViz 2 under `ros2 launch`; beside this scan run: "
                 f"rviz2 -d {graph.rviz_config}")
         started = time.monotonic()
+        published_at_start: int | None = None
         try:
             _wait_for_reference(perception, sweep, collected, options.reference_timeout_s, check)
-            _check_namespace_is_ours(probe, graph.namespace)
+            _check_namespace_is_ours(probe, graph.namespace, topics, nodes)
             if recorder is not None:
                 _wait_for_recorder(recorder, options.reference_timeout_s, check)
             started = time.monotonic()
+            published_at_start = _published(camera, collected)
             _call_start(start_client, sweep, check)
             # the perception node starts a new map when the roll starts (it follows /touchroller/sweep_progress)
             outcome, message = _follow_sweep(sweep, collected, say, check)
@@ -213,6 +237,7 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
             message = str(exc)
             say(f"scan: {message}: arm stopped; writing what there is")
         duration = time.monotonic() - started
+        during_sweep = None if published_at_start is None else _published(camera, collected) - published_at_start
         _wait_for_perception(sweep, perception)
         _flush_map(perception, collected)
         answer = sweep.last_answer[2] if sweep.last_answer else ""
@@ -223,7 +248,8 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
                 recorded = dict(recorder.counts)
             except UserError as exc:   # what the bag kept is in the message; the map must not be lost too
                 outcome, message = "recording failed", str(exc)
-        result = _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer, recorded)
+        result = _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer, recorded,
+                                camera, during_sweep)
         if stop is not None and outcome == "interrupted":
             result.signal = stop.last_signal
         return result
@@ -410,11 +436,42 @@ def _namespace_taken(namespace: str, seen: str) -> UserError:
                      "this scan its own namespace (touchroller scan --namespace NAME) or its own ROS_DOMAIN_ID")
 
 
-def _check_namespace_is_free(probe: Any, namespace: str, until: float) -> None:
+def _graph_topics(graph: Graph) -> list[str]:
+    """The absolute topics only this scan's nodes may publish: its namespace's, and /clock when simulated."""
+    topics = [names.topic(name, graph.namespace) for name in GRAPH_TOPICS]
+    return topics + [names.CLOCK] if graph.arguments.get("use_sim") == "true" else topics
+
+
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"   # rmw's name for a node discovery has not told yet
+UNKNOWN_NODE_TEXT = "a node not discovered yet"
+
+
+def _foreign_publishers(probe: Any, topics: Sequence[str], ours: set[str]) -> list[str]:
+    """'topic (node)' for every publisher on `topics` whose node is not one of `ours` (full names)."""
+    found = []
+    for topic in topics:
+        for endpoint in probe.get_publishers_info_by_topic(topic):
+            if endpoint.node_name == UNKNOWN_NODE:   # DDS showed the endpoint before its node
+                found.append(f"{topic} ({UNKNOWN_NODE_TEXT})")
+                continue
+            node = names.topic(endpoint.node_name, endpoint.node_namespace.strip("/"))
+            if node not in ours:
+                found.append(f"{topic} ({node})")
+    return sorted(set(found))
+
+
+def _publishers_taken(found: Sequence[str]) -> UserError:
+    return UserError(f"another node publishes on this scan's topics: {', '.join(found)} (a touchroller replay, a "
+                     "ros2 topic pub, another graph): stop it, or give this scan its own namespace (touchroller scan "
+                     "--namespace NAME) or its own ROS_DOMAIN_ID")
+
+
+def _check_namespace_is_free(probe: Any, namespace: str, until: float, topics: Sequence[str] = ()) -> None:
     """Refuse to start when another graph (a scan, a launch file) has nodes in this namespace on this ROS
     domain: our `~/start` call would start its sweep too, and our camera's images and our arm's
-    transforms (the same frame names) would mix with its own. Only the probe exists yet; discovery is
-    given until `until` (monotonic) to show the others."""
+    transforms (the same frame names) would mix with its own; or when any node publishes on `topics`
+    (a `touchroller replay` runs in no namespace of ours). Only the probe exists yet; discovery is given
+    until `until` (monotonic) to show the others."""
     here = names.topic("x", namespace)
     while True:
         found = sorted(names.topic(name, ns) for name, ns in probe.get_node_names_and_namespaces()
@@ -422,18 +479,30 @@ def _check_namespace_is_free(probe: Any, namespace: str, until: float) -> None:
         ours = names.topic(probe.get_name(), namespace)
         if found.count(ours) > 1 or any(name != ours for name in found):
             raise _namespace_taken(namespace, ", ".join(sorted(set(found))))
-        if time.monotonic() >= until:
+        foreign = _foreign_publishers(probe, topics, set())
+        late = time.monotonic() >= until
+        if foreign and (late or not any(UNKNOWN_NODE_TEXT in f for f in foreign)):   # a moment for its name
+            raise _publishers_taken(foreign)
+        if late:
             return
         time.sleep(0.05)
 
 
-def _check_namespace_is_ours(probe: Any, namespace: str) -> None:
+def _check_namespace_is_ours(probe: Any, namespace: str, topics: Sequence[str] = (), nodes: Sequence[Any] = ()) -> None:
     """The same once the reference is captured, for two scans that started at the same moment (neither
-    saw the other yet): both stop before the arm moves."""
+    saw the other yet), and for a publisher that appeared on our topics since: both stop before the arm
+    moves."""
+    ours = [node.get_fully_qualified_name() for node in nodes]
+    seen = [names.topic(name, ns.strip("/")) for name, ns in probe.get_node_names_and_namespaces()]
+    twice = sorted({name for name in ours if seen.count(name) > 1})
+    if twice:
+        raise _namespace_taken(namespace, f"{', '.join(twice)} exists twice")
     full = names.topic(names.SWEEP_NODE, namespace)
-    sweeps = [1 for name, ns in probe.get_node_names_and_namespaces() if names.topic(name, ns) == full]
-    if len(sweeps) > 1:
+    if seen.count(full) > 1:
         raise _namespace_taken(namespace, f"{full} exists twice")
+    foreign = _foreign_publishers(probe, topics, set(ours))
+    if foreign:
+        raise _publishers_taken(foreign)
 
 
 def _call_start(client: Any, sweep: Any, check: Callable[[], None] = lambda: None) -> None:
@@ -551,9 +620,20 @@ def _flush_map(perception: Any, collected: _Collected) -> None:
 
 # -- outputs ----------------------------------------------------------------------------------------
 
+def _published(camera: Any, collected: _Collected) -> int:
+    """Frames the camera node has published (its own count; the scan's subscription may miss the first
+    ones while discovery matches it, which made 'processed' exceed 'published')."""
+    count = getattr(camera, "published", None)
+    if isinstance(count, int):
+        return count
+    with collected.lock:
+        return collected.frames
+
+
 def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Collected, outcome: str,
                    message: str, duration: float, sweep_answer: str,
-                   recorded: Mapping[str, int] | None = None) -> ScanResult:
+                   recorded: Mapping[str, int] | None = None, camera: Any = None,
+                   during_sweep: int | None = None) -> ScanResult:
     import cv2
 
     from touchroller_bringup.image_conversion import image_to_array
@@ -584,9 +664,11 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     _write_contacts(files["contacts"], contacts, getattr(perception, "camera", None),
                     float(_parameter(perception, "contacts.pixel_sigma", 0.3)))
     processed = int(getattr(perception, "received", 0))
+    frames = _published(camera, collected) if camera is not None else frames
     result = ScanResult(out_dir, outcome, message, duration, frames, processed,
                         int(getattr(perception, "dropped", 0)), int(getattr(perception, "malformed", 0)),
-                        len(contacts), map_shape, files, sweep_answer, dict(recorded or {}), world_map)
+                        len(contacts), map_shape, files, sweep_answer, dict(recorded or {}), world_map,
+                        frames_during_sweep=during_sweep)
     if recorded:
         files["recording"] = out_dir / "recording"
     files["report"] = out_dir / "report.md"
@@ -646,16 +728,24 @@ def _f(value: float, fmt: str = "%.4f") -> str:
 
 
 def _report(result: ScanResult, graph: Graph) -> str:
-    skipped = max(result.frames_published - result.frames_processed, 0)
-    rate = result.frames_published / result.duration_s if result.duration_s > 0 else float("nan")
+    skipped = result.frames_published - result.frames_processed
+    if skipped >= 0:
+        not_processed = f"{skipped} not processed"
+    else:   # perception took frames the camera did not publish: another publisher on image_raw
+        not_processed = (f"{-skipped} more than the camera published: another publisher on "
+                         f"{names.topic(names.IMAGE, graph.namespace)}")
+    during = result.frames_during_sweep
+    rate = during / result.duration_s if during is not None and result.duration_s > 0 else float("nan")
+    sweep_frames = f"; {during} during the sweep, {rate:.1f} Hz" if during is not None else ""
     lines = [
         "# TouchRoller scan report",
         "",
         f"- outcome: **{result.outcome}** ({result.message})",
         f"- {result.sweep or 'sweep'}; {'simulated' if graph.arguments['use_sim'] == 'true' else 'UR5'} arm",
         f"- sweep duration: {result.duration_s:.2f} s (from ~/start to the end of the sweep)",
-        f"- frames published by the camera: {result.frames_published} ({rate:.1f} Hz)",
-        f"- frames processed by perception: {result.frames_processed} ({skipped} not processed; with a "
+        f"- frames published by the camera: {result.frames_published} (from its start to the end of the scan"
+        f"{sweep_frames})",
+        f"- frames processed by perception: {result.frames_processed} over the same time ({not_processed}; with a "
         f"camera its keep-last depth-1 queue skips stale frames when it is busy, simulated the clock waits "
         f"for it); publication-sequence gaps it "
         f"counted as dropped: {result.frames_dropped}; malformed: {result.frames_malformed}",

@@ -44,12 +44,20 @@ class ArmLimits:
     max_accel: float = 0.5  # m/s^2
     workspace_min: tuple[float, float, float] | None = None
     workspace_max: tuple[float, float, float] | None = None
+    reach: float | None = None  # m: the farthest a target position may be from the base frame's origin
 
     def __post_init__(self) -> None:
-        for name in ("max_speed", "max_accel"):
+        for name in ("max_speed", "max_accel", *(("reach",) if self.reach is not None else ())):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"ArmLimits.{name} must be a finite number > 0, got {value}")
+
+    def check_reach(self, position: ArrayLike) -> None:
+        """ArmLimitError unless the position (x, y, z in the base frame) is within `reach` of the origin."""
+        xyz = np.asarray(position, dtype=np.float64).reshape(-1)[:3]
+        if self.reach is not None and not float(np.linalg.norm(xyz)) <= self.reach:
+            raise ArmLimitError(f"target {np.round(xyz, 4).tolist()} is {float(np.linalg.norm(xyz)):.4g} m from the "
+                                f"arm's base, beyond its reach of {self.reach:g} m (arm.reach)")
 
     def check(self, target_pose: ArrayLike, speed: float, accel: float) -> np.ndarray:
         """Validate a linear move; return the target as a float64 (6,) array or raise ArmLimitError."""
@@ -62,6 +70,7 @@ class ArmLimits:
             raise ArmLimitError(f"target {pose[:3].tolist()} below workspace minimum {list(self.workspace_min)}")
         if self.workspace_max is not None and np.any(pose[:3] > np.asarray(self.workspace_max)):
             raise ArmLimitError(f"target {pose[:3].tolist()} above workspace maximum {list(self.workspace_max)}")
+        self.check_reach(pose[:3])
         return pose
 
 
@@ -122,6 +131,7 @@ class Arm(Protocol):
     def reset_fault(self) -> None: ...  # clear a fault (unlock a protective stop, reconnect) or raise ArmError
     def keepalive(self) -> None: ...  # at >= 10 Hz while connected: a real arm stops when calls cease
     def disconnect(self) -> None: ...
+    def abort(self) -> None: ...  # from ANY thread: give up a blocking call under way (it raises ArmError)
 
 
 @dataclass(frozen=True)
@@ -231,6 +241,9 @@ class SimulatedArm:
     def keepalive(self) -> None:
         """Nothing to keep alive: the simulation stops with the process."""
 
+    def abort(self) -> None:
+        """Nothing blocks here: every call returns at once."""
+
     # -- simulation ----------------------------------------------------------------------------
     def inject_fault(self, message: str = "protective stop", *, resettable: bool = True) -> None:
         """Behave like a protective stop: the arm halts where it is and refuses motion until `reset_fault()`
@@ -325,31 +338,52 @@ class RasterPass:
     across: tuple[float, float]
 
 
-def raster_offsets(width: float, usable_width: float, overlap: float) -> list[float]:
-    """Centre lines of the passes across a rectangle `width` wide (0 = the edge): as few passes of
-    `usable_width` as cover it with neighbours sharing at least `overlap` of the usable width, spread
-    evenly, the first and last flush with the edges; one centred pass when the rectangle is narrower."""
+#: the most passes a raster may have: its plan (4 moves a pass) is built and checked at once, and a
+#: raster of more passes is a typo (a width in mm given in m) far more often than a wish
+MAX_PASSES = 1000
+
+
+def raster_pass_count(width: float, usable_width: float, overlap: float) -> int:
+    """How many passes `raster_offsets` makes, computed without making them (any finite width)."""
     if not (math.isfinite(usable_width) and usable_width > 0):
         raise ArmLimitError(f"the roller's usable width must be > 0 m, got {usable_width}")
     if not (0.0 <= overlap < 1.0):
         raise ArmLimitError(f"pass overlap must be in [0, 1), got {overlap}")
+    if not math.isfinite(width):
+        raise ArmLimitError(f"the raster's width must be finite, got {width}")
     if width <= usable_width:
-        return [width / 2.0]
+        return 1
     step = usable_width * (1.0 - overlap)
-    count = math.ceil((width - usable_width) / step - 1e-9) + 1
+    return math.ceil((width - usable_width) / step - 1e-9) + 1
+
+
+def raster_offsets(width: float, usable_width: float, overlap: float) -> list[float]:
+    """Centre lines of the passes across a rectangle `width` wide (0 = the edge): as few passes of
+    `usable_width` as cover it with neighbours sharing at least `overlap` of the usable width, spread
+    evenly, the first and last flush with the edges; one centred pass when the rectangle is narrower.
+    ArmLimitError beyond MAX_PASSES passes."""
+    count = raster_pass_count(width, usable_width, overlap)
+    if count > MAX_PASSES:
+        raise ArmLimitError(f"sweep.area {width:g} m wide takes {count} passes of {usable_width:g} m "
+                            f"(overlap {overlap:g}); at most {MAX_PASSES}")
+    if count == 1:
+        return [width / 2.0]
     pitch = (width - usable_width) / (count - 1)
     return [usable_width / 2.0 + k * pitch for k in range(count)]
 
 
 def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transform, speed: float, accel: float,
                 depth: float, direction: Sequence[float] = (1.0, 0.0, 0.0), usable_width: float = 0.06,
-                overlap: float = 0.25, approach_speed: float | None = None, clearance: float = 0.0) -> SweepPlan:
+                overlap: float = 0.25, approach_speed: float | None = None, clearance: float = 0.0,
+                limits: ArmLimits | None = None) -> SweepPlan:
     """A boustrophedon raster over the rectangle `area` = (x, y, length, width) of the world's horizontal
     plane: corner (x, y), `length` along `direction`, `width` along the roller's axis (+axis side).
     Every pass rolls the whole length, pressed `depth` into the surface, alternately forwards and back;
     between passes the roller lifts by `clearance`, moves across and presses again. `start_pose` gives
     the tool's orientation and the height at which the roller just touches the surface; `mount` is
-    T_tool_cylinder (the roller's axis centre in the tool frame)."""
+    T_tool_cylinder (the roller's axis centre in the tool frame). With `limits`, the raster's corners are
+    checked against its reach before any pass is planned (the tool's path lies within their hull), so an
+    area kilometres wide is refused at once; and no raster has more than MAX_PASSES passes."""
     start = as_pose(start_pose)
     values = [float(v) for v in area]
     if len(values) != 4 or not all(math.isfinite(v) for v in values):
@@ -380,6 +414,13 @@ def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transfor
         pose[2] += dz
         return pose
 
+    count = raster_pass_count(width, usable_width, overlap)
+    if limits is not None:   # the reach is a ball (convex): the rectangle's corners bound every target
+        first, last = (width / 2.0, width / 2.0) if count == 1 else (usable_width / 2.0, width - usable_width / 2.0)
+        for centre in (first, last):
+            for along in (0.0, length):
+                for dz in (clearance, -depth):
+                    limits.check_reach(tool_at(corner + centre * across[:2] + along * heading[:2], dz)[:3])
     for k, centre in enumerate(raster_offsets(width, usable_width, overlap)):
         a = corner + centre * across[:2]
         b = a + length * heading[:2]
@@ -445,6 +486,24 @@ def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: flo
     if retract:
         segments.append(Segment("lift", end + (depth + clearance) * up, slow, accel))
     return SweepPlan(tuple(segments), rolls=(2,), lengths=(float(length),))
+
+
+def plan_duration(plan: SweepPlan, from_pose: ArrayLike | None = None) -> float:
+    """Seconds the plan's moves take at their speeds and accelerations (trapezoid profiles, rest to rest,
+    as the simulated arm moves; a UR blends nothing between our moves either), from `from_pose` (the
+    arm's pose now), or from the first target when it is not known."""
+    if not plan.segments:
+        return 0.0
+    targets = np.array([segment.target[:3] for segment in plan.segments])
+    start = targets[0] if from_pose is None else as_pose(from_pose)[:3]
+    distances = np.linalg.norm(np.diff(np.vstack([start, targets]), axis=0), axis=1)
+    speeds = np.array([segment.speed for segment in plan.segments])
+    accels = np.array([segment.accel for segment in plan.segments])
+    # TrapezoidProfile's duration, vectorised: 2 v/a + (d - v^2/a)/v with v = min(v_max, sqrt(a d))
+    peaks = np.minimum(speeds, np.sqrt(accels * distances))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cruise = np.where(peaks > 0, (distances - peaks**2 / accels) / peaks, 0.0)
+    return float(np.sum(2.0 * peaks / accels + np.maximum(cruise, 0.0)))
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,11 @@ TCP on the UR ports and never answers would freeze the whole process for good. S
 probes the ports with the protocols' own greetings and a timeout (`probe_rtde`: the RTDE protocol
 version request on 30004; `probe_dashboard`: the dashboard server's welcome line on 29999, which the
 control interface opens too) and only then constructs the interfaces.
+A host can pass both probes and then go silent (or a robot can stop answering mid-sweep): so every
+ur_rtde call, constructors included, runs in a child process with a deadline (`ur_rtde_process`); one
+not answered in time ends the child and becomes a fault, and the robot's own communication watchdog
+(armed on connect) stops the control script once nothing kicks it; we also ask the dashboard server to
+stop the program, in case it still answers. `abort()` (any thread) gives up at once.
 All calls must come from one thread (the sweep node's worker): ur_rtde's interfaces are not shared.
 See docs/ur5.md for running against a real robot or URSim.
 """
@@ -27,6 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from touchroller_driver.arm import ArmError, ArmLimits
+from touchroller_driver.ur_rtde_process import CALL_TIMEOUT_S, OPEN_TIMEOUT_S, LocalRtde, RtdeChild, RtdeGone
 
 # Every ur_rtde call this module makes, with the positional arguments it passes (besides self).
 # test_ur5.py checks these against the installed module's pybind signatures.
@@ -102,6 +108,27 @@ def probe_rtde(host: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
     _probe(host, RTDE_PORT, timeout, "RTDE", exchange)
 
 
+def dashboard_stop(host: str, timeout: float = CONNECT_TIMEOUT_S) -> bool:
+    """Ask the dashboard server to stop the running program (the control script): True if it said so.
+    A plain socket with a deadline, no ur_rtde: used when the ur_rtde process was given up mid-motion."""
+    answer = b""
+
+    def exchange(sock: socket.socket, deadline: float) -> None:
+        nonlocal answer
+        line = b""
+        while not line.endswith(b"\n") and len(line) < 256:
+            line += _receive_exactly(sock, 1, deadline)
+        sock.sendall(b"stop\n")
+        while not answer.endswith(b"\n") and len(answer) < 256:
+            answer += _receive_exactly(sock, 1, deadline)
+
+    try:
+        _probe(host, DASHBOARD_PORT, timeout, "dashboard", exchange)
+    except ArmError:
+        return False
+    return answer.lower().startswith(b"stopped")
+
+
 def probe_dashboard(host: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
     """The dashboard server greets every client with one line; read it."""
     def exchange(sock: socket.socket, deadline: float) -> None:
@@ -119,7 +146,10 @@ class UR5Arm:
 
     def __init__(self, robot_ip: str, *, limits: ArmLimits | None = None, frequency: float = -1.0,
                  check_reachability: bool = True, watchdog_hz: float = WATCHDOG_HZ,
-                 connect_timeout: float = CONNECT_TIMEOUT_S) -> None:
+                 connect_timeout: float = CONNECT_TIMEOUT_S, isolated: bool = True,
+                 call_timeout: float = CALL_TIMEOUT_S, open_timeout: float = OPEN_TIMEOUT_S) -> None:
+        """`isolated` (the default): ur_rtde runs in a child process with deadlines (`call_timeout` for a
+        call, `open_timeout` for a constructor); False makes the objects in this process (tests with doubles)."""
         try:
             ipaddress.ip_address(robot_ip)
         except ValueError:
@@ -133,6 +163,13 @@ class UR5Arm:
         if not (math.isfinite(connect_timeout) and connect_timeout > 0):
             raise ValueError(f"connect_timeout must be a number of seconds > 0, got {connect_timeout}")
         self.connect_timeout = float(connect_timeout)
+        for name, value in (("call_timeout", call_timeout), ("open_timeout", open_timeout)):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a number of seconds > 0, got {value}")
+        self.isolated = isolated
+        self.call_timeout, self.open_timeout = float(call_timeout), float(open_timeout)
+        self._child: RtdeChild | None = None
+        self._local: LocalRtde | None = None
         self._control: Any = None
         self._receive: Any = None
         self._fault: str | None = None
@@ -141,18 +178,35 @@ class UR5Arm:
         self._halted_fraction = 1.0
 
     # -- connection ----------------------------------------------------------------------------
+    def _open(self, interface: str) -> Any:
+        """A ur_rtde object: a proxy of one in the child process (isolated), or the object itself."""
+        if not self.isolated:
+            self._local = self._local or LocalRtde()
+            return self._local.open(interface, self.robot_ip, self.frequency)
+        if self._child is None or not self._child.alive:
+            self._child = RtdeChild(self.robot_ip, call_timeout=self.call_timeout, open_timeout=self.open_timeout)
+        return self._child.open(interface, self.frequency)
+
+    def abort(self) -> None:
+        """From any thread: give up the ur_rtde call under way (and every later one until `connect()`)."""
+        child = self._child
+        if child is not None:
+            child.abort()
+
     def connect(self) -> None:
         """Open the receive stream, then the control interface (which uploads the control script), each
-        after probing its ports (a silent host fails here in `connect_timeout`, not in ur_rtde for ever)."""
-        import rtde_control
-        import rtde_receive
-
+        after probing its ports (a silent host fails here in `connect_timeout`, not in ur_rtde for ever),
+        each within `open_timeout` (a host that greets and then goes silent fails here too)."""
         self.disconnect()
         try:
             probe_rtde(self.robot_ip, self.connect_timeout)
-            self._receive = rtde_receive.RTDEReceiveInterface(self.robot_ip, self.frequency)
+            self._receive = self._open("receive")
             probe_dashboard(self.robot_ip, self.connect_timeout)
-            self._control = rtde_control.RTDEControlInterface(self.robot_ip, self.frequency)
+            self._control = self._open("control")
+        except RtdeGone as exc:
+            self.disconnect()
+            self._fault = f"cannot connect to the UR at {self.robot_ip}: {exc}"
+            raise ArmError(self._fault) from None
         except ArmError as exc:
             self.disconnect()
             self._fault = str(exc)
@@ -179,8 +233,8 @@ class UR5Arm:
             try:
                 if receive.isConnected():
                     emergency, protective = receive.isEmergencyStopped(), receive.isProtectiveStopped()
-            except RuntimeError:
-                pass   # the stream is gone: reconnecting tells
+            except (RuntimeError, ArmError):
+                pass   # the stream (or the ur_rtde process) is gone: reconnecting tells
         if emergency:
             raise ArmError("emergency stop: release it on the teach pendant, then reset")
         if protective:
@@ -192,10 +246,8 @@ class UR5Arm:
             raise ArmError(f"the fault remains after the reset: {fault}")
 
     def _unlock_protective_stop(self) -> None:
-        import dashboard_client
-
         probe_dashboard(self.robot_ip, self.connect_timeout)
-        dashboard = dashboard_client.DashboardClient(self.robot_ip)
+        dashboard = self._open("dashboard")
         try:
             dashboard.connect(round(self.connect_timeout * 1000))
             dashboard.unlockProtectiveStop()
@@ -204,7 +256,7 @@ class UR5Arm:
         finally:
             try:
                 dashboard.disconnect()
-            except RuntimeError:
+            except (RuntimeError, ArmError):
                 pass
 
     def keepalive(self) -> None:
@@ -215,14 +267,18 @@ class UR5Arm:
     def disconnect(self) -> None:
         control, receive = self._control, self._receive
         self._control = self._receive = None
+        child, self._child = self._child, None
+        self._local = None
         for interface, calls in ((control, ("stopScript", "disconnect")), (receive, ("disconnect",))):
             if interface is None:
                 continue
             for call in calls:
                 try:
                     getattr(interface, call)()
-                except RuntimeError:
+                except (RuntimeError, ArmError):
                     pass  # already gone: nothing left to release
+        if child is not None:
+            child.close()
 
     # -- state ---------------------------------------------------------------------------------
     def tcp_pose(self) -> np.ndarray:
@@ -233,11 +289,30 @@ class UR5Arm:
         return pose
 
     def fault(self) -> str | None:
-        """A protective/emergency stop or a lost connection, as one line; None when healthy."""
+        """A protective/emergency stop, a lost connection or a robot that stopped answering (the ur_rtde
+        process given up), as one line; None when healthy."""
         if self._fault is not None:
             return self._fault
+        if self._child is not None and self._child.failure is not None:
+            return self._gone(self._child.failure)
         if self._receive is None or self._control is None:
             return None
+        try:
+            return self._read_fault()
+        except RtdeGone as exc:
+            return self._gone(str(exc))
+
+    def _gone(self, why: str) -> str:
+        """The ur_rtde process was given up: latch the fault, drop the interfaces, and ask the dashboard
+        server to stop the program too (the controller's watchdog stops it regardless)."""
+        self._control = self._receive = None
+        stopped = dashboard_stop(self.robot_ip, min(self.connect_timeout, 0.5))
+        self._fault = (f"the UR at {self.robot_ip} stopped answering ({why}): the ur_rtde connection was given up, "
+                       "the robot's communication watchdog stops the control script"
+                       f"{'; the dashboard server stopped the program' if stopped else ''}")
+        return self._fault
+
+    def _read_fault(self) -> str | None:
         if not self._receive.isConnected() or not self._control.isConnected():
             self._fault = "lost the RTDE connection to the robot"
         elif self._receive.isEmergencyStopped():
@@ -272,11 +347,13 @@ class UR5Arm:
     def stop(self) -> None:
         if self._control is None:
             return
-        if self._move_start is not None and self._move_target is not None and self._receive is not None:
-            self._halted_fraction = _fraction_along(self._move_start, self._move_target, self.tcp_pose())
-        self._move_start = self._move_target = None
         try:
+            if self._move_start is not None and self._move_target is not None and self._receive is not None:
+                self._halted_fraction = _fraction_along(self._move_start, self._move_target, self.tcp_pose())
+            self._move_start = self._move_target = None
             self._control.stopL(STOP_DECELERATION)
+        except RtdeGone as exc:   # the robot stopped answering: given up, its watchdog stops it
+            self._gone(str(exc))
         except RuntimeError as exc:  # e.g. the script already ended on a protective stop: nothing moves
             self._fault = self._fault or f"stopL failed: {_one_line(exc)}"
 

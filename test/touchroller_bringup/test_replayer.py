@@ -182,3 +182,15 @@ def test_cli_replay_plays_a_bag_and_reports_errors_in_one_line(ros_context, tmp_
     err = capsys.readouterr().err
     assert "no such bag" in err and "--rate must be positive" in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 2
+
+
+@pytest.mark.parametrize("flags", [["--rate", "1e-300"], ["--rate", "1e300"], ["--rate", "nan"], ["--rate", "inf"],
+                                   ["--delay", "inf"], ["--delay", "nan"], ["--delay", "1e9"]])
+def test_cli_replay_refuses_an_absurd_rate_or_delay_in_one_line(tmp_path, capsys, flags):
+    """--rate 1e-300 overflowed the playback thread's wait (a traceback, exit 0); --delay inf waited for ever."""
+    from touchroller_bringup.cli import main
+
+    bag = write_string_bag(tmp_path / "bag", [0, 50_000_000])
+    assert main(["replay", str(bag), *flags]) == 2
+    err = capsys.readouterr().err
+    assert flags[0] in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

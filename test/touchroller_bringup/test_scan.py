@@ -306,6 +306,7 @@ def test_speed_beyond_the_arm_limit_is_refused_before_motion(isolated_ros, tmp_p
     assert main(["scan", "sweep_speed:=0.5", "--quiet", "--out", str(tmp_path / "x")]) == 2
     err = error_text(capsys.readouterr().err)
     assert "speed 0.5" in err and "\n" not in err
+    assert not (tmp_path / "x").exists()   # a refusal leaves no (empty) output folder
 
 
 @pytest.mark.ros
@@ -325,6 +326,7 @@ def test_unreachable_robot_fails_with_the_arm_error(isolated_ros, tmp_path, caps
     assert result == 2
     err = error_text(capsys.readouterr().err)
     assert "cannot connect" in err and "127.0.0.213" in err and "\n" not in err
+    assert not (tmp_path / "x").exists()   # refused once the graph was up: no folder left either
 
 
 @pytest.mark.ros
@@ -489,3 +491,102 @@ def test_a_simulated_sweep_is_timed_on_the_simulated_clock_not_the_wall(monkeypa
     assert not on_hardware.beyond(20.0)
     wall[0] += 21.0
     assert on_hardware.beyond(20.0)
+
+
+# -- issue #29: foreign publishers on the scan's topics; honest frame counts ----------------------------
+
+def _stray_publishers(kind: str):
+    """(context, node) of what another process would be: `touchroller replay` of a scan's recording (its
+    publishers exist from its start, in no namespace of ours), or a bare `sweep_progress` publisher."""
+    import rclpy
+    from rclpy.node import Node
+    from std_msgs.msg import Float32
+
+    from touchroller_bringup import names
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context, args=[])
+    if kind == "progress":
+        node = Node("stray_progress", context=context)
+        node.create_publisher(Float32, names.topic(names.SWEEP_PROGRESS), 10)
+    else:
+        from touchroller_bringup.bags import write_images
+        from touchroller_bringup.replayer import Replayer
+
+        bag = Path(kind)
+        write_images(bag, [(1_000_000 * k, np.zeros((8, 8, 3), np.uint8)) for k in range(3)])
+        node = Replayer(bag, context=context)
+    return context, node
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("kind", ["progress", "replay"])
+def test_a_foreign_publisher_on_the_scans_topics_stops_it_before_its_nodes_exist(isolated_ros, tmp_path, capsys,
+                                                                               kind):
+    """A `touchroller replay` started before the scan was not seen (the check looked at nodes in the
+    namespace, the replayer is in none), and any sweep_progress publisher could end the map."""
+    context, node = _stray_publishers("progress" if kind == "progress" else str(tmp_path / "bag"))
+    try:
+        assert main(["scan", *SHORT, "--out", str(tmp_path / "x")]) == 2
+    finally:
+        node.destroy_node()
+        context.try_shutdown()
+    err = error_text(capsys.readouterr().err)
+    topic = "/touchroller/sweep_progress (/stray_progress)" if kind == "progress" else \
+        "/touchroller/image_raw (/touchroller_replayer)"
+    assert "another node publishes on this scan's topics" in err and topic in err and "\n" not in err, err
+    assert not (tmp_path / "x").exists()
+
+
+def test_the_report_never_says_none_were_skipped_when_perception_took_more_than_the_camera_published():
+    from touchroller_bringup import scan as scan_module
+
+    built = graph.build_graph("scan", {})
+    result = scan_module.ScanResult(Path("x"), "done", "sweep complete", 4.0, 359, 363, 0, 0, 0, None, {},
+                                    frames_during_sweep=100)
+    text = scan_module._report(result, built)
+    assert "0 not processed" not in text
+    assert "4 more than the camera published: another publisher on /touchroller/image_raw" in text
+    assert "100 during the sweep, 25.0 Hz" in text
+    result.frames_processed = 350
+    assert "9 not processed" in scan_module._report(result, built)
+
+
+def test_frames_published_is_the_camera_nodes_own_count():
+    """The scan's own subscription counted 127 frames where perception took 128 (it matched the camera
+    later, missing the first): the camera's count is the number published."""
+    from types import SimpleNamespace
+
+    from touchroller_bringup import scan as scan_module
+
+    collected = scan_module._Collected(frames=127)
+    assert scan_module._published(SimpleNamespace(published=131), collected) == 131
+    assert scan_module._published(None, collected) == 127
+
+
+def test_once_the_graph_is_up_only_its_own_nodes_may_publish_on_its_topics():
+    """The second check (before the arm moves): a publisher that appeared since start-up, and one whose node
+    discovery has not named yet, stop the scan; the scan's own nodes do not."""
+    from types import SimpleNamespace
+
+    from touchroller_bringup import scan as scan_module
+
+    def endpoint(name: str, namespace: str) -> SimpleNamespace:
+        return SimpleNamespace(node_name=name, node_namespace=namespace)
+
+    publishers = {"/touchroller/sweep_progress": [endpoint("sweep", "/touchroller")],
+                  "/touchroller/image_raw": [endpoint("camera", "/touchroller")]}
+    nodes = [("sweep", "/touchroller"), ("camera", "/touchroller")]
+    probe = SimpleNamespace(get_publishers_info_by_topic=lambda topic: publishers.get(topic, []),
+                            get_node_names_and_namespaces=lambda: nodes)
+    ours = [SimpleNamespace(get_fully_qualified_name=lambda n=f"{ns}/{name}": n) for name, ns in nodes]
+    topics = scan_module._graph_topics(graph.build_graph("scan", {}))
+    assert "/clock" in topics and "/touchroller/sweep_progress" in topics
+    scan_module._check_namespace_is_ours(probe, "touchroller", topics, ours)   # only ours: no error
+    publishers["/touchroller/sweep_progress"].append(endpoint("touchroller_replayer", "/"))
+    with pytest.raises(UserError, match=r"/touchroller/sweep_progress \(/touchroller_replayer\)"):
+        scan_module._check_namespace_is_ours(probe, "touchroller", topics, ours)
+    publishers["/touchroller/sweep_progress"][-1] = endpoint(scan_module.UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_")
+    with pytest.raises(UserError, match="a node not discovered yet"):
+        scan_module._check_namespace_is_ours(probe, "touchroller", topics, ours)

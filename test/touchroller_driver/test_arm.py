@@ -371,3 +371,20 @@ def test_a_sweep_whose_first_command_is_refused_does_not_start():
     assert sequencer.status.phase is SweepPhase.FAULT and not sequencer.active
     sequencer.clear()
     assert sequencer.status.phase is SweepPhase.IDLE
+
+
+def test_reach_refuses_a_target_beyond_it_and_the_pass_count_is_analytic():
+    from touchroller_driver.arm import MAX_PASSES, plan_duration, raster_pass_count
+
+    limits = ArmLimits(reach=0.85)
+    limits.check([0.8, 0.0, 0.2, math.pi, 0.0, 0.0], 0.01, 0.1)
+    with pytest.raises(ArmLimitError, match="beyond its reach of 0.85 m"):
+        limits.check([0.85, 0.0, 0.2, math.pi, 0.0, 0.0], 0.01, 0.1)
+    with pytest.raises(ValueError):
+        ArmLimits(reach=float("nan"))
+    assert raster_pass_count(0.05, 0.06, 0.25) == 1
+    assert raster_pass_count(3000.0, 0.06, 0.25) > MAX_PASSES   # 66 667, counted without making them
+    assert raster_pass_count(0.18, 0.06, 0.25) == 4
+    plan = plan_sweep(START, length=0.11, speed=0.011, accel=0.1, depth=0.001, clearance=0.002)
+    # each move: distance / speed + speed / accel (the two ramps); roll, press and lift (3 mm each way)
+    assert plan_duration(plan) == pytest.approx(0.11 / 0.011 + 3 * 0.011 / 0.1 + 2 * 0.003 / 0.011, rel=1e-9)

@@ -122,7 +122,7 @@ def connected_arm(monkeypatch):
     monkeypatch.setattr(rtde_receive, "RTDEReceiveInterface", lambda host, freq: receive)
     monkeypatch.setattr(ur5, "probe_rtde", lambda host, timeout: None)   # no controller behind the doubles
     monkeypatch.setattr(ur5, "probe_dashboard", lambda host, timeout: None)
-    arm = ur5.UR5Arm("127.0.0.1", limits=ArmLimits(max_speed=0.05, max_accel=0.5))
+    arm = ur5.UR5Arm("127.0.0.1", limits=ArmLimits(max_speed=0.05, max_accel=0.5), isolated=False)
     arm.connect()
     return arm, control, receive
 
@@ -328,7 +328,7 @@ def test_real_rtde_receive_reads_pose_and_protective_stop(fake_rtde_server, monk
     control.moveL.return_value = True
     control.setWatchdog.return_value = True
     monkeypatch.setattr(rtde_control, "RTDEControlInterface", lambda h, f: control)  # receive stays real
-    arm = ur5.UR5Arm(host)
+    arm = ur5.UR5Arm(host, isolated=False)   # the control double lives in this process
     arm.connect()
     try:
         assert isinstance(arm._receive, rtde_receive.RTDEReceiveInterface)
@@ -400,7 +400,7 @@ def test_real_clients_reset_a_protective_stop_on_the_fake_controller(fake_rtde_s
     control.isConnected.return_value = True
     control.setWatchdog.return_value = True
     monkeypatch.setattr(rtde_control, "RTDEControlInterface", lambda h, f: control)  # receive stays real
-    arm = ur5.UR5Arm(host)
+    arm = ur5.UR5Arm(host, isolated=False)   # the control double lives in this process
     arm.connect()
     try:
         command("protective")
@@ -445,3 +445,98 @@ def test_probes_tell_a_controller_from_something_else(fake_rtde_server, silent_u
         ur5.probe_dashboard(silent_ur_host, 0.2)
     with pytest.raises(ArmError, match="cannot connect to the UR at 127.0.0.213: RTDE on port 30004"):
         ur5.probe_rtde(REFUSED_HOST, 1.0)
+
+
+# -- issue #29: every ur_rtde call in a child process the arm thread can give up -----------------------
+
+@pytest.mark.timeout(120)
+def test_a_host_that_greets_then_stalls_is_given_up_without_freezing_the_process(half_alive_ur_host):
+    """The probes pass (the host answers the RTDE greeting and the dashboard's welcome line), then ur_rtde's
+    constructor waits for ever with the GIL held: it runs in the child, which is given up after open_timeout;
+    meanwhile this process runs (a thread counts). Judged from a parent: a frozen interpreter cannot judge."""
+    import subprocess
+    import sys
+
+    code = ("import sys, threading, time\nfrom touchroller_driver.ur5 import UR5Arm\n"
+            "from touchroller_driver.arm import ArmError\n"
+            "ticks = []\nthreading.Thread(target=lambda: [ticks.append(time.sleep(0.01)) for _ in iter(int, 1)],"
+            " daemon=True).start()\n"
+            "arm = UR5Arm(sys.argv[1], open_timeout=1.0)\n"
+            "try:\n    arm.connect()\nexcept ArmError as exc:\n"
+            "    print('ERROR', exc)\n    print('FAULT', arm.fault())\n    print('TICKS', len(ticks))\n")
+    try:
+        done = subprocess.run([sys.executable, "-c", code, half_alive_ur_host], capture_output=True, text=True,
+                              timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("connecting to a host that greets and then stalls froze the process")
+    lines = done.stdout.splitlines()
+    assert lines and lines[0] == f"ERROR cannot connect to the UR at {half_alive_ur_host}: no answer to " \
+        f"RTDEReceiveInterface('{half_alive_ur_host}') (connecting) within 1 s", done.stdout + done.stderr
+    assert lines[1] == "FAULT " + lines[0][len("ERROR "):]
+    assert int(lines[2].split()[1]) > 10   # the other thread ran while ur_rtde waited in the child
+
+
+@pytest.mark.timeout(60)
+def test_abort_from_another_thread_gives_up_a_call_at_once(half_alive_ur_host):
+    import threading
+
+    arm = ur5.UR5Arm(half_alive_ur_host, open_timeout=600.0)
+    failed: list[str] = []
+
+    def connect() -> None:
+        try:
+            arm.connect()
+        except ArmError as exc:
+            failed.append(str(exc))
+
+    thread = threading.Thread(target=connect)
+    thread.start()
+    assert _wait_for(lambda: arm._child is not None and arm._child._process is not None)
+    arm.abort()
+    thread.join(timeout=30.0)
+    assert not thread.is_alive() and failed and "aborted" in failed[0]
+    assert arm.fault() == failed[0]
+
+
+@pytest.mark.timeout(60)
+def test_the_real_receive_interface_answers_from_the_child_and_a_hung_child_is_a_fault(fake_rtde_server):
+    """The real rtde_receive in the child reads the fake controller's stream; then the child hangs (SIGSTOP
+    stands in for ur_rtde blocked on a robot gone silent mid-run): the next call is given up after
+    call_timeout, the child is killed, and UR5Arm reports the fault in one line and refuses motion."""
+    import os
+    import signal
+
+    from touchroller_driver.ur_rtde_process import RtdeChild, RtdeGone
+
+    host, command = fake_rtde_server
+    child = RtdeChild(host, call_timeout=0.5)
+    receive = child.open("receive", -1.0)
+    command("pose 0.41 -0.02 0.205 3.1 0.05 -0.01")
+    assert _wait_for(lambda: receive.getActualTCPPose()[0] == pytest.approx(0.41))
+    assert receive.isConnected() is True
+    arm = ur5.UR5Arm(host)
+    arm._child, arm._receive, arm._control = child, receive, receive   # connected (control: any proxy will do)
+    assert arm.fault() is None
+    pid = child._process.pid
+    os.kill(pid, signal.SIGSTOP)
+    fault = arm.fault()
+    assert fault.startswith(f"the UR at {host} stopped answering (no answer to isConnected() within 0.5 s)")
+    assert "\n" not in fault and child.failure is not None
+    with pytest.raises(ProcessLookupError):   # killed, and reaped
+        os.kill(pid, 0)
+    with pytest.raises(ArmError, match="stopped answering"):
+        arm.move_linear(POSE, 0.01, 0.1)
+    with pytest.raises(RtdeGone):
+        receive.getActualTCPPose()
+    arm.disconnect()
+
+
+def test_the_isolated_connect_reports_the_control_interfaces_own_error(fake_rtde_server):
+    """The fake controller has no script interface: the real RTDEControlInterface fails in the child, and
+    its message comes back as one line (the receive interface before it connected, in the child too)."""
+    host, _ = fake_rtde_server
+    arm = ur5.UR5Arm(host, open_timeout=20.0)
+    with pytest.raises(ArmError) as info:
+        arm.connect()
+    assert str(info.value).startswith(f"cannot connect to the UR at {host}: ") and "\n" not in str(info.value)
+    assert arm._child is None   # ended with the failed connection

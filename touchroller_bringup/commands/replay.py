@@ -6,6 +6,7 @@ recorded QoS. Ends when the bag ends (never with --loop) or on Ctrl-C.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 from touchroller_bringup.errors import UserError
@@ -24,11 +25,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+#: --delay's limit, s: a day (a wait for ever is no use, and an infinite one is refused)
+MAX_DELAY_S = 86400.0
+
+
 def run(args: argparse.Namespace) -> int:
-    if not args.rate > 0:
-        raise UserError(f"--rate must be positive, got {args.rate}")
-    if args.delay < 0:
-        raise UserError(f"--delay must not be negative, got {args.delay}")
+    from touchroller_bringup.replayer import check_rate
+
+    check_rate(args.rate)
+    if not (math.isfinite(args.delay) and 0 <= args.delay <= MAX_DELAY_S):
+        raise UserError(f"--delay must be a number of seconds from 0 to {MAX_DELAY_S:g}, got {args.delay:g}")
     import rclpy
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor

@@ -17,7 +17,8 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   refined by registration; mono8, row 0 the largest y, frame_id `world_frame`) with its resolution and
   origin on `map_metadata` (nav_msgs/MapMetaData, as nav2's map_server); else the strip map of
   `touchroller_perception.stitching` (frame touchroller_cylinder);
-  follows the sweep on `sweep_progress` (std_msgs/Float32, 0..1 of the rolling, all passes): a new
+  follows the sweep on `sweep_progress` (std_msgs/Float32, 0..1 of the rolling, all passes; only from
+  the sweep node of its namespace, told by the publisher of each message: any other is ignored): a new
   map when the roll starts (a world map that has mapped nothing yet keeps the approach, so that it is
   the map `touchroller map` makes of a recording of the scan), and when it ends the map is finalised
   (whole-map flat field), published, and saved to `map.save_path` if that is set (a world map: the PNG,
@@ -61,6 +62,7 @@ from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.map_files import write_world_map
+from touchroller_bringup.publisher_filter import PublisherFilter
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
     OK,
@@ -213,7 +215,12 @@ class PerceptionNode(Node):
         self.map_metadata_pub = self.create_publisher(MapMetaData, names.MAP_METADATA, MAP_QOS)
         self.done_pub = self.create_publisher(Header, names.IMAGE_DONE, QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
-        self.progress_sub = self.create_subscription(Float32, names.SWEEP_PROGRESS, self._on_progress, 10)
+        # progress only from the sweep node of this namespace: another publisher must not cut a map short
+        namespace = self.get_namespace().strip("/")
+        self.progress_filter = PublisherFilter(self, names.topic(names.SWEEP_PROGRESS, namespace),
+                                               names.topic(names.SWEEP_NODE, namespace))
+        on_progress = self._on_progress_with_info if _has_message_info() else self._on_progress
+        self.progress_sub = self.create_subscription(Float32, names.SWEEP_PROGRESS, on_progress, 10)
         # Humble has no MessageInfo, so no drop count there
         on_image = self._on_image_with_info if _has_message_info() else self._on_image
         self.image_sub = self._subscribe_images(on_image)
@@ -494,6 +501,14 @@ class PerceptionNode(Node):
             self.get_logger().info(f"world map in {self.world_frame} at {self.world.config.resolution * 1e3:g} mm/px")
         else:
             self.stitcher = Stitcher(self.stitcher_config, camera=self.camera)
+
+    def _on_progress_with_info(self, msg: Float32, info: Any) -> None:
+        if self.progress_filter.accepts(info):
+            self._on_progress(msg)
+        else:
+            source = self.progress_filter.last_rejected or "another node"
+            self.get_logger().warning(f"ignoring {names.SWEEP_PROGRESS} from {source}: only "
+                                      f"{self.progress_filter.source} starts and ends maps", throttle_duration_sec=10.0)
 
     def _on_progress(self, msg: Float32) -> None:
         progress = float(msg.data)

@@ -1,13 +1,18 @@
 """The sweep node: rolls the sensor over a surface with an arm (UR5 via ur_rtde, or simulated).
 
-Safety: the arm moves only after `~/start` is called; every segment of the sweep is checked
-against `arm.max_speed`/`arm.max_accel` (read-only at run time) before the first command; all arm
-calls happen on one worker thread; a fault (protective/emergency stop, lost connection, refused
-command), during a sweep or while idle, stops the sweep, shows as ERROR on `/diagnostics` and stays
-until `~/reset_fault` clears it (the UR dashboard's "unlock protective stop", then a reconnect):
+Safety (docs/ur5.md, "Safety rules"): the arm moves only after `~/start` answered success. A start is
+planned and checked whole on a planner thread (every segment against `arm.max_speed`/`arm.max_accel`/
+`arm.reach`, read-only at run time; at most MAX_PASSES passes; at most `sweep.max_duration` from where the
+arm is), then the arm thread commits to it just before the first motion command; a start its caller
+stopped waiting for (COMMAND_TIMEOUT_S, or shutdown) is abandoned instead, and never moves the arm.
+Start-up parameter values get the on-set callback's checks (one line, exit 2). All arm calls happen on
+one worker thread; a fault (protective/emergency stop, lost connection, refused command, a robot that
+stopped answering), during a sweep or while idle, stops the sweep, shows as ERROR on `/diagnostics` and
+stays until `~/reset_fault` clears it (the UR dashboard's "unlock protective stop", then a reconnect):
 meanwhile `~/start` answers failure. The worker thread connects to the arm (CONNECTING, WARN, on
-`/diagnostics`; a UR is probed with a timeout first), so the node answers services and publishes
-diagnostics while a robot is slow or silent. Publishes the TCP pose
+`/diagnostics`; a UR is probed with a timeout first, and ur_rtde runs in a child process with deadlines),
+so the node answers services, publishes diagnostics and ends on SIGINT while a robot is slow or silent; a
+stop or a shutdown the arm thread cannot answer gives its arm call up (`Arm.abort`). Publishes the TCP pose
 (`tcp_pose`, geometry_msgs/PoseStamped in the robot base frame) and the roll progress
 (`sweep_progress`, std_msgs/Float32, 0..1) at `sweep.publish_rate`; topics are relative to the node's
 namespace (`touchroller` by default, names in `touchroller_bringup.names`). TF: base -> tool0 on /tf
@@ -34,7 +39,7 @@ import queue
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -68,6 +73,7 @@ from touchroller_driver.arm import (
     SweepSequencer,
     SweepStatus,
     mount_transform,
+    plan_duration,
     plan_raster,
     plan_sweep,
     raster_coverage,
@@ -76,7 +82,12 @@ from touchroller_driver.arm import (
 from touchroller_driver.sim.clock import FrameGate, SimClock
 from touchroller_perception.transforms import Transform
 
+#: how long a service waits for its answer; a start not accepted by then is cancelled (it never moves the arm)
 COMMAND_TIMEOUT_S = 5.0
+UR5_REACH_M = 0.85   # a UR5's reach from its base (the datasheet's 850 mm)
+#: shutting down (a stop signal, the node destroyed): how long the arm thread gets to stop the arm before a
+#: call it is stuck in is given up (`Arm.abort`: the ur_rtde process ends, the robot's watchdog stops it)
+SHUTDOWN_STOP_S = 0.5
 #: sim.lockstep: wall seconds without any frame published or finished before the clock goes on regardless
 #: (a camera or perception that stopped must not freeze the simulation; said on the log)
 LOCKSTEP_STALL_S = 10.0
@@ -99,10 +110,32 @@ def rotation_vector_to_quaternion(rotation: Sequence[float]) -> tuple[float, flo
 
 @dataclass
 class _Command:
+    """A service request handed to the planner and the arm thread. A start is PENDING until the arm
+    thread commits to it (just before the first motion command) or its caller gives up waiting
+    (abandons it): exactly one of the two happens, so a start whose caller was answered failure never
+    moves the arm."""
+
     name: str
     done: threading.Event
     success: bool = False
     message: str = ""
+    plan: SweepPlan | None = None
+    state: str = "pending"   # pending, committed, abandoned
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def commit(self) -> bool:
+        """The arm thread is about to move the arm for this command; False if its caller gave up."""
+        with self._lock:
+            if self.state == "pending":
+                self.state = "committed"
+            return self.state == "committed"
+
+    def abandon(self) -> bool:
+        """The caller gives up waiting; False if the arm thread has already committed to it."""
+        with self._lock:
+            if self.state == "pending":
+                self.state = "abandoned"
+            return self.state == "abandoned"
 
 
 class SweepNode(Node):
@@ -120,8 +153,14 @@ class SweepNode(Node):
 
         self.limits = self._limits_from_parameters()
         if arm is not None:  # a supplied arm keeps its own limits; the stricter of the two apply here
+            reaches = [r for r in (self.limits.reach, arm.limits.reach) if r is not None]
             self.limits = ArmLimits(max_speed=min(self.limits.max_speed, arm.limits.max_speed),
-                                    max_accel=min(self.limits.max_accel, arm.limits.max_accel))
+                                    max_accel=min(self.limits.max_accel, arm.limits.max_accel),
+                                    reach=min(reaches) if reaches else None)
+        try:   # start-up values get the checks a change at run time gets (the on-set callback's)
+            self._plan_from(self.settings)
+        except (ArmError, ValueError) as exc:
+            raise ValueError(f"sweep parameters refused: {exc}") from None
         self.sim_clock: SimClock | None = None   # use_sim: the one clock of the simulated arm and camera
         self._clock_pub: Any = None
         self.frame_gate: FrameGate | None = None   # use_sim and sim.lockstep: the clock waits for the frames
@@ -137,6 +176,7 @@ class SweepNode(Node):
         self._fault: str | None = None   # latched until ~/reset_fault (the worker thread's)
         self._last_pose: np.ndarray | None = None
         self._commands: queue.Queue[_Command] = queue.Queue()
+        self._planning: queue.Queue[_Command] = queue.Queue()   # starts, planned off the service thread
         self._shutdown = threading.Event()
         self.last_answer: tuple[str, bool, str] | None = None  # (service, success, message) of the last call
 
@@ -160,15 +200,25 @@ class SweepNode(Node):
 
         self._worker = threading.Thread(target=self._run_worker, name="sweep-arm", daemon=True)
         self._worker.start()
+        self._planner = threading.Thread(target=self._run_planner, name="sweep-plan", daemon=True)
+        self._planner.start()
 
     # -- parameters ----------------------------------------------------------------------------
     def _declare_parameters(self) -> None:
         declare(self, "use_sim", True, "Use the simulated arm instead of a UR5 (read at start-up)", read_only=True)
         declare(self, "robot_ip", "192.168.1.10", "IP address of the UR controller (ur_rtde)", read_only=True)
+        declare(self, "robot_timeout", 10.0, "Longest a ur_rtde interface may take to connect (the control "
+                "interface uploads its script), s; a UR that greets and then stays silent is given up after it",
+                min=0.5, max=120.0, read_only=True)
         declare(self, "arm.max_speed", 0.1, "Hard limit on any commanded tool speed, m/s", min=1e-4, max=1.0,
                 read_only=True)
         declare(self, "arm.max_accel", 0.5, "Hard limit on any commanded tool acceleration, m/s^2",
                 min=1e-3, max=5.0, read_only=True)
+        declare(self, "arm.reach", UR5_REACH_M, "Farthest any commanded tool position may be from the base frame's "
+                "origin, m (UR5: 0.85); a sweep or raster reaching beyond is refused", min=0.05, max=3.0,
+                read_only=True)
+        declare(self, "sweep.max_duration", 1800.0, "Longest a sweep or raster may take (all its moves, from where "
+                "the arm is), s; a longer one is refused", min=1.0, max=86400.0, read_only=True)
         declare(self, "sweep.length", 0.11, "Length of the roll along sweep.direction, m", min=0.0, max=1.0)
         declare(self, "sweep.speed", 0.011, "Roll speed, m/s (paper: 11 cm in 10 s)", min=1e-4, max=1.0)
         declare(self, "sweep.accel", 0.1, "Acceleration of every move, m/s^2", min=1e-3, max=5.0)
@@ -245,30 +295,38 @@ class SweepNode(Node):
 
     def _limits_from_parameters(self) -> ArmLimits:
         return ArmLimits(max_speed=float(self.get_parameter("arm.max_speed").value),
-                         max_accel=float(self.get_parameter("arm.max_accel").value))
+                         max_accel=float(self.get_parameter("arm.max_accel").value),
+                         reach=float(self.get_parameter("arm.reach").value))
 
-    def _plan_from(self, settings: dict[str, Any]) -> SweepPlan:
+    def _plan_from(self, settings: dict[str, Any], from_pose: np.ndarray | None = None) -> SweepPlan:
+        """The sweep of `settings`, checked whole: limits, reach, at most MAX_PASSES passes and at most
+        sweep.max_duration (from `from_pose`, the arm's pose, when known). ArmError/ValueError in one line.
+        A raster's size and corners are checked before any pass is planned, so this returns at once."""
         area = [float(v) for v in settings["sweep.area"]]
-        if len(area) != 4:
-            raise ValueError(f"sweep.area is [x, y, length, width] in m, got {area}")
+        if len(area) != 4 or not all(math.isfinite(v) for v in area):
+            raise ValueError(f"sweep.area is [x, y, length, width] (4 finite numbers, m), got {area}")
         if area[2] > 0:   # a raster over the rectangle (one pass when it is narrower than the roller)
             plan = plan_raster(
                 list(settings["sweep.start_pose"]), area=area, mount=self.mount(),
                 speed=float(settings["sweep.speed"]), accel=float(settings["sweep.accel"]),
                 depth=float(settings["sweep.depth"]), direction=list(settings["sweep.direction"]),
                 usable_width=float(settings["sweep.usable_width"]), overlap=float(settings["sweep.overlap"]),
-                approach_speed=float(settings["sweep.approach_speed"]), clearance=float(settings["sweep.clearance"]))
-            for segment in plan.segments:
-                self.limits.check(segment.target, segment.speed, segment.accel)
-            return plan
-        plan = plan_sweep(
-            list(settings["sweep.start_pose"]), length=float(settings["sweep.length"]),
-            speed=float(settings["sweep.speed"]), accel=float(settings["sweep.accel"]),
-            depth=float(settings["sweep.depth"]), direction=list(settings["sweep.direction"]),
-            approach_speed=float(settings["sweep.approach_speed"]), retract=bool(settings["sweep.retract"]),
-            clearance=float(settings["sweep.clearance"]))
+                approach_speed=float(settings["sweep.approach_speed"]), clearance=float(settings["sweep.clearance"]),
+                limits=self.limits)
+        else:
+            plan = plan_sweep(
+                list(settings["sweep.start_pose"]), length=float(settings["sweep.length"]),
+                speed=float(settings["sweep.speed"]), accel=float(settings["sweep.accel"]),
+                depth=float(settings["sweep.depth"]), direction=list(settings["sweep.direction"]),
+                approach_speed=float(settings["sweep.approach_speed"]), retract=bool(settings["sweep.retract"]),
+                clearance=float(settings["sweep.clearance"]))
         for segment in plan.segments:
             self.limits.check(segment.target, segment.speed, segment.accel)
+        limit = float(self.get_parameter("sweep.max_duration").value)
+        duration = plan_duration(plan, from_pose)
+        if not duration <= limit:
+            where = "" if from_pose is None else " from where the arm is"
+            raise ArmError(f"the sweep would take {duration:.0f} s{where}, more than sweep.max_duration ({limit:g} s)")
         return plan
 
     def _make_arm(self) -> Arm:
@@ -283,7 +341,8 @@ class SweepNode(Node):
             return SimulatedArm(rest, limits=self.limits, clock=self.sim_clock.now)
         from touchroller_driver.ur5 import UR5Arm
 
-        return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits)
+        return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits,
+                      open_timeout=float(self.get_parameter("robot_timeout").value))
 
     def _follow_frames(self, lead_s: float) -> None:
         """sim.lockstep: the camera's frames (camera_info, one per image, same stamp) and the ones the
@@ -327,16 +386,57 @@ class SweepNode(Node):
         return self._answer(response, self._submit("start"))
 
     def _on_stop(self, request: Any, response: Any) -> Any:
-        return self._answer(response, self._submit("stop"))
+        return self._answer(response, self._stop())
 
     def _on_reset_fault(self, request: Any, response: Any) -> Any:
         return self._answer(response, self._submit("reset_fault"))
 
-    def _submit(self, name: str) -> _Command:
+    def _stopping(self) -> bool:
+        """Shutting down: the node is being destroyed, its context is down, or a stop signal arrived."""
+        from touchroller_bringup.ros_main import StopSignals
+
+        signals = StopSignals.installed()
+        return self._shutdown.is_set() or not self.context.ok() or (signals is not None and signals.requested.is_set())
+
+    def _submit(self, name: str, timeout: float | None = None) -> _Command:
+        """Hand a request over (a start to the planner, the rest to the arm thread) and wait for its
+        answer. A request not answered within `timeout` (COMMAND_TIMEOUT_S), or while shutting down, is
+        abandoned: a start is then dropped without moving the arm. One the arm thread has committed to is
+        waited for (its first motion command is under way, itself bounded by the arm's call timeouts)."""
         command = _Command(name, threading.Event())
-        self._commands.put(command)
-        if not command.done.wait(COMMAND_TIMEOUT_S):
-            command.success, command.message = False, f"the arm thread did not answer {name} in time"
+        (self._planning if name == "start" else self._commands).put(command)
+        deadline = time.monotonic() + (COMMAND_TIMEOUT_S if timeout is None else timeout)
+        while not command.done.wait(0.05):
+            stopping = name != "stop" and self._stopping()
+            if not stopping and time.monotonic() < deadline:
+                continue
+            if command.abandon():
+                command.success = False
+                waited = COMMAND_TIMEOUT_S if timeout is None else timeout
+                why = "the node is shutting down" if stopping else f"not answered within {waited:g} s"
+                command.message = f"{name} {why} (planning or the arm thread was busy); cancelled" + \
+                    (", the arm does not move for it" if name == "start" else "")
+                status = self.status
+                if status.phase in (SweepPhase.CONNECTING, SweepPhase.FAULT) and status.message:
+                    command.message += f"; the arm: {status.message}"   # e.g. a robot that stays silent
+                return command
+            while not command.done.wait(0.05):   # committed: its first motion command is under way
+                if self._shutdown.is_set():
+                    break
+            return command
+        return command
+
+    def _stop(self) -> _Command:
+        """Stop the arm. A stop the arm thread does not answer in time (COMMAND_TIMEOUT_S; SHUTDOWN_STOP_S
+        when shutting down) gives up the call it is stuck in (`Arm.abort`: a UR's ur_rtde process ends and
+        the robot's communication watchdog stops the control script); the stop then runs."""
+        command = self._submit("stop", SHUTDOWN_STOP_S if self._stopping() else COMMAND_TIMEOUT_S)
+        if not command.done.is_set():
+            self.arm.abort()
+            if command.done.wait(1.0):
+                command.message = f"arm stopped (the arm thread was stuck: {command.message})"
+            else:
+                command.message = "the arm thread did not answer stop; its connection to the arm was given up"
         return command
 
     def _answer(self, response: Any, command: _Command) -> Any:
@@ -355,12 +455,29 @@ class SweepNode(Node):
         return command.success, command.message
 
     def request_stop(self) -> tuple[bool, str]:
-        command = self._submit("stop")
+        command = self._stop()
         return command.success, command.message
 
     def request_reset_fault(self) -> tuple[bool, str]:
         command = self._submit("reset_fault")
         return command.success, command.message
+
+    # -- the planner thread: a start's plan and checks, before the arm thread sees it ------------
+    def _run_planner(self) -> None:
+        while not self._shutdown.is_set() and self.context.ok():
+            try:
+                command = self._planning.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                command.plan = self._plan_from(dict(self.settings), self.last_pose)
+            except (ArmError, ValueError) as exc:
+                command.success, command.message = False, str(exc)
+                command.done.set()
+                continue
+            if command.state == "abandoned":   # its caller has been answered already
+                continue
+            self._commands.put(command)
 
     # -- the worker thread: the only thread that talks to the arm ----------------------------
     def _connect(self) -> None:
@@ -411,16 +528,19 @@ class SweepNode(Node):
                 if self._fault is not None:
                     raise ArmError(f"arm faulted: {self._fault}; call ~/{names.RESET_FAULT} once the cause is "
                                    "cleared")
-                plan = self._plan_from(dict(self.settings))
+                plan = command.plan if command.plan is not None else self._plan_from(dict(self.settings))
+                if self.sequencer.active or self._deferred is not None:
+                    raise ArmError("a sweep is already running")
+                fault = self.arm.fault()
+                if fault is not None:
+                    raise ArmError(f"arm faulted: {fault}")
+                if not command.commit():   # its caller was answered failure: it must not move the arm
+                    command.success, command.message = False, "abandoned by its caller"
+                    return
                 if self.sim_clock is not None and not self.sim_clock.on_whole_second():
                     # Simulated, a sweep starts on a whole second of the clock: the frame grid of any
                     # whole-number frame rate lines up with it, so the same sweep gives the same images.
                     # Answered now (the service must not wait for the clock, which may wait for frames).
-                    if self.sequencer.active or self._deferred is not None:
-                        raise ArmError("a sweep is already running")
-                    fault = self.arm.fault()
-                    if fault is not None:
-                        raise ArmError(f"arm faulted: {fault}")
                     self._deferred = plan
                 else:
                     self.sequencer.start(plan)
@@ -602,9 +722,14 @@ class SweepNode(Node):
         # Also called by the context's cleanup on a node whose __init__ failed half-way.
         if hasattr(self, "_shutdown"):
             self._shutdown.set()
-        worker = getattr(self, "_worker", None)
+        planner, worker = getattr(self, "_planner", None), getattr(self, "_worker", None)
+        if planner is not None and planner.is_alive():
+            planner.join(timeout=1.0)
         if worker is not None and worker.is_alive():
-            worker.join(timeout=COMMAND_TIMEOUT_S)
+            worker.join(timeout=1.0)   # it stops and releases the arm on its way out
+            if worker.is_alive():   # stuck in an arm call: give the call up (the robot's watchdog stops it)
+                self.arm.abort()
+                worker.join(timeout=COMMAND_TIMEOUT_S)
         super().destroy_node()
 
 

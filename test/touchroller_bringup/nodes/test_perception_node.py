@@ -271,10 +271,14 @@ def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until,
     node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
     helper = rclpy_node("roll_test_helper", ros_context)
     image_pub = helper.create_publisher(Image, IMAGE_TOPIC, 10)
-    progress_pub = helper.create_publisher(Float32, names.topic(names.SWEEP_PROGRESS), 10)
+    from rclpy.node import Node
+
+    sweep = Node(names.SWEEP_NODE, namespace=names.DEFAULT_NAMESPACE, context=ros_context)   # progress is the sweep's
+    progress_pub = sweep.create_publisher(Float32, names.topic(names.SWEEP_PROGRESS), 10)
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
     executor.add_node(helper)
+    executor.add_node(sweep)
 
     def progress(value: float) -> None:
         assert spin_until(executor, lambda: progress_pub.get_subscription_count() > 0, timeout=10.0)
@@ -316,6 +320,43 @@ def test_map_follows_the_roll_and_is_saved_when_it_ends(ros_context, spin_until,
         executor.shutdown()
         node.destroy_node()
         helper.destroy_node()
+        sweep.destroy_node()
+
+
+def test_progress_from_another_publisher_does_not_end_the_map(ros_context, spin_until):
+    """Issue #29: `ros2 topic pub sweep_progress 1.0` mid-roll (or a replay of a recording) finished the map
+    early. Only the sweep node of the perception node's namespace starts and ends maps now."""
+    from rclpy.node import Node
+    from std_msgs.msg import Float32
+
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+
+    node = PerceptionNode(context=ros_context)
+    sweep = Node(names.SWEEP_NODE, namespace=names.DEFAULT_NAMESPACE, context=ros_context)
+    stray = Node("stray_progress", context=ros_context)
+    ours, theirs = (n.create_publisher(Float32, names.topic(names.SWEEP_PROGRESS), 10) for n in (sweep, stray))
+    executor = SingleThreadedExecutor(context=ros_context)
+    for each in (node, sweep, stray):
+        executor.add_node(each)
+    try:
+        assert spin_until(executor, lambda: ours.get_subscription_count() > 0 and theirs.get_subscription_count() > 0,
+                          timeout=10.0)
+        ours.publish(Float32(data=0.2))
+        assert spin_until(executor, lambda: node._rolling, timeout=20.0)
+        for value in (1.0, 0.5, 1.0):
+            theirs.publish(Float32(data=value))
+        def delivered() -> bool:   # taken (the map ends) or refused, all three
+            return not node._rolling or getattr(getattr(node, "progress_filter", None), "rejected", 0) >= 3
+
+        assert spin_until(executor, delivered, timeout=20.0)
+        assert node._rolling, "a stray publisher's 1.0 ended the roll"   # the roll goes on
+        assert node.progress_filter.last_rejected == "/stray_progress"
+        ours.publish(Float32(data=1.0))
+        assert spin_until(executor, lambda: not node._rolling, timeout=20.0)   # the sweep's own end is taken
+    finally:
+        executor.shutdown()
+        for each in (node, sweep, stray):
+            each.destroy_node()
 
 
 def test_frames_lost_in_transport_come_from_the_message_lost_event(graph):

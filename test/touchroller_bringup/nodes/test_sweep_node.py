@@ -350,3 +350,146 @@ def test_a_silent_robot_leaves_the_node_responsive_and_sigint_ends_it(ros_contex
             process.wait(timeout=10)
         executor.shutdown()
         probe.destroy_node()
+
+
+# -- issue #29: a refused start never moves the arm; bounded rasters; start-up values checked ---------
+
+def test_a_start_answered_failure_never_moves_the_arm(harness_factory, spin_until, monkeypatch):
+    """Planning outlasts the service's wait: ~/start answers failure, and the start is cancelled, so the
+    arm stays where it is once planning ends (it used to sweep a few seconds after the failure)."""
+    from touchroller_bringup.nodes import sweep_node
+
+    slow = threading.Event()
+    planned = threading.Event()
+    original = sweep_node.plan_sweep
+
+    def slow_plan(*args, **kwargs):
+        if slow.is_set():
+            time.sleep(1.5)
+            planned.set()
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(sweep_node, "plan_sweep", slow_plan)
+    monkeypatch.setattr(sweep_node, "COMMAND_TIMEOUT_S", 0.3)
+    arm = sim_arm()
+    h = harness_factory(arm=arm)
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.IDLE, timeout=20.0)
+    rest = arm.tcp_pose()
+    slow.set()
+    response = h.call(spin_until, "start")
+    assert not response.success and "cancelled" in response.message
+    assert planned.wait(20.0)
+    slow.clear()
+    # the arm thread has had every chance to run the abandoned start: many loops of it
+    assert spin_until(h.executor, lambda: len(h.poses) >= 20, timeout=20.0)
+    h.poses.clear()
+    assert spin_until(h.executor, lambda: len(h.poses) >= 20, timeout=20.0)
+    assert not arm.is_moving() and not h.node.active
+    np.testing.assert_allclose(arm.tcp_pose(), rest, rtol=0, atol=0)
+    assert h.node.status.phase is SweepPhase.IDLE
+    assert h.call(spin_until, "start").success   # the next start, answered in time, runs
+
+
+@pytest.mark.parametrize(("name", "value", "why"), [
+    ("sweep.area", [0.40, -0.03, 0.04, 3000.0], "reach"),             # 66 667 passes, 2.67 km of rolling
+    ("sweep.area", [1000.0, 1000.0, 0.05, 0.05], "reach"),            # an approach of about 78 h
+    ("sweep.area", [0.4, -0.03, 5000.0, 5000.0], "reach"),            # 5 km: blocked the parameter service
+    ("sweep.area", [0.3, -0.02, 0.3, 0.04], "max_duration"),          # within reach, but 30 x 27 s of rolling
+    ("sweep.area", [0.40, -0.03, 0.04], "4 finite"),
+    ("sweep.area", [0.40, float("nan"), 0.04, 0.04], "4 finite"),
+    ("sweep.direction", [0.0, 0.0, 0.0], "horizontal"),
+    ("sweep.direction", [0.0, 0.0, 1.0], "horizontal"),
+    ("sweep.direction", [float("nan"), 0.0, 0.0], "finite"),
+    ("sweep.speed", 0.5, "speed"),
+])
+def test_out_of_bounds_sweeps_are_refused_at_set_time_and_at_start_up(harness_factory, ros_context, name, value,
+                                                                      why):
+    arm = sim_arm()
+    overrides = [*OVERRIDES, Parameter("sweep.usable_width", value=0.001), Parameter("sweep.overlap", value=0.0),
+                 Parameter("sweep.max_duration", value=300.0)] if why == "max_duration" else OVERRIDES
+    h = harness_factory(arm=arm, overrides=overrides)
+    result = h.node.set_parameters([Parameter(name, value=value)])[0]
+    assert not result.successful and why in result.reason and "\n" not in result.reason, result.reason
+    assert not arm.is_moving()
+    with pytest.raises(ValueError, match=why) as refused:
+        SweepNode(arm=sim_arm(), context=ros_context, node_name="refused",
+                  parameter_overrides=[*overrides, Parameter(name, value=value)])
+    assert "\n" not in str(refused.value) and str(refused.value).startswith("sweep parameters refused")
+
+
+def test_a_huge_raster_is_refused_before_any_pass_is_planned(harness_factory, monkeypatch):
+    """The raster's size and corners are bounded analytically: a 5 km area never reaches the pass loop."""
+    from touchroller_driver import arm as arm_module
+
+    h = harness_factory(arm=sim_arm())
+    built = []
+    original = arm_module.raster_offsets
+    monkeypatch.setattr(arm_module, "raster_offsets", lambda *a: built.append(a) or original(*a))
+    for area in ([0.4, -0.03, 5000.0, 5000.0], [0.40, -0.03, 0.04, 3000.0]):
+        assert not h.node.set_parameters([Parameter("sweep.area", value=area)])[0].successful
+    assert built == []
+    h.node.set_parameters([Parameter("sweep.area", value=[0.38, -0.05, 0.05, 0.1])])
+    assert len(built) == 1   # a sane raster is planned (the check above is not vacuous)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("argument", ["sweep.speed:=0.5", "sweep.direction:=[.nan,0.0,0.0]",
+                                      "sweep.area:=[1000.0,1000.0,0.05,0.05]"])
+def test_the_node_process_refuses_bad_start_up_values_in_one_line(argument):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "touchroller_bringup.nodes.sweep_node", "--ros-args", "-p",
+                           argument], capture_output=True, text=True, timeout=100)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "sweep parameters refused" in lines[0] and "Traceback" not in done.stderr
+
+
+@pytest.mark.timeout(180)
+def test_a_robot_that_greets_then_stalls_leaves_the_node_responsive_and_sigint_ends_it(ros_context, spin_until,
+                                                                                       half_alive_ur_host):
+    """The host passes the start-up probes, then ur_rtde's constructor waits for ever (it froze the whole
+    node, SIGINT included): now ERROR on /diagnostics, ~/start and ~/reset_fault answer failure, and SIGINT
+    (sent while a ~/start retries the connection) ends the process."""
+    import signal
+    import subprocess
+    import sys
+
+    process = subprocess.Popen([sys.executable, "-m", "touchroller_bringup.nodes.sweep_node", "--ros-args",
+                                "-p", "use_sim:=false", "-p", f"robot_ip:={half_alive_ur_host}",
+                                "-p", "robot_timeout:=1.0"],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    probe = Node("half_alive_probe", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(probe)
+    diagnostics: list[DiagnosticArray] = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+    clients = {name: probe.create_client(Trigger, names.service(names.SWEEP_NODE, name))
+               for name in (names.START, names.RESET_FAULT)}
+    try:
+        def errors() -> list[str]:
+            return [s.message for array in diagnostics for s in array.status
+                    if s.name.endswith(names.SWEEP_NODE) and s.level == b"\x02"]
+
+        assert spin_until(executor, lambda: bool(errors()), timeout=60.0), "no ERROR on /diagnostics"
+        assert half_alive_ur_host in errors()[0] and "RTDEReceiveInterface" in errors()[0], errors()[0]
+        for name in (names.RESET_FAULT, names.START):
+            assert spin_until(executor, clients[name].service_is_ready, timeout=30.0)
+            future = clients[name].call_async(Trigger.Request())
+            assert spin_until(executor, future.done, timeout=60.0), f"~/{name} did not answer"
+            assert not future.result().success and half_alive_ur_host in future.result().message
+        clients[names.START].call_async(Trigger.Request())   # a start retrying the connection ...
+        time.sleep(0.5)
+        process.send_signal(signal.SIGINT)   # ... and Ctrl-C meanwhile
+        try:
+            process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the sweep node ignored SIGINT")
+        assert "Traceback" not in process.stdout.read()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=10)
+        executor.shutdown()
+        probe.destroy_node()
