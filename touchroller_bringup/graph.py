@@ -154,6 +154,9 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
         LaunchArgument("camera_device", "", "V4L2 device when use_sim is false: an index or a stable "
                        "/dev/v4l/by-id/... path; empty: the params files (default 0)"),
         LaunchArgument("robot_ip", "", "UR controller IP (ur_rtde) when use_sim is false; empty: the params files"),
+        LaunchArgument("arm_backend", "ur_rtde", "The arm when use_sim is false: ur_rtde (ur_rtde's own control "
+                       "script, robot_ip) or ur_driver (URScript through a running ur_robot_driver, docs/ur5.md)",
+                       ("ur_rtde", "ur_driver")),
         *_COMMON,
         LaunchArgument("sweep_speed", "", "Roll speed in m/s; empty: the params files (0.011, the paper's 10 s)"),
         LaunchArgument("sweep_length", "", "Roll length in m; empty: the params files (0.11)"),
@@ -303,6 +306,8 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
         sweep: dict[str, Any] = {"use_sim": use_sim}
         if args["robot_ip"]:
             sweep["robot_ip"] = args["robot_ip"]
+        if not use_sim:
+            sweep["arm.backend"] = args["arm_backend"]
         if args["sweep_speed"]:
             sweep["sweep.speed"] = _positive_float(launch, "sweep_speed", args["sweep_speed"])
         if args["sweep_length"]:

@@ -243,6 +243,7 @@ class URDriverArm:
         self._executor: Any = None
         self._spinner: threading.Thread | None = None
         self._spinning = threading.Event()
+        self._aborted = threading.Event()   # abort(): a wait under way gives up; cleared by connect / reset
         self._script_pub: Any = None
         self._unlock: Any = None
         self._tf: TransformListener | None = None
@@ -270,6 +271,7 @@ class URDriverArm:
         """Create the node, wait (up to `connect_timeout`) for the driver's TF, safety and robot modes and
         script subscriber; ArmError (one line) naming what is missing."""
         self.disconnect()
+        self._aborted.clear()
         self._fault, self._move, self._halted_fraction = None, None, 1.0
         self._clear_driver_state()   # nothing from an earlier connection counts (a restarted driver's clock)
         try:
@@ -383,6 +385,7 @@ class URDriverArm:
         driver with a script subscriber), so a refused move publishes nothing."""
         target = self.limits.check(target_pose, speed, accel)
         program = movel_program(target, speed, accel)
+        self._check_aborted()
         if self._node is None:
             raise ArmError(self._fault or "arm not connected")
         fault = self.fault()
@@ -397,6 +400,9 @@ class URDriverArm:
         self._publish(program)
         if not asynchronous:
             while self.is_moving():
+                if self._aborted.is_set():
+                    self.stop()
+                    self._check_aborted()
                 fault = self.fault()
                 if fault is not None:
                     self.stop()
@@ -418,11 +424,22 @@ class URDriverArm:
         except Exception as exc:  # noqa: BLE001 - the context went down: nothing can be sent any more
             self._fault = self._fault or f"stopl could not be sent: {' '.join(str(exc).split())}"
 
+    def abort(self) -> None:
+        """From any thread: a wait under way (connecting, a reset, a synchronous move) gives up with ArmError
+        at once, and moves are refused until `connect()` or `reset_fault()`. Nothing here blocks in a call
+        that cannot be given up: every wait polls."""
+        self._aborted.set()
+
+    def _check_aborted(self) -> None:
+        if self._aborted.is_set():
+            raise ArmError("given up (the arm was aborted): reset the fault to use it again")
+
     def reset_fault(self) -> None:
         """Clear what can be cleared: unlock a protective stop through `unlock_service` (the dashboard client;
         the controller allows it 5 s after the stop), wait for the driver to report the robot healthy and
         its pose fresh; ArmError (one line) saying why not otherwise (an emergency stop: released on the
         pendant first)."""
+        self._aborted.clear()
         if self._node is None:
             self.connect()
             return
@@ -483,6 +500,7 @@ class URDriverArm:
         else what is still missing."""
         deadline = time.monotonic() + timeout
         while True:
+            self._check_aborted()
             missing = self._missing(healthy)
             if not missing or time.monotonic() > deadline:
                 return missing
@@ -521,7 +539,9 @@ class URDriverArm:
         done = threading.Event()
         future = self._unlock.call_async(Trigger.Request())
         future.add_done_callback(lambda _: done.set())
-        if not done.wait(max(deadline - time.monotonic(), 0.01)):
+        while not done.wait(0.02) and time.monotonic() < deadline:
+            self._check_aborted()
+        if not done.is_set():
             raise ArmError(f"protective stop: {service} did not answer within ur_driver.reset_timeout "
                            f"({self.config.reset_timeout:g} s)")
         answer = future.result()

@@ -65,7 +65,11 @@ def test_scan_graph_with_hardware_arguments():
                              "sweep_speed": "0.02", "sweep_length": "0.05"})
     assert g.node("camera").parameters == {"source": "v4l2", "device": "/dev/v4l/by-id/cam"}
     assert g.node("sweep").parameters == {"use_sim": False, "robot_ip": "10.0.0.2", "sweep.speed": 0.02,
-                                          "sweep.length": 0.05}
+                                          "sweep.length": 0.05, "arm.backend": "ur_rtde"}
+    driver = build_graph("scan", {"use_sim": "false", "arm_backend": "ur_driver"})
+    assert driver.node("sweep").parameters["arm.backend"] == "ur_driver"
+    with pytest.raises(GraphError, match="arm_backend"):
+        build_graph("scan", {"use_sim": "false", "arm_backend": "ur_rtd"})
 
 
 def test_scan_map_file_becomes_the_perception_save_path(tmp_path):

@@ -228,6 +228,42 @@ def test_no_driver_fails_connect_in_one_line(ros_context):
         arm.disconnect()
 
 
+def test_abort_gives_up_a_connect_at_once_and_refuses_moves_until_reset(ros_context, driver):
+    """The sweep node's shutdown calls abort() from another thread: a wait under way gives up at once."""
+    import threading
+
+    from touchroller_driver.arm import Arm
+
+    arm = URDriverArm(URDriverConfig(connect_timeout=30.0), context=ros_context)
+    assert isinstance(arm, Arm)
+    driver.go_silent()
+    errors: list[str] = []
+
+    def connect() -> None:
+        try:
+            arm.connect()
+        except ArmError as exc:
+            errors.append(str(exc))
+
+    try:
+        worker = threading.Thread(target=connect)
+        started = time.monotonic()
+        worker.start()
+        time.sleep(0.3)
+        arm.abort()
+        worker.join(5.0)
+        assert not worker.is_alive() and time.monotonic() - started < 5.0
+        assert errors and "given up" in errors[0]
+        with pytest.raises(ArmError, match="given up"):
+            arm.move_linear(REST, 0.01, 0.1)
+        assert driver.programs == []
+        driver.silent = False
+        arm.reset_fault()
+        assert arm.fault() is None
+    finally:
+        arm.disconnect()
+
+
 def test_stop_mid_move_halts_and_stop_when_idle_sends_nothing(driver, arm):
     arm.stop()   # idle: the driver's External Control program is not ours to stop
     assert driver.programs == [] and not arm.sent
@@ -371,11 +407,6 @@ def test_the_sweep_node_builds_the_driver_arm_from_arm_backend(ros_context, driv
 
     from touchroller_bringup.nodes.sweep_node import SweepNode
 
-    probe = SweepNode(context=ros_context, node_name="probe_sweep")
-    wired = probe.has_parameter("arm.backend")
-    probe.destroy_node()
-    if not wired:
-        pytest.skip("the sweep node has no arm.backend parameter yet (wired at merge)")
     node = SweepNode(context=ros_context, parameter_overrides=[
         Parameter("use_sim", value=False), Parameter("arm.backend", value="ur_driver"),
         Parameter("ur_driver.driver_timeout", value=CONFIG.driver_timeout),

@@ -82,6 +82,7 @@ from touchroller_driver.arm import (
 from touchroller_driver.sim.clock import FrameGate, SimClock
 from touchroller_perception.transforms import Transform
 
+ARM_BACKENDS = ("ur_rtde", "ur_driver", "sim")   # arm.backend; use_sim true is sim whatever it says
 #: how long a service waits for its answer; a start not accepted by then is cancelled (it never moves the arm)
 COMMAND_TIMEOUT_S = 5.0
 UR5_REACH_M = 0.85   # a UR5's reach from its base (the datasheet's 850 mm)
@@ -183,7 +184,9 @@ class SweepNode(Node):
         self._frame_id = names.frame(str(self.get_parameter("arm.base_frame").value), self.frame_prefix)
         self._tool_frame = names.frame(str(self.get_parameter("arm.tool_frame").value), self.frame_prefix)
         self._cylinder_frame = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
-        self._publish_tf = bool(self.get_parameter("publish_tf").value)
+        # tool0 has one parent: the UR driver's robot_state_publisher publishes it when it drives the arm
+        self._publish_tf = (bool(self.get_parameter("publish_tf").value)
+                            and not getattr(self.arm, "publishes_tool_tf", False))
         self.tf = TransformPublisher(self)
         self._publish_mount()
         self._pose_pub = self.create_publisher(PoseStamped, names.TCP_POSE, 10)
@@ -194,7 +197,9 @@ class SweepNode(Node):
         self._stop_srv = self.create_service(Trigger, f"~/{names.STOP}", self._on_stop)
         self._reset_srv = self.create_service(Trigger, f"~/{names.RESET_FAULT}", self._on_reset_fault)
         simulated = isinstance(self.arm, SimulatedArm)
-        hardware = "simulated arm" if simulated else f"UR at {self.get_parameter('robot_ip').value}"
+        through_driver = getattr(self.arm, "publishes_tool_tf", False)
+        hardware = ("simulated arm" if simulated else "UR through ur_robot_driver" if through_driver
+                    else f"UR at {self.get_parameter('robot_ip').value}")
         self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name(), hardware_id=hardware)
         self.diagnostics.add(self._diagnostic_status)
 
@@ -207,6 +212,9 @@ class SweepNode(Node):
     def _declare_parameters(self) -> None:
         declare(self, "use_sim", True, "Use the simulated arm instead of a UR5 (read at start-up)", read_only=True)
         declare(self, "robot_ip", "192.168.1.10", "IP address of the UR controller (ur_rtde)", read_only=True)
+        declare(self, "arm.backend", "ur_rtde", "The arm when use_sim is false: ur_rtde (its own control script "
+                "through ur_rtde) or ur_driver (URScript through a running ur_robot_driver, docs/ur5.md); sim: the "
+                "simulated arm", read_only=True, additional_constraints="one of: " + ", ".join(ARM_BACKENDS))
         declare(self, "robot_timeout", 10.0, "Longest a ur_rtde interface may take to connect (the control "
                 "interface uploads its script), s; a UR that greets and then stays silent is given up after it",
                 min=0.5, max=120.0, read_only=True)
@@ -330,7 +338,10 @@ class SweepNode(Node):
         return plan
 
     def _make_arm(self) -> Arm:
-        if self.get_parameter("use_sim").value:
+        backend = str(self.get_parameter("arm.backend").value)
+        if backend not in ARM_BACKENDS:
+            raise ValueError(f"arm.backend must be one of {', '.join(ARM_BACKENDS)}, got {backend!r}")
+        if self.get_parameter("use_sim").value or backend == "sim":
             rest, _ = simulated_arm_origin(self.settings["sweep.start_pose"], float(self.settings["sweep.clearance"]))
             rate_hz = float(self.get_parameter("sweep.publish_rate").value)
             self.sim_clock = SimClock(rate_hz, rate=float(self.get_parameter("sim.rate").value))
@@ -339,6 +350,10 @@ class SweepNode(Node):
                 # at least one tick: the tick after a frame's stamp must be allowed (its pose on TF)
                 self._follow_frames(max(float(self.get_parameter("sim.max_lead").value), 1.0 / rate_hz))
             return SimulatedArm(rest, limits=self.limits, clock=self.sim_clock.now)
+        if backend == "ur_driver":
+            from touchroller_bringup.ur_driver_arm import make_ur_driver_arm
+
+            return make_ur_driver_arm(self, self.limits)
         from touchroller_driver.ur5 import UR5Arm
 
         return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits,
