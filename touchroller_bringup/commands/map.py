@@ -26,6 +26,7 @@ from typing import Any, TypeVar
 from touchroller_bringup.commands import read_calibration
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_bringup.outputs import Output, check_outputs
 from touchroller_perception.files import atomic_path, atomic_write
 
 DEFAULT_MM_PER_PX = 0.1
@@ -75,8 +76,8 @@ def run(args: argparse.Namespace) -> int:
     import cv2
 
     out = Path(args.out)
-    if out.is_dir():
-        raise UserError(f"--out {out} is a directory; give an image file name such as map.png")
+    check_outputs([Output("--out", out)] + ([Output("--steps", args.steps)] if args.steps else []),
+                  {"BAG": args.bag, "--params": args.params})
     if not out.suffix or not cv2.haveImageWriter(str(out)):
         raise UserError(f"--out {out}: unknown image format; use .png, .tif, .jpg or .bmp")
     if args.metric is not None and not (METRIC_RANGE[0] <= args.metric <= METRIC_RANGE[1]):
@@ -90,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
     world = not args.strip and _has_tf(args.bag)
     if world:
         _check_world_arguments(args, out, camera)
+        check_outputs([Output("--out", out), Output("the map's YAML", out.with_suffix(".yaml"))],
+                      {"BAG": args.bag, "--params": args.params})
     # OpenCV's own thread pool costs more than it saves on a 70-row band; the second core reads the bag.
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)

@@ -9,6 +9,7 @@ from typing import Any
 
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_bringup.outputs import Output, check_outputs
 from touchroller_perception.files import new_directory
 
 
@@ -50,8 +51,11 @@ def run(args: argparse.Namespace) -> int:
     from touchroller_driver.sim.flat_sensor import compare
     from touchroller_driver.sim.truth import write_ground_truth
 
-    if args.out.exists():
-        raise UserError(f"output {args.out} already exists")
+    if args.out.exists() or args.out.is_symlink():
+        raise UserError(f"output {args.out} already exists; give a new bag folder")
+    scene_file = Path(args.scene) if Path(args.scene).suffix in (".yaml", ".yml") else None
+    check_outputs([Output("--out", args.out, folder=True)], {"SCENE": scene_file})
+    _check_parent_writable(args.out)
     overrides = parse_overrides(args.overrides)
     try:
         scene = load_scene(args.scene, variant=args.variant, **overrides)
@@ -90,6 +94,19 @@ def run(args: argparse.Namespace) -> int:
           f"{count} frames ({len(dropped)} dropped) in {elapsed:.1f} s -> {args.out} "
           f"(+ ground_truth.yaml, camera_truth.yaml, camera_paper.yaml)")
     return 0
+
+
+def _check_parent_writable(out: Path) -> None:
+    """A bag folder is made beside its final place: a folder that cannot take it is refused before the render."""
+    import os
+
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise UserError(f"--out {out}: {parent} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"--out {out}: the folder {parent} is not writable; choose another place for the bag")
 
 
 def _all_times(scene) -> list[float]:
