@@ -33,17 +33,32 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     target = Path(path)
     check_replaceable(target)
     sweep_stale_temporaries(target)
-    temporary, lock = _create_temporary(target)
+    try:
+        temporary, lock = _create_temporary(target)
+    except OSError as exc:
+        raise _about(exc, target) from None
     try:
         yield temporary
         _sync(temporary)
         check_replaceable(target)   # something else may have appeared there while this was written
         os.replace(temporary, target)
+    except OSError as exc:
+        temporary.unlink(missing_ok=True)
+        raise _about(exc, target) from None
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
     finally:
         os.close(lock)
+
+
+def _about(exc: OSError, target: Path) -> OSError:
+    """The error named after the output, not its hidden temporary (a full disk while writing says no file)."""
+    named = exc.filename is None or os.fspath(exc.filename) == os.fspath(target) \
+        or os.path.basename(os.fspath(exc.filename)).startswith(f".{target.name}.")
+    if not named or exc.errno is None:
+        return exc
+    return type(exc)(exc.errno, exc.strerror, os.fspath(target))
 
 
 class NotARegularFile(OSError):

@@ -95,3 +95,23 @@ def test_a_split_bag_is_reindexed_file_by_file_in_split_order(tmp_path, storage)
     assert [r.stamp_ns for r in read_images(bag)] == stamps
     with Reader(bag) as reader:
         assert [timestamp for _, timestamp, _ in reader.messages()] == stamps
+
+
+def test_reindex_of_a_bag_on_a_read_only_disk_is_one_line_saying_what_to_do(bag_factory, mount_tmpfs, capsys):
+    """#28: raw OSError for a bag in a read-only folder."""
+    import shutil
+    import subprocess
+
+    import numpy as np
+
+    from touchroller_bringup.cli import main
+
+    bag = bag_factory([(k, np.zeros((8, 8, 3), np.uint8)) for k in range(3)])
+    folder = mount_tmpfs("1m")
+    shutil.copytree(bag, folder / "bag")
+    (folder / "bag" / "metadata.yaml").unlink()
+    if subprocess.run(["mount", "-o", "remount,ro", str(folder)], check=False).returncode != 0:
+        pytest.skip("cannot remount the tmpfs read-only")
+    assert main(["reindex", str(folder / "bag")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "copy the bag" in err and "metadata.yaml" in err, err

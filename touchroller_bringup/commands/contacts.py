@@ -82,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
         writer.writerow(COLUMNS)
         for record in read_images(args.bag, args.topic):
             frames += 1
+            if camera is not None and frames == 1:
+                _check_size(camera, record.image, args.params, args.bag)
             try:
                 contacts = detector.process(record.image)
             except ValueError as exc:
@@ -97,6 +99,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"{rows} contacts in {frames - skipped} frames, reference of {args.reference_frames} frame(s) from "
           f"{source} -> {out} ({where})")
     return 0
+
+
+def _check_size(camera, image, params: str, bag: str) -> None:
+    """A calibration is for one image size: pixels of another size back-project to wrong points."""
+    height, width = image.shape[:2]
+    if (camera.width, camera.height) != (width, height):
+        raise UserError(f"calibration {params} is for {camera.width}x{camera.height} images but {bag} has "
+                        f"{width}x{height}; give the calibration of this camera (or no --params for pixels only)")
 
 
 def _reference_frames(bag: str, topic: str, count: int, read_images) -> list:

@@ -27,7 +27,7 @@ from touchroller_bringup.commands import read_calibration
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 from touchroller_bringup.outputs import Output, check_outputs
-from touchroller_perception.files import atomic_path, atomic_write
+from touchroller_perception.files import atomic_write
 
 DEFAULT_MM_PER_PX = 0.1
 METRIC_RANGE = (0.001, 10.0)   # mm per pixel: 1 um (a hundred times finer than the camera sees) to 1 cm
@@ -228,12 +228,16 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
     except ValueError as exc:   # e.g. a metric map too large to allocate
         raise UserError(f"--metric {args.metric}: {exc}") from None
     out.parent.mkdir(parents=True, exist_ok=True)
+    # encoded in memory, then written: a full disk is then an OSError of ours, not libpng's own stderr line
+    encoded, data = cv2.imencode(out.suffix, image)
+    if not encoded:
+        raise UserError(f"--out {out}: OpenCV cannot encode the map as {out.suffix}")
     try:
-        with atomic_path(out) as temporary:
-            if not cv2.imwrite(str(temporary), image):
-                raise OSError("cv2.imwrite failed")
+        with atomic_write(out, "wb") as stream:
+            stream.write(data.tobytes())
     except OSError as exc:
-        raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise UserError(f"cannot write --out {out}: {exc.strerror or exc}; nothing was written "
+                        "(free some space or choose another path)") from None
     if args.steps:
         _write_steps(Path(args.steps), stitcher)
     flagged = stitcher.prior_frames

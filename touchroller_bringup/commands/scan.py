@@ -124,6 +124,11 @@ def run(args: argparse.Namespace) -> int:
     map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
     print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
           f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")
+    if result.failed:
+        written = ", ".join(sorted(path.name for path in result.files.values())) or "nothing"
+        failures = "; ".join(f"{name}: {why}" for name, why in result.failed.items())
+        raise UserError(f"scan {result.outcome} but could not write {failures} (written to {result.out_dir}/: "
+                        f"{written}); free some space or give another --out folder")
     if result.outcome == "interrupted":
         print(f"touchroller: scan {result.message}: arm stopped, outputs written to {result.out_dir}/", file=sys.stderr)
         return 128 + int(result.signal or signal.SIGINT)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sqlite3
 import time
 from pathlib import Path
 from typing import Any
@@ -70,6 +71,21 @@ def run(args: argparse.Namespace) -> int:
             truths.append(frame.truth)
             yield frame.stamp_ns, frame.image
 
+    try:
+        count, dropped = _render(args, scene, sensor, records, truths, write_images, compare, write_ground_truth)
+    except (OSError, sqlite3.Error) as exc:
+        why = getattr(exc, "strerror", None) or str(exc)
+        raise UserError(f"cannot write the bag --out {args.out}: {why}; nothing was written (free some space or "
+                        "choose another place)") from None
+    elapsed = time.perf_counter() - started
+    print(f"simulate: {scene.name}{'/' + scene.data['variant'] if scene.data.get('variant') else ''}: "
+          f"{count} frames ({len(dropped)} dropped) in {elapsed:.1f} s -> {args.out} "
+          f"(+ ground_truth.yaml, camera_truth.yaml, camera_paper.yaml)")
+    return 0
+
+
+def _render(args, scene, sensor, records, truths, write_images, compare, write_ground_truth):
+    """The bag and its side files, whole or not at all; (frames written, times dropped)."""
     with new_directory(args.out) as folder:   # the bag and its side files appear whole or not at all
         count = write_images(folder, records(), topic=args.topic, storage=args.storage)
         all_times = _all_times(scene)
@@ -89,11 +105,7 @@ def run(args: argparse.Namespace) -> int:
             extra["comparison"] = {**dataclasses.asdict(comparison), "speedup": comparison.speedup,
                                    "presses_image": "flat_sensor_presses.png"}
         write_ground_truth(folder, sensor, truths, dropped, extra)
-    elapsed = time.perf_counter() - started
-    print(f"simulate: {scene.name}{'/' + scene.data['variant'] if scene.data.get('variant') else ''}: "
-          f"{count} frames ({len(dropped)} dropped) in {elapsed:.1f} s -> {args.out} "
-          f"(+ ground_truth.yaml, camera_truth.yaml, camera_paper.yaml)")
-    return 0
+    return count, dropped
 
 
 def _check_parent_writable(out: Path) -> None:
