@@ -139,6 +139,17 @@ def _image_connections(reader, path, topic: str):
     return connections
 
 
+def check_image_bag(path: str | Path, topic: str = IMAGE_TOPIC) -> None:
+    """UserError (one line) unless `path` is a bag with images on `topic`."""
+    reader = open_bag(path)
+    try:
+        connections = _image_connections(reader, path, topic)
+        if not sum(getattr(c, "msgcount", 1) for c in connections):
+            raise UserError(f"bag {path} has no images on {topic}")
+    finally:
+        reader.close()
+
+
 def read_images(path: str | Path, topic: str = IMAGE_TOPIC) -> Iterator[ImageRecord]:
     """Images on `topic` in recording order. UserError on a missing, unreadable or truncated bag."""
     reader = open_bag(path)
