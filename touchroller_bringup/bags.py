@@ -19,7 +19,7 @@ import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -460,8 +460,7 @@ def write_scan(
 
     with bag_writer(path, storage) as writer:
         image_connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store)
-        tf_connection = writer.add_connection("/tf", TF_TYPE, typestore=store)
-        static_connection = writer.add_connection("/tf_static", TF_TYPE, typestore=store)
+        tf_connections: dict[bool, Any] = {}   # made at their first message: a topic nobody published is not there
         for record in records:
             last = max(last, int(record.stamp_ns))   # log time: when it arrived, in the order given
             if isinstance(record, ImageRecord):
@@ -477,6 +476,9 @@ def write_scan(
                 header=Header(stamp=time(record.stamp_ns), frame_id=record.parent), child_frame_id=record.child,
                 transform=TransformMsg(translation=Vector3(x=t[0], y=t[1], z=t[2]),
                                        rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])))
-            writer.write(static_connection if record.static else tf_connection, last,
+            if record.static not in tf_connections:
+                tf_connections[record.static] = writer.add_connection("/tf_static" if record.static else "/tf",
+                                                                      TF_TYPE, typestore=store)
+            writer.write(tf_connections[record.static], last,
                          store.serialize_cdr(TFMessage(transforms=[transform]), TF_TYPE))
     return images
