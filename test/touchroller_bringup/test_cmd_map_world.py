@@ -188,7 +188,8 @@ def test_tf_without_tf_static_says_what_is_missing_and_that_the_world_map_was_sk
     bag = _small_tf_bag(tmp_path / "bag", tf=True, static=False)
     assert main(["map", str(bag), "--params", str(tmp_path / "cal.yaml"), "--out", str(tmp_path / "m.png")]) == 0
     err = capsys.readouterr().err
-    assert "has /tf but no /tf_static" in err and "world map was skipped" in err and "tool0 -> touchroller_cylinder" in err
+    assert "has /tf but no /tf_static" in err and "world map was skipped" in err
+    assert "tool0 -> touchroller_cylinder" in err
 
 
 @pytest.mark.parametrize("case, message", [
