@@ -41,6 +41,7 @@ set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from collections.abc import Sequence
@@ -278,6 +279,9 @@ class PerceptionNode(Node):
                     return SetParametersResult(successful=False, reason=str(exc))
         for p in parameters:
             problem = frame_id_problem(p.name, p.value) if p.name in ("contacts.frame_id", "world_frame") else ""
+            if p.name == "map.save_path" and str(p.value) and os.path.exists(str(p.value)) \
+                    and not os.path.isfile(str(p.value)):
+                problem = f"map.save_path {p.value} exists and is not a regular file; give a PNG file name"
             if problem:
                 return SetParametersResult(successful=False, reason=problem)
         return SetParametersResult(successful=True)

@@ -527,6 +527,7 @@ def test_a_map_past_max_rows_keeps_a_window_and_warns(ros_context):
     ("contacts.frame_id", "", "must not be empty"),
     ("world_frame", "base link", "not a valid frame id"),
     ("frame_prefix", "left", "frame_prefix 'left' must be empty or a frame id followed by a slash"),
+    ("map.save_path", "/", "not a regular file"),
 ])
 def test_start_up_values_it_cannot_use_stop_the_node_in_one_line(ros_context, name, value, message):
     """#28: these started and ran silently (a map that could never be drawn)."""
