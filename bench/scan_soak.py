@@ -101,6 +101,7 @@ def _canvas_mb(perception: object | None) -> float:
 
 def measure(area: tuple[float, float, float, float], speed: float, every: float, quick: bool,
             trace: bool = False) -> ScanSoakResult:
+    from touchroller_bringup.ros_domains import reserve_domain_id
     from touchroller_bringup.scan import ScanOptions, run_scan
 
     stamp = provenance("scan_soak", quick, *([] if area == (QUICK_AREA if quick else AREA) else
@@ -129,14 +130,24 @@ def measure(area: tuple[float, float, float, float], speed: float, every: float,
     sampler = threading.Thread(target=sample, name="scan-soak-sampler", daemon=True)
     sampler.start()
     out = Path(tempfile.mkdtemp(prefix="scan_soak_"))
+    saved = {name: os.environ.get(name) for name in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
     try:
-        result = run_scan(ScanOptions(out_dir=out, arguments={"scene": "large_surface",
-                                                              "area": ",".join(map(str, area)),
-                                                              "sweep_speed": str(speed)},
-                                      progress=None))
+        # a ROS domain no other process here uses: another graph in the namespace would stop the scan
+        with reserve_domain_id() as lease:
+            os.environ["ROS_DOMAIN_ID"] = str(lease.domain_id)
+            os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+            result = run_scan(ScanOptions(out_dir=out, arguments={"scene": "large_surface",
+                                                                  "area": ",".join(map(str, area)),
+                                                                  "sweep_speed": str(speed)},
+                                          progress=None))
     finally:
         done.set()
         sampler.join()
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
     top: list[str] = []
     if trace and snapshots:
         import tracemalloc

@@ -58,8 +58,6 @@ def check_outputs(outputs: Iterable[Output], inputs: Mapping[str, PathLike | Non
                 where = "is" if target == source else "is inside"
                 raise UserError(f"{output.label} {name} {where} the input {label} {shown}: writing it would "
                                 f"destroy the input; choose another path")
-            if output.folder and _inside(source, target) and os.path.exists(target):
-                raise UserError(f"{output.label} {name} holds the input {label} {shown}; choose another folder")
         for other_target, other_label in seen.items():
             if target == other_target or (output.folder and _inside(other_target, target)):
                 raise UserError(f"{output.label} {name} is the same path as {other_label}: give each output "

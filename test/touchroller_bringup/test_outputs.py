@@ -67,14 +67,20 @@ def test_calibrate_intrinsics_over_the_bags_metadata_is_refused(small_bag, capsy
     assert _bag_snapshot(small_bag) == before
 
 
-@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full")
-def test_a_device_is_refused_by_the_check_and_never_replaced_by_the_writer(small_bag, capsys):
-    err = _one_line_refusal(capsys, main(["contacts", str(small_bag), "--out", "/dev/full"]))
+def test_a_device_is_refused_by_the_check_and_never_replaced_by_the_writer(small_bag, tmp_path, capsys):
+    """#28: as root, --out /dev/full replaced the device node with a regular file. A private node of the same
+    device here (never the system's own)."""
+    device = tmp_path / "full"
+    try:
+        os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 7))
+    except OSError as exc:
+        pytest.skip(f"cannot make a device node here: {exc.strerror}")
+    err = _one_line_refusal(capsys, main(["contacts", str(small_bag), "--out", str(device)]))
     assert "character device" in err
-    assert stat.S_ISCHR(os.stat("/dev/full").st_mode)
+    assert stat.S_ISCHR(os.stat(device).st_mode)
     with pytest.raises(NotARegularFile):      # the writer alone refuses it too (as root the rename would work)
-        atomic_write_text("/dev/full", "x")
-    assert stat.S_ISCHR(os.stat("/dev/full").st_mode)
+        atomic_write_text(device, "x")
+    assert stat.S_ISCHR(os.stat(device).st_mode)
 
 
 def test_a_fifo_is_refused_and_stays_a_fifo(small_bag, tmp_path, capsys):
@@ -105,8 +111,10 @@ def test_the_check_itself(tmp_path):
         check_outputs([Output("--out", link)], {"IN": data})
     with pytest.raises(UserError, match="same path"):
         check_outputs([Output("--a", tmp_path / "o"), Output("--b", tmp_path / "." / "o")])
-    with pytest.raises(UserError, match="holds the input"):   # a folder output around an input
-        check_outputs([Output("--out", tmp_path, folder=True)], {"IN": data})
+    # a folder output around an input is fine: the files written in it are checked one by one
+    check_outputs([Output("--out", tmp_path, folder=True)], {"IN": data})
+    with pytest.raises(UserError, match="is the input"):
+        check_outputs([Output("--out", tmp_path, folder=True), Output("OUT's", data)], {"IN": data})
     with pytest.raises(UserError, match="not a folder"):
         check_outputs([Output("--out", data, folder=True)])
     check_outputs([Output("--out", tmp_path / "new.csv")], {"IN": data, "none": None})   # fine: no error
