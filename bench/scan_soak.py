@@ -160,22 +160,27 @@ def measure(area: tuple[float, float, float, float], speed: float, every: float,
             top.append(f"{stat.size_diff / 2**20:+.2f} MB in {stat.count_diff:+d} blocks: {frame.filename}:"
                        f"{frame.lineno}")
     frames = result.frames_processed
-    after = [s for s in samples if s.frames >= warmup_frames]
-    slope = raw = float("nan")
-    first_fps = last_fps = float("nan")
-    if len(after) >= 4:
-        x = np.array([s.frames for s in after], float)
-        slope = float(np.polyfit(x, [s.rss_mb - s.canvas_mb for s in after], 1)[0] * 1000)
-        raw = float(np.polyfit(x, [s.rss_mb for s in after], 1)[0] * 1000)
-        quarter = max(2, len(after) // 4)
-
-        def fps(part: list[Sample]) -> float:
-            return (part[-1].frames - part[0].frames) / max(part[-1].elapsed_s - part[0].elapsed_s, 1e-9)
-        first_fps, last_fps = fps(after[:quarter]), fps(after[-quarter:])
+    slope, raw, first_fps, last_fps = summarise(samples, warmup_frames)
     return ScanSoakResult(stamp, quick, tuple(area), speed, result.outcome, result.duration_s, frames, warmup_frames,
                           tuple(samples), slope, raw, first_fps, last_fps,
                           first_fps / last_fps if last_fps > 0 else float("nan"), GOAL_MB_PER_1000, GOAL_STEADY,
                           tuple(top), loadavg())
+
+
+def summarise(samples: list[Sample] | tuple[Sample, ...], warmup_frames: int) -> tuple[float, float, float, float]:
+    """(MB per 1000 frames of RSS less the map's own memory, of RSS alone, frames/s of the first quarter
+    after warm-up, of the last quarter); NaN with fewer than 4 samples after warm-up."""
+    after = [s for s in samples if s.frames >= warmup_frames]
+    if len(after) < 4:
+        return (float("nan"),) * 4   # type: ignore[return-value]
+    x = np.array([s.frames for s in after], float)
+    slope = float(np.polyfit(x, [s.rss_mb - s.canvas_mb for s in after], 1)[0] * 1000)
+    raw = float(np.polyfit(x, [s.rss_mb for s in after], 1)[0] * 1000)
+    quarter = max(2, len(after) // 4)
+
+    def fps(part: list[Sample]) -> float:
+        return (part[-1].frames - part[0].frames) / max(part[-1].elapsed_s - part[0].elapsed_s, 1e-9)
+    return slope, raw, fps(after[:quarter]), fps(after[-quarter:])
 
 
 def run(quick: bool = False) -> ScanSoakResult:

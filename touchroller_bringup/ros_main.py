@@ -78,6 +78,9 @@ def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) ->
     """Build the node, spin it until SIGINT/SIGTERM (or the context is shut down), then stop it in order."""
     ours = StopSignals.installed() is None   # the console scripts install it before the imports
     stop = StopSignals.install()
+    from touchroller_bringup.heap import bound_heap_growth
+
+    bound_heap_growth()   # a node runs for hours: its frames must not creep up the C heap
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy

@@ -130,10 +130,12 @@ def run_scan(options: ScanOptions) -> ScanResult:
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from touchroller_bringup.ros_main import StopSignals
-
     # our handlers, not rclpy's (they shut the context down and raise KeyboardInterrupt wherever the
     # main thread is): a signal only asks to stop; installed only from the main thread (a CLI run)
+    from touchroller_bringup.heap import bound_heap_growth
+    from touchroller_bringup.ros_main import StopSignals
+
+    bound_heap_growth()   # a long scan's frames must not creep up the C heap (touchroller_bringup.heap)
     stop = StopSignals.install(STOP_SIGNALS) if threading.current_thread() is threading.main_thread() else None
     try:
         return _run_scan(options, stop, rclpy, Context, MultiThreadedExecutor, SignalHandlerOptions)
