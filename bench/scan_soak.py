@@ -105,7 +105,9 @@ def measure(area: tuple[float, float, float, float], speed: float, every: float,
     from touchroller_bringup.scan import ScanOptions, run_scan
 
     stamp = provenance("scan_soak", quick, *([] if area == (QUICK_AREA if quick else AREA) else
-                                              ["--area", ",".join(map(str, area))]))
+                                              ["--area", ",".join(map(str, area))]),
+                       *([] if speed == SPEED * (2 if quick else 1) else ["--speed", f"{speed:g}"]),
+                       *(["--trace"] if trace else []))
     samples: list[Sample] = []
     done = threading.Event()
     started = time.monotonic()
