@@ -99,15 +99,24 @@ def _canvas_mb(perception: object | None) -> float:
     return (3 * 4 * cells + copies) / 2**20
 
 
+def _malloc_trim() -> None:
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def measure(area: tuple[float, float, float, float], speed: float, every: float, quick: bool,
-            trace: bool = False) -> ScanSoakResult:
+            trace: bool = False, trim: bool = False) -> ScanSoakResult:
     from touchroller_bringup.ros_domains import reserve_domain_id
     from touchroller_bringup.scan import ScanOptions, run_scan
 
     stamp = provenance("scan_soak", quick, *([] if area == (QUICK_AREA if quick else AREA) else
                                               ["--area", ",".join(map(str, area))]),
                        *([] if speed == SPEED * (2 if quick else 1) else ["--speed", f"{speed:g}"]),
-                       *(["--trace"] if trace else []))
+                       *(["--trace"] if trace else []), *(["--trim"] if trim else []))
     samples: list[Sample] = []
     done = threading.Event()
     started = time.monotonic()
@@ -119,6 +128,8 @@ def measure(area: tuple[float, float, float, float], speed: float, every: float,
         while not done.wait(every):
             perception = perception or _perception()
             frames = int(getattr(perception, "received", 0)) if perception is not None else 0
+            if trim:   # free heap pages back to the system first: what stays is held, not fragmentation
+                _malloc_trim()
             samples.append(Sample(time.monotonic() - started, frames, _rss_mb(), _canvas_mb(perception)))
             if trace and not snapshots and frames >= warmup_frames:
                 import tracemalloc
@@ -235,11 +246,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--speed", type=float, default=None, help="m/s along a pass")
     parser.add_argument("--every", type=float, default=2.0, help="seconds between samples")
     parser.add_argument("--trace", action="store_true", help="tracemalloc: where Python memory grew")
+    parser.add_argument("--trim", action="store_true", help="malloc_trim before each sample: memory that stays "
+                        "is held by something, not free pages the allocator kept (a diagnosis, not the figures)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     area = tuple(float(v) for v in args.area.split(",")) if args.area else (QUICK_AREA if args.quick else AREA)
     speed = args.speed or SPEED * (2 if args.quick else 1)
-    result = measure(area, speed, args.every, args.quick, args.trace)   # type: ignore[arg-type]
+    result = measure(area, speed, args.every, args.quick, args.trace, args.trim)   # type: ignore[arg-type]
     path = write(result, args.out)
     print(path.read_text())
     return 0
