@@ -109,14 +109,15 @@ def _malloc_trim() -> None:
 
 
 def measure(area: tuple[float, float, float, float], speed: float, every: float, quick: bool,
-            trace: bool = False, trim: bool = False) -> ScanSoakResult:
+            trace: bool = False, trim: bool = False, overrides: dict | None = None) -> ScanSoakResult:
     from touchroller_bringup.ros_domains import reserve_domain_id
     from touchroller_bringup.scan import ScanOptions, run_scan
 
     stamp = provenance("scan_soak", quick, *([] if area == (QUICK_AREA if quick else AREA) else
                                               ["--area", ",".join(map(str, area))]),
                        *([] if speed == SPEED * (2 if quick else 1) else ["--speed", f"{speed:g}"]),
-                       *(["--trace"] if trace else []), *(["--trim"] if trim else []))
+                       *(["--trace"] if trace else []), *(["--trim"] if trim else []),
+                       *(arg for k, v in (overrides or {}).items() for arg in ("--set", f"{k}:={v}")))
     samples: list[Sample] = []
     done = threading.Event()
     started = time.monotonic()
@@ -152,7 +153,7 @@ def measure(area: tuple[float, float, float, float], speed: float, every: float,
             result = run_scan(ScanOptions(out_dir=out, arguments={"scene": "large_surface",
                                                                   "area": ",".join(map(str, area)),
                                                                   "sweep_speed": str(speed)},
-                                          progress=None))
+                                          overrides=dict(overrides or {}), progress=None))
     finally:
         done.set()
         sampler.join()
@@ -248,11 +249,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trace", action="store_true", help="tracemalloc: where Python memory grew")
     parser.add_argument("--trim", action="store_true", help="malloc_trim before each sample: memory that stays "
                         "is held by something, not free pages the allocator kept (a diagnosis, not the figures)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME:=VALUE",
+                        help="a node parameter for the scan (e.g. map.publish_rate:=0.0), as `touchroller scan`")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
+    from touchroller_bringup.commands.scan import parse_items
+
+    _, _, overrides = parse_items(args.set)
     area = tuple(float(v) for v in args.area.split(",")) if args.area else (QUICK_AREA if args.quick else AREA)
     speed = args.speed or SPEED * (2 if args.quick else 1)
-    result = measure(area, speed, args.every, args.quick, args.trace, args.trim)   # type: ignore[arg-type]
+    result = measure(area, speed, args.every, args.quick, args.trace, args.trim,   # type: ignore[arg-type]
+                     overrides)
     path = write(result, args.out)
     print(path.read_text())
     return 0
