@@ -234,3 +234,38 @@ def half_alive_ur_host() -> Iterator[str]:
             yield host
     except RuntimeError as exc:
         pytest.skip(str(exc))
+
+
+@pytest.fixture
+def mount_tmpfs(tmp_path: Path) -> Iterator[Callable[..., Path]]:
+    """`mount_tmpfs(size="64k", read_only=False, free_bytes=None)`: a real tmpfs mounted for the test (root
+    with the mount capability; the test is skipped elsewhere), unmounted afterwards; `free_bytes`: filled
+    (by a hidden file) until about that much is left."""
+    import subprocess
+
+    mounted: list[Path] = []
+
+    def mount(size: str = "64k", read_only: bool = False, free_bytes: int | None = None) -> Path:
+        point = tmp_path / f"tmpfs{len(mounted)}"
+        point.mkdir()
+        options = f"size={size}" + (",ro" if read_only else "")
+        made = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(point)],
+                              capture_output=True, text=True, check=False)
+        if made.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {made.stderr.strip() or made.returncode}")
+        mounted.append(point)
+        if free_bytes is not None:
+            stats = os.statvfs(point)
+            left = stats.f_bavail * stats.f_frsize - free_bytes
+            with open(point / ".filler", "wb") as stream:
+                try:
+                    stream.write(b"\0" * max(left, 0))
+                    stream.flush()
+                except OSError:
+                    pass
+        return point
+
+    yield mount
+    for point in mounted:
+        subprocess.run(["umount", "-l", str(point)], check=False)
+

@@ -19,7 +19,7 @@ import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -160,6 +160,17 @@ def _image_connections(reader, path, topic: str):
     if bad:
         raise UserError(f"topic {topic} in {path} has type {bad[0]}, expected {IMAGE_TYPE} or {COMPRESSED_TYPE}")
     return connections
+
+
+def check_image_bag(path: str | Path, topic: str = IMAGE_TOPIC) -> None:
+    """UserError (one line) unless `path` is a bag with images on `topic`."""
+    reader = open_bag(path)
+    try:
+        connections = _image_connections(reader, path, topic)
+        if not sum(getattr(c, "msgcount", 1) for c in connections):
+            raise UserError(f"bag {path} has no images on {topic}")
+    finally:
+        reader.close()
 
 
 def read_images(path: str | Path, topic: str = IMAGE_TOPIC) -> Iterator[ImageRecord]:
@@ -486,9 +497,7 @@ def write_scan(
     with bag_writer(path, storage, distro) as writer:
         image_connection = writer.add_connection(topic, IMAGE_TYPE, typestore=store,
                                                  offered_qos_profiles=[offered_qos()])
-        tf_connection = writer.add_connection("/tf", TF_TYPE, typestore=store, offered_qos_profiles=[offered_qos()])
-        static_connection = writer.add_connection("/tf_static", TF_TYPE, typestore=store,
-                                                  offered_qos_profiles=[offered_qos(latched=True)])
+        tf_connections: dict[bool, Any] = {}   # made at their first message: a topic nobody published is not there
         for record in records:
             last = max(last, int(record.stamp_ns))   # log time: when it arrived, in the order given
             if isinstance(record, ImageRecord):
@@ -504,6 +513,10 @@ def write_scan(
                 header=Header(stamp=time(record.stamp_ns), frame_id=record.parent), child_frame_id=record.child,
                 transform=TransformMsg(translation=Vector3(x=t[0], y=t[1], z=t[2]),
                                        rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])))
-            writer.write(static_connection if record.static else tf_connection, last,
+            if record.static not in tf_connections:
+                tf_connections[record.static] = writer.add_connection(
+                    "/tf_static" if record.static else "/tf", TF_TYPE, typestore=store,
+                    offered_qos_profiles=[offered_qos(latched=record.static)])
+            writer.write(tf_connections[record.static], last,
                          store.serialize_cdr(TFMessage(transforms=[transform]), TF_TYPE))
     return images

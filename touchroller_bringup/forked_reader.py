@@ -68,10 +68,12 @@ def read_forked(produce: Callable[[], Iterator[Item]], shape: tuple[int, ...], d
     ring = _Ring(shape, dtype, slots)
     data_r, data_w = os.pipe()
     wake_r, wake_w = os.pipe()
+    parent = os.getpid()
     pid = os.fork()
     if pid == 0:   # the child: produce, then leave without running the parent's clean-up or flushing its buffers
         code = 1
         try:
+            _die_with_parent(parent)
             os.close(data_r)
             os.close(wake_w)
             _produce(produce, ring, data_w, wake_r, batch)
@@ -91,6 +93,26 @@ def read_forked(produce: Callable[[], Iterator[Item]], shape: tuple[int, ...], d
     finally:
         os.close(wake_w)
         _end_child(pid, wait=done)
+
+
+_PR_SET_PDEATHSIG = 1   # linux/prctl.h
+
+
+def _die_with_parent(parent: int) -> None:
+    """The child ends when the parent does, however it ends (SIGKILL too): the kernel sends it SIGKILL
+    when the parent thread exits (prctl PR_SET_PDEATHSIG); a parent already gone before that was set
+    is seen by the parent pid. SIGTERM and SIGHUP get their default action (the parent's handlers raise)."""
+    import ctypes
+
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):   # no prctl: the broken pipe still ends the child once it writes
+        pass
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def _produce(produce: Callable[[], Iterator[Item]], ring: _Ring, data_w: int, wake_r: int, batch: int) -> None:

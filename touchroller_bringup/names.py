@@ -92,6 +92,29 @@ def frame_prefix(namespace: str) -> str:
     return "" if ns in ("", DEFAULT_NAMESPACE) else f"{ns}/"
 
 
+_FRAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*\Z")
+
+
+def check_frame_id(name: str, what: str = "frame id") -> str:
+    """`name` if it is a usable TF frame id (parts of letters, digits and _, not starting with a digit,
+    joined by /; no leading slash, tf2 refuses one); InvalidName saying what is wrong otherwise."""
+    text = str(name)
+    if not text.strip():
+        raise InvalidName(f"{what} must not be empty")
+    if not _FRAME.match(text):
+        raise InvalidName(f"{what} {text!r} is not a valid frame id: parts of letters, digits and _ (not "
+                          "starting with a digit) joined by /, with no leading or trailing / or spaces")
+    return text
+
+
+def check_frame_prefix(prefix: str) -> str:
+    """`prefix` if it is "" or a frame id followed by a slash ("left/"); InvalidName otherwise."""
+    text = str(prefix)
+    if text and not (text.endswith("/") and _FRAME.match(text[:-1])):
+        raise InvalidName(f"frame_prefix {text!r} must be empty or a frame id followed by a slash, e.g. 'left/'")
+    return text
+
+
 def frame(name: str, prefix: str = "") -> str:
     """A frame id with its prefix: frame("touchroller_cylinder", "left/") is "left/touchroller_cylinder"."""
     return f"{prefix}{name}"

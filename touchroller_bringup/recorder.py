@@ -7,8 +7,11 @@ of the publishers are stored in the bag's metadata, so `touchroller replay` (and
 can publish with them again. `close()` drains what is in flight and finalises the bag: stopping
 with Ctrl-C loses nothing that had arrived.
 
-A recording survives a kill up to its last second: the writer commits every `COMMIT_INTERVAL_S`
-(or `COMMIT_MESSAGES` messages), an sqlite3 transaction or an MCAP chunk flushed to the file, so
+A recording survives a kill up to its last second: the writer commits (an sqlite3 transaction or an
+MCAP chunk flushed to the file) once the oldest message not yet on disk arrived `COMMIT_AGE_S` ago (or
+after `COMMIT_MESSAGES` messages). The clock is the messages' arrival, not the last commit: a writer
+that falls behind under load commits as soon as it reaches messages that old, so no message waits
+more than `COMMIT_INTERVAL_S` from its arrival to the disk (half of it in reserve for the commit itself), so
 after SIGKILL, a lost terminal or a crash `touchroller reindex BAG` (`bag_recovery`) makes all of
 it readable. A write that fails (a full disk) is reported at once through `failed` (the command
 stops and says it in one line); what was committed before is kept and indexed.
@@ -34,6 +37,7 @@ EXCLUDED_BY_DEFAULT = ("/rosout", "/parameter_events")
 INFINITE_SEC, INFINITE_NSEC = 2147483647, 4294967295  # how rosbag2 writes RMW_DURATION_INFINITE
 _INFINITE_NS = 2**63 - 1
 COMMIT_INTERVAL_S = 1.0    # a kill loses at most this much of a recording
+COMMIT_AGE_S = 0.5         # commit once the oldest uncommitted message arrived this long ago
 COMMIT_MESSAGES = 200      # ... or this many messages, whichever comes first
 _IDLE = ("idle",)
 
@@ -123,8 +127,9 @@ class _BagWriter(threading.Thread):
     def add_topic(self, topic: str, msgtype: str, offered: list[Any]) -> None:
         self._queue.put(("topic", topic, msgtype, offered))
 
-    def write(self, topic: str, stamp_ns: int, data: bytes) -> None:
-        self._queue.put(("message", topic, stamp_ns, data))
+    def write(self, topic: str, stamp_ns: int, data: bytes, arrived: float | None = None) -> None:
+        """Queue a message; `arrived`: when it arrived (time.monotonic(), default now), the commit's clock."""
+        self._queue.put(("message", topic, stamp_ns, data, time.monotonic() if arrived is None else arrived))
 
     def finish(self) -> None:
         self._queue.put(None)
@@ -138,28 +143,33 @@ class _BagWriter(threading.Thread):
             return
         finally:
             self._opened.set()
-        last_commit, uncommitted = time.monotonic(), 0
+        oldest: float | None = None   # arrival of the oldest message not yet committed
+        uncommitted = 0
         try:
-            while (item := self._next(last_commit)) is not None:
+            while (item := self._next(oldest)) is not None:
                 if self.error is not None:
                     continue  # keep draining so producers never block; the error is reported
                 try:
                     if item is not _IDLE:
                         self._handle(item)
                         uncommitted += 1
-                    now = time.monotonic()
-                    if uncommitted and (uncommitted >= COMMIT_MESSAGES or now - last_commit >= COMMIT_INTERVAL_S):
+                        if item[0] == "message" and oldest is None:
+                            oldest = item[4]
+                    if uncommitted and (uncommitted >= COMMIT_MESSAGES
+                                        or (oldest is not None and time.monotonic() - oldest >= COMMIT_AGE_S)):
                         self._commit()
-                        last_commit, uncommitted = now, 0
+                        oldest, uncommitted = None, 0
                 except Exception as exc:  # noqa: BLE001 - e.g. disk full: report once, stop writing
                     self._fail(exc)
         finally:
             self._close()
 
-    def _next(self, last_commit: float) -> tuple[Any, ...] | None:
-        """The next item, or _IDLE when the commit interval passes without one."""
+    def _next(self, oldest: float | None) -> tuple[Any, ...] | None:
+        """The next item, or _IDLE when the oldest uncommitted message comes of commit age without one."""
         try:
-            return self._queue.get(timeout=max(0.0, last_commit + COMMIT_INTERVAL_S - time.monotonic()))
+            if oldest is None:
+                return self._queue.get(timeout=COMMIT_INTERVAL_S)
+            return self._queue.get(timeout=max(0.0, oldest + COMMIT_AGE_S - time.monotonic()))
         except queue.Empty:
             return _IDLE
 
@@ -169,7 +179,7 @@ class _BagWriter(threading.Thread):
             self._connections[topic] = self._writer.add_connection(
                 topic, msgtype, typestore=self._typestore, offered_qos_profiles=offered)
         else:
-            _, topic, stamp_ns, data = item
+            _, topic, stamp_ns, data, _arrived = item
             self._writer.write(self._connections[topic], stamp_ns, data)
             self.written += 1
 

@@ -90,6 +90,16 @@ SECTIONS: tuple[Section, ...] = (
             "each its own process as `ros2 run` starts it, no sweep node (nothing starts a new map), until the "
             "perception node has taken 54 000 frames (30 minutes at 30 Hz; the quick run 1 500): the resident "
             "memory of both processes and the perception node's time per frame along the way."),
+    Section("scan_soak", "Soak: the scan graph in one process over a long raster", "scan_soak",
+            "`touchroller scan`'s graph (simulated camera, perception, sweep) in one process over a raster of the "
+            "large scene: the process's memory against the frames processed, with the world map's own memory (the "
+            "canvas cells bands landed on and the copy a pass registers against) taken out, and the frame rate of "
+            "the first and last quarters."),
+    Section("hostile", "Hostile probes: what users and machines do wrong", "hostile",
+            "Every probe of the reliability passes (outputs that would destroy inputs, raw exceptions, full and "
+            "read-only disks, silently wrong results, signals, node parameters, the arm, and the first pass's set), "
+            "each with its expectation, run by `python -m bench.hostile` against the commands and nodes as a user "
+            "starts them: how many held."),
     Section("stability", "Numerical stability of the camera model", "geometry_stability",
             "The hard cases the property-based tests cover, and what the code returns there."),
 )
@@ -350,6 +360,11 @@ def _dds_slow_consumer(r: Any) -> tuple[str, bool]:
     return text, all(row.met for row in slow)
 
 
+def _hostile_held(r: Any) -> tuple[str, bool]:   # bench.hostile.runner.HostileResult
+    failed = [o.name for o in r.outcomes if not o.held]
+    return (f"{r.held} / {r.total} held" + (f"; failed: {', '.join(failed)}" if failed else "")), not failed
+
+
 def _soak_full(r: Any) -> tuple[str, bool]:   # bench.soak.SoakResult
     full = r.processed >= 54_000
     return ("" if full else f"; {r.processed} frames only: judged by a run of 54 000"), full
@@ -441,6 +456,12 @@ GOALS: tuple[Goal, ...] = (
     Goal(7, "A slow consumer skips stale frames instead of queueing them", "dds", _dds_slow_consumer,
          script="dds_slow_consumer"),
     Goal(7, "20 000-frame soak without memory growth", script="dds_soak"),
+    Goal(28, "Hostile probes: every probe's expectation holds (held / total)", "hostile", _hostile_held),
+    Goal(28, "Scan soak (one process, long raster): memory growth <= 5 MB per 1000 frames after the map's own "
+             "growth", "scan_soak", lambda r: (f"{r.slope_mb_per_1000:+.2f} MB per 1000 frames over {r.frames} "
+                                                f"frames (RSS alone {r.raw_slope_mb_per_1000:+.2f})", r.memory_met)),
+    Goal(28, "Scan soak: a steady frame rate (last quarter within 1.25x of the first)", "scan_soak",
+         lambda r: (f"{r.first_fps:.1f} -> {r.last_fps:.1f} frames/s (x{r.steady:.2f})", r.steady_met)),
     Goal(14, "Soak (camera + perception processes, no sweep): memory growth <= 5 MB per 1000 processed frames "
              "over 54 000 frames", "soak", _soak_memory),
     Goal(14, "Soak: a steady processing rate over the same run (last quarter's time per frame within 1.25x of "
@@ -655,7 +676,8 @@ def settings_markdown(results: dict[str, SectionResult]) -> str:
 
 def load_bench_script(script: str) -> ModuleType:
     """The checkout's `bench.<script>` module (for the report's sections and the bench tests)."""
-    if not (checkout_dir() / "bench" / f"{script}.py").is_file():
+    if not ((checkout_dir() / "bench" / f"{script}.py").is_file()
+            or (checkout_dir() / "bench" / script / "__init__.py").is_file()):   # a bench package
         raise UserError(f"report section needs bench/{script}.py, which is missing (run from the source checkout)")
     if str(checkout_dir()) not in sys.path:
         sys.path.insert(0, str(checkout_dir()))   # the console script may run from anywhere; bench/ is not installed

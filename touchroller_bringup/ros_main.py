@@ -78,6 +78,9 @@ def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) ->
     """Build the node, spin it until SIGINT/SIGTERM (or the context is shut down), then stop it in order."""
     ours = StopSignals.installed() is None   # the console scripts install it before the imports
     stop = StopSignals.install()
+    from touchroller_bringup.heap import bound_heap_growth
+
+    bound_heap_growth()   # a node runs for hours: its frames must not creep up the C heap
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -145,7 +148,7 @@ def _check_params_files(argv: Sequence[str]) -> None:
             continue
         try:
             with open(value, encoding="utf-8") as stream:
-                yaml.safe_load(stream)
+                document = yaml.safe_load(stream)
         except OSError as exc:
             raise UserError(f"--params-file {value}: {exc.strerror or exc}") from None
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
@@ -153,6 +156,34 @@ def _check_params_files(argv: Sequence[str]) -> None:
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
             raise UserError(f"--params-file {value} is not YAML ({getattr(exc, 'problem', None) or exc}{where})") \
                 from None
+        problem = params_file_problem(document)
+        if problem:
+            raise UserError(f"--params-file {value} is not a ROS 2 parameters file: {problem}")
+
+
+def params_file_problem(document: Any) -> str:
+    """Why a parsed YAML document is not a ROS 2 parameters file ("" when it is one): node names (or
+    `/**`), possibly under namespaces, each with a `ros__parameters` mapping."""
+    from collections.abc import Mapping
+
+    if not isinstance(document, Mapping) or not document:
+        return ("expected node names (or /**) with ros__parameters: mappings, got "
+                f"{type(document).__name__ if document is not None else 'an empty file'}")
+
+    def check(level: Mapping, path: str) -> str:
+        for key, value in level.items():
+            where = f"{path}{key}"
+            if key == "ros__parameters":
+                if not isinstance(value, Mapping):
+                    return f"{where} must be a mapping of parameter names to values"
+                continue
+            if not isinstance(value, Mapping):
+                return f"{where}: expected a node name with ros__parameters: under it"
+            problem = check(value, where + "/")
+            if problem:
+                return problem
+        return ""
+    return check(document, "")
 
 
 def _start_up_failure(exc: BaseException) -> int:

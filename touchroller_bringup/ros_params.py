@@ -5,10 +5,20 @@ a floating-point or integer range, so `ros2 param describe` shows them and rclpy
 outside the range. `declare_geometry_parameters` declares docs/design.md's camera/cylinder/extrinsics
 parameters; `GeometryParameters` validates a whole update in the on-set callback (the model is
 rebuilt from the candidate values) and applies it in the post-set callback.
+
+Every parameter declared through `declare` is checked in one place, at declaration (the value a params
+file or `name:=value` gave) and in an on-set callback `declare` adds once per node: its type (a number
+written as a string, `1e-6` as YAML 1.1 reads it, or an integer for a double, is taken as the number; a
+boolean is never a number), finiteness (NaN or infinity is refused for every double), its range and,
+for arrays, its length. A node then validates the whole set once its own callbacks are added
+(`check_start_up`): a combination it refuses stops it at start-up, in one line, exit 2 (through
+`ros_main.run_node`), instead of running on values it cannot use.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
@@ -16,6 +26,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from touchroller_bringup import names
+from touchroller_bringup.errors import UserError
 from touchroller_perception.geometry import PARAMETER_NAMES, PARAMETER_RANGES, CameraModel
 
 _GEOMETRY_DESCRIPTIONS = {
@@ -53,26 +64,138 @@ def descriptor(description: str, *, min: float | None = None, max: float | None 
     return desc
 
 
+@dataclass(frozen=True)
+class _Spec:
+    """What `declare` checks of one parameter's value beyond rclpy's own type and range checks."""
+
+    number: bool            # a double (or double array): finite numbers only
+    length: int | None      # arrays: exactly this many elements
+    min: float | None
+    max: float | None
+
+
 def declare(node: Node, name: str, default: Any, description: str, *, min: float | None = None,
             max: float | None = None, step: float | None = None, read_only: bool = False,
-            additional_constraints: str = "") -> Any:
-    """Declare one parameter with its descriptor and return its current value."""
+            additional_constraints: str = "", length: int | None = None) -> Any:
+    """Declare one parameter with its descriptor and return its current value. The given value is checked
+    (see the module docstring): UserError, one line naming the parameter, when it cannot be used."""
     integer = isinstance(default, int) and not isinstance(default, bool)
+    number = isinstance(default, float) or (isinstance(default, list) and bool(default)
+                                            and all(isinstance(v, float) for v in default))
+    spec = _Spec(number, length, min, max)
+    _coerce_override(node, name, default)
+    given = getattr(node, "_parameter_overrides", {}).get(name)
+    problem = _problem(name, given.value, replace(spec, min=None, max=None)) \
+        if given is not None and given.value is not None else ""
+    if problem:   # before rclpy's own checks (the range is rclpy's: "NAME out of range")
+        raise UserError(problem)
+    _specs(node)[name] = spec
     param = node.declare_parameter(
         name, default,
         descriptor(description, min=min, max=max, step=step, read_only=read_only, integer=integer,
                    additional_constraints=additional_constraints),
     )
+    problem = _problem(name, param.value, spec)
+    if problem:
+        raise UserError(problem)
     return param.value
+
+
+def _specs(node: Node) -> dict[str, _Spec]:
+    """The node's declared specs; the first call adds the on-set callback that checks them."""
+    specs = getattr(node, "_touchroller_specs", None)
+    if specs is None:
+        specs = {}
+        node._touchroller_specs = specs  # type: ignore[attr-defined]
+
+        def validate(parameters: Sequence[Parameter]) -> SetParametersResult:
+            for p in parameters:
+                spec = specs.get(p.name)
+                problem = _problem(p.name, p.value, spec) if spec is not None else ""
+                if problem:
+                    return SetParametersResult(successful=False, reason=problem)
+            return SetParametersResult(successful=True)
+        node.add_on_set_parameters_callback(validate)
+    return specs
+
+
+def _problem(name: str, value: Any, spec: _Spec) -> str:
+    """Why `value` cannot be `name`'s value ("" when it can)."""
+    values = list(value) if isinstance(value, list | tuple) or hasattr(value, "tolist") else [value]
+    if spec.length is not None and len(values) != spec.length:
+        return f"{name} needs {spec.length} values, got {len(values)}: {list(values)}"
+    if spec.number:
+        for v in values:
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                return f"{name} must be a number, got {v!r}"
+            if not math.isfinite(v):
+                return f"{name} must be a finite number, got {v}"
+            if spec.min is not None and spec.max is not None and not spec.min <= v <= spec.max:
+                return f"{name} = {v:g} is outside [{spec.min:g}, {spec.max:g}]"
+    return ""
+
+
+def _number(text: str) -> float | None:
+    try:
+        return float(text.strip())
+    except ValueError:
+        return None
+
+
+def _coerce_override(node: Node, name: str, default: Any) -> None:
+    """The value a params file or `name:=value` gives, as the number it means: `1e-6` (a string to YAML 1.1),
+    an integer for a double, integers for a double array. A boolean or other text stays as given (rclpy
+    then refuses its type, naming the parameter)."""
+    overrides = getattr(node, "_parameter_overrides", None)
+    if not isinstance(overrides, dict) or name not in overrides:
+        return
+    value = overrides[name].value
+    coerced: Any = None
+    if isinstance(default, float):
+        if isinstance(value, str):
+            coerced = _number(value)
+            if coerced is None:
+                raise UserError(f"{name} must be a number, got the string {value!r}")
+        elif isinstance(value, int) and not isinstance(value, bool):
+            coerced = float(value)
+    elif isinstance(default, list) and default and all(isinstance(v, float) for v in default) \
+            and isinstance(value, list | tuple) and value and not any(isinstance(v, bool) for v in value):
+        if all(isinstance(v, int | float) for v in value) and not all(isinstance(v, float) for v in value):
+            coerced = [float(v) for v in value]
+    if coerced is not None:
+        overrides[name] = Parameter(name, value=coerced)
+
+
+def frame_id_problem(name: str, value: Any) -> str:
+    """Why `value` is not a usable frame id for parameter `name` ("" when it is)."""
+    try:
+        names.check_frame_id(str(value), name)
+    except names.InvalidName as exc:
+        return str(exc)
+    return ""
+
+
+def check_start_up(node: Node, validate: Callable[[Sequence[Parameter]], SetParametersResult],
+                   names_: Sequence[str] | None = None) -> None:
+    """Run an on-set validator over the node's declared values (all, or `names_`) once: the values a node
+    starts with pass the same checks as a later change. UserError (one line) when they do not."""
+    chosen = names_ if names_ is not None else list(node._parameters)   # noqa: SLF001 - rclpy's declared set
+    result = validate([node.get_parameter(n) for n in chosen])
+    if not result.successful:
+        raise UserError(f"{node.get_name()}: {result.reason}")
 
 
 def declare_frame_prefix(node: Node) -> str:
     """Declare the read-only `frame_prefix` every frame id the node publishes starts with, and return it.
     Its default follows the node's namespace (`names.frame_prefix`): "" in `touchroller`, "left/" in `left`."""
     default = names.frame_prefix(node.get_namespace())
-    return str(declare(node, "frame_prefix", default, "Prefix of every frame id this node publishes (default: "
-                       "none in the namespace touchroller, else the namespace and a slash, e.g. left/)",
-                       read_only=True))
+    value = str(declare(node, "frame_prefix", default, "Prefix of every frame id this node publishes (default: "
+                        "none in the namespace touchroller, else the namespace and a slash, e.g. left/)",
+                        read_only=True))
+    try:
+        return names.check_frame_prefix(value)
+    except names.InvalidName as exc:
+        raise UserError(str(exc)) from None
 
 
 def declare_geometry_parameters(node: Node, model: CameraModel | None = None) -> None:

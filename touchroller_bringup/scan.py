@@ -47,7 +47,8 @@ from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.graph import Graph, GraphError, build_graph
 from touchroller_bringup.image_conversion import stamp_to_ns
-from touchroller_perception.files import atomic_path, atomic_write, atomic_write_text
+from touchroller_bringup.outputs import Output, check_outputs
+from touchroller_perception.files import atomic_write, atomic_write_text
 
 # with `record`: these topics of the scan's namespace, and /diagnostics
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -56,6 +57,9 @@ RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, na
 # the topics of the scan's namespace that only its own nodes may publish (and /clock when simulated)
 GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.TCP_POSE,
                 names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
+
+
+OUTPUT_FILES = ("contacts.csv", "report.md", "map.png", "map.yaml")
 
 
 @dataclass
@@ -91,6 +95,7 @@ class ScanResult:
     world_map: dict[str, Any] | None = None   # the world map's frame, resolution, origin, latency, passes
     signal: int | None = None   # the signal that interrupted the scan
     frames_during_sweep: int | None = None   # published from ~/start to the end of the sweep
+    failed: dict[str, str] = field(default_factory=dict)   # output -> why it could not be written
 
     @property
     def ok(self) -> bool:
@@ -130,10 +135,12 @@ def run_scan(options: ScanOptions) -> ScanResult:
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from touchroller_bringup.ros_main import StopSignals
-
     # our handlers, not rclpy's (they shut the context down and raise KeyboardInterrupt wherever the
     # main thread is): a signal only asks to stop; installed only from the main thread (a CLI run)
+    from touchroller_bringup.heap import bound_heap_growth
+    from touchroller_bringup.ros_main import StopSignals
+
+    bound_heap_growth()   # a long scan's frames must not creep up the C heap (touchroller_bringup.heap)
     stop = StopSignals.install(STOP_SIGNALS) if threading.current_thread() is threading.main_thread() else None
     try:
         return _run_scan(options, stop, rclpy, Context, MultiThreadedExecutor, SignalHandlerOptions)
@@ -150,6 +157,9 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
         raise UserError(str(exc)) from None
     say = options.progress or (lambda _text: None)
     out_dir = Path(options.out_dir)
+    check_outputs([Output("--out", out_dir, folder=True),
+                   *(Output(f"--out {out_dir}'s", out_dir / name) for name in OUTPUT_FILES)],
+                  {f"params file {i + 1}": path for i, path in enumerate(options.params_files)})
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out {out_dir} is a file; give a folder")
     made_out_dir = not out_dir.exists()
@@ -169,7 +179,6 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
 def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiThreadedExecutor: Any,  # noqa: N803
                SignalHandlerOptions: Any, graph: Graph, say: Callable[[str], None],  # noqa: N803
                out_dir: Path) -> ScanResult:
-
     # rclpy's executor loop is CPU-bound Python; the camera's render and perception make dozens of
     # short GIL-releasing OpenCV calls per frame, and each waits up to the switch interval to get the
     # GIL back (the convoy effect). At the default 5 ms the camera fell to 2-8 Hz here; at 0.5 ms it
@@ -634,11 +643,13 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
                    message: str, duration: float, sweep_answer: str,
                    recorded: Mapping[str, int] | None = None, camera: Any = None,
                    during_sweep: int | None = None) -> ScanResult:
-    import cv2
-
+    """The small, irreplaceable outputs first (contacts.csv, report.md), then the map: every output is
+    tried, and each that could not be written is named in `ScanResult.failed` (a nearly full disk keeps
+    a completed sweep's contacts when the map does not fit)."""
     from touchroller_bringup.image_conversion import image_to_array
 
     files: dict[str, Path] = {}
+    failed: dict[str, str] = {}
     with collected.lock:
         contacts = list(collected.contacts)
         map_msg = collected.map_msg
@@ -646,34 +657,57 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     map_shape = None
     world = getattr(perception, "world", None)
     world_map = None
+    world_image = tactile_map = None
     if world is not None:   # the world map in the robot's frame: map.png (grey + alpha) and map.yaml
-        from touchroller_bringup.map_files import write_world_map
-
-        image = world.map_image()
-        files["map"], files["map_yaml"] = write_world_map(out_dir / "map.png", image, perception.world_frame)
-        map_shape = tuple(int(n) for n in image.grey.shape)
-        world_map = _world_summary(world, perception.world_frame, image)
+        world_image = world.map_image()
+        if world_image.grey.size:
+            map_shape = tuple(int(n) for n in world_image.grey.shape)
+            world_map = _world_summary(world, perception.world_frame, world_image)
+        else:
+            world_image = None
     elif map_msg is not None:
         tactile_map = image_to_array(map_msg)
         map_shape = tuple(int(n) for n in tactile_map.shape)
-        files["map"] = out_dir / "map.png"
-        with atomic_path(files["map"]) as temporary:
-            if not cv2.imwrite(str(temporary), tactile_map):
-                raise UserError(f"cannot write {files['map']}")
-    files["contacts"] = out_dir / "contacts.csv"
-    _write_contacts(files["contacts"], contacts, getattr(perception, "camera", None),
-                    float(_parameter(perception, "contacts.pixel_sigma", 0.3)))
+
+    def attempt(key: str, path: Path, write: Callable[[], Any]) -> None:
+        try:
+            write()
+            files[key] = path
+        except (OSError, UserError) as exc:
+            failed[path.name] = (f"{exc.strerror or exc}" if isinstance(exc, OSError) else str(exc))
+
+    attempt("contacts", out_dir / "contacts.csv",
+            lambda: _write_contacts(out_dir / "contacts.csv", contacts, getattr(perception, "camera", None),
+                                    float(_parameter(perception, "contacts.pixel_sigma", 0.3))))
     processed = int(getattr(perception, "received", 0))
     frames = _published(camera, collected) if camera is not None else frames
     result = ScanResult(out_dir, outcome, message, duration, frames, processed,
                         int(getattr(perception, "dropped", 0)), int(getattr(perception, "malformed", 0)),
                         len(contacts), map_shape, files, sweep_answer, dict(recorded or {}), world_map,
-                        frames_during_sweep=during_sweep)
+                        frames_during_sweep=during_sweep, failed=failed)
     if recorded:
         files["recording"] = out_dir / "recording"
-    files["report"] = out_dir / "report.md"
-    atomic_write_text(files["report"], _report(result, graph))
+    attempt("report", out_dir / "report.md", lambda: atomic_write_text(out_dir / "report.md", _report(result, graph)))
+    if world_image is not None:
+        from touchroller_bringup.map_files import write_world_map
+
+        def write_world() -> None:
+            files["map"], files["map_yaml"] = write_world_map(out_dir / "map.png", world_image,
+                                                              perception.world_frame)
+        attempt("map", out_dir / "map.png", write_world)
+    elif tactile_map is not None:
+        attempt("map", out_dir / "map.png", lambda: _write_png(out_dir / "map.png", tactile_map))
     return result
+
+
+def _write_png(path: Path, image: Any) -> None:
+    import cv2
+
+    encoded, data = cv2.imencode(".png", image)   # in memory: a full disk is our OSError, not libpng's line
+    if not encoded:
+        raise UserError(f"cannot encode {path.name} as PNG")
+    with atomic_write(path, "wb") as stream:
+        stream.write(data.tobytes())
 
 
 def _world_summary(world: Any, frame: str, image: Any) -> dict[str, Any]:

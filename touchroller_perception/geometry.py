@@ -17,7 +17,7 @@ import dataclasses
 import difflib
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -109,8 +109,16 @@ class CameraModel:
         """Build from docs/design.md parameter names (`camera.fx`, ...); absent names keep defaults."""
         flat = _flatten(params)
         kwargs = {field: flat[name] for name, field in _FIELD_OF_PARAMETER.items() if name in flat}
-        if "distortion" in kwargs:
-            kwargs["distortion"] = tuple(kwargs["distortion"])
+        for name, field in _FIELD_OF_PARAMETER.items():
+            if field not in kwargs:
+                continue
+            if field == "distortion":
+                value = kwargs[field]
+                if isinstance(value, str | bytes) or not isinstance(value, Sequence):
+                    raise TypeError(f"{name} is a list of 5 numbers (k1, k2, p1, p2, k3), got {value!r}")
+                kwargs[field] = tuple(parameter_number(f"{name}[{i}]", v) for i, v in enumerate(value))
+            else:
+                kwargs[field] = parameter_number(name, kwargs[field], integer=field in ("width", "height"))
         return cls(**kwargs)
 
     def to_params(self) -> dict[str, Any]:
@@ -397,6 +405,23 @@ def _one_line_yaml_error(exc: Exception) -> str:
     if problem and mark is not None:
         return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
     return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def parameter_number(name: str, value: Any, integer: bool = False) -> float:
+    """A parameter's value as a number: int or float, or a string that reads as one (YAML 1.1 reads `1e-6`,
+    without a dot, as a string); a boolean or anything else is a TypeError naming the parameter."""
+    if isinstance(value, str):
+        try:
+            value = float(value.strip())
+        except ValueError:
+            raise TypeError(f"{name} must be a number, got the string {value!r}") from None
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise TypeError(f"{name} must be a number, got {type(value).__name__} {value!r}")
+    if integer:
+        if not float(value).is_integer():
+            raise TypeError(f"{name} must be a whole number, got {value!r}")
+        return int(value)
+    return float(value)
 
 
 def _check_model_names(flat: Mapping[str, Any]) -> None:

@@ -1259,6 +1259,8 @@ def _grey_alpha(grey: np.ndarray, mapped: np.ndarray) -> tuple[np.ndarray, np.nd
     (clipped to 0..255), alpha 255 where mapped."""
     image = np.add(grey, np.float32(0.5))
     np.clip(image, 0, 255, out=image)
+    if image.size == 0:   # nothing mapped yet: cv2.flip of an empty array returns None
+        return np.zeros(image.shape, np.uint8), np.zeros(image.shape, np.uint8)
     return cv2.flip(image.astype(np.uint8), 0), cv2.flip(mapped.view(np.uint8), 0) * np.uint8(255)
 
 

@@ -6,3 +6,5 @@ happened instead. Probe modules in this package (one per area) expose `probes() 
 `python -m bench.hostile` runs every module's probes and writes bench/results/hostile.md + .json, and
 `touchroller report` counts held / total.
 """
+
+from bench.hostile.runner import load, run, to_markdown  # noqa: E402,F401 - the report's section interface

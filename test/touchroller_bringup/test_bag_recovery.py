@@ -107,3 +107,23 @@ def test_a_bag_without_metadata_names_reindex_as_the_way_out(tmp_path, capsys, c
     error = capsys.readouterr().err.strip()
     assert len(error.splitlines()) == 1 and f"touchroller reindex {bag}" in error
     assert main(["reindex", str(bag)]) == 0
+
+
+def test_reindex_of_a_bag_on_a_read_only_disk_is_one_line_saying_what_to_do(bag_factory, mount_tmpfs, capsys):
+    """#28: raw OSError for a bag in a read-only folder."""
+    import shutil
+    import subprocess
+
+    import numpy as np
+
+    from touchroller_bringup.cli import main
+
+    bag = bag_factory([(k, np.zeros((8, 8, 3), np.uint8)) for k in range(3)])
+    folder = mount_tmpfs("1m")
+    shutil.copytree(bag, folder / "bag")
+    (folder / "bag" / "metadata.yaml").unlink()
+    if subprocess.run(["mount", "-o", "remount,ro", str(folder)], check=False).returncode != 0:
+        pytest.skip("cannot remount the tmpfs read-only")
+    assert main(["reindex", str(folder / "bag")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "copy the bag" in err and "metadata.yaml" in err, err

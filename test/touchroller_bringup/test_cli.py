@@ -78,3 +78,37 @@ def test_a_reader_that_closes_the_pipe_early_is_not_an_error():
     process.stdout.close()          # nobody reads: the first write breaks the pipe
     err = process.stderr.read().decode()
     assert process.wait(timeout=60) == 141 and err == ""
+
+
+def test_ctrl_c_while_the_parser_is_built_is_one_line_not_a_traceback(monkeypatch, capsys):
+    """#28: a SIGINT in the first 0.1-0.3 s (the parser and the command's imports) printed a traceback."""
+    def interrupted(only=None):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert cli.main(["contacts", "x", "--out", "y"]) == 130
+    assert capsys.readouterr().err.strip() == "touchroller: error: interrupted"
+
+
+@pytest.mark.parametrize("error, words", [
+    (OSError(28, "No space left on device", "/x/out.csv"), ("/x/out.csv", "disk is full")),
+    (OSError(30, "Read-only file system", "/ro/out.csv"), ("/ro/out.csv", "write elsewhere")),
+    (IsADirectoryError(21, "Is a directory", "/x/dir"), ("/x/dir", "give a file name")),
+])
+def test_an_os_error_is_one_sentence_naming_the_file_and_what_to_do(monkeypatch, capsys, error, words):
+    def fail(args):
+        raise error
+    monkeypatch.setattr("touchroller_bringup.commands.reindex.run", fail)
+    assert cli.main(["reindex", "bag"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "OSError" not in err and all(w in err for w in words), err
+
+
+def test_a_sqlite_error_is_one_sentence(monkeypatch, capsys):
+    import sqlite3
+
+    def fail(args):
+        raise sqlite3.OperationalError("database or disk is full")
+    monkeypatch.setattr("touchroller_bringup.commands.reindex.run", fail)
+    assert cli.main(["reindex", "bag"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "OperationalError" not in err and "free some space" in err, err

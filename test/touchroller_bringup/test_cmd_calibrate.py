@@ -168,3 +168,35 @@ def test_bad_params_files_and_sizes_are_one_line_and_exit_2(argv, message, tmp_p
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and "\n" not in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("disk", ["full", "read_only"])
+def test_calibrate_on_a_full_or_read_only_disk_names_the_file_and_exits_non_zero(scenes, bag_factory, mount_tmpfs,
+                                                                                  disk, capsys):
+    """#28: 'cannot write None' on a full disk, and once exit 0 having written nothing."""
+    chess, _, _ = scenes
+    bag = bag_factory(chess)
+    folder = mount_tmpfs("16k", free_bytes=0) if disk == "full" else mount_tmpfs("16k", read_only=True)
+    out = folder / "cal.yaml"
+    assert main(["calibrate", "intrinsics", str(bag), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"cannot write --out {out}" in err and "None" not in err, err
+    assert not out.exists() and not [p for p in folder.iterdir() if p.name.startswith(".cal")]
+
+
+def test_a_missing_reference_is_our_line_alone(tmp_path):
+    """#28: OpenCV printed its own WARN line before ours for a --reference that does not exist."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), np.zeros((24, 32, 3), np.uint8))
+    params = tmp_path / "p.yaml"
+    CameraModel().to_yaml(params)
+    done = subprocess.run([sys.executable, "-m", "touchroller_bringup.cli", "calibrate", "extrinsics", str(folder),
+                           "--params", str(params), "--reference", str(tmp_path / "missing.png"), "--out",
+                           str(tmp_path / "o.yaml")], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [f"touchroller: error: cannot read image --reference "
+                                                f"{tmp_path / 'missing.png'}: no such file"], done.stderr

@@ -176,3 +176,72 @@ def test_a_failing_run_leaves_an_existing_csv_untouched(tapped_bag, tmp_path, fa
     assert done.returncode == 2 and message in done.stderr, done.stderr
     assert out.read_text() == "stamp_ns,u,v,x,y,z\n1,2,3,4,5,6\n"
     assert [p.name for p in out.parent.iterdir()] == ["contacts.csv"]
+
+
+def test_a_calibration_of_another_image_size_is_refused_like_map_does(tapped_bag, tmp_path, capsys):
+    """#28: a 320x240 calibration was applied to 640x480 images without a word."""
+    bag, _ = tapped_bag
+    params = tmp_path / "cal.yaml"
+    CAMERA.replace(width=640, height=480, cx=319.5, cy=239.5).to_yaml(params)
+    out = tmp_path / "c.csv"
+    assert main(["contacts", str(bag), "--out", str(out), "--params", str(params)]) == 2
+    err = capsys.readouterr().err
+    assert "is for 640x480 images but" in err and "320x240" in err
+    assert not out.exists()
+
+
+def test_a_boolean_focal_length_is_refused_not_taken_as_one(tapped_bag, tmp_path, capsys):
+    """#28: `camera.fx: true` was read as 1.0: every point NaN while the summary said cylinder points."""
+    bag, _ = tapped_bag
+    params = tmp_path / "cal.yaml"
+    CAMERA.to_yaml(params)
+    params.write_text(params.read_text().replace(f"camera.fx: {CAMERA.fx}", "camera.fx: true"))
+    assert "camera.fx: true" in params.read_text()
+    assert main(["contacts", str(bag), "--out", str(tmp_path / "c.csv"), "--params", str(params)]) == 2
+    assert "camera.fx must be a number, got bool" in capsys.readouterr().err
+
+
+def test_a_huge_pixel_sigma_is_one_line(tapped_bag, tmp_path, capsys):
+    bag, _ = tapped_bag
+    assert main(["contacts", str(bag), "--out", str(tmp_path / "c.csv"), "--pixel-sigma", "1e300"]) == 2
+    assert "--pixel-sigma must be" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("disk", ["full", "read_only"])
+def test_a_full_or_read_only_disk_is_one_line_naming_the_output(tapped_bag, mount_tmpfs, disk, capsys):
+    bag, _ = tapped_bag
+    folder = mount_tmpfs("16k", free_bytes=0) if disk == "full" else mount_tmpfs("16k", read_only=True)
+    out = folder / "contacts.csv"
+    assert main(["contacts", str(bag), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    assert str(out) in err and ("disk is full" in err if disk == "full" else "read-only" in err), err
+    assert not [p for p in folder.iterdir() if p.name.startswith(".contacts")]
+
+
+def test_sigterm_leaves_no_temporary_and_the_next_run_sweeps_a_killed_runs(bag_factory, tmp_path):
+    """#28: SIGTERM to contacts left `.contacts.csv.xxxx.csv` behind; SIGKILL cannot be handled, so the
+    next run removes the temporaries no live writer holds."""
+    import signal
+    import time
+
+    rng = np.random.default_rng(0)
+    bag = bag_factory([(k * 1_000_000, rng.integers(0, 255, (240, 320, 3), np.uint8)) for k in range(300)])
+    out = tmp_path / "contacts.csv"
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        process = subprocess.Popen([sys.executable, "-m", "touchroller_bringup.cli", "contacts", str(bag),
+                                    "--out", str(out)], stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 60
+        while not list(tmp_path.glob(".contacts.csv.*")) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert list(tmp_path.glob(".contacts.csv.*")), "the run never started writing"
+        process.send_signal(sig)
+        _, err = process.communicate(timeout=30)
+        assert process.returncode in (128 + sig, -sig), err
+        if sig == signal.SIGTERM:
+            assert "Traceback" not in err and "stopped by SIGTERM" in err, err
+            assert not list(tmp_path.glob(".contacts.csv.*"))
+    assert list(tmp_path.glob(".contacts.csv.*")), "SIGKILL leaves its temporary"
+    bag_small = bag_factory([(k * 1_000_000, rng.integers(0, 255, (24, 32, 3), np.uint8)) for k in range(8)])
+    assert main(["contacts", str(bag_small), "--out", str(out)]) == 0
+    assert not list(tmp_path.glob(".contacts.csv.*")) and out.is_file()

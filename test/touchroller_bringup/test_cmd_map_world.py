@@ -161,3 +161,49 @@ def test_map_files_are_nav2_maps_written_whole(tmp_path, monkeypatch):
         write_world_map(png, WorldMapImage(grey * 0, alpha, 0.001, (0.0, 0.0)), "base")
     assert png.read_bytes() == before   # the old map stands, and no temporary file is left behind
     assert {p.name for p in tmp_path.iterdir()} == {"scan.png", "scan.yaml"}
+
+
+def _small_tf_bag(path, tf, static, hour_late=False):
+    """20 noise frames at the default camera size, /tf (base -> tool0) and /tf_static (the mount) as asked."""
+    from touchroller_perception.geometry import CameraModel
+
+    camera = CameraModel()
+    rng = np.random.default_rng(0)
+    shift = 3600_000_000_000 if hour_late else 0
+    records = [TransformRecord("tool0", "touchroller_cylinder", 0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), True)] \
+        if static else []
+    for k in range(20):
+        stamp = 1_000_000_000 + k * 33_000_000
+        if tf:
+            records.append(TransformRecord("base", "tool0", stamp + shift, (0.001 * k, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0),
+                                           False))
+        records.append(ImageRecord(stamp, rng.integers(0, 255, (camera.height, camera.width, 3), np.uint8)))
+    write_scan(path, records)
+    camera.to_yaml(path.parent / "cal.yaml")
+    return path
+
+
+def test_tf_without_tf_static_says_what_is_missing_and_that_the_world_map_was_skipped(tmp_path, capsys):
+    """#28: a recording with /tf but no /tf_static silently gave a strip map."""
+    bag = _small_tf_bag(tmp_path / "bag", tf=True, static=False)
+    assert main(["map", str(bag), "--params", str(tmp_path / "cal.yaml"), "--out", str(tmp_path / "m.png")]) == 0
+    err = capsys.readouterr().err
+    assert "has /tf but no /tf_static" in err and "world map was skipped" in err
+    assert "tool0 -> touchroller_cylinder" in err
+
+
+@pytest.mark.parametrize("case, message", [
+    ("hour", "base -> tool0 is known over"),
+    ("resolution", "--resolution 1e-06 m per pixel"),
+    ("empty_frame", "--world-frame must not be empty"),
+])
+def test_a_map_that_cannot_be_placed_says_why_in_one_line(tmp_path, capsys, case, message):
+    """#28: TF an hour after the images and --resolution 1e-6 ended in 'TypeError: unsupported operand type(s)
+    for *: NoneType and int' (cv2.flip of an empty map); an empty frame id in a raw ValueError."""
+    bag = _small_tf_bag(tmp_path / "bag", tf=True, static=True, hour_late=case == "hour")
+    extra = {"resolution": ["--resolution", "1e-6"], "empty_frame": ["--world-frame", ""]}.get(case, [])
+    out = tmp_path / "m.png"
+    assert main(["map", str(bag), "--params", str(tmp_path / "cal.yaml"), "--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and message in err and "TypeError" not in err and "ValueError" not in err, err
+    assert not out.exists()

@@ -98,3 +98,56 @@ def test_a_consumer_that_stops_early_ends_the_reader():
     reader.close()
     with pytest.raises(ProcessLookupError):   # ended and reaped: no process, not even a zombie
         os.kill(child, 0)
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGKILL"])
+def test_the_reader_dies_with_its_parent(tmp_path, sig):
+    """#28: `touchroller map`'s forked reader outlived its parent on SIGTERM and SIGKILL (an orphan per
+    killed map) for as long as it did not touch the pipes to the parent."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pid_file = tmp_path / "child.pid"
+    code = f"""
+import os, time
+import numpy as np
+from touchroller_bringup.forked_reader import read_forked
+
+def produce():
+    with open({str(pid_file)!r}, "w") as stream:
+        stream.write(str(os.getpid()))
+    time.sleep(60)   # a long read that touches neither pipe (a bag's index, frames it skips)
+    yield None, np.zeros((2, 2), np.float32)
+
+for _ in read_forked(produce, (2, 2)):
+    pass
+"""
+    parent = subprocess.Popen([sys.executable, "-c", code])
+    deadline = time.monotonic() + 30
+    while not (pid_file.exists() and pid_file.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    child = int(pid_file.read_text())
+    parent.send_signal(getattr(signal, sig))
+    parent.wait(timeout=30)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        if _zombie(child):
+            break
+        time.sleep(0.02)
+    else:
+        os.kill(child, signal.SIGKILL)
+        raise AssertionError(f"the reader {child} outlived its parent ({sig})")
+
+
+def _zombie(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as stream:
+            return stream.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True

@@ -102,10 +102,15 @@ def test_an_rcl_error_while_the_context_is_up_is_not_swallowed(ros_context, monk
     ("sweep_node", ["-p", "sweep.speed:=-5.0"], "sweep.speed out of range"),
     ("calibration_node", ["--params-file", "not_yaml.yaml"], "--params-file not_yaml.yaml is not YAML"),
     ("camera_node", ["--params-file", "missing.yaml"], "--params-file missing.yaml: No such file"),
+    # #28: these started and ran silently, or failed with a raw RCLInvalidROSArgsError
+    ("perception_node", ["-p", "map.bounds:=[0.5, 0.0, 0.4, 0.1]"], "map bounds are"),
+    ("camera_node", ["-p", "source:=V4L2"], "source must be one of"),
+    ("calibration_node", ["--params-file", "list.yaml"], "--params-file list.yaml is not a ROS 2 parameters file"),
 ])
 def test_bad_start_up_parameters_are_one_line_and_exit_2(ros_context, tmp_path, script, arguments, expected):
     """As a user starts a node: its console script with a bad value gave a 27-line traceback."""
     (tmp_path / "not_yaml.yaml").write_text("a: [\n")
+    (tmp_path / "list.yaml").write_text("- a\n- b\n")
     executable = os.path.join(os.path.dirname(sys.executable), script)
     done = subprocess.run([executable, "--ros-args", *arguments], cwd=tmp_path, capture_output=True, text=True,
                           timeout=100, env=dict(os.environ))

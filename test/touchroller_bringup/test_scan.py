@@ -590,3 +590,26 @@ def test_once_the_graph_is_up_only_its_own_nodes_may_publish_on_its_topics():
     publishers["/touchroller/sweep_progress"][-1] = endpoint(scan_module.UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_")
     with pytest.raises(UserError, match="a node not discovered yet"):
         scan_module._check_namespace_is_ours(probe, "touchroller", topics, ours)
+
+
+def test_on_a_nearly_full_disk_the_small_outputs_are_written_first_and_each_failure_named(mount_tmpfs):
+    """#28: the map's write failed first and contacts.csv and report.md, which fitted, were never tried."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from touchroller_bringup.graph import build_graph
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.scan import _Collected, _write_outputs
+
+    folder = mount_tmpfs("64k", free_bytes=24 * 1024)
+    collected = _Collected()
+    collected.contacts = [(k, 0.001 * k, 0.01, 0.02) for k in range(100)]
+    collected.map_msg = array_to_image(np.random.default_rng(0).integers(0, 255, (400, 400), np.uint8), 0)
+    perception = SimpleNamespace(world=None, camera=None, received=5, dropped=0, malformed=0,
+                                 has_parameter=lambda name: False)
+    result = _write_outputs(folder, build_graph("scan", {}, []), perception, collected, "done", "ok", 1.0, "")
+    assert set(result.failed) == {"map.png"} and "No space left" in result.failed["map.png"]
+    assert (folder / "contacts.csv").read_text().count("\n") == 101
+    assert (folder / "report.md").is_file() and not (folder / "map.png").exists()
+    assert not [p for p in folder.iterdir() if p.name.startswith(".") and p.name != ".filler"]

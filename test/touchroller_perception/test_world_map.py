@@ -379,3 +379,16 @@ def test_a_stack_of_the_three_layers_adds_as_the_planes_do():
         canvases[1].add(planes, c0, r0)   # the (3, h, w) stack itself
     np.testing.assert_array_equal(canvases[0].layers, canvases[1].layers)
     assert canvases[0].used() == canvases[1].used() == (0, 80, 0, 100)
+
+
+def test_a_map_with_nothing_mapped_is_an_empty_image_not_an_error():
+    """#28: cv2.flip of an empty array returns None: 'unsupported operand type(s) for *: NoneType and int'
+    for a map before its first frame (a WARN every 10 s in the node), with TF an hour off or a TF loop."""
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.transforms import TransformBuffer
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
+
+    mapper = WorldMapper(CameraModel(), buffer_lookup(TransformBuffer(), "base", "touchroller_cylinder"),
+                         WorldMapConfig())
+    image = mapper.map_image()
+    assert image.grey.size == 0 and image.alpha.size == 0 and image.grey.dtype == np.uint8

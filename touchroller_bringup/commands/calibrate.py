@@ -17,6 +17,7 @@ from typing import Any
 
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_bringup.outputs import Output, check_outputs
 from touchroller_perception.files import atomic_write
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -116,10 +117,14 @@ def load_images(path: Path, topic: str) -> tuple[list[Any], bool]:
     return images, True
 
 
-def _read_image(path: Path, cv2) -> Any:
+def _read_image(path: Path, cv2, label: str = "") -> Any:
+    # checked first: OpenCV prints a WARN line of its own for a file it cannot open
+    name = f"{label} {path}" if label else str(path)
+    if not path.is_file():
+        raise UserError(f"cannot read image {name}: " + ("no such file" if not path.exists() else "not a file"))
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise UserError(f"cannot read image {path}")
+        raise UserError(f"cannot read image {name}: not an image OpenCV can decode")
     return image
 
 
@@ -150,6 +155,7 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     from touchroller_perception import calibration as cal
 
     columns, rows = _grid(args.board, "--board")
+    check_calibrate_outputs(args)
     prior = _load_camera(args.params)
     images, _ = load_images(args.input, args.topic)
     try:
@@ -194,13 +200,14 @@ def run_extrinsics(args: argparse.Namespace) -> int:
     from touchroller_perception import calibration as cal
 
     rows, columns = _grid(args.frame, "--frame")
+    check_calibrate_outputs(args)
     camera = _load_camera(args.params)
     images, is_bag = load_images(args.input, args.topic)
     reference = None
     if args.reference is not None:
         import cv2
 
-        reference = _read_image(args.reference, cv2)
+        reference = _read_image(args.reference, cv2, "--reference")
     else:
         count = (5 if is_bag else 0) if args.reference_frames is None else args.reference_frames
         if count < 0 or count >= len(images):
@@ -212,7 +219,7 @@ def run_extrinsics(args: argparse.Namespace) -> int:
     if args.dark is not None:
         import cv2
 
-        dark = _read_image(args.dark, cv2)
+        dark = _read_image(args.dark, cv2, "--dark")
     if reference is None:
         print("note: no no-contact reference (--reference or --reference-frames): the imprint background is "
               "estimated per image, which is less precise and can mistake specks for imprints")
@@ -263,6 +270,15 @@ def run_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_calibrate_outputs(args: argparse.Namespace) -> None:
+    """The shared output check, before any work: --out and --report never replace the input, the
+    reference or dark image, each other, or anything that is not a regular file. (--out may be the
+    --params file it updates: that is read whole before the write.)"""
+    outputs = [Output("--out", args.out)] + ([Output("--report", args.report)] if args.report is not None else [])
+    check_outputs(outputs, {"INPUT": args.input, "--reference": getattr(args, "reference", None),
+                            "--dark": getattr(args, "dark", None)})
+
+
 def _write(args: argparse.Namespace, camera, intrinsics=None, extrinsics=None) -> None:
     import yaml
 
@@ -270,14 +286,35 @@ def _write(args: argparse.Namespace, camera, intrinsics=None, extrinsics=None) -
 
     try:
         keep = cal.read_calibration_extras(str(args.params)) if getattr(args, "params", None) else {}
+    except (OSError, ValueError) as exc:
+        raise UserError(f"cannot read --params {args.params}: {getattr(exc, 'strerror', None) or exc}") from None
+    try:
         cal.write_calibration(str(args.out), camera, intrinsics=intrinsics, extrinsics=extrinsics, keep=keep)
-        if args.report is not None:
-            report = {"intrinsics": intrinsics.to_dict() if intrinsics else None,
-                      "extrinsics": extrinsics.to_dict() if extrinsics else None}
+    except OSError as exc:
+        raise UserError(f"cannot write --out {args.out}: {exc.strerror or exc}; nothing was written "
+                        "(free some space or choose another path)") from None
+    _check_written(args.out, "--out")
+    if args.report is not None:
+        report = {"intrinsics": intrinsics.to_dict() if intrinsics else None,
+                  "extrinsics": extrinsics.to_dict() if extrinsics else None}
+        try:
             with atomic_write(args.report) as stream:
                 yaml.safe_dump(_plain(report), stream, sort_keys=False)
-    except OSError as exc:
-        raise UserError(f"cannot write {exc.filename}: {exc.strerror}") from None
+        except OSError as exc:
+            raise UserError(f"wrote --out {args.out} but cannot write --report {args.report}: "
+                            f"{exc.strerror or exc} (free some space or choose another path)") from None
+        _check_written(args.report, "--report")
+
+
+def _check_written(path: Path, label: str) -> None:
+    """A command that says it wrote a file has: a non-empty regular file is there."""
+    try:
+        size = path.stat().st_size if path.is_file() else 0
+    except OSError:
+        size = 0
+    if size == 0:
+        raise UserError(f"{label} {path} was not written (it is missing or empty after the write); "
+                        "check the disk and the path")
 
 
 def _plain(value: Any) -> Any:

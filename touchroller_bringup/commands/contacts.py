@@ -16,12 +16,14 @@ from pathlib import Path
 from touchroller_bringup.commands import read_calibration
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_bringup.outputs import Output, check_outputs
 from touchroller_perception.files import atomic_write
 
 POINT_COLUMNS = ("stamp_ns", "u", "v", "x", "y", "z")          # docs/design.md, first
 CONTACT_COLUMNS = ("score", "area", "major_axis", "minor_axis", "angle", "confidence")
 COLUMNS = POINT_COLUMNS + CONTACT_COLUMNS + ("var_x", "var_y", "var_z")
 MAX_REFERENCE_FRAMES = 1000   # as the perception node's reference.frames
+MAX_PIXEL_SIGMA = 1e3         # a centre's std beyond the image itself means nothing (and 1e300 overflows)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -54,8 +56,10 @@ def run(args: argparse.Namespace) -> int:
 
     if not 1 <= args.reference_frames <= MAX_REFERENCE_FRAMES:   # the frames are held in memory
         raise UserError(f"--reference-frames must be in [1, {MAX_REFERENCE_FRAMES}], got {args.reference_frames}")
-    if not (args.pixel_sigma >= 0 and math.isfinite(args.pixel_sigma)):
-        raise UserError(f"--pixel-sigma must be a finite number >= 0, got {args.pixel_sigma}")
+    if not (args.pixel_sigma >= 0 and math.isfinite(args.pixel_sigma) and args.pixel_sigma <= MAX_PIXEL_SIGMA):
+        raise UserError(f"--pixel-sigma must be a number of pixels in [0, {MAX_PIXEL_SIGMA:g}], got {args.pixel_sigma}")
+    check_outputs([Output("--out", args.out)],
+                  {"BAG": args.bag, "--params": args.params, "--reference-bag": args.reference_bag})
     camera = read_calibration(args.params) if args.params else None
     changes = {"method": args.method}
     if args.threshold_sigma is not None:
@@ -70,8 +74,6 @@ def run(args: argparse.Namespace) -> int:
         detector.set_reference(_reference_frames(args.reference_bag, args.topic, args.reference_frames, read_images))
         skipped = 0
     out = Path(args.out)
-    if out.is_dir():
-        raise UserError(f"--out {out} is a directory; give a CSV file name")
     out.parent.mkdir(parents=True, exist_ok=True)
     frames = rows = 0
     # written whole or not at all: a run that fails part-way leaves an existing CSV as it was
@@ -80,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
         writer.writerow(COLUMNS)
         for record in read_images(args.bag, args.topic):
             frames += 1
+            if camera is not None and frames == 1:
+                _check_size(camera, record.image, args.params, args.bag)
             try:
                 contacts = detector.process(record.image)
             except ValueError as exc:
@@ -95,6 +99,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"{rows} contacts in {frames - skipped} frames, reference of {args.reference_frames} frame(s) from "
           f"{source} -> {out} ({where})")
     return 0
+
+
+def _check_size(camera, image, params: str, bag: str) -> None:
+    """A calibration is for one image size: pixels of another size back-project to wrong points."""
+    height, width = image.shape[:2]
+    if (camera.width, camera.height) != (width, height):
+        raise UserError(f"calibration {params} is for {camera.width}x{camera.height} images but {bag} has "
+                        f"{width}x{height}; give the calibration of this camera (or no --params for pixels only)")
 
 
 def _reference_frames(bag: str, topic: str, count: int, read_images) -> list:

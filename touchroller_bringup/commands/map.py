@@ -26,7 +26,8 @@ from typing import Any, TypeVar
 from touchroller_bringup.commands import read_calibration
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
-from touchroller_perception.files import atomic_path, atomic_write
+from touchroller_bringup.outputs import Output, check_outputs
+from touchroller_perception.files import atomic_write
 
 DEFAULT_MM_PER_PX = 0.1
 METRIC_RANGE = (0.001, 10.0)   # mm per pixel: 1 um (a hundred times finer than the camera sees) to 1 cm
@@ -75,8 +76,8 @@ def run(args: argparse.Namespace) -> int:
     import cv2
 
     out = Path(args.out)
-    if out.is_dir():
-        raise UserError(f"--out {out} is a directory; give an image file name such as map.png")
+    check_outputs([Output("--out", out)] + ([Output("--steps", args.steps)] if args.steps else []),
+                  {"BAG": args.bag, "--params": args.params})
     if not out.suffix or not cv2.haveImageWriter(str(out)):
         raise UserError(f"--out {out}: unknown image format; use .png, .tif, .jpg or .bmp")
     if args.metric is not None and not (METRIC_RANGE[0] <= args.metric <= METRIC_RANGE[1]):
@@ -87,9 +88,11 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= args.search <= 4096:
         raise UserError(f"--search must be in [1, 4096] pixels, got {args.search}")
     camera = _load_camera(args.params)
-    world = not args.strip and _has_tf(args.bag)
+    world = not args.strip and _has_tf(args.bag, args.strip)
     if world:
         _check_world_arguments(args, out, camera)
+        check_outputs([Output("--out", out), Output("the map's YAML", out.with_suffix(".yaml"))],
+                      {"BAG": args.bag, "--params": args.params})
     # OpenCV's own thread pool costs more than it saves on a 70-row band; the second core reads the bag.
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
@@ -99,10 +102,24 @@ def run(args: argparse.Namespace) -> int:
         cv2.setNumThreads(threads)
 
 
-def _has_tf(bag: str) -> bool:
+def _has_tf(bag: str, strip: bool = False) -> bool:
+    """Whether the bag has both TF topics (a world map). One of them alone: a note on stderr saying which is
+    missing and that the world map was skipped, not a strip map without a word."""
+    import sys
+
     from touchroller_bringup.bags import tf_topics
 
-    return set(tf_topics(bag)) == {"/tf", "/tf_static"}
+    found = set(tf_topics(bag))
+    if found == {"/tf", "/tf_static"}:
+        return True
+    if found and not strip:
+        missing = ({"/tf", "/tf_static"} - found).pop()
+        what = ("the fixed transforms (the roller's mount, tool0 -> touchroller_cylinder)" if missing == "/tf_static"
+                else "the moving transforms (the arm's pose, base -> tool0)")
+        print(f"touchroller map: note: {bag} has {found.pop()} but no {missing}, which holds {what}: the world map "
+              "was skipped; this is the strip map (record both TF topics for a world map, or give --strip to "
+              "ask for the strip map)", file=sys.stderr)
+    return False
 
 
 def _check_world_arguments(args: argparse.Namespace, out: Path, camera) -> None:
@@ -112,6 +129,13 @@ def _check_world_arguments(args: argparse.Namespace, out: Path, camera) -> None:
         raise UserError("a world map needs a camera model for these images (--params CAL.yaml)")
     if args.method != "default" or args.metric is not None or args.steps:
         raise UserError("--method paper, --metric and --steps are for the strip map (add --strip)")
+    from touchroller_bringup.names import InvalidName, check_frame_id
+
+    for flag, value in (("--world-frame", args.world_frame), ("--cylinder-frame", args.cylinder_frame)):
+        try:
+            check_frame_id(value, flag)
+        except InvalidName as exc:
+            raise UserError(str(exc)) from None
     if not (math.isfinite(args.resolution) and 1e-6 <= args.resolution <= 0.01):
         raise UserError(f"--resolution must be in [1e-6, 0.01] m per pixel, got {args.resolution}")
     if args.latency != "auto":
@@ -157,6 +181,7 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                 yield (record, transform), None
 
     frames = 0
+    first_stamp: list = [None]
     with _set_up_objects_frozen():
         for item, band in _reader(records, mapper.band_shape):
             if band is None:
@@ -167,6 +192,8 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                 except ValueError:   # a malformed transform (a frame its own parent, an empty name): skipped
                     continue
             else:
+                if first_stamp[0] is None:
+                    first_stamp[0] = item
                 try:
                     mapper.push_band(band, item)
                 except MemoryError as exc:   # the canvas would pass its pixel bound (WorldMapConfig.max_pixels)
@@ -180,6 +207,12 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                         "or --strip")
     mapper.finalise()
     image = mapper.map_image()
+    if image.grey.size == 0:
+        if mapper.stats.beyond_max_pixels:
+            raise UserError(f"--resolution {args.resolution:g} m per pixel: the map would pass its pixel bound "
+                            f"(WorldMapConfig.max_pixels) from the first frame on, so nothing was mapped; give a "
+                            "coarser --resolution (the default is 1e-4)")
+        raise UserError(_nothing_placed(buffer, args, first_stamp[0]))
     png, yaml_path = write_world_map(out, image, args.world_frame)
     stats = mapper.stats
     latency = "not found" if stats.latency_s is None else f"{stats.latency_s * 1e3:.1f} ms"
@@ -188,6 +221,23 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
           f"{args.world_frame}); {stats.mapped} frames mapped in {stats.passes} pass(es), camera latency "
           f"{'estimated' if stats.latency_estimated else 'given'} {latency}")
     return 0
+
+
+def _nothing_placed(buffer, args: argparse.Namespace, first_stamp: int | None) -> str:
+    """Why no frame could be placed in the world frame, in one sentence (TF at other times, a loop, ...)."""
+    from touchroller_perception.transforms import TransformError
+
+    reason = "TF never placed the roller while it rolled"
+    if first_stamp is not None:
+        try:
+            buffer.lookup(args.world_frame, args.cylinder_frame, first_stamp)
+        except TransformError as exc:
+            reason = f"at the first image ({first_stamp / 1e9:.3f} s) {' '.join(str(exc).split())}"
+        span = buffer.time_range(args.cylinder_frame) or buffer.time_range(args.world_frame)
+        if span is not None and span[0] != span[1]:
+            reason += f"; the bag's TF runs from {span[0] / 1e9:.3f} to {span[1] / 1e9:.3f} s"
+    return (f"no frame of {args.bag} could be placed in {args.world_frame}: {reason}. Check the recording's TF "
+            "(frames, clock) or give --strip for the strip map")
 
 
 def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
@@ -225,12 +275,16 @@ def _stitch_bag(args: argparse.Namespace, out: Path, camera) -> int:
     except ValueError as exc:   # e.g. a metric map too large to allocate
         raise UserError(f"--metric {args.metric}: {exc}") from None
     out.parent.mkdir(parents=True, exist_ok=True)
+    # encoded in memory, then written: a full disk is then an OSError of ours, not libpng's own stderr line
+    encoded, data = cv2.imencode(out.suffix, image)
+    if not encoded:
+        raise UserError(f"--out {out}: OpenCV cannot encode the map as {out.suffix}")
     try:
-        with atomic_path(out) as temporary:
-            if not cv2.imwrite(str(temporary), image):
-                raise OSError("cv2.imwrite failed")
+        with atomic_write(out, "wb") as stream:
+            stream.write(data.tobytes())
     except OSError as exc:
-        raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise UserError(f"cannot write --out {out}: {exc.strerror or exc}; nothing was written "
+                        "(free some space or choose another path)") from None
     if args.steps:
         _write_steps(Path(args.steps), stitcher)
     flagged = stitcher.prior_frames

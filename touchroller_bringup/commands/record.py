@@ -43,6 +43,9 @@ def drain(executor, count, quiet_s: float = 0.2, max_s: float = 2.0) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be positive, got {args.duration}")
+    from touchroller_bringup.outputs import Output, check_outputs
+
+    check_outputs([Output("--out", args.out, folder=True)])
     import rclpy
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor

@@ -19,9 +19,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from touchroller_bringup.bag_recovery import counts_by_topic, reindex
+    import sqlite3
 
-    found = reindex(args.bag)
+    from touchroller_bringup.bag_recovery import counts_by_topic, reindex
+    from touchroller_bringup.errors import UserError
+
+    try:
+        found = reindex(args.bag)
+    except (OSError, sqlite3.Error) as exc:
+        why = getattr(exc, "strerror", None) or str(exc)
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        raise UserError(f"cannot reindex {args.bag}{where}: {why}; reindex rewrites the bag's metadata.yaml (and "
+                        "an MCAP file's end) in place: copy the bag to a writable folder with free space and "
+                        "reindex the copy") from None
     repaired = f"; {found.storage_file.name} closed after its last complete record" if found.repaired else ""
     dropped = f" ({found.dropped_bytes} bytes of an unfinished record dropped)" if found.dropped_bytes else ""
     print(f"reindexed {found.path}: {found.message_count} messages ({counts_by_topic(found)}){repaired}{dropped}")

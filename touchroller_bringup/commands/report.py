@@ -24,5 +24,8 @@ def run(args: argparse.Namespace) -> int:
     from touchroller_bringup.report import build_report
 
     out = args.out or checkout_dir() / "docs" / "RESULTS.md"
+    from touchroller_bringup.outputs import Output, check_outputs
+
+    check_outputs([Output("--out", out)])
     build_report(out, quick=args.quick, only=tuple(args.only), recorded=tuple(args.recorded))
     return 0

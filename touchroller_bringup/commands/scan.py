@@ -95,8 +95,26 @@ def parse_items(items: list[str]) -> tuple[list[Path], dict[str, str], dict[str,
             path = Path(item)
             if not path.is_file():
                 raise UserError(f"{item}: not a params file (and not name:=value)")
+            _check_params_file(path)
             files.append(path)
     return files, arguments, overrides
+
+
+def _check_params_file(path: Path) -> None:
+    """A params file rcl can read, or one line saying why not (rcl's own error is a raw RCLInvalidROSArgsError)."""
+    from touchroller_bringup.ros_main import params_file_problem
+
+    try:
+        document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise UserError(f"{path} is not YAML ({getattr(exc, 'problem', None) or exc}{where})") from None
+    except OSError as exc:
+        raise UserError(f"{path}: {exc.strerror or exc}") from None
+    problem = params_file_problem(document)
+    if problem:
+        raise UserError(f"{path} is not a ROS 2 parameters file: {problem}")
 
 
 def _parse_value(name: str, text: str) -> Any:
@@ -107,6 +125,11 @@ def _parse_value(name: str, text: str) -> Any:
         raise UserError(f"{name}:={text}: not a YAML value ({' '.join(str(exc).split())})") from None
     if isinstance(value, dict) or value is None:
         raise UserError(f"{name}:={text}: expected a number, string, boolean or list")
+    if isinstance(value, str):   # YAML 1.1 reads 1e-6 (no dot) as a string: the number it means
+        try:
+            value = float(value) if value.strip().lower() not in ("nan", "inf", "-inf", "infinity") else value
+        except ValueError:
+            pass
     if isinstance(value, list) and value and all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                                   for v in value):
         if any(isinstance(v, float) for v in value):
@@ -129,6 +152,11 @@ def run(args: argparse.Namespace) -> int:
     map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
     print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
           f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")
+    if result.failed:
+        written = ", ".join(sorted(path.name for path in result.files.values())) or "nothing"
+        failures = "; ".join(f"{name}: {why}" for name, why in result.failed.items())
+        raise UserError(f"scan {result.outcome} but could not write {failures} (written to {result.out_dir}/: "
+                        f"{written}); free some space or give another --out folder")
     if result.outcome == "interrupted":
         print(f"touchroller: scan {result.message}: arm stopped, outputs written to {result.out_dir}/", file=sys.stderr)
         return 128 + int(result.signal or signal.SIGINT)

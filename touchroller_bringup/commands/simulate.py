@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sqlite3
 import time
 from pathlib import Path
 from typing import Any
@@ -10,6 +11,7 @@ from typing import Any
 from touchroller_bringup import bag_format
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
+from touchroller_bringup.outputs import Output, check_outputs
 from touchroller_perception.files import new_directory
 
 
@@ -52,8 +54,11 @@ def run(args: argparse.Namespace) -> int:
     from touchroller_driver.sim.flat_sensor import compare
     from touchroller_driver.sim.truth import write_ground_truth
 
-    if args.out.exists():
-        raise UserError(f"output {args.out} already exists")
+    if args.out.exists() or args.out.is_symlink():
+        raise UserError(f"output {args.out} already exists; give a new bag folder")
+    scene_file = Path(args.scene) if Path(args.scene).suffix in (".yaml", ".yml") else None
+    check_outputs([Output("--out", args.out, folder=True)], {"SCENE": scene_file})
+    _check_parent_writable(args.out)
     overrides = parse_overrides(args.overrides)
     try:
         scene = load_scene(args.scene, variant=args.variant, **overrides)
@@ -68,6 +73,21 @@ def run(args: argparse.Namespace) -> int:
             truths.append(frame.truth)
             yield frame.stamp_ns, frame.image
 
+    try:
+        count, dropped = _render(args, scene, sensor, records, truths, write_images, compare, write_ground_truth)
+    except (OSError, sqlite3.Error) as exc:
+        why = getattr(exc, "strerror", None) or str(exc)
+        raise UserError(f"cannot write the bag --out {args.out}: {why}; nothing was written (free some space or "
+                        "choose another place)") from None
+    elapsed = time.perf_counter() - started
+    print(f"simulate: {scene.name}{'/' + scene.data['variant'] if scene.data.get('variant') else ''}: "
+          f"{count} frames ({len(dropped)} dropped) in {elapsed:.1f} s -> {args.out} "
+          f"(+ ground_truth.yaml, camera_truth.yaml, camera_paper.yaml)")
+    return 0
+
+
+def _render(args, scene, sensor, records, truths, write_images, compare, write_ground_truth):
+    """The bag and its side files, whole or not at all; (frames written, times dropped)."""
     with new_directory(args.out) as folder:   # the bag and its side files appear whole or not at all
         count = write_images(folder, records(), topic=args.topic, storage=args.storage, distro=args.bag_format)
         all_times = _all_times(scene)
@@ -87,11 +107,20 @@ def run(args: argparse.Namespace) -> int:
             extra["comparison"] = {**dataclasses.asdict(comparison), "speedup": comparison.speedup,
                                    "presses_image": "flat_sensor_presses.png"}
         write_ground_truth(folder, sensor, truths, dropped, extra)
-    elapsed = time.perf_counter() - started
-    print(f"simulate: {scene.name}{'/' + scene.data['variant'] if scene.data.get('variant') else ''}: "
-          f"{count} frames ({len(dropped)} dropped) in {elapsed:.1f} s -> {args.out} "
-          f"(+ ground_truth.yaml, camera_truth.yaml, camera_paper.yaml)")
-    return 0
+    return count, dropped
+
+
+def _check_parent_writable(out: Path) -> None:
+    """A bag folder is made beside its final place: a folder that cannot take it is refused before the render."""
+    import os
+
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise UserError(f"--out {out}: {parent} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"--out {out}: the folder {parent} is not writable; choose another place for the bag")
 
 
 def _all_times(scene) -> list[float]:

@@ -42,7 +42,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from touchroller_bringup import names
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, Status
-from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
+from touchroller_bringup.ros_params import GeometryParameters, check_start_up, declare, declare_frame_prefix
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_perception import calibration as cal
 from touchroller_perception.geometry import CameraModel
@@ -98,6 +98,7 @@ class CalibrationNode(Node):
             declare(self, name, default, description, min=lo, max=hi)
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
+        check_start_up(self, self._validate)   # the start-up values pass the checks a change does
 
         self.captures: dict[str, list[np.ndarray]] = {t: [] for t in TARGETS}
         self.board_corners: list[np.ndarray] = []      # corners of each captured chessboard view
@@ -118,13 +119,40 @@ class CalibrationNode(Node):
 
     # ------------------------------------------------------------------ parameters
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        problem = self._problem(parameters)
+        return SetParametersResult(successful=not problem, reason=problem)
+
+    def _problem(self, parameters: Sequence[Parameter]) -> str:
+        """Why these values cannot be used ("" when they can): choices, names, the output path, and the
+        board and hemisphere frame they describe (built from the candidate values over the current ones)."""
+        from rclpy.validate_node_name import validate_node_name
+        from rclpy.validate_topic_name import validate_topic_name
+
         for p in parameters:
             if p.name in CHOICES and p.value not in CHOICES[p.name]:
-                return SetParametersResult(successful=False,
-                                           reason=f"{p.name} must be one of {', '.join(CHOICES[p.name])}")
-            if p.name == "image_topic" and not str(p.value).strip():
-                return SetParametersResult(successful=False, reason="image_topic must not be empty")
-        return SetParametersResult(successful=True)
+                return f"{p.name} must be one of {', '.join(CHOICES[p.name])}, got {p.value!r}"
+            try:
+                if p.name == "image_topic":
+                    if not str(p.value).strip():
+                        return "image_topic must not be empty"
+                    validate_topic_name(str(p.value))
+                elif p.name == "perception_node" and str(p.value):
+                    validate_node_name(str(p.value).rsplit("/", 1)[-1])
+            except Exception as exc:  # noqa: BLE001 - rclpy's InvalidTopicNameException and friends
+                return f"{p.name} {p.value!r} is not a valid ROS name: {' '.join(str(exc).split())}"
+            if p.name == "output_path" and str(p.value):
+                path = Path(str(p.value))
+                if path.exists() and not path.is_file():
+                    return f"output_path {path} exists and is not a regular file; give a YAML file name"
+        values = {name: self.get_parameter(name).value for name in SETTINGS if self.has_parameter(name)}
+        values.update({p.name: p.value for p in parameters if p.name in SETTINGS})
+        if all(name in values for name in SETTINGS):
+            try:
+                self._frame(values)
+                self._board(values)
+            except (TypeError, ValueError, cal.CalibrationError) as exc:
+                return str(exc)
+        return ""
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:
         for p in parameters:
@@ -141,17 +169,16 @@ class CalibrationNode(Node):
         # sensor-data QoS (best effort, depth 5) matches reliable and best-effort publishers
         self.image_sub = self.create_subscription(Image, topic, self._on_image, qos_profile_sensor_data)
 
-    def _frame(self) -> cal.HemisphereFrame:
-        g = self.get_parameter
-        return cal.HemisphereFrame(rows=g("frame.rows").value, columns=g("frame.columns").value,
-                                   pitch_x=g("frame.pitch_x").value, pitch_y=g("frame.pitch_y").value,
-                                   hemisphere_radius=g("frame.hemisphere_radius").value,
-                                   press_depth=g("frame.press_depth").value)
+    def _frame(self, values: dict[str, Any] | None = None) -> cal.HemisphereFrame:
+        g = values.__getitem__ if values is not None else (lambda name: self.get_parameter(name).value)
+        return cal.HemisphereFrame(rows=g("frame.rows"), columns=g("frame.columns"),
+                                   pitch_x=g("frame.pitch_x"), pitch_y=g("frame.pitch_y"),
+                                   hemisphere_radius=g("frame.hemisphere_radius"),
+                                   press_depth=g("frame.press_depth"))
 
-    def _board(self) -> cal.Chessboard:
-        g = self.get_parameter
-        return cal.Chessboard(columns=g("board.columns").value, rows=g("board.rows").value,
-                              square=g("board.square").value)
+    def _board(self, values: dict[str, Any] | None = None) -> cal.Chessboard:
+        g = values.__getitem__ if values is not None else (lambda name: self.get_parameter(name).value)
+        return cal.Chessboard(columns=g("board.columns"), rows=g("board.rows"), square=g("board.square"))
 
     def _intrinsics_config(self) -> cal.IntrinsicsConfig:
         distortion = str(self.get_parameter("intrinsics.distortion").value)

@@ -22,6 +22,7 @@ that time, over the scene's surface placed in `world_frame`; `sim.latency` stamp
 """
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Sequence
@@ -36,6 +37,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from touchroller_bringup import names
 from touchroller_bringup.bags import read_images
+from touchroller_bringup.errors import UserError
 from touchroller_bringup.image_conversion import fill_image
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
@@ -46,7 +48,13 @@ from touchroller_bringup.ros_diagnostics import (
     RateMeter,
     Status,
 )
-from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
+from touchroller_bringup.ros_params import (
+    GeometryParameters,
+    check_start_up,
+    declare,
+    declare_frame_prefix,
+    frame_id_problem,
+)
 from touchroller_bringup.tf import TransformListener
 from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
 from touchroller_perception.geometry import CameraModel
@@ -81,6 +89,41 @@ def camera_info_from_model(model: CameraModel, stamp_ns: int, frame_id: str) -> 
     return info
 
 
+def source_problem(values: dict[str, Any]) -> str:
+    """Why the source these parameter values name cannot be opened and will not appear by waiting ("" when
+    it can, or may: a camera device that is unplugged is retried)."""
+    kind = str(values.get("source", ""))
+    if kind == "video":
+        path = str(values.get("video_path", ""))
+        if not path:
+            return "source=video needs video_path"
+        if not os.path.isfile(path):
+            return f"source=video: video_path {path} " + ("is not a file" if os.path.exists(path) else "does not exist")
+    elif kind == "bag":
+        from touchroller_bringup.bags import check_image_bag
+
+        path = str(values.get("bag_path", ""))
+        if not path:
+            return "source=bag needs bag_path"
+        if not os.path.exists(path):
+            return f"source=bag: bag_path {path} does not exist"
+        try:
+            check_image_bag(path, str(values.get("bag_topic", names.topic(names.IMAGE))))
+        except UserError as exc:
+            # a bag that does not open (truncated by a crash) is the source's to report while the node
+            # serves on; one that opens without images on the topic, or of the wrong type, is refused
+            if "cannot open bag" not in str(exc):
+                return f"source=bag: {exc}"
+    elif kind == "sim":
+        from touchroller_driver.sim import load_scene  # lazy: heavy and optional
+
+        try:
+            load_scene(str(values.get("scene", "")))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            return f"source=sim: scene {values.get('scene')!r}: {exc}"
+    return ""
+
+
 class CameraNode(Node):
     """Publishes camera frames; `source=` supplies an external FrameSource (then `source.*` params are ignored)."""
 
@@ -104,6 +147,9 @@ class CameraNode(Node):
         self.geometry = GeometryParameters(self, on_change=self._on_geometry)
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
+        check_start_up(self, self._validate)   # the start-up values pass the checks a change does
+        if not self._external_source:
+            self._check_source_exists()
         self.frame_id = self._prefixed_frame_id()
         self._image_msg = Image()
         self.published = 0
@@ -158,6 +204,13 @@ class CameraNode(Node):
                 "lies in (the arm's base; after frame_prefix)")
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        if not self._external_source and any(p.name in SOURCE_PARAMETERS for p in parameters):
+            values = {name: self.get_parameter(name).value for name in SOURCE_PARAMETERS
+                      if self.has_parameter(name)}
+            values.update({p.name: p.value for p in parameters if p.name in SOURCE_PARAMETERS})
+            problem = source_problem(values) if values.get("source") in SOURCE_KINDS else ""
+            if problem:
+                return SetParametersResult(successful=False, reason=problem)
         for param in parameters:
             if param.name == "source" and str(param.value) not in SOURCE_KINDS:
                 return SetParametersResult(
@@ -165,9 +218,19 @@ class CameraNode(Node):
             if param.name == "sim.motion" and str(param.value) not in SIM_MOTIONS:
                 return SetParametersResult(successful=False, reason=f"sim.motion must be one of "
                                            f"{', '.join(SIM_MOTIONS)}, got {param.value!r}")
-            if param.name in ("frame_id", "device", "bag_topic", "world_frame") and not str(param.value).strip():
+            if param.name in ("device", "bag_topic") and not str(param.value).strip():
                 return SetParametersResult(successful=False, reason=f"{param.name} must not be empty")
+            problem = frame_id_problem(param.name, param.value) if param.name in ("frame_id", "world_frame") else ""
+            if problem:
+                return SetParametersResult(successful=False, reason=problem)
         return SetParametersResult(successful=True)
+
+    def _check_source_exists(self) -> None:
+        """A file, bag or scene that does not exist (or a bag without images on its topic) stops the node at
+        start-up, in one line: unlike a camera device, it will not come back by itself."""
+        problem = source_problem({name: self.get_parameter(name).value for name in SOURCE_PARAMETERS})
+        if problem:
+            raise UserError(problem)
 
     def _prefixed_frame_id(self) -> str:
         return names.frame(str(self.get_parameter("frame_id").value), self.frame_prefix)
@@ -223,6 +286,8 @@ class CameraNode(Node):
             sensor = SimulatedSensor(load_scene(param["scene"]), seed=param["seed"])
             return ArmCamera(sensor, now_ns=self._now_ns, cylinder_pose=self._cylinder_pose, fps=param["fps"],
                              latency_s=float(param["sim.latency"]))
+        if kind != "sim":   # never the simulator in place of a source that was misspelt
+            raise UserError(f"source must be one of {', '.join(SOURCE_KINDS)}, got {kind!r}")
         return make_source("sim", scene=param["scene"], seed=param["seed"], rate=param["rate"],
                            loop=param["loop"], clock_ns=clock_ns)
 

@@ -42,6 +42,7 @@ set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from collections.abc import Sequence
@@ -72,7 +73,13 @@ from touchroller_bringup.ros_diagnostics import (
     RateMeter,
     Status,
 )
-from touchroller_bringup.ros_params import GeometryParameters, declare, declare_frame_prefix
+from touchroller_bringup.ros_params import (
+    GeometryParameters,
+    check_start_up,
+    declare,
+    declare_frame_prefix,
+    frame_id_problem,
+)
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_bringup.tf import TransformListener, TransformPublisher, camera_in_cylinder
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
@@ -174,6 +181,7 @@ class PerceptionNode(Node):
         self.lookup = SurfaceLookup(self.camera)   # per-pixel back-projection: microseconds per contact
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
+        check_start_up(self, self._validate)   # the start-up values pass the checks a change does
         self.detector = ContactDetector(self._detector_config(), int(self.get_parameter("reference.frames").value))
         self.frame_id = self._contacts_frame_id()
         self.stitcher_config = self._stitcher_config()
@@ -249,7 +257,7 @@ class PerceptionNode(Node):
                 "the strip map along the roll)")
         declare(self, "map.resolution", 1e-4, "World map: metres per pixel", min=1e-6, max=0.01)
         declare(self, "map.bounds", [0.0, 0.0, 0.0, 0.0], "World map: [x_min, y_min, x_max, y_max] in world_frame, "
-                "m (the scan's rectangle and a margin); all 0: it grows with what is mapped")
+                "m (the scan's rectangle and a margin); all 0: it grows with what is mapped", length=4)
         declare(self, "map.latency_estimate", True, "World map: estimate the camera's latency (what stamps still "
                 "lag the exposure after camera.latency) from the image-registered motion against the arm's")
         declare(self, "map.register", True, "World map: register each pass against the earlier ones where they "
@@ -277,8 +285,12 @@ class PerceptionNode(Node):
                 except (TypeError, ValueError) as exc:
                     return SetParametersResult(successful=False, reason=str(exc))
         for p in parameters:
-            if p.name in ("contacts.frame_id", "world_frame") and not str(p.value).strip():
-                return SetParametersResult(successful=False, reason=f"{p.name} must not be empty")
+            problem = frame_id_problem(p.name, p.value) if p.name in ("contacts.frame_id", "world_frame") else ""
+            if p.name == "map.save_path" and str(p.value) and os.path.exists(str(p.value)) \
+                    and not os.path.isfile(str(p.value)):
+                problem = f"map.save_path {p.value} exists and is not a regular file; give a PNG file name"
+            if problem:
+                return SetParametersResult(successful=False, reason=problem)
         return SetParametersResult(successful=True)
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:

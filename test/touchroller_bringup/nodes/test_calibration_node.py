@@ -205,3 +205,20 @@ def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, sp
     assert abs(model.fx - truth.fx) < 2.0 and abs(model.cy - truth.cy) < 3.0
     assert model.distortion[0] == pytest.approx(truth.distortion[0], abs=0.02)
     assert abs(math.degrees(model.theta - truth.theta)) < 0.5
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("target", "boards", "target must be one of"),
+    ("image_topic", "bad topic!", "not a valid ROS name"),
+    ("perception_node", "bad node!", "not a valid ROS name"),
+    ("board.square", float("nan"), "finite"),
+    ("frame.pitch_x", "abc", "must be a number"),
+    ("output_path", "/", "not a regular file"),
+])
+def test_start_up_values_it_cannot_use_stop_the_node_in_one_line(ros_context, name, value, message):
+    """#28: the calibration node started on a bad parameter and failed at ~/solve, or never."""
+    from touchroller_bringup.errors import UserError
+    from touchroller_bringup.nodes.calibration_node import CalibrationNode
+
+    with pytest.raises(UserError, match=message):
+        CalibrationNode(context=ros_context, parameter_overrides=[Parameter(name, value=value)])

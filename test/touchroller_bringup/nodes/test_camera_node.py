@@ -182,10 +182,13 @@ def test_bad_parameter_values_are_rejected_and_good_ones_reopen_the_source(ros_c
     writer.release()
     listener, camera, executor = make_graph(
         ros_context, parameter_overrides=[Parameter("source", value="video"),
-                                          Parameter("video_path", value=str(tmp_path / "missing.avi")),
-                                          Parameter("rate", value=0.0)])
+                                          Parameter("video_path", value=str(video)),
+                                          Parameter("rate", value=0.0), Parameter("wait_for_subscribers", value=1)])
     try:
         camera.start()
+        # #28: a file that does not exist is refused (at start-up, see test_reliability; here on a change)
+        results = camera.set_parameters([Parameter("video_path", value=str(tmp_path / "missing.avi"))])
+        assert not results[0].successful and "does not exist" in results[0].reason
         results = camera.set_parameters([Parameter("source", value="usb")])
         assert not results[0].successful and "one of" in results[0].reason
         results = camera.set_parameters([Parameter("width", value=-5)])
@@ -194,8 +197,6 @@ def test_bad_parameter_values_are_rejected_and_good_ones_reopen_the_source(ros_c
         assert not results[0].successful
         assert camera.get_parameter("source").value == "video"
         wait_for_subscription(camera, spin_until, executor)
-        assert listener.images == []  # the missing file: logged, nothing published, still alive
-        assert camera.set_parameters([Parameter("video_path", value=str(video))])[0].successful
         assert spin_until(executor, lambda: len(listener.images) >= 5, timeout=20)
         assert [listener.images[i].encoding for i in range(5)] == ["bgr8"] * 5
         assert camera.source is not None and "clip.avi" in camera.source.info
@@ -452,3 +453,42 @@ def test_failing_right_after_node_init_shuts_down_cleanly(ros_context, fail_afte
         CameraNode(context=ros_context, autostart=False)
     ros_context.try_shutdown()
     assert raised.value is not None and not ros_context.ok()
+
+
+def _tf_only_bag(tmp_path):
+    from touchroller_bringup.bags import TransformRecord, write_scan
+
+    path = tmp_path / "tf_only"
+    write_scan(path, [TransformRecord("base", "tool0", k, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), False)
+                      for k in range(3)])
+    return path
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"source": "V4L2"}, "source must be one of"),                       # a case typo: never the simulator
+    ({"source": "usb"}, "source must be one of"),
+    ({"source": "video", "video_path": "missing.avi"}, "video_path missing.avi does not exist"),
+    ({"source": "bag", "bag_path": "no_such_bag"}, "bag_path no_such_bag does not exist"),
+    ({"source": "bag", "bag_path": "TF_ONLY"}, "has no images on /touchroller/image_raw"),
+    ({"source": "bag", "bag_path": "TF_ONLY", "bag_topic": "/tf"}, "has type tf2_msgs/msg/TFMessage"),
+    ({"source": "sim", "scene": "no_such_scene"}, "scene 'no_such_scene'"),
+    ({"source": "sim", "sim.motion": "bogus"}, "sim.motion must be one of"),
+    ({"source": "sim", "frame_id": ""}, "frame_id must not be empty"),
+    ({"source": "sim", "frame_prefix": "a b/"}, "frame_prefix 'a b/' must be empty or a frame id"),
+])
+def test_a_source_that_cannot_be_and_will_not_appear_stops_the_node_at_start_up(ros_context, tmp_path, overrides,
+                                                                               message):
+    """#28: these logged an ERROR and kept running (an unknown source fell back to the simulator)."""
+    from touchroller_bringup.errors import UserError
+
+    if overrides.get("bag_path") == "TF_ONLY":
+        overrides = {**overrides, "bag_path": str(_tf_only_bag(tmp_path))}
+    with pytest.raises(UserError, match=message):
+        CameraNode(context=ros_context, autostart=False,
+                   parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+
+
+def test_a_device_that_may_come_back_is_not_refused_at_start_up(ros_context):
+    camera = CameraNode(context=ros_context, autostart=False, parameter_overrides=[
+        Parameter("source", value="v4l2"), Parameter("device", value="/dev/video_not_plugged_in")])
+    camera.destroy_node()

@@ -558,3 +558,32 @@ def test_a_map_past_max_rows_keeps_a_window_and_warns(ros_context):
         assert status.values["map_rows_dropped"] > 0
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("map.bounds", [0.5, 0.0, 0.4, 0.1], "max > min"),                        # inverted
+    ("map.bounds", [float("nan"), 0.0, 0.4, 0.1], "finite"),
+    ("map.bounds", [-1000.0, -1000.0, 1000.0, 1000.0], "pixels"),             # huge
+    ("map.bounds", [0.0, 0.0, 0.4], "needs 4 values"),
+    ("contacts.frame_id", "", "must not be empty"),
+    ("world_frame", "base link", "not a valid frame id"),
+    ("frame_prefix", "left", "frame_prefix 'left' must be empty or a frame id followed by a slash"),
+    ("map.save_path", "/", "not a regular file"),
+])
+def test_start_up_values_it_cannot_use_stop_the_node_in_one_line(ros_context, name, value, message):
+    """#28: these started and ran silently (a map that could never be drawn)."""
+    from touchroller_bringup.errors import UserError
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+
+    with pytest.raises(UserError, match=message):
+        PerceptionNode(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
+
+
+def test_a_resolution_given_as_text_is_the_number(ros_context):
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+
+    node = PerceptionNode(context=ros_context, parameter_overrides=[Parameter("map.resolution", value="1e-5")])
+    try:
+        assert node.get_parameter("map.resolution").value == 1e-5
+    finally:
+        node.destroy_node()
