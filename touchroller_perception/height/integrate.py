@@ -33,7 +33,7 @@ def _eigenvalues(n: int, dtype: type) -> np.ndarray:
 
 
 def _finite(a: np.ndarray, dtype: type) -> np.ndarray:
-    out = np.asarray(a, dtype=dtype)
+    out: np.ndarray = np.asarray(a, dtype=dtype)
     if not np.isfinite(out).all():
         out = np.where(np.isfinite(out), out, 0.0).astype(dtype)
     return out
@@ -128,6 +128,6 @@ def _integrate_line(gx: np.ndarray, gy: np.ndarray, spacing: float | tuple[float
     if g.size == 1:
         return np.zeros((H, W), dtype=dtype)
     d = 0.5 * (g[1:] + g[:-1]) if sampled == "centre" else g[:-1]
-    z = np.concatenate([[0.0], np.cumsum(d * dtype(s))]).astype(dtype)
+    z: np.ndarray = np.concatenate([[0.0], np.cumsum(d * dtype(s))]).astype(dtype)
     z -= z.mean()
     return z.reshape(H, W)
