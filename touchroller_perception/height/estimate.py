@@ -4,8 +4,10 @@
 optionally one band of rows); `band_height` is the same as one call for a band image (what a world
 mapper calls: band image + its reference rows + model + pixel size -> metres). The result is the
 membrane's indentation, positive into the gel, float32 metres, NaN where nothing is estimated (the
-rows outside the band). The constant the slopes cannot give is fixed by the flat pixels: the
-median height of the pixels whose slope is below `flat_slope` is 0 (the undeformed membrane).
+rows outside the band). What the slopes cannot give (a constant) or give badly (a slope bias over the
+whole frame: light that drifted since the reference) is fixed by the flat pixels, those whose slope
+is below `flat_slope`: a robust best plane through them is 0 (the undeformed membrane), or with
+`level="offset"` just their median.
 
 For the roller, `contact_band` gives the rows the contact can reach and the pixel size at the
 contact line from the camera model (the band is integrated as a plane at that pixel size: the
@@ -26,9 +28,12 @@ from touchroller_perception.height.photometric import PhotometricModel, SlopeLoo
 @dataclass(frozen=True)
 class HeightConfig:
     flat_slope: float = 0.03         # |slope| below this counts as undeformed for the zero level
+    level: str = "plane"             # "plane": a robust best plane through the flat pixels is 0; "offset": their median
     downsample: int = 1              # integrate on a grid this many times coarser (speed), then upsample
 
     def __post_init__(self) -> None:
+        if self.level not in ("plane", "offset"):
+            raise ValueError(f"level must be 'plane' or 'offset', got {self.level!r}")
         if not (math.isfinite(self.flat_slope) and self.flat_slope > 0):
             raise ValueError(f"flat_slope must be > 0, got {self.flat_slope}")
         if self.downsample not in (1, 2, 4):
@@ -69,8 +74,35 @@ def _integrate_zeroed(gx: np.ndarray, gy: np.ndarray, spacing: tuple[float, floa
     gy = np.asarray(gy, np.float32)
     flat = (gx * gx + gy * gy) < config.flat_slope**2
     z = integrate(gx, gy, spacing, zero=flat if flat.any() else None, dtype=np.float32)
+    if config.level == "plane" and flat.sum() >= 3 and min(z.shape) >= 2:
+        z -= level_plane(z, flat)
     out: np.ndarray = z.astype(np.float32, copy=False)
     return out
+
+
+def level_plane(z: np.ndarray, flat: np.ndarray, step: int = 4, iterations: int = 3) -> np.ndarray:
+    """The best plane through z over the `flat` pixels (a 1-in-`step` grid of them), refitted without
+    the pixels more than 2.5 robust sigmas off it (a contact's flat top is not the undeformed gel)."""
+    h, w = z.shape
+    vv, uu = np.mgrid[0:h:step, 0:w:step]
+    sub, zs = flat[::step, ::step], z[::step, ::step]
+    if sub.sum() < 3:
+        (vv, uu), sub, zs = np.mgrid[0:h, 0:w], flat, z
+    u, v, zz = uu[sub].astype(np.float64), vv[sub].astype(np.float64), zs[sub].astype(np.float64)
+    keep = np.isfinite(zz)
+    coef = np.zeros(3)
+    for _ in range(iterations):
+        if keep.sum() < 3:
+            break
+        A = np.c_[np.ones(int(keep.sum())), u[keep], v[keep]]
+        coef, *_ = np.linalg.lstsq(A, zz[keep], rcond=None)
+        res = zz - (coef[0] + coef[1] * u + coef[2] * v)
+        sigma = 1.4826 * float(np.median(np.abs(res[keep]))) + 1e-12
+        keep = np.abs(res) <= 2.5 * sigma
+    cols = np.arange(w, dtype=np.float32)
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    plane: np.ndarray = (np.float32(coef[0]) + np.float32(coef[1]) * cols + np.float32(coef[2]) * rows)
+    return plane
 
 
 class HeightEstimator:

@@ -8,10 +8,13 @@ smoothed by `smoothing` px. The model is a least-squares polynomial:
 
     (gx, gy) = sum_t c_t m_t(f) p_t(u, v)
 
-over the colour monomials m_t up to `colour_degree`; the monomials up to `position_colour_degree`
-are also multiplied by the image-position monomials p(u, v) up to `position_degree` (0: no position
-term), which absorbs what the ratio leaves of uneven light. gx = dz/du, gy = dz/dv (z the indentation,
-positive into the gel, u along image columns, v along rows), dimensionless.
+over the colour monomials m_t up to `colour_degree` (with the constant only if `offset`: a slope that
+depends on position alone, which a no-contact frame then reads as a tilt); the monomials up to
+`position_colour_degree` are also multiplied by the image-position monomials p(u, v) up to
+`position_degree` (0: no position term), which absorbs what the ratio leaves of uneven light.
+With `gain`, the reference is first scaled by the frame's overall colour drift (`frame_gain`).
+gx = dz/du, gy = dz/dv (z the indentation, positive into the gel, u along image columns, v along
+rows), dimensionless.
 
 Evaluating the polynomial per pixel is exact but slow; `PhotometricModel.compile` tabulates it once
 per reference and image size (`SlopeLookup`): the colour cube in `lookup_bins` steps per channel
@@ -40,9 +43,11 @@ class PhotometricConfig:
     colour_degree: int = 3               # degree of the polynomial in the three colour ratios
     position_degree: int = 3             # degree in image position (0: colour alone)
     position_colour_degree: int = 2      # colour monomials up to this degree get position factors
+    offset: bool = False                 # a constant term (position alone -> slope); False: no change, no slope
+    gain: bool = True                    # divide out the frame's overall colour drift against the reference
     smoothing: float = 1.0               # Gaussian sigma (px) on the image before the features
     ridge: float = 1e-6                  # Tikhonov weight on the (scaled) coefficients
-    lookup_bins: int = 32                # colour steps per channel of the compiled lookup
+    lookup_bins: int = 33                # colour steps per channel (odd: one step is no change) of the compiled lookup
     lookup_cells: tuple[int, int] = (16, 12)   # position cells (along u, along v) of the compiled lookup
 
     def __post_init__(self) -> None:
@@ -56,8 +61,8 @@ class PhotometricConfig:
             raise ValueError(f"smoothing must be 0..20 px, got {self.smoothing}")
         if not (np.isfinite(self.ridge) and self.ridge >= 0):
             raise ValueError(f"ridge must be >= 0, got {self.ridge}")
-        if not 4 <= self.lookup_bins <= 128:
-            raise ValueError(f"lookup_bins must be 4..128, got {self.lookup_bins}")
+        if not 5 <= self.lookup_bins <= 129 or self.lookup_bins % 2 == 0:
+            raise ValueError(f"lookup_bins must be odd, 5..129 (a step at no change), got {self.lookup_bins}")
         if len(self.lookup_cells) != 2 or not all(1 <= int(c) <= 64 for c in self.lookup_cells):
             raise ValueError(f"lookup_cells must be two counts 1..64, got {self.lookup_cells}")
 
@@ -70,13 +75,25 @@ def smooth(image: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(out, (0, 0), sigma) if sigma > 0 else out.copy()
 
 
-def colour_features(image: np.ndarray, reference: np.ndarray, sigma: float) -> np.ndarray:
-    """H x W x 3 float32 relative change per channel against the reference, both smoothed alike."""
+def frame_gain(image: np.ndarray, reference: np.ndarray, step: int = 8) -> np.ndarray:
+    """3 float32: per channel, the median over the frame (a 1-in-`step` grid) of image / reference: the
+    light's overall drift since the reference (a press covers a small part of the frame)."""
+    a = np.asarray(image, np.float32)[::step, ::step].reshape(-1, 3)
+    b = np.maximum(np.asarray(reference, np.float32)[::step, ::step].reshape(-1, 3), 1.0)
+    gain = np.median(a / b, axis=0).astype(np.float32)
+    return np.where(np.isfinite(gain) & (gain > 0.2) & (gain < 5.0), gain, 1.0).astype(np.float32)
+
+
+def colour_features(image: np.ndarray, reference: np.ndarray, sigma: float, gain: bool = False) -> np.ndarray:
+    """H x W x 3 float32 relative change per channel against the reference, both smoothed alike (with
+    `gain`, against the reference times the frame's overall drift, `frame_gain`)."""
     image_s = smooth(image, sigma)
     ref_s = smooth(reference, sigma)
     if image_s.shape != ref_s.shape:
         raise ValueError(f"image {image_s.shape[:2]} and reference {ref_s.shape[:2]} differ in size")
     np.maximum(ref_s, 1.0, out=ref_s)
+    if gain:
+        ref_s *= frame_gain(image, reference)
     features: np.ndarray = (image_s - ref_s) / ref_s
     return features
 
@@ -123,7 +140,7 @@ class PhotometricModel:
     def slopes(self, image: np.ndarray, reference: np.ndarray, first_row: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(gx, gy) float32 per pixel from the polynomial, of an image (or a band of rows of one that starts
         at `first_row`) and the same rows of the reference."""
-        feats = colour_features(image, reference, self.config.smoothing)
+        feats = colour_features(image, reference, self.config.smoothing, self.config.gain)
         h, w = feats.shape[:2]
         vv, uu = np.mgrid[first_row:first_row + h, 0:w]
         out = self.slopes_at(feats.reshape(-1, 3).astype(np.float64), uu.ravel(), vv.ravel())
@@ -175,7 +192,7 @@ def model_terms(config: PhotometricConfig) -> list[tuple[tuple[int, ...], tuple[
     """(colour exponents, position exponents) of each term, in coefficient order."""
     position = _exponents(config.position_degree, 2)
     terms = []
-    for ce in _exponents(config.colour_degree, 3):
+    for ce in _exponents(config.colour_degree, 3)[0 if config.offset else 1:]:
         for pe in position if len(ce) <= config.position_colour_degree else [()]:
             terms.append((ce, pe))
     return terms
@@ -202,12 +219,12 @@ def design_matrix(config: PhotometricConfig, scaled: np.ndarray, pu: np.ndarray,
 
 
 def colour_matrix(config: PhotometricConfig, scaled: np.ndarray) -> np.ndarray:
-    """N x colour-terms monomials of scaled colour features alone (the order of `_exponents`)."""
-    exps = _exponents(config.colour_degree, 3)
+    """N x colour-terms monomials of scaled colour features alone (the order of `model_terms`)."""
+    exps = _exponents(config.colour_degree, 3)[0 if config.offset else 1:]
     out = np.empty((scaled.shape[0], len(exps)))
     cache: dict[tuple[int, ...], np.ndarray] = {(): np.ones(scaled.shape[0])}
     for k, e in enumerate(exps):
-        if e not in cache:
+        if e not in cache:   # exps are in graded order: e[:-1] came before
             cache[e] = cache[e[:-1]] * scaled[:, e[-1]]
         out[:, k] = cache[e]
     return out
@@ -215,7 +232,7 @@ def colour_matrix(config: PhotometricConfig, scaled: np.ndarray) -> np.ndarray:
 
 def colour_coefficients(model: PhotometricModel, pu: float, pv: float) -> np.ndarray:
     """colour-terms x 2: the model's coefficients with the position factors evaluated at (pu, pv)."""
-    exps = _exponents(model.config.colour_degree, 3)
+    exps = _exponents(model.config.colour_degree, 3)[0 if model.config.offset else 1:]
     row = {e: k for k, e in enumerate(exps)}
     out = np.zeros((len(exps), 2))
     for (ce, pe), c in zip(model_terms(model.config), model.coefficients, strict=True):
@@ -265,7 +282,8 @@ class SlopeLookup:
     scale: np.ndarray        # H x W x 3 float32
     offset: np.ndarray       # H x W x 3 float32
     cell_base: np.ndarray    # H x W int32: cell index * bins^3
-    reference: np.ndarray    # H x W x 3 float32, smoothed
+    reference: np.ndarray    # H x W x 3 float32, smoothed (the raw one for the frame gain: `raw`)
+    raw: np.ndarray          # H x W x 3 uint8/float: the reference as given
 
     @classmethod
     def build(cls, model: PhotometricModel, reference: np.ndarray) -> SlopeLookup:
@@ -274,7 +292,7 @@ class SlopeLookup:
         h, w = ref.shape[:2]
         b = cfg.lookup_bins
         cu, cv = (int(c) for c in cfg.lookup_cells)
-        step = 2.0 * model.colour_range / (b - 1)                  # relative change per bin
+        step = 2.0 * model.colour_range / (b - 1)                  # relative change per bin; (b-1)/2 is 0
         np.maximum(ref, 1.0, out=ref)
         # f = I / R - 1, q = (f + range) / step  ->  q = I * (1 / (R step)) + (range - 1 * step^-1 ...)
         scale = (1.0 / (ref * step.astype(np.float32))).astype(np.float32)
@@ -282,7 +300,7 @@ class SlopeLookup:
         offset = np.ascontiguousarray(offset, dtype=np.float32)
         vv, uu = np.mgrid[0:h, 0:w]
         cell = (np.minimum(vv * cv // h, cv - 1) * cu + np.minimum(uu * cu // w, cu - 1)).astype(np.int32)
-        levels = -model.colour_range[None, :] + np.arange(b)[:, None] * step[None, :]   # b x 3
+        levels = (np.arange(b) - (b - 1) // 2)[:, None] * step[None, :]   # b x 3, level (b-1)/2 exactly 0
         grid = np.stack(np.meshgrid(levels[:, 0], levels[:, 1], levels[:, 2], indexing="ij"), axis=-1).reshape(-1, 3)
         colour = colour_matrix(cfg, grid / model.colour_scale)
         coefficients = []
@@ -295,7 +313,7 @@ class SlopeLookup:
         values = colour @ np.concatenate(coefficients, axis=1)
         tables = values.reshape(len(grid), cu * cv, 2).transpose(1, 0, 2).reshape(-1, 2)
         table = np.ascontiguousarray(tables.astype(np.float16)).view(np.uint32).ravel()
-        return cls(model, table, scale, offset, (cell * b**3).astype(np.int32), ref)
+        return cls(model, table, scale, offset, (cell * b**3).astype(np.int32), ref, np.asarray(reference))
 
     def slopes(self, image: np.ndarray, rows: slice | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(gx, gy) float32 of an image, or of its `rows` (the image may be just those rows)."""
@@ -308,6 +326,9 @@ class SlopeLookup:
         if img.shape[:2] != scale.shape[:2] or img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"image {img.shape} does not match the reference {self.scale.shape}")
         smoothed = smooth(img, cfg.smoothing)
+        if cfg.gain:
+            # f = I / (R g) - 1: the same as dividing the image by the gain before the lookup
+            smoothed *= 1.0 / frame_gain(img, self.raw[sl] if img.shape[0] != self.raw.shape[0] else self.raw)
         q = cv2.multiply(smoothed, scale)
         q = cv2.add(q, offset)
         b = cfg.lookup_bins

@@ -208,7 +208,7 @@ def press_samples(press: BallPress, circle: FittedCircle, reference: np.ndarray,
                   config: PressCalibrationConfig, rng: np.random.Generator
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(features N x 3, u N, v N, target slopes N x 2) of one press: inside the circle and the far field."""
-    feats = colour_features(press.image, reference, config.model.smoothing)
+    feats = colour_features(press.image, reference, config.model.smoothing, config.model.gain)
     h, w = feats.shape[:2]
     gx, gy, rho, angle = sphere_slopes((h, w), circle, press.pixel_size, ball_radius)
     inside = (rho * circle.radius_px < circle.radius_px - config.edge_margin_px) & (angle <= config.max_slope_angle_deg)
@@ -264,7 +264,7 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
 def press_fit(model: PhotometricModel, press: BallPress, circle: FittedCircle, reference: np.ndarray,
               ball_radius: float, config: PressCalibrationConfig) -> PressFit:
     """The model's normal-angle residual inside one press's circle (radius - 2 px)."""
-    feats = colour_features(press.image, reference, model.config.smoothing)
+    feats = colour_features(press.image, reference, model.config.smoothing, model.config.gain)
     h, w = feats.shape[:2]
     gx, gy, rho, angle = sphere_slopes((h, w), circle, press.pixel_size, ball_radius)
     mask = (rho * circle.radius_px < circle.radius_px - 2.0) & (angle <= config.max_slope_angle_deg)
