@@ -12,6 +12,7 @@ from touchroller_perception.height.estimate import (
     HeightEstimator,
     band_height,
     contact_band,
+    pixel_size_at,
     slopes_to_height,
 )
 from touchroller_perception.height.integrate import divergence, forward_differences, integrate, poisson_solve
@@ -39,6 +40,6 @@ __all__ = [
     "BallPress", "ContactBand", "FittedCircle", "HeightConfig", "HeightEstimator", "PhotometricCalibration",
     "PhotometricConfig", "PhotometricModel", "PressCalibrationConfig", "PressFit", "SlopeLookup", "band_height",
     "calibrate_photometric", "change_magnitude", "colour_features", "contact_band", "divergence", "fit_model",
-    "forward_differences", "integrate", "normal_angles_deg", "poisson_solve", "refine_circle", "slopes_to_height",
-    "sphere_slopes",
+    "forward_differences", "integrate", "normal_angles_deg", "pixel_size_at", "poisson_solve", "refine_circle",
+    "slopes_to_height", "sphere_slopes",
 ]

@@ -202,3 +202,11 @@ def contact_band(camera: CameraModel, max_depth: float = 1.0e-3, pad: int = 4) -
     if du <= 0 or dv <= 0:
         raise ValueError("the camera model gives no pixel size at the contact line")
     return ContactBand((v0, v1), (1e-4 / du, 1e-4 / dv), float(uv[2, 1]))
+
+
+def pixel_size_at(camera: CameraModel, u: float, v: float) -> tuple[float, float]:
+    """Metres per pixel along u and v on the membrane at pixel (u, v), from the camera model."""
+    points, ok = camera.back_project(np.array([[u, v], [u + 1.0, v], [u, v + 1.0]]))
+    if not np.all(ok):
+        raise ValueError(f"pixel ({u:.1f}, {v:.1f}) does not map onto the membrane in this camera model")
+    return float(np.linalg.norm(points[1] - points[0])), float(np.linalg.norm(points[2] - points[0]))

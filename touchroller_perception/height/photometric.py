@@ -29,6 +29,7 @@ import itertools
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -157,7 +158,8 @@ class PhotometricModel:
         self.save_to(buffer)
         Path(path).write_bytes(buffer.getvalue())
 
-    def save_to(self, stream: io.BytesIO) -> None:
+    def save_to(self, stream: Any) -> None:
+        """Into a binary stream (a file opened "wb", BytesIO)."""
         meta = {"format": FORMAT, "config": dataclasses.asdict(self.config), "width": self.width,
                 "height": self.height, "pixel_size": self.pixel_size, "ball_radius": self.ball_radius}
         np.savez(stream, meta=np.array(json.dumps(meta)), coefficients=self.coefficients,
