@@ -31,6 +31,7 @@ from touchroller_perception.height.presses import (
     PressFit,
     calibrate_photometric,
     change_magnitude,
+    find_press,
     normal_angles_deg,
     refine_circle,
     sphere_slopes,
@@ -39,7 +40,7 @@ from touchroller_perception.height.presses import (
 __all__ = [
     "BallPress", "ContactBand", "FittedCircle", "HeightConfig", "HeightEstimator", "PhotometricCalibration",
     "PhotometricConfig", "PhotometricModel", "PressCalibrationConfig", "PressFit", "SlopeLookup", "band_height",
-    "calibrate_photometric", "change_magnitude", "colour_features", "contact_band", "divergence", "fit_model",
-    "forward_differences", "integrate", "normal_angles_deg", "pixel_size_at", "poisson_solve", "refine_circle",
-    "slopes_to_height", "sphere_slopes",
+    "calibrate_photometric", "change_magnitude", "colour_features", "contact_band", "divergence", "find_press",
+    "fit_model", "forward_differences", "integrate", "normal_angles_deg", "pixel_size_at", "poisson_solve",
+    "refine_circle", "slopes_to_height", "sphere_slopes",
 ]

@@ -182,6 +182,27 @@ def refine_circle(magnitude: np.ndarray, u: float, v: float, radius: float,
     return FittedCircle(cu, cv, r, rms, kept, True)
 
 
+def find_press(image: np.ndarray, reference: np.ndarray, min_area_px: int = 30) -> tuple[float, float, float]:
+    """A rough label (u, v, radius px) of the one press in an image, when nobody labelled it: the largest
+    connected region whose change magnitude stands out (median + the larger of 6 robust sigmas and a
+    quarter of the peak), its centroid and the radius of a disc of its area. `refine_circle` then
+    finds the contact's edge."""
+    mag = change_magnitude(image, reference)
+    base = float(np.median(mag))
+    sigma = 1.4826 * float(np.median(np.abs(mag - base))) + 1e-6
+    threshold = base + max(6.0 * sigma, 0.25 * (float(mag.max()) - base))
+    mask = (mag > threshold).astype(np.uint8)
+    count, _labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    if count < 2:
+        raise CalibrationError("no press found: the image does not differ from the reference")
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    area = int(stats[best, cv2.CC_STAT_AREA])
+    if area < min_area_px:
+        raise CalibrationError(f"no press found: the largest change covers {area} px (< {min_area_px})")
+    u, v = (float(c) for c in centroids[best])
+    return u, v, math.sqrt(area / math.pi)
+
+
 def sphere_slopes(shape: tuple[int, int], circle: FittedCircle, pixel_size: tuple[float, float],
                   ball_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(gx, gy, rho in contact radii, slope angle deg) of the ball's cap over the whole image."""

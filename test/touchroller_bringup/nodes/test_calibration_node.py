@@ -205,3 +205,32 @@ def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, sp
     assert abs(model.fx - truth.fx) < 2.0 and abs(model.cy - truth.cy) < 3.0
     assert model.distortion[0] == pytest.approx(truth.distortion[0], abs=0.02)
     assert abs(math.degrees(model.theta - truth.theta)) < 0.5
+
+
+def test_ball_presses_solve_the_photometric_model(graph, spin_until, tmp_path):
+    from touchroller_perception.height import PhotometricModel
+
+    node, _perception, helper, executor, image_pub, _infos = graph
+    sensor = sim.SimulatedSensor(sim.load_scene("ball_presses", **{"motion.presses": 6}), seed=4)
+    frames = list(sensor.frames())
+    refs = [f for f in frames if f.truth.get("phase") == "reference"][:2]
+    balls = [f for f in frames if f.truth.get("phase") == "press"]
+    node.set_parameters([Parameter("photometric.output_path", value=str(tmp_path / "p.npz")),
+                         Parameter("photometric.ball_radius", value=0.004), Parameter("target", value="ball")])
+    show(executor, spin_until, node, image_pub, balls[0])
+    early = call(executor, spin_until, helper, "capture")
+    assert not early.success and "reference first" in early.message
+    nothing = call(executor, spin_until, helper, "solve_photometric")
+    assert not nothing.success and "nothing to solve" in nothing.message
+    node.set_parameters([Parameter("target", value="reference")])
+    for frame in refs:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    node.set_parameters([Parameter("target", value="ball")])
+    for frame in balls:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    solved = call(executor, spin_until, helper, "solve_photometric")
+    assert solved.success, solved.message
+    assert "6 presses" in solved.message and (tmp_path / "p.npz").is_file()
+    assert PhotometricModel.load(tmp_path / "p.npz").width == 640

@@ -73,3 +73,14 @@ def test_label_far_off_is_kept_not_moved(synthetic_presses):
     assert circle.u == 80.0 and circle.v == 60.0 and circle.radius_px == 18.0  # nothing to see: the label stays
     img, *_ = press_image(80.0, 60.0, 18.0)
     assert refine_circle(change_magnitude(img, reference), 80.0, 60.0, 18.0).refined
+
+
+def test_find_press_labels_the_one_press(synthetic_presses):
+    from touchroller_perception.height import find_press
+
+    reference, presses = synthetic_presses
+    img, cu, cv, contact, *_ = presses[3]
+    u, v, r = find_press(img, reference)
+    assert np.hypot(u - cu, v - cv) < 3.0 and 0.5 * contact < r < 1.6 * contact
+    with pytest.raises(CalibrationError, match="no press found"):
+        find_press(reference, reference)
