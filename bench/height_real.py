@@ -374,7 +374,9 @@ def goal_checks(r: HeightRealResult) -> list[tuple[str, str, bool]]:
         ("sphere-fit RMS residual median <= 15 um", f"{g.rms_um:.1f} um (R fixed at 2 mm: {g.rms_fixed_um:.1f} um)",
          g.rms_um <= GOALS["rms_um"]),
         ("fitted radius within 3 % of 2.0 mm (median)", f"{g.radius_mm:.3f} mm (p10-p90 {g.radius_p10_mm:.3f}-"
-         f"{g.radius_p90_mm:.3f})", abs(g.radius_mm / 2.0 - 1) <= GOALS["radius_rel"]),
+         f"{g.radius_p90_mm:.3f}); circular: trained assuming "
+         + ", ".join(f"{k} mm it fits {v:.3f} mm" for k, v in r.circularity.items()),
+         abs(g.radius_mm / 2.0 - 1) <= GOALS["radius_rel"]),
         ("rim-relative cap depth / geometric cap median in 0.9-1.1", f"{g.depth_ratio:.3f} (p10-p90 {g.depth_p10:.2f}-"
          f"{g.depth_p90:.2f}; geometric cap from the labels' radii: {g.depth_ratio_label:.3f}, "
          f"{g.depth_label_p10:.2f}-{g.depth_label_p90:.2f})",

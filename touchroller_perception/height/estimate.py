@@ -73,8 +73,10 @@ def _integrate_zeroed(gx: np.ndarray, gy: np.ndarray, spacing: tuple[float, floa
     gx = np.asarray(gx, np.float32)
     gy = np.asarray(gy, np.float32)
     flat = (gx * gx + gy * gy) < config.flat_slope**2
-    z = integrate(gx, gy, spacing, zero=flat if flat.any() else None, dtype=np.float32)
-    if config.level == "plane" and flat.sum() >= 3 and min(z.shape) >= 2:
+    plane = config.level == "plane" and min(gx.shape) >= 2 and int(np.count_nonzero(flat)) >= 3
+    # the plane holds the constant too: the median zero is needed only without it
+    z = integrate(gx, gy, spacing, zero=None if plane or not flat.any() else flat, dtype=np.float32)
+    if plane:
         z -= level_plane(z, flat)
     out: np.ndarray = z.astype(np.float32, copy=False)
     return out

@@ -46,7 +46,7 @@ class PhotometricConfig:
     position_colour_degree: int = 2      # colour monomials up to this degree get position factors
     offset: bool = False                 # a constant term (position alone -> slope); False: no change, no slope
     gain: bool = True                    # divide out the frame's overall colour drift against the reference
-    smoothing: float = 1.0               # Gaussian sigma (px) on the image before the features
+    smoothing: float = 2.0               # Gaussian sigma (px) on the image before the features
     ridge: float = 1e-6                  # Tikhonov weight on the (scaled) coefficients
     lookup_bins: int = 33                # colour steps per channel (odd: one step is no change) of the compiled lookup
     lookup_cells: tuple[int, int] = (16, 12)   # position cells (along u, along v) of the compiled lookup
