@@ -108,3 +108,15 @@ def test_bad_labels_and_model(pressed, capsys, tmp_path):
                  "--reference", str(grey), "--ball-radius", "0.004", "--pixel-size", "1e-4", "--out",
                  str(tmp_path / "p.npz")]) == 2
     assert "one channel cannot give slopes" in capsys.readouterr().err
+
+
+def test_height_of_a_recording_names_files_by_stamp(pressed, bag_factory, tmp_path):
+    root = pressed
+    out = root / "photometric.npz"
+    if not out.is_file():
+        pytest.skip("needs the calibration of the first test")
+    images = [cv2.imread(str(p)) for p in sorted((root / "presses").glob("*.png"))[:2]]
+    bag = bag_factory([(1_000 + k, image) for k, image in enumerate(images)])
+    assert main(["height", str(bag), "--photometric", str(out), "--reference", str(root / "ref.png"),
+                 "--pixel-size", "1.3e-4", "--out", str(tmp_path / "h")]) == 0
+    assert sorted(p.name for p in (tmp_path / "h").glob("*.tiff")) == ["1000.tiff", "1001.tiff"]
