@@ -21,6 +21,7 @@ COMMANDS = (
     "map",
     "simulate",
     "calibrate",
+    "height",
     "record",
     "reindex",
     "replay",

@@ -45,6 +45,7 @@ RECAPTURE_REFERENCE = "recapture_reference"  # perception
 CAPTURE = "capture"              # calibration: take the current frame
 SOLVE = "solve"                  # calibration: solve and write the calibration
 RESET = "reset"                  # calibration: forget the captures
+SOLVE_PHOTOMETRIC = "solve_photometric"  # calibration: the photometric model from the captured ball presses
 
 # -- frames (before the frame prefix) -----------------------------------------------------------
 BASE_FRAME = "base"              # the robot's base (UR convention)

@@ -69,6 +69,14 @@ SECTIONS: tuple[Section, ...] = (
             "Real GelSight presses with labelled centres (the taxim wheel), each sensor's one no-contact frame as "
             "the reference: presses found, centre error in px and mm, false contacts and time per frame, for our "
             "detector and the paper's pipeline on the same frames."),
+    Section("height_real", "Height on real presses: photometric calibration and integration", "height_real",
+            "taxim's real GelSight presses of a 2.0 mm ball, k-fold (each press measured with a model calibrated on "
+            "the others): normal-angle error, sphere fits with the bench's own code (centre and radius free), the "
+            "cap relative to its rim, a no-contact window, speed per frame and per roller band, and what accuracy "
+            "costs in time."),
+    Section("height_sim", "Height in the simulator: ball-press calibration", "height_sim",
+            "The simulator's `ball_presses` scene: calibrated on half the presses, the model's slopes against the "
+            "renderer's own on the other half."),
     Section("sim_to_real", "Simulated against real presses", "sim_to_real",
             "The simulator's presses against real ones at the same place and radius, with its ideal appearance and "
             "with a realistic one fitted on real frames (press shape, colour response, background, noise); and our "
@@ -244,6 +252,15 @@ def _world_measure(key: str, fmt: str, goal: float, below: bool) -> Measure:
     return measure
 
 
+def _height(check: str) -> Measure:
+    def measure(r: Any) -> tuple[str, bool]:
+        for name, value, ok in load_bench_script("height_real").goal_checks(r):
+            if name.startswith(check):
+                return value, ok
+        raise KeyError(check)
+    return measure
+
+
 def _world_speed(key: str, fmt: str, goal: float, below: bool) -> Measure:
     def measure(r: Any) -> tuple[str, bool | None]:
         value = getattr(r.speed, key)
@@ -414,6 +431,19 @@ GOALS: tuple[Goal, ...] = (
          "contacts_real",
          lambda r: (f"{_real(r)['cpu_ms']:.3f} ms (one frame's wall time {_real(r)['median_ms']:.3f} ms)",
                     _real(r)["cpu_ms"] <= 1.0)),
+    Goal(23, "Height, real presses (taxim gelsight, k-fold): normal-angle error median <= 4 deg", "height_real",
+         _height("normal-angle")),
+    Goal(23, "Height, real presses: sphere-fit RMS residual median <= 15 um", "height_real", _height("sphere-fit")),
+    Goal(23, "Height, real presses: fitted radius within 3 % of 2.0 mm (median)", "height_real",
+         _height("fitted radius")),
+    Goal(23, "Height, real presses: rim-relative cap depth / geometric cap median in 0.9-1.1", "height_real",
+         _height("rim-relative")),
+    Goal(23, "Height, real presses: a no-contact window reads <= 5 um RMS (median)", "height_real",
+         _height("no-contact")),
+    Goal(23, "Height: slopes + integration <= 10 ms per 640x480 frame (one core)", "height_real", _height("slopes")),
+    Goal(23, "Height: <= 2 ms for the roller's band", "height_real", _height("roller band")),
+    Goal(23, "Height, simulator: ball-press calibration recovers the renderer's slopes to <= 2 deg (median)",
+         "height_sim", lambda r: (f"{r.angle_deg:.2f} deg (pooled p90 {r.angle_p90_deg:.2f})", r.angle_deg <= 2.0)),
     Goal(4, "project(back_project(pixel)) round trip < 1e-9 m across the valid image", "stability", _round_trip),
     Goal(4, "Invalid pixels return NaN + valid=False, never a wrong finite number", "stability", _invalid_is_nan),
     Goal(5, "Map SSIM vs ground truth >= 0.85 at 15 s / 10 s / 5 s (worst seed)", "table_i", _map_ssim),

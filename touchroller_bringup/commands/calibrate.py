@@ -7,6 +7,8 @@ INPUT is a rosbag2 recording (topic `/touchroller/image_raw` unless `--topic`), 
     touchroller calibrate intrinsics chessboard_bag --out cal.yaml
     touchroller calibrate extrinsics hemispheres_bag --params cal.yaml --out cal.yaml
     touchroller calibrate compare hemispheres_bag/camera_truth.yaml cal.yaml
+
+`calibrate photometric` (colour -> membrane slope from ball presses, a .npz) lives in commands/height.py.
 """
 from __future__ import annotations
 
@@ -79,6 +81,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="shading (default): centres corrected for light from one side; centroid: the "
                            "change-weighted centroid")
     extr.set_defaults(func=run_extrinsics)
+
+    from touchroller_bringup.commands.height import register_calibration
+
+    register_calibration(steps)   # photometric: colour -> slope from ball presses (docs/height.md)
 
     compare = steps.add_parser("compare", help="how far apart two calibrations put contacts",
                                description="Parameter differences (B - A) and the distance between the "

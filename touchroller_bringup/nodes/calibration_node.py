@@ -14,7 +14,10 @@ Thin ROS shell around `touchroller_perception.calibration`:
   namespace), writes the calibration YAML to `output_path`,
   updates its own geometry parameters and publishes `sensor_msgs/CameraInfo` on
   `camera_info` (transient local, so late subscribers get it);
-* `~/reset` drops all captured frames.
+* `~/reset` drops all captured frames;
+* `~/solve_photometric` makes the photometric model (docs/height.md) from the captured `ball` presses
+  (target `ball`: one ball of radius `photometric.ball_radius` pressed per frame) and the `reference`
+  frames, and writes it to `photometric.output_path`.
 
 While chessboard views are captured, the node tells the user what they cover, as ROS
 camera_calibration does: X / Y / size / skew progress bars and the image corners, in each
@@ -45,9 +48,11 @@ from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, 
 from touchroller_bringup.ros_params import GeometryParameters, check_start_up, declare, declare_frame_prefix
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_perception import calibration as cal
+from touchroller_perception import height
+from touchroller_perception.files import atomic_write
 from touchroller_perception.geometry import CameraModel
 
-TARGETS = ("chessboard", "hemispheres", "reference", "dark")
+TARGETS = ("chessboard", "hemispheres", "reference", "dark", "ball")
 CAMERA_INFO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -76,6 +81,9 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
     "intrinsics.corners": ("fronto_parallel", "Chessboard corners: fronto_parallel (refined on the board's plane "
                                               "with the lens of a first fit) or image (as found in the image)",
                            None, None),
+    "photometric.ball_radius": (0.002, "Radius of the ball pressed for ~/solve_photometric, m", 1e-4, 0.05),
+    "photometric.output_path": ("touchroller_photometric.npz", "Photometric model written by ~/solve_photometric",
+                                None, None),
     "imprints.centre": ("shading", "Imprint centres: shading (corrected for light from one side) or centroid",
                         None, None),
 }
@@ -110,7 +118,8 @@ class CalibrationNode(Node):
         self.info_pub = self.create_publisher(CameraInfo, names.CAMERA_INFO, CAMERA_INFO_QOS)
         self.image_sub = None
         self._subscribe(str(self.get_parameter("image_topic").value))
-        for name, action in ((names.CAPTURE, self.capture), (names.SOLVE, self.solve), (names.RESET, self.reset)):
+        for name, action in ((names.CAPTURE, self.capture), (names.SOLVE, self.solve), (names.RESET, self.reset),
+                             (names.SOLVE_PHOTOMETRIC, self.solve_photometric)):
             create_trigger_service(self, f"~/{name}", action)
         self._remote_client = None
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: chessboard coverage")
@@ -258,7 +267,12 @@ class CalibrationNode(Node):
                 if detection.found == 0:
                     return "no imprints: is the roller pressed on the frame?"
                 return detection.reason
-        except cal.CalibrationError as exc:
+            if target == "ball":
+                reference = self._reference()
+                if reference is None:
+                    return "capture a no-contact reference first (target 'reference')"
+                height.find_press(image, reference)
+        except ValueError as exc:   # CalibrationError is one
             return str(exc)
         return None
 
@@ -306,6 +320,36 @@ class CalibrationNode(Node):
         self.set_parameters([Parameter(name, value=value) for name, value in _changed(camera, intrinsics is not None)])
         self.publish_camera_info(camera)
         self.last_result = "; ".join(n for n in notes if n)
+        return True, self.last_result
+
+    def solve_photometric(self) -> tuple[bool, str]:
+        """The photometric model (colour -> slope) from the captured ball presses and reference: each press
+        labelled by `find_press`, its pixel size from the node's camera model, written to
+        photometric.output_path (docs/height.md)."""
+        reference, balls = self._reference(), self.captures["ball"]
+        if reference is None or not balls:
+            return False, ("nothing to solve: capture a no-contact frame (target 'reference') and ball presses "
+                           "(target 'ball')")
+        camera = self.geometry.model
+        try:
+            presses = []
+            for k, image in enumerate(balls):
+                u, v, r = height.find_press(image, reference)
+                presses.append(height.BallPress(image, u, v, r, height.pixel_size_at(camera, u, v), str(k)))
+            result = height.calibrate_photometric(
+                presses, reference, float(self.get_parameter("photometric.ball_radius").value))
+        except ValueError as exc:
+            return False, f"photometric calibration failed: {exc}"
+        path = str(self.get_parameter("photometric.output_path").value)
+        note = ""
+        if path:
+            try:
+                with atomic_write(path, "wb") as stream:
+                    result.model.save_to(stream)
+                note = f"; wrote {path}"
+            except OSError as exc:
+                note = f"; could not write {path}: {exc.strerror}"
+        self.last_result = result.summary() + note
         return True, self.last_result
 
     def _intrinsics_sigma(self, intrinsics: cal.IntrinsicsResult | None) -> dict[str, float]:

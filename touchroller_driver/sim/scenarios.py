@@ -84,6 +84,8 @@ def frame_count(scene: Scene) -> int:
         return ref + int(m.get("presses", 10)) * (int(m.get("hold_frames", 1)) + int(m.get("gap_frames", 1)))
     if kind == "chessboard":
         return int(m.get("views", 20))
+    if kind == "ball_presses":
+        return ref + int(m.get("presses", 20)) * (int(m.get("hold_frames", 1)) + int(m.get("gap_frames", 1)))
     raise ValueError(f"unknown motion kind {kind!r}")
 
 
@@ -97,6 +99,8 @@ def timeline(scene: Scene, sensor: SimulatedSensor) -> Iterator[Step]:
         yield from _hemispheres(scene, sensor)
     elif kind == "chessboard":
         yield from _chessboard(scene, sensor)
+    elif kind == "ball_presses":
+        yield from _ball_presses(scene, sensor)
     else:
         raise ValueError(f"unknown motion kind {kind!r}")
 
@@ -224,6 +228,50 @@ def _hemispheres(scene: Scene, sensor: SimulatedSensor) -> Iterator[Step]:
         for _ in range(hold):
             t = k / scene.fps
             yield Step(t, RollerState(depth=NO_CONTACT_DEPTH, t=t, indenters=tuple(indenters)), truth)
+            k += 1
+        for _ in range(gap):
+            yield Step(k / scene.fps, _idle(k / scene.fps), {"contacts": [], "phase": "gap"})
+            k += 1
+
+
+# --------------------------------------------------------------------------- ball presses (photometric calibration)
+def _ball_presses(scene: Scene, sensor: SimulatedSensor) -> Iterator[Step]:
+    """One ball of known radius pressed at random places of the contact band (docs/height.md). Truth per
+    press: the contact centre's pixel and a label radius in pixels (the flat-contact radius
+    sqrt(d (2 R - d)) over the pixel size there), as a hand label would give them."""
+    from touchroller_driver.sim.render import Indenter, RollerState
+
+    m = scene.motion
+    rng = sensor._rng_motion
+    cam = sensor.camera
+    radius = float(m.get("ball_radius", 2.0e-3))
+    press = float(m.get("press_depth", 3.0e-4))
+    jitter = float(m.get("press_jitter", 5.0e-5))
+    x_span = float(m.get("x_span", 0.8)) * 0.5 * cam.length
+    alpha_span = float(m.get("alpha_span", 0.04))
+    hold, gap = int(m.get("hold_frames", 1)), int(m.get("gap_frames", 1))
+    k = 0
+    for _ in range(int(m.get("reference_frames", 5))):
+        yield Step(k / scene.fps, _idle(k / scene.fps), {"contacts": [], "phase": "reference"})
+        k += 1
+    for _ in range(int(m.get("presses", 20))):
+        x = float(rng.uniform(-x_span, x_span))
+        alpha = float(rng.uniform(-alpha_span, alpha_span))
+        depth = press + float(rng.uniform(-jitter, jitter))
+        membrane = sensor.membrane_point(x, alpha)
+        dist = float(np.hypot(membrane[1], membrane[2])) + radius - depth
+        centre = (x, dist * math.sin(alpha), dist * math.cos(alpha))
+        uv, ok = cam.project(membrane)
+        step_uv, _ = cam.project(sensor.membrane_point(x + 1e-4, alpha))
+        px_per_m = float(np.hypot(*(step_uv - uv))) / 1e-4
+        contact = math.sqrt(max(depth * (2 * radius - depth), 0.0))
+        truth = {"contacts": [{"point": [float(c) for c in membrane],
+                               "pixel": [float(c) for c in uv] if bool(ok) else [math.nan, math.nan],
+                               "radius_px": contact * px_per_m, "x": x, "alpha": alpha, "penetration": depth,
+                               "ball_radius": radius}], "phase": "press"}
+        for _ in range(hold):
+            t = k / scene.fps
+            yield Step(t, RollerState(depth=NO_CONTACT_DEPTH, t=t, indenters=(Indenter(centre, radius),)), truth)
             k += 1
         for _ in range(gap):
             yield Step(k / scene.fps, _idle(k / scene.fps), {"contacts": [], "phase": "gap"})

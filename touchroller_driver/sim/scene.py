@@ -20,7 +20,7 @@ from touchroller_perception.geometry import CameraModel
 
 #: Effects a scene may list; the contact geometry and the membrane shading are always rendered.
 EFFECTS = ("background", "vignetting", "noise", "blur", "compression", "dropped_frames")
-MOTION_KINDS = ("roll", "taps", "hemispheres", "chessboard")
+MOTION_KINDS = ("roll", "taps", "hemispheres", "chessboard", "ball_presses")
 
 _DEFAULT_EFFECT_PARAMS: dict[str, dict[str, Any]] = {
     "background": {"illumination": 0.12, "led_falloff": 0.25, "specks": 60, "speck_radius_px": [1.0, 3.0]},

@@ -222,3 +222,32 @@ def test_start_up_values_it_cannot_use_stop_the_node_in_one_line(ros_context, na
 
     with pytest.raises(UserError, match=message):
         CalibrationNode(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
+
+
+def test_ball_presses_solve_the_photometric_model(graph, spin_until, tmp_path):
+    from touchroller_perception.height import PhotometricModel
+
+    node, _perception, helper, executor, image_pub, _infos = graph
+    sensor = sim.SimulatedSensor(sim.load_scene("ball_presses", **{"motion.presses": 6}), seed=4)
+    frames = list(sensor.frames())
+    refs = [f for f in frames if f.truth.get("phase") == "reference"][:2]
+    balls = [f for f in frames if f.truth.get("phase") == "press"]
+    node.set_parameters([Parameter("photometric.output_path", value=str(tmp_path / "p.npz")),
+                         Parameter("photometric.ball_radius", value=0.004), Parameter("target", value="ball")])
+    show(executor, spin_until, node, image_pub, balls[0])
+    early = call(executor, spin_until, helper, "capture")
+    assert not early.success and "reference first" in early.message
+    nothing = call(executor, spin_until, helper, "solve_photometric")
+    assert not nothing.success and "nothing to solve" in nothing.message
+    node.set_parameters([Parameter("target", value="reference")])
+    for frame in refs:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    node.set_parameters([Parameter("target", value="ball")])
+    for frame in balls:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    solved = call(executor, spin_until, helper, "solve_photometric")
+    assert solved.success, solved.message
+    assert "6 presses" in solved.message and (tmp_path / "p.npz").is_file()
+    assert PhotometricModel.load(tmp_path / "p.npz").width == 640

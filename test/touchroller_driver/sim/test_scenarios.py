@@ -34,3 +34,21 @@ def test_reverse_roll_starts_at_the_far_end():
     assert steps[0].state.travel == pytest.approx(0.11)
     assert steps[-1].state.travel == pytest.approx(0.0, abs=1e-9)
     assert all(s.state.speed <= 0 for s in steps)
+
+
+def test_ball_presses_scene_presses_one_ball_per_frame():
+    from touchroller_driver.sim.scenarios import frame_count
+
+    scene = load_scene("ball_presses", **{"motion.presses": 3})
+    sensor = SimulatedSensor(scene, seed=1)
+    frames = list(sensor.frames())
+    assert len(frames) == frame_count(scene) == 5 + 3 * 2
+    pressed = [f for f in frames if f.truth["phase"] == "press"]
+    assert len(pressed) == 3
+    for frame in pressed:
+        contact = frame.truth["contacts"][0]
+        u, v = contact["pixel"]
+        assert 5 < contact["radius_px"] < 40 and contact["ball_radius"] == 0.004
+        change = np.abs(frame.image.astype(int) - frames[0].image.astype(int)).sum(axis=2)
+        near = change[int(v) - 5:int(v) + 6, int(u) - 5:int(u) + 6]
+        assert near.max() > 20                                       # the ball is where the truth says

@@ -1,0 +1,104 @@
+"""Height per frame: a calibrated model plus the integrator give a press's depth in metres; no contact
+gives zero; a band gives NaN outside; the model file round-trips and refuses what it is not."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from touchroller_perception.geometry import CameraModel
+from touchroller_perception.height import (
+    BallPress,
+    HeightConfig,
+    HeightEstimator,
+    PhotometricConfig,
+    PhotometricModel,
+    PressCalibrationConfig,
+    band_height,
+    calibrate_photometric,
+    contact_band,
+)
+
+from .conftest import BALL, PIXEL
+
+CONFIG = PressCalibrationConfig(model=PhotometricConfig(colour_degree=3, position_degree=1, smoothing=0.7,
+                                                        lookup_cells=(4, 3)), far_fraction=0.05)
+
+
+@pytest.fixture(scope="module")
+def calibrated(synthetic_presses):
+    reference, presses = synthetic_presses
+    items = [BallPress(img, cu, cv, contact, (PIXEL, PIXEL), str(k))
+             for k, (img, cu, cv, contact, *_rest) in enumerate(presses[:10])]
+    return calibrate_photometric(items, reference, BALL, CONFIG).model
+
+
+def test_held_out_press_depth(synthetic_presses, calibrated):
+    reference, presses = synthetic_presses
+    estimator = HeightEstimator(calibrated, reference, PIXEL)
+    for img, cu, cv, _contact, _gx, _gy, z in presses[10:]:
+        got = estimator.height(img)
+        assert got.dtype == np.float32 and got.shape == img.shape[:2] and np.isfinite(got).all()
+        centre = got[int(round(cv)), int(round(cu))]
+        truth = z[int(round(cv)), int(round(cu))]
+        assert centre == pytest.approx(truth, rel=0.1)
+        assert abs(np.median(got[:, :5])) < 0.05 * truth     # far from the ball: undeformed
+
+
+def test_no_contact_reads_zero(synthetic_presses, calibrated):
+    reference, _ = synthetic_presses
+    got = HeightEstimator(calibrated, reference, PIXEL).height(reference)
+    assert np.sqrt(np.mean(got**2)) < 1e-6
+
+
+def test_band_rows_and_band_height(synthetic_presses, calibrated):
+    reference, presses = synthetic_presses
+    img = presses[10][0]
+    est = HeightEstimator(calibrated, reference, PIXEL, rows=(30, 90), config=HeightConfig())
+    full = est.height(img)
+    assert np.isnan(full[:30]).all() and np.isnan(full[90:]).all() and np.isfinite(full[30:90]).all()
+    np.testing.assert_array_equal(est.band(img), full[30:90])
+    np.testing.assert_array_equal(est.band(img[30:90]), full[30:90])
+    exact = band_height(img[30:90], reference[30:90], calibrated, PIXEL, first_row=30)
+    assert exact.shape == (60, img.shape[1])
+    assert np.abs(exact - full[30:90]).max() < 0.1 * np.nanmax(full)
+    with pytest.raises(ValueError):
+        HeightEstimator(calibrated, reference, PIXEL, rows=(90, 30))
+    with pytest.raises(ValueError):
+        HeightEstimator(calibrated, reference[:50], PIXEL)
+    with pytest.raises(ValueError):
+        HeightEstimator(calibrated, reference, -1.0)
+
+
+def test_downsampled_integration_is_close(synthetic_presses, calibrated):
+    reference, presses = synthetic_presses
+    img = presses[11][0]
+    a = HeightEstimator(calibrated, reference, PIXEL).height(img)
+    b = HeightEstimator(calibrated, reference, PIXEL, config=HeightConfig(downsample=2)).height(img)
+    assert b.shape == a.shape and np.abs(a - b).max() < 0.1 * a.max()
+
+
+def test_model_file_round_trip(tmp_path, calibrated):
+    path = tmp_path / "p.npz"
+    calibrated.save(path)
+    loaded = PhotometricModel.load(path)
+    np.testing.assert_array_equal(loaded.coefficients, calibrated.coefficients)
+    assert loaded.config == calibrated.config and (loaded.width, loaded.height) == (calibrated.width, calibrated.height)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="not a photometric model"):
+        PhotometricModel.load(bad)
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(ValueError, match="not a photometric model"):
+        PhotometricModel.load(tmp_path / "other.npz")
+
+
+def test_contact_band_of_the_default_camera():
+    camera = CameraModel()
+    band = contact_band(camera, max_depth=1e-3)
+    v0, v1 = band.rows
+    assert v0 < band.contact_row < v1 and v1 - v0 < camera.height / 2
+    assert all(1e-6 < s < 1e-3 for s in band.pixel_size)
+    deeper = contact_band(camera, max_depth=2e-3)
+    assert deeper.rows[1] - deeper.rows[0] > v1 - v0
+    with pytest.raises(ValueError):
+        contact_band(camera, max_depth=0.0)

@@ -1,0 +1,226 @@
+"""`touchroller height` and `touchroller calibrate photometric`: the membrane's relief in metres.
+
+    touchroller calibrate photometric PRESSES --labels labels.csv --reference ref.png --ball-radius 0.002 \\
+        --pixel-size 2.95e-5 --out photometric.npz
+    touchroller height FRAMES --photometric photometric.npz --reference ref.png --pixel-size 2.95e-5 --out heights/
+
+INPUT is an image folder (png/jpg/bmp/tif, sorted by name), one image file or a rosbag2 recording
+(topic `/touchroller/image_raw` unless `--topic`). LABELS.csv has the header `image,u,v,radius_px`:
+an image's file name (in a recording: its index on the topic, from 0), the contact circle's centre and
+radius in pixels. `--pixel-size` (m per pixel) serves a flat sensor; `--params CAL.yaml` the roller:
+the pixel size comes from the camera model (at each press for the calibration, at the contact line
+for the height), and `touchroller height` estimates only the contact band (`--band-depth`), NaN
+elsewhere. Each output is `DIR/<image stem>.tiff` (a recording: `<stamp_ns>.tiff`): float32 metres of
+indentation, positive into the gel, the image's size.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from touchroller_bringup.commands.calibrate import IMAGE_SUFFIXES, _load_camera, _read_image
+from touchroller_bringup.errors import UserError
+from touchroller_bringup.names import IMAGE_TOPIC
+
+LABEL_COLUMNS = ("image", "u", "v", "radius_px")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "height", help="the membrane's indentation in metres, per image (photometric stereo)",
+        description="Slopes from each image's colour change against the no-contact reference (the model of "
+                    "'touchroller calibrate photometric'), integrated exactly to metres of indentation; one "
+                    "float32 TIFF per image, NaN where nothing is estimated.")
+    parser.add_argument("input", type=Path, help="image folder, image file or rosbag2 recording")
+    parser.add_argument("--photometric", type=Path, required=True, help="PHOTOMETRIC.npz from calibrate photometric")
+    parser.add_argument("--reference", type=Path, required=True, help="a no-contact image of the same sensor")
+    _pixel_arguments(parser)
+    parser.add_argument("--band-depth", type=float, default=1.0e-3,
+                        help="with --params: the band is the rows a press this deep reaches, m (default 0.001)")
+    parser.add_argument("--out", type=Path, required=True, help="folder for the <image stem>.tiff files")
+    parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic in a recording (default: %(default)s)")
+    parser.set_defaults(func=run_height)
+
+
+def register_calibration(steps: argparse._SubParsersAction) -> None:
+    """`touchroller calibrate photometric` (added to calibrate's steps)."""
+    parser = steps.add_parser(
+        "photometric", help="colour -> membrane slope, from presses of a ball of known radius",
+        description="Learns the map from colour change (and image position) to the membrane's slope from "
+                    "presses of a ball of known radius: the labelled circles are refined from the images, the "
+                    "ball's slopes inside them are the targets. Writes one .npz.")
+    parser.add_argument("input", type=Path, help="image folder, image file or rosbag2 recording of the presses")
+    parser.add_argument("--labels", type=Path, required=True, help="CSV with the header image,u,v,radius_px")
+    parser.add_argument("--reference", type=Path, required=True, help="a no-contact image of the same sensor")
+    parser.add_argument("--ball-radius", type=float, required=True, help="the ball's radius, m")
+    _pixel_arguments(parser)
+    parser.add_argument("--no-refine", action="store_true", help="use the labelled circles as they are")
+    parser.add_argument("--out", type=Path, required=True, help="PHOTOMETRIC.npz to write")
+    parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic in a recording (default: %(default)s)")
+    parser.set_defaults(func=run_calibrate)
+
+
+def _pixel_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--pixel-size", type=float, help="metres per pixel (a flat sensor)")
+    group.add_argument("--params", type=Path, help="calibration YAML of the roller (pixel size from its camera model)")
+
+
+def named_images(path: Path, topic: str) -> list[tuple[str, str, np.ndarray]]:
+    """(label key, output stem, image) of an image folder, image file or recording."""
+    import cv2
+
+    if not path.exists():
+        raise UserError(f"no such input: {path}")
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not files:
+            raise UserError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}) and no rosbag2 metadata.yaml")
+        return [(f.name, f.stem, _colour(_read_image(f, cv2), f)) for f in files]
+    if path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES:
+        return [(path.name, path.stem, _colour(_read_image(path, cv2), path))]
+    from touchroller_bringup.bags import read_images
+
+    out = [(str(i), str(r.stamp_ns), _colour(np.asarray(r.image), path))
+           for i, r in enumerate(read_images(path, topic))]
+    if not out:
+        raise UserError(f"recording {path} has no images on {topic}")
+    return out
+
+
+def _colour(image: np.ndarray, where: Path) -> np.ndarray:
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise UserError(f"{where}: needs 8-bit colour images (three lights, three channels); one channel "
+                        "cannot give slopes")
+    return image
+
+
+def _reference(path: Path) -> np.ndarray:
+    import cv2
+
+    if not path.is_file():
+        raise UserError(f"no such reference image: {path}")
+    return _colour(_read_image(path, cv2), path)
+
+
+def read_labels(path: Path) -> list[tuple[str, float, float, float]]:
+    if not path.is_file():
+        raise UserError(f"no such labels file: {path}")
+    try:
+        with path.open(newline="") as stream:
+            reader = csv.DictReader(stream)
+            if tuple(name.strip() for name in (reader.fieldnames or ())) != LABEL_COLUMNS:
+                raise UserError(f"{path}: the header must be {','.join(LABEL_COLUMNS)}, got "
+                                f"{','.join(reader.fieldnames or [])}")
+            rows = []
+            for line, row in enumerate(reader, start=2):
+                try:
+                    u, v, r = float(row["u"]), float(row["v"]), float(row["radius_px"])
+                except (TypeError, ValueError):
+                    raise UserError(f"{path}:{line}: u, v and radius_px must be numbers") from None
+                if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r > 0):
+                    raise UserError(f"{path}:{line}: u, v must be finite and radius_px positive")
+                rows.append((str(row["image"]).strip(), u, v, r))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise UserError(f"cannot read {path}: {exc}") from None
+    if not rows:
+        raise UserError(f"{path}: no labelled presses")
+    return rows
+
+
+def _positive(value: float | None, what: str) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise UserError(f"{what} must be a positive number of metres, got {value}")
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    from touchroller_perception import height as ht
+    from touchroller_perception.calibration import CalibrationError
+    from touchroller_perception.files import atomic_write
+
+    _positive(args.ball_radius, "--ball-radius")
+    _positive(args.pixel_size, "--pixel-size")
+    camera = _load_camera(args.params) if args.params is not None else None
+    labels = read_labels(args.labels)
+    reference = _reference(args.reference)
+    images = {key: image for key, _stem, image in named_images(args.input, args.topic)}
+    presses = []
+    for name, u, v, r in labels:
+        if name not in images:
+            raise UserError(f"{args.labels}: image {name!r} is not in {args.input}")
+        try:
+            size = (args.pixel_size, args.pixel_size) if camera is None else ht.pixel_size_at(camera, u, v)
+        except ValueError as exc:
+            raise UserError(f"{args.labels}: {name}: {exc}") from None
+        presses.append(ht.BallPress(images[name], u, v, r, size, name))
+    config = ht.PressCalibrationConfig(refine=not args.no_refine)
+    try:
+        result = ht.calibrate_photometric(presses, reference, args.ball_radius, config)
+    except CalibrationError as exc:
+        raise UserError(f"calibrate photometric: {exc}") from None
+    try:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(args.out, "wb") as stream:
+            result.model.save_to(stream)
+    except OSError as exc:
+        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    print(result.summary())
+    for fit in result.presses:
+        c = fit.circle
+        print(f"  {fit.name}: normal residual median {fit.normal_error_deg:.2f} deg "
+              f"(p90 {fit.normal_error_p90_deg:.2f}); circle ({c.u:.1f}, {c.v:.1f}) r {c.radius_px:.1f} px"
+              + ("" if c.refined else " (label kept)"))
+    print(f"wrote {args.out}")
+    return 0
+
+
+def run_height(args: argparse.Namespace) -> int:
+    from touchroller_perception import height as ht
+    from touchroller_perception.files import atomic_write
+
+    _positive(args.pixel_size, "--pixel-size")
+    try:
+        model = ht.PhotometricModel.load(args.photometric)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    reference = _reference(args.reference)
+    rows = None
+    size: Any = args.pixel_size
+    if args.params is not None:
+        camera = _load_camera(args.params)
+        try:
+            band = ht.contact_band(camera, args.band_depth)
+        except ValueError as exc:
+            raise UserError(f"--band-depth / {args.params}: {exc}") from None
+        rows, size = band.rows, band.pixel_size
+    try:
+        estimator = ht.HeightEstimator(model, reference, size, rows=rows)
+    except ValueError as exc:
+        raise UserError(f"{args.reference}: {exc}") from None
+    images = named_images(args.input, args.topic)
+    import tifffile
+
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create {args.out}: {exc.strerror}") from None
+    for _key, stem, image in images:
+        if image.shape != reference.shape:
+            raise UserError(f"{stem}: image {image.shape[1]}x{image.shape[0]} does not match the reference "
+                            f"{reference.shape[1]}x{reference.shape[0]}")
+        z = estimator.height(image)
+        target = args.out / f"{stem}.tiff"
+        try:
+            with atomic_write(target, "wb") as stream:
+                tifffile.imwrite(stream, z.astype(np.float32), photometric="minisblack",
+                                 metadata={"unit": "m", "quantity": "indentation"})
+        except OSError as exc:
+            raise UserError(f"cannot write {target}: {exc.strerror}") from None
+    band_note = "" if rows is None else f" (rows {rows[0]}-{rows[1] - 1}, NaN elsewhere)"
+    print(f"wrote {len(images)} height images to {args.out}{band_note}")
+    return 0

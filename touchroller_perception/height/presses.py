@@ -1,0 +1,297 @@
+"""Photometric calibration from presses of a ball of known radius.
+
+Each press is an image with a loosely labelled contact circle (centre and radius in pixels, as hand
+labelling gives them). The circle is refined from the image: the colour change against the reference
+is strongest where the membrane is steepest, at the contact's edge, so along rays from the labelled
+centre the edge is the peak of the smoothed change magnitude (sub-pixel), and a robust algebraic
+circle fit to those peaks is the new circle (twice, from the new centre). Inside the refined circle
+the membrane wraps the ball, so its slopes are the sphere's: with the contact centre (u0, v0), pixel
+size (su, sv) and ball radius R, dx = (u - u0) su, dy = (v - v0) sv, rho^2 = dx^2 + dy^2,
+
+    gx = -dx / sqrt(R^2 - rho^2),   gy = -dy / sqrt(R^2 - rho^2)
+
+(indentation positive into the gel, deepest at the centre). Those are the targets, together with a
+sparse sample of the far field (beyond `far_factor` radii, where the gel is undeformed: slope 0).
+The ring between is left out: there the gel sinks around the ball with slopes nobody knows.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from touchroller_perception.calibration.common import CalibrationError
+from touchroller_perception.height.photometric import (
+    PhotometricConfig,
+    PhotometricModel,
+    colour_features,
+    fit_model,
+)
+
+
+@dataclass(frozen=True)
+class BallPress:
+    """One press: the image, the labelled circle (px) and the pixel size there (m, along u and v)."""
+
+    image: np.ndarray
+    u: float
+    v: float
+    radius_px: float
+    pixel_size: tuple[float, float]
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class PressCalibrationConfig:
+    model: PhotometricConfig = field(default_factory=PhotometricConfig)
+    refine: bool = True                  # refine the labelled circles from the images
+    refine_iterations: int = 2
+    search: tuple[float, float] = (0.75, 1.2)   # edge search, in label radii
+    max_shift: float = 0.35              # a refined circle further than this (label radii) is refused
+    edge_margin_px: float = 1.0          # samples from inside radius - margin
+    max_slope_angle_deg: float = 75.0    # targets steeper than this (close to the ball's equator) are left out
+    inside_fraction: float = 0.5         # fraction of the inside pixels used (deterministic subsample)
+    far_factor: float = 2.2              # far field: beyond this many contact radii ...
+    far_fraction: float = 0.01           # ... this fraction of its pixels, slope 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.search[0] < 1.0 < self.search[1] <= 2.0):
+            raise ValueError(f"search must be (lo < 1 < hi <= 2) label radii, got {self.search}")
+        if not 0.0 < self.inside_fraction <= 1.0 or not 0.0 <= self.far_fraction <= 1.0:
+            raise ValueError("inside_fraction must be in (0, 1] and far_fraction in [0, 1]")
+        if not self.far_factor > 1.0:
+            raise ValueError(f"far_factor must be > 1, got {self.far_factor}")
+        if not 0 < self.max_slope_angle_deg < 90:
+            raise ValueError("max_slope_angle_deg must be in (0, 90)")
+
+
+@dataclass(frozen=True)
+class FittedCircle:
+    u: float
+    v: float
+    radius_px: float
+    edge_rms_px: float       # RMS distance of the kept edge points from the circle
+    edge_points: int         # edge points kept (of the rays cast)
+    refined: bool            # False: the label was kept (refinement refused)
+
+    def shift_from(self, u: float, v: float) -> float:
+        return math.hypot(self.u - u, self.v - v)
+
+
+@dataclass(frozen=True)
+class PressFit:
+    """How the model fits one press (its own, in-sample)."""
+
+    name: str
+    circle: FittedCircle
+    label: tuple[float, float, float]      # u, v, radius_px as labelled
+    normal_error_deg: float                # median angle between model and sphere normals in the circle
+    normal_error_p90_deg: float
+    samples: int
+
+
+@dataclass(frozen=True)
+class PhotometricCalibration:
+    model: PhotometricModel
+    presses: tuple[PressFit, ...]
+    ball_radius: float
+
+    @property
+    def normal_error_deg(self) -> float:
+        """Median over the presses of each press's median normal-angle residual."""
+        return float(np.median([p.normal_error_deg for p in self.presses]))
+
+    def summary(self) -> str:
+        refined = sum(p.circle.refined for p in self.presses)
+        shifts = [p.circle.shift_from(p.label[0], p.label[1]) for p in self.presses]
+        dr = [p.circle.radius_px - p.label[2] for p in self.presses]
+        return (f"photometric calibration: {len(self.presses)} presses, ball radius {self.ball_radius * 1e3:.3f} mm, "
+                f"{len(self.model.coefficients)} terms; normal-angle residual median {self.normal_error_deg:.2f} deg "
+                f"(in-sample); {refined} circles refined from the images (centre moved {np.median(shifts):.1f} px, "
+                f"radius {np.median(dr):+.1f} px, medians)")
+
+
+def change_magnitude(image: np.ndarray, reference: np.ndarray, sigma: float = 1.5) -> np.ndarray:
+    """float32 H x W: the length of the smoothed colour change against the reference (DN)."""
+    a = cv2.GaussianBlur(np.asarray(image, np.float32), (0, 0), sigma)
+    b = cv2.GaussianBlur(np.asarray(reference, np.float32), (0, 0), sigma)
+    d = a - b
+    mag: np.ndarray = np.sqrt((d * d).sum(axis=2)).astype(np.float32)
+    return mag
+
+
+def fit_circle(x: np.ndarray, y: np.ndarray, iterations: int = 3) -> tuple[float, float, float, np.ndarray]:
+    """Robust algebraic (Kasa) circle fit: centre, radius and the inlier mask."""
+    keep = np.isfinite(x) & np.isfinite(y)
+    cu = cv = r = math.nan
+    for _ in range(iterations):
+        if keep.sum() < 5:
+            raise CalibrationError("too few edge points for a circle")
+        A = np.c_[2 * x[keep], 2 * y[keep], np.ones(int(keep.sum()))]
+        b = x[keep] ** 2 + y[keep] ** 2
+        (cu, cv, c), *_ = np.linalg.lstsq(A, b, rcond=None)
+        r = math.sqrt(max(c + cu * cu + cv * cv, 0.0))
+        res = np.abs(np.hypot(x - cu, y - cv) - r)
+        scale = 1.4826 * float(np.median(res[keep]))
+        keep = np.isfinite(res) & (res <= max(3.0 * scale, 1.0))
+    return float(cu), float(cv), float(r), keep
+
+
+def refine_circle(magnitude: np.ndarray, u: float, v: float, radius: float,
+                  config: PressCalibrationConfig | None = None) -> FittedCircle:
+    """The contact circle from the change magnitude, starting at a label (u, v, radius px)."""
+    config = config or PressCalibrationConfig()
+    label = FittedCircle(float(u), float(v), float(radius), math.nan, 0, False)
+    if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(radius) and radius > 2):
+        raise CalibrationError(f"label circle ({u}, {v}, r={radius}) is not a usable circle")
+    if not config.refine:
+        return label
+    cu, cv, r = float(u), float(v), float(radius)
+    angles = np.linspace(0.0, 2 * math.pi, 180, endpoint=False)
+    rms, kept = math.nan, 0
+    for _ in range(config.refine_iterations):
+        rho = np.arange(config.search[0] * r, config.search[1] * r, 0.5)
+        X = (cu + rho[None, :] * np.cos(angles)[:, None]).astype(np.float32)
+        Y = (cv + rho[None, :] * np.sin(angles)[:, None]).astype(np.float32)
+        profile = cv2.remap(magnitude, X, Y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+        inside = np.isfinite(profile).all(axis=1)
+        profile = np.nan_to_num(profile)
+        k = np.clip(np.argmax(profile, axis=1), 1, len(rho) - 2)
+        rows = np.arange(len(k))
+        a, b, c = profile[rows, k - 1], profile[rows, k], profile[rows, k + 1]
+        den = a - 2 * b + c
+        off = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
+        edge = rho[k] + 0.5 * np.clip(off, -1.0, 1.0)
+        interior = (k > 1) & (k < len(rho) - 2) & inside
+        px = np.where(interior, cu + edge * np.cos(angles), np.nan)
+        py = np.where(interior, cv + edge * np.sin(angles), np.nan)
+        try:
+            nu, nv, nr, keep = fit_circle(px, py)
+        except CalibrationError:
+            return label
+        kept = int(keep.sum())
+        rms = float(np.sqrt(np.mean((np.hypot(px[keep] - nu, py[keep] - nv) - nr) ** 2)))
+        cu, cv, r = nu, nv, nr
+    if (math.hypot(cu - u, cv - v) > config.max_shift * radius or not 0.6 * radius <= r <= 1.4 * radius
+            or kept < 60):
+        return label
+    return FittedCircle(cu, cv, r, rms, kept, True)
+
+
+def find_press(image: np.ndarray, reference: np.ndarray, min_area_px: int = 30) -> tuple[float, float, float]:
+    """A rough label (u, v, radius px) of the one press in an image, when nobody labelled it: the largest
+    connected region whose change magnitude stands out (median + the larger of 6 robust sigmas and a
+    quarter of the peak), its centroid and the radius of a disc of its area. `refine_circle` then
+    finds the contact's edge."""
+    mag = change_magnitude(image, reference)
+    base = float(np.median(mag))
+    sigma = 1.4826 * float(np.median(np.abs(mag - base))) + 1e-6
+    threshold = base + max(6.0 * sigma, 0.25 * (float(mag.max()) - base))
+    mask = (mag > threshold).astype(np.uint8)
+    count, _labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    if count < 2:
+        raise CalibrationError("no press found: the image does not differ from the reference")
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    area = int(stats[best, cv2.CC_STAT_AREA])
+    if area < min_area_px:
+        raise CalibrationError(f"no press found: the largest change covers {area} px (< {min_area_px})")
+    u, v = (float(c) for c in centroids[best])
+    return u, v, math.sqrt(area / math.pi)
+
+
+def sphere_slopes(shape: tuple[int, int], circle: FittedCircle, pixel_size: tuple[float, float],
+                  ball_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(gx, gy, rho in contact radii, slope angle deg) of the ball's cap over the whole image."""
+    h, w = shape
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    dx = (uu - circle.u) * pixel_size[0]
+    dy = (vv - circle.v) * pixel_size[1]
+    rho2 = dx * dx + dy * dy
+    s = np.sqrt(np.maximum(ball_radius**2 - rho2, (1e-3 * ball_radius) ** 2))
+    rho_rel = np.hypot(uu - circle.u, vv - circle.v) / circle.radius_px
+    angle = np.degrees(np.arctan(np.sqrt(rho2) / s))
+    return -dx / s, -dy / s, rho_rel, angle
+
+
+def normal_angles_deg(gx: np.ndarray, gy: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
+    """Angles between the normals (-gx, -gy, 1) and (-tx, -ty, 1), degrees."""
+    dot = gx * tx + gy * ty + 1.0
+    norm = np.sqrt((gx * gx + gy * gy + 1.0) * (tx * tx + ty * ty + 1.0))
+    result: np.ndarray = np.degrees(np.arccos(np.clip(dot / norm, -1.0, 1.0)))
+    return result
+
+
+def press_samples(press: BallPress, circle: FittedCircle, reference: np.ndarray, ball_radius: float,
+                  config: PressCalibrationConfig, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(features N x 3, u N, v N, target slopes N x 2) of one press: inside the circle and the far field."""
+    feats = colour_features(press.image, reference, config.model.smoothing, config.model.gain)
+    h, w = feats.shape[:2]
+    gx, gy, rho, angle = sphere_slopes((h, w), circle, press.pixel_size, ball_radius)
+    inside = (rho * circle.radius_px < circle.radius_px - config.edge_margin_px) & (angle <= config.max_slope_angle_deg)
+    inside &= rng.random((h, w)) < config.inside_fraction
+    far = (rho > config.far_factor) & (rng.random((h, w)) < config.far_fraction)
+    vv, uu = np.mgrid[0:h, 0:w]
+    mask = inside | far
+    targets = np.stack([np.where(far, 0.0, gx)[mask], np.where(far, 0.0, gy)[mask]], axis=1)
+    return feats[mask].astype(np.float64), uu[mask], vv[mask], targets
+
+
+def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, ball_radius: float,
+                          config: PressCalibrationConfig | None = None) -> PhotometricCalibration:
+    """The colour (+ position) -> slope model from ball presses, and how it fits each press."""
+    config = config or PressCalibrationConfig()
+    if not (math.isfinite(ball_radius) and ball_radius > 0):
+        raise CalibrationError(f"ball radius must be a positive number of metres, got {ball_radius}")
+    if not presses:
+        raise CalibrationError("no ball presses to calibrate from")
+    reference = np.asarray(reference)
+    if reference.ndim != 3 or reference.shape[2] != 3:
+        raise CalibrationError(f"the reference must be a colour image (H x W x 3), got shape {reference.shape}; "
+                               "one light (grey) cannot give slopes")
+    h, w = reference.shape[:2]
+    for press in presses:
+        if press.image.shape != reference.shape:
+            raise CalibrationError(f"press {press.name or '?'}: image {press.image.shape} does not match the "
+                                   f"reference {reference.shape}")
+        if not all(math.isfinite(s) and s > 0 for s in press.pixel_size):
+            raise CalibrationError(f"press {press.name or '?'}: pixel size must be positive, got {press.pixel_size}")
+    circles = [refine_circle(change_magnitude(p.image, reference), p.u, p.v, p.radius_px, config) for p in presses]
+    for press, circle in zip(presses, circles, strict=True):
+        contact = circle.radius_px * max(press.pixel_size)
+        if contact >= ball_radius:
+            raise CalibrationError(f"press {press.name or '?'}: contact radius {contact * 1e3:.3f} mm is not "
+                                   f"smaller than the ball's {ball_radius * 1e3:.3f} mm (wrong --ball-radius or "
+                                   f"pixel size?)")
+    rng = np.random.default_rng(config.seed)
+    parts = [press_samples(p, c, reference, ball_radius, config, rng) for p, c in zip(presses, circles, strict=True)]
+    feats = np.concatenate([p[0] for p in parts])
+    us = np.concatenate([p[1] for p in parts])
+    vs = np.concatenate([p[2] for p in parts])
+    targets = np.concatenate([p[3] for p in parts])
+    pixel = float(np.median([np.mean(p.pixel_size) for p in presses]))
+    try:
+        model = fit_model(config.model, feats, us, vs, targets, w, h, pixel_size=pixel, ball_radius=ball_radius)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
+    fits = tuple(press_fit(model, p, c, reference, ball_radius, config) for p, c in zip(presses, circles, strict=True))
+    return PhotometricCalibration(model, fits, float(ball_radius))
+
+
+def press_fit(model: PhotometricModel, press: BallPress, circle: FittedCircle, reference: np.ndarray,
+              ball_radius: float, config: PressCalibrationConfig) -> PressFit:
+    """The model's normal-angle residual inside one press's circle (radius - 2 px)."""
+    feats = colour_features(press.image, reference, model.config.smoothing, model.config.gain)
+    h, w = feats.shape[:2]
+    gx, gy, rho, angle = sphere_slopes((h, w), circle, press.pixel_size, ball_radius)
+    mask = (rho * circle.radius_px < circle.radius_px - 2.0) & (angle <= config.max_slope_angle_deg)
+    vv, uu = np.mgrid[0:h, 0:w]
+    pred = model.slopes_at(feats[mask].astype(np.float64), uu[mask], vv[mask])
+    err = normal_angles_deg(pred[:, 0], pred[:, 1], gx[mask], gy[mask])
+    med = float(np.median(err)) if err.size else math.nan
+    p90 = float(np.percentile(err, 90)) if err.size else math.nan
+    return PressFit(press.name, circle, (press.u, press.v, press.radius_px), med, p90, int(err.size))
