@@ -214,7 +214,8 @@ def markdown(result: LightingResult) -> list[str]:
              f"no-contact reference and no lights-off frame; {result.seeds} seeds per cell. theta and d: worst "
              "absolute error over the seeds. 'plain mean': the paper's plain mean over the same views. Row balance: "
              "how many seeds kept it (held-out prediction), and the median margin and its spread (px of held-out "
-             "reprojection RMS, kept when the margin exceeds 2 x the spread).", "",
+             "reprojection RMS, kept when the margin exceeds 2 x the spread). The four azimuths of a seed share "
+             "that seed's chessboard views, so an intrinsics error repeats across them.", "",
              "| press set | light azimuth | theta worst (°) | d worst (mm) | plain mean theta worst (°) | refused "
              "| row balance kept | margin / spread (px) | within 2 sigma |", "|---|---|---|---|---|---|---|---|---|"]
     for c in result.cells():

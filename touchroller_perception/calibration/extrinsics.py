@@ -321,7 +321,8 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
                   f"left after the rejections, need {config.min_views}")
         views, fit = solved, None
         balance = RowBalance(False, "not used: fell back to the paper's plain method", math.nan, math.nan)
-        rejected = {k: v for k, v in rejected.items() if k not in {v.index for v in solved}}
+        used = {view.index for view in solved}
+        rejected = {index: why for index, why in rejected.items() if index not in used}
     require_views(len(views), config.min_views, total, rejected, "hemisphere-frame")
     slope = fit.slope if (fit is not None and balance.applied) else 0.0
     shifts = np.array([slope * v.row_asymmetry for v in views])
