@@ -4,7 +4,10 @@ A GelSight-type membrane lit by directional LEDs shades every imprint bright on 
 the other, and its light falls off across the membrane. Each trial is the whole calibration with
 its defaults, as a user runs it: intrinsics from chessboard views (boards in the central half of
 the image), then theta and d from 10 presses lit by one LED from the azimuth of the row (0: from +u
-along the roller axis, 90: from +v around it), with a no-contact reference and no lights-off frame.
+along the roller axis, 90: from +v around it), with a no-contact reference and a frame with the
+sensor's light off (the documented capture, as in `bench.calib_crosscheck`). The same presses are
+also solved without the lights-off frame, for comparison: then a background the light does not
+make (the second renderer's uneven gel and ambient light) is divided into the row strengths.
 
 Press sets:
 * simulator: `calibration_hemispheres` with `sensor.directional_light_deg` (one white LED at 25 deg
@@ -58,6 +61,8 @@ class Trial:
     theta_sigma_deg: float
     d_sigma_mm: float
     plain_theta_err_deg: float    # the paper's plain mean over the same views
+    theta_err_no_dark_deg: float  # the same presses without the lights-off frame (NaN when refused)
+    d_err_no_dark_mm: float
     method: str
     row_balance_kept: bool
     balance_margin_px: float
@@ -75,6 +80,7 @@ class Cell:
     theta_worst_deg: float
     d_worst_mm: float
     plain_theta_worst_deg: float
+    theta_worst_no_dark_deg: float
     balance_kept: int
     margin_median_px: float
     spread_median_px: float
@@ -130,6 +136,7 @@ def _cell(renderer: str, azimuth: float, rows: list[Trial]) -> Cell:
                 max((abs(t.theta_err_deg) for t in solved), default=math.nan),
                 max((abs(t.d_err_mm) for t in solved), default=math.nan),
                 max((abs(t.plain_theta_err_deg) for t in solved), default=math.nan),
+                max((abs(t.theta_err_no_dark_deg) for t in solved), default=math.nan),
                 sum(t.row_balance_kept for t in solved),
                 float(np.median(margins)) if margins else math.nan, float(np.median(spreads)) if spreads else math.nan,
                 float(np.mean(hits)) if hits else math.nan)
@@ -138,14 +145,21 @@ def _cell(renderer: str, azimuth: float, rows: list[Trial]) -> Cell:
 def simulator_presses(seed: int, azimuth: float, presses: int = 10) -> crosscheck.Presses:
     from touchroller_driver.sim import SimulatedSensor, load_scene
 
-    sensor = SimulatedSensor(load_scene("calibration_hemispheres", **{"motion.presses": presses,
-                                                                      "sensor.directional_light_deg": azimuth}),
-                             seed=seed)
-    frames = list(sensor.frames())
-    reference = np.median(np.stack([f.image for f in frames if f.truth.get("phase") == "reference"]), axis=0)
+    def references(**overrides: float) -> tuple[SimulatedSensor, list, np.ndarray]:
+        scene = load_scene("calibration_hemispheres", **{"motion.presses": presses,
+                                                         "sensor.directional_light_deg": azimuth, **overrides})
+        sensor = SimulatedSensor(scene, seed=seed)
+        frames = list(sensor.frames())
+        reference = np.median(np.stack([f.image for f in frames if f.truth.get("phase") == "reference"]), axis=0)
+        return sensor, frames, reference.astype(np.uint8)
+
+    sensor, frames, reference = references()
+    # the LED off: its light and the gel's glow it makes are gone, the gel's own background stays
+    _, _, dark = references(**{"sensor.light_gain": 0.0, "sensor.ambient": 0.0, "motion.presses": 0})
     pressed = [f for f in frames if f.truth.get("phase") == "press"]
-    return crosscheck.Presses(reference.astype(np.uint8), [f.image for f in pressed],
-                              [np.array([c["pixel"] for c in f.truth["contacts"]]) for f in pressed], sensor.camera)
+    return crosscheck.Presses(reference, [f.image for f in pressed],
+                              [np.array([c["pixel"] for c in f.truth["contacts"]]) for f in pressed], sensor.camera,
+                              dark)
 
 
 def second_presses(seed: int, azimuth: float, presses: int = 10, centred: bool = False) -> crosscheck.Presses:
@@ -154,7 +168,7 @@ def second_presses(seed: int, azimuth: float, presses: int = 10, centred: bool =
     placement = second.Placement(shift=2e-4, depth_jitter=1.5e-4) if centred else second.Placement()
     rendered = second.render_presses(seed, presses, look=look, placement=placement)
     return crosscheck.Presses(rendered.reference, rendered.images, [t.centres_px for t in rendered.truth],
-                              rendered.camera)
+                              rendered.camera, rendered.dark)
 
 
 PRESSES: dict[str, Callable[[int, float], crosscheck.Presses]] = {
@@ -168,7 +182,7 @@ def trial(renderer: str, azimuth: float, seed: int, presses: crosscheck.Presses,
     start = intrinsics.camera.replace(theta=0.0, d=0.0)
     truth = presses.camera
     try:
-        result = cal.calibrate_extrinsics(presses.images, start, reference=presses.reference,
+        result = cal.calibrate_extrinsics(presses.images, start, reference=presses.reference, dark=presses.dark,
                                           intrinsics_covariance=intrinsics.covariance)
     except cal.CalibrationError as exc:
         plain = cal.ExtrinsicsConfig(balance_rows=False, view_rms_k=1e9, outlier_sigma=1e9,
@@ -179,14 +193,20 @@ def trial(renderer: str, azimuth: float, seed: int, presses: crosscheck.Presses,
         except cal.CalibrationError:
             plain_solves = False
         nan = math.nan
-        return Trial(renderer, azimuth, seed, str(exc), plain_solves, nan, nan, nan, nan, nan, "", False, nan, nan,
-                     False, ())
+        return Trial(renderer, azimuth, seed, str(exc), plain_solves, nan, nan, nan, nan, nan, nan, nan, "", False,
+                     nan, nan, False, ())
+    try:
+        no_dark = cal.calibrate_extrinsics(presses.images, start, reference=presses.reference)
+        theta_no_dark, d_no_dark = math.degrees(no_dark.theta - truth.theta), 1e3 * (no_dark.d - truth.d)
+    except cal.CalibrationError:
+        theta_no_dark = d_no_dark = math.nan
     balance = next(c for c in result.choices if c.term == "row balance")
     rejection = next(c for c in result.choices if c.term == "view rejection")
     return Trial(renderer, azimuth, seed, "", True,
                  math.degrees(result.theta - truth.theta), 1e3 * (result.d - truth.d),
                  math.degrees(result.theta_sigma), 1e3 * result.d_sigma,
-                 math.degrees(result.theta_plain_mean - truth.theta), result.method, balance.kept,
+                 math.degrees(result.theta_plain_mean - truth.theta), theta_no_dark, d_no_dark, result.method,
+                 balance.kept,
                  balance.margin_px, balance.spread_px, rejection.kept, tuple(c.line() for c in result.choices))
 
 
@@ -203,7 +223,8 @@ def run(quick: bool = False, progress: Callable[[str], None] = lambda _: None) -
             for seed in range(seeds):
                 presses = PRESSES[renderer](seed, azimuth)
                 trials.append(trial(renderer, azimuth, seed, presses, intrinsics[BOARD_RENDERER[renderer], seed]))
-                progress(f"{renderer} {azimuth:g}° seed {seed}: theta {trials[-1].theta_err_deg:+.3f}°")
+                progress(f"{renderer} {azimuth:g}° seed {seed}: theta {trials[-1].theta_err_deg:+.3f}° "
+                         f"(without the lights-off frame {trials[-1].theta_err_no_dark_deg:+.3f}°)")
     return LightingResult(stamp, quick, seeds, views, tuple(trials))
 
 
@@ -211,16 +232,19 @@ def markdown(result: LightingResult) -> list[str]:
     within, count = result.within_2_sigma()
     lines = [f"Whole calibration with its defaults: intrinsics from {result.views} chessboard views (boards in the "
              f"central half), then theta and d from 10 presses lit by one LED from the azimuth of the row, with a "
-             f"no-contact reference and no lights-off frame; {result.seeds} seeds per cell. theta and d: worst "
+             f"no-contact reference and a lights-off frame; {result.seeds} seeds per cell. 'without lights-off': the "
+             "same presses solved without that frame. theta and d: worst "
              "absolute error over the seeds. 'plain mean': the paper's plain mean over the same views. Row balance: "
              "how many seeds kept it (held-out prediction), and the median margin and its spread (px of held-out "
              "reprojection RMS, kept when the margin exceeds 2 x the spread). The four azimuths of a seed share "
              "that seed's chessboard views, so an intrinsics error repeats across them.", "",
-             "| press set | light azimuth | theta worst (°) | d worst (mm) | plain mean theta worst (°) | refused "
-             "| row balance kept | margin / spread (px) | within 2 sigma |", "|---|---|---|---|---|---|---|---|---|"]
+             "| press set | light azimuth | theta worst (°) | d worst (mm) | plain mean theta worst (°) | theta worst "
+             "without lights-off (°) | refused | row balance kept | margin / spread (px) | within 2 sigma |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for c in result.cells():
         lines.append(f"| {c.renderer} | {c.azimuth_deg:g}° | {c.theta_worst_deg:.3f} | {c.d_worst_mm:.4f} | "
-                     f"{c.plain_theta_worst_deg:.3f} | {c.refused}/{c.trials} | {c.balance_kept}/{c.trials} | "
+                     f"{c.plain_theta_worst_deg:.3f} | {c.theta_worst_no_dark_deg:.3f} | {c.refused}/{c.trials} | "
+                     f"{c.balance_kept}/{c.trials} | "
                      f"{c.margin_median_px:+.3f} / {c.spread_median_px:.3f} | {100 * c.within_2_sigma:.0f} % |")
     lines += ["", f"Goals: theta within {GOALS['theta_deg']}° and d within {GOALS['d_mm']} mm on every seed, no "
               f"refusal where the paper's plain method solves, about 95 % within 2 sigma. Worst: theta "

@@ -12,9 +12,9 @@ def _trial(renderer: str, azimuth: float, seed: int, theta: float, refused: str 
            plain_solves: bool = True) -> lighting.Trial:
     nan = math.nan
     if refused:
-        return lighting.Trial(renderer, azimuth, seed, refused, plain_solves, nan, nan, nan, nan, nan, "", False,
-                              nan, nan, False, ())
-    return lighting.Trial(renderer, azimuth, seed, "", True, theta, 0.01, 0.05, 0.01, 0.2,
+        return lighting.Trial(renderer, azimuth, seed, refused, plain_solves, nan, nan, nan, nan, nan, nan, nan, "",
+                              False, nan, nan, False, ())
+    return lighting.Trial(renderer, azimuth, seed, "", True, theta, 0.01, 0.05, 0.01, 0.2, theta, 0.01,
                           "terms chosen by held-out prediction", True, 0.3, 0.02, False,
                           ("row balance: kept, held-out margin +0.300 px (> 2 x spread 0.020 px, 10 presses "
                            "left out in turn)",))
