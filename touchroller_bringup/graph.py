@@ -271,6 +271,17 @@ def _area(launch: str, text: str) -> list[float]:
     return values
 
 
+def _scene_intrinsics(launch: str, scene: str) -> dict[str, Any]:
+    """The simulated camera's intrinsics and cylinder (not theta and d: those are calibrated)."""
+    from touchroller_driver.sim import load_scene  # lazy: only the simulated calibrate graph needs it
+
+    try:
+        params = load_scene(scene).camera.to_params()
+    except (OSError, ValueError) as exc:
+        raise GraphError(f"{launch}: scene {scene}: {exc}") from None
+    return {k: v for k, v in params.items() if k.startswith(("camera.", "cylinder."))}
+
+
 def build_graph(launch: str, values: Mapping[str, str] | None = None,
                 extra_params_files: Sequence[str | Path] = ()) -> Graph:
     """The nodes of `launch` ("scan", "calibrate", "replay") for these launch-argument values.
@@ -328,9 +339,13 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
                  spec(PERCEPTION, "perception", perception),
                  spec(SWEEP, "sweep", sweep))
     elif launch == "calibrate":
+        # simulated: the nodes start from the simulated camera's intrinsics, as they would from a real
+        # camera's chessboard calibration (a user's calibration_file wins); the defaults' 500 px would put
+        # the scale error into d
+        intrinsics = _scene_intrinsics(launch, args["scene"]) if use_sim and not args.get("calibration_file") else {}
         nodes = (spec(CAMERA, "camera", camera_parameters()),
-                 spec(PERCEPTION, "perception", {}),
-                 spec(CALIBRATION, "calibration", {"output_path": args["output_file"],
+                 spec(PERCEPTION, "perception", dict(intrinsics)),
+                 spec(CALIBRATION, "calibration", {**intrinsics, "output_path": args["output_file"],
                                                    "perception_node": names.PERCEPTION_NODE}))
     else:  # replay: a recording through the camera node into perception
         camera = {"source": "bag", "bag_path": args["bag"],

@@ -57,15 +57,23 @@ def test_calibrate_bags_end_to_end(scenes, bag_factory, tmp_path, capsys):
     report = tmp_path / "report.yaml"
     assert main(["calibrate", "extrinsics", str(bag_factory(hemi, "mcap")), "--params", str(out),
                  "--out", str(out), "--report", str(report)]) == 0
-    assert "extrinsics from 6/6 images" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "extrinsics from 6/6 images" in printed
+    # the optional terms, each with its held-out margin, in the output, the YAML and the report
+    assert "  method: terms chosen by held-out prediction" in printed
+    assert "  term row balance: " in printed and "  term view rejection: " in printed
     result = CameraModel.from_yaml(out)
     assert result.fx == pytest.approx(intrinsics.fx)                 # intrinsics carried over
     assert abs(math.degrees(result.theta - truth.theta)) < 0.15
     assert abs(result.d - truth.d) < 0.1e-3
     params = yaml.safe_load(out.read_text())["/**"]["ros__parameters"]
     assert "calibration.sigma.fx" in params and "calibration.sigma.theta" in params
+    assert any(line.startswith("row balance: ") for line in params["calibration.extrinsics_terms"])
+    assert params["calibration.extrinsics_method"] == "terms chosen by held-out prediction"
     views = yaml.safe_load(report.read_text())["extrinsics"]["views"]
     assert len(views) == 6 and all(v["rms_px"] < 0.3 for v in views)
+    choices = yaml.safe_load(report.read_text())["extrinsics"]["choices"]
+    assert [c["term"] for c in choices] == ["row balance", "view rejection"]
 
 
 def test_boards_in_the_middle_are_warned_about_while_reading_and_in_the_result(tmp_path, capsys):

@@ -338,3 +338,21 @@ def test_calibrate_graph_in_simulation_can_be_followed_by_hand(ros_context, spin
     assert all(a.message.startswith(("not captured: no imprints", "no new image")) for a in answers if not a.success)
     assert solved.success, solved.message
     assert (tmp_path / "cal.yaml").is_file()
+
+
+def test_the_simulated_calibrate_graph_starts_from_the_simulated_cameras_intrinsics(tmp_path):
+    """Out of the box, calibrate.launch.py's nodes assume the camera the scene renders (fx 380 px), not
+    the defaults' 500 px (with which the presses gave d = 18.4 mm); a user's calibration file wins."""
+    sim = pytest.importorskip("touchroller_driver.sim")
+    built = build_graph("calibrate")
+    truth = sim.load_scene(built.node("camera").parameters["scene"]).camera
+    for key in ("perception", "calibration"):
+        params = built.node(key).parameters
+        assert params["camera.fx"] == truth.fx and params["camera.cy"] == truth.cy
+        assert params["camera.distortion"] == list(truth.distortion)
+        assert "extrinsics.d" not in params and "extrinsics.theta" not in params
+    calibration = tmp_path / "c.yaml"
+    calibration.write_text("/**:\n  ros__parameters: {}\n")
+    mine = build_graph("calibrate", {"calibration_file": str(calibration)})
+    assert "camera.fx" not in mine.node("calibration").parameters
+    assert "camera.fx" not in build_graph("calibrate", {"use_sim": "false"}).node("calibration").parameters

@@ -76,7 +76,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                            "against the light alone (an uneven gel or ambient light no longer biases theta)")
     extr.add_argument("--no-row-balance", action="store_true",
                       help="plain mean of theta (the paper) without the frame-shift correction")
-    extr.add_argument("--max-view-rms", type=float, default=1.0, help="reject views above this RMS (px)")
+    extr.add_argument("--max-view-rms", type=float, default=math.inf,
+                      help="an optional hard limit on a view's RMS (px); by default views are judged against "
+                           "each other (median + 4 robust standard deviations), not by a fixed number of pixels")
     extr.add_argument("--imprint-centre", choices=("shading", "centroid"), default="shading",
                       help="shading (default): centres corrected for light from one side; centroid: the "
                            "change-weighted centroid")
@@ -241,6 +243,11 @@ def run_extrinsics(args: argparse.Namespace) -> int:
         raise UserError(f"calibrate extrinsics: {exc}") from None
     _write(args, result.camera, extrinsics=result)
     print(result.summary())
+    print(f"  method: {result.method}")
+    for choice in result.choices:
+        print(f"  term {choice.line()}")
+    for warning in result.warnings:
+        print(f"warning: {warning}")
     plain = math.degrees(result.theta_plain_mean)
     print(f"  paper's plain mean theta = {plain:.4f}° (the result is {math.degrees(result.theta) - plain:+.4f}° "
           f"from it)")

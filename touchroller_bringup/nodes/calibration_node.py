@@ -315,6 +315,11 @@ class CalibrationNode(Node):
                                                *intrinsics.coverage.lines()]))
             for warning in intrinsics.warnings():
                 self.get_logger().warning(warning)
+        if extrinsics is not None:     # the terms chosen by held-out prediction, and their margins
+            self.get_logger().info("\n".join([f"extrinsics: {extrinsics.method}",
+                                               *(f"term {c.line()}" for c in extrinsics.choices)]))
+            for warning in extrinsics.warnings:
+                self.get_logger().warning(warning)
         notes.append(self._write(camera, intrinsics, extrinsics))
         notes.append(self._send(camera, intrinsics is not None))
         self.set_parameters([Parameter(name, value=value) for name, value in _changed(camera, intrinsics is not None)])

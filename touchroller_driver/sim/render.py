@@ -8,7 +8,9 @@ Pipeline of one frame (float32, only the image rows the contact can reach):
    Motion blur (if listed) is a box filter of the remapped relief along v, of length speed * exposure.
 2. photometric shading of the membrane: normals from the gradient of D (Sobel, scaled to metres per
    pixel), three coloured lights from different azimuths (Lambert + ambient): contacts are lit on
-   one side and shaded on the other.
+   one side and shaded on the other. Or (`sensor.directional_light_deg`) one white LED from one
+   azimuth whose irradiance falls off across the membrane away from it, as a GelSight-type sensor
+   with directional LEDs: every imprint bright on the slope facing it, dark on the other.
 3. static background: uneven LED illumination and specks (gain, offset) and vignetting, all
    precomputed; the rows the contact cannot reach are a precomputed static frame.
 4. read noise (a pre-drawn bank sliced per frame), JPEG compression, dropped frames.
@@ -346,6 +348,18 @@ class SimulatedSensor:
         azimuths = [math.radians(float(a)) for a in s["light_azimuths_deg"]]
         if len(azimuths) != 3:
             raise ValueError("sensor.light_azimuths_deg needs 3 angles (blue, green, red)")
+        self._irradiance: np.ndarray | None = None
+        directional = s.get("directional_light_deg")
+        if directional is not None:
+            azimuth = math.radians(float(directional))
+            falloff = float(s.get("directional_falloff", 0.0))
+            if not (math.isfinite(azimuth) and math.isfinite(falloff)):
+                raise ValueError("sensor.directional_light_deg and directional_falloff must be finite")
+            azimuths = [azimuth] * 3
+            # irradiance across the membrane: grows towards the light (x along the axis, s = r alpha around it)
+            x, alpha = CameraModel.surface_coords(self._points.astype(np.float64))
+            towards = (x * math.cos(azimuth) + self.camera.radius * alpha * math.sin(azimuth)) / 0.010
+            self._irradiance = np.clip(1.0 + falloff * np.nan_to_num(towards), 0.2, None).astype(np.float32)
         self._lights = [(math.cos(elevation) * math.cos(a), math.cos(elevation) * math.sin(a), math.sin(elevation))
                         for a in azimuths]
         self._ambient = float(s["ambient"])
@@ -374,8 +388,12 @@ class SimulatedSensor:
                 offset = offset * mask
         self._gain = gain
         self._offset = offset
-        flat = np.array([self._flat_level(c) for c in range(3)], np.float32)
-        static = np.broadcast_to(flat, (H, W, 3)).astype(np.float32)
+        if self._irradiance is None:
+            flat = np.array([self._flat_level(c) for c in range(3)], np.float32)
+            static = np.broadcast_to(flat, (H, W, 3)).astype(np.float32)
+        else:
+            zeros = np.zeros((H, W), np.float32)
+            static = self._shade_slopes(zeros, zeros.copy(), self._irradiance)
         self._static = self._apply_static(static, 0, H)
 
     def _flat_level(self, channel: int) -> float:
@@ -513,10 +531,11 @@ class SimulatedSensor:
         gx *= self._sobel_ku[v0:v1]
         gy = cv2.Sobel(D, cv2.CV_32F, 0, 1, ksize=3)
         gy *= self._sobel_kv[v0:v1]
-        return self._shade_slopes(gx, gy)
+        return self._shade_slopes(gx, gy, None if self._irradiance is None else self._irradiance[v0:v1])
 
-    def _shade_slopes(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-        """Slopes of the membrane towards the camera (dD/dx, dD/ds, float32, consumed) -> bgr DN."""
+    def _shade_slopes(self, gx: np.ndarray, gy: np.ndarray, irradiance: np.ndarray | None = None) -> np.ndarray:
+        """Slopes of the membrane towards the camera (dD/dx, dD/ds, float32, consumed) -> bgr DN;
+        `irradiance`: the light's relative strength per pixel (same shape; None = uniform)."""
         # unit normal facing the camera: (-gx, -gy, 1) / sqrt(1 + gx^2 + gy^2)
         inv = cv2.magnitude(gx, gy)
         cv2.multiply(inv, inv, dst=inv)
@@ -530,7 +549,10 @@ class SimulatedSensor:
             dot = cv2.addWeighted(gx, -lx, gy, -ly, 0.0)
             dot = cv2.scaleAdd(inv, lz, dot)
             np.maximum(dot, 0.0, out=dot)
-            channels.append(cv2.addWeighted(dot, self._dn * self._light_gain, dot, 0.0, self._dn * self._ambient))
+            level = cv2.addWeighted(dot, self._dn * self._light_gain, dot, 0.0, self._dn * self._ambient)
+            if irradiance is not None:      # the LED makes the gel's diffuse glow too: both scale with it
+                level = cv2.multiply(level, irradiance)
+            channels.append(level)
         return cv2.merge(channels)
 
     def _render_board(self, pose: Any) -> np.ndarray:

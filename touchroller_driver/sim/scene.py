@@ -41,6 +41,11 @@ _DEFAULT_SENSOR: dict[str, Any] = {
     # +v around it); green, which dominates a grey conversion, lights diagonally so grey images keep
     # slopes in both directions (a symmetric layout would cancel them in grey).
     "light_azimuths_deg": [200.0, 80.0, 320.0],
+    # One white directional LED instead (a GelSight-type membrane lit from one side): its azimuth in
+    # the membrane's tangent plane (deg, as above; null = the three coloured lights), and how much its
+    # irradiance grows per 10 mm of membrane towards it (0 = uniform).
+    "directional_light_deg": None,
+    "directional_falloff": 0.15,
     "ambient": 0.2,
     "light_gain": 1.2,
     "exposure_scale": 0.72,          # DN = 255 * scale * shading

@@ -65,15 +65,18 @@ from touchroller_perception.calibration.outputs import (
                                                            read_calibration_extras,
                                                            write_calibration,
 )
+from touchroller_perception.calibration.plausibility import Plausibility, check_plausible
+from touchroller_perception.calibration.selection import SIMULATED_VIEW_RMS, TermChoice, choose_term, gate_by_rms
 from touchroller_perception.calibration.uncertainty import INTRINSIC_NAMES, jackknife_std, view_clustered_covariance
 
 __all__ = [
     "AUTO_CANDIDATES", "CENTRE_ESTIMATORS", "CORNER_METHODS", "DISTORTION_MODELS", "DISTORTION_NAMES",
     "INTRINSIC_NAMES",
-    "MAX_BOARD_SIDE", "MAX_FRAME_SIDE", "STRENGTH_MEASURES",
+    "MAX_BOARD_SIDE", "MAX_FRAME_SIDE", "SIMULATED_VIEW_RMS", "STRENGTH_MEASURES",
     "BoardCoverage", "CalibrationError", "Chessboard", "ChessboardDetection", "CoverageBar", "ExtrinsicsConfig",
     "ExtrinsicsResult", "HemisphereFrame", "ImprintDetection", "ImprintDetectorConfig", "IntrinsicsConfig",
-    "IntrinsicsResult", "ModelChoice", "ModelScore", "NeglectedTerms", "RowBalance", "ViewPose",
+    "IntrinsicsResult", "ModelChoice", "ModelScore", "NeglectedTerms", "Plausibility", "RowBalance", "TermChoice",
+    "ViewPose", "check_plausible", "choose_term", "gate_by_rms",
     "back_project_pose", "board_coverage", "calibrate_extrinsics", "calibrate_intrinsics", "calibration_sigma",
     "camera_info_fields", "chessboard_corners", "choose_distortion_model", "compare_cameras", "detect_chessboards",
     "find_chessboard",

@@ -42,6 +42,14 @@ from touchroller_perception.calibration.common import (
     require_views,
 )
 from touchroller_perception.calibration.imprints import HemisphereFrame, ImprintDetectorConfig, find_imprints
+from touchroller_perception.calibration.plausibility import Plausibility, check_plausible
+from touchroller_perception.calibration.selection import (
+    TermChoice,
+    choose_term,
+    gate_by_rms,
+    not_judged,
+    rms_warning,
+)
 from touchroller_perception.calibration.uncertainty import INTRINSIC_NAMES, jackknife_std
 from touchroller_perception.geometry import PARAMETER_RANGES, CameraModel
 
@@ -149,30 +157,37 @@ def solve_view(camera: CameraModel, frame: HemisphereFrame, image_points: FloatA
 class ExtrinsicsConfig:
     """How `calibrate_extrinsics` judges presses and combines them.
 
-    A view is rejected when its imprints are not all found, are collinear or smeared, its
-    reprojection RMS exceeds `max_view_rms` px, or its theta or d lies more than `outlier_sigma`
-    robust standard deviations from the others (or from the row-balance line). Fewer than
-    `min_views` usable views is an error. `solve_placement` solves the frame's axial shift and yaw
-    per image. `balance_rows` allows the row balance; it is applied only when the presses' own
-    scatter shows it (`row_balance_significance`: its slope in standard errors). Images without
-    any imprint (between presses) are skipped when `skip_empty`.
+    A view is unusable when its imprints are not all found, are collinear or smeared, or its
+    reprojection RMS exceeds `max_view_rms` px (an optional hard limit, off by default). Among
+    the usable views, an outlier is one whose RMS lies above the set's median by more than
+    `view_rms_k` robust standard deviations (`selection.gate_by_rms`), or whose theta or d lies
+    more than `outlier_sigma` robust standard deviations from the others (or from the row-balance
+    line). `balance_rows` allows the row balance. The row balance and the rejection of outliers
+    are each kept only when, with each press left out in turn, they predict its imprint
+    positions better by more than `term_margin` standard errors (`selection.choose_term`). Fewer
+    than `min_views` views after that falls back to the paper's plain method (every usable view,
+    the plain mean), which needs `min_views` usable views. `solve_placement` solves the frame's
+    axial shift and yaw per image. Images without any imprint (between presses) are skipped
+    when `skip_empty`. `plausibility`: the limits a result must meet to be returned at all.
     """
 
     frame: HemisphereFrame = HemisphereFrame()
     detector: ImprintDetectorConfig = ImprintDetectorConfig()
     min_views: int = 2
-    max_view_rms: float = 1.0
+    max_view_rms: float = math.inf
+    view_rms_k: float = 4.0
     outlier_sigma: float = 4.0
     solve_placement: bool = True
     balance_rows: bool = True
-    row_balance_significance: float = 3.0
+    term_margin: float = 2.0
     skip_empty: bool = True
+    plausibility: Plausibility = Plausibility()
 
     def __post_init__(self) -> None:
         if self.min_views < 1:
             raise CalibrationError(f"min_views must be at least 1, got {self.min_views}")
-        if not (self.max_view_rms > 0 and self.outlier_sigma > 0 and self.row_balance_significance >= 0):
-            raise CalibrationError("max_view_rms and outlier_sigma must be positive, row_balance_significance >= 0")
+        if not (self.max_view_rms > 0 and self.outlier_sigma > 0 and self.view_rms_k > 0 and self.term_margin >= 0):
+            raise CalibrationError("max_view_rms, view_rms_k and outlier_sigma must be positive, term_margin >= 0")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,6 +220,8 @@ class RowBalance:
     reason: str              # one line: why it was (not) applied
     slope_deg: float         # d(theta)/d(row asymmetry) taken out, degrees (NaN when not fitted)
     significance: float      # the fitted slope in standard errors (NaN when not fitted)
+    margin_px: float = math.nan   # held-out margin (`selection.TermChoice`), px
+    spread_px: float = math.nan   # its standard error
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,6 +241,11 @@ class ExtrinsicsResult:
     neglected: NeglectedTerms
     theta_press_sigma: float = math.nan   # rad, the presses' share of theta_sigma (jackknife over presses)
     d_press_sigma: float = math.nan       # m
+    #: the optional terms and the held-out evidence for each (row balance, view rejection)
+    choices: tuple[TermChoice, ...] = ()
+    #: "terms chosen by held-out prediction", or the paper's plain method when that left too few views
+    method: str = "terms chosen by held-out prediction"
+    warnings: tuple[str, ...] = ()
     #: d(theta, d) / d(intrinsic) over `uncertainty.INTRINSIC_NAMES`, (9, 2): propagates an intrinsics covariance
     intrinsics_gradient: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((9, 2)), compare=False)
 
@@ -241,7 +263,9 @@ class ExtrinsicsResult:
                 f"two-parameter model differs from the full pose by {n.model_error_centre_mm:.3f} mm "
                 f"in the contact band (max {n.model_error_max_mm:.3f} mm over the image); "
                 + ("row balance applied" if self.row_balance.applied else "paper's plain mean")
-                + f" ({self.row_balance.reason})")
+                + f" ({self.row_balance.reason}); {self.method}"
+                + "".join(f"; {c.line()}" for c in self.choices)
+                + "".join(f"; warning: {w}" for w in self.warnings))
 
     def to_dict(self) -> dict[str, Any]:
         """The result as plain data, for the report file the CLI writes."""
@@ -252,6 +276,8 @@ class ExtrinsicsResult:
             "d_m": self.d, "d_mm": self.d * 1e3, "d_std_mm": self.d_std * 1e3, "d_sigma_mm": self.d_sigma * 1e3,
             "rms_px": self.rms, "views_used": len(self.views), "images": self.image_count,
             "row_balance": dataclasses.asdict(self.row_balance),
+            "method": self.method, "choices": [dataclasses.asdict(c) | {"line": c.line()} for c in self.choices],
+            "warnings": list(self.warnings),
             "rejected": {int(k): v for k, v in self.rejected.items()},
             "neglected": dataclasses.asdict(self.neglected),
             "views": [v.as_dict() for v in self.views],
@@ -279,13 +305,24 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
     images = list(images)
     if not images:
         raise CalibrationError("no hemisphere-frame images given")
-    image_size(images)
+    width, height = image_size(images)
+    if (width, height) != (camera.width, camera.height):
+        raise CalibrationError(f"the intrinsics are for {camera.width}x{camera.height} images, the presses are "
+                               f"{width}x{height}: calibrate the intrinsics on this camera first")
     frame.reference_points(camera.radius)       # fails early if the frame does not fit the roller
-    views, points, rejected, total = _solve_views(images, camera, config, reference, dark)
-    views = _with_row_asymmetry(views)
-    fit = _row_balance(views, config) if config.balance_rows else None
-    balance = _balance_verdict(fit, config, len(views))
-    views, rejected = _drop_outliers(views, fit if balance.applied else None, config, rejected)
+    solved, points, rejected, total = _solve_views(images, camera, config, reference, dark)
+    solved = _with_row_asymmetry(solved)
+    held_out = _HeldOut(camera, frame, points, config.solve_placement)
+    views, balance, choices, fit, rejected = _choose_terms(solved, config, held_out, rejected)
+    method = "terms chosen by held-out prediction"
+    if len(views) < config.min_views:
+        # the paper's plain method: every view that solved, the plain mean; never nothing when it solves
+        method = (f"the paper's plain method (every usable view, the plain mean): only {len(views)} view(s) were "
+                  f"left after the rejections, need {config.min_views}")
+        views, fit = solved, None
+        balance = RowBalance(False, "not used: fell back to the paper's plain method", math.nan, math.nan)
+        used = {view.index for view in solved}
+        rejected = {index: why for index, why in rejected.items() if index not in used}
     require_views(len(views), config.min_views, total, rejected, "hemisphere-frame")
     slope = fit.slope if (fit is not None and balance.applied) else 0.0
     shifts = np.array([slope * v.row_asymmetry for v in views])
@@ -303,14 +340,119 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
     theta_intr, d_intr = _intrinsics_effect(gradient, covariance)
     result_camera = camera.replace(theta=theta, d=d)
     ddof = 1 if len(views) > 1 else 0
-    return ExtrinsicsResult(
+    median_rms = float(np.median([v.rms for v in views]))
+    warning = rms_warning(median_rms, math.degrees(theta_se), d_se * 1e3)
+    warnings = ([method] if method != "terms chosen by held-out prediction" else []) + ([warning] if warning else [])
+    result = ExtrinsicsResult(
         camera=result_camera, theta=theta, d=d,
         theta_std=float(thetas.std(ddof=ddof)), d_std=float(ds.std(ddof=ddof)),
         theta_sigma=math.hypot(theta_se, theta_intr), d_sigma=math.hypot(d_se, d_intr),
         theta_plain_mean=float(np.mean([v.theta for v in views])), row_balance=balance,
         views=views, rejected=rejected, image_count=total,
         neglected=_neglected_terms(result_camera, views, shifts),
-        theta_press_sigma=theta_se, d_press_sigma=d_se, intrinsics_gradient=gradient)
+        theta_press_sigma=theta_se, d_press_sigma=d_se, intrinsics_gradient=gradient,
+        choices=choices, method=method, warnings=tuple(warnings))
+    check_plausible(result, camera, config.plausibility)
+    return result
+
+
+class _HeldOut:
+    """Held-out prediction of one press's imprint positions: given (theta, d) from the other
+    presses, its own frame placement (axial shift, yaw: nuisances no other press can know) is
+    refitted and the reprojection RMS (px) of its imprints is what the prediction scores."""
+
+    def __init__(self, camera: CameraModel, frame: HemisphereFrame, points: Mapping[int, FloatArray],
+                 solve_placement: bool) -> None:
+        self.camera, self.frame, self.points, self.solve_placement = camera, frame, points, solve_placement
+
+    def rms(self, view: ViewPose, theta: float, d: float) -> float:
+        residual = _pose_residual(self.camera, self.frame, self.points[view.index], self.solve_placement)
+        if not self.solve_placement:
+            fun = residual(np.array([theta, d]))
+        else:
+            start = np.array([view.shift_x, view.yaw])
+            fit = least_squares(lambda p: residual(np.array([theta, d, p[0], p[1]])), start, method="lm",
+                                x_scale=np.array([1e-3, 1e-2]), xtol=1e-12, ftol=1e-12)
+            fun = fit.fun
+        return float(np.sqrt(np.mean(np.sum(fun.reshape(-1, 2) ** 2, axis=1))))
+
+    def errors(self, views: Sequence[ViewPose], use: NDArray[np.bool_], balanced: bool) -> FloatArray:
+        """Each view's held-out RMS, (theta, d) estimated from the other views in `use`: their plain
+        means, or (`balanced`) theta from their row-balance line at the view's own asymmetry."""
+        raw = np.array([v.theta for v in views])
+        a = np.array([v.row_asymmetry for v in views])
+        ds = np.array([v.d for v in views])
+        out = np.full(len(views), np.nan)
+        for i, view in enumerate(views):
+            others = use.copy()
+            others[i] = False
+            if others.sum() < (3 if balanced else 1):
+                continue
+            if balanced:
+                if np.ptp(a[others]) <= 0:
+                    continue
+                slope, intercept = np.polyfit(a[others], raw[others], 1)
+                theta = float(intercept + slope * a[i])
+            else:
+                theta = float(raw[others].mean())
+            out[i] = self.rms(view, theta, float(ds[others].mean()))
+        return out
+
+
+def _choose_terms(views: list[ViewPose], config: ExtrinsicsConfig, held_out: _HeldOut, rejected: dict[int, str]
+                  ) -> tuple[list[ViewPose], RowBalance, tuple[TermChoice, ...], _BalanceFit | None, dict[int, str]]:
+    """The row balance and the rejection of outliers, each kept only when it predicts left-out
+    presses better (`selection.choose_term`). Returns the views used, the row balance's verdict,
+    the choices, the row-balance fit and the rejected views."""
+    rejected = dict(rejected)
+    gate = gate_by_rms([v.rms for v in views], config.view_rms_k)
+    gated = [v for v, ok in zip(views, gate, strict=True) if ok]
+    fit = _row_balance(gated, config) if config.balance_rows else None
+    balance = _balance_verdict(fit, config, len(gated))
+    balance_choice = not_judged("row balance", balance.reason)
+    if balance.applied and fit is not None:
+        use = fit.inliers.copy()
+        balance_choice = choose_term("row balance", held_out.errors(gated, use, False),
+                                     held_out.errors(gated, use, True), config.term_margin)
+        balance = dataclasses.replace(
+            balance, applied=balance_choice.kept, margin_px=balance_choice.margin_px,
+            spread_px=balance_choice.spread_px,
+            reason=(f"{balance.reason}; " if balance_choice.kept else
+                    f"does not predict left-out presses better ({balance.reason}); ") + balance_choice.line())
+    kept, outlier_reasons = _drop_outliers(gated, fit if balance.applied else None, config, {})
+    for view, ok in zip(views, gate, strict=True):
+        if not ok:
+            outlier_reasons[view.index] = (f"outlier: reprojection RMS {view.rms:.2f} px, far above the other views' "
+                                           f"(median {np.median([v.rms for v in views]):.2f} px)")
+    if outlier_reasons:
+        keep = np.array([v.index not in outlier_reasons for v in views])
+        everything = np.ones(len(views), dtype=bool)
+        rejection = choose_term("view rejection", held_out.errors(views, everything, balance.applied),
+                                held_out.errors(views, keep, balance.applied), config.term_margin,
+                                f"{len(outlier_reasons)} outlier(s)")
+        if rejection.kept:
+            rejected.update(outlier_reasons)
+            used = kept
+        else:
+            used = list(views)
+            if balance.applied and fit is not None:
+                fit = dataclasses.replace(fit, inliers=np.ones(len(views), dtype=bool))
+    else:
+        rejection = not_judged("view rejection", "no view stands out")
+        used = kept
+    if balance.applied and fit is not None and len(used) != len(gated):
+        fit = _refit_balance(used, fit)
+    return used, balance, (balance_choice, rejection), fit, rejected
+
+
+def _refit_balance(views: Sequence[ViewPose], fit: _BalanceFit) -> _BalanceFit:
+    """The row-balance line on `views` (least squares, every view an inlier)."""
+    a = np.array([v.row_asymmetry for v in views])
+    theta = np.array([v.theta for v in views])
+    if len(views) < 3 or np.ptp(a) <= 0:
+        return fit
+    slope, _ = (float(c) for c in np.polyfit(a, theta, 1))
+    return dataclasses.replace(fit, slope=-slope, inliers=np.ones(len(views), dtype=bool))
 
 
 def _solve_views(images: Sequence[np.ndarray], camera: CameraModel, config: ExtrinsicsConfig,
@@ -337,7 +479,7 @@ def _solve_views(images: Sequence[np.ndarray], camera: CameraModel, config: Extr
             rejected[index] = str(exc)
             continue
         if not view.rms <= config.max_view_rms:
-            rejected[index] = f"reprojection RMS {view.rms:.2f} px (limit {config.max_view_rms:.2f})"
+            rejected[index] = f"reprojection RMS {view.rms:.2f} px (hard limit {config.max_view_rms:.2f})"
             continue
         strengths = _per_membrane_area(detection.strengths, camera.replace(theta=view.theta, d=view.d),
                                        frame.reference_points(camera.radius, view.shift_x, 0.0, view.yaw))
@@ -528,10 +670,10 @@ def _row_balance(views: Sequence[ViewPose], config: ExtrinsicsConfig,
 
 
 def _balance_verdict(fit: _BalanceFit | None, config: ExtrinsicsConfig, views: int) -> RowBalance:
-    """Use the row balance only where the presses show it: a slope of the physical sign, at least
-    `config.row_balance_significance` standard errors from zero (with 3 presses the residual has
-    one degree of freedom, so the test needs 4 or more to mean much). Otherwise the paper's plain
-    mean is the better estimate: correcting by a slope that is noise adds its noise to theta."""
+    """Whether the row balance can be put to the held-out test: allowed, fitted (the presses vary
+    in row strength), and a slope of the physical sign. Its fit's significance is reported, not
+    used: a slope can be many standard errors from zero and still be the light's asymmetry, not
+    the frame's placement; only what it predicts decides (`_choose_terms`)."""
     if not config.balance_rows:
         return RowBalance(False, "switched off", math.nan, math.nan)
     if fit is None:
@@ -545,9 +687,6 @@ def _balance_verdict(fit: _BalanceFit | None, config: ExtrinsicsConfig, views: i
     if fit.slope <= 0:
         return RowBalance(False, f"rows' strengths do not follow the placement (slope of the wrong sign, "
                           f"{degrees:.2f}°)", degrees, significance)
-    if not significance >= config.row_balance_significance:
-        return RowBalance(False, f"slope {degrees:.2f}° is only {significance:.1f} standard errors from zero "
-                          f"(need {config.row_balance_significance:g})", degrees, significance)
     return RowBalance(True, f"slope {degrees:.2f}° per unit asymmetry, {significance:.1f} standard errors",
                       degrees, significance)
 

@@ -58,6 +58,9 @@ def write_calibration(path: str, camera: CameraModel, intrinsics: IntrinsicsResu
     if extrinsics is not None:
         extra["calibration.extrinsics_rms_px"] = float(extrinsics.rms)
         extra["calibration.extrinsics_views"] = len(extrinsics.views)
+        # the optional terms and their held-out margins, and how theta and d were combined
+        extra["calibration.extrinsics_method"] = extrinsics.method
+        extra["calibration.extrinsics_terms"] = [choice.line() for choice in extrinsics.choices] or [""]
     camera.to_yaml(path, extra=extra)
 
 

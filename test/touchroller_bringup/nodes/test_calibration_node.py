@@ -251,3 +251,25 @@ def test_ball_presses_solve_the_photometric_model(graph, spin_until, tmp_path):
     assert solved.success, solved.message
     assert "6 presses" in solved.message and (tmp_path / "p.npz").is_file()
     assert PhotometricModel.load(tmp_path / "p.npz").width == 640
+
+
+def test_an_implausible_result_is_refused_and_never_set_on_perception(graph, presses, spin_until, tmp_path):
+    """The calibrate graph's old defaults: the nodes assume fx = 500 px for a camera of 380 px. The
+    presses then solve to a d many mm off; ~/solve refuses it with the reason, writes nothing and sets
+    nothing on the perception node."""
+    node, perception, helper, executor, image_pub, infos = graph
+    truth, references, pressed = presses
+    node.set_parameters([Parameter("camera.fx", value=500.0), Parameter("camera.fy", value=500.0),
+                         Parameter("target", value="reference")])
+    for frame in references:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    node.set_parameters([Parameter("target", value="hemispheres")])
+    for frame in pressed:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+    solved = call(executor, spin_until, helper, "solve")
+    assert not solved.success
+    assert "implausible result, not applied: d = " in solved.message and "intrinsics" in solved.message
+    assert node.remote_result is None and perception.geometry.model.d == 0.0
+    assert not (tmp_path / "cal.yaml").exists()

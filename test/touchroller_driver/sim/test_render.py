@@ -276,3 +276,29 @@ def test_other_image_sizes():
     assert image.shape == (240, 320, 3)
     _, mpp_v = sensor.metres_per_px_at_contact()
     assert mpp_v == pytest.approx(2e-4, rel=0.01)
+
+
+@pytest.mark.parametrize("azimuth", [0.0, 90.0, 180.0, 270.0])
+def test_directional_light_lights_every_imprint_from_its_side(azimuth):
+    """`sensor.directional_light_deg`: one white LED from that azimuth (0: +u along the axis, 90: +v
+    around it). Each imprint's slope that faces the light is brighter than the opposite one, the
+    same in every colour, and the light is stronger on the membrane's side towards it."""
+    scene = load_scene("calibration_hemispheres", effects=[],
+                       **{"motion.presses": 1, "sensor.directional_light_deg": azimuth})
+    sensor = SimulatedSensor(scene, seed=0)
+    frames = list(sensor.frames())
+    reference = frames[0].image.astype(np.float64)
+    press = next(f for f in frames if f.truth["contacts"])
+    change = press.image.astype(np.float64) - reference
+    assert np.allclose(change[..., 0] / 0.72, change[..., 1] / 0.72, atol=2.0)   # white: channels alike
+    towards = np.array([math.cos(math.radians(azimuth)), math.sin(math.radians(azimuth))])
+    for contact in press.truth["contacts"]:
+        u, v = np.rint(contact["pixel"]).astype(int)
+        lit = change[v + int(round(3 * towards[1])), u + int(round(3 * towards[0]))].mean()
+        dark = change[v - int(round(3 * towards[1])), u - int(round(3 * towards[0]))].mean()
+        assert lit > dark + 5.0
+    grey = reference.mean(axis=2)
+    rows, cols = grey.shape
+    near = grey[rows // 2 + int(60 * towards[1]), cols // 2 + int(60 * towards[0])]
+    far = grey[rows // 2 - int(60 * towards[1]), cols // 2 - int(60 * towards[0])]
+    assert near > far

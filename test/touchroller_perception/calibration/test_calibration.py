@@ -209,9 +209,15 @@ def test_extrinsics_report_a_neglected_yaw():
     assert abs(result.d - TRUE_CAMERA.d) < 0.05e-3
     assert result.rms < 0.2
     # without the frame's placement among the unknowns, the paper's two parameters cannot fit
+    lenient = cal.Plausibility(max_median_rms=10.0)
     plain = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0),
-                                     cal.ExtrinsicsConfig(solve_placement=False, max_view_rms=10.0))
+                                     cal.ExtrinsicsConfig(solve_placement=False, plausibility=lenient))
     assert plain.rms > 1.0
+    # and by default an RMS that large is refused as more than imprint noise explains
+    if plain.rms > 3.0:
+        with pytest.raises(cal.CalibrationError, match="implausible result.*median reprojection RMS"):
+            cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0),
+                                     cal.ExtrinsicsConfig(solve_placement=False))
 
 
 def test_row_balance_removes_the_frame_shift_along_y():
@@ -424,3 +430,72 @@ def test_press_sigma_is_the_jackknife_over_presses():
     assert result.theta_press_sigma == pytest.approx(thetas.std(ddof=1) / math.sqrt(thetas.size), rel=1e-9)
     assert result.d_press_sigma == pytest.approx(ds.std(ddof=1) / math.sqrt(ds.size), rel=1e-9)
     assert result.theta_sigma == pytest.approx(result.theta_press_sigma)
+
+
+# --------------------------------------------------------------------------- views judged against the set (#26)
+def _uneven_points() -> np.ndarray:
+    """The frame's imprint centres moved by a pattern no pose explains (+-0.16 mm along the axis,
+    alternating): every view ~1.2 px RMS, as on a sensor whose imprints are a little off everywhere."""
+    points = FRAME.reference_points(TRUE_CAMERA.radius).copy()
+    points[:, 0] += 0.16e-3 * np.where(np.arange(FRAME.count) % 2 == 0, 1.0, -1.0)
+    return points
+
+
+def test_a_set_uniformly_worse_than_the_simulators_is_used_with_a_warning():
+    """Every view ~1.2 px RMS: no view stands out from the others, so all are used (a fixed 1 px limit
+    refused them all), with a warning saying how much worse than the simulators and what it costs."""
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s, points=_uneven_points()) for s in range(6)]
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0))
+    assert len(result.views) == 6 and not result.rejected
+    assert all(0.8 < v.rms < 2.0 for v in result.views)
+    assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
+    assert any("what this project's simulators give" in w and "sigma" in w for w in result.warnings)
+    assert "warning: the views' median reprojection RMS" in result.summary()
+
+
+def test_a_view_far_above_the_others_rms_is_dropped_only_when_that_predicts_better():
+    """One press whose imprints are moved by the pattern above (1.6 px RMS among 0.02 px) stands out
+    from the set and is a candidate outlier; but its theta and d agree with the others, so leaving it
+    out predicts the other presses no better, and it is kept: the choice says so."""
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(6)]
+    images.append(render_hemispheres(TRUE_CAMERA, FRAME, seed=7, points=_uneven_points()))
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0))
+    rejection = next(c for c in result.choices if c.term == "view rejection")
+    assert rejection.reason == "1 outlier(s)" and not rejection.kept and abs(rejection.margin_px) < 0.01
+    assert 6 in {v.index for v in result.views}
+    assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.1
+
+
+def test_never_zero_views_when_the_papers_plain_method_solves():
+    """When the rejections leave fewer views than needed, the paper's plain method (every view that
+    solved, the plain mean) is used and the result says so, instead of refusing."""
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(5)]
+    images.append(render_hemispheres(TRUE_CAMERA, FRAME, seed=9, shift_px=(0.0, 12.0)))   # frame slipped
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0), cal.ExtrinsicsConfig(min_views=6))
+    assert len(result.views) == 6
+    assert "paper's plain method" in result.method and any("plain method" in w for w in result.warnings)
+    assert result.theta == pytest.approx(np.mean([v.theta for v in result.views]))
+
+
+def test_outlier_rejection_is_kept_by_held_out_prediction():
+    """The slipped frame's press is rejected because leaving it out predicts the other presses better."""
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(5)]
+    images.append(render_hemispheres(TRUE_CAMERA, FRAME, seed=9, shift_px=(0.0, 12.0)))
+    result = cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0))
+    rejection = next(c for c in result.choices if c.term == "view rejection")
+    assert rejection.kept and rejection.margin_px > rejection.needed * rejection.spread_px
+    assert "view rejection: kept, held-out margin" in result.summary()
+
+
+# --------------------------------------------------------------------------- plausibility (#26)
+def test_intrinsics_of_another_camera_are_refused_not_applied():
+    """fx 500 px given for a camera of 512/508 px is mild; 380 px gives d many mm off: refused, with why."""
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(4)]
+    with pytest.raises(cal.CalibrationError, match=r"implausible result.*d = .*intrinsics"):
+        cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0, fx=380.0, fy=380.0))
+
+
+def test_intrinsics_for_another_image_size_are_refused():
+    images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(3)]
+    with pytest.raises(cal.CalibrationError, match="intrinsics are for 320x240 images, the presses are 640x480"):
+        cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0, width=320, height=240))
