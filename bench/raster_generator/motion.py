@@ -83,6 +83,8 @@ class _Builder:
         self.w: list[float] = []
         self.h: list[float] = []
         self.v = 0.0
+        self.at = (0.0, 0.0, 0.0)   # where the last move ended
+        self.carry = 0.0   # m of the last time step a move ending at speed did not use: the next one starts with it
         rng = np.random.default_rng(np.random.SeedSequence([config.seed, 2205]))
         # a smooth random speed factor: a sum of sinusoids of random phases, periods 0.5-4 s
         periods = rng.uniform(0.5, 4.0, 8)
@@ -104,16 +106,26 @@ class _Builder:
 
     def start(self, u: float, w: float, h: float) -> None:
         self._add(u, w, h)
+        self.at = (u, w, h)
+
+    def _flush(self) -> None:
+        """Emit the end of a move that ended at speed inside a time step (before a hold or vertical move)."""
+        if self.carry > 0:
+            self._add(*self.at)
+            self.carry = 0.0
 
     def hold(self, seconds: float) -> None:
+        self._flush()
         for _ in range(max(int(round(seconds / DT)), 1)):
             self._add(self.u[-1], self.w[-1], self.h[-1])
 
     def vertical(self, h1: float) -> None:
+        self._flush()
         h0 = self.h[-1]
         steps = max(int(math.ceil(abs(h1 - h0) / (self.c.approach_speed * DT))), 1)
         for k in range(1, steps + 1):
             self._add(self.u[-1], self.w[-1], h0 + (h1 - h0) * k / steps)
+        self.at = (self.u[-1], self.w[-1], self.h[-1])
 
     def speed_factor(self, kind: str) -> float:
         if kind == "blend":
@@ -126,7 +138,8 @@ class _Builder:
              kind: str = "none", pause_s: float = 0.0) -> None:
         """Along the straight line to `target` (u, w), height linear in distance to `h1`; accel-limited;
         `stop`: at rest at the end; `stops`: fractions of the way to stop at (and wait `pause_s`)."""
-        u0, w0, h0 = self.u[-1], self.w[-1], self.h[-1]
+        u0, w0, h0 = self.at        # where the previous move ended (its last sample may lie short of it)
+        self.at = (target[0], target[1], h1)
         total = math.hypot(target[0] - u0, target[1] - w0)
         if total <= 0:
             return
@@ -136,13 +149,18 @@ class _Builder:
         a = self.c.accel
         while s < total - 1e-9:
             next_stop = next((m for m in marks if m > s + 1e-9), total if stop else None)
+            if self.carry > 0:    # finish the time step the previous move began
+                step, self.carry = min(self.carry, total - s), max(self.carry - (total - s), 0.0)
+                s += step
+                if self.carry == 0:
+                    self._add(u0 + du * s, w0 + dw * s, h0 + (h1 - h0) * s / total)
+                continue
             desired = speed * self.speed_factor(kind)
             if next_stop is not None:
                 desired = min(desired, math.sqrt(max(2 * a * (next_stop - s), 0.0)))
             self.v = min(max(desired, self.v - a * DT), self.v + a * DT)
             step = self.v * DT
             if next_stop is not None and s + step >= next_stop - 1e-9:
-                step = next_stop - s
                 s = next_stop
                 self._add(u0 + du * s, w0 + dw * s, h0 + (h1 - h0) * s / total)
                 if next_stop < total - 1e-9 or stop:
@@ -150,7 +168,11 @@ class _Builder:
                 if next_stop < total - 1e-9:
                     self.hold(pause_s)
                 continue
-            s = min(s + step, total)
+            if s + step > total:          # the move ends inside this time step, at speed: the next one goes on
+                self.carry = s + step - total
+                s = total
+                continue
+            s += step
             self._add(u0 + du * s, w0 + dw * s, h0 + (h1 - h0) * s / total)
 
 
@@ -191,7 +213,7 @@ def plan(length: float, across: list[float], config: MotionConfig) -> Trajectory
         passes_rows.append((k, w, u_start, u_end))
     if at_speed:   # run out at clearance
         last_sign = 1.0 if (len(across) - 1) % 2 == 0 else -1.0
-        b.move((b.u[-1] + last_sign * 0.01, b.w[-1]), c.clearance, c.speed, stop=True)
+        b.move((b.at[0] + last_sign * 0.01, b.at[1]), c.clearance, c.speed, stop=True)
     t = np.asarray(b.t)
     u, w_arr, h = np.asarray(b.u), np.asarray(b.w), np.asarray(b.h)
     passes = []
