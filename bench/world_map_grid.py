@@ -34,7 +34,7 @@ from touchroller_perception.files import atomic_write_text
 
 PARAMS = ROOT / "config" / "touchroller.yaml"
 FULL = {"profiles": ("ramp", "blend", "constant", "pauses"), "latencies_ms": (0.0, 20.0, 50.0, 120.0),
-        "yaws": (0.0, 35.0), "area": (0.40, -0.075, 0.12, 0.15), "passes": 3,
+        "yaws": (0.0, 35.0), "area": (0.40, -0.065, 0.08, 0.13), "passes": 3,
         "surfaces": (("weave", "blend", 50.0, 0.0), ("panel", "blend", 50.0, 0.0), ("panel", "ramp", 20.0, 35.0),
                      ("glass", "blend", 50.0, 0.0))}
 QUICK = {"profiles": ("blend",), "latencies_ms": (50.0,), "yaws": (0.0,), "area": (0.40, -0.05, 0.04, 0.10),
@@ -114,10 +114,10 @@ def run(quick: bool = False) -> GridResult:
     stamp = provenance("world_map_grid", quick)
     begin = time.perf_counter()
     area = tuple(size["area"])
-    cells = [run_cell("grained", profile, latency, yaw, area, size["passes"])
-             for yaw in size["yaws"] for profile in size["profiles"] for latency in size["latencies_ms"]]
     surfaces = [run_cell(kind, profile, latency, yaw, area, size["passes"])
                 for kind, profile, latency, yaw in size["surfaces"]]
+    cells = [run_cell("grained", profile, latency, yaw, area, size["passes"])
+             for yaw in size["yaws"] for profile in size["profiles"] for latency in size["latencies_ms"]]
     return GridResult(stamp, quick, area, size["passes"], TF_RATE, cells, surfaces, time.perf_counter() - begin)
 
 
