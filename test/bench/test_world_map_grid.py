@@ -57,6 +57,20 @@ def test_the_quick_grid_films_maps_and_scores_every_cell(quick: world_map_grid.G
     assert len(world_map_grid.goals(quick)) >= 7
 
 
+def test_the_reports_goal_rows_read_the_grid(quick: world_map_grid.GridResult) -> None:
+    from touchroller_bringup.report import GOALS, SECTIONS
+
+    assert "world_map_grid" in {s.key for s in SECTIONS}
+    rows = [goal for goal in GOALS if goal.section == "world_map_grid"]
+    assert len(rows) == len(world_map_grid.goals(quick)) == 8
+    for goal in rows:
+        figure, met = goal.measure(quick)
+        assert "second raster generator" in figure and "second generator" in goal.text
+        assert met in (True, False, None)
+    weave = next(goal for goal in rows if "weave" in goal.text)
+    assert weave.measure(quick)[1] is None        # the quick run has no weave raster: no verdict, not a pass
+
+
 def test_the_recorded_result_reads_back(quick: world_map_grid.GridResult, tmp_path: Path) -> None:
     from bench._common import to_json
 
