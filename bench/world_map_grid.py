@@ -28,18 +28,34 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench._common import ROOT, Provenance, provenance, provenance_markdown, results_path, to_json
-from bench.raster_generator import MotionConfig, RasterSpec, generate, load_camera
+from bench.raster_generator import Look, MotionConfig, RasterSpec, generate, load_camera
 from bench.raster_score import FeatureScore, MapRun, MapScore, parse_map_output, score_map
 from touchroller_perception.files import atomic_write_text
 
 PARAMS = ROOT / "config" / "touchroller.yaml"
-FULL = {"profiles": ("ramp", "blend", "constant", "pauses"), "latencies_ms": (0.0, 20.0, 50.0, 120.0),
-        "yaws": (0.0, 35.0), "area": (0.40, -0.065, 0.08, 0.13), "passes": 3,
-        "surfaces": (("weave", "blend", 50.0, 0.0), ("panel", "blend", 50.0, 0.0), ("panel", "ramp", 20.0, 35.0),
-                     ("glass", "blend", 50.0, 0.0))}
-QUICK = {"profiles": ("blend",), "latencies_ms": (50.0,), "yaws": (0.0,), "area": (0.40, -0.05, 0.04, 0.10),
-         "passes": 2, "surfaces": (("panel", "ramp", 20.0, 0.0),)}
+
+
+@dataclass(frozen=True)
+class GridSize:
+    """What a run films: the grid (profiles x latencies x yaws on the grained surface) and the surface rows
+    (surface, profile, latency ms, yaw deg), all over one raster rectangle (x, y, length, width)."""
+
+    profiles: tuple[str, ...]
+    latencies_ms: tuple[float, ...]
+    yaws: tuple[float, ...]
+    area: tuple[float, float, float, float]
+    passes: int
+    surfaces: tuple[tuple[str, str, float, float], ...]
+
+
+FULL = GridSize(profiles=("ramp", "blend", "constant", "pauses"), latencies_ms=(0.0, 20.0, 50.0, 120.0),
+                yaws=(0.0, 35.0), area=(0.40, -0.055, 0.05, 0.11), passes=3,
+                surfaces=(("weave", "blend", 50.0, 0.0), ("panel", "blend", 50.0, 0.0), ("panel", "ramp", 20.0, 35.0),
+                          ("glass", "blend", 50.0, 0.0)))
+QUICK = GridSize(profiles=("blend",), latencies_ms=(50.0,), yaws=(0.0,), area=(0.40, -0.05, 0.04, 0.10), passes=2,
+                 surfaces=(("panel", "ramp", 20.0, 0.0),))
 TF_RATE = 125.0
+LOOK = dataclasses.replace(Look(), exposure_samples=1)   # the grid's 36 rasters: one render per frame (no motion blur)
 
 # the issue's goals
 LATENCY_MS = 3.0
@@ -94,7 +110,7 @@ def run_cell(surface: str, profile: str, latency_ms: float, yaw: float, area: tu
         spec = RasterSpec(surface=surface, corner=(area[0], area[1]), length=area[2], width=area[3], passes=passes,
                           yaw_deg=yaw, latency=latency_ms / 1e3, tf_rate=TF_RATE,
                           motion=dataclasses.replace(MotionConfig(), profile=profile, seed=seed), seed=seed)
-        truth = generate(spec, tmp / "raster", camera=load_camera(str(PARAMS)))
+        truth = generate(spec, tmp / "raster", camera=load_camera(str(PARAMS)), look=LOOK)
         out = tmp / "map.png"
         begin = time.perf_counter()
         done = subprocess.run([sys.executable, "-m", "touchroller_bringup.cli", "map", str(tmp / "raster" / "bag"),
@@ -113,12 +129,11 @@ def run(quick: bool = False) -> GridResult:
     size = QUICK if quick else FULL
     stamp = provenance("world_map_grid", quick)
     begin = time.perf_counter()
-    area = tuple(size["area"])
-    surfaces = [run_cell(kind, profile, latency, yaw, area, size["passes"])
-                for kind, profile, latency, yaw in size["surfaces"]]
-    cells = [run_cell("grained", profile, latency, yaw, area, size["passes"])
-             for yaw in size["yaws"] for profile in size["profiles"] for latency in size["latencies_ms"]]
-    return GridResult(stamp, quick, area, size["passes"], TF_RATE, cells, surfaces, time.perf_counter() - begin)
+    surfaces = [run_cell(kind, profile, latency, yaw, size.area, size.passes)
+                for kind, profile, latency, yaw in size.surfaces]
+    cells = [run_cell("grained", profile, latency, yaw, size.area, size.passes)
+             for yaw in size.yaws for profile in size.profiles for latency in size.latencies_ms]
+    return GridResult(stamp, quick, size.area, size.passes, TF_RATE, cells, surfaces, time.perf_counter() - begin)
 
 
 # ------------------------------------------------------------------------------------------------ reading back
@@ -139,7 +154,8 @@ def _cell(data: dict) -> Cell:
 def load(path: Path) -> GridResult:
     """A result written by this bench (its JSON), to render again."""
     data = json.loads(Path(path).read_text(encoding="utf-8"))
-    return GridResult(Provenance(**data["provenance"]), data["quick"], tuple(data["area"]), data["passes"],
+    x, y, length, width = data["area"]
+    return GridResult(Provenance(**data["provenance"]), data["quick"], (x, y, length, width), data["passes"],
                       data["tf_rate"], [_cell(c) for c in data["cells"]], [_cell(c) for c in data["surfaces"]],
                       data["seconds"])
 

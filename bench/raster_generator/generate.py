@@ -73,6 +73,14 @@ def camera_static(camera: Camera) -> tuple[tuple[float, float, float], tuple[flo
     return (0.0, s * camera.d, -c * camera.d), (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
+def _xyz(v: np.ndarray) -> tuple[float, float, float]:
+    return float(v[0]), float(v[1]), float(v[2])
+
+
+def _quaternion(q: np.ndarray) -> tuple[float, float, float, float]:
+    return float(q[0]), float(q[1]), float(q[2]), float(q[3])
+
+
 def _records(spec: RasterSpec, camera: Camera, renderer: BandRenderer, trajectory: Trajectory,
              rng: np.random.Generator) -> Iterator[tuple[int, object]]:
     """(arrival ns, record) of everything the bag holds, in arrival order."""
@@ -82,8 +90,7 @@ def _records(spec: RasterSpec, camera: Camera, renderer: BandRenderer, trajector
     t_mount, r_mount = mount(camera)
     q_mount = r_mount.as_quat()
     camera_xyz, camera_q = camera_static(camera)
-    yield 0, TransformRecord("tool0", "touchroller_cylinder", EPOCH_NS, tuple(map(float, t_mount)),
-                             tuple(map(float, q_mount)), True)
+    yield 0, TransformRecord("tool0", "touchroller_cylinder", EPOCH_NS, _xyz(t_mount), _quaternion(q_mount), True)
     yield 0, TransformRecord("touchroller_cylinder", "touchroller_camera", EPOCH_NS, camera_xyz, camera_q, True)
     period = 1.0 / spec.tf_rate
     tf_times = np.arange(0.0, end, period)
@@ -100,8 +107,7 @@ def _records(spec: RasterSpec, camera: Camera, renderer: BandRenderer, trajector
     for arrival, kind, i in pending:
         if kind == "tf":
             stamp = EPOCH_NS + int(round(tf_times[i] * 1e9))
-            yield arrival, TransformRecord("base", "tool0", stamp, tuple(map(float, translations[i])),
-                                           tuple(map(float, quats[i])), False)
+            yield arrival, TransformRecord("base", "tool0", stamp, _xyz(translations[i]), _quaternion(quats[i]), False)
             continue
         exposure = frame_times[i] + offsets * look.exposure_s
         u, w, h = trajectory.at(exposure)

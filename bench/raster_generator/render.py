@@ -177,7 +177,7 @@ class BandRenderer:
     NOISE_BANK = 6
 
     def __init__(self, camera: Camera, surface: Surface, look: Look = Look(), depth: float = 5e-4,
-                 window: int = 90, seed: int = 0) -> None:
+                 window: int = 80, seed: int = 0) -> None:
         self.camera, self.surface, self.look, self.depth = camera, surface, look, depth
         self.rng = np.random.default_rng(np.random.SeedSequence([seed, 2206]))
         centre = int(round(camera.cy - camera.fy * math.tan(camera.theta)))

@@ -152,9 +152,9 @@ def load_truth(folder: str | Path) -> RasterTruth:
     height = np.load(folder / s["file"])
     if list(height.shape) != list(s["shape"]):
         raise ValueError(f"{folder / s['file']} has shape {height.shape}, truth.json says {s['shape']}")
-    features = tuple(Feature(f["kind"], tuple(f["start"]), tuple(f["end"]), f["width"], f["depth"])  # type: ignore[arg-type]
+    features = tuple(Feature(f["kind"], tuple(f["start"]), tuple(f["end"]), f["width"], f["depth"])
                      for f in s["features"])
-    surface = Surface(s["kind"], height, float(s["resolution"]), tuple(s["origin"]), float(s["yaw"]),  # type: ignore[arg-type]
+    surface = Surface(s["kind"], height, float(s["resolution"]), tuple(s["origin"]), float(s["yaw"]),
                       features, s["weave_period"])
     passes = tuple(PassTruth(**{k: v for k, v in p.items() if k not in ("start_xy", "end_xy")})
                    for p in document["passes"])

@@ -39,10 +39,11 @@ def quick() -> world_map_grid.GridResult:
     return world_map_grid.run(quick=True)
 
 
+@pytest.mark.slow
 def test_the_quick_grid_films_maps_and_scores_every_cell(quick: world_map_grid.GridResult) -> None:
     size = world_map_grid.QUICK
-    assert len(quick.cells) == len(size["profiles"]) * len(size["latencies_ms"]) * len(size["yaws"])
-    assert [c.surface for c in quick.surfaces] == [s[0] for s in size["surfaces"]]
+    assert len(quick.cells) == len(size.profiles) * len(size.latencies_ms) * len(size.yaws)
+    assert [c.surface for c in quick.surfaces] == [s[0] for s in size.surfaces]
     for cell in quick.cells + quick.surfaces:
         assert cell.frames > 50
         assert cell.map.summary and cell.map.mapped_frames is not None
@@ -57,6 +58,7 @@ def test_the_quick_grid_films_maps_and_scores_every_cell(quick: world_map_grid.G
     assert len(world_map_grid.goals(quick)) >= 7
 
 
+@pytest.mark.slow
 def test_the_reports_goal_rows_read_the_grid(quick: world_map_grid.GridResult) -> None:
     from touchroller_bringup.report import GOALS, SECTIONS
 
@@ -71,6 +73,7 @@ def test_the_reports_goal_rows_read_the_grid(quick: world_map_grid.GridResult) -
     assert weave.measure(quick)[1] is None        # the quick run has no weave raster: no verdict, not a pass
 
 
+@pytest.mark.slow
 def test_the_recorded_result_reads_back(quick: world_map_grid.GridResult, tmp_path: Path) -> None:
     from bench._common import to_json
 
@@ -92,6 +95,7 @@ def test_a_cell_is_judged_on_its_estimate_not_on_a_given_value() -> None:
     assert not off.latency_ok
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 22: latency estimate on a blended raster; the worldmap branch fixes it")
 def test_a_blended_raster_with_an_untold_latency_is_placed_by_touchroller_map(tmp_path: Path) -> None:
     """Issue 22's required test, on the second generator: 2 boustrophedon passes over 6 x 10 cm, touchdown and
