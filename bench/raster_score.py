@@ -229,3 +229,30 @@ def _features(grey: np.ndarray, weight: np.ndarray, expected: np.ndarray, origin
         out.append(FeatureScore(feature.kind, (float(centre[0]), float(centre[1])), offset,
                                 float(math.hypot(*offset)), peak))
     return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m bench.raster_score RASTER_FOLDER map.yaml`: a map against a generated raster's truth."""
+    import argparse
+    import json as json_module
+    import sys
+
+    from bench._common import to_json
+    from bench.raster_generator.truth import load_truth
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("raster", type=Path, help="the generator's output folder (truth.json, surface.npy)")
+    parser.add_argument("map_yaml", type=Path, help="the map.yaml `touchroller map` wrote")
+    args = parser.parse_args(argv)
+    try:
+        truth = load_truth(args.raster)
+        score = score_map(args.map_yaml, truth)
+    except (OSError, ValueError, KeyError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    print(json_module.dumps(json_module.loads(to_json(score)), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -129,10 +129,15 @@ def run(quick: bool = False) -> GridResult:
     size = QUICK if quick else FULL
     stamp = provenance("world_map_grid", quick)
     begin = time.perf_counter()
-    surfaces = [run_cell(kind, profile, latency, yaw, size.area, size.passes)
-                for kind, profile, latency, yaw in size.surfaces]
-    cells = [run_cell("grained", profile, latency, yaw, size.area, size.passes)
-             for yaw in size.yaws for profile in size.profiles for latency in size.latencies_ms]
+    plan = [(kind, profile, latency, yaw) for kind, profile, latency, yaw in size.surfaces]
+    plan += [("grained", profile, latency, yaw) for yaw in size.yaws for profile in size.profiles
+             for latency in size.latencies_ms]
+    done = []
+    for k, (kind, profile, latency, yaw) in enumerate(plan):
+        done.append(run_cell(kind, profile, latency, yaw, size.area, size.passes))
+        print(f"[{k + 1}/{len(plan)}] {kind} {profile} {latency:g} ms {yaw:g} deg: "
+              f"{done[-1].map.summary.rsplit(';', 1)[-1].strip()}", file=sys.stderr, flush=True)
+    surfaces, cells = done[:len(size.surfaces)], done[len(size.surfaces):]
     return GridResult(stamp, quick, size.area, size.passes, TF_RATE, cells, surfaces, time.perf_counter() - begin)
 
 

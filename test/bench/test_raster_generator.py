@@ -150,3 +150,18 @@ def test_it_imports_nothing_of_the_simulator(tmp_path: Path) -> None:
             "print(sorted(m for m in sys.modules if m.startswith('touchroller_driver')))\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     assert "touchroller_driver.sim" not in done.stdout
+
+
+def test_the_score_command_prints_the_scores_and_refuses_a_folder_without_truth(filmed, tmp_path: Path,
+                                                                                  capsys) -> None:
+    import json
+
+    from bench import raster_score
+
+    folder, _ = filmed
+    touchroller_map(folder / "bag", tmp_path / "map.png", "--latency", str(LATENCY), "--no-register")
+    assert raster_score.main([str(folder), str(tmp_path / "map.yaml")]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["coverage_percent"] >= 98.0 and len(printed["features"]) == 4
+    assert raster_score.main([str(tmp_path), str(tmp_path / "map.yaml")]) == 1
+    assert capsys.readouterr().err.startswith("error: ")
