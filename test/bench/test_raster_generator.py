@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bench.raster_generator import MotionConfig, RasterSpec, generate, load_truth
 from bench.raster_generator.generate import raster_surface
@@ -165,3 +167,22 @@ def test_the_score_command_prints_the_scores_and_refuses_a_folder_without_truth(
     assert printed["coverage_percent"] >= 98.0 and len(printed["features"]) == 4
     assert raster_score.main([str(tmp_path), str(tmp_path / "map.yaml")]) == 1
     assert capsys.readouterr().err.startswith("error: ")
+
+
+@settings(max_examples=25, deadline=None)
+@given(profile=st.sampled_from(["ramp", "blend", "constant", "pauses"]), speed=st.floats(0.005, 0.05),
+       passes=st.integers(1, 4), length=st.floats(0.01, 0.08), jitter=st.floats(0.01, 0.05),
+       seed=st.integers(0, 1000))
+def test_any_raster_plan_moves_continuously_and_presses_every_pass(profile: str, speed: float, passes: int,
+                                                                   length: float, jitter: float, seed: int) -> None:
+    config = MotionConfig(profile=profile, speed=speed, jitter=jitter, seed=seed)
+    trajectory = plan(length, pass_spacing(0.064 + 0.03 * (passes - 1), passes), config)
+    assert np.allclose(np.diff(trajectory.t), 1e-3)
+    step = np.hypot(np.diff(trajectory.u), np.diff(trajectory.w))
+    fastest = max(speed * (1 + 4 * jitter + config.variation), config.transit_speed)
+    assert np.all(np.isfinite(step)) and step.max() <= fastest * 1e-3 * 1.001
+    assert np.abs(np.diff(trajectory.h)).max() <= max(config.approach_speed * 1e-3, fastest * 1e-3) * 1.001
+    assert len(trajectory.passes) == passes
+    for k, p in enumerate(trajectory.passes):
+        assert p.contact_end_s - p.contact_start_s >= 0.9 * length / (speed * (1 + 4 * jitter))
+        assert (p.u_start, p.u_end) == ((0.0, length) if k % 2 == 0 else (length, 0.0))
