@@ -200,8 +200,10 @@ def goals(r: GridResult) -> list[tuple[str, str, bool | None]]:
                     f"smooth panel and glass: planted cracks and dents in place within {FEATURE_MM:g} mm")
     if weave:
         worst = _nan_max([c.score.worst_residual_mm for c in weave])
-        passes = sum(len(c.score.pass_residual_mm) for c in weave)
-        rows.append((weave_goal, f"worst {worst:.3f} mm", passes > 0 and worst <= RESIDUAL_MM))
+        shifts = [math.hypot(*p) for c in weave for p in c.score.pass_residual_mm]
+        unmapped = sum(not math.isfinite(v) for v in shifts)
+        note = f"; {unmapped} of {len(shifts)} passes not mapped" if unmapped else ""
+        rows.append((weave_goal, f"worst {worst:.3f} mm{note}", bool(shifts) and not unmapped and worst <= RESIDUAL_MM))
     else:
         rows.append((weave_goal, "no weave raster in this run", None))
     if not smooth:
