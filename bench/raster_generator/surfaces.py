@@ -155,7 +155,7 @@ def make_surface(kind: str, size: tuple[float, float], origin: tuple[float, floa
         height = _weave(shape, resolution, weave_period, rng)
     height = height.astype(np.float32)
     planted = []
-    margin = min(feature_margin, 0.25 * min(size))   # a small surface: features anywhere but its rim
+    margin = feature_margin if min(size) > 2.5 * feature_margin else 0.25 * min(size)   # a small surface: its middle
     for k in range(features if kind != "weave" else min(features, 4)):
         cx, cy = rng.uniform(margin, size[0] - margin), rng.uniform(margin, size[1] - margin)
         if kind == "grained":
