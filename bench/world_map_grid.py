@@ -46,12 +46,14 @@ class GridSize:
     area: tuple[float, float, float, float]
     passes: int
     surfaces: tuple[tuple[str, str, float, float], ...]
+    single_pass: tuple[tuple[str, str, float, float], ...] = ()
 
 
 FULL = GridSize(profiles=("ramp", "blend", "constant", "pauses"), latencies_ms=(0.0, 20.0, 50.0, 120.0),
                 yaws=(0.0, 35.0), area=(0.40, -0.055, 0.05, 0.11), passes=3,
                 surfaces=(("weave", "blend", 50.0, 0.0), ("panel", "blend", 50.0, 0.0), ("panel", "ramp", 20.0, 35.0),
-                          ("glass", "blend", 50.0, 0.0)))
+                          ("glass", "blend", 50.0, 0.0)),
+                single_pass=(("grained", "constant", 35.0, 0.0), ("grained", "constant", 35.0, 35.0)))
 QUICK = GridSize(profiles=("blend",), latencies_ms=(50.0,), yaws=(0.0,), area=(0.40, -0.05, 0.04, 0.10), passes=2,
                  surfaces=(("panel", "ramp", 20.0, 0.0),))
 TF_RATE = 125.0
@@ -100,6 +102,7 @@ class GridResult:
     cells: list[Cell]
     surfaces: list[Cell]
     seconds: float
+    single_pass: list[Cell] = dataclasses.field(default_factory=list)   # one pass at constant speed: unobservable
 
 
 def run_cell(surface: str, profile: str, latency_ms: float, yaw: float, area: tuple[float, ...], passes: int,
@@ -132,13 +135,18 @@ def run(quick: bool = False) -> GridResult:
     plan = [(kind, profile, latency, yaw) for kind, profile, latency, yaw in size.surfaces]
     plan += [("grained", profile, latency, yaw) for yaw in size.yaws for profile in size.profiles
              for latency in size.latencies_ms]
+    plan += [(kind, profile, latency, yaw) for kind, profile, latency, yaw in size.single_pass]
     done = []
     for k, (kind, profile, latency, yaw) in enumerate(plan):
-        done.append(run_cell(kind, profile, latency, yaw, size.area, size.passes))
+        passes = 1 if k >= len(plan) - len(size.single_pass) else size.passes
+        done.append(run_cell(kind, profile, latency, yaw, size.area, passes))
         print(f"[{k + 1}/{len(plan)}] {kind} {profile} {latency:g} ms {yaw:g} deg: "
               f"{done[-1].map.summary.rsplit(';', 1)[-1].strip()}", file=sys.stderr, flush=True)
-    surfaces, cells = done[:len(size.surfaces)], done[len(size.surfaces):]
-    return GridResult(stamp, quick, size.area, size.passes, TF_RATE, cells, surfaces, time.perf_counter() - begin)
+    n_surfaces, n_single = len(size.surfaces), len(size.single_pass)
+    surfaces, cells = done[:n_surfaces], done[n_surfaces:len(done) - n_single]
+    single = done[len(done) - n_single:]
+    return GridResult(stamp, quick, size.area, size.passes, TF_RATE, cells, surfaces, time.perf_counter() - begin,
+                      single)
 
 
 # ------------------------------------------------------------------------------------------------ reading back
@@ -162,7 +170,7 @@ def load(path: Path) -> GridResult:
     x, y, length, width = data["area"]
     return GridResult(Provenance(**data["provenance"]), data["quick"], (x, y, length, width), data["passes"],
                       data["tf_rate"], [_cell(c) for c in data["cells"]], [_cell(c) for c in data["surfaces"]],
-                      data["seconds"])
+                      data["seconds"], [_cell(c) for c in data.get("single_pass", [])])
 
 
 # ------------------------------------------------------------------------------------------------ goals
@@ -195,6 +203,15 @@ def goals(r: GridResult) -> list[tuple[str, str, bool | None]]:
         (f"seams: no dip or step at pass borders > {SEAM:g} of the map's std (every raster)",
          f"worst {seam:.2f}", seam <= SEAM),
     ]
+    single_goal = ("unobservable (one pass at constant speed): a WARN, and the configured latency (0) used, "
+                   "not an estimate")
+    if r.single_pass:
+        good = [c for c in r.single_pass if c.map.warned and not c.map.latency_estimated
+                and (c.map.latency_ms or 0.0) == 0.0]
+        said = "; ".join(f"yaw {c.yaw_deg:g}°: {_said(c)}" for c in r.single_pass)
+        rows.append((single_goal, f"{len(good)}/{len(r.single_pass)} ({said})", len(good) == len(r.single_pass)))
+    else:
+        rows.append((single_goal, "no single-pass raster in this run", None))
     weave_goal = f"weave: no pass a period (1.2 mm) off, residual <= {RESIDUAL_MM:g} mm"
     smooth_goals = (f"smooth panel and glass: coverage >= {COVERAGE:g} %",
                     f"smooth panel and glass: planted cracks and dents in place within {FEATURE_MM:g} mm")
@@ -260,10 +277,15 @@ def to_markdown(r: GridResult) -> str:
     for c in r.surfaces:
         f = c.score
         lines.append(_row(c) + (f" {f.worst_feature_mm:.3f} ({len(f.features)}) |" if f.features else " - |"))
+    if r.single_pass:
+        lines += ["", "One pass at constant speed (no evidence of the latency: the mapper should warn and use the "
+                  "configured value, 0):", "", head, rule]
+        lines += [_row(c) for c in r.single_pass]
     lines += ["", "Goals (issue 22, on the second generator):", "", "| goal | measured | |", "|---|---|---|"]
     for goal, figure, met in goals(r):
         lines.append(f"| {goal} | {figure} | {'not run' if met is None else 'met' if met else '**NOT met**'} |")
-    lines += ["", f"{len(r.cells) + len(r.surfaces)} rasters filmed and mapped in {r.seconds / 60:.1f} min.", "",
+    rasters = len(r.cells) + len(r.surfaces) + len(r.single_pass)
+    lines += ["", f"{rasters} rasters filmed and mapped in {r.seconds / 60:.1f} min.", "",
               provenance_markdown(r.provenance)]
     return "\n".join(lines)
 

@@ -445,6 +445,8 @@ GOALS: tuple[Goal, ...] = (
     Goal(22, "World map grid: coverage >= 98 % (second generator)", "world_map_grid", _grid_goal("coverage")),
     Goal(22, "World map: no seam deeper than 0.25 of the map's std at pass borders (second generator)",
          "world_map_grid", _grid_goal("seams")),
+    Goal(22, "World map, one pass at constant speed (latency unobservable): a WARN and the configured latency used "
+             "(second generator)", "world_map_grid", _grid_goal("unobservable")),
     Goal(22, "World map on a periodic weave: no pass a period off, residual <= 0.1 mm (second generator)",
          "world_map_grid", _grid_goal("weave")),
     Goal(22, "World map on a smooth painted panel and glass: coverage >= 98 % (second generator)", "world_map_grid",

@@ -64,7 +64,7 @@ def test_the_reports_goal_rows_read_the_grid(quick: world_map_grid.GridResult) -
 
     assert "world_map_grid" in {s.key for s in SECTIONS}
     rows = [goal for goal in GOALS if goal.section == "world_map_grid"]
-    assert len(rows) == len(world_map_grid.goals(quick)) == 8
+    assert len(rows) == len(world_map_grid.goals(quick)) == 9
     for goal in rows:
         figure, met = goal.measure(quick)
         assert "second raster generator" in figure and "second generator" in goal.text
