@@ -329,6 +329,11 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
         if args["map_file"]:
             perception["map.save_path"] = str(Path(args["map_file"]).expanduser())
         camera = camera_parameters(on_arm=True)
+        prefix = names.frame_prefix(namespace)
+        if use_sim and prefix:
+            # the robot's frames are the driver's names (no prefix): here the driver is our simulated arm, and
+            # a second one in another namespace needs a flange of its own beside the shared base
+            sweep["arm.tool_frame"] = names.frame(names.TOOL_FRAME, prefix)
         if use_sim:
             # One simulated clock: the sweep node's simulated arm publishes it on /clock and every node
             # runs on it. Perception takes every frame (as in replay): the simulated scan is deterministic.

@@ -356,3 +356,12 @@ def test_the_simulated_calibrate_graph_starts_from_the_simulated_cameras_intrins
     mine = build_graph("calibrate", {"calibration_file": str(calibration)})
     assert "camera.fx" not in mine.node("calibration").parameters
     assert "camera.fx" not in build_graph("calibrate", {"use_sim": "false"}).node("calibration").parameters
+
+
+def test_a_simulated_arm_in_a_namespace_gets_its_own_flange_beside_the_shared_base():
+    """Two simulated scans on one domain: their arms must not both publish base -> tool0."""
+    left = build_graph("scan", {"namespace": "left"}).node("sweep").parameters
+    assert left["arm.tool_frame"] == "left/tool0" and "arm.base_frame" not in left
+    assert "arm.tool_frame" not in build_graph("scan", {}).node("sweep").parameters
+    hardware = build_graph("scan", {"namespace": "left", "use_sim": "false"}).node("sweep").parameters
+    assert "arm.tool_frame" not in hardware   # a real robot's flange is its driver's name, set by the user

@@ -201,7 +201,7 @@ class CameraNode(Node):
         declare(self, "sim.latency", 0.0, "source=sim, sim.motion=arm: how late the simulated webcam stamps its "
                 "frames after exposure, s (an effect the mapper is not told)", min=0.0, max=1.0)
         declare(self, "world_frame", names.BASE_FRAME, "source=sim, sim.motion=arm: the frame the scene's surface "
-                "lies in (the arm's base; after frame_prefix)")
+                "lies in (the arm's base, as the robot driver names it: frame_prefix does not apply)")
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         if not self._external_source and any(p.name in SOURCE_PARAMETERS for p in parameters):
@@ -255,7 +255,7 @@ class CameraNode(Node):
 
     def _cylinder_pose(self, t_ns: int) -> Transform | None:
         listener = self.tf_listener
-        world = names.frame(str(self.get_parameter("world_frame").value), self.frame_prefix)
+        world = str(self.get_parameter("world_frame").value)   # the robot's frame: the driver's name, no prefix
         cylinder = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         return None if listener is None else listener.lookup(world, cylinder, t_ns)
 

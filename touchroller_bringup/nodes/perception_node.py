@@ -187,7 +187,7 @@ class PerceptionNode(Node):
         self.stitcher_config = self._stitcher_config()
         self.stitcher: Any = None
         self.world: WorldMapper | None = None   # the world map, once TF links world_frame to the cylinder
-        self.world_frame = names.frame(str(self.get_parameter("world_frame").value), self.frame_prefix)
+        self.world_frame = str(self.get_parameter("world_frame").value)   # the robot's: no prefix
         self.tf_listener = TransformListener(self, TransformBuffer(cache_ns=20_000_000_000),
                                              on_update=self._on_transforms)
         self._done_ns = 0             # the stamp last published on image_done
@@ -252,7 +252,8 @@ class PerceptionNode(Node):
             declare(self, name, getattr(defaults_map, field), description, min=lo, max=hi)
         declare(self, "map.save_path", "", "PNG file the finished map is written to when a sweep ends "
                 "(empty: not saved); a world map also writes map.yaml beside it (nav2 map_server format)")
-        declare(self, "world_frame", names.BASE_FRAME, "Frame of the world map (after frame_prefix): the robot's base")
+        declare(self, "world_frame", names.BASE_FRAME, "Frame of the world map: the robot's base, as the robot "
+                "driver names it (frame_prefix does not apply)")
         declare(self, "map.world", True, "Map in world_frame when TF links it to touchroller_cylinder (else "
                 "the strip map along the roll)")
         declare(self, "map.resolution", 1e-4, "World map: metres per pixel", min=1e-6, max=0.01)
@@ -298,7 +299,7 @@ class PerceptionNode(Node):
         if changed & set(DETECTOR_PARAMETERS):
             self.detector.config = self._detector_config()
         if "world_frame" in changed:
-            self.world_frame = names.frame(str(self.get_parameter("world_frame").value), self.frame_prefix)
+            self.world_frame = str(self.get_parameter("world_frame").value)   # the robot's: no prefix
         if changed & (set(STITCHER_PARAMETERS) | set(WORLD_PARAMETERS)):
             self.stitcher_config = self._stitcher_config()
             self.reset_map()   # a map is stitched one way throughout

@@ -181,8 +181,9 @@ class SweepNode(Node):
         self._shutdown = threading.Event()
         self.last_answer: tuple[str, bool, str] | None = None  # (service, success, message) of the last call
 
-        self._frame_id = names.frame(str(self.get_parameter("arm.base_frame").value), self.frame_prefix)
-        self._tool_frame = names.frame(str(self.get_parameter("arm.tool_frame").value), self.frame_prefix)
+        # the robot's frames are the robot driver's names (parameters, no prefix); the prefix is on ours only
+        self._frame_id = str(self.get_parameter("arm.base_frame").value)
+        self._tool_frame = str(self.get_parameter("arm.tool_frame").value)
         self._cylinder_frame = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         # tool0 has one parent: the UR driver's robot_state_publisher publishes it when it drives the arm
         self._publish_tf = (bool(self.get_parameter("publish_tf").value)
@@ -262,8 +263,9 @@ class SweepNode(Node):
                 "watchdog kicks (>= 10 Hz), Hz", min=10.0, max=500.0,
                 read_only=True)
         declare(self, "arm.base_frame", names.BASE_FRAME, "Frame of the published TCP pose and parent of the tool "
-                "frame on /tf (the UR base; after frame_prefix)", read_only=True)
-        declare(self, "arm.tool_frame", names.TOOL_FRAME, "The arm's flange frame (UR: tool0; after frame_prefix); "
+                "frame on /tf (the UR base, the robot driver's name: frame_prefix does not apply)", read_only=True)
+        declare(self, "arm.tool_frame", names.TOOL_FRAME, "The arm's flange frame (UR: tool0, the robot driver's name: "
+                "frame_prefix does not apply; a second simulated arm in another namespace gets its own); "
                 "the TCP pose is its pose", read_only=True)
         declare(self, "publish_tf", True, "Publish arm.base_frame -> arm.tool_frame on /tf from the arm's pose; "
                 "false when a robot driver (e.g. ur_robot_driver) already does", read_only=True)

@@ -396,7 +396,7 @@ def test_a_start_answered_failure_never_moves_the_arm(harness_factory, spin_unti
     ("sweep.area", [0.4, -0.03, 5000.0, 5000.0], "reach"),            # 5 km: blocked the parameter service
     ("sweep.area", [0.3, -0.02, 0.3, 0.04], "max_duration"),          # within reach, but 30 x 27 s of rolling
     ("sweep.area", [0.40, -0.03, 0.04], "4 finite"),
-    ("sweep.area", [0.40, float("nan"), 0.04, 0.04], "4 finite"),
+    ("sweep.area", [0.40, float("nan"), 0.04, 0.04], "finite"),
     ("sweep.direction", [0.0, 0.0, 0.0], "horizontal"),
     ("sweep.direction", [0.0, 0.0, 1.0], "horizontal"),
     ("sweep.direction", [float("nan"), 0.0, 0.0], "finite"),
@@ -411,10 +411,13 @@ def test_out_of_bounds_sweeps_are_refused_at_set_time_and_at_start_up(harness_fa
     result = h.node.set_parameters([Parameter(name, value=value)])[0]
     assert not result.successful and why in result.reason and "\n" not in result.reason, result.reason
     assert not arm.is_moving()
-    with pytest.raises(ValueError, match=why) as refused:
+    from touchroller_bringup.errors import UserError
+
+    with pytest.raises((ValueError, UserError), match=why) as refused:
         SweepNode(arm=sim_arm(), context=ros_context, node_name="refused",
                   parameter_overrides=[*overrides, Parameter(name, value=value)])
-    assert "\n" not in str(refused.value) and str(refused.value).startswith("sweep parameters refused")
+    # one line, from the sweep's own checks or, for a non-finite number, from the declaration's
+    assert "\n" not in str(refused.value) and str(refused.value).startswith(("sweep parameters refused", name))
 
 
 def test_a_huge_raster_is_refused_before_any_pass_is_planned(harness_factory, monkeypatch):
@@ -443,7 +446,9 @@ def test_the_node_process_refuses_bad_start_up_values_in_one_line(argument):
                            argument], capture_output=True, text=True, timeout=100)
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and "sweep parameters refused" in lines[0] and "Traceback" not in done.stderr
+    name = argument.split(":=")[0]
+    assert len(lines) == 1 and "Traceback" not in done.stderr
+    assert "sweep parameters refused" in lines[0] or f"{name} must be a finite number" in lines[0], lines[0]
 
 
 @pytest.mark.timeout(180)
@@ -493,3 +498,33 @@ def test_a_robot_that_greets_then_stalls_leaves_the_node_responsive_and_sigint_e
             process.wait(timeout=10)
         executor.shutdown()
         probe.destroy_node()
+
+
+@pytest.mark.ros
+def test_two_rollers_in_two_namespaces_share_the_robots_base(ros_context, spin_until):
+    """#27.2: with namespace:=left, `base` and `tool0` became left/base and left/tool0, so with a real driver
+    publishing `base` the map never linked. Only our own frames take the prefix; the robot's are the
+    driver's names (here two arms with their own flanges, as a user configures them)."""
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+    from touchroller_bringup.tf import TransformListener
+
+    rollers = [SweepNode(arm=SimulatedArm(START), context=ros_context, namespace=side,
+                         parameter_overrides=[*OVERRIDES, Parameter("arm.tool_frame", value=f"{side}_tool0")])
+               for side in ("left", "right")]
+    perception = PerceptionNode(context=ros_context, namespace="left")
+    probe = Node("frames_probe", context=ros_context)
+    listener = TransformListener(probe)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (*rollers, perception, probe):
+        executor.add_node(node)
+    try:
+        assert perception.world_frame == "base"
+        for side in ("left", "right"):
+            assert spin_until(executor, lambda side=side: listener.lookup(
+                "base", f"{side}/touchroller_cylinder") is not None, timeout=20.0), side
+            assert listener.lookup(f"{side}_tool0", f"{side}/touchroller_cylinder") is not None
+            assert listener.lookup(f"{side}/base", f"{side}/touchroller_cylinder") is None
+    finally:
+        executor.shutdown()
+        for node in (*rollers, perception, probe):
+            node.destroy_node()
