@@ -95,6 +95,8 @@ ROSDEP_KEYS = {
     "backports": "python3-rosbags-pip",
     # ur_rtde has no rosdep key: named in a package.xml comment and docs/ur5.md (pip install ur_rtde)
     "rtde_control": None, "rtde_receive": None, "dashboard_client": None,
+    # tifffile (height and GeoTIFF maps) has no rosdep key either: pip install tifffile
+    "tifffile": None,
 }
 OWN = {"touchroller_bringup", "touchroller_perception", "touchroller_driver"}
 
@@ -127,4 +129,5 @@ def test_package_xml_names_what_rosdep_must_install_for_every_runtime_import():
             missing.append(module)
     assert missing == []
     assert "pip install ur_rtde" in (ROOT / "package.xml").read_text()
+    assert "pip install tifffile" in (ROOT / "package.xml").read_text()
     assert "pip install ur_rtde" in (ROOT / "docs" / "ur5.md").read_text()

@@ -53,7 +53,7 @@ def test_the_graph_puts_every_node_in_the_namespace():
 def test_nodes_built_from_the_graph_use_the_namespace_and_frame_prefix(namespace, prefix, ros_context, spin_until):
     """Every node of the scan and calibrate graphs, built exactly as `touchroller scan` builds them
     (`NodeSpec.node_kwargs`: `-r __ns:=/left`), publishes, subscribes and serves under /<namespace>
-    and names its frames with the prefix."""
+    and names its own frames with the prefix (the robot's base keeps the driver's name)."""
     pytest.importorskip("rclpy")
     from geometry_msgs.msg import PoseStamped
     from rclpy.executors import SingleThreadedExecutor
@@ -128,7 +128,8 @@ def test_nodes_built_from_the_graph_use_the_namespace_and_frame_prefix(namespace
         # frame ids: the camera's images, the sweep's poses, the contacts' frame, TF
         camera.start()
         assert spin_until(executor, lambda: images and poses, timeout=20.0)
-        chain = [f"{prefix}base", f"{prefix}tool0", f"{prefix}touchroller_cylinder", f"{prefix}touchroller_camera"]
+        # the robot's base is the driver's name (shared); the simulated arm's flange is its own in a namespace
+        chain = ["base", f"{prefix}tool0", f"{prefix}touchroller_cylinder", f"{prefix}touchroller_camera"]
 
         def tf_chain_known() -> bool:
             with tf.lock:
@@ -136,7 +137,7 @@ def test_nodes_built_from_the_graph_use_the_namespace_and_frame_prefix(namespace
 
         assert spin_until(executor, tf_chain_known, timeout=20.0)
         assert images[0].header.frame_id == f"{prefix}touchroller_camera"
-        assert poses[-1].header.frame_id == f"{prefix}base"
+        assert poses[-1].header.frame_id == "base"
         assert perception.frame_id == f"{prefix}touchroller_cylinder"
         assert all(n.get_parameter("frame_prefix").value == prefix for n in nodes)
         assert not camera.set_parameters([Parameter("frame_prefix", value="x/")])[0].successful   # read-only
