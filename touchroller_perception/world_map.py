@@ -12,7 +12,7 @@ mosaic in the world frame (`map` frame of nav2: x right, y up) at `config.resolu
   the roll): frames within `contact_tolerance` of it are in contact; an arm moving above the surface
   (approach, between passes) is not, whatever the image shows;
 * the camera's latency (exposure to stamp): `config.latency` if told, else estimated from the data
-  (`LatencyEstimator`: the image-registered roll against the arm's, around each start and stop);
+  (`touchroller_perception.latency`: the image-registered roll against the arm's, around each start and stop);
 * refinement by registration: each pass after the first is registered (2-D, subpixel) against what the
   earlier passes mapped where they overlap, and shifted by the median of its frames' offsets, so a
   residual latency or an arm calibration error does not leave a seam;
@@ -43,7 +43,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from touchroller_perception.fast_stats import median as _median
+from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
+from touchroller_perception.latency import LatencyConfig, LatencyEstimator
 from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, taper
 
 FloatArray = NDArray[np.float64]
@@ -388,106 +391,6 @@ def _blend(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out[:-1, :-1]
 
 
-# ------------------------------------------------------------------------------------------------ latency
-@dataclass
-class _Window:
-    """Frames around one start or stop of the roll: (stamp ns, image position px), confident ones only."""
-
-    stamps: list[int] = field(default_factory=list)
-    positions: list[float] = field(default_factory=list)
-    latency: float | None = None   # its own estimate, s (None: it has no clear minimum)
-    residual_px: float | None = None
-    solved: bool = False
-
-
-class LatencyEstimator:
-    """The camera's latency from the data: the strip stitcher's image position P_k (rows the surface
-    moved in the band) must follow the arm: P_k = c + s Y(t_k - L), Y = the roll along the band's rows
-    from TF (m / m_per_row). At constant speed any L fits (c absorbs it), so the fit uses windows around
-    each start and stop of a roll, where the image and the arm must start (stop) together; L minimises
-    the sum of the windows' least-squares residuals (c and s fitted per window, s for the scale error of
-    a calibration), searched over [0, max_latency] at 1 ms, then refined by a parabola."""
-
-    def __init__(self, max_latency: float, m_per_row: float, before_s: float = 1.0, after_s: float = 1.0,
-                 max_residual_px: float = 0.3) -> None:
-        self.max_latency_ns = round(max_latency * 1e9)
-        self.m_per_row = m_per_row
-        self.before_ns, self.after_ns = round(before_s * 1e9), round(after_s * 1e9)
-        self.max_residual_px = max_residual_px   # a window the model does not fit (a slip, lost texture) is left out
-        self.windows: list[_Window] = []
-        self.estimate: float | None = None   # seconds
-        self.residual_px: float | None = None  # RMS of the fit at the estimate
-
-    def add_window(self, stamps: Sequence[int], positions: Sequence[float]) -> None:
-        if len(stamps) >= 8:
-            self.windows.append(_Window(list(stamps), list(positions)))
-
-    def _scan(self, window: _Window, candidates: NDArray[np.int64], poses: PoseLookup) -> tuple[np.ndarray, int] | None:
-        """The window's cost (mean squared residual of the best line P = c + s Y, px^2) at each candidate
-        latency (NaN where a pose is missing), all candidates in one lookup; with the best's index."""
-        stamps = np.asarray(window.stamps, np.int64)
-        transforms = poses((stamps[None, :] - candidates[:, None]).reshape(-1))
-        transforms = transforms.reshape(len(candidates), len(stamps), 4, 4)
-        # where a point fixed in the world (the first pose's origin) lies along the cylinder's y axis
-        offsets = transforms[:, :1, :3, 3] - transforms[:, :, :3, 3]
-        y = np.einsum("cki,cki->ck", transforms[:, :, :3, 1], offsets) / self.m_per_row
-        p = np.asarray(window.positions, np.float64)
-        dy = y - y.mean(axis=1, keepdims=True)
-        dp = p - p.mean()
-        syy, syp, spp = (dy * dy).sum(axis=1), dy @ dp, float(dp @ dp)
-        slope_part = np.divide(syp * syp, syy, out=np.zeros_like(syy), where=syy > 1e-12)
-        costs = np.maximum(spp - slope_part, 0.0) / len(p)
-        costs[~np.isfinite(transforms).all(axis=(1, 2, 3))] = np.nan
-        if not np.isfinite(costs).any():
-            return None
-        return costs, int(np.nanargmin(costs))
-
-    def _solve_window(self, window: _Window, poses: PoseLookup) -> float | None:
-        """The latency that fits one window best: a 5 ms grid over [0, max_latency], then 1 ms around its
-        best, then a parabola through the three best; None when the window says nothing (flat costs)."""
-        coarse = self._scan(window, np.arange(0, self.max_latency_ns + 1, 5_000_000), poses)
-        if coarse is None:
-            return None
-        costs, best = coarse
-        finite = costs[np.isfinite(costs)]
-        if finite.max() < 4.0 * max(finite.min(), 1e-6):   # no clear minimum: no start or stop in it
-            return None
-        centre = best * 5_000_000
-        candidates = np.arange(max(centre - 6_000_000, 0), min(centre + 6_000_000, self.max_latency_ns) + 1, 1_000_000)
-        fine = self._scan(window, candidates, poses)
-        if fine is None:
-            return None
-        costs, best = fine
-        offset = 0.0
-        if 0 < best < len(costs) - 1 and np.isfinite(costs[best - 1]) and np.isfinite(costs[best + 1]):
-            a, b, c = costs[best - 1], costs[best], costs[best + 1]
-            den = a - 2 * b + c
-            if den > 0:
-                offset = float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
-        window.latency = max(float(candidates[best]) + offset * 1e6, 0.0) * 1e-9
-        window.residual_px = math.sqrt(max(float(costs[best]), 0.0))
-        return window.latency
-
-    def solve(self, poses: PoseLookup) -> float | None:
-        """The median of the windows' estimates (each window solved once): None until one has a clear
-        minimum. One bad window (a slip, a textureless start) does not move the median."""
-        for window in self.windows:
-            if window.latency is None and not window.solved:
-                # every candidate needs the poses of the window's frames: wait until TF has its last one
-                # (else the short latencies, the most recent poses, would be missing from the comparison)
-                if not np.isfinite(poses(np.asarray(window.stamps[-1:], np.int64))).all():
-                    continue
-                window.solved = True
-                self._solve_window(window, poses)
-        good = [(w.latency, w.residual_px) for w in self.windows if w.latency is not None
-                and w.residual_px is not None and w.residual_px <= self.max_residual_px]
-        if not good:
-            return None
-        self.estimate = _median([latency for latency, _ in good])
-        self.residual_px = _median([residual for _, residual in good])
-        return self.estimate
-
-
 class _Recent:
     """The recent confident frames of the strip stitcher: stamps, image positions, and per frame the roller's
     height and the arm's roll (band rows), filled in once their poses are known (NaN until then). Arrays
@@ -818,7 +721,8 @@ class WorldMapper:
             ends = (np.abs(x) <= half).astype(np.float64)
         ends = np.minimum(ends, np.clip(np.minimum(np.arange(cols) + 1, cols - np.arange(cols)) / 8.0, 0.0, 1.0))
         self._weights = (across[:, None] * ends[None, :]).astype(np.float32)
-        self._estimator = LatencyEstimator(self.config.max_latency, self.m_per_row) if self.latency_ns is None else None
+        self._estimator = (LatencyEstimator(self.m_per_row, LatencyConfig(max_latency=self.config.max_latency))
+                           if self.latency_ns is None else None)
 
     # -- the queue -----------------------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
@@ -1260,28 +1164,6 @@ def _grey_alpha(grey: np.ndarray, mapped: np.ndarray) -> tuple[np.ndarray, np.nd
     image = np.add(grey, np.float32(0.5))
     np.clip(image, 0, 255, out=image)
     return cv2.flip(image.astype(np.uint8), 0), cv2.flip(mapped.view(np.uint8), 0) * np.uint8(255)
-
-
-def _median(values: Sequence[float] | np.ndarray) -> float:
-    """np.median of finite values, the same number, without np.median's import of numpy.ma (tens of
-    milliseconds of a command's start-up)."""
-    v = np.asarray(values, np.float64).reshape(-1)
-    half = len(v) // 2
-    if len(v) % 2:
-        return float(np.partition(v, half)[half])
-    part = np.partition(v, [half - 1, half])
-    return float(np.mean(part[half - 1:half + 1]))
-
-
-def _percentile(values: np.ndarray, q: float) -> float:
-    """np.percentile(values, q) (linear interpolation, finite values): the same number, without numpy.ma."""
-    v = np.sort(np.asarray(values, np.float64).reshape(-1))
-    virtual = (q / 100) * (len(v) - 1)
-    lo = min(max(math.floor(virtual), 0), len(v) - 1)
-    hi = min(lo + 1, len(v) - 1)
-    t = virtual - lo
-    a, b = float(v[lo]), float(v[hi])
-    return b - (b - a) * (1 - t) if t >= 0.5 else a + (b - a) * t
 
 
 def _highpass(image: np.ndarray) -> np.ndarray:

@@ -139,7 +139,8 @@ def test_a_frame_exposed_before_tf_began_holds_no_one_back(scans, sensor):
 def test_median_and_percentile_are_numpys_to_the_bit():
     """The mapper's own median and 90th percentile (numpy's import numpy.ma, tens of milliseconds of a
     command's start-up) give numpy's numbers exactly: odd and even counts, any scale."""
-    from touchroller_perception.world_map import _median, _percentile
+    from touchroller_perception.fast_stats import median as _median
+    from touchroller_perception.fast_stats import percentile as _percentile
 
     rng = np.random.default_rng(7)
     for n in [*range(1, 30), 600]:
