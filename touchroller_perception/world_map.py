@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 from touchroller_perception.fast_stats import median as _median
 from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
-from touchroller_perception.latency import LatencyConfig, LatencyEstimator
+from touchroller_perception.latency import LatencyConfig, LatencyEstimate, LatencyEstimator
 from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, taper
 
 FloatArray = NDArray[np.float64]
@@ -91,7 +91,11 @@ class WorldMapConfig:
     bounds: (x_min, y_min, x_max, y_max) of the map in the world frame, m (e.g. the scan's rectangle plus
       a margin); None: it grows with what is mapped, up to `max_pixels`.
     max_pixels: the most pixels the map may hold (memory: 12 bytes each).
-    latency: the camera's latency (s, exposure to stamp) if known; None: estimated from the data.
+    latency: the camera's latency (s, exposure to stamp) if known; None: estimated from the data
+      (`touchroller_perception.latency`).
+    latency_fallback: the latency used when the data do not pin it down (a single pass at constant
+      speed): the configured one (what `camera.latency` left, 0), said as a warning, never an estimate.
+    latency_max_sigma: the estimate is used when its standard deviation is at most this, s.
     max_latency: the largest latency considered, s.
     register: refine each pass's placement by registration against the earlier passes.
     search_px: the largest correction registration looks for, map pixels.
@@ -111,6 +115,8 @@ class WorldMapConfig:
     bounds: tuple[float, float, float, float] | None = None
     max_pixels: int = 16_000_000
     latency: float | None = None
+    latency_fallback: float = 0.0
+    latency_max_sigma: float = 0.002
     max_latency: float = 0.2
     register: bool = True
     search_px: int = 6
@@ -135,6 +141,10 @@ class WorldMapConfig:
             raise ValueError(f"latency must be in [0, 1] s or None (estimate it), got {self.latency}")
         if not (0 < self.max_latency <= 1.0):
             raise ValueError(f"max_latency must be in (0, 1] s, got {self.max_latency}")
+        if not (math.isfinite(self.latency_fallback) and 0 <= self.latency_fallback <= self.max_latency):
+            raise ValueError(f"latency_fallback must be in [0, max_latency] s, got {self.latency_fallback}")
+        if not (math.isfinite(self.latency_max_sigma) and self.latency_max_sigma > 0):
+            raise ValueError(f"latency_max_sigma must be > 0 s, got {self.latency_max_sigma}")
         if (self.search_px < 1 or self.hold_frames < 1 or self.max_pixels < 10_000 or self.steady_stride < 1
                 or self.wait_frames < 0):
             raise ValueError("search_px, hold_frames and steady_stride must be >= 1, wait_frames >= 0, "
@@ -450,6 +460,44 @@ class _Frame:
 
 
 @dataclass
+class _PassRecord:
+    """What a pass did, for the latency from opposite passes and the map's final placement: the exposure
+    times and positions of its first and last pressed frames, the latencies its frames were placed with,
+    its registration offsets (dx, dy map px, the frame's latency ns, its speed m/s) and its correction."""
+
+    first: tuple[int, float, float] | None = None
+    last: tuple[int, float, float] | None = None
+    latency_sum: float = 0.0
+    frames: int = 0
+    offsets: list[tuple[float, float, float, float]] = field(default_factory=list)
+    delta: tuple[float, float] = (0.0, 0.0)
+
+    def add(self, exposure_ns: int, pose: np.ndarray, latency_ns: int) -> None:
+        point = (exposure_ns, float(pose[0, 3]), float(pose[1, 3]))
+        if self.first is None:
+            self.first = point
+        self.last = point
+        self.latency_sum += latency_ns * 1e-9
+        self.frames += 1
+
+    def latency(self) -> float:
+        """The mean latency its frames were placed with, s."""
+        return self.latency_sum / max(self.frames, 1)
+
+    def velocity(self) -> np.ndarray | None:
+        """Its mean velocity in the world plane, m/s (None for a pass of one frame or no motion)."""
+        if self.first is None or self.last is None or self.last[0] <= self.first[0]:
+            return None
+        seconds = (self.last[0] - self.first[0]) * 1e-9
+        v = np.array([self.last[1] - self.first[1], self.last[2] - self.first[2]]) / seconds
+        return v if float(np.hypot(*v)) > 1e-4 else None
+
+    def direction(self) -> np.ndarray | None:
+        v = self.velocity()
+        return None if v is None else v / float(np.hypot(*v))
+
+
+@dataclass
 class MapStats:
     """What a WorldMapper did (for diagnostics and reports)."""
 
@@ -462,6 +510,9 @@ class MapStats:
     pass_corrections_px: list[tuple[float, float]] = field(default_factory=list)
     latency_s: float | None = None
     latency_estimated: bool = False
+    latency: LatencyEstimate | None = None   # what the data said (value, sigma, sources); None when told
+    latency_warning: str | None = None       # set when the data did not pin the latency down
+    map_shift_m: tuple[float, float] = (0.0, 0.0)   # the whole map moved at the end by the final estimate
     pressed_height: float | None = None
 
 
@@ -509,6 +560,10 @@ class WorldMapper:
         self._steady_skipped = 0  # frames since the last registered one
         self._frame_dt: int | None = None   # ns since the previous frame
         self._estimator: LatencyEstimator | None = None
+        self._placing_ns: int | None = None        # the latency frames are placed with (see _latency)
+        self._placing_sigma: float | None = None   # its sigma when it is an estimate
+        self._pass_windows_until = 0               # pass_roll windows were taken up to this stamp
+        self._pass_log: list[_PassRecord] = []     # per pass: for the opposite passes and the final shift
         # passes and their registration against the earlier ones
         self._in_contact = False
         self._last_contact_ns: int | None = None
@@ -649,6 +704,9 @@ class WorldMapper:
             self._take_band(*self._inbox.popleft())
         self._drain(final=True)
         self._flush_pass_buffer()
+        if self._in_contact:
+            self._end_pass()
+        self._final_latency()
         field = self.strip.flat_field_final()
         if field is None or self._weights is None or not self._placements:
             return
@@ -669,6 +727,36 @@ class WorldMapper:
                                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             self.canvas.add([None, plane, None], placement.c0, placement.r0)
         self._level = float(field.mean())
+
+    def _final_latency(self) -> None:
+        """The final estimate; the map moved by what it says of the first pass's placement (every later pass
+        was registered against the first's), or a warning when the data did not pin it down."""
+        if self._estimator is None:
+            return
+        self._estimator.solve(self.poses)
+        self._use_estimate()
+        estimate = self.stats.latency
+        if estimate is None or not estimate.observable:
+            fallback = self.config.latency_fallback if self._placing_ns is None else self._placing_ns * 1e-9
+            if estimate is None:
+                estimate = LatencyEstimate(fallback, None, ("configured",), False)
+            self.stats.latency = estimate
+            self.stats.latency_s = fallback
+            self.stats.latency_estimated = False
+            self.stats.latency_warning = (f"camera latency not observable from this scan (no start or stop in "
+                                          f"contact, no speed variation, no opposite passes that registered): "
+                                          f"{fallback * 1e3:.1f} ms as configured")
+            return
+        first = self._pass_log[0] if self._pass_log else None
+        later_registered = all(len(p.offsets) > 0 for p in self._pass_log[1:]) and self.config.register
+        velocity = None if first is None else first.velocity()
+        if first is None or velocity is None or not later_registered:
+            return
+        shift = (estimate.value - first.latency()) * velocity   # where the first pass (and the map) lies off
+        if float(np.hypot(*shift)) > 0.1 * self.config.resolution:
+            ox, oy = self.canvas.origin
+            self.canvas.origin = (ox - float(shift[0]), oy - float(shift[1]))
+            self.stats.map_shift_m = (-float(shift[0]), -float(shift[1]))
 
     def map_image(self, crop: bool = True) -> WorldMapImage:
         """The map for files and topics; `crop`: to what was mapped (a growing map's spare room goes;
@@ -721,8 +809,8 @@ class WorldMapper:
             ends = (np.abs(x) <= half).astype(np.float64)
         ends = np.minimum(ends, np.clip(np.minimum(np.arange(cols) + 1, cols - np.arange(cols)) / 8.0, 0.0, 1.0))
         self._weights = (across[:, None] * ends[None, :]).astype(np.float32)
-        self._estimator = (LatencyEstimator(self.m_per_row, LatencyConfig(max_latency=self.config.max_latency))
-                           if self.latency_ns is None else None)
+        latency = LatencyConfig(max_latency=self.config.max_latency, max_sigma=self.config.latency_max_sigma)
+        self._estimator = LatencyEstimator(self.m_per_row, latency) if self.latency_ns is None else None
 
     # -- the queue -----------------------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
@@ -761,9 +849,20 @@ class WorldMapper:
                    for later in itertools.islice(self._pending, 1, None))
 
     def _latency(self) -> int | None:
+        """The latency frames are placed with now (ns): told, the estimate once observable, or the fallback
+        once frames could wait no longer; None while undecided."""
         if self.latency_ns is not None:
             return self.latency_ns
-        return None if self.stats.latency_s is None else round(self.stats.latency_s * 1e9)
+        return self._placing_ns
+
+    def _latency_or_fallback(self) -> int:
+        """`_latency()`, deciding on the configured fallback when nothing was decided yet (frames waited
+        as long as they may, or the scan ended)."""
+        latency = self._latency()
+        if latency is None:
+            latency = self._placing_ns = round(self.config.latency_fallback * 1e9)
+            self.stats.latency_s = self.config.latency_fallback
+        return latency
 
     def _prefetch_poses(self) -> None:
         """Look up, in one go, the poses of the waiting frames that will need them at the current latency."""
@@ -780,7 +879,7 @@ class WorldMapper:
 
     def _pose_now(self, frame: _Frame) -> np.ndarray | None:
         """The frame's pose at the current latency (looked up once per latency)."""
-        latency = self._latency() or 0
+        latency = self._latency_or_fallback()
         if frame.pose is not None and frame.pose_latency == latency:
             return frame.pose
         pose = self.poses(np.array([frame.stamp_ns - latency], np.int64))[0]
@@ -835,12 +934,49 @@ class WorldMapper:
             if all(abs(event - e) > 300_000_000 for e in self._events):
                 self._events.append(event)
                 self._add_window(event)
+        self._add_pass_windows(stamps, positions, heights, arm_speed, final)
         pending = any(not w.solved for w in self._estimator.windows)
         if self._estimator.windows and (len(self._estimator.windows) > windows or pending or final):
-            estimate = self._estimator.solve(self.poses)
-            if estimate is not None:
-                self.stats.latency_s = estimate
-                self.stats.latency_estimated = True
+            self._estimator.solve(self.poses)
+            self._use_estimate()
+
+    def _use_estimate(self) -> None:
+        """Place the frames still to come with the estimate when the evidence pins it down."""
+        assert self._estimator is not None
+        estimate = self._estimator.result(self.config.latency_fallback)
+        self.stats.latency = estimate
+        if estimate is not None and estimate.observable:
+            self._placing_ns = round(estimate.value * 1e9)
+            self._placing_sigma = estimate.sigma
+            self.stats.latency_s = estimate.value
+            self.stats.latency_estimated = True
+
+    def _add_pass_windows(self, stamps: NDArray[np.int64], positions: FloatArray, heights: FloatArray,
+                          arm_speed: FloatArray, final: bool) -> None:
+        """The steady rolling of each pass that ended (pressed stretches of one direction, away from the
+        start/stop windows) as `pass_roll` evidence, each stretch once."""
+        assert self._estimator is not None
+        if self._pressed_height is None:
+            return
+        pressed = heights <= self._pressed_height + self.config.contact_tolerance
+        direction = np.sign(arm_speed) * (np.abs(arm_speed) > 3.0)
+        # stretches: pressed, one direction, no gap of more than half a second
+        breaks = ~pressed[1:] | ~pressed[:-1] | (direction[1:] != direction[:-1]) | (np.diff(stamps) > 500_000_000)
+        edges = np.concatenate([[0], np.flatnonzero(breaks) + 1, [len(stamps)]])
+        horizon = self._latest_stamp - self._estimator.after_ns - _EVENT_CHECK_NS
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            if b - a < 20 or not pressed[a] or direction[a] == 0:
+                continue
+            end = int(stamps[b - 1])
+            if end <= self._pass_windows_until or (end > horizon and not final):
+                continue
+            self._pass_windows_until = end
+            keep = np.ones(b - a, bool)
+            for event in self._events:
+                keep &= ~((stamps[a:b] >= event - self._estimator.before_ns)
+                          & (stamps[a:b] <= event + self._estimator.after_ns))
+            self._estimator.add_pass_window([int(v) for v in stamps[a:b][keep]],
+                                            [float(v) for v in positions[a:b][keep]])
 
     def _track(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray, FloatArray]:
         """(stamps, image positions, roller heights, arm roll in rows) of the recent confident frames, the
@@ -895,6 +1031,7 @@ class WorldMapper:
         if not self._in_contact:
             self._start_pass()
         self._in_contact = True
+        self._pass_log[-1].add(frame.stamp_ns - (frame.pose_latency or 0), pose, frame.pose_latency or 0)
         if self._prior is None or not self.config.register:
             self._place(frame, pose, np.zeros(2))
             return
@@ -904,7 +1041,8 @@ class WorldMapper:
         if len(self._pass_offsets) < 10 or self._pass_frames % _PASS_REGISTER_EVERY == 0:
             offset = self._register(frame, pose)
             if offset is not None:
-                self._pass_offsets.append(offset)
+                self._pass_offsets.append(offset[:3])
+                self._pass_log[-1].offsets.append((offset[0], offset[1], offset[3], offset[4]))
         if len(self._pass_offsets) < 10 and len(self._pass_buffer) < 45:
             self._pass_buffer.append((frame, pose))
             return
@@ -914,6 +1052,7 @@ class WorldMapper:
 
     def _start_pass(self) -> None:
         self.stats.passes += 1
+        self._pass_log.append(_PassRecord())
         self._pass_offsets, self._pass_buffer, self._pass_delta = [], [], np.zeros(2)
         self._delta_offsets = 0
         self._pass_frames = 0
@@ -930,6 +1069,36 @@ class WorldMapper:
         if self._prior is not None:
             self.stats.pass_corrections_px.append((float(self._pass_delta[0]), float(self._pass_delta[1])))
         self._in_contact = False
+        if self._pass_log:
+            self._pass_log[-1].delta = (float(self._pass_delta[0]), float(self._pass_delta[1]))
+            self._opposite_passes()
+
+    def _opposite_passes(self) -> None:
+        """The latency the pass that ended and the one before it say, when they were rolled in opposite
+        directions and this one was registered against the earlier ones (`latency` module docstring).
+        Pass k placed at latency L_k lands (L - L_k) v u_k off; registered against pass k - 1 (placed at
+        L_{k-1}, moved by delta_{k-1}), its offset o along u_k = -u_{k-1} is
+        delta_{k-1}.u - (L - L_{k-1}) v - (L - L_k) v, so L = (L_{k-1} + L_k) / 2 + (delta_{k-1} - o).u / 2v."""
+        if self._estimator is None or len(self._pass_log) < 2:
+            return
+        this, before = self._pass_log[-1], self._pass_log[-2]
+        u, u_before = this.direction(), before.direction()
+        if u is None or u_before is None or float(u @ u_before) > -0.9 or len(this.offsets) < 5:
+            return
+        res = self.config.resolution
+        offsets = np.array(this.offsets)   # (dx, dy, latency ns, speed m/s)
+        speed = offsets[:, 3]
+        ok = speed > 1e-3
+        if ok.sum() < 5:
+            return
+        along = (np.asarray(before.delta) - offsets[ok, :2]) @ u * res      # m
+        values = 0.5 * (before.latency() + offsets[ok, 2] * 1e-9) + along / (2 * speed[ok])
+        centre = _median(values)
+        spread = 1.4826 * _median(np.abs(values - centre))
+        # a registration is good to about 0.05 map pixel: the least spread a median can have
+        floor = 0.05 * res / (2 * float(np.median(speed[ok])))
+        self._estimator.add_opposite_passes(centre, max(spread / math.sqrt(len(values)), floor))
+        self._use_estimate()
 
     def _update_delta(self) -> None:
         if self._pass_offsets and len(self._pass_offsets) != self._delta_offsets:   # new offsets since
@@ -1073,47 +1242,82 @@ class WorldMapper:
             self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
             self._level_field = frame.field
 
-    def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float] | None:
-        """This frame's offset (columns, rows, score) against the earlier passes where they overlap."""
+    def _search(self, frame: _Frame, pose: np.ndarray) -> tuple[int, int, float]:
+        """(columns, rows) registration searches and the frame's speed (m/s): `search_px`, plus along the roll
+        twice what the placing latency may be off times the speed (the whole `max_latency` while it is
+        the configured fallback, three sigma once estimated)."""
+        latency = frame.pose_latency or 0
+        around = self.poses(np.array([frame.stamp_ns - latency - 20_000_000, frame.stamp_ns - latency + 20_000_000],
+                                     np.int64))
+        base = self.config.search_px
+        if not np.isfinite(around).all():
+            return base, base, 0.0
+        velocity = (around[1, :2, 3] - around[0, :2, 3]) / 0.04
+        speed = float(np.hypot(*velocity))
+        if self.latency_ns is not None:
+            doubt = 0.0
+        elif self._placing_sigma is not None:
+            doubt = 3.0 * self._placing_sigma
+        else:
+            doubt = self.config.max_latency
+        extra = min(2.0 * speed * doubt / self.config.resolution, 120.0)
+        if speed > 0:
+            ux, uy = abs(float(velocity[0])) / speed, abs(float(velocity[1])) / speed
+        else:
+            ux = uy = 0.0
+        return base + math.ceil(extra * ux), base + math.ceil(extra * uy), speed
+
+    def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float, float, float] | None:
+        """This frame's offset (columns, rows, score) against the earlier passes where they overlap, with
+        the latency it was placed with (ns) and its speed (m/s). The template is the band where it and
+        the earlier passes overlap at every shift searched."""
         assert self._prior is not None and self._weights is not None
         try:
             placement = self._locate(pose, np.zeros(2))
         except MemoryError:   # beyond max_pixels: `_place` leaves it out and counts it
             return None
+        sx, sy, speed = self._search(frame, pose)
         # the overlap is judged on the weights alone; the band is put on the map only when it is usable
         weights = self._on_map(placement, self._weights, "w")
         c0, r0 = placement.c0, placement.r0
         h, w = weights.shape
-        patch = self._prior.patch(r0, c0, h, w)
+        patch = self._prior.patch(r0 - sy, c0 - sx, h + 2 * sy, w + 2 * sx)
         if patch is None:
             return None
         prior, prior_weight = patch
-        known = prior_weight > 0.3 * self._prior_weight_max
+        known = (prior_weight > 0.3 * self._prior_weight_max).view(np.uint8)
+        # known at every shift: eroded by the search's extent
+        known = cv2.erode(known, np.ones((2 * sy + 1, 2 * sx + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                          borderValue=0)[sy:sy + h, sx:sx + w].view(bool)
         mine = weights > 0.3 * float(self._weights.max() if self._weights is not None else 1.0)
         both = known & mine
-        s = self.config.search_px
         if np.count_nonzero(both) < 400:
             return None
         # the overlap's bounding rows and columns (np.nonzero's index arrays cost 5x as much)
         ys, xs = np.flatnonzero(both.any(axis=1)), np.flatnonzero(both.any(axis=0))
-        a0, a1, b0, b1 = int(ys[0]) + s, int(ys[-1]) - s, int(xs[0]) + s, int(xs[-1]) - s
+        a0, a1, b0, b1 = int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
+        base = self.config.search_px
+        for _ in range(3):   # the weights' corners are rounded: shrink until it is a full rectangle
+            if a1 - a0 < 12 or b1 - b0 < 12 or both[a0:a1, b0:b1].all():
+                break
+            a0, a1, b0, b1 = a0 + base, a1 - base, b0 + base, b1 - base
         if a1 - a0 < 12 or b1 - b0 < 12 or not both[a0:a1, b0:b1].all():
-            # the overlap is not a full rectangle: use its largest all-covered rows band
-            return None
+            return None   # the overlap is not a full rectangle
         weighted_band, weighted_field = (self._on_map(placement, plane, constant)
                                          for plane, constant in zip(self._band_planes(frame), (None, "field"),
                                                                     strict=True))
         band = np.divide(weighted_band, weighted_field, out=np.zeros((h, w), np.float32), where=weighted_field > 1e-6)
         template = _highpass(band[a0:a1, b0:b1])
-        search = _highpass(prior[a0 - s:a1 + s, b0 - s:b1 + s])
+        # the search region: the template's rectangle grown by the search, in the patch's cells
+        search = _highpass(prior[a0:a1 + 2 * sy, b0:b1 + 2 * sx])
         scores = cv2.matchTemplate(search, template, cv2.TM_CCOEFF_NORMED)
         _, best, _, (bx, by) = cv2.minMaxLoc(scores)
         if best < 0.3 or not (0 < bx < scores.shape[1] - 1 and 0 < by < scores.shape[0] - 1):
             return None
         fx = _parabola_peak(scores[by, bx - 1:bx + 2])
         fy = _parabola_peak(scores[by - 1:by + 2, bx])
-        # the template sits at (bx + fx - s, by + fy - s) in the prior: move the frame by that much
-        return float(bx + fx - s), float(by + fy - s), float(best)
+        # the template sits at (bx + fx - sx, by + fy - sy) in the prior: move the frame by that much
+        return (float(bx + fx - sx), float(by + fy - sy), float(best), float(frame.pose_latency or 0), speed)
 
 
 @dataclass(frozen=True)
