@@ -566,7 +566,8 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
         from touchroller_bringup.map_files import write_world_map
 
         image = world.map_image()
-        files["map"], files["map_yaml"] = write_world_map(out_dir / "map.png", image, perception.world_frame)
+        files["map"], files["map_yaml"] = write_world_map(
+            out_dir / "map.png", image, perception.world_frame, _latency_yaml(world))
         map_shape = tuple(int(n) for n in image.grey.shape)
         world_map = _world_summary(world, perception.world_frame, image)
     elif map_msg is not None:
@@ -590,12 +591,21 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     return result
 
 
+def _latency_yaml(world: Any) -> dict[str, Any]:
+    from touchroller_perception.world_map import latency_summary
+
+    return latency_summary(world.stats)[1]
+
+
 def _world_summary(world: Any, frame: str, image: Any) -> dict[str, Any]:
+    from touchroller_perception.world_map import latency_summary
+
     stats = world.stats
     return {"frame": frame, "resolution_m": image.resolution, "origin": tuple(image.origin),
             "frames_mapped": stats.mapped, "passes": stats.passes,
             "latency_ms": None if stats.latency_s is None else stats.latency_s * 1e3,
             "latency_estimated": stats.latency_estimated,
+            "latency": latency_summary(stats)[0],
             "pass_corrections_mm": [(dx * image.resolution * 1e3, dy * image.resolution * 1e3)
                                     for dx, dy in stats.pass_corrections_px]}
 
@@ -632,7 +642,7 @@ def _world_lines(world: Mapping[str, Any]) -> list[str]:
     return [f"- world map in `{world['frame']}`: `map.png` + `map.yaml`, {world['resolution_m'] * 1e3:g} mm per pixel, "
             f"origin ({world['origin'][0]:.4f}, {world['origin'][1]:.4f}) m; {world['frames_mapped']} frames "
             f"mapped in {world['passes']} pass(es)",
-            f"- camera latency {'estimated from the data' if world['latency_estimated'] else 'as given'}: {latency}; "
+            f"- camera latency {world.get('latency') or latency}; "
             f"pass corrections by registration (x, y mm): {corrections}"]
 
 

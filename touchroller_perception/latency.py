@@ -85,11 +85,18 @@ class LatencyEstimate:
     evidence: tuple[LatencyEvidence, ...] = ()
 
     def describe(self) -> str:
-        """One line: "estimated 35.2 +- 0.8 ms (opposite_passes, start_stop)" or "configured 0.0 ms (...)"."""
+        """One line: "estimated 35.2 ms (sigma 0.3 ms; opposite_passes, start_stop)", or when not observable
+        "not observable (...): configured 0.0 ms used"."""
         if self.observable and self.sigma is not None:
-            return f"estimated {self.value * 1e3:.1f} +- {self.sigma * 1e3:.1f} ms ({', '.join(self.sources)})"
-        spread = "no evidence" if self.sigma is None else f"the evidence leaves +- {self.sigma * 1e3:.0f} ms"
+            return f"estimated {self.value * 1e3:.1f} ms (sigma {self.sigma * 1e3:.1f} ms; {', '.join(self.sources)})"
+        spread = "no evidence" if self.sigma is None else f"the evidence leaves sigma {self.sigma * 1e3:.0f} ms"
         return f"not observable ({spread}): configured {self.value * 1e3:.1f} ms used"
+
+    def as_dict(self) -> dict[str, object]:
+        """For map.yaml and reports: value_ms, sigma_ms (None), sources, observable."""
+        return {"value_ms": round(self.value * 1e3, 3),
+                "sigma_ms": None if self.sigma is None else round(self.sigma * 1e3, 3),
+                "sources": list(self.sources), "observable": bool(self.observable)}
 
 
 def combine(items: Sequence[LatencyEvidence]) -> tuple[float, float, tuple[LatencyEvidence, ...]] | None:

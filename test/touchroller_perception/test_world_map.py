@@ -298,8 +298,8 @@ def test_the_value_where_bands_were_added_is_the_whole_canvas_value():
 
 
 def test_a_registration_prior_outside_what_was_mapped_reads_as_unmapped():
-    """The prior is computed where bands were added; a patch partly outside it is zero there, and one
-    outside the canvas of the pass's start is refused, as when the prior covered the whole canvas."""
+    """The prior is computed where bands were added; a patch partly outside it is zero there, and so is
+    one partly outside the canvas of the pass's start (the canvas grew since)."""
     from touchroller_perception.world_map import _Prior
 
     rng = np.random.default_rng(7)
@@ -312,8 +312,15 @@ def test_a_registration_prior_outside_what_was_mapped_reads_as_unmapped():
         value, weight = moved.patch(r0 + 3, c0 + 5, h, w)
         np.testing.assert_array_equal(value, full_value[r0:r0 + h, c0:c0 + w])
         np.testing.assert_array_equal(weight, full_weight[r0:r0 + h, c0:c0 + w])
-    assert moved.patch(2, 5, 10, 10) is None and moved.patch(3, 4, 10, 10) is None
-    assert moved.patch(3 + 95, 5, 6, 10) is None and moved.patch(3, 5 + 111, 10, 10) is None
+    # cells the canvas grew by after the pass's start read as unmapped (zero weight), not as no patch: a
+    # band reaching past what the earlier passes mapped is still registered where they overlap
+    _, weight = moved.patch(2, 5, 10, 10)   # one row below the old canvas
+    assert not weight[0].any()
+    np.testing.assert_array_equal(weight[1:], full_weight[:9, :10])
+    _, weight = moved.patch(3, 4, 10, 10)   # one column left of it
+    assert not weight[:, 0].any()
+    np.testing.assert_array_equal(weight[:, 1:], full_weight[:10, :9])
+    assert not moved.patch(3 + 95, 5, 6, 10)[1].any() and not moved.patch(3, 5 + 111, 10, 10)[1].any()
 
 
 def test_map_image_of_a_fixed_map_keeps_its_bounds_and_a_growing_one_is_cropped():
