@@ -1252,16 +1252,17 @@ class WorldMapper:
             self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
             self._level_field = frame.field
 
-    def _search(self, frame: _Frame, pose: np.ndarray) -> tuple[int, int, float]:
-        """(columns, rows) registration searches and the frame's speed (m/s): `search_px`, plus along the roll
-        twice what the placing latency may be off times the speed (the whole `max_latency` while it is
-        the configured fallback, three sigma once estimated)."""
+    def _search(self, frame: _Frame, pose: np.ndarray) -> tuple[int, int, float, tuple[int, int]]:
+        """(columns, rows) registration searches, the frame's speed (m/s) and where the search is centred
+        (columns, rows): `search_px`, plus along the roll twice what the placing latency may be off times
+        the speed (the whole `max_latency` while it is the configured fallback, three sigma once
+        estimated), around the offset the estimate predicts (`_predicted_px`)."""
         latency = frame.pose_latency or 0
         around = self.poses(np.array([frame.stamp_ns - latency - 20_000_000, frame.stamp_ns - latency + 20_000_000],
                                      np.int64))
         base = self.config.search_px
         if not np.isfinite(around).all():
-            return base, base, 0.0
+            return base, base, 0.0, (0, 0)
         velocity = (around[1, :2, 3] - around[0, :2, 3]) / 0.04
         speed = float(np.hypot(*velocity))
         if self.latency_ns is not None:
@@ -1275,7 +1276,26 @@ class WorldMapper:
             ux, uy = abs(float(velocity[0])) / speed, abs(float(velocity[1])) / speed
         else:
             ux = uy = 0.0
-        return base + math.ceil(extra * ux), base + math.ceil(extra * uy), speed
+        return base + math.ceil(extra * ux), base + math.ceil(extra * uy), speed, self._predicted_px(frame, velocity)
+
+    def _predicted_px(self, frame: _Frame, velocity: np.ndarray) -> tuple[int, int]:
+        """The offset (columns, rows) of a frame against the pass before, as the current estimate L says:
+        each lies (L - L_placed) v off, the pass before also moved by its correction. (0, 0) while the
+        latency is told or not estimated."""
+        if self.latency_ns is not None or self._placing_sigma is None or self._placing_ns is None \
+                or len(self._pass_log) < 2:
+            return 0, 0
+        before = self._pass_log[-2]
+        v_before = before.velocity()
+        if v_before is None:
+            return 0, 0
+        latency, res = self._placing_ns * 1e-9, self.config.resolution
+        prior_error = (latency - before.latency()) * v_before + np.asarray(before.delta) * res
+        own_error = (latency - (frame.pose_latency or 0) * 1e-9) * velocity
+        predicted = (prior_error - own_error) / res
+        if not np.isfinite(predicted).all() or float(np.abs(predicted).max()) > 500:
+            return 0, 0
+        return round(float(predicted[0])), round(float(predicted[1]))
 
     def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float, float, float] | None:
         """This frame's offset (columns, rows, score) against the earlier passes where they overlap, with
@@ -1286,12 +1306,12 @@ class WorldMapper:
             placement = self._locate(pose, np.zeros(2))
         except MemoryError:   # beyond max_pixels: `_place` leaves it out and counts it
             return None
-        sx, sy, speed = self._search(frame, pose)
+        sx, sy, speed, (pc, pr) = self._search(frame, pose)
         # the overlap is judged on the weights alone; the band is put on the map only when it is usable
         weights = self._on_map(placement, self._weights, "w")
         c0, r0 = placement.c0, placement.r0
         h, w = weights.shape
-        patch = self._prior.patch(r0 - sy, c0 - sx, h + 2 * sy, w + 2 * sx)
+        patch = self._prior.patch(r0 - sy + pr, c0 - sx + pc, h + 2 * sy, w + 2 * sx)
         if patch is None:
             return None
         prior, prior_weight = patch
@@ -1327,7 +1347,8 @@ class WorldMapper:
         fx = _parabola_peak(scores[by, bx - 1:bx + 2])
         fy = _parabola_peak(scores[by - 1:by + 2, bx])
         # the template sits at (bx + fx - sx, by + fy - sy) in the prior: move the frame by that much
-        return (float(bx + fx - sx), float(by + fy - sy), float(best), float(frame.pose_latency or 0), speed)
+        return (float(bx + fx - sx + pc), float(by + fy - sy + pr), float(best), float(frame.pose_latency or 0),
+                speed)
 
 
 @dataclass(frozen=True)
