@@ -53,6 +53,8 @@ FloatArray = NDArray[np.float64]
 _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
 _EVENT_CHECK_NS = 250_000_000   # how often (stamp time) the pressed height, starts and stops are looked for
 _PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in this many is registered
+_PEAK_MARGIN = 0.1              # a registration's peak stands this much (NCC) above any other 3 px away
+_DELTA_MAD_PX = 1.0             # a pass's offsets agree (median absolute deviation, map px) to be applied
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet): e.g.
 #: `TransformBuffer.lookup_many(world, cylinder, stamps, missing=True)`.
 PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
@@ -471,6 +473,7 @@ class _PassRecord:
     frames: int = 0
     offsets: list[tuple[float, float, float, float]] = field(default_factory=list)
     delta: tuple[float, float] = (0.0, 0.0)
+    trusted: bool = False   # its offsets agreed: the correction was applied
 
     def add(self, exposure_ns: int, pose: np.ndarray, latency_ns: int) -> None:
         point = (exposure_ns, float(pose[0, 3]), float(pose[1, 3]))
@@ -514,6 +517,7 @@ class MapStats:
     latency_warning: str | None = None       # set when the data did not pin the latency down
     map_shift_m: tuple[float, float] = (0.0, 0.0)   # the whole map moved at the end by the final estimate
     pressed_height: float | None = None
+    pressed_from: str = "image"   # what decided the pressed height: the image moving with the arm, or TF
 
 
 def latency_summary(stats: MapStats) -> tuple[str, dict[str, object]]:
@@ -545,6 +549,8 @@ class WorldMapper:
         self._inbox: deque[tuple[np.ndarray, int]] = deque()   # frames whose stamp the poses do not reach yet
         self._pending: deque[_Frame] = deque()
         self._pressed_height: float | None = None
+        self._tf_heights: deque[tuple[int, float, float, float]] = deque(maxlen=3000)   # (stamp, x, y, z)
+        self._agree_heights: deque[float] = deque(maxlen=200)   # heights at which the image moved with the arm
         self._heights: list[float] = []
         self._weights: np.ndarray | None = None   # band weights (rows x columns)
         self._level = 1.0
@@ -627,6 +633,9 @@ class WorldMapper:
     def _take_band(self, band: np.ndarray, stamp_ns: int) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
         self.stats.frames += 1
+        if self._previous_prior_pose is not None:
+            seen = self._previous_prior_pose[0]
+            self._tf_heights.append((int(stamp_ns), float(seen[0, 3]), float(seen[1, 3]), float(seen[2, 3])))
         self._latest_stamp = max(self._latest_stamp, int(stamp_ns))
         if self._clearly_lifted(pose if pose is not None else self._previous_prior_pose):
             # an arm moving above the surface (between passes): nothing to map, nothing to register
@@ -758,7 +767,7 @@ class WorldMapper:
                                           f"{fallback * 1e3:.1f} ms as configured")
             return
         first = self._pass_log[0] if self._pass_log else None
-        later_registered = all(len(p.offsets) > 0 for p in self._pass_log[1:]) and self.config.register
+        later_registered = all(p.trusted for p in self._pass_log[1:]) and self.config.register
         velocity = None if first is None else first.velocity()
         if first is None or velocity is None or not later_registered:
             return
@@ -825,6 +834,8 @@ class WorldMapper:
     # -- the queue -----------------------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
         self._find_events(final)
+        if self._pressed_height is None:
+            self._pressed_from_tf(final or len(self._pending) > self.config.hold_frames)
         if final and self._pressed_height is None and self._pending:
             # nothing agreed on the pressed height (a short or textureless roll): the lowest the roller went
             stamps = np.array([f.stamp_ns for f in self._pending], np.int64) - (self._latency() or 0)
@@ -905,6 +916,34 @@ class WorldMapper:
         return self._pose_now(frame)
 
     # -- contact, events and latency --------------------------------------------------------------------
+    def _pressed_from_tf(self, forced: bool) -> None:
+        """The pressed height from TF alone, for a surface with too little texture for the image to agree
+        with the arm: the lowest height at which the arm moved along the surface for at least 20 frames
+        (within half the contact tolerance). Taken when a frame whose image moved with the arm lies at
+        it, or when frames can wait no longer (the roller then rolled there: an arm moving in the air
+        between passes is higher)."""
+        if len(self._tf_heights) < 20:
+            return
+        track = np.array(self._tf_heights)
+        dt = np.diff(track[:, 0]) * 1e-9
+        ok = dt > 0
+        speed = np.zeros(len(track))
+        speed[1:][ok] = np.hypot(*np.diff(track[:, 1:3], axis=0)[ok].T) / dt[ok]
+        moving = speed > 2e-3
+        if moving.sum() < 20:
+            return
+        z = track[moving, 3]
+        level = float(z.min())
+        near = np.abs(z - level) <= 0.5 * self.config.contact_tolerance
+        if near.sum() < 20:
+            return
+        plateau = _median(z[near])
+        confirmed = any(abs(h - plateau) <= self.config.contact_tolerance for h in self._agree_heights)
+        if confirmed or forced:
+            self._pressed_height = plateau
+            self.stats.pressed_height = plateau
+            self.stats.pressed_from = "tf, confirmed by the image" if confirmed else "tf"
+
     def _find_events(self, final: bool) -> None:
         """Learn the pressed height, find starts and stops of the roll, and (re)estimate the latency."""
         if len(self._recent) < 3:
@@ -928,6 +967,7 @@ class WorldMapper:
         image_speed[1:][valid] = np.diff(positions)[valid] / dt[valid]
         fast = np.abs(arm_speed) > 3.0   # rows per second: the arm rolls, not just settles
         agree = fast & (np.abs(image_speed - arm_speed) < 0.3 * np.abs(arm_speed) + 1.0)
+        self._agree_heights.extend(float(h) for h in heights[agree][-20:])
         if agree.sum() >= 3:
             self._pressed_height = _median(heights[agree])
         elif final and self._pressed_height is None and fast.any():
@@ -1093,7 +1133,7 @@ class WorldMapper:
             return
         this, before = self._pass_log[-1], self._pass_log[-2]
         u, u_before = this.direction(), before.direction()
-        if u is None or u_before is None or float(u @ u_before) > -0.9 or len(this.offsets) < 5:
+        if u is None or u_before is None or float(u @ u_before) > -0.9 or len(this.offsets) < 5 or not this.trusted:
             return
         res = self.config.resolution
         offsets = np.array(this.offsets)   # (dx, dy, latency ns, speed m/s)
@@ -1111,9 +1151,16 @@ class WorldMapper:
         self._use_estimate()
 
     def _update_delta(self) -> None:
+        """The pass's correction: the median of its offsets once three or more agree (MAD within
+        `_DELTA_MAD_PX`); none (TF alone) while they do not."""
         if self._pass_offsets and len(self._pass_offsets) != self._delta_offsets:   # new offsets since
             offsets = np.array(self._pass_offsets)
-            self._pass_delta = np.array([_median(offsets[:, 0]), _median(offsets[:, 1])])
+            centre = np.array([_median(offsets[:, 0]), _median(offsets[:, 1])])
+            spread = max(_median(np.abs(offsets[:, 0] - centre[0])), _median(np.abs(offsets[:, 1] - centre[1])))
+            trusted = len(offsets) >= 3 and spread <= _DELTA_MAD_PX
+            self._pass_delta = centre if trusted else np.zeros(2)
+            if self._pass_log:
+                self._pass_log[-1].trusted = trusted
             self._delta_offsets = len(self._pass_offsets)
 
     def _flush_pass_buffer(self) -> None:
@@ -1343,6 +1390,12 @@ class WorldMapper:
         scores = cv2.matchTemplate(search, template, cv2.TM_CCOEFF_NORMED)
         _, best, _, (bx, by) = cv2.minMaxLoc(scores)
         if best < 0.3 or not (0 < bx < scores.shape[1] - 1 and 0 < by < scores.shape[0] - 1):
+            return None
+        # confidence, not presence: the peak must stand out of the next best one 3 px or more away (too
+        # little texture, or a periodic one whose neighbouring period scores alike, is not trusted)
+        others = scores.copy()
+        others[max(by - 3, 0):by + 4, max(bx - 3, 0):bx + 4] = -1.0
+        if others.size and float(others.max()) > best - _PEAK_MARGIN:
             return None
         fx = _parabola_peak(scores[by, bx - 1:bx + 2])
         fy = _parabola_peak(scores[by - 1:by + 2, bx])
