@@ -53,6 +53,7 @@ FloatArray = NDArray[np.float64]
 _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
 _EVENT_CHECK_NS = 250_000_000   # how often (stamp time) the pressed height, starts and stops are looked for
 _PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in this many is registered
+_MIN_SCORE = 0.5                # a registration's NCC peak below this is not trusted (too little texture)
 _PEAK_MARGIN = 0.1              # a registration's peak stands this much (NCC) above any other 3 px away
 _DELTA_MAD_PX = 1.0             # a pass's offsets agree (median absolute deviation, map px) to be applied
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet): e.g.
@@ -1151,13 +1152,13 @@ class WorldMapper:
         self._use_estimate()
 
     def _update_delta(self) -> None:
-        """The pass's correction: the median of its offsets once three or more agree (MAD within
+        """The pass's correction: the median of its offsets once five or more agree (MAD within
         `_DELTA_MAD_PX`); none (TF alone) while they do not."""
         if self._pass_offsets and len(self._pass_offsets) != self._delta_offsets:   # new offsets since
             offsets = np.array(self._pass_offsets)
             centre = np.array([_median(offsets[:, 0]), _median(offsets[:, 1])])
             spread = max(_median(np.abs(offsets[:, 0] - centre[0])), _median(np.abs(offsets[:, 1] - centre[1])))
-            trusted = len(offsets) >= 3 and spread <= _DELTA_MAD_PX
+            trusted = len(offsets) >= 5 and spread <= _DELTA_MAD_PX
             self._pass_delta = centre if trusted else np.zeros(2)
             if self._pass_log:
                 self._pass_log[-1].trusted = trusted
@@ -1389,7 +1390,7 @@ class WorldMapper:
         search = _highpass(prior[a0:a1 + 2 * sy, b0:b1 + 2 * sx])
         scores = cv2.matchTemplate(search, template, cv2.TM_CCOEFF_NORMED)
         _, best, _, (bx, by) = cv2.minMaxLoc(scores)
-        if best < 0.3 or not (0 < bx < scores.shape[1] - 1 and 0 < by < scores.shape[0] - 1):
+        if best < _MIN_SCORE or not (0 < bx < scores.shape[1] - 1 and 0 < by < scores.shape[0] - 1):
             return None
         # confidence, not presence: the peak must stand out of the next best one 3 px or more away (too
         # little texture, or a periodic one whose neighbouring period scores alike, is not trusted)
