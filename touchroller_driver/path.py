@@ -79,11 +79,15 @@ class BlendedPath:
 
     def pose(self, t: float) -> np.ndarray:
         """The tool pose (6,) at t s after the path's start (clamped to its ends)."""
-        s = float(np.interp(t, self._times, self._travel))
-        k = int(np.clip(np.searchsorted(self._arc, s) - 1, 0, len(self._arc) - 2))
+        return self.poses(np.array([t]))[0]
+
+    def poses(self, t: np.ndarray) -> np.ndarray:
+        """The tool poses (N, 6) at times t (N,) s after the path's start (clamped to its ends)."""
+        s = np.interp(np.asarray(t, np.float64), self._times, self._travel)
+        k = np.clip(np.searchsorted(self._arc, s) - 1, 0, len(self._arc) - 2)
         span = self._arc[k + 1] - self._arc[k]
-        f = (s - self._arc[k]) / span if span > 0 else 0.0
-        return np.asarray(self._points[k] + f * (self._points[k + 1] - self._points[k]), np.float64)
+        f = np.divide(s - self._arc[k], span, out=np.zeros_like(s), where=span > 0)
+        return np.asarray(self._points[k] + f[:, None] * (self._points[k + 1] - self._points[k]), np.float64)
 
 
 def _rounded(points: np.ndarray, blend: float, step: float) -> np.ndarray:
