@@ -543,7 +543,11 @@ class WorldMapper:
         # The strip stitcher measures the image's roll (latency, contact) and keeps the flat field; it
         # places nothing, so it needs no lateral tracking and registers on coarser columns (speed).
         strip = stitcher or StitcherConfig(lateral=False, column_bin=8)
-        self.strip = Stitcher(strip.replace(history=1, live_map=False, keep_map=False), camera=camera)
+        # The whole mean divides out (flat_sigma_cols 0): a fine column feature of the gel left in the field
+        # would draw a line along every pass, at the same band column (seams at a fixed offset from each
+        # pass's centre).
+        self.strip = Stitcher(strip.replace(history=1, live_map=False, keep_map=False, flat_sigma_cols=0.0),
+                              camera=camera)
         self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels)
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
