@@ -77,6 +77,11 @@ class BlendedPath:
     def length(self) -> float:
         return float(self._arc[-1])
 
+    def arc_at(self, point: ArrayLike) -> float:
+        """The arc length (m) of the path's sample nearest to a position (x, y, z)."""
+        p = np.asarray(point, np.float64)[:3]
+        return float(self._arc[int(np.argmin(np.linalg.norm(self._points[:, :3] - p, axis=1)))])
+
     def pose(self, t: float) -> np.ndarray:
         """The tool pose (6,) at t s after the path's start (clamped to its ends)."""
         return self.poses(np.array([t]))[0]

@@ -772,7 +772,8 @@ class WorldMapper:
                                           f"{fallback * 1e3:.1f} ms as configured")
             return
         first = self._pass_log[0] if self._pass_log else None
-        later_registered = all(p.trusted for p in self._pass_log[1:]) and self.config.register
+        # (a few frames at a pass's end placed with a newer latency may count as a pass of their own)
+        later_registered = all(p.trusted for p in self._pass_log[1:] if p.frames >= 15) and self.config.register
         velocity = None if first is None else first.velocity()
         if first is None or velocity is None or not later_registered:
             return
