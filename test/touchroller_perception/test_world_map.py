@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from touchroller_perception.transforms import TransformBuffer
 from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
@@ -428,3 +430,39 @@ def test_a_plain_surface_maps_without_lines_along_the_passes():
     smooth = np.convolve(np.pad(profile, 20, mode="edge"), np.ones(41) / 41, mode="valid")
     lines = np.abs(profile - smooth)
     assert lines.max() <= 0.25 * float(inside.std()), (lines.max(), inside.std(), int(np.argmax(lines)))
+
+
+@pytest.mark.slow
+@settings(max_examples=4, deadline=None, suppress_health_check=list(HealthCheck))
+@given(profile=st.sampled_from(["ramp", "blend", "constant"]), latency=st.sampled_from([0.0, 0.02, 0.05, 0.12]),
+       jitter=st.sampled_from([0.0, 0.01, 0.05]), tf_hz=st.sampled_from([None, 50.0, 125.0, 500.0]),
+       seed=st.integers(0, 100))
+def test_property_any_motion_maps_in_place_or_warns(sensor, profile, latency, jitter, tf_hz, seed):
+    """Random combinations of the simulator's motion options on a small 2-pass raster, the mapper not
+    told the latency: where the evidence pins it down the estimate is within 3 ms and the map covers
+    the raster; where it does not, the configured latency (0) is used and said."""
+    area = (0.42, -0.045, 0.03, 0.09)
+    plan = plan_raster(DEFAULT_START_POSE, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
+                       clearance=0.002, approach_speed=0.005, profile=profile)
+    options = {"jitter": jitter} if profile != "ramp" else {}
+    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=latency,
+                                 tf_hz=tf_hz, tf_jitter_s=0.0005 if tf_hz else 0.0, seed=seed, **options))
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    bounds = (area[0] - 0.01, area[1] - 0.01, area[0] + area[2] + 0.01, area[1] + area[3] + 0.01)
+    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                         WorldMapConfig(bounds=bounds))
+    for event in events:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+        else:
+            mapper.push(event[2], event[1])
+    mapper.finalise()
+    estimate = mapper.stats.latency
+    assert estimate is not None
+    if estimate.observable:
+        assert mapper.stats.latency_s == pytest.approx(latency, abs=0.003)
+        assert mapper.stats.latency_warning is None
+    else:
+        assert mapper.stats.latency_s == 0.0 and mapper.stats.latency_warning
+    assert mapper.coverage((area[0], area[1], area[0] + area[2], area[1] + area[3])) >= 98.0
