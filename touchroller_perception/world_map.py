@@ -62,6 +62,8 @@ FloatArray = NDArray[np.float64]
 _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
 _EVENT_CHECK_NS = 250_000_000   # how often (stamp time) the pressed height, starts and stops are looked for
 _PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in this many is registered
+_RESUME_NS = 300_000_000       # pressed again this soon after a pass ended: the same pass (not a new one)
+_PLACING_STEP_S = 5e-4          # frames are placed with the latency estimate on this grid, s
 _MIN_SCORE = 0.5                # a registration's NCC peak below this is not trusted (too little texture)
 _PEAK_MARGIN = 0.1              # a registration's peak stands this much (NCC) above any other 3 px away
 _DELTA_MAD_PX = 1.0             # a pass's offsets agree (median absolute deviation, map px) to be applied
@@ -248,13 +250,19 @@ class _PassRecord:
     latency_sum: float = 0.0
     frames: int = 0
     offsets: list[tuple[float, float, float, float]] = field(default_factory=list)
+    steps: list[tuple[float, float]] = field(default_factory=list)   # velocity between its frames, m/s
     delta: tuple[float, float] = (0.0, 0.0)
     trusted: bool = False   # its offsets agreed: the correction was applied
+    ended: bool = False
+    evidence_given: bool = False   # its opposite-passes evidence was added (once)
 
     def add(self, exposure_ns: int, pose: np.ndarray, latency_ns: int) -> None:
         point = (exposure_ns, float(pose[0, 3]), float(pose[1, 3]))
         if self.first is None:
             self.first = point
+        elif self.last is not None and point[0] > self.last[0]:
+            seconds = (point[0] - self.last[0]) * 1e-9
+            self.steps.append(((point[1] - self.last[1]) / seconds, (point[2] - self.last[2]) / seconds))
         self.last = point
         self.latency_sum += latency_ns * 1e-9
         self.frames += 1
@@ -264,12 +272,13 @@ class _PassRecord:
         return self.latency_sum / max(self.frames, 1)
 
     def velocity(self) -> np.ndarray | None:
-        """Its mean velocity in the world plane, m/s (None for a pass of one frame or no motion)."""
-        if self.first is None or self.last is None or self.last[0] <= self.first[0]:
+        """Its velocity in the world plane while it rolled, m/s: the median over its frames that moved
+        (a pause within the pass does not slow it down); None for a pass that did not move."""
+        steps = np.array(self.steps).reshape(-1, 2)
+        moving = steps[np.hypot(steps[:, 0], steps[:, 1]) > 1e-3]
+        if len(moving) < 3:
             return None
-        seconds = (self.last[0] - self.first[0]) * 1e-9
-        v = np.array([self.last[1] - self.first[1], self.last[2] - self.first[2]]) / seconds
-        return v if float(np.hypot(*v)) > 1e-4 else None
+        return np.array([_median(moving[:, 0]), _median(moving[:, 1])])
 
     def direction(self) -> np.ndarray | None:
         v = self.velocity()
@@ -503,8 +512,9 @@ class WorldMapper:
             self._take_band(*self._inbox.popleft())
         self._drain(final=True)
         self._flush_pass_buffer()
-        if self._in_contact:
-            self._end_pass()
+        if self._in_contact and self._pass_log:   # the pass under way says what it can (it may go on)
+            self._pass_log[-1].delta = (float(self._pass_delta[0]), float(self._pass_delta[1]))
+            self._opposite_passes()
         self._final_latency()
         field = self.strip.flat_field_final()
         if field is None or self._weights is None or not self._placements:
@@ -553,10 +563,13 @@ class WorldMapper:
         if first is None or velocity is None or not later_registered:
             return
         shift = (estimate.value - first.latency()) * velocity   # where the first pass (and the map) lies off
-        if float(np.hypot(*shift)) > 0.1 * self.config.resolution:
-            ox, oy = self.canvas.origin
-            self.canvas.origin = (ox - float(shift[0]), oy - float(shift[1]))
-            self.stats.map_shift_m = (-float(shift[0]), -float(shift[1]))
+        if float(np.hypot(*shift)) <= 0.1 * self.config.resolution:
+            shift = np.zeros(2)
+        # finalise may run more than once (a live map saved, then more frames): move by what is not moved yet
+        done = -np.asarray(self.stats.map_shift_m)
+        ox, oy = self.canvas.origin
+        self.canvas.origin = (ox - float(shift[0] - done[0]), oy - float(shift[1] - done[1]))
+        self.stats.map_shift_m = (-float(shift[0]), -float(shift[1]))
 
     def map_image(self, crop: bool = True) -> WorldMapImage:
         """The map for files and topics; `crop`: to what was mapped (a growing map's spare room goes;
@@ -778,7 +791,10 @@ class WorldMapper:
         estimate = self._estimator.result(self.config.latency_fallback)
         self.stats.latency = estimate
         if estimate is not None and estimate.observable:
-            self._placing_ns = round(estimate.value * 1e9)
+            # placed on a 0.5 ms grid (10 um at 20 mm/s): the same frames seen from a slightly different
+            # first frame (a live map against its recording) give estimates a few microseconds apart,
+            # which would move every band by a hundredth of a pixel and change the map's rounding
+            self._placing_ns = round(estimate.value / _PLACING_STEP_S) * round(_PLACING_STEP_S * 1e9)
             self._placing_sigma = estimate.sigma
             self.stats.latency_s = estimate.value
             self.stats.latency_estimated = True
@@ -859,8 +875,10 @@ class WorldMapper:
             self.stats.not_in_contact += 1
             if self._in_contact:
                 self._end_pass()
+                self._last_contact_ns = frame.stamp_ns
             return
-        if not self._in_contact:
+        if not self._in_contact and not (self._last_contact_ns is not None and self._pass_log
+                                         and frame.stamp_ns - self._last_contact_ns < _RESUME_NS):
             self._start_pass()
         self._in_contact = True
         self._pass_log[-1].add(frame.stamp_ns - (frame.pose_latency or 0), pose, frame.pose_latency or 0)
@@ -898,20 +916,21 @@ class WorldMapper:
 
     def _end_pass(self) -> None:
         self._flush_pass_buffer()
-        if self._prior is not None:
+        if self._prior is not None and not (self._pass_log and self._pass_log[-1].ended):
             self.stats.pass_corrections_px.append((float(self._pass_delta[0]), float(self._pass_delta[1])))
         self._in_contact = False
         if self._pass_log:
+            self._pass_log[-1].ended = True
             self._pass_log[-1].delta = (float(self._pass_delta[0]), float(self._pass_delta[1]))
             self._opposite_passes()
 
-    def _opposite_passes(self) -> None:
+    def _opposite_passes(self) -> None:   # once per pass (a pass resumed, or finalised and going on)
         """The latency the pass that ended and the one before it say, when they were rolled in opposite
         directions and this one was registered against the earlier ones (`latency` module docstring).
         Pass k placed at latency L_k lands (L - L_k) v u_k off; registered against pass k - 1 (placed at
         L_{k-1}, moved by delta_{k-1}), its offset o along u_k = -u_{k-1} is
         delta_{k-1}.u - (L - L_{k-1}) v - (L - L_k) v, so L = (L_{k-1} + L_k) / 2 + (delta_{k-1} - o).u / 2v."""
-        if self._estimator is None or len(self._pass_log) < 2:
+        if self._estimator is None or len(self._pass_log) < 2 or self._pass_log[-1].evidence_given:
             return
         this, before = self._pass_log[-1], self._pass_log[-2]
         u, u_before = this.direction(), before.direction()
@@ -929,6 +948,7 @@ class WorldMapper:
         spread = 1.4826 * _median(np.abs(values - centre))
         # a registration is good to about 0.05 map pixel: the least spread a median can have
         floor = 0.05 * res / (2 * float(np.median(speed[ok])))
+        this.evidence_given = True
         self._estimator.add_opposite_passes(centre, max(spread / math.sqrt(len(values)), floor))
         self._use_estimate()
 
@@ -1087,8 +1107,8 @@ class WorldMapper:
         the speed (the whole `max_latency` while it is the configured fallback, three sigma once
         estimated), around the offset the estimate predicts (`_predicted_px`)."""
         latency = frame.pose_latency or 0
-        around = self.poses(np.array([frame.stamp_ns - latency - 20_000_000, frame.stamp_ns - latency + 20_000_000],
-                                     np.int64))
+        # the poses up to the frame's own (known once it is: a later one may not have arrived yet, live)
+        around = self.poses(np.array([frame.stamp_ns - latency - 40_000_000, frame.stamp_ns - latency], np.int64))
         base = self.config.search_px
         if not np.isfinite(around).all():
             return base, base, 0.0, (0, 0)
