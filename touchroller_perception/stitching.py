@@ -52,6 +52,7 @@ _STATIC_FRACTION = 0.3  # an image shift below this share of the arm's is taken 
 _WEAK_CONFIDENCE = 0.5  # below this a match that contradicts the recent velocity is not believed
 _VELOCITY_FRAMES = 5  # confident shifts whose median predicts the next
 _FLAT_FIELD_MEMORY = 300  # frames the live flat field averages over
+_FINE_FIELD_FRAMES = 60   # frames a final flat field with its fine column profile (flat_sigma_cols 0) needs
 # 1 - NCC above this at the best shift: the keyframe no longer shows what the frame shows (contact
 # began or ended, a jump); registered rolls stay below ~0.3 even at 5 s with motion blur.
 _MISMATCH_COST = 0.5
@@ -422,7 +423,8 @@ class StitcherConfig:
     flat_sigma_cols: the flat field keeps the column profile of the band's mean only at this low
       spatial frequency (columns): texture constant along the roll stays in a strip map. 0: the whole
       mean divides out (the world map: a fine static feature of the gel would draw a line along every
-      pass, at the same place in each).
+      pass, at the same place in each): in the final field (`finalise`), once 60 frames were learnt
+      (before that, and in the live field, as 15: on a short roll the mean's columns still hold the surface).
     """
 
     method: str = "default"
@@ -510,7 +512,7 @@ class FlatField:
         if travel < 2 * self.band_rows or self.count < 10 or self._sum is None:
             return None
         if self._field is None or self._dirty >= 10:
-            self._field = flat_field_from_mean(self._sum / self.count, self.sigma_cols)
+            self._field = flat_field_from_mean(self._sum / self.count, self.sigma_cols or 15.0)
             self._dirty = 0
         return self._field
 
@@ -548,7 +550,11 @@ class FlatField:
             return self.fixed
         if self._sum is None or self.count == 0:
             return None
-        return flat_field_from_mean(self._sum / self.count, self.sigma_cols)
+        # sigma_cols 0: the fine column profile in the final field only (the live one, which registration
+        # sees, keeps the smooth one), and only once the mean holds enough frames for the surface's own
+        # column structure to have averaged out (a short roll keeps the smooth profile)
+        fine = self.sigma_cols > 0 or self.count >= _FINE_FIELD_FRAMES
+        return flat_field_from_mean(self._sum / self.count, self.sigma_cols if fine else 15.0)
 
 
 class VelocityPredictor:
