@@ -12,6 +12,14 @@ normalised cross-correlation), and the latency estimate. Speed: the live update 
 against reading the same bag alone (a new process too), both with a bytecode cache as after an install,
 best of N, wall and CPU time.
 
+Issue 22's grid over the simulator (`grid`): motion profiles (ramp, blend, constant, blend with 3 % speed
+jitter, pauses within a pass) x true latencies x raster directions (along base x, and along base y with the
+surface turned with it), the mapper not told the latency: the estimate, its sigma and sources or the
+warning when the data did not pin it down, SSIM in place, each pass's residual, coverage, seams (the mean
+profile across the passes high-passed over 4 mm: its largest dip or step against the map's standard
+deviation); plus weave, smooth panel and glass rows; and what the estimate costs (mapping the same frames
+told the latency against not told, CPU time).
+
 `python -m bench.world_map [--quick]` -> bench/results/world_map.md + .json (quick/ with --quick);
 `touchroller report` calls `run(quick)` and `to_markdown(result)`. `python -m bench.world_map --scan DIR
 [--area x,y,L,W]` scores the files of a real `touchroller scan scene:=large_surface area:=... --record`
@@ -20,6 +28,7 @@ instead: its map.png + map.yaml against the truth in place, and its recording re
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import resource
@@ -39,8 +48,12 @@ from bench._common import ROOT, Provenance, provenance, provenance_markdown, res
 from touchroller_perception.files import atomic_write_text
 
 FULL = {"area": [0.40, -0.09, 0.24, 0.18], "latencies": [0.0, 0.025, 0.05, 0.1], "speed_length": 0.12,
-        "repeats": 5}
-QUICK = {"area": [0.42, -0.045, 0.05, 0.09], "latencies": [0.0, 0.05], "speed_length": 0.04, "repeats": 1}
+        "repeats": 5, "grid_profiles": ["ramp", "blend", "constant", "jitter", "pauses"],
+        "grid_latencies": [0.0, 0.02, 0.05, 0.12], "grid_yaws": [0.0, 90.0], "grid_length": 0.06,
+        "grid_surfaces": ["weave", "panel", "glass"]}
+QUICK = {"area": [0.42, -0.045, 0.05, 0.09], "latencies": [0.0, 0.05], "speed_length": 0.04, "repeats": 1,
+         "grid_profiles": ["ramp", "blend"], "grid_latencies": [0.035], "grid_yaws": [0.0], "grid_length": 0.04,
+         "grid_surfaces": ["panel"]}
 SPEED = 0.02          # m/s along the passes
 VARIANTS = {"tf_only": {"latency": 0.0, "register": False},
             "latency": {"latency": None, "register": False},
@@ -99,6 +112,32 @@ class CommandSpeed:
 
 
 @dataclass(frozen=True)
+class GridCell:
+    """One raster of issue 22's grid: how it was rolled and filmed, and what the mapper made of it untold."""
+
+    profile: str
+    latency_true_ms: float
+    yaw_deg: float
+    surface: str
+    frames: int
+    latency_ms: float                 # the latency the map was placed with
+    latency_sigma_ms: float | None
+    latency_sources: list[str]
+    observable: bool                  # False: the mapper warned and used the configured latency (0)
+    ssim: float
+    coverage_percent: float
+    pass_residual_mm: list[tuple[float, float]]
+    worst_residual_mm: float
+    seam_ratio: float                 # the largest dip/step of the cross-pass profile / the map's std
+    map_cpu_s: float                  # mapping the frames, not told the latency
+    told_cpu_s: float                 # the same frames told the latency
+
+    @property
+    def latency_error_ms(self) -> float:
+        return abs(self.latency_ms - self.latency_true_ms)
+
+
+@dataclass(frozen=True)
 class WorldMapResult:
     provenance: Provenance
     quick: bool
@@ -106,6 +145,7 @@ class WorldMapResult:
     speed_m_s: float
     scans: list[ScanScores]
     speed: CommandSpeed
+    grid: list[GridCell] = dataclasses.field(default_factory=list)
 
 
 def _setup(area: list[float]):
@@ -229,6 +269,183 @@ def _highpass(image: np.ndarray) -> np.ndarray:
     return cv2.subtract(image, cv2.GaussianBlur(image, (0, 0), 3.0))
 
 
+# ------------------------------------------------------------------------------------------------ grid
+_PROFILES = {"ramp": ("ramp", {}), "blend": ("blend", {}), "constant": ("constant", {}),
+             "jitter": ("blend", {"jitter": 0.03}), "pauses": ("blend", {"pauses": ((0.10, 0.4), (0.30, 0.4))})}
+
+
+def grid_cell(profile: str, latency: float, yaw_deg: float, surface: str = "grain", length: float = 0.06) -> GridCell:
+    """A 2-pass raster (`length` x 9 cm, speed 20 mm/s) rolled with `profile` (_PROFILES) along base x
+    (yaw 0) or base y (yaw 90, the surface turned with it), filmed `latency` late, mapped untold and told."""
+    from scipy.spatial.transform import Rotation
+
+    from touchroller_driver.arm import (
+        DEFAULT_MOUNT_RPY,
+        DEFAULT_MOUNT_XYZ,
+        DEFAULT_START_POSE,
+        mount_transform,
+        plan_raster,
+    )
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+    from touchroller_driver.sim.sweep import simulate_sweep
+    from touchroller_perception.transforms import TransformBuffer
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
+
+    yaw = math.radians(yaw_deg)
+    overrides: dict[str, Any] = {"world.surface_yaw": yaw}
+    if yaw_deg:
+        overrides["world.surface_origin"] = [0.50, -0.13, 0.05]   # x 0.40..0.60, y -0.13..0.13
+    variant = None if surface == "grain" else surface
+    sensor = SimulatedSensor(load_scene("large_surface", variant=variant, **overrides), seed=0)
+    start = np.array(DEFAULT_START_POSE, np.float64)
+    start[3:] = (Rotation.from_rotvec([0.0, 0.0, yaw]) * Rotation.from_rotvec(start[3:])).as_rotvec()
+    mount = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+    area = [0.545, -length / 2, length, 0.09] if yaw_deg else [0.42, -0.045, length, 0.09]
+    kind, options = _PROFILES[profile]
+    options = dict(options)
+    plan = plan_raster(start, area=area, mount=mount, speed=SPEED, accel=0.1, depth=5e-4, clearance=0.002,
+                       approach_speed=0.005, direction=(math.cos(yaw), math.sin(yaw), 0.0), profile=kind)
+    if "pauses" in options and plan.path is not None:   # a stop in the middle of each pass, while pressed
+        middles = [0.5 * (plan.segments[k - 1].target[:3] + plan.segments[k].target[:3]) for k in plan.rolls]
+        options["pauses"] = tuple((plan.path.arc_at(m), seconds) for m, (_, seconds) in
+                                  zip(middles, options["pauses"], strict=False))
+    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=latency,
+                                 **options))
+    xs = [p[0] for q in plan.passes for p in (q.start, q.end)]
+    ys = [p[1] for q in plan.passes for p in (q.start, q.end)]
+    half = 0.5 * 0.06   # the usable width about each pass's line
+    box = (min(xs) - (half if yaw_deg else 0), min(ys) - (0 if yaw_deg else half),
+           max(xs) + (half if yaw_deg else 0), max(ys) + (0 if yaw_deg else half))
+    bounds = (box[0] - 0.01, box[1] - 0.01, box[2] + 0.01, box[3] + 0.01)
+
+    def mapped(config: WorldMapConfig) -> tuple[Any, float]:
+        buffer = TransformBuffer(cache_ns=None)
+        buffer.set_transform("tool0", "touchroller_cylinder", 0, mount, static=True)
+        mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"), config)
+        begin = time.process_time()
+        for event in events:
+            if event[0] == "tf":
+                buffer.set_transform("base", "tool0", event[1], event[2])
+            else:
+                mapper.push(event[2], event[1])
+        mapper.finalise()
+        return mapper, time.process_time() - begin
+
+    mapper, cpu = mapped(WorldMapConfig(bounds=bounds))
+    _, told_cpu = mapped(WorldMapConfig(bounds=bounds, latency=latency))
+    ssim, coverage, residuals, seams = _grid_scores(mapper, sensor, plan, box, bool(yaw_deg))
+    stats = mapper.stats
+    estimate = stats.latency
+    return GridCell(profile, latency * 1e3, yaw_deg, surface, sum(1 for e in events if e[0] == "image"),
+                    (stats.latency_s or 0.0) * 1e3,
+                    None if estimate is None or estimate.sigma is None else estimate.sigma * 1e3,
+                    [] if estimate is None else list(estimate.sources), bool(estimate and estimate.observable),
+                    ssim, coverage, residuals,
+                    max(math.hypot(dx, dy) for dx, dy in residuals) if residuals else float("nan"), seams, cpu,
+                    told_cpu)
+
+
+def _grid_scores(mapper: Any, sensor: Any, plan: Any, box: tuple[float, float, float, float],
+                 along_y: bool) -> tuple[float, float, list[tuple[float, float]], float]:
+    """(SSIM in place, coverage %, each pass's residual (dx, dy) mm, seam ratio) over `box`."""
+    from skimage.metrics import structural_similarity
+
+    from touchroller_driver.sim.camera import surface_frame
+
+    resolution = mapper.config.resolution
+    grey, weight = mapper.canvas.value(mapper._level)
+    _, tactile = sensor.world_truth(surface_frame(sensor.scene), mapper.canvas.origin, grey.shape, resolution)
+    (c0, r0), (c1, r1) = (np.round(mapper.canvas.to_grid(np.array(p)) + 0.5).astype(int)
+                          for p in (box[:2], box[2:]))
+    known = weight[r0:r1, c0:c1] > 0.05
+    a, b = _standard(grey[r0:r1, c0:c1], known), _standard(tactile[r0:r1, c0:c1].astype(np.float32), known)
+    _, ssim_map = structural_similarity(a, b, data_range=255.0, full=True, win_size=7)
+    inside = cv2.erode(known.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    residuals = []
+    for raster_pass in plan.passes:
+        (xa, ya), (xb, yb) = raster_pass.start, raster_pass.end
+        if along_y:
+            pass_box = (xa - 0.012, min(ya, yb) + 0.005, xa + 0.012, max(ya, yb) - 0.005)
+        else:
+            pass_box = (min(xa, xb) + 0.005, ya - 0.012, max(xa, xb) - 0.005, ya + 0.012)
+        residuals.append(_pass_shift(grey, tactile, weight, mapper.canvas, pass_box, resolution))
+    # seams: the map less the truth (both standardised), averaged along the roll, high-passed over 4 mm:
+    # lines the map has and the surface has not, against the map's standard deviation (40 once standardised)
+    difference = a - b
+    trimmed = difference[:, 50:-50] if not along_y else difference[50:-50, :]
+    profile = trimmed.mean(axis=1) if not along_y else trimmed.mean(axis=0)   # across the passes
+    smooth = np.convolve(np.pad(profile, 20, mode="edge"), np.ones(41) / 41, mode="valid")
+    seams = float(np.abs(profile - smooth).max() / 40.0)
+    coverage = 100.0 * float(known.mean())
+    return float(ssim_map[inside].mean()) if inside.any() else float("nan"), coverage, residuals, seams
+
+
+def run_grid(size: dict[str, Any]) -> list[GridCell]:
+    cells = [grid_cell(profile, latency, yaw, length=size["grid_length"]) for profile in size["grid_profiles"]
+             for latency in size["grid_latencies"] for yaw in size["grid_yaws"]]
+    cells += [grid_cell("blend", 0.035, 0.0, surface, size["grid_length"]) for surface in size["grid_surfaces"]]
+    return cells
+
+
+def grid_goals(cells: list[GridCell]) -> list[tuple[str, str, bool | None]]:
+    """Issue 22's measures over the grid (simulator), in a fixed order (the report's goal rows read them by
+    index): latency, warning, SSIM, residual, coverage, seams, smooth surfaces, the estimate's cost."""
+    grain = [c for c in cells if c.surface == "grain"]
+    textured = [c for c in cells if c.surface in ("grain", "weave")]
+    smooth = [c for c in cells if c.surface in ("panel", "glass")]
+    rows: list[tuple[str, str, bool | None]] = []
+    if not grain:
+        return rows
+    seen = [c for c in grain if c.observable]
+    unseen = [c for c in grain if not c.observable]
+    worst = max((c.latency_error_ms for c in seen), default=math.nan)
+    rows.append(("latency within 3 ms of the truth where observable (grid, not told)",
+                 f"{worst:.1f} ms off ({len(seen)} of {len(grain)} cells observable)",
+                 bool(seen) and worst <= 3.0))
+    rows.append(("where not observable: the warning and the configured latency (0) used",
+                 f"{len(unseen)} cell(s), all at 0 ms" if unseen else "none", all(c.latency_ms == 0 for c in unseen)))
+    rows.append(("SSIM in place >= 0.90 (grid, observable cells)",
+                 f"{min((c.ssim for c in seen), default=math.nan):.3f}",
+                 bool(seen) and min(c.ssim for c in seen) >= 0.90))
+    observed = [c.worst_residual_mm for c in textured if c.observable]
+    residual = max(observed) if observed else math.nan
+    rows.append(("each pass's residual shift <= 0.1 mm (grid + weave, observable cells)", f"{residual:.3f} mm",
+                 residual <= 0.1))
+    rows.append(("coverage >= 98 % (grid, smooth panel, glass)", f"{min(c.coverage_percent for c in cells):.1f} %",
+                 min(c.coverage_percent for c in cells) >= 98.0))
+    rows.append(("no seams: dip/step across the passes <= 0.25 of the map's std (grid)",
+                 f"{max(c.seam_ratio for c in grain):.2f}", max(c.seam_ratio for c in grain) <= 0.25))
+    rows.append(("smooth panel / glass: every pressed frame mapped (coverage >= 98 %)",
+                 f"{min(c.coverage_percent for c in smooth):.1f} %" if smooth else "no smooth surface in this run",
+                 min(c.coverage_percent for c in smooth) >= 98.0 if smooth else None))
+    cost = max(c.map_cpu_s / c.told_cpu_s for c in cells if c.told_cpu_s > 0)
+    rows.append(("the estimate's cost: mapping untold / told (CPU, worst cell; not judged)", f"{cost:.2f}x", None))
+    return rows
+
+
+def _grid_markdown(cells: list[GridCell]) -> list[str]:
+    lines = ["", "Issue 22's grid on the simulator: 2-pass rasters (9 cm wide) at 20 mm/s, motion profile x true "
+                 "latency x raster direction (yaw 90: along base y, the surface turned with it), the mapper not told "
+                 "the latency. Profiles: ramp (press at rest, roll, stop), blend (touchdown and lift-off at speed, "
+                 "blend radii), constant (the same path, sharp corners), jitter (blend, speed varied 3 %), pauses "
+                 "(blend, two 0.4 s stops within the passes). This rests on the simulator alone; the second "
+                 "generator's grid is `bench.world_map_grid`.", "",
+             "| profile | surface | yaw | true latency | placed with | sigma | sources | SSIM | worst residual | "
+             "coverage | seams | untold/told CPU |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for c in cells:
+        sigma = "-" if c.latency_sigma_ms is None else f"{c.latency_sigma_ms:.2f} ms"
+        said = ", ".join(c.latency_sources) + ("" if c.observable else " (WARN)")
+        lines.append(f"| {c.profile} | {c.surface} | {c.yaw_deg:g} | {c.latency_true_ms:.0f} ms | "
+                     f"{c.latency_ms:.1f} ms | {sigma} | {said} | {c.ssim:.3f} | {c.worst_residual_mm:.3f} mm | "
+                     f"{c.coverage_percent:.1f} % | "
+                     f"{c.seam_ratio:.2f} | {c.map_cpu_s / max(c.told_cpu_s, 1e-9):.2f}x |")
+    lines += ["", "| goal (issue 22, simulator) | measured | |", "|---|---|---|"]
+    for goal, figure, met in grid_goals(cells):
+        verdict = "not judged" if met is None else ("met" if met else "**NOT met**")
+        lines.append(f"| {goal} | {figure} | {verdict} |")
+    return lines
+
+
 # ------------------------------------------------------------------------------------------------ speed
 def make_bag(path: Path, length: float) -> tuple[int, float]:
     """A 3-pass recording (the raster 14 cm wide) with /tf and /tf_static, as `touchroller scan --record` holds it."""
@@ -290,7 +507,7 @@ def run(quick: bool = False) -> WorldMapResult:
     size = QUICK if quick else FULL
     scans = [map_scan(size["area"], latency) for latency in size["latencies"]]
     return WorldMapResult(provenance("world_map", quick), quick, size["area"], SPEED, scans,
-                          command_speed(size["speed_length"], size["repeats"]))
+                          command_speed(size["speed_length"], size["repeats"]), run_grid(size))
 
 
 @dataclass(frozen=True)
@@ -362,6 +579,8 @@ def to_markdown(r: WorldMapResult) -> str:
     for goal, figure, met in goals(r):
         verdict = "not judged (quick run)" if met is None else ("met" if met else "**NOT met**")
         lines.append(f"| {goal} | {figure} | {verdict} |")
+    if r.grid:
+        lines += _grid_markdown(r.grid)
     lines += ["", provenance_markdown(r.provenance)]
     return "\n".join(lines)
 

@@ -28,12 +28,13 @@ class MapYaml:
     negate: int = 0
     occupied_thresh: float = 0.65
     free_thresh: float = 0.25
+    latency: dict[str, Any] | None = None   # the camera latency the map was placed with (value_ms, sigma_ms, ...)
 
     def as_dict(self) -> dict[str, Any]:
         return {"image": self.image, "mode": "trinary", "resolution": float(self.resolution),
                 "origin": [float(v) for v in self.origin], "negate": int(self.negate),
                 "occupied_thresh": float(self.occupied_thresh), "free_thresh": float(self.free_thresh),
-                "frame_id": self.frame_id}
+                "frame_id": self.frame_id, **({"camera_latency": self.latency} if self.latency else {})}
 
 
 def _replace(path: Path, write: Any) -> None:
@@ -67,14 +68,16 @@ def write_png_grey_alpha(path: Path, grey: np.ndarray, alpha: np.ndarray) -> Non
     _replace(path, lambda temporary: Path(temporary).write_bytes(data))
 
 
-def write_world_map(png: str | Path, image: WorldMapImage, frame_id: str) -> tuple[Path, Path]:
-    """map.png + map.yaml (same stem) for a world map; returns both paths. UserError on a bad path."""
+def write_world_map(png: str | Path, image: WorldMapImage, frame_id: str,
+                    latency: dict[str, Any] | None = None) -> tuple[Path, Path]:
+    """map.png + map.yaml (same stem) for a world map; returns both paths. UserError on a bad path.
+    `latency`: the camera latency it was placed with (`world_map.latency_summary`), as `camera_latency`."""
     png = Path(png)
     if png.suffix.lower() != ".png":
         raise UserError(f"a world map is written as PNG with a YAML beside it; got {png}")
     if image.grey.size == 0:
         raise UserError("the world map is empty: no frame was mapped (was the roller ever pressed and rolled?)")
-    meta = MapYaml(png.name, image.resolution, (image.origin[0], image.origin[1], 0.0), frame_id)
+    meta = MapYaml(png.name, image.resolution, (image.origin[0], image.origin[1], 0.0), frame_id, latency=latency)
     yaml_path = png.with_suffix(".yaml")
     try:
         write_png_grey_alpha(png, image.grey, image.alpha)

@@ -272,6 +272,17 @@ def _height(check: str) -> Measure:
     return measure
 
 
+def _world_grid(index: int) -> Measure:
+    """Row `index` of `bench.world_map.grid_goals` (issue 22's grid on the simulator)."""
+    def measure(r: Any) -> tuple[str, bool | None]:
+        rows = load_bench_script("world_map").grid_goals(getattr(r, "grid", []))
+        if index >= len(rows):
+            return "no grid in this run", None
+        _, figure, met = rows[index]
+        return f"{figure} (simulator grid)", met
+    return measure
+
+
 def _world_speed(key: str, fmt: str, goal: float, below: bool) -> Measure:
     def measure(r: Any) -> tuple[str, bool | None]:
         value = getattr(r.speed, key)
@@ -525,6 +536,16 @@ GOALS: tuple[Goal, ...] = (
          _grid_goal("smooth panel and glass: coverage")),
     Goal(22, "World map on a smooth painted panel and glass: planted cracks and dents in place within 0.2 mm "
              "(second generator)", "world_map_grid", _grid_goal("smooth panel and glass: planted")),
+    Goal(22, "World map grid (profiles x latencies x yaws, simulator): latency within 3 ms where observable",
+         "world_map", _world_grid(0)),
+    Goal(22, "World map grid (simulator): unobservable latency -> WARN and the configured value", "world_map",
+         _world_grid(1)),
+    Goal(22, "World map grid (simulator): SSIM in place >= 0.90", "world_map", _world_grid(2)),
+    Goal(22, "World map grid + weave (simulator): each pass's residual <= 0.1 mm", "world_map", _world_grid(3)),
+    Goal(22, "World map grid + smooth surfaces (simulator): coverage >= 98 %", "world_map", _world_grid(4)),
+    Goal(22, "World map grid (simulator): no seam beyond 0.25 of the map's std", "world_map", _world_grid(5)),
+    Goal(22, "World map: smooth panel and glass (simulator): every pressed frame mapped", "world_map",
+         _world_grid(6)),
     Goal(6, "Calibration: theta within 0.1 deg (20 chessboard + 10 hemisphere images)", "calibration",
          _calib("theta_err_deg", "°", "theta_deg")),
     Goal(6, "Calibration: d within 0.05 mm", "calibration", _calib("d_err_mm", " mm", "d_mm")),

@@ -693,7 +693,7 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
 
         def write_world() -> None:
             files["map"], files["map_yaml"] = write_world_map(out_dir / "map.png", world_image,
-                                                              perception.world_frame)
+                                                              perception.world_frame, _latency_yaml(world))
         attempt("map", out_dir / "map.png", write_world)
     elif tactile_map is not None:
         attempt("map", out_dir / "map.png", lambda: _write_png(out_dir / "map.png", tactile_map))
@@ -710,12 +710,21 @@ def _write_png(path: Path, image: Any) -> None:
         stream.write(data.tobytes())
 
 
+def _latency_yaml(world: Any) -> dict[str, Any]:
+    from touchroller_perception.world_map import latency_summary
+
+    return latency_summary(world.stats)[1]
+
+
 def _world_summary(world: Any, frame: str, image: Any) -> dict[str, Any]:
+    from touchroller_perception.world_map import latency_summary
+
     stats = world.stats
     return {"frame": frame, "resolution_m": image.resolution, "origin": tuple(image.origin),
             "frames_mapped": stats.mapped, "passes": stats.passes,
             "latency_ms": None if stats.latency_s is None else stats.latency_s * 1e3,
             "latency_estimated": stats.latency_estimated,
+            "latency": latency_summary(stats)[0],
             "pass_corrections_mm": [(dx * image.resolution * 1e3, dy * image.resolution * 1e3)
                                     for dx, dy in stats.pass_corrections_px]}
 
@@ -752,7 +761,7 @@ def _world_lines(world: Mapping[str, Any]) -> list[str]:
     return [f"- world map in `{world['frame']}`: `map.png` + `map.yaml`, {world['resolution_m'] * 1e3:g} mm per pixel, "
             f"origin ({world['origin'][0]:.4f}, {world['origin'][1]:.4f}) m; {world['frames_mapped']} frames "
             f"mapped in {world['passes']} pass(es)",
-            f"- camera latency {'estimated from the data' if world['latency_estimated'] else 'as given'}: {latency}; "
+            f"- camera latency {world.get('latency') or latency}; "
             f"pass corrections by registration (x, y mm): {corrections}"]
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from touchroller_driver.motion import TrapezoidProfile
+from touchroller_driver.path import BlendedPath, raster_waypoints
 from touchroller_perception.transforms import Transform
 
 
@@ -317,6 +318,8 @@ class SweepPlan:
     rolls: tuple[int, ...]
     lengths: tuple[float, ...]
     passes: tuple[RasterPass, ...] = ()
+    profile: str = "ramp"              # SWEEP_PROFILES
+    path: BlendedPath | None = None    # profile blend/constant: the whole raster as one path at speed
 
     @property
     def length(self) -> float:
@@ -337,6 +340,11 @@ class RasterPass:
     end: tuple[float, float]
     across: tuple[float, float]
 
+
+#: `sweep.profile`: ramp (press, accelerate from rest, roll, stop, lift: today's moves), blend (touchdown
+#: and lift-off at speed, corners rounded by `blend` as a UR program with blend radii), constant (the same
+#: path at speed with sharp corners)
+SWEEP_PROFILES = ("ramp", "blend", "constant")
 
 #: the most passes a raster may have: its plan (4 moves a pass) is built and checked at once, and a
 #: raster of more passes is a typo (a width in mm given in m) far more often than a wish
@@ -375,7 +383,8 @@ def raster_offsets(width: float, usable_width: float, overlap: float) -> list[fl
 def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transform, speed: float, accel: float,
                 depth: float, direction: Sequence[float] = (1.0, 0.0, 0.0), usable_width: float = 0.06,
                 overlap: float = 0.25, approach_speed: float | None = None, clearance: float = 0.0,
-                limits: ArmLimits | None = None) -> SweepPlan:
+                limits: ArmLimits | None = None, profile: str = "ramp", lead: float = 0.01,
+                blend: float = 0.004) -> SweepPlan:
     """A boustrophedon raster over the rectangle `area` = (x, y, length, width) of the world's horizontal
     plane: corner (x, y), `length` along `direction`, `width` along the roller's axis (+axis side).
     Every pass rolls the whole length, pressed `depth` into the surface, alternately forwards and back;
@@ -383,7 +392,12 @@ def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transfor
     the tool's orientation and the height at which the roller just touches the surface; `mount` is
     T_tool_cylinder (the roller's axis centre in the tool frame). With `limits`, the raster's corners are
     checked against its reach before any pass is planned (the tool's path lies within their hull), so an
-    area kilometres wide is refused at once; and no raster has more than MAX_PASSES passes."""
+    area kilometres wide is refused at once; and no raster has more than MAX_PASSES passes. `profile`
+    (SWEEP_PROFILES): with blend or constant the plan's `path` rolls the raster at speed, descending over
+    `lead` m before each pass and rising over `lead` after it (`touchroller_driver.path`); its segments stay
+    those of ramp."""
+    if profile not in SWEEP_PROFILES:
+        raise ArmLimitError(f"sweep.profile must be one of {', '.join(SWEEP_PROFILES)}, got {profile!r}")
     start = as_pose(start_pose)
     values = [float(v) for v in area]
     if len(values) != 4 or not all(math.isfinite(v) for v in values):
@@ -434,7 +448,12 @@ def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transfor
         segments.append(Segment("lift", tool_at(finish, clearance), slow, accel))
         passes.append(RasterPass((float(begin[0]), float(begin[1])), (float(finish[0]), float(finish[1])),
                                  (centre - usable_width / 2.0, centre + usable_width / 2.0)))
-    return SweepPlan(tuple(segments), tuple(rolls), tuple([length] * len(passes)), tuple(passes))
+    path = None
+    if profile != "ramp":
+        rolled = [(segments[k - 1].target, segments[k].target) for k in rolls]
+        path = BlendedPath(raster_waypoints(rolled, depth + clearance, lead), speed, accel,
+                           blend if profile == "blend" else 0.0)
+    return SweepPlan(tuple(segments), tuple(rolls), tuple([length] * len(passes)), tuple(passes), profile, path)
 
 
 def raster_coverage(plan: SweepPlan, width: float, roll: int, fraction: float) -> float:
@@ -540,6 +559,9 @@ class SweepSequencer:
     def start(self, plan: SweepPlan) -> None:
         if self.active:
             raise ArmError("a sweep is already running")
+        if plan.path is not None:
+            raise ArmError(f"sweep profile {plan.profile!r} is run by the simulator's simulate_sweep only (the "
+                           "sequencer drives ramp plans)")
         for segment in plan.segments:
             self.arm.limits.check(segment.target, segment.speed, segment.accel)
         fault = self.arm.fault()

@@ -52,6 +52,7 @@ _STATIC_FRACTION = 0.3  # an image shift below this share of the arm's is taken 
 _WEAK_CONFIDENCE = 0.5  # below this a match that contradicts the recent velocity is not believed
 _VELOCITY_FRAMES = 5  # confident shifts whose median predicts the next
 _FLAT_FIELD_MEMORY = 300  # frames the live flat field averages over
+_FINE_FIELD_FRAMES = 60   # frames a final flat field with its fine column profile (flat_sigma_cols 0) needs
 # 1 - NCC above this at the best shift: the keyframe no longer shows what the frame shows (contact
 # began or ended, a jump); registered rolls stay below ~0.3 even at 5 s with motion blur.
 _MISMATCH_COST = 0.5
@@ -383,6 +384,8 @@ def flat_field_from_mean(mean: np.ndarray, sigma_cols: float = 15.0) -> np.ndarr
     only at low spatial frequency; the fine part belongs to the surface and is left in the map.
     """
     mean = np.maximum(np.asarray(mean, np.float32), 1.0)
+    if sigma_cols <= 0:   # the whole mean: every fine column feature of the gel divides out too
+        return mean
     profile = mean.mean(axis=0, keepdims=True)
     smooth = cv2.GaussianBlur(profile, (0, 0), sigmaX=sigma_cols, sigmaY=1e-3, borderType=cv2.BORDER_REFLECT)
     return mean * (smooth / profile)
@@ -417,6 +420,11 @@ class StitcherConfig:
       rolling window of the rows nearest the newest band, the rest dropped (`Stitcher.dropped_rows`), so a
       live stitcher fed frames for hours stays within a fixed memory. None: unbounded (offline tools
       that stitch a recording whole).
+    flat_sigma_cols: the flat field keeps the column profile of the band's mean only at this low
+      spatial frequency (columns): texture constant along the roll stays in a strip map. 0: the whole
+      mean divides out (the world map: a fine static feature of the gel would draw a line along every
+      pass, at the same place in each): in the final field (`finalise`), once 60 frames were learnt
+      (before that, and in the live field, as 15: on a short roll the mean's columns still hold the surface).
     """
 
     method: str = "default"
@@ -438,6 +446,7 @@ class StitcherConfig:
     history: int | None = DEFAULT_HISTORY
     keep_map: bool = True
     max_rows: int | None = DEFAULT_MAX_ROWS
+    flat_sigma_cols: float = 15.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -459,6 +468,8 @@ class StitcherConfig:
         if self.max_rows is not None and self.max_rows < 8 * self.band_rows:
             raise ValueError(f"max_rows must be >= 8 x band_rows ({8 * self.band_rows}) or None (unbounded), "
                              f"got {self.max_rows}")
+        if not (math.isfinite(self.flat_sigma_cols) and self.flat_sigma_cols >= 0):
+            raise ValueError(f"flat_sigma_cols must be >= 0, got {self.flat_sigma_cols}")
         if self.centre_row is not None and not math.isfinite(self.centre_row):
             raise ValueError(f"centre_row must be finite or None, got {self.centre_row}")
 
@@ -479,8 +490,10 @@ class FlatField:
     Live, a field is offered only once the surface has moved two bands and ten frames were learnt
     (before that the mean still holds texture), and recomputed every ten frames (cost)."""
 
-    def __init__(self, band_rows: int, fixed: np.ndarray | None = None, memory: int = _FLAT_FIELD_MEMORY) -> None:
+    def __init__(self, band_rows: int, fixed: np.ndarray | None = None, memory: int = _FLAT_FIELD_MEMORY,
+                 sigma_cols: float = 15.0) -> None:
         self.band_rows = band_rows
+        self.sigma_cols = sigma_cols
         self.fixed = None if fixed is None else np.asarray(fixed, np.float32)
         self.memory = memory
         self.count = 0  # frames in the running mean
@@ -499,7 +512,7 @@ class FlatField:
         if travel < 2 * self.band_rows or self.count < 10 or self._sum is None:
             return None
         if self._field is None or self._dirty >= 10:
-            self._field = flat_field_from_mean(self._sum / self.count)
+            self._field = flat_field_from_mean(self._sum / self.count, self.sigma_cols or 15.0)
             self._dirty = 0
         return self._field
 
@@ -537,7 +550,11 @@ class FlatField:
             return self.fixed
         if self._sum is None or self.count == 0:
             return None
-        return flat_field_from_mean(self._sum / self.count)
+        # sigma_cols 0: the fine column profile in the final field only (the live one, which registration
+        # sees, keeps the smooth one), and only once the mean holds enough frames for the surface's own
+        # column structure to have averaged out (a short roll keeps the smooth profile)
+        fine = self.sigma_cols > 0 or self.count >= _FINE_FIELD_FRAMES
+        return flat_field_from_mean(self._sum / self.count, self.sigma_cols if fine else 15.0)
 
 
 class VelocityPredictor:
@@ -632,7 +649,7 @@ class Stitcher:
         self.stamps: list[int] | deque[int] = [] if history is None else deque(maxlen=history)
         self.frames = 0  # frames pushed, and how many of them took the motion prior
         self.prior_frames = 0
-        self.flat = FlatField(config.band_rows, flat_field)
+        self.flat = FlatField(config.band_rows, flat_field, sigma_cols=config.flat_sigma_cols)
         self.predictor = VelocityPredictor(config.motion_prior)
         self.paper = PaperRegistration(config.search)
         self._shape: tuple[int, int] | None = None

@@ -12,7 +12,7 @@ mosaic in the world frame (`map` frame of nav2: x right, y up) at `config.resolu
   the roll): frames within `contact_tolerance` of it are in contact; an arm moving above the surface
   (approach, between passes) is not, whatever the image shows;
 * the camera's latency (exposure to stamp): `config.latency` if told, else estimated from the data
-  (`LatencyEstimator`: the image-registered roll against the arm's, around each start and stop);
+  (`touchroller_perception.latency`: the image-registered roll against the arm's, around each start and stop);
 * refinement by registration: each pass after the first is registered (2-D, subpixel) against what the
   earlier passes mapped where they overlap, and shifted by the median of its frames' offsets, so a
   residual latency or an arm calibration error does not leave a seam;
@@ -35,7 +35,7 @@ import dataclasses
 import itertools
 import math
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,13 +43,30 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from touchroller_perception.fast_stats import median as _median
+from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
+from touchroller_perception.latency import LatencyConfig, LatencyEstimate, LatencyEstimator
 from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, taper
+from touchroller_perception.world_canvas import (  # noqa: F401 (WorldCanvas, _Prior: part of this module's API)
+    WorldCanvas,
+    _axis_aligned,
+    _blend,
+    _orient,
+    _orient_into,
+    _Placement,
+    _Prior,
+)
 
 FloatArray = NDArray[np.float64]
 _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
 _EVENT_CHECK_NS = 250_000_000   # how often (stamp time) the pressed height, starts and stops are looked for
 _PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in this many is registered
+_RESUME_NS = 300_000_000       # pressed again this soon after a pass ended: the same pass (not a new one)
+_PLACING_STEP_S = 5e-4          # frames are placed with the latency estimate on this grid, s
+_MIN_SCORE = 0.5                # a registration's NCC peak below this is not trusted (too little texture)
+_PEAK_MARGIN = 0.1              # a registration's peak stands this much (NCC) above any other 3 px away
+_DELTA_MAD_PX = 1.0             # a pass's offsets agree (median absolute deviation, map px) to be applied
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet): e.g.
 #: `TransformBuffer.lookup_many(world, cylinder, stamps, missing=True)`.
 PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
@@ -88,7 +105,11 @@ class WorldMapConfig:
     bounds: (x_min, y_min, x_max, y_max) of the map in the world frame, m (e.g. the scan's rectangle plus
       a margin); None: it grows with what is mapped, up to `max_pixels`.
     max_pixels: the most pixels the map may hold (memory: 12 bytes each).
-    latency: the camera's latency (s, exposure to stamp) if known; None: estimated from the data.
+    latency: the camera's latency (s, exposure to stamp) if known; None: estimated from the data
+      (`touchroller_perception.latency`).
+    latency_fallback: the latency used when the data do not pin it down (a single pass at constant
+      speed): the configured one (what `camera.latency` left, 0), said as a warning, never an estimate.
+    latency_max_sigma: the estimate is used when its standard deviation is at most this, s.
     max_latency: the largest latency considered, s.
     register: refine each pass's placement by registration against the earlier passes.
     search_px: the largest correction registration looks for, map pixels.
@@ -108,6 +129,8 @@ class WorldMapConfig:
     bounds: tuple[float, float, float, float] | None = None
     max_pixels: int = 16_000_000
     latency: float | None = None
+    latency_fallback: float = 0.0
+    latency_max_sigma: float = 0.002
     max_latency: float = 0.2
     register: bool = True
     search_px: int = 6
@@ -132,6 +155,10 @@ class WorldMapConfig:
             raise ValueError(f"latency must be in [0, 1] s or None (estimate it), got {self.latency}")
         if not (0 < self.max_latency <= 1.0):
             raise ValueError(f"max_latency must be in (0, 1] s, got {self.max_latency}")
+        if not (math.isfinite(self.latency_fallback) and 0 <= self.latency_fallback <= self.max_latency):
+            raise ValueError(f"latency_fallback must be in [0, max_latency] s, got {self.latency_fallback}")
+        if not (math.isfinite(self.latency_max_sigma) and self.latency_max_sigma > 0):
+            raise ValueError(f"latency_max_sigma must be > 0 s, got {self.latency_max_sigma}")
         if (self.search_px < 1 or self.hold_frames < 1 or self.max_pixels < 10_000 or self.steady_stride < 1
                 or self.wait_frames < 0):
             raise ValueError("search_px, hold_frames and steady_stride must be >= 1, wait_frames >= 0, "
@@ -152,340 +179,6 @@ class WorldMapImage:
     alpha: np.ndarray
     resolution: float
     origin: tuple[float, float]
-
-
-# ------------------------------------------------------------------------------------------------ canvas
-class WorldCanvas:
-    """Weighted sums on a grid of the world plane: layer 0 sum(w band), 1 sum(w field), 2 sum(w), each a
-    plane of `layers` (3, rows, columns). Cell (row r, column c) covers world x in origin_x + [c, c + 1] *
-    res, y in origin_y + [r, r + 1] * res (rows grow with y; images flip it). Grows by at least `grow_px`
-    (or half its size) on the side that needs it, unless fixed by `bounds`.
-
-    A growing map's `layers` is a window of a larger zeroed allocation (room on every side, within
-    `max_pixels`): growing into that room moves the window, without copying the sums or allocating again,
-    and the pages of the room are not touched (not made resident) until bands land there. `used()` is the
-    rectangle of cells bands were ever added to: everything outside it is zero."""
-
-    def __init__(self, resolution: float, bounds: tuple[float, float, float, float] | None,
-                 max_pixels: int, grow_px: int = 512) -> None:
-        self.resolution = resolution
-        self.max_pixels = max_pixels
-        self.grow_px = grow_px
-        self.fixed = bounds is not None
-        if bounds is not None:
-            x0, y0, x1, y1 = bounds
-            cols, rows = math.ceil((x1 - x0) / resolution), math.ceil((y1 - y0) / resolution)
-            self.origin = (float(x0), float(y0))
-        else:
-            cols, rows = 0, 0
-            self.origin = (0.0, 0.0)
-        self._backing = np.zeros((3, rows, cols), np.float32)
-        self._offset = (0, 0)   # (row, column) of the window's cell (0, 0) in the allocation
-        self.layers = self._backing
-        self._used: list[int] | None = None   # [row0, row1, column0, column1] in the allocation
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.layers.shape[1], self.layers.shape[2]
-
-    def used(self) -> tuple[int, int, int, int] | None:
-        """(row0, row1, column0, column1): the cells bands were added to (the rest is zero); None: none."""
-        if self._used is None:
-            return None
-        ro, co = self._offset
-        r0, r1, c0, c1 = self._used
-        return r0 - ro, r1 - ro, c0 - co, c1 - co
-
-    def to_grid(self, xy: np.ndarray) -> np.ndarray:
-        """World (x, y) -> fractional (column, row) where pixel centres are whole numbers."""
-        return (np.asarray(xy) - np.asarray(self.origin)) / self.resolution - 0.5
-
-    def _window(self, row0: int, col0: int, rows: int, cols: int) -> None:
-        """Make the canvas rows x cols cells whose cell (0, 0) is the old one's (row0, col0): within the
-        allocation if it has room, else in a new one with room on every side (the sums copied)."""
-        ro, co = self._offset[0] + row0, self._offset[1] + col0
-        _, total_rows, total_cols = self._backing.shape
-        if not (ro >= 0 and co >= 0 and ro + rows <= total_rows and co + cols <= total_cols):
-            room = max(rows, cols)
-            while room > 0 and (rows + 2 * room) * (cols + 2 * room) > self.max_pixels:
-                room //= 2
-            backing = np.zeros((3, rows + 2 * room, cols + 2 * room), np.float32)
-            old_rows, old_cols = self.shape
-            if self._used is not None:   # only the cells bands reached can be non-zero
-                r0, r1, c0, c1 = self.used()  # type: ignore[misc]
-                backing[:, room - row0 + r0:room - row0 + r1, room - col0 + c0:room - col0 + c1] = \
-                    self.layers[:, r0:r1, c0:c1]
-                self._used = [room - row0 + r0, room - row0 + r1, room - col0 + c0, room - col0 + c1]
-            elif old_rows and old_cols:
-                backing[:, room - row0:room - row0 + old_rows, room - col0:room - col0 + old_cols] = self.layers
-            self._backing, ro, co = backing, room, room
-        self._offset = (ro, co)
-        self.layers = self._backing[:, ro:ro + rows, co:co + cols]
-
-    def ensure(self, c0: int, r0: int, c1: int, r1: int) -> tuple[int, int]:
-        """Make columns [c0, c1) and rows [r0, r1) exist (growing, unless fixed); returns the shift of
-        the old indices (the new index of old (0, 0)). Raises MemoryError past max_pixels."""
-        rows, cols = self.shape
-        if self.fixed or (rows and cols and c0 >= 0 and r0 >= 0 and c1 <= cols and r1 <= rows):
-            return 0, 0
-        if not rows or not cols:   # the first band: start around it with room to grow (within max_pixels)
-            pad = self.grow_px // 2
-            while pad > 0 and (r1 - r0 + 2 * pad) * (c1 - c0 + 2 * pad) > self.max_pixels:
-                pad //= 2
-            if (r1 - r0 + 2 * pad) * (c1 - c0 + 2 * pad) > self.max_pixels:
-                raise MemoryError(f"one band needs more than {self.max_pixels} pixels at {self.resolution} m/px")
-            new_c0, new_r0 = c0 - pad, r0 - pad
-            self._backing = np.zeros((3, 0, 0), np.float32)
-            self._offset, self._used = (0, 0), None
-            self._window(0, 0, r1 - r0 + 2 * pad, c1 - c0 + 2 * pad)
-            self.origin = (self.origin[0] + new_c0 * self.resolution, self.origin[1] + new_r0 * self.resolution)
-            return -new_c0, -new_r0
-        need = (max(0, -c0), max(0, c1 - cols), max(0, -r0), max(0, r1 - rows))   # left, right, bottom, top
-        sizes = (cols, cols, rows, rows)
-        grow = [max(n, self.grow_px, size // 2) if n else 0 for n, size in zip(need, sizes, strict=True)]
-        left, right, bottom, top = grow
-        if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
-            left, right, bottom, top = need
-            if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
-                raise MemoryError(f"the map would exceed {self.max_pixels} pixels at {self.resolution} m/px "
-                                  "(set bounds or a coarser resolution)")
-        self._window(-bottom, -left, rows + bottom + top, cols + left + right)
-        self.origin = (self.origin[0] - left * self.resolution, self.origin[1] - bottom * self.resolution)
-        return left, bottom
-
-    def add(self, planes: Sequence[np.ndarray | None] | np.ndarray, c0: int, r0: int) -> None:
-        """Add (h, w) patches to the layers (None: leave that layer; or a (3, h, w) stack of all three),
-        their lowest cell at (column c0, row r0), clipped to the map."""
-        rows, cols = self.shape
-        h, w = next(p for p in planes if p is not None).shape
-        a0, b0 = max(r0, 0), max(c0, 0)
-        a1, b1 = min(r0 + h, rows), min(c0 + w, cols)
-        if a1 <= a0 or b1 <= b0:
-            return
-        for layer, plane in zip(self.layers, planes, strict=True):   # cv2.add: 2x numpy's speed on these views
-            if plane is not None:
-                view = layer[a0:a1, b0:b1]
-                cv2.add(view, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], dst=view)
-        self._mark(a0, a1, b0, b1)
-
-    def _mark(self, a0: int, a1: int, b0: int, b1: int) -> None:
-        ro, co = self._offset
-        used = self._used
-        if used is None:
-            self._used = [a0 + ro, a1 + ro, b0 + co, b1 + co]
-        else:
-            if a0 + ro < used[0]:
-                used[0] = a0 + ro
-            if a1 + ro > used[1]:
-                used[1] = a1 + ro
-            if b0 + co < used[2]:
-                used[2] = b0 + co
-            if b1 + co > used[3]:
-                used[3] = b1 + co
-
-    def value(self, level: float, min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
-        """(flat-field-corrected map as float32 grey, weight), rows growing with y."""
-        grey, weight = np.zeros(self.shape, np.float32), np.zeros(self.shape, np.float32)
-        box = self.used()
-        if box is not None:
-            r0, r1, c0, c1 = box
-            grey[r0:r1, c0:c1], weight[r0:r1, c0:c1] = self.value_in(level, box, min_weight)
-        return grey, weight
-
-    def value_in(self, level: float, box: tuple[int, int, int, int],
-                 min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
-        """`value` over rows [row0, row1) and columns [column0, column1) of the canvas."""
-        r0, r1, c0, c1 = box
-        band, flat, weight = self.layers[:, r0:r1, c0:c1]
-        known = (weight > min_weight) & (flat > 1e-6)
-        grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
-        return grey, np.where(known, weight, np.float32(0.0))
-
-
-# ------------------------------------------------------------------------------------------------ placing
-@dataclass(frozen=True)
-class _Placement:
-    """Where a band landed on the map: for an axis-aligned roller (`axes` not None: transpose, flip rows,
-    flip columns) the oriented band at (c0, r0) blended by the 2x2 bilinear `kernel`; else the affine
-    `matrix` (band -> patch) of a (w, h) patch at (c0, r0)."""
-
-    c0: int
-    r0: int
-    axes: tuple[bool, bool, bool] | None
-    kernel: np.ndarray | None = None
-    matrix: np.ndarray | None = None
-    size: tuple[int, int] = (0, 0)
-
-    def moved(self, dc: int, dr: int) -> _Placement:
-        return dataclasses.replace(self, c0=self.c0 + dc, r0=self.r0 + dr)
-
-
-def _axes(matrix: np.ndarray) -> tuple[bool, bool, bool] | None:
-    """(transpose, flip rows, flip columns) when the affine's 2x2 part is a signed permutation to within
-    1e-6 (an error of 1e-3 px across a 640-column band), else None."""
-    # plain floats: this runs for every frame placed, and numpy's calls on a 2x2 cost more than its arithmetic
-    (a, b, _), (c, d, _) = matrix.tolist()
-    ra, rb, rc, rd = round(a), round(b), round(c), round(d)
-    if max(abs(a - ra), abs(b - rb), abs(c - rc), abs(d - rd)) > 1e-6:
-        return None
-    if not (abs(ra) + abs(rb) == abs(rc) + abs(rd) == abs(ra) + abs(rc) == abs(rb) + abs(rd) == 1):
-        return None   # not one non-zero in each row and each column
-    if ra == 0:   # map column from the band's row, map row from its column
-        return True, rc < 0, rb < 0
-    return False, rd < 0, ra < 0
-
-
-Axes = tuple[bool, bool, bool]   # (transpose, flip rows, flip columns)
-
-
-def _axis_aligned(matrix: np.ndarray, shape: tuple[int, int]) -> tuple[Axes, int, int, np.ndarray] | None:
-    """For an affine band (column j, row i) -> map (column, row) that only turns a band of `shape` (rows,
-    columns) by quarter turns and flips (`_axes`): (axes, column c0 and row r0 of the lowest cell of
-    `_blend(_orient(plane, axes), kernel)`, kernel) with which that equals the bilinear warp of the plane;
-    None for any other affine."""
-    axes = _axes(matrix)
-    if axes is None:
-        return None
-    transpose, flip_rows, flip_cols = axes
-    rows, cols = (shape[1], shape[0]) if transpose else shape
-    ox = float(matrix[0, 2]) - (cols - 1 if flip_cols else 0)
-    oy = float(matrix[1, 2]) - (rows - 1 if flip_rows else 0)
-    c0, r0 = math.floor(ox), math.floor(oy)
-    fx, fy = ox - c0, oy - r0
-    kernel = np.array([[fy * fx, fy * (1 - fx)], [(1 - fy) * fx, (1 - fy) * (1 - fx)]], np.float32)
-    return axes, c0, r0, kernel
-
-
-def _orient(plane: np.ndarray, axes: tuple[bool, bool, bool]) -> np.ndarray:
-    """The band plane turned to the map's axes, with a zero border of one pixel (for the bilinear blend)."""
-    transpose, flip_rows, flip_cols = axes
-    out = cv2.transpose(plane) if transpose else plane
-    if flip_rows or flip_cols:
-        out = cv2.flip(out, -1 if flip_rows and flip_cols else (0 if flip_rows else 1))
-    return cv2.copyMakeBorder(out, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
-
-
-def _orient_into(plane: np.ndarray, axes: tuple[bool, bool, bool], out: np.ndarray) -> None:
-    """`_orient(plane, axes)` without its border, written into `out` (e.g. the inside of a bordered buffer)."""
-    transpose, flip_rows, flip_cols = axes
-    code = -1 if flip_rows and flip_cols else (0 if flip_rows else 1)
-    if transpose:
-        written = cv2.transpose(plane, dst=out)
-        if flip_rows or flip_cols:
-            written = cv2.flip(out, code, dst=out)
-    elif flip_rows or flip_cols:
-        written = cv2.flip(plane, code, dst=out)
-    else:
-        np.copyto(out, plane)
-        written = out
-    if not np.shares_memory(written, out):   # OpenCV made a new array instead of writing into `out`
-        raise AssertionError("_orient_into: the output was not written in place")
-
-
-def _blend(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """An oriented, bordered plane moved by its subpixel phase: (h + 1, w + 1)."""
-    out = cv2.filter2D(padded, -1, kernel, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
-    return out[:-1, :-1]
-
-
-# ------------------------------------------------------------------------------------------------ latency
-@dataclass
-class _Window:
-    """Frames around one start or stop of the roll: (stamp ns, image position px), confident ones only."""
-
-    stamps: list[int] = field(default_factory=list)
-    positions: list[float] = field(default_factory=list)
-    latency: float | None = None   # its own estimate, s (None: it has no clear minimum)
-    residual_px: float | None = None
-    solved: bool = False
-
-
-class LatencyEstimator:
-    """The camera's latency from the data: the strip stitcher's image position P_k (rows the surface
-    moved in the band) must follow the arm: P_k = c + s Y(t_k - L), Y = the roll along the band's rows
-    from TF (m / m_per_row). At constant speed any L fits (c absorbs it), so the fit uses windows around
-    each start and stop of a roll, where the image and the arm must start (stop) together; L minimises
-    the sum of the windows' least-squares residuals (c and s fitted per window, s for the scale error of
-    a calibration), searched over [0, max_latency] at 1 ms, then refined by a parabola."""
-
-    def __init__(self, max_latency: float, m_per_row: float, before_s: float = 1.0, after_s: float = 1.0,
-                 max_residual_px: float = 0.3) -> None:
-        self.max_latency_ns = round(max_latency * 1e9)
-        self.m_per_row = m_per_row
-        self.before_ns, self.after_ns = round(before_s * 1e9), round(after_s * 1e9)
-        self.max_residual_px = max_residual_px   # a window the model does not fit (a slip, lost texture) is left out
-        self.windows: list[_Window] = []
-        self.estimate: float | None = None   # seconds
-        self.residual_px: float | None = None  # RMS of the fit at the estimate
-
-    def add_window(self, stamps: Sequence[int], positions: Sequence[float]) -> None:
-        if len(stamps) >= 8:
-            self.windows.append(_Window(list(stamps), list(positions)))
-
-    def _scan(self, window: _Window, candidates: NDArray[np.int64], poses: PoseLookup) -> tuple[np.ndarray, int] | None:
-        """The window's cost (mean squared residual of the best line P = c + s Y, px^2) at each candidate
-        latency (NaN where a pose is missing), all candidates in one lookup; with the best's index."""
-        stamps = np.asarray(window.stamps, np.int64)
-        transforms = poses((stamps[None, :] - candidates[:, None]).reshape(-1))
-        transforms = transforms.reshape(len(candidates), len(stamps), 4, 4)
-        # where a point fixed in the world (the first pose's origin) lies along the cylinder's y axis
-        offsets = transforms[:, :1, :3, 3] - transforms[:, :, :3, 3]
-        y = np.einsum("cki,cki->ck", transforms[:, :, :3, 1], offsets) / self.m_per_row
-        p = np.asarray(window.positions, np.float64)
-        dy = y - y.mean(axis=1, keepdims=True)
-        dp = p - p.mean()
-        syy, syp, spp = (dy * dy).sum(axis=1), dy @ dp, float(dp @ dp)
-        slope_part = np.divide(syp * syp, syy, out=np.zeros_like(syy), where=syy > 1e-12)
-        costs = np.maximum(spp - slope_part, 0.0) / len(p)
-        costs[~np.isfinite(transforms).all(axis=(1, 2, 3))] = np.nan
-        if not np.isfinite(costs).any():
-            return None
-        return costs, int(np.nanargmin(costs))
-
-    def _solve_window(self, window: _Window, poses: PoseLookup) -> float | None:
-        """The latency that fits one window best: a 5 ms grid over [0, max_latency], then 1 ms around its
-        best, then a parabola through the three best; None when the window says nothing (flat costs)."""
-        coarse = self._scan(window, np.arange(0, self.max_latency_ns + 1, 5_000_000), poses)
-        if coarse is None:
-            return None
-        costs, best = coarse
-        finite = costs[np.isfinite(costs)]
-        if finite.max() < 4.0 * max(finite.min(), 1e-6):   # no clear minimum: no start or stop in it
-            return None
-        centre = best * 5_000_000
-        candidates = np.arange(max(centre - 6_000_000, 0), min(centre + 6_000_000, self.max_latency_ns) + 1, 1_000_000)
-        fine = self._scan(window, candidates, poses)
-        if fine is None:
-            return None
-        costs, best = fine
-        offset = 0.0
-        if 0 < best < len(costs) - 1 and np.isfinite(costs[best - 1]) and np.isfinite(costs[best + 1]):
-            a, b, c = costs[best - 1], costs[best], costs[best + 1]
-            den = a - 2 * b + c
-            if den > 0:
-                offset = float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
-        window.latency = max(float(candidates[best]) + offset * 1e6, 0.0) * 1e-9
-        window.residual_px = math.sqrt(max(float(costs[best]), 0.0))
-        return window.latency
-
-    def solve(self, poses: PoseLookup) -> float | None:
-        """The median of the windows' estimates (each window solved once): None until one has a clear
-        minimum. One bad window (a slip, a textureless start) does not move the median."""
-        for window in self.windows:
-            if window.latency is None and not window.solved:
-                # every candidate needs the poses of the window's frames: wait until TF has its last one
-                # (else the short latencies, the most recent poses, would be missing from the comparison)
-                if not np.isfinite(poses(np.asarray(window.stamps[-1:], np.int64))).all():
-                    continue
-                window.solved = True
-                self._solve_window(window, poses)
-        good = [(w.latency, w.residual_px) for w in self.windows if w.latency is not None
-                and w.residual_px is not None and w.residual_px <= self.max_residual_px]
-        if not good:
-            return None
-        self.estimate = _median([latency for latency, _ in good])
-        self.residual_px = _median([residual for _, residual in good])
-        return self.estimate
 
 
 class _Recent:
@@ -547,6 +240,52 @@ class _Frame:
 
 
 @dataclass
+class _PassRecord:
+    """What a pass did, for the latency from opposite passes and the map's final placement: the exposure
+    times and positions of its first and last pressed frames, the latencies its frames were placed with,
+    its registration offsets (dx, dy map px, the frame's latency ns, its speed m/s) and its correction."""
+
+    first: tuple[int, float, float] | None = None
+    last: tuple[int, float, float] | None = None
+    latency_sum: float = 0.0
+    frames: int = 0
+    offsets: list[tuple[float, float, float, float]] = field(default_factory=list)
+    steps: list[tuple[float, float]] = field(default_factory=list)   # velocity between its frames, m/s
+    delta: tuple[float, float] = (0.0, 0.0)
+    trusted: bool = False   # its offsets agreed: the correction was applied
+    ended: bool = False
+    evidence_given: bool = False   # its opposite-passes evidence was added (once)
+
+    def add(self, exposure_ns: int, pose: np.ndarray, latency_ns: int) -> None:
+        point = (exposure_ns, float(pose[0, 3]), float(pose[1, 3]))
+        if self.first is None:
+            self.first = point
+        elif self.last is not None and point[0] > self.last[0]:
+            seconds = (point[0] - self.last[0]) * 1e-9
+            self.steps.append(((point[1] - self.last[1]) / seconds, (point[2] - self.last[2]) / seconds))
+        self.last = point
+        self.latency_sum += latency_ns * 1e-9
+        self.frames += 1
+
+    def latency(self) -> float:
+        """The mean latency its frames were placed with, s."""
+        return self.latency_sum / max(self.frames, 1)
+
+    def velocity(self) -> np.ndarray | None:
+        """Its velocity in the world plane while it rolled, m/s: the median over its frames that moved
+        (a pause within the pass does not slow it down); None for a pass that did not move."""
+        steps = np.array(self.steps).reshape(-1, 2)
+        moving = steps[np.hypot(steps[:, 0], steps[:, 1]) > 1e-3]
+        if len(moving) < 3:
+            return None
+        return np.array([_median(moving[:, 0]), _median(moving[:, 1])])
+
+    def direction(self) -> np.ndarray | None:
+        v = self.velocity()
+        return None if v is None else v / float(np.hypot(*v))
+
+
+@dataclass
 class MapStats:
     """What a WorldMapper did (for diagnostics and reports)."""
 
@@ -559,7 +298,21 @@ class MapStats:
     pass_corrections_px: list[tuple[float, float]] = field(default_factory=list)
     latency_s: float | None = None
     latency_estimated: bool = False
+    latency: LatencyEstimate | None = None   # what the data said (value, sigma, sources); None when told
+    latency_warning: str | None = None       # set when the data did not pin the latency down
+    map_shift_m: tuple[float, float] = (0.0, 0.0)   # the whole map moved at the end by the final estimate
     pressed_height: float | None = None
+    pressed_from: str = "image"   # what decided the pressed height: the image moving with the arm, or TF
+
+
+def latency_summary(stats: MapStats) -> tuple[str, dict[str, object]]:
+    """(the words for a summary line: "estimated 35.2 ms (sigma 0.3 ms; ...)", "given 30.0 ms", "not
+    observable ...: configured 0.0 ms used"; the same for map.yaml: value_ms, sigma_ms, sources, observable)."""
+    if stats.latency is None:
+        value = stats.latency_s or 0.0
+        return f"given {value * 1e3:.1f} ms", {"value_ms": round(value * 1e3, 3), "sigma_ms": None,
+                                               "sources": ["given"], "observable": False}
+    return stats.latency.describe(), stats.latency.as_dict()
 
 
 class WorldMapper:
@@ -574,13 +327,19 @@ class WorldMapper:
         # The strip stitcher measures the image's roll (latency, contact) and keeps the flat field; it
         # places nothing, so it needs no lateral tracking and registers on coarser columns (speed).
         strip = stitcher or StitcherConfig(lateral=False, column_bin=8)
-        self.strip = Stitcher(strip.replace(history=1, live_map=False, keep_map=False), camera=camera)
+        # The whole mean divides out (flat_sigma_cols 0): a fine column feature of the gel left in the field
+        # would draw a line along every pass, at the same band column (seams at a fixed offset from each
+        # pass's centre).
+        self.strip = Stitcher(strip.replace(history=1, live_map=False, keep_map=False, flat_sigma_cols=0.0),
+                              camera=camera)
         self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels)
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
         self._inbox: deque[tuple[np.ndarray, int]] = deque()   # frames whose stamp the poses do not reach yet
         self._pending: deque[_Frame] = deque()
         self._pressed_height: float | None = None
+        self._tf_heights: deque[tuple[int, float, float, float]] = deque(maxlen=3000)   # (stamp, x, y, z)
+        self._agree_heights: deque[float] = deque(maxlen=200)   # heights at which the image moved with the arm
         self._heights: list[float] = []
         self._weights: np.ndarray | None = None   # band weights (rows x columns)
         self._level = 1.0
@@ -606,6 +365,10 @@ class WorldMapper:
         self._steady_skipped = 0  # frames since the last registered one
         self._frame_dt: int | None = None   # ns since the previous frame
         self._estimator: LatencyEstimator | None = None
+        self._placing_ns: int | None = None        # the latency frames are placed with (see _latency)
+        self._placing_sigma: float | None = None   # its sigma when it is an estimate
+        self._pass_windows_until = 0               # pass_roll windows were taken up to this stamp
+        self._pass_log: list[_PassRecord] = []     # per pass: for the opposite passes and the final shift
         # passes and their registration against the earlier ones
         self._in_contact = False
         self._last_contact_ns: int | None = None
@@ -659,6 +422,9 @@ class WorldMapper:
     def _take_band(self, band: np.ndarray, stamp_ns: int) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
         self.stats.frames += 1
+        if self._previous_prior_pose is not None:
+            seen = self._previous_prior_pose[0]
+            self._tf_heights.append((int(stamp_ns), float(seen[0, 3]), float(seen[1, 3]), float(seen[2, 3])))
         self._latest_stamp = max(self._latest_stamp, int(stamp_ns))
         if self._clearly_lifted(pose if pose is not None else self._previous_prior_pose):
             # an arm moving above the surface (between passes): nothing to map, nothing to register
@@ -746,6 +512,10 @@ class WorldMapper:
             self._take_band(*self._inbox.popleft())
         self._drain(final=True)
         self._flush_pass_buffer()
+        if self._in_contact and self._pass_log:   # the pass under way says what it can (it may go on)
+            self._pass_log[-1].delta = (float(self._pass_delta[0]), float(self._pass_delta[1]))
+            self._opposite_passes()
+        self._final_latency()
         field = self.strip.flat_field_final()
         if field is None or self._weights is None or not self._placements:
             return
@@ -766,6 +536,40 @@ class WorldMapper:
                                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             self.canvas.add([None, plane, None], placement.c0, placement.r0)
         self._level = float(field.mean())
+
+    def _final_latency(self) -> None:
+        """The final estimate; the map moved by what it says of the first pass's placement (every later pass
+        was registered against the first's), or a warning when the data did not pin it down."""
+        if self._estimator is None:
+            return
+        self._estimator.solve(self.poses)
+        self._use_estimate()
+        estimate = self.stats.latency
+        if estimate is None or not estimate.observable:
+            fallback = self.config.latency_fallback if self._placing_ns is None else self._placing_ns * 1e-9
+            if estimate is None:
+                estimate = LatencyEstimate(fallback, None, ("configured",), False)
+            self.stats.latency = estimate
+            self.stats.latency_s = fallback
+            self.stats.latency_estimated = False
+            self.stats.latency_warning = (f"camera latency not observable from this scan (no start or stop in "
+                                          f"contact, no speed variation, no opposite passes that registered): "
+                                          f"{fallback * 1e3:.1f} ms as configured")
+            return
+        first = self._pass_log[0] if self._pass_log else None
+        # (a few frames at a pass's end placed with a newer latency may count as a pass of their own)
+        later_registered = all(p.trusted for p in self._pass_log[1:] if p.frames >= 15) and self.config.register
+        velocity = None if first is None else first.velocity()
+        if first is None or velocity is None or not later_registered:
+            return
+        shift = (estimate.value - first.latency()) * velocity   # where the first pass (and the map) lies off
+        if float(np.hypot(*shift)) <= 0.1 * self.config.resolution:
+            shift = np.zeros(2)
+        # finalise may run more than once (a live map saved, then more frames): move by what is not moved yet
+        done = -np.asarray(self.stats.map_shift_m)
+        ox, oy = self.canvas.origin
+        self.canvas.origin = (ox - float(shift[0] - done[0]), oy - float(shift[1] - done[1]))
+        self.stats.map_shift_m = (-float(shift[0]), -float(shift[1]))
 
     def map_image(self, crop: bool = True) -> WorldMapImage:
         """The map for files and topics; `crop`: to what was mapped (a growing map's spare room goes;
@@ -818,11 +622,15 @@ class WorldMapper:
             ends = (np.abs(x) <= half).astype(np.float64)
         ends = np.minimum(ends, np.clip(np.minimum(np.arange(cols) + 1, cols - np.arange(cols)) / 8.0, 0.0, 1.0))
         self._weights = (across[:, None] * ends[None, :]).astype(np.float32)
-        self._estimator = LatencyEstimator(self.config.max_latency, self.m_per_row) if self.latency_ns is None else None
+        latency = LatencyConfig(max_latency=self.config.max_latency, max_sigma=self.config.latency_max_sigma)
+        self._estimator = LatencyEstimator(self.m_per_row, latency) if self.latency_ns is None else None
 
     # -- the queue -----------------------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
         self._find_events(final)
+        forced = final or len(self._pending) > self.config.hold_frames
+        if self._pressed_height is None and (forced or self.stats.frames % 10 == 0):   # every 10 frames: cost
+            self._pressed_from_tf(forced)
         if final and self._pressed_height is None and self._pending:
             # nothing agreed on the pressed height (a short or textureless roll): the lowest the roller went
             stamps = np.array([f.stamp_ns for f in self._pending], np.int64) - (self._latency() or 0)
@@ -857,9 +665,20 @@ class WorldMapper:
                    for later in itertools.islice(self._pending, 1, None))
 
     def _latency(self) -> int | None:
+        """The latency frames are placed with now (ns): told, the estimate once observable, or the fallback
+        once frames could wait no longer; None while undecided."""
         if self.latency_ns is not None:
             return self.latency_ns
-        return None if self.stats.latency_s is None else round(self.stats.latency_s * 1e9)
+        return self._placing_ns
+
+    def _latency_or_fallback(self) -> int:
+        """`_latency()`, deciding on the configured fallback when nothing was decided yet (frames waited
+        as long as they may, or the scan ended)."""
+        latency = self._latency()
+        if latency is None:
+            latency = self._placing_ns = round(self.config.latency_fallback * 1e9)
+            self.stats.latency_s = self.config.latency_fallback
+        return latency
 
     def _prefetch_poses(self) -> None:
         """Look up, in one go, the poses of the waiting frames that will need them at the current latency."""
@@ -876,7 +695,7 @@ class WorldMapper:
 
     def _pose_now(self, frame: _Frame) -> np.ndarray | None:
         """The frame's pose at the current latency (looked up once per latency)."""
-        latency = self._latency() or 0
+        latency = self._latency_or_fallback()
         if frame.pose is not None and frame.pose_latency == latency:
             return frame.pose
         pose = self.poses(np.array([frame.stamp_ns - latency], np.int64))[0]
@@ -892,6 +711,34 @@ class WorldMapper:
         return self._pose_now(frame)
 
     # -- contact, events and latency --------------------------------------------------------------------
+    def _pressed_from_tf(self, forced: bool) -> None:
+        """The pressed height from TF alone, for a surface with too little texture for the image to agree
+        with the arm: the lowest height at which the arm moved along the surface for at least 20 frames
+        (within half the contact tolerance). Taken when a frame whose image moved with the arm lies at
+        it, or when frames can wait no longer (the roller then rolled there: an arm moving in the air
+        between passes is higher)."""
+        if len(self._tf_heights) < 20:
+            return
+        track = np.array(self._tf_heights)
+        dt = np.diff(track[:, 0]) * 1e-9
+        ok = dt > 0
+        speed = np.zeros(len(track))
+        speed[1:][ok] = np.hypot(*np.diff(track[:, 1:3], axis=0)[ok].T) / dt[ok]
+        moving = speed > 2e-3
+        if moving.sum() < 20:
+            return
+        z = track[moving, 3]
+        level = float(z.min())
+        near = np.abs(z - level) <= 0.5 * self.config.contact_tolerance
+        if near.sum() < 20:
+            return
+        plateau = _median(z[near])
+        confirmed = any(abs(h - plateau) <= self.config.contact_tolerance for h in self._agree_heights)
+        if confirmed or forced:
+            self._pressed_height = plateau
+            self.stats.pressed_height = plateau
+            self.stats.pressed_from = "tf, confirmed by the image" if confirmed else "tf"
+
     def _find_events(self, final: bool) -> None:
         """Learn the pressed height, find starts and stops of the roll, and (re)estimate the latency."""
         if len(self._recent) < 3:
@@ -915,6 +762,7 @@ class WorldMapper:
         image_speed[1:][valid] = np.diff(positions)[valid] / dt[valid]
         fast = np.abs(arm_speed) > 3.0   # rows per second: the arm rolls, not just settles
         agree = fast & (np.abs(image_speed - arm_speed) < 0.3 * np.abs(arm_speed) + 1.0)
+        self._agree_heights.extend(float(h) for h in heights[agree][-20:])
         if agree.sum() >= 3:
             self._pressed_height = _median(heights[agree])
         elif final and self._pressed_height is None and fast.any():
@@ -931,12 +779,52 @@ class WorldMapper:
             if all(abs(event - e) > 300_000_000 for e in self._events):
                 self._events.append(event)
                 self._add_window(event)
+        self._add_pass_windows(stamps, positions, heights, arm_speed, final)
         pending = any(not w.solved for w in self._estimator.windows)
         if self._estimator.windows and (len(self._estimator.windows) > windows or pending or final):
-            estimate = self._estimator.solve(self.poses)
-            if estimate is not None:
-                self.stats.latency_s = estimate
-                self.stats.latency_estimated = True
+            self._estimator.solve(self.poses)
+            self._use_estimate()
+
+    def _use_estimate(self) -> None:
+        """Place the frames still to come with the estimate when the evidence pins it down."""
+        assert self._estimator is not None
+        estimate = self._estimator.result(self.config.latency_fallback)
+        self.stats.latency = estimate
+        if estimate is not None and estimate.observable:
+            # placed on a 0.5 ms grid (10 um at 20 mm/s): the same frames seen from a slightly different
+            # first frame (a live map against its recording) give estimates a few microseconds apart,
+            # which would move every band by a hundredth of a pixel and change the map's rounding
+            self._placing_ns = round(estimate.value / _PLACING_STEP_S) * round(_PLACING_STEP_S * 1e9)
+            self._placing_sigma = estimate.sigma
+            self.stats.latency_s = estimate.value
+            self.stats.latency_estimated = True
+
+    def _add_pass_windows(self, stamps: NDArray[np.int64], positions: FloatArray, heights: FloatArray,
+                          arm_speed: FloatArray, final: bool) -> None:
+        """The steady rolling of each pass that ended (pressed stretches of one direction, away from the
+        start/stop windows) as `pass_roll` evidence, each stretch once."""
+        assert self._estimator is not None
+        if self._pressed_height is None:
+            return
+        pressed = heights <= self._pressed_height + self.config.contact_tolerance
+        direction = np.sign(arm_speed) * (np.abs(arm_speed) > 3.0)
+        # stretches: pressed, one direction, no gap of more than half a second
+        breaks = ~pressed[1:] | ~pressed[:-1] | (direction[1:] != direction[:-1]) | (np.diff(stamps) > 500_000_000)
+        edges = np.concatenate([[0], np.flatnonzero(breaks) + 1, [len(stamps)]])
+        horizon = self._latest_stamp - self._estimator.after_ns - _EVENT_CHECK_NS
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            if b - a < 20 or not pressed[a] or direction[a] == 0:
+                continue
+            end = int(stamps[b - 1])
+            if end <= self._pass_windows_until or (end > horizon and not final):
+                continue
+            self._pass_windows_until = end
+            keep = np.ones(b - a, bool)
+            for event in self._events:
+                keep &= ~((stamps[a:b] >= event - self._estimator.before_ns)
+                          & (stamps[a:b] <= event + self._estimator.after_ns))
+            self._estimator.add_pass_window([int(v) for v in stamps[a:b][keep]],
+                                            [float(v) for v in positions[a:b][keep]])
 
     def _track(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray, FloatArray]:
         """(stamps, image positions, roller heights, arm roll in rows) of the recent confident frames, the
@@ -987,10 +875,13 @@ class WorldMapper:
             self.stats.not_in_contact += 1
             if self._in_contact:
                 self._end_pass()
+                self._last_contact_ns = frame.stamp_ns
             return
-        if not self._in_contact:
+        if not self._in_contact and not (self._last_contact_ns is not None and self._pass_log
+                                         and frame.stamp_ns - self._last_contact_ns < _RESUME_NS):
             self._start_pass()
         self._in_contact = True
+        self._pass_log[-1].add(frame.stamp_ns - (frame.pose_latency or 0), pose, frame.pose_latency or 0)
         if self._prior is None or not self.config.register:
             self._place(frame, pose, np.zeros(2))
             return
@@ -1000,7 +891,8 @@ class WorldMapper:
         if len(self._pass_offsets) < 10 or self._pass_frames % _PASS_REGISTER_EVERY == 0:
             offset = self._register(frame, pose)
             if offset is not None:
-                self._pass_offsets.append(offset)
+                self._pass_offsets.append(offset[:3])
+                self._pass_log[-1].offsets.append((offset[0], offset[1], offset[3], offset[4]))
         if len(self._pass_offsets) < 10 and len(self._pass_buffer) < 45:
             self._pass_buffer.append((frame, pose))
             return
@@ -1010,6 +902,7 @@ class WorldMapper:
 
     def _start_pass(self) -> None:
         self.stats.passes += 1
+        self._pass_log.append(_PassRecord())
         self._pass_offsets, self._pass_buffer, self._pass_delta = [], [], np.zeros(2)
         self._delta_offsets = 0
         self._pass_frames = 0
@@ -1023,14 +916,53 @@ class WorldMapper:
 
     def _end_pass(self) -> None:
         self._flush_pass_buffer()
-        if self._prior is not None:
+        if self._prior is not None and not (self._pass_log and self._pass_log[-1].ended):
             self.stats.pass_corrections_px.append((float(self._pass_delta[0]), float(self._pass_delta[1])))
         self._in_contact = False
+        if self._pass_log:
+            self._pass_log[-1].ended = True
+            self._pass_log[-1].delta = (float(self._pass_delta[0]), float(self._pass_delta[1]))
+            self._opposite_passes()
+
+    def _opposite_passes(self) -> None:   # once per pass (a pass resumed, or finalised and going on)
+        """The latency the pass that ended and the one before it say, when they were rolled in opposite
+        directions and this one was registered against the earlier ones (`latency` module docstring).
+        Pass k placed at latency L_k lands (L - L_k) v u_k off; registered against pass k - 1 (placed at
+        L_{k-1}, moved by delta_{k-1}), its offset o along u_k = -u_{k-1} is
+        delta_{k-1}.u - (L - L_{k-1}) v - (L - L_k) v, so L = (L_{k-1} + L_k) / 2 + (delta_{k-1} - o).u / 2v."""
+        if self._estimator is None or len(self._pass_log) < 2 or self._pass_log[-1].evidence_given:
+            return
+        this, before = self._pass_log[-1], self._pass_log[-2]
+        u, u_before = this.direction(), before.direction()
+        if u is None or u_before is None or float(u @ u_before) > -0.9 or len(this.offsets) < 5 or not this.trusted:
+            return
+        res = self.config.resolution
+        offsets = np.array(this.offsets)   # (dx, dy, latency ns, speed m/s)
+        speed = offsets[:, 3]
+        ok = speed > 1e-3
+        if ok.sum() < 5:
+            return
+        along = (np.asarray(before.delta) - offsets[ok, :2]) @ u * res      # m
+        values = 0.5 * (before.latency() + offsets[ok, 2] * 1e-9) + along / (2 * speed[ok])
+        centre = _median(values)
+        spread = 1.4826 * _median(np.abs(values - centre))
+        # a registration is good to about 0.05 map pixel: the least spread a median can have
+        floor = 0.05 * res / (2 * float(np.median(speed[ok])))
+        this.evidence_given = True
+        self._estimator.add_opposite_passes(centre, max(spread / math.sqrt(len(values)), floor))
+        self._use_estimate()
 
     def _update_delta(self) -> None:
+        """The pass's correction: the median of its offsets once five or more agree (MAD within
+        `_DELTA_MAD_PX`); none (TF alone) while they do not."""
         if self._pass_offsets and len(self._pass_offsets) != self._delta_offsets:   # new offsets since
             offsets = np.array(self._pass_offsets)
-            self._pass_delta = np.array([_median(offsets[:, 0]), _median(offsets[:, 1])])
+            centre = np.array([_median(offsets[:, 0]), _median(offsets[:, 1])])
+            spread = max(_median(np.abs(offsets[:, 0] - centre[0])), _median(np.abs(offsets[:, 1] - centre[1])))
+            trusted = len(offsets) >= 5 and spread <= _DELTA_MAD_PX
+            self._pass_delta = centre if trusted else np.zeros(2)
+            if self._pass_log:
+                self._pass_log[-1].trusted = trusted
             self._delta_offsets = len(self._pass_offsets)
 
     def _flush_pass_buffer(self) -> None:
@@ -1169,84 +1101,109 @@ class WorldMapper:
             self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
             self._level_field = frame.field
 
-    def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float] | None:
-        """This frame's offset (columns, rows, score) against the earlier passes where they overlap."""
+    def _search(self, frame: _Frame, pose: np.ndarray) -> tuple[int, int, float, tuple[int, int]]:
+        """(columns, rows) registration searches, the frame's speed (m/s) and where the search is centred
+        (columns, rows): `search_px`, plus along the roll twice what the placing latency may be off times
+        the speed (the whole `max_latency` while it is the configured fallback, three sigma once
+        estimated), around the offset the estimate predicts (`_predicted_px`)."""
+        latency = frame.pose_latency or 0
+        # the poses up to the frame's own (known once it is: a later one may not have arrived yet, live)
+        around = self.poses(np.array([frame.stamp_ns - latency - 40_000_000, frame.stamp_ns - latency], np.int64))
+        base = self.config.search_px
+        if not np.isfinite(around).all():
+            return base, base, 0.0, (0, 0)
+        velocity = (around[1, :2, 3] - around[0, :2, 3]) / 0.04
+        speed = float(np.hypot(*velocity))
+        if self.latency_ns is not None:
+            doubt = 0.0
+        elif self._placing_sigma is not None:
+            doubt = 3.0 * self._placing_sigma
+        else:
+            doubt = self.config.max_latency
+        extra = min(2.0 * speed * doubt / self.config.resolution, 120.0)
+        if speed > 0:
+            ux, uy = abs(float(velocity[0])) / speed, abs(float(velocity[1])) / speed
+        else:
+            ux = uy = 0.0
+        return base + math.ceil(extra * ux), base + math.ceil(extra * uy), speed, self._predicted_px(frame, velocity)
+
+    def _predicted_px(self, frame: _Frame, velocity: np.ndarray) -> tuple[int, int]:
+        """The offset (columns, rows) of a frame against the pass before, as the current estimate L says:
+        each lies (L - L_placed) v off, the pass before also moved by its correction. (0, 0) while the
+        latency is told or not estimated."""
+        if self.latency_ns is not None or self._placing_sigma is None or self._placing_ns is None \
+                or len(self._pass_log) < 2:
+            return 0, 0
+        before = self._pass_log[-2]
+        v_before = before.velocity()
+        if v_before is None:
+            return 0, 0
+        latency, res = self._placing_ns * 1e-9, self.config.resolution
+        prior_error = (latency - before.latency()) * v_before + np.asarray(before.delta) * res
+        own_error = (latency - (frame.pose_latency or 0) * 1e-9) * velocity
+        predicted = (prior_error - own_error) / res
+        if not np.isfinite(predicted).all() or float(np.abs(predicted).max()) > 500:
+            return 0, 0
+        return round(float(predicted[0])), round(float(predicted[1]))
+
+    def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float, float, float] | None:
+        """This frame's offset (columns, rows, score) against the earlier passes where they overlap, with
+        the latency it was placed with (ns) and its speed (m/s). The template is the band where it and
+        the earlier passes overlap at every shift searched."""
         assert self._prior is not None and self._weights is not None
         try:
             placement = self._locate(pose, np.zeros(2))
         except MemoryError:   # beyond max_pixels: `_place` leaves it out and counts it
             return None
+        sx, sy, speed, (pc, pr) = self._search(frame, pose)
         # the overlap is judged on the weights alone; the band is put on the map only when it is usable
         weights = self._on_map(placement, self._weights, "w")
         c0, r0 = placement.c0, placement.r0
         h, w = weights.shape
-        patch = self._prior.patch(r0, c0, h, w)
+        patch = self._prior.patch(r0 - sy + pr, c0 - sx + pc, h + 2 * sy, w + 2 * sx)
         if patch is None:
             return None
         prior, prior_weight = patch
-        known = prior_weight > 0.3 * self._prior_weight_max
+        known = (prior_weight > 0.3 * self._prior_weight_max).view(np.uint8)
+        # known at every shift: eroded by the search's extent
+        known = cv2.erode(known, np.ones((2 * sy + 1, 2 * sx + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                          borderValue=0)[sy:sy + h, sx:sx + w].view(bool)
         mine = weights > 0.3 * float(self._weights.max() if self._weights is not None else 1.0)
         both = known & mine
-        s = self.config.search_px
         if np.count_nonzero(both) < 400:
             return None
         # the overlap's bounding rows and columns (np.nonzero's index arrays cost 5x as much)
         ys, xs = np.flatnonzero(both.any(axis=1)), np.flatnonzero(both.any(axis=0))
-        a0, a1, b0, b1 = int(ys[0]) + s, int(ys[-1]) - s, int(xs[0]) + s, int(xs[-1]) - s
+        a0, a1, b0, b1 = int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
+        base = self.config.search_px
+        for _ in range(3):   # the weights' corners are rounded: shrink until it is a full rectangle
+            if a1 - a0 < 12 or b1 - b0 < 12 or both[a0:a1, b0:b1].all():
+                break
+            a0, a1, b0, b1 = a0 + base, a1 - base, b0 + base, b1 - base
         if a1 - a0 < 12 or b1 - b0 < 12 or not both[a0:a1, b0:b1].all():
-            # the overlap is not a full rectangle: use its largest all-covered rows band
-            return None
+            return None   # the overlap is not a full rectangle
         weighted_band, weighted_field = (self._on_map(placement, plane, constant)
                                          for plane, constant in zip(self._band_planes(frame), (None, "field"),
                                                                     strict=True))
         band = np.divide(weighted_band, weighted_field, out=np.zeros((h, w), np.float32), where=weighted_field > 1e-6)
         template = _highpass(band[a0:a1, b0:b1])
-        search = _highpass(prior[a0 - s:a1 + s, b0 - s:b1 + s])
+        # the search region: the template's rectangle grown by the search, in the patch's cells
+        search = _highpass(prior[a0:a1 + 2 * sy, b0:b1 + 2 * sx])
         scores = cv2.matchTemplate(search, template, cv2.TM_CCOEFF_NORMED)
         _, best, _, (bx, by) = cv2.minMaxLoc(scores)
-        if best < 0.3 or not (0 < bx < scores.shape[1] - 1 and 0 < by < scores.shape[0] - 1):
+        if best < _MIN_SCORE or not (0 < bx < scores.shape[1] - 1 and 0 < by < scores.shape[0] - 1):
+            return None
+        # confidence, not presence: the peak must stand out of the next best one 3 px or more away (too
+        # little texture, or a periodic one whose neighbouring period scores alike, is not trusted)
+        others = scores.copy()
+        others[max(by - 3, 0):by + 4, max(bx - 3, 0):bx + 4] = -1.0
+        if others.size and float(others.max()) > best - _PEAK_MARGIN:
             return None
         fx = _parabola_peak(scores[by, bx - 1:bx + 2])
         fy = _parabola_peak(scores[by - 1:by + 2, bx])
-        # the template sits at (bx + fx - s, by + fy - s) in the prior: move the frame by that much
-        return float(bx + fx - s), float(by + fy - s), float(best)
-
-
-@dataclass(frozen=True)
-class _Prior:
-    """The map's value and weight at a pass's start (what registration compares the pass's frames with):
-    the canvas then was `rows` x `columns`, its cells (r, c) now at (r + r_shift, c + c_shift); computed
-    only over rows [row0, row0 + value rows) and columns [column0, ...) (zero elsewhere)."""
-
-    value: np.ndarray
-    weight: np.ndarray
-    row0: int
-    col0: int
-    rows: int
-    cols: int
-    r_shift: int = 0
-    c_shift: int = 0
-
-    def moved(self, dc: int, dr: int) -> _Prior:
-        return dataclasses.replace(self, r_shift=self.r_shift + dr, c_shift=self.c_shift + dc)
-
-    def patch(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """(value, weight) of the canvas's cells [r0, r0 + h) x [c0, c0 + w) as they were at the pass's
-        start; None unless they all existed then."""
-        pr0, pc0 = r0 - self.r_shift, c0 - self.c_shift
-        if pr0 < 0 or pc0 < 0 or pr0 + h > self.rows or pc0 + w > self.cols:
-            return None
-        lr0, lc0 = pr0 - self.row0, pc0 - self.col0
-        rows, cols = self.value.shape
-        if lr0 >= 0 and lc0 >= 0 and lr0 + h <= rows and lc0 + w <= cols:
-            return self.value[lr0:lr0 + h, lc0:lc0 + w], self.weight[lr0:lr0 + h, lc0:lc0 + w]
-        value, weight = np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
-        a0, a1 = max(lr0, 0), min(lr0 + h, rows)
-        b0, b1 = max(lc0, 0), min(lc0 + w, cols)
-        if a1 > a0 and b1 > b0:
-            value[a0 - lr0:a1 - lr0, b0 - lc0:b1 - lc0] = self.value[a0:a1, b0:b1]
-            weight[a0 - lr0:a1 - lr0, b0 - lc0:b1 - lc0] = self.weight[a0:a1, b0:b1]
-        return value, weight
+        # the template sits at (bx + fx - sx, by + fy - sy) in the prior: move the frame by that much
+        return (float(bx + fx - sx + pc), float(by + fy - sy + pr), float(best), float(frame.pose_latency or 0),
+                speed)
 
 
 def _grey_levels(band: np.ndarray) -> np.ndarray:
@@ -1262,28 +1219,6 @@ def _grey_alpha(grey: np.ndarray, mapped: np.ndarray) -> tuple[np.ndarray, np.nd
     if image.size == 0:   # nothing mapped yet: cv2.flip of an empty array returns None
         return np.zeros(image.shape, np.uint8), np.zeros(image.shape, np.uint8)
     return cv2.flip(image.astype(np.uint8), 0), cv2.flip(mapped.view(np.uint8), 0) * np.uint8(255)
-
-
-def _median(values: Sequence[float] | np.ndarray) -> float:
-    """np.median of finite values, the same number, without np.median's import of numpy.ma (tens of
-    milliseconds of a command's start-up)."""
-    v = np.asarray(values, np.float64).reshape(-1)
-    half = len(v) // 2
-    if len(v) % 2:
-        return float(np.partition(v, half)[half])
-    part = np.partition(v, [half - 1, half])
-    return float(np.mean(part[half - 1:half + 1]))
-
-
-def _percentile(values: np.ndarray, q: float) -> float:
-    """np.percentile(values, q) (linear interpolation, finite values): the same number, without numpy.ma."""
-    v = np.sort(np.asarray(values, np.float64).reshape(-1))
-    virtual = (q / 100) * (len(v) - 1)
-    lo = min(max(math.floor(virtual), 0), len(v) - 1)
-    hi = min(lo + 1, len(v) - 1)
-    t = virtual - lo
-    a, b = float(v[lo]), float(v[hi])
-    return b - (b - a) * (1 - t) if t >= 0.5 else a + (b - a) * t
 
 
 def _highpass(image: np.ndarray) -> np.ndarray:

@@ -34,7 +34,8 @@ def fake_result(quick: bool = False, found_ms: float = 51.0, map_s: float = 1.25
 
 
 def verdicts(result: dict) -> dict[str, bool | None]:
-    return {goal.text: goal.measure(result)[1] for goal in GOALS if goal.section == "world_map"}
+    """Issue 15's goals (issue 22's grid rows: `test_grid_goals_follow_the_figures`)."""
+    return {goal.text: goal.measure(result)[1] for goal in GOALS if goal.section == "world_map" and goal.issue == 15}
 
 
 def test_goals_follow_the_figures():
@@ -106,3 +107,41 @@ def test_pass_shift_measures_what_a_100_ms_latency_does_to_a_pass(rows, cols):
     canvas = WorldCanvas(1e-4, (0.0, 0.0, 0.04, 0.03), 10**7)
     dx, dy = bench._pass_shift(shifted, truth, np.ones_like(truth), canvas, (0.005, 0.005, 0.035, 0.025), 1e-4)
     assert (dx, dy) == (pytest.approx(-cols * 0.1, abs=0.02), pytest.approx(-rows * 0.1, abs=0.02))
+
+
+def grid_cell(bench: ModuleType, **changes):
+    cell = dict(profile="blend", latency_true_ms=50.0, yaw_deg=0.0, surface="grain", frames=300, latency_ms=50.4,
+                latency_sigma_ms=0.3, latency_sources=["opposite_passes"], observable=True, ssim=0.96,
+                coverage_percent=100.0, pass_residual_mm=[(0.01, 0.0)], worst_residual_mm=0.01, seam_ratio=0.1,
+                map_cpu_s=1.2, told_cpu_s=1.0)
+    cell.update(changes)
+    return bench.GridCell(**cell)
+
+
+def test_the_report_reads_the_grid_rows_and_has_none_without_a_grid():
+    grid = [goal for goal in GOALS if goal.section == "world_map" and goal.issue == 22]
+    assert len(grid) == 7
+    assert all(goal.measure(fake_result())[1] is None for goal in grid)
+    bench = load_bench()
+    result = fake_result()
+    with_grid = bench.WorldMapResult(result.provenance, False, result.area, result.speed_m_s, result.scans,
+                                     result.speed, [grid_cell(bench, latency_ms=54.0)])
+    assert grid[0].measure(with_grid)[1] is False and grid[2].measure(with_grid)[1] is True
+
+
+def test_grid_goals_follow_the_figures():
+    """Issue 22's grid rows: an observable cell off by more than 3 ms fails the latency goal; an
+    unobservable one passes only with the configured latency (0) used; every row in a fixed order."""
+    bench = load_bench()
+    good = [grid_cell(bench), grid_cell(bench, profile="constant", observable=False, latency_ms=0.0,
+                                        latency_sigma_ms=None, latency_sources=["configured"], ssim=0.3,
+                                        worst_residual_mm=1.0),
+            grid_cell(bench, surface="panel", coverage_percent=99.0)]
+    rows = bench.grid_goals(good)
+    assert [met for _, _, met in rows] == [True, True, True, True, True, True, True, None]
+    off = bench.grid_goals([grid_cell(bench, latency_ms=54.0)] + good[1:])
+    assert off[0][2] is False
+    guessed = bench.grid_goals(good[:1] + [grid_cell(bench, observable=False, latency_ms=20.0)])
+    assert guessed[1][2] is False
+    seams = bench.grid_goals([grid_cell(bench, seam_ratio=0.4)])
+    assert seams[5][2] is False and seams[6][2] is None   # no smooth surface: not judged

@@ -96,7 +96,6 @@ def test_a_cell_is_judged_on_its_estimate_not_on_a_given_value() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 22: latency estimate on a blended raster; the worldmap branch fixes it")
 def test_a_blended_raster_with_an_untold_latency_is_placed_by_touchroller_map(tmp_path: Path) -> None:
     """Issue 22's required test, on the second generator: 2 boustrophedon passes over 6 x 10 cm, touchdown and
     lift-off at 20 mm/s, the speed varying 1 % along a pass, images 35 ms late, /tf at 125 Hz; `touchroller

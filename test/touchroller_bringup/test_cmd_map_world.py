@@ -207,3 +207,79 @@ def test_a_map_that_cannot_be_placed_says_why_in_one_line(tmp_path, capsys, case
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and message in err and "TypeError" not in err and "ValueError" not in err, err
     assert not out.exists()
+
+
+BLEND_AREA = (0.42, -0.045, 0.05, 0.09)   # 5 x 9 cm: two passes
+
+
+def _record(path, sensor, plan, latency, **options):
+    def records():
+        yield TransformRecord("tool0", "touchroller_cylinder", 0, MOUNT.translation, MOUNT.rotation, True)
+        for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=latency,
+                                    **options):
+            if event[0] == "tf":
+                yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
+            else:
+                yield ImageRecord(event[1], event[2])
+
+    assert write_scan(path, records()) > 100
+    return path
+
+
+def _in_place_ssim(sensor, yaml_path, area) -> tuple[float, float]:
+    """(SSIM of the written map against the true surface where the map says it lies, over `area`;
+    the fraction of `area` mapped)."""
+    from touchroller_driver.sim.camera import surface_frame
+    from touchroller_perception.metrics import ssim
+
+    grey, alpha, meta = read_world_map(yaml_path)
+    grey, alpha = grey[::-1].astype(np.float32), alpha[::-1]   # rows growing with y
+    res = meta["resolution"]
+    _, truth = sensor.world_truth(surface_frame(sensor.scene), tuple(meta["origin"][:2]), grey.shape, res)
+    c0, r0 = (int(round((area[k] - meta["origin"][k]) / res)) for k in (0, 1))
+    c1, r1 = c0 + int(round(area[2] / res)), r0 + int(round(area[3] / res))
+    a, b = grey[r0:r1, c0:c1], truth[r0:r1, c0:c1].astype(np.float32)
+    covered = float((alpha[r0:r1, c0:c1] > 0).mean())
+    return ssim(*(np.clip((x - x.mean()) / x.std() * 40 + 128, 0, 255) for x in (a, b))), covered
+
+
+@pytest.mark.slow
+def test_a_blended_raster_with_an_untold_latency_is_placed_in_place(tmp_path, capsys):
+    """Touchdown and lift-off at speed (no start or stop in contact), 35 ms late, the mapper not told:
+    the opposite passes give the latency, and the map lies where the surface is."""
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
+    plan = plan_raster(DEFAULT_START_POSE, area=BLEND_AREA, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
+                       clearance=0.002, profile="blend")
+    bag = _record(tmp_path / "bag", sensor, plan, 0.035, jitter=0.01)
+    out = tmp_path / "map.png"
+    assert main(["map", str(bag), "--out", str(out)]) == 0
+    printed = capsys.readouterr()
+    assert "camera latency estimated " in printed.out, printed
+    estimated = float(printed.out.split("camera latency estimated ")[1].split(" ms")[0])
+    assert estimated == pytest.approx(35.0, abs=3.0)
+    meta = yaml.safe_load((tmp_path / "map.yaml").read_text())
+    assert meta["camera_latency"]["observable"] and "opposite_passes" in meta["camera_latency"]["sources"]
+    assert 0 < meta["camera_latency"]["sigma_ms"] < 3.0
+    score, covered = _in_place_ssim(sensor, tmp_path / "map.yaml", BLEND_AREA)
+    assert covered > 0.98 and score >= 0.90
+    # the same recording placed by TF with no latency: the passes 0.7 mm off each way, the map not in place
+    zero = tmp_path / "zero.png"
+    assert main(["map", str(bag), "--out", str(zero), "--latency", "0", "--no-register"]) == 0
+    assert _in_place_ssim(sensor, tmp_path / "zero.yaml", BLEND_AREA)[0] < score - 0.3
+
+
+@pytest.mark.slow
+def test_one_pass_at_constant_speed_warns_and_keeps_the_configured_latency(tmp_path, capsys):
+    """Nothing in one pass rolled at constant speed, touching down and lifting off at speed, pins the
+    latency down: the map says so and uses the configured one, never a guess as an estimate."""
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=2)
+    plan = plan_raster(DEFAULT_START_POSE, area=[0.45, -0.02, 0.04, 0.04], mount=MOUNT, speed=0.02, accel=0.1,
+                       depth=5e-4, clearance=0.002, profile="constant")
+    bag = _record(tmp_path / "bag", sensor, plan, 0.05)
+    out = tmp_path / "map.png"
+    assert main(["map", str(bag), "--out", str(out)]) == 0
+    printed = capsys.readouterr()
+    assert "camera latency not observable" in printed.out and "configured 0.0 ms used" in printed.out, printed
+    assert "WARN: camera latency not observable" in printed.err
+    meta = yaml.safe_load((tmp_path / "map.yaml").read_text())
+    assert meta["camera_latency"]["observable"] is False and meta["camera_latency"]["value_ms"] == 0.0

@@ -213,9 +213,9 @@ def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_rem
     assert main(["scan", "scene:=large_surface", f"area:={','.join(map(str, area))}", "sweep_speed:=0.02",
                  "--record", "--quiet", "--out", str(out)]) == 0
     report = (out / "report.md").read_text()
-    assert "2 pass(es)" in report and "camera latency estimated from the data" in report
+    assert "2 pass(es)" in report and "camera latency estimated " in report and "sigma" in report
     grey, alpha, meta = read_world_map(out / "map.yaml")
-    assert meta["frame_id"] == "base"
+    assert meta["frame_id"] == "base" and meta["camera_latency"]["observable"]
 
     def mapped_fraction(alpha: np.ndarray, meta: dict) -> float:
         rows, cols = alpha.shape

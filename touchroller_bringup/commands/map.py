@@ -18,6 +18,7 @@ import gc
 import math
 import os
 import queue
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -152,7 +153,7 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     from touchroller_bringup.map_files import write_world_map
     from touchroller_perception.stitching import StitcherConfig
     from touchroller_perception.transforms import Transform, TransformBuffer
-    from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
 
     buffer = TransformBuffer(cache_ns=None)
     config = WorldMapConfig(resolution=args.resolution, latency=None if args.latency == "auto" else float(args.latency),
@@ -213,13 +214,15 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                             f"(WorldMapConfig.max_pixels) from the first frame on, so nothing was mapped; give a "
                             "coarser --resolution (the default is 1e-4)")
         raise UserError(_nothing_placed(buffer, args, first_stamp[0]))
-    png, yaml_path = write_world_map(out, image, args.world_frame)
     stats = mapper.stats
-    latency = "not found" if stats.latency_s is None else f"{stats.latency_s * 1e3:.1f} ms"
+    latency, latency_yaml = latency_summary(stats)
+    png, yaml_path = write_world_map(out, image, args.world_frame, latency_yaml)
     print(f"{frames} frames -> {png} + {yaml_path.name} ({image.grey.shape[1]}x{image.grey.shape[0]} px at "
           f"{image.resolution * 1e3:g} mm, origin ({image.origin[0]:.4f}, {image.origin[1]:.4f}) m in "
           f"{args.world_frame}); {stats.mapped} frames mapped in {stats.passes} pass(es), camera latency "
-          f"{'estimated' if stats.latency_estimated else 'given'} {latency}")
+          f"{latency}")
+    if stats.latency_warning:
+        print(f"WARN: {stats.latency_warning}; give --latency SECONDS if it is known", file=sys.stderr)
     return 0
 
 

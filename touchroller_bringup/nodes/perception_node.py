@@ -87,7 +87,13 @@ from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
 from touchroller_perception.stitching import Stitcher, StitcherConfig
 from touchroller_perception.transforms import TransformBuffer, TransformError
-from touchroller_perception.world_map import WorldMapConfig, WorldMapImage, WorldMapper, buffer_lookup
+from touchroller_perception.world_map import (
+    WorldMapConfig,
+    WorldMapImage,
+    WorldMapper,
+    buffer_lookup,
+    latency_summary,
+)
 
 
 def image_qos() -> QoSProfile:
@@ -568,10 +574,10 @@ class PerceptionNode(Node):
         assert self.world is not None
         stats = self.world.stats
         mm = self.world.config.resolution * 1e3
-        latency = "not found" if stats.latency_s is None else f"{stats.latency_s * 1e3:.1f} ms"
+        latency = latency_summary(stats)[0]
         self.get_logger().info(
             f"world map: {stats.mapped} of {stats.frames} frames mapped in {stats.passes} pass(es); camera "
-            f"latency {'estimated' if stats.latency_estimated else 'assumed'} {latency}; pass corrections "
+            f"latency {latency}; pass corrections "
             + ", ".join(f"({dx * mm:+.2f}, {dy * mm:+.2f}) mm" for dx, dy in stats.pass_corrections_px))
 
     def _save_map(self, tactile_map: np.ndarray, path: str) -> None:
@@ -580,7 +586,8 @@ class PerceptionNode(Node):
         world = self.world
         if world is not None:
             try:
-                png, yaml_path = write_world_map(path, world.map_image(), self.world_frame)
+                png, yaml_path = write_world_map(path, world.map_image(), self.world_frame,
+                                                 latency_summary(world.stats)[1])
             except UserError as exc:
                 self.get_logger().error(f"map not saved: {exc}")
                 return
@@ -665,7 +672,8 @@ class PerceptionNode(Node):
             values.update({"map_frames_mapped": world.stats.mapped, "map_passes": world.stats.passes,
                            "map_latency_ms": float("nan") if world.stats.latency_s is None
                            else world.stats.latency_s * 1e3,
-                           "map_latency_estimated": world.stats.latency_estimated})
+                           "map_latency_estimated": world.stats.latency_estimated,
+                           "map_latency": latency_summary(world.stats)[0]})
         values.update({"map_frames_failed": self.map_errors, "map_last_error": self._map_error or "none",
                        "last_malformed": self._last_malformed or "none"})
         if self._last_refused:
@@ -691,6 +699,8 @@ class PerceptionNode(Node):
                                 "starts a new map)", values)
         if beyond:
             return Status(WARN, f"world map at its size bound: {beyond} frames not mapped", values)
+        if world is not None and world.stats.latency_warning:
+            return Status(WARN, world.stats.latency_warning, values)
         return Status(OK, "detecting contacts", values)
 
 

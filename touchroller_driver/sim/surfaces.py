@@ -115,9 +115,48 @@ def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface:
         profile = (np.mod(y, period) < ridge).astype(np.float32)
         unit = np.repeat(profile[:, None], cols, axis=1)
         desc = f"ridges every {period * 1e3:.1f} mm"
+    elif kind in ("panel", "glass"):
+        # smooth painted metal: orange peel of `peel` m RMS (wavelengths of a few mm) with `cracks`
+        # V-grooves and `dents` spherical caps; glass: `peel` of a fraction of a micrometre, nothing planted
+        heights, desc = _panel(spec, rows, cols, resolution, rng, glass=(kind == "glass"))
+        heights -= heights.min()
+        relief = float(heights.max())
+        unit = heights / relief if relief > 0 else heights
     else:
-        raise ValueError(f"surface.kind must be flat, fabric, image, grain or stripes, got {kind!r}")
+        raise ValueError(f"surface.kind must be flat, fabric, image, grain, stripes, panel or glass, got {kind!r}")
     return Surface((unit * relief).astype(np.float32), resolution, x0, y0, desc)
+
+
+def _panel(spec: dict[str, Any], rows: int, cols: int, resolution: float, rng: np.random.Generator, *,
+           glass: bool) -> tuple[np.ndarray, str]:
+    """Heights (m, rows x cols) of a smooth painted panel or of glass, and their description."""
+    peel = float(spec.get("peel", 2e-7 if glass else 2e-6))
+    heights = np.zeros((rows, cols))
+    for scale, weight in ((2e-3, 0.5), (6e-3, 1.0), (15e-3, 0.7)):
+        heights += weight * _smooth_noise(rows, cols, scale / resolution, rng)
+    rms = float(np.sqrt(np.mean(heights ** 2)))
+    heights *= peel / rms if rms > 0 else 0.0
+    if glass:
+        return heights, f"glass-smooth: {peel * 1e6:.2f} um RMS"
+    cracks, dents = int(spec.get("cracks", 4)), int(spec.get("dents", 4))
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64) * resolution
+    length, width = rows * resolution, cols * resolution
+    for _ in range(cracks):   # a straight V-groove 0.15-0.3 mm wide, 15-40 um deep, 2-6 cm long
+        cx, cy = rng.uniform(0.15, 0.85) * width, rng.uniform(0.15, 0.85) * length
+        angle, half = rng.uniform(0, math.pi), rng.uniform(0.01, 0.03)
+        w, depth = rng.uniform(1.5e-4, 3e-4), rng.uniform(1.5e-5, 4e-5)
+        ux, uy = math.cos(angle), math.sin(angle)
+        along = (x - cx) * ux + (y - cy) * uy
+        across = np.abs(-(x - cx) * uy + (y - cy) * ux)
+        inside = (np.abs(along) <= half) & (across < w / 2)
+        heights[inside] -= depth * (1 - across[inside] / (w / 2))
+    for _ in range(dents):   # a spherical cap 0.8-1.6 mm across, 8-20 um deep
+        cx, cy = rng.uniform(0.1, 0.9) * width, rng.uniform(0.1, 0.9) * length
+        radius, depth = rng.uniform(4e-4, 8e-4), rng.uniform(8e-6, 2e-5)
+        r2 = (x - cx) ** 2 + (y - cy) ** 2
+        inside = r2 < radius ** 2
+        heights[inside] -= depth * (1 - r2[inside] / radius ** 2)
+    return heights, f"painted panel: orange peel {peel * 1e6:.1f} um RMS, {cracks} cracks, {dents} dents"
 
 
 # --------------------------------------------------------------------------- fabrics

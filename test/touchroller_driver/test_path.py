@@ -1,0 +1,70 @@
+"""The blended raster path (sweep profiles blend and constant): touchdown and lift-off at speed."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from touchroller_driver.arm import (
+    DEFAULT_MOUNT_RPY,
+    DEFAULT_MOUNT_XYZ,
+    DEFAULT_START_POSE,
+    ArmError,
+    SimulatedArm,
+    SweepSequencer,
+    mount_transform,
+    plan_raster,
+)
+from touchroller_driver.path import BlendedPath
+
+MOUNT = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+
+
+def _plan(profile: str, **kw):
+    return plan_raster(DEFAULT_START_POSE, area=(0.42, -0.045, 0.05, 0.09), mount=MOUNT, speed=0.02, accel=0.1,
+                       depth=5e-4, clearance=0.002, profile=profile, **kw)
+
+
+@pytest.mark.parametrize("profile", ["blend", "constant"])
+def test_a_path_profile_touches_down_and_lifts_off_at_speed(profile):
+    plan = _plan(profile)
+    path = plan.path
+    assert path is not None and plan.profile == profile
+    t = np.arange(0.0, path.duration, 1e-3)
+    poses = path.poses(t)
+    pressed_z = plan.segments[plan.rolls[0]].target[2]
+    speed = np.hypot(*np.diff(poses[:, :2], axis=0).T) / 1e-3
+    pressed = np.abs(poses[:-1, 2] - pressed_z) < 1e-5
+    # along every stretch in contact the arm moves at the roll speed: no start or stop while pressed
+    assert pressed.sum() > 0.5 * 0.1 / 0.02 / 1e-3
+    assert speed[pressed].min() > 0.019 and speed[pressed].max() < 0.0201
+    # at the first and last pressed instant of each pass it is already (still) moving
+    edges = np.flatnonzero(np.diff(pressed.astype(int)))
+    assert len(edges) == 4 and (speed[edges] > 0.015).all()
+
+
+def test_ramp_plans_have_no_path_and_the_sequencer_refuses_a_path_plan():
+    assert _plan("ramp").path is None
+    arm = SimulatedArm(DEFAULT_START_POSE)
+    arm.connect()
+    with pytest.raises(ArmError, match="simulate_sweep"):
+        SweepSequencer(arm).start(_plan("blend"))
+    with pytest.raises(ValueError, match="sweep.profile"):
+        _plan("zigzag")
+
+
+@settings(max_examples=30, deadline=None)
+@given(blend=st.floats(0.0, 0.01), jitter=st.floats(0.0, 0.05), seed=st.integers(0, 1000),
+       pause=st.floats(0.0, 1.0), lead=st.floats(0.002, 0.02))
+def test_property_a_path_is_continuous_ends_where_it_should_and_holds_its_speed(blend, jitter, seed, pause, lead):
+    plan = _plan("blend", lead=lead, blend=blend)
+    assert plan.path is not None
+    path = BlendedPath(plan.path.waypoints, 0.02, 0.1, blend, jitter, seed, ((0.03, pause),))
+    t = np.arange(0.0, path.duration + 1e-3, 2e-3)
+    poses = path.poses(t)
+    step = np.linalg.norm(np.diff(poses[:, :3], axis=0), axis=1)
+    assert step.max() <= 0.02 * (1 + 4 * jitter) * 2e-3 + 1e-6   # no jump: at most the (varied) speed
+    np.testing.assert_allclose(poses[0], path.waypoints[0], atol=1e-9)
+    np.testing.assert_allclose(poses[-1], path.waypoints[-1], atol=1e-6)   # to within a micrometre
+    assert path.duration >= path.length / (0.02 * (1 + 4 * jitter)) + pause - 1e-3
