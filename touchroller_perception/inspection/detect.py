@@ -173,8 +173,9 @@ def _detect(values: np.ndarray, resolution: float, origin: Sequence[float], mask
                 findings.append(finding)
     findings.sort(key=lambda f: (-f.y, f.x))
     findings = [replace(f, id=i + 1) for i, f in enumerate(findings)]
-    return InspectionResult(findings, InspectionDiagnostics(sigma, texture, high, low, n_valid, components, counts.short,
-                                                            counts.small, counts.broad, counts.shallow))
+    diagnostics = InspectionDiagnostics(sigma, texture, high, low, n_valid, components, counts.short, counts.small,
+                                        counts.broad, counts.shallow)
+    return InspectionResult(findings, diagnostics)
 
 
 def _confidence(peak: float, sigma: float, config: InspectionConfig) -> float:

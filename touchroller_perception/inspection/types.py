@@ -51,7 +51,8 @@ class InspectionConfig:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"InspectionConfig.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("min_depth_m", "texture_multiple", "gap_m", "max_crack_width_m", "max_blob_width_m", "min_crack_length_m", "min_branch_length_m", "min_blob_diameter_m",
+        for name in ("min_depth_m", "texture_multiple", "gap_m", "max_crack_width_m", "max_blob_width_m",
+                     "min_crack_length_m", "min_branch_length_m", "min_blob_diameter_m",
                      "edge_margin_m", "footprint_fwhm_px"):
             if getattr(self, name) < 0:
                 raise ValueError(f"InspectionConfig.{name} must be >= 0, got {getattr(self, name)}")
