@@ -129,3 +129,41 @@ def test_findings_csv_round_trip_and_failed_write_keeps_the_old_file(tmp_path):
     with pytest.raises(ValueError):
         write_findings_csv(path, [crack, broken])
     assert path.read_bytes() == before and list(tmp_path.glob(".findings*")) == []
+
+
+@pytest.mark.slow
+def test_a_recording_is_mapped_first_then_inspected(tmp_path, capsys):
+    sim = pytest.importorskip("touchroller_driver.sim")
+    from touchroller_bringup.bags import ImageRecord, TransformRecord, write_scan
+    from touchroller_driver.arm import (
+        DEFAULT_MOUNT_RPY,
+        DEFAULT_MOUNT_XYZ,
+        DEFAULT_START_POSE,
+        mount_transform,
+        plan_raster,
+    )
+    from touchroller_driver.sim.sweep import simulate_sweep
+
+    mount = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=1)
+    plan = plan_raster(DEFAULT_START_POSE, area=[0.45, -0.02, 0.015, 0.04], mount=mount, speed=0.02, accel=0.1,
+                       depth=5e-4, clearance=0.002, approach_speed=0.005)
+
+    def records():
+        yield TransformRecord("tool0", "touchroller_cylinder", 0, mount.translation, mount.rotation, True)
+        for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=0.02):
+            if event[0] == "tf":
+                yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
+            else:
+                yield ImageRecord(event[1], event[2])
+
+    bag = tmp_path / "bag"
+    write_scan(bag, records())
+    out = tmp_path / "out"
+    assert main(["inspect", str(bag), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "map.yaml" in printed and "depth is unavailable" in printed, printed
+    assert (out / "map.png").is_file() and (out / "map.yaml").is_file() and (out / "findings.png").is_file()
+    with open(out / "findings.csv", newline="") as stream:
+        assert tuple(next(csv.reader(stream))) == HEADER
+    assert all(math.isnan(f.depth_m) for f in read_findings_csv(out / "findings.csv"))
