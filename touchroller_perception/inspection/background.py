@@ -14,24 +14,28 @@ import numpy as np
 
 
 def gaussian_mean(values: np.ndarray, weights: np.ndarray, sigma_px: float) -> np.ndarray:
-    """sum(w v) / sum(w) under a Gaussian of `sigma_px`; NaN where no weight reaches. float32 arrays."""
+    """sum(w v) / sum(w) under a Gaussian of `sigma_px`; NaN where no weight reaches. float32 arrays;
+    `values` finite wherever the weight is not 0."""
     rows, cols = values.shape
     factor = max(1.0, sigma_px / 3.0)
     small = (max(1, round(cols / factor)), max(1, round(rows / factor)))
-    wv = np.where(weights > 0, values * weights, 0).astype(np.float32)
-    w = weights.astype(np.float32)
+    w = weights if weights.dtype == np.float32 else weights.astype(np.float32)
+    wv = cv2.multiply(values, w) if values.dtype == np.float32 else (values * w).astype(np.float32)
     if small != (cols, rows):
         wv = cv2.resize(wv, small, interpolation=cv2.INTER_AREA)
         w = cv2.resize(w, small, interpolation=cv2.INTER_AREA)
     sigma_small = sigma_px * small[0] / cols
     wv = cv2.GaussianBlur(wv, (0, 0), sigma_small, borderType=cv2.BORDER_REFLECT)
     w = cv2.GaussianBlur(w, (0, 0), sigma_small, borderType=cv2.BORDER_REFLECT)
-    if small != (cols, rows):
-        wv = cv2.resize(wv, (cols, rows), interpolation=cv2.INTER_LINEAR)
-        w = cv2.resize(w, (cols, rows), interpolation=cv2.INTER_LINEAR)
-    wv, w = wv.reshape(rows, cols), w.reshape(rows, cols)
+    reached = w > 1e-4
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(w > 1e-4, wv / np.maximum(w, 1e-30), np.float32(np.nan)).astype(np.float32)
+        mean = np.where(reached, wv / np.where(reached, w, 1), 0).astype(np.float32)   # on the small grid: cheap
+    if small != (cols, rows):
+        mean = cv2.resize(mean, (cols, rows), interpolation=cv2.INTER_LINEAR).reshape(rows, cols)
+        reached = cv2.resize(reached.astype(np.float32), (cols, rows), interpolation=cv2.INTER_LINEAR) >= 0.999
+        reached = reached.reshape(rows, cols)
+    mean[~reached] = np.nan
+    return mean
 
 
 def robust_sigma(residual: np.ndarray, valid: np.ndarray, sample: int) -> float:

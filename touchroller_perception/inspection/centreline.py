@@ -127,7 +127,8 @@ def across(depth: np.ndarray, path: np.ndarray, half_width_px: float, step: floa
     offsets = np.arange(-half_width_px, half_width_px + step / 2, step)
     rows = path[:, 0:1] + normal[:, 0:1] * offsets[None, :]
     cols = path[:, 1:2] + normal[:, 1:2] * offsets[None, :]
-    values = cv2.remap(depth.astype(np.float32), cols.astype(np.float32), rows.astype(np.float32),
+    source = depth if depth.dtype == np.float32 else depth.astype(np.float32)    # no copy of a whole map per crack
+    values = cv2.remap(source, cols.astype(np.float32), rows.astype(np.float32),
                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
     middle = offsets.size // 2
     near = np.abs(offsets) <= 1.5
