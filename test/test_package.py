@@ -89,7 +89,8 @@ def test_config_is_found_in_the_checkout_without_an_index(monkeypatch):
 # package.xml must name (`rosdep install` installs it), or None for what package.xml documents as pip-only.
 ROSDEP_KEYS = {
     "numpy": "python3-numpy", "cv2": "python3-opencv", "yaml": "python3-yaml", "scipy": "python3-scipy",
-    "skimage": "python3-skimage", "PIL": "python3-pil", "rosbags": "python3-rosbags-pip",
+    "skimage": "python3-skimage", "PIL": "python3-pil",
+    "rosbags": "python3-rosbags-pip",
     # rosbags' own dependencies, installed with it
     "ruamel": "python3-rosbags-pip", "lz4": "python3-rosbags-pip", "compression": "python3-rosbags-pip",
     "backports": "python3-rosbags-pip",

@@ -19,6 +19,7 @@ COMMANDS = (
     "scan",
     "contacts",
     "map",
+    "inspect",
     "simulate",
     "calibrate",
     "height",

@@ -66,6 +66,11 @@ SECTIONS: tuple[Section, ...] = (
             "its own surfaces, contact band model, shading, noise and arm. Rasters under 4 motion profiles x 4 true "
             "camera latencies x 2 raster yaws, and weave, smooth-panel and glass rows, each through `touchroller map` "
             "not told the latency, scored in place against the generator's truth."),
+    Section("inspection", "Inspection: cracks, dents and bumps in a height map", "inspection",
+            "The detector (`touchroller_perception.inspection`) on synthetic height maps from a generator of the "
+            "bench's own (no sensor and no simulator in the loop: the end-to-end figure comes with the world height "
+            "map): five backgrounds with planted cracks, dents and bumps against their truth, the same backgrounds "
+            "without defects for false findings, the smallest crack found 90 % of the time, and the speed."),
     Section("table_ii", "Contact localisation: the paper's Table II reproduced", "contacts_table_ii",
             "The 3-stick solid tapped at 5 central angles x 3 axial positions in the simulator, with the paper's "
             "error sources modelled; mean ± std of the Euclidean error in mm per cell, beside the paper's."),
@@ -300,6 +305,25 @@ def _grid_goal(start: str) -> Measure:
         _, figure, met = next(row for row in rows if row[0].startswith(start))
         return f"{figure} (second raster generator)", met
     return measure
+
+
+def _inspect(text: Callable[[Any], tuple[str, bool | None]]) -> Measure:
+    def measure(r: Any) -> tuple[str, bool | None]:   # bench.inspection.InspectionBenchResult
+        shown, met = text(r.summary)
+        seeds = f"seeds {r.seeds[0]}-{r.seeds[-1]}{', quick run' if r.quick else ''}"
+        return f"{shown} ({seeds})", met
+    return measure
+
+
+def _inspect_speed(r: Any) -> tuple[str, bool | None]:   # bench.inspection.InspectionBenchResult
+    speed = r.speed
+    shown = f"{speed.megapixels_per_s:.1f} MP/s (a {speed.megapixels:.1f} MP map, CPU time, best of {speed.repeats})"
+    return (f"{shown}; not judged on a quick run", None) if r.quick else (shown, r.speed.megapixels_per_s >= 10.0)
+
+
+def _inspect_smallest(r: Any) -> tuple[str, bool | None]:   # bench.inspection.InspectionBenchResult
+    parts = [f"{w} mm: {'none' if d is None else f'{d:g} µm'}" for w, d in r.smallest_depth_um.items()]
+    return "smallest depth found >= 90 % per width, " + ", ".join(parts), None
 
 
 def _calib(key: str, unit: str, goal_key: str) -> Measure:
@@ -546,6 +570,31 @@ GOALS: tuple[Goal, ...] = (
     Goal(22, "World map grid (simulator): no seam beyond 0.25 of the map's std", "world_map", _world_grid(5)),
     Goal(22, "World map: smooth panel and glass (simulator): every pressed frame mapped", "world_map",
          _world_grid(6)),
+    Goal(24, "Inspection (synthetic height maps): recall >= 0.95 for cracks 0.1-0.5 mm wide, >= 20 µm deep, >= 5 mm "
+             "long", "inspection", _inspect(lambda s: (f"{s.crack_recall:.3f} of {s.cracks_in_scope}, worst seed "
+                                                     f"{s.worst_seed} {s.crack_recall_worst_seed:.3f}",
+                                                     s.crack_recall_worst_seed >= 0.95))),
+    Goal(24, "Inspection: <= 1 false crack per m² on every defect-free background", "inspection",
+         _inspect(lambda s: (f"{s.false_cracks_per_m2:.2f} per m² overall, worst background {s.worst_background} "
+                             f"{s.false_cracks_per_m2_worst_background:.2f}",
+                             s.false_cracks_per_m2_worst_background <= 1.0))),
+    Goal(24, "Inspection: crack centreline within 0.3 mm of the truth (median)", "inspection",
+         _inspect(lambda s: (f"{s.centreline_mm_median:.3f} mm", s.centreline_mm_median <= 0.3))),
+    Goal(24, "Inspection: crack width error <= 0.05 mm (median absolute)", "inspection",
+         _inspect(lambda s: (f"{s.width_err_mm_median_abs:.3f} mm", s.width_err_mm_median_abs <= 0.05))),
+    Goal(24, "Inspection: crack depth within 20 % (median relative)", "inspection",
+         _inspect(lambda s: (f"{100 * s.depth_rel_median_abs:.1f} %", s.depth_rel_median_abs <= 0.2))),
+    Goal(24, "Inspection: crack length within 10 % (median relative)", "inspection",
+         _inspect(lambda s: (f"{100 * s.length_rel_median_abs:.1f} %", s.length_rel_median_abs <= 0.1))),
+    Goal(24, "Inspection: dents and bumps >= 1 mm, >= 20 µm: recall >= 0.95, centre within 0.3 mm, depth within 20 %",
+         "inspection", _inspect(lambda s: (f"recall {s.blob_recall:.3f} of {s.blobs_in_scope}, centre "
+                                           f"{s.blob_centre_mm_median:.3f} mm, depth "
+                                           f"{100 * s.blob_depth_rel_median_abs:.1f} %",
+                                           s.blob_recall >= 0.95 and s.blob_centre_mm_median <= 0.3
+                                           and s.blob_depth_rel_median_abs <= 0.2))),
+    Goal(24, "Inspection: the smallest crack found 90 % of the time, by width and depth", "inspection",
+         _inspect_smallest),
+    Goal(24, "Inspection: >= 10 megapixels of map per second on one core", "inspection", _inspect_speed),
     Goal(6, "Calibration: theta within 0.1 deg (20 chessboard + 10 hemisphere images)", "calibration",
          _calib("theta_err_deg", "°", "theta_deg")),
     Goal(6, "Calibration: d within 0.05 mm", "calibration", _calib("d_err_mm", " mm", "d_mm")),

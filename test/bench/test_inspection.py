@@ -1,0 +1,39 @@
+"""The inspection bench's generator and scoring on one small map: truth in the findings' format, a planted
+crack found and scored, a missed one scored as missed."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from bench.inspection import densify, score
+from bench.inspection_maps import CrackSpec, make_map
+from touchroller_bringup.findings_files import read_findings_csv, write_findings_csv
+from touchroller_perception.inspection import inspect_height
+
+
+@pytest.fixture(scope="module")
+def small_map():
+    return make_map("painted", 7, size_m=(0.03, 0.03), crack_specs=[CrackSpec(0.3e-3, 60e-6, 12e-3)], blobs=1,
+                    branch_probability=0)
+
+
+def test_truth_is_written_and_read_as_findings(small_map, tmp_path):
+    assert [t.kind for t in small_map.truth][0] == "crack" and len(small_map.truth) == 2
+    crack = small_map.truth[0]
+    assert crack.length_m == pytest.approx(12e-3, rel=0.02)
+    trunk = densify(crack.polylines[:1])
+    assert (trunk >= 0).all() and (trunk <= 0.03).all()
+    write_findings_csv(tmp_path / "truth.csv", small_map.truth)
+    back = read_findings_csv(tmp_path / "truth.csv")
+    assert [b.kind for b in back] == [t.kind for t in small_map.truth]
+    assert back[0].x == pytest.approx(crack.x, abs=1e-7)
+
+
+def test_a_planted_crack_is_found_and_scored(small_map):
+    found = inspect_height(small_map.height, small_map.resolution, small_map.origin)
+    cracks, blobs, false = score(small_map, found, 7)
+    assert false == 0 and cracks[0].found
+    assert cracks[0].centreline_mm < 0.1 and abs(cracks[0].width_err_mm) < 0.05
+    missed, _, _ = score(small_map, [], 7)
+    assert not missed[0].found and math.isnan(missed[0].centreline_mm)
