@@ -162,6 +162,7 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
                   {f"params file {i + 1}": path for i, path in enumerate(options.params_files)})
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out {out_dir} is a file; give a folder")
+    _check_writable(out_dir)
     made_out_dir = not out_dir.exists()
     try:
         return _run_graph(options, stop, rclpy, Context, MultiThreadedExecutor, SignalHandlerOptions, graph, say,
@@ -174,6 +175,17 @@ def _run_scan(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiTh
 
             shutil.rmtree(out_dir, ignore_errors=True)
         raise
+
+
+def _check_writable(out_dir: Path) -> None:
+    """Before any node starts: the output folder (or the folder it will be made in) must be writable."""
+    existing = out_dir.absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if os.statvfs(existing).f_flag & os.ST_RDONLY:
+        raise UserError(f"--out {out_dir}: {existing} is on a read-only file system; give a folder elsewhere")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UserError(f"--out {out_dir}: {existing} is not writable by this user; give a folder elsewhere")
 
 
 def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiThreadedExecutor: Any,  # noqa: N803

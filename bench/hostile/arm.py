@@ -135,7 +135,7 @@ def _refused_at_start_up(argument: str, *words: str) -> Callable[[Path], str | N
     def check(scratch: Path) -> str | None:
         with _domain() as env:
             done = _run([str(BIN / "sweep_node"), "--ros-args", "-p", argument], env, timeout=60.0)
-        return _one_line(done, "sweep parameters refused", *words)
+        return _one_line(done, *words)
     return check
 
 
@@ -260,15 +260,15 @@ def probes() -> list[Probe]:
               "the sweep node shows ERROR naming the robot, ~/reset_fault and ~/start answer failure, and it exits "
               f"within {SIGINT_LIMIT_S:g} s of SIGINT (a start retrying meanwhile)", _half_alive_robot),
         Probe("sweep_node sweep.area:=5 km", "arm", "exit 2, one line: beyond the arm's reach",
-              _refused_at_start_up("sweep.area:=[0.4,-0.03,5000.0,5000.0]", "reach")),
+              _refused_at_start_up("sweep.area:=[0.4,-0.03,5000.0,5000.0]", "sweep parameters refused", "reach")),
         Probe("sweep_node sweep.area 3000 m wide (66 667 passes)", "arm", "exit 2, one line, before planning",
-              _refused_at_start_up("sweep.area:=[0.40,-0.03,0.04,3000.0]", "reach")),
+              _refused_at_start_up("sweep.area:=[0.40,-0.03,0.04,3000.0]", "sweep parameters refused", "reach")),
         Probe("sweep_node sweep.area 1 km away (78 h approach)", "arm", "exit 2, one line: beyond the arm's reach",
-              _refused_at_start_up("sweep.area:=[1000.0,1000.0,0.05,0.05]", "reach")),
+              _refused_at_start_up("sweep.area:=[1000.0,1000.0,0.05,0.05]", "sweep parameters refused", "reach")),
         Probe("sweep_node sweep.speed:=0.5 (over arm.max_speed)", "arm", "exit 2, one line at start-up",
-              _refused_at_start_up("sweep.speed:=0.5", "speed 0.5")),
+              _refused_at_start_up("sweep.speed:=0.5", "sweep parameters refused", "speed 0.5")),
         Probe("sweep_node NaN sweep.direction", "arm", "exit 2, one line at start-up",
-              _refused_at_start_up("sweep.direction:=[.nan,0.0,0.0]", "direction")),
+              _refused_at_start_up("sweep.direction:=[.nan,0.0,0.0]", "sweep.direction", "finite")),
         Probe("touchroller scan area:=0.40,-0.03,0.04,3000", "arm", "exit 2, one line, no output folder left",
               _scan_refused("0.40,-0.03,0.04,3000", "reach")),
         Probe("ros2 param set sweep.area 5 km", "arm", "refused at once (within 0.5 s): beyond the reach",

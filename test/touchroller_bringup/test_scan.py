@@ -613,3 +613,14 @@ def test_on_a_nearly_full_disk_the_small_outputs_are_written_first_and_each_fail
     assert (folder / "contacts.csv").read_text().count("\n") == 101
     assert (folder / "report.md").is_file() and not (folder / "map.png").exists()
     assert not [p for p in folder.iterdir() if p.name.startswith(".") and p.name != ".filler"]
+
+
+@pytest.mark.ros
+def test_a_scan_into_a_read_only_folder_is_one_line_before_any_node_starts(mount_tmpfs, tmp_path, capfd):
+    """The hostile bench: the read-only error came after the camera node's first log line."""
+    point = mount_tmpfs("64k", read_only=True)
+    assert main(["scan", *SHORT, "--out", str(point / "o")]) == 2
+    captured = capfd.readouterr()   # the nodes' rcl log lines go to the fd
+    err = captured.err.strip()
+    assert "\n" not in err and "read-only file system" in err, err
+    assert "opening sim" not in captured.out + captured.err
