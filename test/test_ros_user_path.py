@@ -143,7 +143,9 @@ def test_launch_start_call_and_contacts_as_the_readme_shows(quick_start: Run) ->
     assert "success=True" in run.call and "sweep started" in run.call, run.call
     assert len(re.findall(r"^point:", run.echo, re.MULTILINE)) >= 3, (run.echo[-2000:], run.launch[-3000:])
     assert f"frame_id: {names.frame_prefix(run.namespace)}{names.CYLINDER_FRAME}" in run.echo
-    assert run.echo_code == signal.SIGINT and "Traceback" not in run.echo   # ros2cli's exit code for Ctrl-C
+    # ros2cli's exit codes for Ctrl-C: SIGINT when it sees KeyboardInterrupt, SIGTERM when rclpy's own handler
+    # shut the context down first (ExternalShutdownException); which one depends on where the signal lands
+    assert run.echo_code in (signal.SIGINT, signal.SIGTERM) and "Traceback" not in run.echo
     assert f"[{run.namespace}.sweep]: start: sweep started" in run.launch   # the node logs in its namespace
 
 
