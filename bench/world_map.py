@@ -403,7 +403,8 @@ def grid_goals(cells: list[GridCell]) -> list[tuple[str, str, bool | None]]:
                  f"{worst:.1f} ms off ({len(seen)} of {len(grain)} cells observable)",
                  bool(seen) and worst <= 3.0))
     rows.append(("where not observable: the warning and the configured latency (0) used",
-                 f"{len(unseen)} cell(s), all at 0 ms" if unseen else "none", all(c.latency_ms == 0 for c in unseen)))
+                 f"{len(unseen)} cell(s), all at 0 ms" if unseen else "no such cell (every cell observable)",
+                 all(c.latency_ms == 0 for c in unseen)))
     rows.append(("SSIM in place >= 0.90 (grid, observable cells)",
                  f"{min((c.ssim for c in seen), default=math.nan):.3f}",
                  bool(seen) and min(c.ssim for c in seen) >= 0.90))
