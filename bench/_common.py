@@ -25,6 +25,18 @@ __all__ = ["RESULTS", "ROOT", "Provenance", "command", "loadavg", "machine", "pr
            "results_path", "to_json"]
 
 
+def subpixel_peak(values: np.ndarray, i: int) -> float:
+    """The sub-pixel offset (-0.5..0.5) of a score maximum at index `i` by a parabola through it and its
+    neighbours (0 at an edge or where the three do not curve down). The benches' own, so their scores do
+    not rest on the mapper's registration code they measure."""
+    if 0 < i < len(values) - 1:
+        a, b, c = (float(v) for v in values[i - 1:i + 2])
+        den = a - 2 * b + c
+        if den < 0:
+            return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+    return 0.0
+
+
 def save_figure(fig: Any, path: Path, **kwargs: Any) -> None:
     """`fig.savefig(path)`, whole or not at all (the format follows the suffix, as savefig's)."""
     with atomic_path(path) as temporary:

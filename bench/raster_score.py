@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bench._common import subpixel_peak
 from bench.raster_generator.truth import RasterTruth
 
 STRIP_HALF = 0.012
@@ -109,16 +110,8 @@ def _locate(template: np.ndarray, image: np.ndarray) -> tuple[float, float, floa
     scores = cv2.matchTemplate(image, template, cv2.TM_CCOEFF_NORMED)
     _, best, _, (bx, by) = cv2.minMaxLoc(scores)
 
-    def peak(values: np.ndarray, i: int) -> float:
-        if 0 < i < len(values) - 1:
-            a, b, c = (float(v) for v in values[i - 1:i + 2])
-            den = a - 2 * b + c
-            if den < 0:
-                return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
-        return 0.0
-
     mx, my = (image.shape[1] - template.shape[1]) / 2, (image.shape[0] - template.shape[0]) / 2
-    return bx + peak(scores[by, :], bx) - mx, by + peak(scores[:, bx], by) - my, float(best)
+    return bx + subpixel_peak(scores[by, :], bx) - mx, by + subpixel_peak(scores[:, bx], by) - my, float(best)
 
 
 def score_map(yaml_path: Path, truth: RasterTruth) -> MapScore:

@@ -44,7 +44,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import ROOT, Provenance, provenance, provenance_markdown, results_path, to_json
+from bench._common import ROOT, Provenance, provenance, provenance_markdown, results_path, subpixel_peak, to_json
 from touchroller_perception.files import atomic_write_text
 
 FULL = {"area": [0.40, -0.09, 0.24, 0.18], "latencies": [0.0, 0.025, 0.05, 0.1], "speed_length": 0.12,
@@ -251,16 +251,8 @@ def _pass_shift(grey: np.ndarray, truth: np.ndarray, weight: np.ndarray, canvas:
     scores = cv2.matchTemplate(image, template, cv2.TM_CCOEFF_NORMED)
     _, _, _, (bx, by) = cv2.minMaxLoc(scores)
 
-    def peak(values: np.ndarray, i: int) -> float:
-        if 0 < i < len(values) - 1:
-            a, b, c = (float(v) for v in values[i - 1:i + 2])
-            den = a - 2 * b + c
-            if den < 0:
-                return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
-        return 0.0
-
-    dx = bx + peak(scores[by, :], bx) - margin
-    dy = by + peak(scores[:, bx], by) - margin
+    dx = bx + subpixel_peak(scores[by, :], bx) - margin
+    dy = by + subpixel_peak(scores[:, bx], by) - margin
     return dx * resolution * 1e3, dy * resolution * 1e3
 
 
