@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import time
+import types
+import typing
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, is_dataclass
 from pathlib import Path
@@ -22,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 
 __all__ = ["RESULTS", "ROOT", "Provenance", "command", "loadavg", "machine", "provenance", "provenance_markdown",
-           "results_path", "to_json"]
+           "results_path", "to_json", "from_json", "load_json"]
 
 
 def subpixel_peak(values: np.ndarray, i: int) -> float:
@@ -98,3 +100,51 @@ def _plain(value: Any) -> Any:
     if isinstance(value, Path):
         return str(value)
     return float(value)   # anything else number-like; a TypeError names what cannot be written
+
+
+def from_json(kind: Any, data: Any) -> Any:
+    """`data` (parsed JSON, as `to_json` wrote it) rebuilt as `kind`: a dataclass (fields by their type hints,
+    nested), tuple[X, ...], tuple[X, Y], list[X], dict[str, X], X | None, numpy arrays, numbers and strings.
+    Every bench's `load` is this on its result type, so the report can render any section from its recording."""
+    if data is None or kind is Any:
+        return data
+    origin, args = typing.get_origin(kind), typing.get_args(kind)
+    if origin in (typing.Union, types.UnionType):
+        options = [a for a in args if a is not type(None)]
+        for option in options:
+            try:
+                return from_json(option, data)
+            except (TypeError, ValueError, KeyError):
+                continue
+        raise TypeError(f"{data!r} fits none of {kind}")
+    if is_dataclass(kind) and isinstance(kind, type):
+        if not isinstance(data, Mapping):
+            raise TypeError(f"{kind.__name__} from {type(data).__name__}")
+        hints = typing.get_type_hints(kind)
+        return kind(**{f.name: from_json(hints[f.name], data[f.name]) for f in fields(kind) if f.init
+                       and f.name in data})
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(from_json(args[0], v) for v in data)
+        return tuple(from_json(a, v) for a, v in zip(args, data, strict=True)) if args else tuple(data)
+    if origin is list:
+        return [from_json(args[0], v) for v in data] if args else list(data)
+    if origin in (dict, Mapping) or kind is dict:
+        value_kind = args[1] if args else Any
+        return {k: from_json(value_kind, v) for k, v in data.items()}
+    if kind is np.ndarray:
+        return np.asarray(data)
+    if kind is float:
+        return float(data)
+    if kind is int and not isinstance(data, int):
+        raise TypeError(f"int from {data!r}")
+    if kind in (int, str, bool) and not isinstance(data, kind):
+        raise TypeError(f"{kind.__name__} from {data!r}")
+    if kind is Path:
+        return Path(data)
+    return data
+
+
+def load_json(kind: Any, path: Path) -> Any:
+    """A result a bench wrote with `to_json`, read back as `kind` (see `from_json`)."""
+    return from_json(kind, json.loads(Path(path).read_text(encoding="utf-8")))

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from bench import calib_crosscheck as crosscheck
-from bench._common import Provenance, provenance, provenance_markdown, results_path, save_figure, to_json
+from bench._common import Provenance, load_json, provenance, provenance_markdown, results_path, save_figure, to_json
 from bench.calib_crosscheck import Stats
 from touchroller_perception import calibration as cal
 from touchroller_perception.files import atomic_write_text
@@ -470,6 +470,12 @@ def figures(result: CalibBenchResult, out_dir: Path) -> list[Path]:
     second = out_dir / "calib_crosscheck.png"
     crosscheck.figure(result.crosscheck, second)
     return [path, second]
+
+def load(path: Path) -> CalibBenchResult:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: CalibBenchResult = load_json(CalibBenchResult, path)
+    return result
+
 
 
 def main() -> int:

@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path, save_figure
+from bench._common import load_json, provenance, provenance_markdown, results_path, save_figure, to_json
 from touchroller_perception.contacts import BackgroundModel, ContactDetector, DetectorConfig
 from touchroller_perception.files import atomic_write_text
 from touchroller_perception.localisation import SurfaceLookup, localise
@@ -182,6 +182,12 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
     plt.close(fig)
     return [path]
 
+def load(path: Path) -> dict[str, Any]:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: dict[str, Any] = load_json(dict, path)
+    return result
+
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -196,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out) if args.out else results_path("contacts_bench", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, "# Contact detection + localisation time per frame\n\n" + to_markdown(result))
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
     for figure in figures(result, out.parent):
         print(f"wrote {figure}")
     print(f"wrote {out}")

@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path, save_figure
+from bench._common import load_json, provenance, provenance_markdown, results_path, save_figure, to_json
 from bench.real_presses import SENSORS, PressSet, Scorecard, StreamTime, available, load_presses, score, stream_time
 from touchroller_driver.sim.realistic import fit_appearance, refine_centres
 from touchroller_perception.contacts import DetectorConfig
@@ -353,6 +353,12 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
     plt.close(fig)
     return [path]
 
+def load(path: Path) -> dict[str, Any]:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: dict[str, Any] = load_json(dict, path)
+    return result
+
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -363,6 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out) if args.out else results_path("contacts_real", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, "# Contacts on real GelSight presses\n\n" + to_markdown(result))
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
     for figure in figures(result, out.parent):
         print(f"wrote {figure}")
     print(f"wrote {out}")

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bench._common import command, results_path, save_figure, to_json
+from bench._common import command, load_json, results_path, save_figure, to_json
 from bench.table_ii import (
     explain_markdown,
     explain_paper_table,
@@ -106,6 +106,12 @@ def _detection_example():
     u0, v0 = int(round(u)) - half, int(round(v)) - half
     crop = tap.image[max(v0, 0):v0 + 2 * half, max(u0, 0):u0 + 2 * half]
     return crop, [((mu - max(u0, 0), mv - max(v0, 0)), style, label) for (mu, mv), style, label in marks]
+
+def load(path: Path) -> dict[str, Any]:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: dict[str, Any] = load_json(dict, path)
+    return result
+
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,10 +10,12 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
-from bench._common import command, to_json
+from bench._common import command, load_json, results_path, to_json
 from touchroller_driver.sim import load_scene  # noqa: E402
 from touchroller_driver.sim.flat_sensor import CoverageComparison, compare  # noqa: E402
+from touchroller_perception.files import atomic_write_text
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,12 @@ def to_markdown(result: CoverageResult) -> str:
     ]
     return "\n".join(lines) + "\n"
 
+def load(path: Path) -> CoverageResult:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: CoverageResult = load_json(CoverageResult, path)
+    return result
+
+
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -71,9 +79,14 @@ def main() -> int:
     parser.add_argument("--json", action="store_true", help="print the raw result as JSON too")
     args = parser.parse_args()
     result = run(quick=args.quick)
+    out = results_path("coverage", args.quick)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, "# Coverage: press-lift-shift against one roll\n\n" + to_markdown(result) + "\n")
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
     print(to_markdown(result))
     if args.json:
         print(to_json(result, indent=1))
+    print(f"wrote {out}")
     return 0
 
 

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from bench._common import machine, results_path, to_json  # one machine line for every bench and the report
+from bench._common import load_json, machine, results_path, to_json  # one machine line for every bench and the report
 from touchroller_bringup import names
 from touchroller_bringup.image_conversion import stamp_to_ns
 from touchroller_perception.files import atomic_write_text
@@ -675,6 +675,16 @@ def to_markdown(result: DdsSection) -> str:
 
 
 QOS_VARIANTS = [(depth, reliability) for reliability in ("BEST_EFFORT", "RELIABLE") for depth in (1, 2, 3)]
+
+#: the report renders this bench's section from `--section`'s result (the full table is another run)
+RECORDED = "dds_latency_section"
+RECORDED_BY = "--section"
+
+def load(path: Path) -> DdsSection:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: DdsSection = load_json(DdsSection, path)
+    return result
+
 
 
 def main(argv: list[str] | None = None) -> int:

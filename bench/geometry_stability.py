@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench._common import Provenance, provenance, provenance_markdown, to_json
+from bench._common import Provenance, load_json, provenance, provenance_markdown, results_path, to_json
 from touchroller_perception.files import atomic_write_text
 from touchroller_perception.geometry import CameraModel  # noqa: E402
 
@@ -126,6 +126,12 @@ def to_markdown(result: StabilityResult) -> str:
                  f"{nf.all_invalid_are_nan}. Grid: every {result.grid_step_px} px of a 640x480 image.")
     return "\n".join(lines)
 
+def load(path: Path) -> StabilityResult:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: StabilityResult = load_json(StabilityResult, path)
+    return result
+
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -133,8 +139,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
-    if args.json:
-        atomic_write_text(args.json, to_json(result, indent=1))
+    out = results_path("geometry_stability", args.quick)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, "# Numerical stability of the camera model\n\n" + to_markdown(result) + "\n")
+    atomic_write_text(args.json or out.with_suffix(".json"), to_json(result, indent=1))
     print(to_markdown(result))
     return 0
 

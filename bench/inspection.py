@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bench._common import Provenance, provenance, provenance_markdown, results_path, save_figure, to_json
+from bench._common import Provenance, load_json, provenance, provenance_markdown, results_path, save_figure, to_json
 from bench.inspection_maps import BACKGROUNDS, CrackSpec, SyntheticMap, make_map
 from touchroller_perception.files import atomic_write_text
 from touchroller_perception.inspection import Finding, InspectionConfig, inspect
@@ -393,6 +393,12 @@ def figures(r: InspectionBenchResult, out_dir: Path) -> list[Path]:
     save_figure(fig, path, dpi=110)
     plt.close(fig)
     return [path]
+
+def load(path: Path) -> InspectionBenchResult:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: InspectionBenchResult = load_json(InspectionBenchResult, path)
+    return result
+
 
 
 def main(argv: list[str] | None = None) -> int:

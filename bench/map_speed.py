@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import ROOT, loadavg, provenance, provenance_markdown, results_path, to_json
+from bench._common import ROOT, load_json, loadavg, provenance, provenance_markdown, results_path, to_json
 from touchroller_perception.files import atomic_write_text
 
 HEAVY = ("skimage", "scipy", "matplotlib", "rclpy")
@@ -274,6 +274,12 @@ def to_markdown(r: dict[str, Any]) -> str:
         *goals_markdown(r),
     ]
     return "\n".join(lines) + "\n"
+
+def load(path: Path) -> dict[str, Any]:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: dict[str, Any] = load_json(dict, path)
+    return result
+
 
 
 def main(argv: list[str] | None = None) -> int:

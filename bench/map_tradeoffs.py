@@ -34,7 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path, save_figure, to_json
+from bench._common import load_json, provenance, provenance_markdown, results_path, save_figure, to_json
 from touchroller_perception.files import atomic_write_text
 from touchroller_perception.metrics import (  # noqa: E402
     align_affine_3pt,
@@ -389,6 +389,12 @@ def to_markdown(result: dict[str, Any]) -> str:
                  f"(median {live['median_ms']:.3f} ms)")
     lines += ["### Goals", "", *goals, ""]
     return "\n".join(lines)
+
+def load(path: Path) -> dict[str, Any]:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: dict[str, Any] = load_json(dict, path)
+    return result
+
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,7 +21,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench._common import Provenance, loadavg, provenance, provenance_markdown, results_path, to_json  # noqa: E402
+from bench._common import Provenance, load_json, loadavg, provenance, provenance_markdown, results_path, to_json  # noqa: E402
 from touchroller_driver.sim import EFFECTS, SimulatedSensor, load_scene  # noqa: E402
 from touchroller_driver.sim.scenarios import timeline  # noqa: E402
 from touchroller_perception.files import atomic_write_text  # noqa: E402
@@ -151,6 +151,12 @@ def to_markdown(result: SimBenchResult) -> str:
         "uint8 adds); compression is a JPEG encode+decode; dropped frames cost nothing per frame.",
     ]
     return "\n".join(lines) + "\n"
+
+def load(path: Path) -> SimBenchResult:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: SimBenchResult = load_json(SimBenchResult, path)
+    return result
+
 
 
 def main() -> int:

@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import provenance, provenance_markdown, results_path
+from bench._common import load_json, provenance, provenance_markdown, results_path, to_json
 from bench.real_presses import SENSORS, PressSet, available, load_presses, match
 from touchroller_driver.sim.realistic import (
     REACH,
@@ -215,6 +215,12 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
             raise OSError(f"cannot write {path}")
     return [path]
 
+def load(path: Path) -> dict[str, Any]:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: dict[str, Any] = load_json(dict, path)
+    return result
+
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -225,6 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out) if args.out else results_path("sim_to_real", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, "# Simulated against real presses\n\n" + to_markdown(result))
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
     for figure in figures(result, out.parent):
         print(f"wrote {figure}")
     print(f"wrote {out}")

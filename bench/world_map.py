@@ -44,7 +44,16 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import ROOT, Provenance, provenance, provenance_markdown, results_path, subpixel_peak, to_json
+from bench._common import (
+    ROOT,
+    Provenance,
+    load_json,
+    provenance,
+    provenance_markdown,
+    results_path,
+    subpixel_peak,
+    to_json,
+)
 from touchroller_perception.files import atomic_write_text
 
 FULL = {"area": [0.40, -0.09, 0.24, 0.18], "latencies": [0.0, 0.025, 0.05, 0.1], "speed_length": 0.12,
@@ -640,6 +649,12 @@ def evaluate_scan(folder: Path, area: list[float]) -> ScanFiles:
     shutil.rmtree(again.parent, ignore_errors=True)
     return ScanFiles(str(folder), area, float(ssim_map[inside].mean()) if inside.any() else float("nan"),
                      100.0 * float(mapped.sum()) / expected, residuals, same, shift, agreement, grey_diff)
+
+def load(path: Path) -> WorldMapResult:
+    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    result: WorldMapResult = load_json(WorldMapResult, path)
+    return result
+
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -879,19 +879,23 @@ def _commit() -> str:
     return head + (f" with uncommitted changes to {len(changed.splitlines())} tracked file(s)" if changed else "")
 
 
-def _recorded_path(section: Section, quick: bool) -> Path:
-    return checkout_dir() / "bench" / "results" / ("quick" if quick else "") / f"{section.script}.json"
+def _recorded_path(section: Section, quick: bool, module: ModuleType | None = None) -> Path:
+    """bench/results[/quick]/<script>.json, or the name the bench gives as `RECORDED` (a bench whose own
+    default run is not the report's section)."""
+    name = getattr(module, "RECORDED", section.script) if module is not None and not quick else section.script
+    return checkout_dir() / "bench" / "results" / ("quick" if quick else "") / f"{name}.json"
 
 
 def _recorded_result(section: Section, module: ModuleType, quick: bool) -> Any:
     """The bench's recorded result, read back by its `load`; a one-line error when there is none."""
-    path = _recorded_path(section, quick)
+    path = _recorded_path(section, quick, module)
     if not callable(getattr(module, "load", None)):
         raise UserError(f"section {section.key!r} cannot be rendered from a recording (bench.{section.script} "
                         "has no load); run it instead")
     if not path.is_file():
         raise UserError(f"no recorded result for section {section.key!r}: {path} is missing "
-                        f"(run `.venv/bin/python -m bench.{section.script}{' --quick' if quick else ''}` first)")
+                        f"(run `.venv/bin/python -m bench.{section.script}{' --quick' if quick else ''}"
+                        f"{' ' + module.RECORDED_BY if hasattr(module, 'RECORDED_BY') and not quick else ''}` first)")
     return module.load(path)
 
 
@@ -899,10 +903,13 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (), recorded: t
                  progress: Callable[[str], None] = print) -> dict[str, SectionResult]:
     """Run the sections and write the report to `out` (Markdown) with figures beside it.
 
-    Sections named in `recorded` are not run: their bench's recorded result (`bench/results/<script>.json`,
-    written by the bench's own command) is rendered instead, for benches that take longer than a report
-    should (the 30-minute soak). The section says so, and its provenance names the run that produced it."""
+    Sections named in `recorded` (`all`: every section) are not run: their bench's recorded result
+    (`bench/results/<script>.json`, written by the bench's own command) is rendered instead, for benches that
+    take longer than a report should (the 30-minute soak) or ran when the machine was quiet. The section says
+    so, and its provenance names the run that produced it."""
     sections = [s for s in SECTIONS if not only or s.key in only]
+    if "all" in recorded:
+        recorded = tuple(s.key for s in sections)
     unknown = (set(only) | set(recorded)) - {s.key for s in SECTIONS}
     if unknown:
         raise UserError(f"unknown report section {sorted(unknown)[0]!r} "
@@ -926,7 +933,8 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (), recorded: t
         figures = getattr(module, "figures", None)
         for figure in (figures(result, out.parent) if callable(figures) else []):
             body += [f"![{figure.stem}]({figure.relative_to(out.parent).as_posix()})", ""]
-        body += [f"*Section rendered from the recorded `{_recorded_path(section, quick).relative_to(checkout_dir())}`"
+        body += [f"*Section rendered from the recorded "
+                 f"`{_recorded_path(section, quick, module).relative_to(checkout_dir())}`"
                  f" (the run its provenance names), not re-run by this report.*" if section.key in recorded_results
                  else f"*Section produced by `bench/{section.script}.py` in {seconds:.1f} s.*", ""]
     total = time.perf_counter() - started

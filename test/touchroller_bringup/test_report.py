@@ -77,11 +77,16 @@ def test_a_recorded_section_is_rendered_from_its_bench_result_not_run(tmp_path):
     assert f"{taken} frames taken by the perception node in {recording['duration_s']:.0f} s" in text
 
 
-def test_a_section_without_a_recording_loader_is_refused_in_one_line(tmp_path):
+def test_every_section_can_be_rendered_from_its_recording_and_a_missing_one_is_refused_in_one_line(
+        tmp_path, monkeypatch):
+    from touchroller_bringup import report
     from touchroller_bringup.errors import UserError
 
-    with pytest.raises(UserError, match="cannot be rendered from a recording"):
-        build_report(tmp_path / "R.md", quick=False, only=("stability",), recorded=("stability",),
+    for section in report.SECTIONS:
+        assert callable(getattr(report.load_bench_script(section.script), "load", None)), section.script
+    monkeypatch.setattr(report, "_recorded_path", lambda *_: tmp_path / "nowhere.json")
+    with pytest.raises(UserError, match="no recorded result for section 'stability'.*bench.geometry_stability"):
+        build_report(tmp_path / "R.md", quick=False, only=("stability",), recorded=("all",),
                      progress=lambda _: None)
     with pytest.raises(UserError, match="unknown report section 'nonsense'"):
         build_report(tmp_path / "R.md", quick=False, recorded=("nonsense",), progress=lambda _: None)

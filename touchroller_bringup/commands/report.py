@@ -16,7 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--only", nargs="+", default=(), metavar="SECTION", help="only these sections")
     parser.add_argument("--recorded", nargs="+", default=(), metavar="SECTION",
                         help="render these sections from their bench's recorded result instead of running them "
-                             "(e.g. soak, whose full run takes about 45 minutes)")
+                             "(e.g. soak, whose full run takes about 45 minutes); `all` for every section")
     parser.set_defaults(func=run)
 
 
