@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
 import sys
 import tempfile
@@ -24,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench._common import Provenance, loadavg, provenance, provenance_markdown, results_path, to_json
+from bench._common import Provenance, load_json, loadavg, provenance, provenance_markdown, results_path, to_json
 
 AREA = (0.40, -0.08, 0.16, 0.16)     # x, y, length, width (m) of the raster on the large scene
 QUICK_AREA = (0.42, -0.045, 0.03, 0.09)
@@ -202,12 +201,9 @@ def run(quick: bool = False) -> ScanSoakResult:
 
 
 def load(path: Path) -> ScanSoakResult:
-    data = json.loads(Path(path).read_text())
-    data["provenance"] = Provenance(**data["provenance"])
-    data["samples"] = tuple(Sample(**s) for s in data["samples"])
-    data["area"] = tuple(data["area"])
-    data["top_growth"] = tuple(data["top_growth"])
-    return ScanSoakResult(**data)
+    """A result this bench wrote (its JSON), e.g. for the report to render it again."""
+    result: ScanSoakResult = load_json(ScanSoakResult, path)
+    return result
 
 
 def to_markdown(r: ScanSoakResult) -> str:

@@ -17,7 +17,6 @@ load on the machine than frames per second, which is shown beside it).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import re
@@ -32,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench._common import ROOT, Provenance, loadavg, provenance, provenance_markdown, results_path, to_json
+from bench._common import ROOT, Provenance, load_json, loadavg, provenance, provenance_markdown, results_path, to_json
 
 FRAMES = 54_000            # 30 minutes of frames at 30 Hz
 QUICK_FRAMES = 1_500       # past the map's bound at the default camera rate, within a CI-sized run
@@ -284,14 +283,9 @@ def _kind(message: str) -> str:
 
 
 def load(path: Path) -> SoakResult:
-    """A result written by `write` (its JSON), e.g. to render it again."""
-    data = json.loads(path.read_text())
-    data["provenance"] = Provenance(**data["provenance"])
-    data["samples"] = tuple(Sample(**s) for s in data["samples"])
-    data["memory"] = tuple(Trend(**t) for t in data["memory"])
-    data["messages"] = tuple(data["messages"])
-    data["exit_codes"] = tuple(data["exit_codes"])
-    return SoakResult(**data)
+    """A result this bench wrote (its JSON), e.g. for the report to render it again."""
+    result: SoakResult = load_json(SoakResult, path)
+    return result
 
 
 def run(quick: bool = False) -> SoakResult:
