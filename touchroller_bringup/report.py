@@ -954,8 +954,9 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (), recorded: t
         "",
         "## Goals at a glance",
         "",
-        "Every quantitative goal of issues 3-7 and 13-16, the figure this run measured for it, and whether it is "
-        "met. Speed figures were measured on the machine above."
+        "Every quantitative goal of the issues (the issue's number in the first column), the figure measured for "
+        "it, and whether it is met. Speed figures were measured on the machine above, each when its section says "
+        "(with the load average then)."
         + (" A status — is a figure without a verdict: a quick run times `touchroller map` on a short bag, where "
            "interpreter start weighs more than on the goal's >= 1000-frame recordings, so the full run judges it."
            if quick else ""),
