@@ -24,11 +24,14 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from touchroller_perception.files import atomic_write_text
-from touchroller_perception.geometry import CameraModel
 
+if TYPE_CHECKING:   # the CLI imports this module at start-up: the camera model (numpy) only when used
+    from touchroller_perception.geometry import CameraModel
+
+DEFAULT_CAMERA_NAME = "touchroller"
 PLUMB_BOB = "plumb_bob"
 IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 _CAMERA_NAME = re.compile(r"[A-Za-z0-9_]+\Z")

@@ -30,6 +30,7 @@ from sensor_msgs.srv import SetCameraInfo
 
 from touchroller_bringup import names
 from touchroller_bringup.camera_info_files import (
+    DEFAULT_CAMERA_NAME,
     CameraCalibration,
     CameraInfoError,
     camera_name_problem,
@@ -42,7 +43,6 @@ from touchroller_bringup.camera_info_files import (
 from touchroller_bringup.ros_params import GeometryParameters, declare
 from touchroller_perception.geometry import CameraModel
 
-DEFAULT_CAMERA_NAME = "touchroller"
 SERVICE = f"~/{names.SET_CAMERA_INFO}"
 
 
@@ -103,8 +103,7 @@ class CameraInfoManager:
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:
         if any(p.name in ("camera_name", "camera_info_url") for p in parameters):
-            # after this callback returns: setting camera.* from inside another set is not for rclpy's callbacks
-            threading.Thread(target=self.load, name="touchroller-camera-info-load", daemon=True).start()
+            self.load()   # sets camera.* (a nested set: the file's intrinsics win over ones set in the same call)
 
     def load(self) -> CameraCalibration:
         """Read the URL's file when it exists and set its intrinsics on the node; the calibration published."""

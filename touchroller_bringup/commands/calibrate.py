@@ -17,6 +17,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from touchroller_bringup.camera_info_files import DEFAULT_CAMERA_NAME
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 from touchroller_bringup.outputs import Output, check_outputs
@@ -55,7 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     intr.add_argument("--camera-info", type=Path, metavar="YAML",
                       help="also the intrinsics as camera_calibration_parsers' YAML, for a camera driver's "
                            "camera_info_url (default: beside --out, CAL.camera_info.yaml)")
-    intr.add_argument("--camera-name", default="touchroller",
+    intr.add_argument("--camera-name", default=DEFAULT_CAMERA_NAME,
                       help="camera_name in that YAML (letters, digits, _; default %(default)s)")
     intr.set_defaults(func=run_intrinsics)
 

@@ -46,7 +46,12 @@ from sensor_msgs.msg import Image
 from sensor_msgs.srv import SetCameraInfo
 
 from touchroller_bringup import names
-from touchroller_bringup.camera_info_files import CameraCalibration, camera_info_path_for, write_camera_info
+from touchroller_bringup.camera_info_files import (
+    DEFAULT_CAMERA_NAME,
+    CameraCalibration,
+    camera_info_path_for,
+    write_camera_info,
+)
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, Status
 from touchroller_bringup.ros_params import GeometryParameters, check_start_up, declare, declare_frame_prefix
@@ -390,18 +395,11 @@ class CalibrationNode(Node):
             cal.write_calibration(path, camera, intrinsics=intrinsics, extrinsics=extrinsics, keep=keep)
             if intrinsics is not None:   # the intrinsics as ROS camera drivers read them (camera_info_url)
                 info_path = camera_info_path_for(path)
-                write_camera_info(info_path, CameraCalibration.from_model(camera, self._camera_name()))
+                write_camera_info(info_path, CameraCalibration.from_model(camera, DEFAULT_CAMERA_NAME))
                 written.append(str(info_path))
         except (OSError, ValueError) as exc:
             return f"could not write {path}: {exc}"
         return f"wrote {' and '.join(written)}"
-
-    def _camera_name(self) -> str:
-        """The camera node's camera_name when it is known here (a shared params file), else the default."""
-        from touchroller_bringup.camera_info_manager import DEFAULT_CAMERA_NAME
-
-        return str(self.get_parameter("camera_name").value) if self.has_parameter("camera_name") \
-            else DEFAULT_CAMERA_NAME
 
     def _send_camera_info(self, camera: CameraModel) -> str:
         """The solved intrinsics to `<camera_node>/set_camera_info` (the camera node publishes camera_info)."""
