@@ -77,18 +77,19 @@ def preview_image(grey: np.ndarray, mapped: np.ndarray | None = None, resolution
     (`resolution`, `origin`), the rectangle outlined and the findings marked. A BGR strip map is shown as is."""
     import cv2
 
-    image = np.asarray(grey)
-    if image.ndim == 2:
-        image = cv2.cvtColor(image.astype(np.uint8), cv2.COLOR_GRAY2BGR)
-    else:
-        image = np.ascontiguousarray(image[..., :3], dtype=np.uint8)
-    if mapped is not None:
-        image[~np.asarray(mapped, bool)] = UNMAPPED_BGR
+    image = np.ascontiguousarray(np.asarray(grey)[..., :3] if np.ndim(grey) == 3 else grey, dtype=np.uint8)
     rows, cols = image.shape[:2]
     scale = min(1.0, max_side / max(rows, cols, 1))
-    if scale < 1.0:
-        image = cv2.resize(image, (max(1, round(cols * scale)), max(1, round(rows * scale))),
-                           interpolation=cv2.INTER_AREA)
+    shown = None if mapped is None else np.asarray(mapped, bool)
+    if scale < 1.0:   # downscaled first: a map of many megapixels is never coloured whole
+        size = (max(1, round(cols * scale)), max(1, round(rows * scale)))
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        if shown is not None:   # a picture pixel is shown as mapped when most of what it covers was
+            shown = cv2.resize(shown.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    if shown is not None:
+        image[~shown] = UNMAPPED_BGR
     if resolution is None or origin is None:
         return image
     top = float(origin[1]) + rows * resolution
