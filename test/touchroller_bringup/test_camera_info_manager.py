@@ -216,6 +216,22 @@ def test_the_optical_frame_is_on_tf_static_under_touchroller_camera(ros_context,
         with listener.lock:
             transform = listener.buffer.lookup("left/touchroller_camera", "left/touchroller_camera_optical_frame", 0)
         assert np.allclose(transform.matrix(), np.eye(4))   # touchroller_camera has the optical axes already
+        # and it is the image's frame: points of the membrane carried by TF (cylinder -> camera from theta and d,
+        # as the perception node publishes it, then this transform) into the optical frame project through the
+        # camera_info's K onto the pixels the camera model puts them at (x along u, y along v, z the view)
+        from touchroller_bringup.tf import camera_in_cylinder
+        from touchroller_perception.geometry import CameraModel
+
+        model = CameraModel.from_params({**camera.geometry.model.to_params(), "extrinsics.theta": 0.3,
+                                         "extrinsics.d": 0.012})
+        pixels = np.array([[100.0, 80.0], [320.0, 240.0], [600.0, 400.0], [500.0, 90.0]])
+        points, valid = model.back_project(pixels)
+        assert valid.all()
+        optical = (camera_in_cylinder(model) @ transform).inverse().apply(points)
+        k = np.array(camera.camera_info.calibration.k).reshape(3, 3)
+        assert (optical[:, 2] > 0).all()
+        projected = (k @ (optical / optical[:, 2:]).T).T[:, :2]
+        np.testing.assert_allclose(projected, pixels, atol=1e-6)
     finally:
         executor.shutdown()
         camera.destroy_node()
