@@ -21,7 +21,9 @@ deviation); plus weave, smooth panel and glass rows; and what the estimate costs
 told the latency against not told, CPU time).
 
 `python -m bench.world_map [--quick]` -> bench/results/world_map.md + .json (quick/ with --quick);
-`touchroller report` calls `run(quick)` and `to_markdown(result)`. `python -m bench.world_map --scan DIR
+`touchroller report` calls `run(quick)`, `to_markdown(result)` and `figures(result, docs/)`: `docs/world_map.png`,
+the default mapper's map of the latest camera's raster beside the true surface, in place (the picture lives only
+in memory: the JSON leaves it out). `python -m bench.world_map --scan DIR
 [--area x,y,L,W]` scores the files of a real `touchroller scan scene:=large_surface area:=... --record`
 instead: its map.png + map.yaml against the truth in place, and its recording re-mapped by `touchroller map`.
 """
@@ -147,6 +149,19 @@ class GridCell:
 
 
 @dataclass(frozen=True)
+class MapPicture:
+    """A map the section scores, for the report's figure: the default mapper's (+ registration) map of the
+    rectangle and the true surface there, in place, downscaled; rows growing with y. Not in the JSON."""
+
+    latency_true_ms: float
+    ssim: float
+    area: list[float]
+    grey: np.ndarray       # uint8, the map (standardised over the mapped pixels)
+    mapped: np.ndarray     # bool
+    truth: np.ndarray      # uint8, the true surface as the sensor shades it (standardised the same way)
+
+
+@dataclass(frozen=True)
 class WorldMapResult:
     provenance: Provenance
     quick: bool
@@ -155,6 +170,7 @@ class WorldMapResult:
     scans: list[ScanScores]
     speed: CommandSpeed
     grid: list[GridCell] = dataclasses.field(default_factory=list)
+    picture: MapPicture | None = None    # the report's figure; the bench's JSON leaves it out
 
 
 def _setup(area: list[float]):
@@ -174,8 +190,9 @@ def _setup(area: list[float]):
     return sensor, mount, plan
 
 
-def map_scan(area: list[float], latency: float) -> ScanScores:
-    """One raster filmed `latency` late, mapped three ways; the scores of each."""
+def map_scan(area: list[float], latency: float, pictures: list[MapPicture] | None = None) -> ScanScores:
+    """One raster filmed `latency` late, mapped three ways; the scores of each (`pictures`: the default
+    mapper's map and the truth appended, for the report's figure)."""
     from touchroller_driver.sim.sweep import simulate_sweep
     from touchroller_perception.transforms import TransformBuffer
     from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
@@ -207,12 +224,14 @@ def map_scan(area: list[float], latency: float) -> ScanScores:
     variants = {}
     for name, mapper in mappers.items():
         mapper.finalise()
-        variants[name] = score(mapper, sensor, area, plan)
+        variants[name] = score(mapper, sensor, area, plan,
+                               pictures if name == "registration" else None, latency * 1e3)
     return ScanScores(latency * 1e3, frames, len(plan.rolls), float(np.median(push_ms)),
                       float(np.percentile(push_ms, 90)), variants)
 
 
-def score(mapper: Any, sensor: Any, area: list[float], plan: Any) -> VariantScore:
+def score(mapper: Any, sensor: Any, area: list[float], plan: Any, pictures: list[MapPicture] | None = None,
+          latency_ms: float = math.nan) -> VariantScore:
     from skimage.metrics import structural_similarity
 
     from touchroller_driver.sim.camera import surface_frame
@@ -227,6 +246,9 @@ def score(mapper: Any, sensor: Any, area: list[float], plan: Any) -> VariantScor
     a, b = _standard(grey[r0:r1, c0:c1], mapped), _standard(tactile[r0:r1, c0:c1].astype(np.float32), mapped)
     _, ssim_map = structural_similarity(a, b, data_range=255.0, full=True, win_size=7)
     inside = cv2.erode(mapped.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    ssim = float(ssim_map[inside].mean()) if inside.any() else float("nan")
+    if pictures is not None:
+        pictures.append(_picture(a, b, mapped, latency_ms, ssim, area))
     residuals = []
     for raster_pass in plan.passes:
         y_mid = area[1] + 0.5 * (raster_pass.across[0] + raster_pass.across[1])
@@ -234,13 +256,66 @@ def score(mapper: Any, sensor: Any, area: list[float], plan: Any) -> VariantScor
         residuals.append(_pass_shift(grey, tactile, weight, mapper.canvas, box, resolution))
     stats = mapper.stats
     return VariantScore(
-        ssim=float(ssim_map[inside].mean()) if inside.any() else float("nan"),
+        ssim=ssim,
         coverage_percent=mapper.coverage((area[0], area[1], area[0] + area[2], area[1] + area[3])),
         latency_ms=None if stats.latency_s is None else stats.latency_s * 1e3,
         latency_estimated=stats.latency_estimated, mapped_frames=stats.mapped, passes=stats.passes,
         pass_residual_mm=residuals,
         worst_residual_mm=max(math.hypot(dx, dy) for dx, dy in residuals) if residuals else float("nan"),
         pass_corrections_mm=[(dx * resolution * 1e3, dy * resolution * 1e3) for dx, dy in stats.pass_corrections_px])
+
+
+PICTURE_MAX_SIDE = 600
+
+
+def _picture(grey: np.ndarray, truth: np.ndarray, mapped: np.ndarray, latency_ms: float, ssim: float,
+             area: list[float]) -> MapPicture:
+    """The standardised map and truth over the rectangle, at most PICTURE_MAX_SIDE px."""
+    rows, cols = mapped.shape
+    scale = min(1.0, PICTURE_MAX_SIDE / max(rows, cols, 1))
+    size = (max(1, round(cols * scale)), max(1, round(rows * scale)))
+
+    def small(image: np.ndarray, interpolation: int = cv2.INTER_AREA) -> np.ndarray:
+        return cv2.resize(image, size, interpolation=interpolation) if scale < 1.0 else image
+
+    return MapPicture(latency_ms, ssim, list(area), small(np.clip(grey, 0, 255).astype(np.uint8)),
+                      small(mapped.astype(np.uint8), cv2.INTER_NEAREST) > 0,
+                      small(np.clip(truth, 0, 255).astype(np.uint8)))
+
+
+def figures(r: WorldMapResult, out_dir: Path) -> list[Path]:
+    """`world_map.png`: the map the section scores beside the true surface, in place in `base` (none for a
+    result without its picture)."""
+    if r.picture is None:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from bench._common import save_figure
+
+    p = r.picture
+    x0, y0, length, width = p.area
+    extent = (x0 * 100, (x0 + length) * 100, y0 * 100, (y0 + width) * 100)
+    shown = np.repeat(p.grey[..., None], 3, axis=2)
+    shown[~p.mapped] = (20, 20, 60)   # not mapped: dark blue
+    fig, axes = plt.subplots(1, 2, figsize=(10, min(9.0, 4.6 * width / max(length, 1e-9) + 0.8)), squeeze=False)
+    panels = ((shown, f"world map (+ registration), camera {p.latency_true_ms:.0f} ms late, not told:\n"
+                      f"SSIM {p.ssim:.3f} against the truth in place"),
+              (np.repeat(p.truth[..., None], 3, axis=2), "the true surface there (simulator), as the sensor shades it"))
+    for ax, (image, title) in zip(axes[0], panels, strict=True):
+        ax.imshow(image, origin="lower", extent=extent, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("x in base, cm")
+    axes[0][0].set_ylabel("y in base, cm")
+    fig.tight_layout()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "world_map.png"
+    save_figure(fig, path, dpi=100)
+    plt.close(fig)
+    return [path]
 
 
 def _standard(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -507,9 +582,12 @@ def command_speed(length: float, repeats: int) -> CommandSpeed:
 # ------------------------------------------------------------------------------------------------ report
 def run(quick: bool = False) -> WorldMapResult:
     size = QUICK if quick else FULL
-    scans = [map_scan(size["area"], latency) for latency in size["latencies"]]
+    pictures: list[MapPicture] = []
+    latest = max(size["latencies"])   # the figure shows the latest camera's map
+    scans = [map_scan(size["area"], latency, pictures if latency == latest else None) for latency in size["latencies"]]
     return WorldMapResult(provenance("world_map", quick), quick, size["area"], SPEED, scans,
-                          command_speed(size["speed_length"], size["repeats"]), run_grid(size))
+                          command_speed(size["speed_length"], size["repeats"]), run_grid(size),
+                          pictures[-1] if pictures else None)
 
 
 @dataclass(frozen=True)
@@ -672,7 +750,7 @@ def main(argv: list[str] | None = None) -> int:
     md, js = results_path("world_map", args.quick), results_path("world_map", args.quick, ".json")
     md.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(md, "# World map of a raster scan, and `touchroller map` on one\n\n" + to_markdown(result) + "\n")
-    atomic_write_text(js, to_json(result, indent=1) + "\n")
+    atomic_write_text(js, to_json(dataclasses.replace(result, picture=None), indent=1) + "\n")
     print(to_markdown(result))
     return 0
 

@@ -348,10 +348,13 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
         # camera's chessboard calibration (a user's calibration_file wins); the defaults' 500 px would put
         # the scale error into d
         intrinsics = _scene_intrinsics(launch, args["scene"]) if use_sim and not args.get("calibration_file") else {}
-        nodes = (spec(CAMERA, "camera", camera_parameters()),
+        # the camera node is the graph's one publisher of camera_info: it starts from the same intrinsics and
+        # receives the solved ones through its ~/set_camera_info
+        nodes = (spec(CAMERA, "camera", {**camera_parameters(), **intrinsics}),
                  spec(PERCEPTION, "perception", dict(intrinsics)),
                  spec(CALIBRATION, "calibration", {**intrinsics, "output_path": args["output_file"],
-                                                   "perception_node": names.PERCEPTION_NODE}))
+                                                   "perception_node": names.PERCEPTION_NODE,
+                                                   "camera_node": names.CAMERA_NODE}))
     else:  # replay: a recording through the camera node into perception
         camera = {"source": "bag", "bag_path": args["bag"],
                   "rate": _positive_float(launch, "rate", args["rate"], allow_zero=True),

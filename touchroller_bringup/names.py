@@ -46,12 +46,14 @@ CAPTURE = "capture"              # calibration: take the current frame
 SOLVE = "solve"                  # calibration: solve and write the calibration
 RESET = "reset"                  # calibration: forget the captures
 SOLVE_PHOTOMETRIC = "solve_photometric"  # calibration: the photometric model from the captured ball presses
+SET_CAMERA_INFO = "set_camera_info"  # camera: sensor_msgs/srv/SetCameraInfo (camera_info_manager's)
 
 # -- frames (before the frame prefix) -----------------------------------------------------------
 BASE_FRAME = "base"              # the robot's base (UR convention)
 TOOL_FRAME = "tool0"             # the arm's flange (UR convention)
 CYLINDER_FRAME = "touchroller_cylinder"  # the cylinder frame of the geometry
-CAMERA_FRAME = "touchroller_camera"      # the camera's optical frame
+CAMERA_FRAME = "touchroller_camera"      # the camera (optical axes: z along the view), from theta and d
+CAMERA_OPTICAL_FRAME = "touchroller_camera_optical_frame"   # frame_id of images and camera_info (the same axes)
 
 _TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 

@@ -899,6 +899,17 @@ def _recorded_result(section: Section, module: ModuleType, quick: bool) -> Any:
     return module.load(path)
 
 
+def render_section(section: Section, module: Any, result: SectionResult, out_dir: Path, footer: str) -> list[str]:
+    """A section's Markdown lines: title, intro, the bench's table, then its figures (the bench's `figures`
+    writes the PNGs into `out_dir`, beside the report; e.g. the world map section's picture of the maps it
+    scores), each shown by a path relative to the report."""
+    lines = [f"## {section.title}", "", section.intro, "", module.to_markdown(result).strip(), ""]
+    figures = getattr(module, "figures", None)
+    for figure in (figures(result, out_dir) if callable(figures) else []):
+        lines += [f"![{figure.stem}]({Path(figure).relative_to(out_dir).as_posix()})", ""]
+    return [*lines, footer, ""]
+
+
 def build_report(out: Path, quick: bool, only: tuple[str, ...] = (), recorded: tuple[str, ...] = (),
                  progress: Callable[[str], None] = print) -> dict[str, SectionResult]:
     """Run the sections and write the report to `out` (Markdown) with figures beside it.
@@ -929,14 +940,11 @@ def build_report(out: Path, quick: bool, only: tuple[str, ...] = (), recorded: t
         seconds = time.perf_counter() - t0
         results[section.key] = result
         timings.append(f"{section.key} {seconds:.0f} s")
-        body += [f"## {section.title}", "", section.intro, "", module.to_markdown(result).strip(), ""]
-        figures = getattr(module, "figures", None)
-        for figure in (figures(result, out.parent) if callable(figures) else []):
-            body += [f"![{figure.stem}]({figure.relative_to(out.parent).as_posix()})", ""]
-        body += [f"*Section rendered from the recorded "
-                 f"`{_recorded_path(section, quick, module).relative_to(checkout_dir())}`"
-                 f" (the run its provenance names), not re-run by this report.*" if section.key in recorded_results
-                 else f"*Section produced by `bench/{section.script}.py` in {seconds:.1f} s.*", ""]
+        footer = (f"*Section rendered from the recorded "
+                  f"`{_recorded_path(section, quick, module).relative_to(checkout_dir())}`"
+                  f" (the run its provenance names), not re-run by this report.*" if section.key in recorded_results
+                  else f"*Section produced by `bench/{section.script}.py` in {seconds:.1f} s.*")
+        body += render_section(section, module, result, out.parent, footer)
     total = time.perf_counter() - started
     command = " ".join(["touchroller report", *(["--quick"] if quick else []), *(["--only", *only] if only else []),
                         *(["--recorded", *recorded] if recorded else [])])

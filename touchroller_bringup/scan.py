@@ -14,7 +14,9 @@ Topics are in the graph's namespace (`namespace:=...`, `touchroller` by default)
 - `contacts.csv`: every `contacts` point, columns of `touchroller contacts`
   (u, v re-projected through the perception node's camera model; score, area, ellipse and confidence
   are not carried by PointStamped and are `nan`);
-- `report.md`: duration, frames, contacts, map size, skipped/dropped frames, the sweep's outcome;
+- `report.md`: the map as a picture (`map_preview.png`, linked to `map.png`), duration, frames, contacts, map
+  size, skipped/dropped frames, the sweep's outcome, the coverage of the requested area and passes, and
+  the findings of `findings.csv` when there is one (`touchroller_bringup.scan_report`);
 - with `record`: `recording/`, a rosbag2 folder of the namespace's topics and `/diagnostics`
   (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
 
@@ -48,6 +50,14 @@ from touchroller_bringup.errors import UserError
 from touchroller_bringup.graph import Graph, GraphError, build_graph
 from touchroller_bringup.image_conversion import stamp_to_ns
 from touchroller_bringup.outputs import Output, check_outputs
+from touchroller_bringup.scan_report import (
+    PREVIEW,
+    ScanCoverage,
+    preview_image,
+    read_findings,
+    report_markdown,
+    write_png,
+)
 from touchroller_perception.files import atomic_write, atomic_write_text
 
 # with `record`: these topics of the scan's namespace, and /diagnostics
@@ -59,7 +69,7 @@ GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names
                 names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
 
 
-OUTPUT_FILES = ("contacts.csv", "report.md", "map.png", "map.yaml")
+OUTPUT_FILES = ("contacts.csv", "report.md", PREVIEW, "map.png", "map.yaml")
 
 
 @dataclass
@@ -96,6 +106,9 @@ class ScanResult:
     signal: int | None = None   # the signal that interrupted the scan
     frames_during_sweep: int | None = None   # published from ~/start to the end of the sweep
     failed: dict[str, str] = field(default_factory=dict)   # output -> why it could not be written
+    coverage: ScanCoverage | None = None   # the requested area and how much of it the world map covers
+    findings: list[Any] | None = None      # of DIR/findings.csv when the scan wrote one
+    findings_problem: str = ""             # why findings.csv could not be read
 
     @property
     def ok(self) -> bool:
@@ -270,7 +283,7 @@ def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiT
             except UserError as exc:   # what the bag kept is in the message; the map must not be lost too
                 outcome, message = "recording failed", str(exc)
         result = _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer, recorded,
-                                camera, during_sweep)
+                                camera, during_sweep, sweep)
         if stop is not None and outcome == "interrupted":
             result.signal = stop.last_signal
         return result
@@ -654,10 +667,11 @@ def _published(camera: Any, collected: _Collected) -> int:
 def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Collected, outcome: str,
                    message: str, duration: float, sweep_answer: str,
                    recorded: Mapping[str, int] | None = None, camera: Any = None,
-                   during_sweep: int | None = None) -> ScanResult:
-    """The small, irreplaceable outputs first (contacts.csv, report.md), then the map: every output is
-    tried, and each that could not be written is named in `ScanResult.failed` (a nearly full disk keeps
-    a completed sweep's contacts when the map does not fit)."""
+                   during_sweep: int | None = None, sweep: Any = None) -> ScanResult:
+    """The small, irreplaceable outputs first (contacts.csv, report.md), then the map's preview (the report
+    again without it if it does not fit) and the map: every output is tried, and each that could not be
+    written is named in `ScanResult.failed` (a nearly full disk keeps a completed sweep's contacts when the
+    map does not fit)."""
     from touchroller_bringup.image_conversion import image_to_array
 
     files: dict[str, Path] = {}
@@ -699,7 +713,26 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
                         frames_during_sweep=during_sweep, failed=failed)
     if recorded:
         files["recording"] = out_dir / "recording"
-    attempt("report", out_dir / "report.md", lambda: atomic_write_text(out_dir / "report.md", _report(result, graph)))
+    result.coverage = _coverage(sweep, world_image, world_map, getattr(perception, "world_frame", names.BASE_FRAME))
+    result.findings, result.findings_problem = read_findings(out_dir)
+    preview = None
+    if world_image is not None:
+        preview = preview_image(world_image.grey, world_image.alpha > 0, world_image.resolution, world_image.origin,
+                                result.coverage.rectangle if result.coverage else None, result.findings or ())
+    elif tactile_map is not None:
+        preview = preview_image(tactile_map)
+    if preview is not None:
+        files["preview"] = out_dir / PREVIEW    # the report links it; taken back if it cannot be written
+
+    def write_report() -> None:
+        atomic_write_text(out_dir / "report.md", report_markdown(result, graph))
+
+    attempt("report", out_dir / "report.md", write_report)
+    if preview is not None:
+        attempt("preview", out_dir / PREVIEW, lambda: write_png(out_dir / PREVIEW, preview))
+        if PREVIEW in failed:
+            files.pop("preview", None)
+            attempt("report", out_dir / "report.md", write_report)   # without the picture, saying why
     if world_image is not None:
         from touchroller_bringup.map_files import write_world_map
 
@@ -708,18 +741,8 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
                                                               perception.world_frame, _latency_yaml(world))
         attempt("map", out_dir / "map.png", write_world)
     elif tactile_map is not None:
-        attempt("map", out_dir / "map.png", lambda: _write_png(out_dir / "map.png", tactile_map))
+        attempt("map", out_dir / "map.png", lambda: write_png(out_dir / "map.png", tactile_map))
     return result
-
-
-def _write_png(path: Path, image: Any) -> None:
-    import cv2
-
-    encoded, data = cv2.imencode(".png", image)   # in memory: a full disk is our OSError, not libpng's line
-    if not encoded:
-        raise UserError(f"cannot encode {path.name} as PNG")
-    with atomic_write(path, "wb") as stream:
-        stream.write(data.tobytes())
 
 
 def _latency_yaml(world: Any) -> dict[str, Any]:
@@ -767,59 +790,25 @@ def _write_contacts(path: Path, contacts: Sequence[tuple[int, float, float, floa
             writer.writerow(row[:len(COLUMNS)])
 
 
-def _world_lines(world: Mapping[str, Any]) -> list[str]:
-    latency = "not found" if world["latency_ms"] is None else f"{world['latency_ms']:.1f} ms"
-    corrections = ", ".join(f"({dx:+.3f}, {dy:+.3f})" for dx, dy in world["pass_corrections_mm"]) or "none"
-    return [f"- world map in `{world['frame']}`: `map.png` + `map.yaml`, {world['resolution_m'] * 1e3:g} mm per pixel, "
-            f"origin ({world['origin'][0]:.4f}, {world['origin'][1]:.4f}) m; {world['frames_mapped']} frames "
-            f"mapped in {world['passes']} pass(es)",
-            f"- camera latency {world.get('latency') or latency}; "
-            f"pass corrections by registration (x, y mm): {corrections}"]
-
-
 def _f(value: float, fmt: str = "%.4f") -> str:
     value = float(value)
     return fmt % value if math.isfinite(value) else "nan"
 
 
-def _report(result: ScanResult, graph: Graph) -> str:
-    skipped = result.frames_published - result.frames_processed
-    if skipped >= 0:
-        not_processed = f"{skipped} not processed"
-    else:   # perception took frames the camera did not publish: another publisher on image_raw
-        not_processed = (f"{-skipped} more than the camera published: another publisher on "
-                         f"{names.topic(names.IMAGE, graph.namespace)}")
-    during = result.frames_during_sweep
-    rate = during / result.duration_s if during is not None and result.duration_s > 0 else float("nan")
-    sweep_frames = f"; {during} during the sweep, {rate:.1f} Hz" if during is not None else ""
-    lines = [
-        "# TouchRoller scan report",
-        "",
-        f"- outcome: **{result.outcome}** ({result.message})",
-        f"- {result.sweep or 'sweep'}; {'simulated' if graph.arguments['use_sim'] == 'true' else 'UR5'} arm",
-        f"- sweep duration: {result.duration_s:.2f} s (from ~/start to the end of the sweep)",
-        f"- frames published by the camera: {result.frames_published} (from its start to the end of the scan"
-        f"{sweep_frames})",
-        f"- frames processed by perception: {result.frames_processed} over the same time ({not_processed}; with a "
-        f"camera its keep-last depth-1 queue skips stale frames when it is busy, simulated the clock waits "
-        f"for it); publication-sequence gaps it "
-        f"counted as dropped: {result.frames_dropped}; malformed: {result.frames_malformed}",
-        f"- contacts: {result.contacts}",
-        f"- map: {'x'.join(str(n) for n in result.map_shape) + ' px' if result.map_shape else 'none published'}",
-        *(_world_lines(result.world_map) if result.world_map else []),
-        *([f"- recording: `recording/` ({', '.join(f'{t} {n}' for t, n in result.recorded.items())})"]
-          if result.recorded else []),
-        "",
-        "## Graph",
-        "",
-        "| node | parameters from the graph |",
-        "|---|---|",
-        *(f"| {spec.name} | {', '.join(f'{k}={v}' for k, v in spec.parameters.items()) or '-'} |"
-          for spec in graph.nodes),
-        "",
-        f"Launch arguments: {', '.join(f'{k}:={v}' for k, v in graph.arguments.items() if v)}",
-        "",
-        "Params files, in order: " + ", ".join(f"`{f}`" for f in graph.nodes[0].params_files),
-        "",
-    ]
-    return "\n".join(lines)
+def _coverage(sweep: Any, world_image: Any, world_map: Mapping[str, Any] | None, frame: str) -> ScanCoverage | None:
+    """The requested area (the sweep node's sweep.area and sweep.direction), the passes its plan has, and how
+    much of the area the world map covers; None without a sweep node."""
+    from touchroller_bringup.scan_report import scan_coverage
+    from touchroller_perception.map_coverage import AreaRectangle
+
+    if sweep is None or not hasattr(sweep, "has_parameter"):
+        return None
+    try:
+        rectangle = AreaRectangle.from_sweep_area(_parameter(sweep, "sweep.area", [0.0] * 4),
+                                                  list(_parameter(sweep, "sweep.direction", [1.0, 0.0, 0.0])))
+    except ValueError:
+        rectangle = None
+    plan = getattr(getattr(sweep, "sequencer", None), "plan", None)
+    planned = len(plan.rolls) if plan is not None and getattr(plan, "rolls", None) is not None else None
+    mapped = int(world_map["passes"]) if world_map else None
+    return scan_coverage(rectangle, world_image, planned, mapped, frame)

@@ -145,3 +145,18 @@ def test_grid_goals_follow_the_figures():
     assert guessed[1][2] is False
     seams = bench.grid_goals([grid_cell(bench, seam_ratio=0.4)])
     assert seams[5][2] is False and seams[6][2] is None   # no smooth surface: not judged
+
+
+def test_the_figure_is_the_map_the_section_scores():
+    """A tiny raster (2 x 4 cm, 20 ms late): the picture kept for the report is the default mapper's map that
+    was scored (its SSIM), covering the rectangle, and it resembles the truth beside it."""
+    bench = load_bench()
+    pictures: list = []
+    scores = bench.map_scan([0.42, -0.02, 0.02, 0.04], 0.02, pictures)
+    (picture,) = pictures
+    assert picture.ssim == scores.variants["registration"].ssim and picture.latency_true_ms == pytest.approx(20.0)
+    assert picture.grey.shape == picture.truth.shape == picture.mapped.shape
+    assert max(picture.grey.shape) <= bench.PICTURE_MAX_SIDE and picture.mapped.mean() > 0.95
+    mapped = picture.mapped
+    correlation = np.corrcoef(picture.grey[mapped].astype(float), picture.truth[mapped].astype(float))[0, 1]
+    assert correlation > 0.8, correlation

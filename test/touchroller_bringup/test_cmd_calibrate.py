@@ -54,6 +54,12 @@ def test_calibrate_bags_end_to_end(scenes, bag_factory, tmp_path, capsys):
     assert "view 1/12: board found; coverage: X " in printed and "view 12/12: board found" in printed
     intrinsics = CameraModel.from_yaml(out)
     assert abs(intrinsics.fx - truth.fx) < 1.5
+    # the intrinsics also as camera_calibration_parsers' YAML beside it, for a camera driver's camera_info_url
+    from touchroller_bringup.camera_info_files import read_camera_info
+
+    camera_info = read_camera_info(tmp_path / "cal.camera_info.yaml")
+    assert camera_info.matches(intrinsics) and camera_info.camera_name == "touchroller"
+    assert f"wrote {out} and {tmp_path / 'cal.camera_info.yaml'}" in printed
     report = tmp_path / "report.yaml"
     assert main(["calibrate", "extrinsics", str(bag_factory(hemi, "mcap")), "--params", str(out),
                  "--out", str(out), "--report", str(report)]) == 0
@@ -121,6 +127,8 @@ def test_calibrate_image_folder_with_reference(scenes, tmp_path, capsys):
     (["calibrate", "intrinsics", "{empty}", "--out", "x.yaml"], "no images"),
     (["calibrate", "intrinsics", "{blank}", "--out", "x.yaml"], "single chessboard image"),
     (["calibrate", "intrinsics", "{blank}", "--board", "7by7", "--out", "x.yaml"], "--board must look like"),
+    (["calibrate", "intrinsics", "{blank}", "--camera-name", "left-cam", "--out", "x.yaml"],
+     "--camera-name 'left-cam' must be letters, digits and _"),
     (["calibrate", "extrinsics", "{blank}", "--out", "x.yaml"], "required"),
 ])
 def test_calibrate_errors_are_one_line(argv, message, tmp_path, capsys):

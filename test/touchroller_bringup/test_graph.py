@@ -346,7 +346,7 @@ def test_the_simulated_calibrate_graph_starts_from_the_simulated_cameras_intrins
     sim = pytest.importorskip("touchroller_driver.sim")
     built = build_graph("calibrate")
     truth = sim.load_scene(built.node("camera").parameters["scene"]).camera
-    for key in ("perception", "calibration"):
+    for key in ("camera", "perception", "calibration"):   # the camera node publishes camera_info from them
         params = built.node(key).parameters
         assert params["camera.fx"] == truth.fx and params["camera.cy"] == truth.cy
         assert params["camera.distortion"] == list(truth.distortion)
@@ -356,6 +356,38 @@ def test_the_simulated_calibrate_graph_starts_from_the_simulated_cameras_intrins
     mine = build_graph("calibrate", {"calibration_file": str(calibration)})
     assert "camera.fx" not in mine.node("calibration").parameters
     assert "camera.fx" not in build_graph("calibrate", {"use_sim": "false"}).node("calibration").parameters
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("launch", ["calibrate", "scan"])
+def test_one_publisher_of_camera_info_per_graph(ros_context, spin_until, launch):
+    """camera_info has one owner, the camera node (camera_info_manager's convention); the calibration node
+    hands solved intrinsics to it through set_camera_info instead of publishing a second camera_info."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from touchroller_bringup import names
+
+    built = build_graph(launch)
+    nodes = [spec.load_class()(context=ros_context, **spec.node_kwargs()) for spec in built.nodes]
+    probe = Node("camera_info_census", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (*nodes, probe):
+        executor.add_node(node)
+    topic = names.topic(names.CAMERA_INFO)
+    try:
+        camera = nodes[built.keys.index("camera")]
+        assert spin_until(executor, lambda: bool(probe.get_publishers_info_by_topic(topic)), timeout=20.0)
+        spin_until(executor, lambda: False, timeout=1.0)    # time for a second publisher to be discovered
+        publishers = probe.get_publishers_info_by_topic(topic)
+        assert [(p.node_namespace, p.node_name) for p in publishers] == [("/touchroller", names.CAMERA_NODE)]
+        services = dict(probe.get_service_names_and_types())
+        assert services[names.service(names.CAMERA_NODE, names.SET_CAMERA_INFO)] == ["sensor_msgs/srv/SetCameraInfo"]
+        assert camera.frame_id == names.CAMERA_OPTICAL_FRAME
+    finally:
+        executor.shutdown()
+        for node in (*nodes, probe):
+            node.destroy_node()
 
 
 def test_a_simulated_arm_in_a_namespace_gets_its_own_flange_beside_the_shared_base():

@@ -129,14 +129,15 @@ def test_nodes_built_from_the_graph_use_the_namespace_and_frame_prefix(namespace
         camera.start()
         assert spin_until(executor, lambda: images and poses, timeout=20.0)
         # the robot's base is the driver's name (shared); the simulated arm's flange is its own in a namespace
-        chain = ["base", f"{prefix}tool0", f"{prefix}touchroller_cylinder", f"{prefix}touchroller_camera"]
+        chain = ["base", f"{prefix}tool0", f"{prefix}touchroller_cylinder", f"{prefix}touchroller_camera",
+                 f"{prefix}touchroller_camera_optical_frame"]   # the images' frame links to the robot's base
 
         def tf_chain_known() -> bool:
             with tf.lock:
                 return all(tf.buffer.can_transform(chain[0], child) for child in chain[1:])
 
         assert spin_until(executor, tf_chain_known, timeout=20.0)
-        assert images[0].header.frame_id == f"{prefix}touchroller_camera"
+        assert images[0].header.frame_id == f"{prefix}touchroller_camera_optical_frame"
         assert poses[-1].header.frame_id == "base"
         assert perception.frame_id == f"{prefix}touchroller_cylinder"
         assert all(n.get_parameter("frame_prefix").value == prefix for n in nodes)

@@ -90,3 +90,36 @@ def test_every_section_can_be_rendered_from_its_recording_and_a_missing_one_is_r
                      progress=lambda _: None)
     with pytest.raises(UserError, match="unknown report section 'nonsense'"):
         build_report(tmp_path / "R.md", quick=False, recorded=("nonsense",), progress=lambda _: None)
+
+
+def test_the_world_map_section_shows_a_picture_of_the_map_it_scores(tmp_path):
+    """render_section on a tiny world_map result: the bench's figures write world_map.png beside the report and
+    the section shows it by a relative path; a result without its picture (a recorded JSON) shows none."""
+    import dataclasses
+
+    import cv2
+    import numpy as np
+
+    from bench._common import Provenance
+    from touchroller_bringup.report import load_bench_script, render_section
+
+    bench = load_bench_script("world_map")
+    section = next(s for s in SECTIONS if s.key == "world_map")
+    variant = bench.VariantScore(0.95, 99.0, 20.0, True, 50, 2, [(0.01, 0.0)], 0.01, [])
+    scan = bench.ScanScores(20.0, 100, 2, 1.0, 2.0, {k: variant for k in ("tf_only", "latency", "registration")})
+    truth = np.tile(np.linspace(0, 255, 40, dtype=np.uint8), (20, 1))     # 20 rows (y) x 40 columns (x)
+    mapped = np.ones_like(truth, bool)
+    mapped[:, 30:] = False
+    picture = bench.MapPicture(20.0, 0.95, [0.4, -0.01, 0.04, 0.02], truth, mapped, truth)
+    result = bench.WorldMapResult(Provenance("cmd", "machine", "now", "0 0 0"), True, [0.4, -0.01, 0.04, 0.02], 0.02,
+                                  [scan], bench.CommandSpeed(10, 1.0, 1, 1.0, 1.0), [], picture)
+    lines = render_section(section, bench, result, tmp_path, "*footer*")
+    assert "![world_map](world_map.png)" in lines and lines[-2] == "*footer*"
+    figure = cv2.imread(str(tmp_path / "world_map.png"))
+    assert figure is not None and figure.shape[1] > 500
+    # the not-mapped quarter is drawn dark blue in the left panel, and nowhere in the truth's
+    blue = (figure[..., 0].astype(int) - figure[..., 2] > 25) & (figure[..., 0] > 40)
+    left, right = blue[:, : figure.shape[1] // 2], blue[:, figure.shape[1] // 2:]
+    assert left.sum() > 100 and right.sum() == 0
+    recorded = dataclasses.replace(result, picture=None)
+    assert not any(line.startswith("![") for line in render_section(section, bench, recorded, tmp_path / "x", ""))

@@ -247,6 +247,11 @@ def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_rem
         return float((alpha[inside] > 0).mean())
 
     assert mapped_fraction(alpha, meta) >= 0.98
+    # the report shows the map (a picture beside it) and the same coverage of the requested area
+    assert "[![the map](map_preview.png)](map.png)" in report and (out / "map_preview.png").is_file()
+    reported = float(report.split("- mapped: **")[1].split(" %")[0])
+    assert abs(reported - 100 * mapped_fraction(alpha, meta)) < 1.0, report
+    assert "3.0 x 9.0 cm at (0.4200, -0.0450) m in `base`" in report and "- passes mapped: 2 of 2" in report
     assert main(["map", str(out / "recording"), "--out", str(tmp_path / "again.png")]) == 0
     again, again_alpha, again_meta = read_world_map(tmp_path / "again.yaml")
     # The same frames with the same poses through the same mapper: the same map where both lie. Not pixel
@@ -570,16 +575,17 @@ def test_a_foreign_publisher_on_the_scans_topics_stops_it_before_its_nodes_exist
 
 def test_the_report_never_says_none_were_skipped_when_perception_took_more_than_the_camera_published():
     from touchroller_bringup import scan as scan_module
+    from touchroller_bringup.scan_report import report_markdown
 
     built = graph.build_graph("scan", {})
     result = scan_module.ScanResult(Path("x"), "done", "sweep complete", 4.0, 359, 363, 0, 0, 0, None, {},
                                     frames_during_sweep=100)
-    text = scan_module._report(result, built)
+    text = report_markdown(result, built)
     assert "0 not processed" not in text
     assert "4 more than the camera published: another publisher on /touchroller/image_raw" in text
     assert "100 during the sweep, 25.0 Hz" in text
     result.frames_processed = 350
-    assert "9 not processed" in scan_module._report(result, built)
+    assert "9 not processed" in report_markdown(result, built)
 
 
 def test_frames_published_is_the_camera_nodes_own_count():
@@ -638,7 +644,10 @@ def test_on_a_nearly_full_disk_the_small_outputs_are_written_first_and_each_fail
     perception = SimpleNamespace(world=None, camera=None, received=5, dropped=0, malformed=0,
                                  has_parameter=lambda name: False)
     result = _write_outputs(folder, build_graph("scan", {}, []), perception, collected, "done", "ok", 1.0, "")
-    assert set(result.failed) == {"map.png"} and "No space left" in result.failed["map.png"]
+    # the map (noise: incompressible) fits neither whole nor as the report's preview; the report says so
+    assert set(result.failed) == {"map.png", "map_preview.png"} and "No space left" in result.failed["map.png"]
+    report = (folder / "report.md").read_text()
+    assert "- not written: map_preview.png (No space left" in report and "map_preview.png)](map.png)" not in report
     assert (folder / "contacts.csv").read_text().count("\n") == 101
     assert (folder / "report.md").is_file() and not (folder / "map.png").exists()
     assert not [p for p in folder.iterdir() if p.name.startswith(".") and p.name != ".filler"]

@@ -17,6 +17,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from touchroller_bringup.camera_info_files import DEFAULT_CAMERA_NAME
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 from touchroller_bringup.outputs import Output, check_outputs
@@ -52,6 +53,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     intr.add_argument("--corners", choices=("fronto_parallel", "image"), default="fronto_parallel",
                       help="fronto_parallel (default): the corners refined on the board's plane with the lens of a "
                            "first fit; image: the corners as found in the image (the previous path, for comparison)")
+    intr.add_argument("--camera-info", type=Path, metavar="YAML",
+                      help="also the intrinsics as camera_calibration_parsers' YAML, for a camera driver's "
+                           "camera_info_url (default: beside --out, CAL.camera_info.yaml)")
+    intr.add_argument("--camera-name", default=DEFAULT_CAMERA_NAME,
+                      help="camera_name in that YAML (letters, digits, _; default %(default)s)")
     intr.set_defaults(func=run_intrinsics)
 
     extr = steps.add_parser("extrinsics", help="theta and d from hemisphere-frame presses",
@@ -160,9 +166,14 @@ def _grid(text: str, what: str) -> tuple[int, int]:
 
 
 def run_intrinsics(args: argparse.Namespace) -> int:
+    from touchroller_bringup.camera_info_files import camera_info_path_for, camera_name_problem
     from touchroller_perception import calibration as cal
 
     columns, rows = _grid(args.board, "--board")
+    if camera_name_problem(args.camera_name):
+        raise UserError(camera_name_problem(args.camera_name).replace("camera_name", "--camera-name", 1))
+    if args.camera_info is None:
+        args.camera_info = camera_info_path_for(args.out)
     check_calibrate_outputs(args)
     prior = _load_camera(args.params)
     images, _ = load_images(args.input, args.topic)
@@ -174,6 +185,7 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     except cal.CalibrationError as exc:
         raise UserError(f"calibrate intrinsics: {exc}") from None
     _write(args, result.camera, intrinsics=result)
+    _write_camera_info(args, result.camera)
     print(result.summary())
     for index, reason in sorted(result.rejected.items()):
         print(f"  rejected image {index}: {reason}")
@@ -189,8 +201,20 @@ def run_intrinsics(args: argparse.Namespace) -> int:
         print(f"  {line}")
     for warning in result.warnings():
         print(f"warning: {warning}")
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out} and {args.camera_info}")
     return 0
+
+
+def _write_camera_info(args: argparse.Namespace, camera: Any) -> None:
+    """The intrinsics as camera_calibration_parsers' YAML (a camera driver's camera_info_url reads it)."""
+    from touchroller_bringup.camera_info_files import CameraCalibration, write_camera_info
+
+    try:
+        write_camera_info(args.camera_info, CameraCalibration.from_model(camera, args.camera_name))
+    except OSError as exc:
+        raise UserError(f"wrote --out {args.out} but cannot write --camera-info {args.camera_info}: "
+                        f"{exc.strerror or exc} (free some space or choose another path)") from None
+    _check_written(args.camera_info, "--camera-info")
 
 
 def _view_progress(count: int):
@@ -288,6 +312,8 @@ def check_calibrate_outputs(args: argparse.Namespace) -> None:
     reference or dark image, each other, or anything that is not a regular file. (--out may be the
     --params file it updates: that is read whole before the write.)"""
     outputs = [Output("--out", args.out)] + ([Output("--report", args.report)] if args.report is not None else [])
+    if getattr(args, "camera_info", None) is not None:
+        outputs.append(Output("--camera-info", args.camera_info))
     check_outputs(outputs, {"INPUT": args.input, "--reference": getattr(args, "reference", None),
                             "--dark": getattr(args, "dark", None)})
 

@@ -12,8 +12,10 @@ Thin ROS shell around `touchroller_perception.calibration`:
   theta and d), sets the result on the running perception node through
   `<perception_node>/set_parameters_atomically` (a relative name: the perception node in the same
   namespace), writes the calibration YAML to `output_path`,
-  updates its own geometry parameters and publishes `sensor_msgs/CameraInfo` on
-  `camera_info` (transient local, so late subscribers get it);
+  updates its own geometry parameters, and, when it solved the intrinsics, writes them as a
+  camera_calibration_parsers YAML beside it (`cal.yaml` -> `cal.camera_info.yaml`) and hands them to the
+  camera node through `<camera_node>/set_camera_info` (`sensor_msgs/srv/SetCameraInfo`, as ROS's
+  cameracalibrator commits a calibration): the camera node is the graph's one publisher of `camera_info`;
 * `~/reset` drops all captured frames;
 * `~/solve_photometric` makes the photometric model (docs/height.md) from the captured `ball` presses
   (target `ball`: one ball of radius `photometric.ball_radius` pressed per frame) and the `reference`
@@ -39,10 +41,17 @@ from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParametersAtomically
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Image
+from sensor_msgs.srv import SetCameraInfo
 
 from touchroller_bringup import names
+from touchroller_bringup.camera_info_files import (
+    DEFAULT_CAMERA_NAME,
+    CameraCalibration,
+    camera_info_path_for,
+    write_camera_info,
+)
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, Status
 from touchroller_bringup.ros_params import GeometryParameters, check_start_up, declare, declare_frame_prefix
@@ -53,8 +62,6 @@ from touchroller_perception.files import atomic_write
 from touchroller_perception.geometry import CameraModel
 
 TARGETS = ("chessboard", "hemispheres", "reference", "dark", "ball")
-CAMERA_INFO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 # parameter -> (default, description, min, max)
 SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
@@ -63,7 +70,11 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
     "target": ("hemispheres", f"What ~/capture stores: {', '.join(TARGETS)}", None, None),
     "perception_node": (names.PERCEPTION_NODE, "Node whose geometry parameters ~/solve sets (relative: in "
                         "the node's namespace; '' = none)", None, None),
-    "output_path": ("touchroller_calibration.yaml", "Calibration YAML written by ~/solve ('' = none)", None, None),
+    "camera_node": (names.CAMERA_NODE, "Camera node whose <camera_node>/set_camera_info receives solved intrinsics "
+                    "(relative: in the node's namespace; '' = none)", None, None),
+    "output_path": ("touchroller_calibration.yaml", "Calibration YAML written by ~/solve ('' = none); solved "
+                    "intrinsics also go to NAME.camera_info.yaml beside it (camera_calibration_parsers' YAML)",
+                    None, None),
     "board.columns": (7, "Chessboard inner corners along a row", 2, 100),
     "board.rows": (7, "Chessboard inner corners along a column", 2, 100),
     "board.square": (0.012, "Chessboard square side, m", 1e-4, 1.0),
@@ -114,17 +125,16 @@ class CalibrationNode(Node):
         self._captured_stamps: set[int] = set()
         self.last_result: str = ""
         self.remote_result: SetParametersResult | None = None
-
-        self.info_pub = self.create_publisher(CameraInfo, names.CAMERA_INFO, CAMERA_INFO_QOS)
+        self.camera_result: tuple[bool, str] | None = None   # what the camera node answered to set_camera_info
         self.image_sub = None
         self._subscribe(str(self.get_parameter("image_topic").value))
         for name, action in ((names.CAPTURE, self.capture), (names.SOLVE, self.solve), (names.RESET, self.reset),
                              (names.SOLVE_PHOTOMETRIC, self.solve_photometric)):
             create_trigger_service(self, f"~/{name}", action)
         self._remote_client = None
+        self._camera_client = None
         self.diagnostics = DiagnosticsPublisher(self, f"{self.get_name()}: chessboard coverage")
         self.diagnostics.add(self._coverage_status)
-        self.publish_camera_info(self.geometry.model)
 
     # ------------------------------------------------------------------ parameters
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
@@ -145,7 +155,7 @@ class CalibrationNode(Node):
                     if not str(p.value).strip():
                         return "image_topic must not be empty"
                     validate_topic_name(str(p.value))
-                elif p.name == "perception_node" and str(p.value):
+                elif p.name in ("perception_node", "camera_node") and str(p.value):
                     validate_node_name(str(p.value).rsplit("/", 1)[-1])
             except Exception as exc:  # noqa: BLE001 - rclpy's InvalidTopicNameException and friends
                 return f"{p.name} {p.value!r} is not a valid ROS name: {' '.join(str(exc).split())}"
@@ -169,6 +179,8 @@ class CalibrationNode(Node):
                 self._subscribe(str(p.value))
             elif p.name == "perception_node":
                 self._remote_client = None
+            elif p.name == "camera_node":
+                self._camera_client = None
             elif p.name.startswith("board."):
                 self._redetect_boards()
 
@@ -322,8 +334,9 @@ class CalibrationNode(Node):
                 self.get_logger().warning(warning)
         notes.append(self._write(camera, intrinsics, extrinsics))
         notes.append(self._send(camera, intrinsics is not None))
+        if intrinsics is not None:
+            notes.append(self._send_camera_info(camera))
         self.set_parameters([Parameter(name, value=value) for name, value in _changed(camera, intrinsics is not None)])
-        self.publish_camera_info(camera)
         self.last_result = "; ".join(n for n in notes if n)
         return True, self.last_result
 
@@ -376,12 +389,44 @@ class CalibrationNode(Node):
         path = str(self.get_parameter("output_path").value)
         if not path:
             return ""
+        written = [path]
         try:
             keep = cal.read_calibration_extras(path) if intrinsics is None and Path(path).exists() else {}
             cal.write_calibration(path, camera, intrinsics=intrinsics, extrinsics=extrinsics, keep=keep)
+            if intrinsics is not None:   # the intrinsics as ROS camera drivers read them (camera_info_url)
+                info_path = camera_info_path_for(path)
+                write_camera_info(info_path, CameraCalibration.from_model(camera, DEFAULT_CAMERA_NAME))
+                written.append(str(info_path))
         except (OSError, ValueError) as exc:
             return f"could not write {path}: {exc}"
-        return f"wrote {path}"
+        return f"wrote {' and '.join(written)}"
+
+    def _send_camera_info(self, camera: CameraModel) -> str:
+        """The solved intrinsics to `<camera_node>/set_camera_info` (the camera node publishes camera_info)."""
+        name = str(self.get_parameter("camera_node").value).strip().rstrip("/")
+        if not name:
+            return ""
+        service = self.resolve_service_name(f"{name}/{names.SET_CAMERA_INFO}")
+        if self._camera_client is None or self._camera_client.srv_name != service:
+            self._camera_client = self.create_client(SetCameraInfo, service)
+        if not self._camera_client.service_is_ready():
+            return f"{service} is not available: camera_info not updated"
+        request = SetCameraInfo.Request()
+        for field, value in cal.camera_info_fields(camera).items():
+            setattr(request.camera_info, field, value)
+        self.camera_result = None
+        future = self._camera_client.call_async(request)
+        future.add_done_callback(self._on_camera_result)
+        return f"sending the intrinsics to {service}"
+
+    def _on_camera_result(self, future: Any) -> None:
+        response = future.result()
+        self.camera_result = (False, "no response") if response is None else (response.success,
+                                                                               response.status_message)
+        if self.camera_result[0]:   # one severity per call site: rclpy's logger refuses a change
+            self.get_logger().info(f"set_camera_info: {self.camera_result[1]}")
+        else:
+            self.get_logger().error(f"set_camera_info: {self.camera_result[1]}")
 
     def _send(self, camera: CameraModel, with_intrinsics: bool) -> str:
         name = str(self.get_parameter("perception_node").value).strip().rstrip("/")
@@ -408,14 +453,6 @@ class CalibrationNode(Node):
             self.get_logger().info(f"{name} accepted the calibration")
         else:
             self.get_logger().error(f"{name} rejected the calibration: {self.remote_result.reason}")
-
-    def publish_camera_info(self, camera: CameraModel) -> None:
-        msg = CameraInfo()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.header.frame_id = names.frame(names.CAMERA_FRAME, self.frame_prefix)
-        for field, value in cal.camera_info_fields(camera).items():
-            setattr(msg, field, value)
-        self.info_pub.publish(msg)
 
 
 def _changed(camera: CameraModel, with_intrinsics: bool) -> list[tuple[str, Any]]:

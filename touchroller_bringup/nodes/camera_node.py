@@ -1,5 +1,11 @@
 """The TouchRoller camera driver node: a `FrameSource` -> `image_raw` + `camera_info`.
 
+The graph's one publisher of `camera_info`, with camera_info_manager's conventions
+(`touchroller_bringup.camera_info_manager`): `camera_name`, `camera_info_url` (a camera_calibration_parsers
+YAML) and `~/set_camera_info`. Images and camera info are in `touchroller_camera_optical_frame`
+(`frame_id`), which the node puts on /tf_static under `touchroller_camera` (the same axes: docs/design.md's
+camera frame is optical already).
+
 Topics are relative to the node's namespace (`touchroller` by default: `/touchroller/image_raw`; names
 in `touchroller_bringup.names`); frame ids start with `frame_prefix`, which follows the namespace.
 
@@ -37,6 +43,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from touchroller_bringup import names
 from touchroller_bringup.bags import read_images
+from touchroller_bringup.camera_info_manager import CameraInfoManager
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.image_conversion import fill_image
 from touchroller_bringup.ros_diagnostics import (
@@ -55,7 +62,7 @@ from touchroller_bringup.ros_params import (
     declare_frame_prefix,
     frame_id_problem,
 )
-from touchroller_bringup.tf import TransformListener
+from touchroller_bringup.tf import TransformListener, TransformPublisher
 from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.transforms import Transform, TransformBuffer
@@ -73,20 +80,6 @@ def image_qos() -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 
-
-
-def camera_info_from_model(model: CameraModel, stamp_ns: int, frame_id: str) -> CameraInfo:
-    """CameraInfo (plumb_bob) of the calibrated intrinsics; theta and d are extrinsics, kept as parameters."""
-    info = CameraInfo()
-    info.header.stamp.sec, info.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    info.header.frame_id = frame_id
-    info.width, info.height = model.width, model.height
-    info.distortion_model = "plumb_bob"
-    info.d = [float(k) for k in model.distortion]
-    info.k = [float(x) for x in model.K.reshape(-1)]
-    info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-    info.p = [model.fx, 0.0, model.cx, 0.0, 0.0, model.fy, model.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
-    return info
 
 
 def source_problem(values: dict[str, Any]) -> str:
@@ -145,12 +138,19 @@ class CameraNode(Node):
         self._declare_parameters()
         self.frame_prefix = declare_frame_prefix(self)
         self.geometry = GeometryParameters(self, on_change=self._on_geometry)
+        self.camera_info = CameraInfoManager(self, self.geometry)
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         check_start_up(self, self._validate)   # the start-up values pass the checks a change does
+        problem = self.camera_info.problem(self.camera_info.url, self.camera_info.camera_name)
+        if problem:
+            raise UserError(problem)
+        self.camera_info.load()
         if not self._external_source:
             self._check_source_exists()
         self.frame_id = self._prefixed_frame_id()
+        self.tf = TransformPublisher(self)
+        self._publish_optical_frame()
         self._image_msg = Image()
         self.published = 0
         self.malformed = 0
@@ -188,8 +188,10 @@ class CameraNode(Node):
         declare(self, "rate", 1.0, "Playback rate for video/bag/sim: 1 real time, 0 as fast as possible",
                 min=0.0, max=100.0)
         declare(self, "loop", False, "Restart video/bag/sim sources at their end")
-        declare(self, "frame_id", names.CAMERA_FRAME, "frame_id of published images and camera info (after "
-                "frame_prefix)")
+        declare(self, "frame_id", names.CAMERA_OPTICAL_FRAME, "frame_id of published images and camera info (after "
+                f"frame_prefix); other than {names.CAMERA_FRAME}, it is published on /tf_static as "
+                f"{names.CAMERA_FRAME} with its axes (that frame is optical already: z along the view, x along u, "
+                "y along v)")
         declare(self, "wait_for_subscribers", 0, f"Open the source only once {names.IMAGE} has this many "
                 "subscribers (replay: perception must see a recording's first, reference frames); 0: at once",
                 min=0, max=100)
@@ -239,6 +241,7 @@ class CameraNode(Node):
         changed = {p.name for p in parameters}
         if "frame_id" in changed:
             self.frame_id = self._prefixed_frame_id()
+            self._publish_optical_frame()
         if changed & set(SOURCE_PARAMETERS) and not self._external_source:
             self._listen_to_tf_if_on_arm()
             self._restart.set()  # the publishing thread reopens the source
@@ -259,7 +262,15 @@ class CameraNode(Node):
         cylinder = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         return None if listener is None else listener.lookup(world, cylinder, t_ns)
 
+    def _publish_optical_frame(self) -> None:
+        """touchroller_camera -> frame_id on /tf_static: the identity, as docs/design.md's touchroller_camera is
+        an optical frame already (the REP 103 body-to-optical rotation would turn the image's axes away)."""
+        camera = names.frame(names.CAMERA_FRAME, self.frame_prefix)
+        if self.frame_id != camera:
+            self.tf.set_static(camera, self.frame_id, Transform((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+
     def _on_geometry(self, model: CameraModel) -> None:
+        self.camera_info.geometry_changed(model)
         self.get_logger().info(f"camera model updated: fx={model.fx:g} fy={model.fy:g} theta={model.theta:g} "
                                f"d={model.d:g}")
         if self._on_arm():
@@ -415,7 +426,7 @@ class CameraNode(Node):
             self._log_error(f"dropping a malformed camera frame: {exc}")
             return False
         self.image_pub.publish(self._image_msg)
-        self.info_pub.publish(camera_info_from_model(self.geometry.model, stamp_ns, self.frame_id))
+        self.info_pub.publish(self.camera_info.fill(CameraInfo(), stamp_ns, self.frame_id))
         self.published += 1
         self.rate_meter.tick()
         self.lag.add((self._now_ns() - stamp_ns) * 1e-9)

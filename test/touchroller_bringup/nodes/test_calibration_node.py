@@ -1,5 +1,5 @@
 """The calibration node on a real rclpy context: capture simulated presses, solve, and check that the
-perception node, the YAML file and /touchroller/camera_info all receive the calibration."""
+perception node, the YAML files and the camera node (through set_camera_info) all receive the calibration."""
 from __future__ import annotations
 
 import math
@@ -28,10 +28,11 @@ def presses():
 @pytest.fixture
 def graph(ros_context, presses, tmp_path):
     from rclpy.node import Node
-    from sensor_msgs.msg import CameraInfo, Image
+    from sensor_msgs.msg import Image
 
     from touchroller_bringup import names
-    from touchroller_bringup.nodes.calibration_node import CAMERA_INFO_QOS, CalibrationNode
+    from touchroller_bringup.nodes.calibration_node import CalibrationNode
+    from touchroller_bringup.nodes.camera_node import CameraNode
     from touchroller_bringup.nodes.perception_node import PerceptionNode
 
     truth = presses[0]
@@ -41,17 +42,34 @@ def graph(ros_context, presses, tmp_path):
                                 parameter_overrides=[*geometry, Parameter("map.publish_rate", value=0.0)])
     node = CalibrationNode(context=ros_context, parameter_overrides=[
         *geometry, Parameter("output_path", value=str(tmp_path / "cal.yaml"))])
+    # the camera node that owns camera_info: no frames of its own here (the helper publishes them), its
+    # camera_info_url a file the calibration's set_camera_info writes
+    camera = CameraNode(context=ros_context, autostart=False, source=_NoFrames(), parameter_overrides=[
+        Parameter("camera_info_url", value=f"file://{tmp_path}/camera_info.yaml")])
     helper = Node("calibration_test_helper", context=ros_context)
-    infos: list = []
-    helper.create_subscription(CameraInfo, names.topic(names.CAMERA_INFO), infos.append, CAMERA_INFO_QOS)
     image_pub = helper.create_publisher(Image, names.topic(names.IMAGE), 10)
     executor = SingleThreadedExecutor(context=ros_context)
-    for n in (perception, node, helper):
+    for n in (perception, node, helper, camera):
         executor.add_node(n)
-    yield node, perception, helper, executor, image_pub, infos
+    yield node, perception, helper, executor, image_pub, camera
     executor.shutdown()
-    for n in (perception, node, helper):
+    for n in (perception, node, helper, camera):
         n.destroy_node()
+
+
+class _NoFrames:
+    """An external frame source that never delivers (the camera node only serves set_camera_info here)."""
+
+    info = "no frames"
+
+    def open(self) -> None:
+        pass
+
+    def read(self, timeout: float) -> None:
+        return None
+
+    def close(self) -> None:
+        pass
 
 
 def call(executor, spin_until, helper, name: str) -> object:
@@ -78,9 +96,8 @@ def show(executor, spin_until, node, image_pub, frame) -> None:
 def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
     from touchroller_perception.geometry import CameraModel
 
-    node, perception, helper, executor, image_pub, infos = graph
+    node, perception, helper, executor, image_pub, camera = graph
     truth, references, pressed = presses
-    assert spin_until(executor, lambda: len(infos) >= 1, timeout=20)     # the start-up camera info
 
     failed = call(executor, spin_until, helper, "solve")
     assert not failed.success and "nothing captured" in failed.message
@@ -118,8 +135,8 @@ def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
     written = CameraModel.from_yaml(tmp_path / "cal.yaml")
     assert written.theta == pytest.approx(model.theta) and written.d == pytest.approx(model.d)
     assert node.geometry.model.theta == pytest.approx(model.theta)
-    assert spin_until(executor, lambda: len(infos) >= 2, timeout=20)
-    assert infos[-1].k[0] == pytest.approx(truth.fx) and infos[-1].distortion_model == "plumb_bob"
+    # theta and d only: camera_info (intrinsics) stays the camera node's, untouched; no camera-info YAML
+    assert node.camera_result is None and not (tmp_path / "cal.camera_info.yaml").exists()
 
     assert call(executor, spin_until, helper, "reset").success
     assert not any(node.captures.values())
@@ -174,7 +191,7 @@ def test_missing_perception_node_is_reported(graph, presses, spin_until):
 def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, spin_until, tmp_path):
     """Chessboard views and presses in one session: one solve sets intrinsics (incl. the distortion
     array and the integer image size) and theta, d on the perception node in one atomic call."""
-    node, perception, helper, executor, image_pub, infos = graph
+    node, perception, helper, executor, image_pub, camera = graph
     truth, references, pressed = presses
     boards = sim.SimulatedSensor(sim.load_scene("calibration_chessboard", **{"motion.views": 8}), seed=5)
     node.set_parameters([Parameter("target", value="chessboard")])
@@ -205,6 +222,17 @@ def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, sp
     assert abs(model.fx - truth.fx) < 2.0 and abs(model.cy - truth.cy) < 3.0
     assert model.distortion[0] == pytest.approx(truth.distortion[0], abs=0.02)
     assert abs(math.degrees(model.theta - truth.theta)) < 0.5
+    # the intrinsics reach the camera node (the graph's one camera_info publisher) through set_camera_info,
+    # which writes its camera_info_url; the calibration writes the same camera_calibration_parsers YAML
+    from touchroller_bringup.camera_info_files import read_camera_info
+
+    assert spin_until(executor, lambda: node.camera_result is not None, timeout=20)
+    assert node.camera_result[0], node.camera_result[1]
+    assert camera.get_parameter("camera.fx").value == pytest.approx(model.fx)
+    assert camera.camera_info.calibration.k[0] == pytest.approx(model.fx)
+    written = read_camera_info(tmp_path / "cal.camera_info.yaml")
+    assert written == read_camera_info(tmp_path / "camera_info.yaml")
+    assert written.matches(node.geometry.model) and "cal.camera_info.yaml" in solved.message
 
 
 @pytest.mark.parametrize("name, value, message", [
@@ -227,7 +255,7 @@ def test_start_up_values_it_cannot_use_stop_the_node_in_one_line(ros_context, na
 def test_ball_presses_solve_the_photometric_model(graph, spin_until, tmp_path):
     from touchroller_perception.height import PhotometricModel
 
-    node, _perception, helper, executor, image_pub, _infos = graph
+    node, _perception, helper, executor, image_pub, _camera = graph
     sensor = sim.SimulatedSensor(sim.load_scene("ball_presses", **{"motion.presses": 6}), seed=4)
     frames = list(sensor.frames())
     refs = [f for f in frames if f.truth.get("phase") == "reference"][:2]
@@ -257,7 +285,7 @@ def test_an_implausible_result_is_refused_and_never_set_on_perception(graph, pre
     """The calibrate graph's old defaults: the nodes assume fx = 500 px for a camera of 380 px. The
     presses then solve to a d many mm off; ~/solve refuses it with the reason, writes nothing and sets
     nothing on the perception node."""
-    node, perception, helper, executor, image_pub, infos = graph
+    node, perception, helper, executor, image_pub, _camera = graph
     truth, references, pressed = presses
     node.set_parameters([Parameter("camera.fx", value=500.0), Parameter("camera.fy", value=500.0),
                          Parameter("target", value="reference")])

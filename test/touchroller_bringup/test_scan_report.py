@@ -1,0 +1,92 @@
+"""The scan's report.md: the map as a picture beside it, the coverage of the requested area, the findings."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+
+from touchroller_bringup.findings_files import write_findings_csv
+from touchroller_bringup.graph import build_graph
+from touchroller_bringup.scan import ScanResult, _Collected, _write_outputs
+from touchroller_bringup.scan_report import AREA_BGR, PREVIEW, PREVIEW_MAX_SIDE, UNMAPPED_BGR, report_markdown
+from touchroller_perception.inspection.types import Finding
+from touchroller_perception.world_map import WorldMapImage
+
+RES = 0.0002   # m per pixel
+
+
+def world(rows: int = 500, cols: int = 1500) -> SimpleNamespace:
+    """A perception node stand-in whose world map covers x 0.40..0.70 m, y -0.05..0.05 m, mapped where
+    x < 0.55 (the left half)."""
+    grey = np.random.default_rng(0).integers(40, 200, (rows, cols), np.uint8)
+    alpha = np.zeros((rows, cols), np.uint8)
+    alpha[:, : cols // 2] = 255
+    image = WorldMapImage(grey, alpha, RES, (0.40, -0.05))
+    stats = SimpleNamespace(mapped=120, passes=2, latency_s=0.03, latency_estimated=True, pass_corrections_px=[])
+    mapper = SimpleNamespace(map_image=lambda: image, stats=stats)
+    return SimpleNamespace(world=mapper, world_frame="base", camera=None, received=100, dropped=0, malformed=0,
+                           has_parameter=lambda name: False)
+
+
+def sweep(area: list[float], passes: int = 3) -> SimpleNamespace:
+    values = {"sweep.area": area, "sweep.direction": [1.0, 0.0, 0.0]}
+    return SimpleNamespace(has_parameter=values.__contains__,
+                           get_parameter=lambda name: SimpleNamespace(value=values[name]),
+                           sequencer=SimpleNamespace(plan=SimpleNamespace(rolls=tuple(range(passes)))))
+
+
+def outputs(out: Path, area: list[float], monkeypatch) -> ScanResult:
+    import touchroller_perception.world_map as world_map
+
+    # the stand-in's stats are not a mapper's: its latency line is given
+    monkeypatch.setattr(world_map, "latency_summary", lambda stats: ("30.0 ms (estimated)", {}))
+    return _write_outputs(out, build_graph("scan", {}, []), world(), _Collected(), "done", "sweep complete", 10.0,
+                          "3 passes", sweep=sweep(area))
+
+
+def test_the_report_shows_the_map_its_coverage_and_the_findings(tmp_path, monkeypatch):
+    findings = [Finding(1, "crack", 0.45, 0.0, 0.012, 0.0004, 0.0001, math.nan, 0.9,
+                        polylines=(((0.44, 0.0), (0.46, 0.0)),)),
+                Finding(2, "dent", 0.50, 0.02, 0.003, 0.002, 0.0002, math.nan, 0.7,
+                        polygon=((0.49, 0.01), (0.51, 0.01), (0.51, 0.03), (0.49, 0.01)))]
+    write_findings_csv(tmp_path / "findings.csv", findings)
+    # the requested area: x 0.45..0.65, y -0.03..0.03; the map covers x < 0.55 of it: half
+    result = outputs(tmp_path, [0.45, -0.03, 0.20, 0.06], monkeypatch)
+    assert result.coverage is not None and abs(result.coverage.fraction - 0.5) < 0.01
+    report = (tmp_path / "report.md").read_text()
+    assert f"[![the map]({PREVIEW})](map.png)" in report
+    assert "- mapped: **50.0 %** of it (60.0 of 120.0 cm²)" in report
+    assert "requested area: 20.0 x 6.0 cm at (0.4500, -0.0300) m in `base`" in report
+    assert "3 pass(es) planned" in report and (tmp_path / "map.png").is_file()
+    assert "- passes mapped: 2 of 3" in report
+    assert "2 finding(s) (crack 1, dent 1) in `findings.csv`" in report
+    assert "| 1 | crack | 0.4500 | 0.0000 | 12.00 | 0.40 | 0.100 | 0.90 |" in report
+    # the picture: downscaled, not mapped dark blue, the requested area outlined
+    picture = cv2.imread(str(tmp_path / PREVIEW))
+    assert max(picture.shape[:2]) == PREVIEW_MAX_SIDE and picture.shape[1] == PREVIEW_MAX_SIDE
+    scale = PREVIEW_MAX_SIDE / 1500
+    assert tuple(picture[10, PREVIEW_MAX_SIDE - 10]) == UNMAPPED_BGR            # the right half: not mapped
+    edge_u = round((0.65 - 0.40) / RES * scale)                                  # the area's far edge x = 0.65
+    column = picture[:, edge_u - 1: edge_u + 2].reshape(-1, 3)
+    assert (np.abs(column.astype(int) - AREA_BGR).sum(axis=1) < 60).sum() > 100   # drawn along the edge
+
+
+def test_without_findings_or_an_area_the_report_says_what_it_could_not_measure(tmp_path, monkeypatch):
+    result = outputs(tmp_path, [0.0, 0.0, 0.0, 0.0], monkeypatch)   # one roll of sweep.length
+    report = (tmp_path / "report.md").read_text()
+    assert result.coverage.rectangle is None
+    assert "requested: one roll (no `sweep.area`), so no rectangle to measure" in report
+    assert "## Findings" not in report and (tmp_path / PREVIEW).is_file()
+
+
+def test_an_unreadable_findings_file_is_one_line_in_the_report(tmp_path):
+    (tmp_path / "findings.csv").write_text("not,a,findings,file\n")
+    from touchroller_bringup.scan_report import read_findings
+
+    findings, problem = read_findings(tmp_path)
+    assert findings is None and problem.startswith("findings.csv could not be read:") and "\n" not in problem
+    result = ScanResult(tmp_path, "done", "ok", 1.0, 1, 1, 0, 0, 0, None, {}, findings_problem=problem)
+    assert f"## Findings\n\n- {problem}" in report_markdown(result, build_graph("scan", {}, []))
