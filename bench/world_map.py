@@ -729,9 +729,30 @@ def evaluate_scan(folder: Path, area: list[float]) -> ScanFiles:
                      100.0 * float(mapped.sum()) / expected, residuals, same, shift, agreement, grey_diff)
 
 def load(path: Path) -> WorldMapResult:
-    """A result this bench wrote (its JSON), for the report to render without running it again."""
+    """A result this bench wrote (its JSON, and its picture's arrays beside it), for the report to render
+    without running it again."""
     result: WorldMapResult = load_json(WorldMapResult, path)
+    picture = _picture_path(Path(path))
+    if picture.is_file():
+        with np.load(picture) as arrays:
+            result = dataclasses.replace(result, picture=MapPicture(
+                float(arrays["latency_true_ms"]), float(arrays["ssim"]), [float(v) for v in arrays["area"]],
+                arrays["grey"], arrays["mapped"], arrays["truth"]))
     return result
+
+
+def _picture_path(json_path: Path) -> Path:
+    return json_path.with_name(f"{json_path.stem}_picture.npz")
+
+
+def _save_picture(picture: MapPicture, json_path: Path) -> None:
+    """The figure's arrays beside the JSON (compressed: the JSON would hold them as lists of numbers)."""
+    from touchroller_perception.files import atomic_path
+
+    with atomic_path(_picture_path(json_path)) as temporary, open(temporary, "wb") as stream:
+        np.savez_compressed(stream, latency_true_ms=picture.latency_true_ms, ssim=picture.ssim,
+                            area=np.asarray(picture.area), grey=picture.grey, mapped=picture.mapped,
+                            truth=picture.truth)
 
 
 
@@ -751,6 +772,8 @@ def main(argv: list[str] | None = None) -> int:
     md.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(md, "# World map of a raster scan, and `touchroller map` on one\n\n" + to_markdown(result) + "\n")
     atomic_write_text(js, to_json(dataclasses.replace(result, picture=None), indent=1) + "\n")
+    if result.picture is not None:
+        _save_picture(result.picture, js)
     print(to_markdown(result))
     return 0
 

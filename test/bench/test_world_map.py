@@ -160,3 +160,22 @@ def test_the_figure_is_the_map_the_section_scores():
     mapped = picture.mapped
     correlation = np.corrcoef(picture.grey[mapped].astype(float), picture.truth[mapped].astype(float))[0, 1]
     assert correlation > 0.8, correlation
+
+
+def test_a_recorded_result_keeps_its_picture_for_the_report(tmp_path):
+    """The JSON leaves the picture's arrays out; they are kept beside it, so the report rendered from the
+    recording (`touchroller report --recorded`) still shows the map."""
+    import dataclasses
+
+    bench = load_bench()
+    picture = bench.MapPicture(20.0, 0.95, [0.42, -0.02, 0.02, 0.04], np.arange(12, dtype=np.uint8).reshape(3, 4),
+                               np.eye(3, 4, dtype=bool), np.full((3, 4), 7, np.uint8))
+    path = tmp_path / "world_map.json"
+    path.write_text(bench.to_json(dataclasses.replace(fake_result(), picture=None)))
+    assert bench.load(path).picture is None      # no arrays beside it: no picture, no figure
+    bench._save_picture(picture, path)
+    again = bench.load(path)
+    assert again.picture is not None and again.picture.area == picture.area and again.picture.ssim == 0.95
+    for name in ("grey", "mapped", "truth"):
+        np.testing.assert_array_equal(getattr(again.picture, name), getattr(picture, name))
+    assert [p.name for p in bench.figures(again, tmp_path)] == ["world_map.png"]
