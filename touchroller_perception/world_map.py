@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from touchroller_perception.contact_timing import ContactTimer
 from touchroller_perception.fast_stats import median as _median
 from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
@@ -365,6 +366,8 @@ class WorldMapper:
         self._steady_skipped = 0  # frames since the last registered one
         self._frame_dt: int | None = None   # ns since the previous frame
         self._estimator: LatencyEstimator | None = None
+        self._contacts: ContactTimer | None = None   # touchdowns and lift-offs the image shows (latency)
+        self._last_contact_check = 0
         self._placing_ns: int | None = None        # the latency frames are placed with (see _latency)
         self._placing_sigma: float | None = None   # its sigma when it is an estimate
         self._pass_windows_until = 0               # pass_roll windows were taken up to this stamp
@@ -422,6 +425,8 @@ class WorldMapper:
     def _take_band(self, band: np.ndarray, stamp_ns: int) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
         self.stats.frames += 1
+        if self._contacts is not None:
+            self._contacts.push(int(stamp_ns), band)
         if self._previous_prior_pose is not None:
             seen = self._previous_prior_pose[0]
             self._tf_heights.append((int(stamp_ns), float(seen[0, 3]), float(seen[1, 3]), float(seen[2, 3])))
@@ -624,6 +629,7 @@ class WorldMapper:
         self._weights = (across[:, None] * ends[None, :]).astype(np.float32)
         latency = LatencyConfig(max_latency=self.config.max_latency, max_sigma=self.config.latency_max_sigma)
         self._estimator = LatencyEstimator(self.m_per_row, latency) if self.latency_ns is None else None
+        self._contacts = ContactTimer(self.config.max_latency) if self._estimator is not None else None
 
     # -- the queue -----------------------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
@@ -638,6 +644,7 @@ class WorldMapper:
             if np.isfinite(heights).any():
                 self._pressed_height = float(np.nanmin(heights))
                 self.stats.pressed_height = self._pressed_height
+        self._contact_events(final)
         self._prefetch_poses()
         while self._pending:
             frame = self._pending[0]
@@ -774,7 +781,11 @@ class WorldMapper:
         # starts and stops: the arm's speed along the rows crossing half its cruise, in agreeing stretches
         moving = np.abs(arm_speed) > max(0.5 * _percentile(np.abs(arm_speed), 90), 3.0)
         windows = len(self._estimator.windows)
-        for k in np.flatnonzero(moving[1:] != moving[:-1]) + 1:
+        # the speed is measured from the frame before: not at the track's first frame nor across a gap (a
+        # pass that touched down at speed begins moving, which is no start)
+        measured = np.zeros(len(stamps), bool)
+        measured[1:] = valid & (dt <= 0.2)
+        for k in np.flatnonzero((moving[1:] != moving[:-1]) & measured[1:] & measured[:-1]) + 1:
             event = int(stamps[k])
             if all(abs(event - e) > 300_000_000 for e in self._events):
                 self._events.append(event)
@@ -782,6 +793,20 @@ class WorldMapper:
         self._add_pass_windows(stamps, positions, heights, arm_speed, final)
         pending = any(not w.solved for w in self._estimator.windows)
         if self._estimator.windows and (len(self._estimator.windows) > windows or pending or final):
+            self._estimator.solve(self.poses)
+            self._use_estimate()
+
+    def _contact_events(self, final: bool) -> None:
+        """Touchdowns and lift-offs the image shows, once the pressed height is known (the latency from
+        contact timing: `touchroller_perception.contact_timing`)."""
+        if self._contacts is None or self._estimator is None or self._pressed_height is None:
+            return
+        if self._latest_stamp - self._last_contact_check < _EVENT_CHECK_NS and not final:
+            return
+        self._last_contact_check = self._latest_stamp
+        found = self._contacts.update(self.poses, self._pressed_height, self._latest_stamp, final)
+        if found:
+            self._estimator.add_contact_events(found)
             self._estimator.solve(self.poses)
             self._use_estimate()
 

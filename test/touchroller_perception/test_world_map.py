@@ -422,6 +422,13 @@ def test_a_smooth_surface_is_mapped_wherever_the_roller_was_pressed(variant):
     assert mapper.coverage((AREA[0], AREA[1], AREA[0] + AREA[2], AREA[1] + AREA[3])) >= 98.0
     # nothing there to register on: no pass was moved by a correction it could not trust
     assert all(dx == 0 and dy == 0 for dx, dy in mapper.stats.pass_corrections_px)
+    # and no texture to find the latency by: the touchdowns and lift-offs bound it (not told); two of each
+    # leave a range about a frame wide, too wide to place by (a third pass pins it: bench.world_map_grid)
+    estimate, timing = mapper.stats.latency, mapper._estimator.contact
+    assert timing is not None and timing.touchdowns == 2 and timing.liftoffs == 2
+    assert timing.low <= 0.04 <= timing.high
+    assert estimate is not None and [e.kind for e in estimate.evidence] == ["contact_timing"]
+    assert estimate.observable == (timing.sigma <= 0.006)
 
 
 @pytest.mark.slow
