@@ -98,6 +98,9 @@ class ContactTimer:
         self.max_latency_ns = round(max_latency * 1e9)
         self._stamps: deque[int] = deque(maxlen=self.config.capacity)
         self._summaries: deque[np.ndarray] = deque(maxlen=self.config.capacity)
+        self._lags = np.linspace(0, self.max_latency_ns, 5).astype(np.int64)
+        # the arm's height at each frame's stamp less each lag, looked up once TF has it (NaN until then)
+        self._heights: deque[np.ndarray] = deque(maxlen=self.config.capacity)
         self._done_until = -1   # events up to this stamp were read
         self.events: list[ContactEvent] = []
 
@@ -109,12 +112,19 @@ class ContactTimer:
         summary = cv2.resize(grey.astype(np.float32), _DESCRIPTOR, interpolation=cv2.INTER_AREA)
         self._stamps.append(int(stamp_ns))
         self._summaries.append(summary)
+        self._heights.append(np.full(len(self._lags), np.nan))
 
-    def _heights(self, poses: PoseLookup, stamps: NDArray[np.int64]) -> FloatArray:
-        """(frames, 5): the arm's height at each frame's stamp less 0, 1/4, ... the whole max latency."""
-        lags = np.linspace(0, self.max_latency_ns, 5).astype(np.int64)
-        heights = poses((stamps[:, None] - lags[None, :]).reshape(-1))[:, 2, 3]
-        return np.asarray(heights, np.float64).reshape(len(stamps), len(lags))
+    def _arm_heights(self, poses: PoseLookup, stamps: NDArray[np.int64]) -> FloatArray:
+        """(frames, 5): the arm's height at each frame's stamp less 0, 1/4, ... the whole max latency (each
+        looked up once, when TF has it)."""
+        heights = np.stack(self._heights)
+        missing = np.flatnonzero(~np.isfinite(heights).all(axis=1))
+        if len(missing):
+            found = poses((stamps[missing, None] - self._lags[None, :]).reshape(-1))[:, 2, 3]
+            heights[missing] = np.asarray(found, np.float64).reshape(len(missing), len(self._lags))
+            for i in missing:
+                self._heights[i] = heights[i]
+        return heights
 
     def update(self, poses: PoseLookup, pressed_height: float | None, latest_ns: int,
                final: bool = False) -> list[ContactEvent]:
@@ -125,7 +135,7 @@ class ContactTimer:
         if pressed_height is None or len(self._stamps) < 2 * c.steady_frames + 2:
             return []
         stamps = np.fromiter(self._stamps, np.int64, len(self._stamps))
-        heights = self._heights(poses, stamps) - pressed_height
+        heights = self._arm_heights(poses, stamps) - pressed_height
         known = np.isfinite(heights).all(axis=1)
         air = known & (heights.min(axis=1, initial=np.inf) > c.lifted)
         pressed = known & (np.abs(heights).max(axis=1, initial=0.0) < c.pressed)
