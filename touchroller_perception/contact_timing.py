@@ -19,13 +19,14 @@ No rclpy here.
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from touchroller_perception.fast_stats import median
 
 FloatArray = NDArray[np.float64]
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet).
@@ -94,58 +95,88 @@ class ContactTimer:
     and the pressed height say which frames were surely in the air or pressed."""
 
     def __init__(self, max_latency: float, config: ContactTimingConfig | None = None) -> None:
-        self.config = config or ContactTimingConfig()
+        self.config = config = config or ContactTimingConfig()
         self.max_latency_ns = round(max_latency * 1e9)
-        self._stamps: deque[int] = deque(maxlen=self.config.capacity)
-        self._summaries: deque[np.ndarray] = deque(maxlen=self.config.capacity)
         self._lags = np.linspace(0, self.max_latency_ns, 5).astype(np.int64)
-        # the arm's height at each frame's stamp less each lag, looked up once TF has it (NaN until then)
-        self._heights: deque[np.ndarray] = deque(maxlen=self.config.capacity)
+        # per frame, in arrays with room for twice `capacity` (appending is O(1); the oldest go once
+        # `capacity` is exceeded): its stamp, band summary, and the arm's height at its stamp less each
+        # lag (NaN until TF has it; looked up again only while the frame is recent)
+        room = 2 * config.capacity
+        self._stamp_arr = np.zeros(room, np.int64)
+        self._summary_arr = np.zeros((room, _DESCRIPTOR[1], _DESCRIPTOR[0]), np.float32)
+        self._height_arr = np.full((room, len(self._lags)), np.nan)
+        self._start = self._end = 0
         self._done_until = -1   # events up to this stamp were read
         self.events: list[ContactEvent] = []
 
+    def __len__(self) -> int:
+        return self._end - self._start
+
     def push(self, stamp_ns: int, band: np.ndarray) -> None:
         """One frame's band (grey or colour, any dtype)."""
-        if self._stamps and stamp_ns <= self._stamps[-1]:
+        if len(self) and stamp_ns <= self._stamp_arr[self._end - 1]:
             return   # out of order: the state sequence needs stamps in order
         grey = band if band.ndim == 2 else cv2.cvtColor(band, cv2.COLOR_BGR2GRAY)
-        summary = cv2.resize(grey.astype(np.float32), _DESCRIPTOR, interpolation=cv2.INTER_AREA)
-        self._stamps.append(int(stamp_ns))
-        self._summaries.append(summary)
-        self._heights.append(np.full(len(self._lags), np.nan))
+        # whole blocks (the fast area average): the band's centre cropped to multiples of the summary
+        rows, cols = grey.shape[0] // _DESCRIPTOR[1] * _DESCRIPTOR[1], grey.shape[1] // _DESCRIPTOR[0] * _DESCRIPTOR[0]
+        if rows == 0 or cols == 0:
+            return
+        r0, c0 = (grey.shape[0] - rows) // 2, (grey.shape[1] - cols) // 2
+        block = grey[r0:r0 + rows, c0:c0 + cols]
+        if block.dtype not in (np.uint8, np.float32):
+            block = block.astype(np.float32)
+        if self._end == len(self._stamp_arr):   # full: move the newest `capacity` to the front
+            keep = slice(self._end - self.config.capacity, self._end)
+            for array in (self._stamp_arr, self._summary_arr, self._height_arr):
+                array[:self.config.capacity] = array[keep]
+            self._height_arr[self.config.capacity:] = np.nan
+            self._start, self._end = 0, self.config.capacity
+        self._summary_arr[self._end] = cv2.resize(block, _DESCRIPTOR, interpolation=cv2.INTER_AREA)
+        self._stamp_arr[self._end] = int(stamp_ns)
+        self._height_arr[self._end] = np.nan
+        self._end += 1
+        if self._end - self._start > self.config.capacity:
+            self._start += 1
 
-    def _arm_heights(self, poses: PoseLookup, stamps: NDArray[np.int64]) -> FloatArray:
-        """(frames, 5): the arm's height at each frame's stamp less 0, 1/4, ... the whole max latency (each
-        looked up once, when TF has it)."""
-        heights = np.stack(self._heights)
-        missing = np.flatnonzero(~np.isfinite(heights).all(axis=1))
-        if len(missing):
-            found = poses((stamps[missing, None] - self._lags[None, :]).reshape(-1))[:, 2, 3]
-            heights[missing] = np.asarray(found, np.float64).reshape(len(missing), len(self._lags))
-            for i in missing:
-                self._heights[i] = heights[i]
+    def _arm_heights(self, poses: PoseLookup, latest_ns: int, final: bool) -> FloatArray:
+        """(frames, 5): the arm's height at each frame's stamp less 0, 1/4, ... the whole max latency, looked
+        up once TF has it (frames more than two seconds old that TF never covered are not asked again,
+        except at the end)."""
+        stamps = self._stamp_arr[self._start:self._end]
+        heights = self._height_arr[self._start:self._end]
+        missing = ~np.isfinite(heights).all(axis=1)
+        if not final:
+            missing &= stamps >= latest_ns - 2_000_000_000 - self.max_latency_ns
+        index = np.flatnonzero(missing)
+        if len(index):
+            found = poses((stamps[index, None] - self._lags[None, :]).reshape(-1))[:, 2, 3]
+            heights[index] = np.asarray(found, np.float64).reshape(len(index), len(self._lags))
         return heights
 
     def update(self, poses: PoseLookup, pressed_height: float | None, latest_ns: int,
                final: bool = False) -> list[ContactEvent]:
         """The events found since the last call (also added to `events`): flips of the image's state with
-        `steady_frames` of the same state either side, the arm surely in the air before a touchdown and
-        surely pressed after it (the other way round for a lift-off)."""
+        `steady_frames` of the same state either side, the arm in the air at some time in the second before
+        a touchdown and pressed at some time in the second after it (the other way round for a lift-off).
+        The image's levels come from frames surely in the air and surely pressed (at every lag)."""
         c = self.config
-        if pressed_height is None or len(self._stamps) < 2 * c.steady_frames + 2:
+        if pressed_height is None or len(self) < 2 * c.steady_frames + 2:
             return []
-        stamps = np.fromiter(self._stamps, np.int64, len(self._stamps))
-        heights = self._arm_heights(poses, stamps) - pressed_height
+        stamps = self._stamp_arr[self._start:self._end]
+        heights = self._arm_heights(poses, latest_ns, final) - pressed_height
         known = np.isfinite(heights).all(axis=1)
         air = known & (heights.min(axis=1, initial=np.inf) > c.lifted)
         pressed = known & (np.abs(heights).max(axis=1, initial=0.0) < c.pressed)
         if air.sum() < 3 or pressed.sum() < 3:
             return []
-        summaries = np.stack(self._summaries)
+        with np.errstate(invalid="ignore"):   # NaN: lags TF does not cover (the recording's ends)
+            up = (heights > c.lifted).any(axis=1)
+            down = (np.abs(heights) < c.pressed).any(axis=1)
+        summaries = self._summary_arr[self._start:self._end]
         reference = summaries[air].mean(axis=0)
         signal = np.sqrt(((summaries - reference) ** 2).mean(axis=(1, 2)))
-        low, high = float(np.median(signal[air])), float(np.median(signal[pressed]))
-        noise = 1.4826 * float(np.median(np.abs(signal[air] - low)))
+        low, high = median(signal[air]), median(signal[pressed])
+        noise = 1.4826 * median(np.abs(signal[air] - low))
         if not high - low > max(6.0 * noise, 1e-3):
             return []   # pressing does not change the image beyond its noise: nothing to read
         state = (signal - low) / (high - low) > c.level
@@ -162,10 +193,11 @@ class ContactTimer:
             if (stamps[i] - stamps[i - 1]) * 1e-9 > c.max_gap:
                 continue
             touchdown = bool(state[i])
-            # TF: surely in the air before and surely pressed after (within a second), or the reverse
+            # TF: the arm came down through the contact zone around it (in the air at some time in the
+            # second before, pressed at some time in the second after; at any latency TF covers), or rose
             window = (stamps >= stamps[i] - 1_000_000_000) & (stamps <= stamps[i] + 1_000_000_000)
             before, after = window & (stamps < stamps[i]), window & (stamps >= stamps[i])
-            first, then = (air, pressed) if touchdown else (pressed, air)
+            first, then = (up, down) if touchdown else (down, up)
             if not ((before & first).any() and (after & then).any()):
                 continue
             found.append(ContactEvent(touchdown, int(stamps[i - 1]), int(stamps[i])))

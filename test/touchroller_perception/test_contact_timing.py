@@ -128,3 +128,21 @@ def test_config_is_checked():
         ContactTimingConfig(level=1.5)
     with pytest.raises(ValueError):
         ContactTimingConfig(lifted=1e-5, pressed=1e-4)
+
+
+def test_a_touchdown_right_after_tf_begins_counts():
+    """A recording that starts as the arm comes down (TF from 50 ms before the descent, so the earlier
+    lags of the first frames are unknown): the first touchdown still counts, as does the last lift-off of
+    a recording that ends as the arm rises."""
+    times, heights = heights_of(3, 0.01)
+    full = lookup(times, heights)
+    begin, end = T0 + round(1.45e9), T0 + round((times[-1] - 1.45) * 1e9)
+
+    def poses(stamps):
+        out = full(stamps)
+        out[(np.asarray(stamps) < begin) | (np.asarray(stamps) > end)] = np.nan
+        return out
+
+    frames = [(s, b) for s, b in film(times, heights, 0.03) if begin <= s <= end + 30_000_000]
+    events = events_of(frames, poses)
+    assert sum(e.touchdown for e in events) == 3 and sum(not e.touchdown for e in events) == 3
