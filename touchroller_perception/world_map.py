@@ -12,7 +12,9 @@ mosaic in the world frame (`map` frame of nav2: x right, y up) at `config.resolu
   the roll): frames within `contact_tolerance` of it are in contact; an arm moving above the surface
   (approach, between passes) is not, whatever the image shows;
 * the camera's latency (exposure to stamp): `config.latency` if told, else estimated from the data
-  (`touchroller_perception.latency`: the image-registered roll against the arm's, around each start and stop);
+  (`touchroller_perception.latency`: the image-registered roll against the arm's around starts and stops
+  and over whole passes, opposite passes registered against each other, and when the image shows the
+  roller touching down and lifting off, `touchroller_perception.contact_timing`);
 * refinement by registration: each pass after the first is registered (2-D, subpixel) against what the
   earlier passes mapped where they overlap, and shifted by the median of its frames' offsets, so a
   residual latency or an arm calibration error does not leave a seam;

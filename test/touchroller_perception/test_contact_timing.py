@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from touchroller_perception.contact_timing import (
     ContactTimer,
@@ -49,14 +51,14 @@ def lookup(times: np.ndarray, heights: np.ndarray):
 
 
 def film(times: np.ndarray, heights: np.ndarray, latency: float, change: float = 40.0, seed: int = 0,
-         fps: float = 30.0) -> list[tuple[int, np.ndarray]]:
+         fps: float = 30.0, shape: tuple[int, int] = (70, 640)) -> list[tuple[int, np.ndarray]]:
     """Frames (stamp ns, band) exposed at 30 Hz, stamped `latency` late: a plain band in the air, its edge
     rows `change` grey levels brighter while the membrane touches (a smooth surface: no texture)."""
     rng = np.random.default_rng(seed)
     exposures = np.arange(0.05, times[-1] - 0.2, 1.0 / fps) + rng.uniform(0, 1.0 / fps)
     frames = []
     for t in exposures:
-        band = np.full((70, 640), 120.0) + rng.normal(0, 2.0, (70, 640))
+        band = np.full(shape, 120.0) + rng.normal(0, 2.0, shape)
         if np.interp(t, times, heights) < PRESSED + DEPTH:
             band[:20] += change
             band[-20:] += change
@@ -146,3 +148,22 @@ def test_a_touchdown_right_after_tf_begins_counts():
     frames = [(s, b) for s, b in film(times, heights, 0.03) if begin <= s <= end + 30_000_000]
     events = events_of(frames, poses)
     assert sum(e.touchdown for e in events) == 3 and sum(not e.touchdown for e in events) == 3
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
+@given(latency=st.floats(0.0, 0.15), vertical=st.floats(0.003, 0.02), passes=st.integers(1, 4),
+       fps=st.sampled_from([15.0, 30.0, 60.0]), seed=st.integers(0, 1000))
+def test_property_the_range_holds_the_truth_or_there_is_no_estimate(latency, vertical, passes, fps, seed):
+    """Any latency, vertical speed, frame rate and number of passes: contact timing either says nothing
+    or gives a range that holds the true latency (on its 0.5 ms grid), its value within the range."""
+    times, heights = heights_of(passes, vertical)
+    poses = lookup(times, heights)
+    frames = film(times, heights, latency, seed=seed, fps=fps, shape=(24, 64))
+    events = events_of(frames, poses)
+    assert len(events) == 2 * passes   # every touchdown and lift-off seen, nothing else
+    timing = latency_from_contacts(events, poses, 0.2)
+    if passes < 2:
+        assert timing is None
+    if timing is not None:
+        assert timing.low - 5e-4 <= latency <= timing.high + 5e-4
+        assert timing.low <= timing.value <= timing.high
