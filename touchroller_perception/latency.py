@@ -10,14 +10,18 @@ the roll. Three kinds of evidence measure L, each with a standard deviation, com
   windows): it sees any variation of the speed (jitter, a blend), and says nothing at constant speed.
 * `opposite_passes`: passes rolled in opposite directions over the same ground are placed 2 v (L - L0)
   apart along the roll; the registered offset of one against the other measures L directly.
+* `contact_timing`: when the image shows the roller touching down and lifting off against when TF shows
+  the arm's height crossing the touching height (`touchroller_perception.contact_timing`); it needs no
+  texture, so it is what a smooth panel or glass has.
 
 Each window's L is where the sum of squared residuals S(L) is least (a 5 ms grid, then a parabola fitted
 to a 1 ms grid around it); its variance is sigma_res^2 / (S''/2), sigma_res^2 the residuals' variance,
 inflated by their lag-1 correlation (registration errors of neighbouring frames are not independent).
 `LatencyEstimator.result()` combines what it has (items more than 4 sigma off the weighted mean are left
 out, the combined sigma is scaled up when the items disagree more than their sigmas say) into a
-`LatencyEstimate`: `observable` only when its sigma is at most `LatencyConfig.max_sigma`; otherwise the
-caller keeps its configured latency and says so. No rclpy here.
+`LatencyEstimate`: `observable` only when its sigma is at most `LatencyConfig.max_sigma` (or, resting on
+contact timing and inside the range it leaves, `max_sigma_contact`); otherwise the caller keeps its
+configured latency and says so. No rclpy here.
 """
 from __future__ import annotations
 
@@ -27,6 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from touchroller_perception.contact_timing import (
+    CONTACT_TIMING,
+    ContactEvent,
+    ContactTiming,
+    ContactTimingConfig,
+    latency_from_contacts,
+)
 
 FloatArray = NDArray[np.float64]
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet).
@@ -45,6 +57,9 @@ class LatencyConfig:
     max_residual_px: a window the model does not fit (RMS above this: a slip, lost texture) is left out.
     max_sigma: the combined estimate pins the latency down (`observable`) when its sigma is at most this, s.
     sigma_floor: the least sigma any one item of evidence is given, s (TF interpolation, the model's limits).
+    max_sigma_contact: an estimate that contact timing takes part in, and that lies inside the range the
+      touchdowns and lift-offs leave, is `observable` up to this sigma, s: that range's width is what it
+      is (the touch lies between two frames), where a fit's sigma assumes its model holds.
     """
 
     max_latency: float = 0.2
@@ -53,18 +68,21 @@ class LatencyConfig:
     max_residual_px: float = 0.3
     max_sigma: float = 0.002
     sigma_floor: float = 3e-4
+    max_sigma_contact: float = 0.006
 
     def __post_init__(self) -> None:
         if not (0 < self.max_latency <= 1.0):
             raise ValueError(f"max_latency must be in (0, 1] s, got {self.max_latency}")
         if not (self.before > 0 and self.after > 0 and self.max_residual_px > 0 and self.max_sigma > 0
-                and self.sigma_floor >= 0):
-            raise ValueError("before, after, max_residual_px and max_sigma must be > 0, sigma_floor >= 0")
+                and self.sigma_floor >= 0 and self.max_sigma_contact > 0):
+            raise ValueError("before, after, max_residual_px, max_sigma and max_sigma_contact must be > 0, "
+                             "sigma_floor >= 0")
 
 
 @dataclass(frozen=True)
 class LatencyEvidence:
-    """One item of evidence: its kind (`START_STOP`, `PASS_ROLL`, `OPPOSITE_PASSES`), value and sigma, s."""
+    """One item of evidence: its kind (`START_STOP`, `PASS_ROLL`, `OPPOSITE_PASSES`, `CONTACT_TIMING`),
+    value and sigma, s."""
 
     kind: str
     value: float
@@ -144,6 +162,10 @@ class LatencyEstimator:
         self.before_ns, self.after_ns = round(config.before * 1e9), round(config.after * 1e9)
         self.windows: list[_Window] = []
         self.pairs: list[LatencyEvidence] = []
+        self.contact_events: list[ContactEvent] = []
+        self.contact: ContactTiming | None = None   # what the touchdowns and lift-offs say (solve)
+        self.contact_config = ContactTimingConfig()
+        self._contact_solved = 0   # events the contact timing was solved with
         self.estimate: LatencyEstimate | None = None
 
     def add_window(self, stamps: Sequence[int], positions: Sequence[float]) -> None:
@@ -160,6 +182,10 @@ class LatencyEstimator:
         """The latency two passes rolled in opposite directions over the same ground say (s), sigma (s)."""
         if math.isfinite(value) and math.isfinite(sigma) and sigma > 0:
             self.pairs.append(LatencyEvidence(OPPOSITE_PASSES, value, max(sigma, self.config.sigma_floor)))
+
+    def add_contact_events(self, events: Sequence[ContactEvent]) -> None:
+        """Touchdowns and lift-offs the image showed (`touchroller_perception.contact_timing`)."""
+        self.contact_events.extend(events)
 
     def _rows(self, window: _Window, candidates: NDArray[np.int64], poses: PoseLookup) -> FloatArray:
         """(candidates, frames): the arm's roll along the band's rows at each candidate latency (NaN rows
@@ -247,24 +273,40 @@ class LatencyEstimator:
                     continue
                 window.solved = True
                 self._solve_window(window, poses)
+        if len(self.contact_events) != self._contact_solved:
+            self._contact_solved = len(self.contact_events)
+            self.contact = latency_from_contacts(self.contact_events, poses, self.config.max_latency,
+                                                 self.contact_config)
         self.estimate = self.result()
         return self.estimate
 
     def evidence(self) -> list[LatencyEvidence]:
-        """Every item of evidence with a finite sigma (windows the model fits, pairs of passes)."""
+        """Every item of evidence with a finite sigma (windows the model fits, pairs of passes, contact
+        timing), less those outside the contact timing's range."""
         items = [LatencyEvidence(w.kind, w.latency, w.sigma) for w in self.windows
                  if w.latency is not None and w.sigma is not None and w.residual_px is not None
                  and w.residual_px <= self.config.max_residual_px]
-        return items + self.pairs
+        items += self.pairs
+        if self.contact is not None:
+            # the range the touchdowns and lift-offs leave is a bound: an item outside it by more than three
+            # of its own sigmas is left out (a periodic texture registers a period off with a small sigma,
+            # and would outweigh the contact timing)
+            low, high = self.contact.low, self.contact.high
+            items = [e for e in items if low - 3 * e.sigma - 5e-4 <= e.value <= high + 3 * e.sigma + 5e-4]
+            items.append(LatencyEvidence(CONTACT_TIMING, self.contact.value,
+                                         max(self.contact.sigma, self.config.sigma_floor)))
+        return items
 
     def result(self, fallback: float = 0.0) -> LatencyEstimate | None:
-        """The combined estimate; not `observable` (value `fallback`) when its sigma is above
-        `max_sigma`; None without any evidence."""
+        """The combined estimate; not `observable` (value `fallback`) when its sigma is above `max_sigma`
+        (`max_sigma_contact` for one inside the contact timing's range); None without any evidence."""
         combined = combine(self.evidence())
         if combined is None:
             return None
         value, sigma, used = combined
-        if sigma > self.config.max_sigma:
-            return LatencyEstimate(fallback, sigma, ("configured",), False, used)
         kinds = tuple(sorted({e.kind for e in used}))
+        bounded = (CONTACT_TIMING in kinds and self.contact is not None and sigma <= self.config.max_sigma_contact
+                   and self.contact.low - 5e-4 <= value <= self.contact.high + 5e-4)
+        if sigma > self.config.max_sigma and not bounded:
+            return LatencyEstimate(fallback, sigma, ("configured",), False, used)
         return LatencyEstimate(value, sigma, kinds, True, used)

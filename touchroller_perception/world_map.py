@@ -12,7 +12,9 @@ mosaic in the world frame (`map` frame of nav2: x right, y up) at `config.resolu
   the roll): frames within `contact_tolerance` of it are in contact; an arm moving above the surface
   (approach, between passes) is not, whatever the image shows;
 * the camera's latency (exposure to stamp): `config.latency` if told, else estimated from the data
-  (`touchroller_perception.latency`: the image-registered roll against the arm's, around each start and stop);
+  (`touchroller_perception.latency`: the image-registered roll against the arm's around starts and stops
+  and over whole passes, opposite passes registered against each other, and when the image shows the
+  roller touching down and lifting off, `touchroller_perception.contact_timing`);
 * refinement by registration: each pass after the first is registered (2-D, subpixel) against what the
   earlier passes mapped where they overlap, and shifted by the median of its frames' offsets, so a
   residual latency or an arm calibration error does not leave a seam;
@@ -43,6 +45,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from touchroller_perception.contact_timing import ContactTimer
 from touchroller_perception.fast_stats import median as _median
 from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
@@ -365,6 +368,8 @@ class WorldMapper:
         self._steady_skipped = 0  # frames since the last registered one
         self._frame_dt: int | None = None   # ns since the previous frame
         self._estimator: LatencyEstimator | None = None
+        self._contacts: ContactTimer | None = None   # touchdowns and lift-offs the image shows (latency)
+        self._last_contact_check = 0
         self._placing_ns: int | None = None        # the latency frames are placed with (see _latency)
         self._placing_sigma: float | None = None   # its sigma when it is an estimate
         self._pass_windows_until = 0               # pass_roll windows were taken up to this stamp
@@ -422,6 +427,8 @@ class WorldMapper:
     def _take_band(self, band: np.ndarray, stamp_ns: int) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
         self.stats.frames += 1
+        if self._contacts is not None:
+            self._contacts.push(int(stamp_ns), band)
         if self._previous_prior_pose is not None:
             seen = self._previous_prior_pose[0]
             self._tf_heights.append((int(stamp_ns), float(seen[0, 3]), float(seen[1, 3]), float(seen[2, 3])))
@@ -624,6 +631,7 @@ class WorldMapper:
         self._weights = (across[:, None] * ends[None, :]).astype(np.float32)
         latency = LatencyConfig(max_latency=self.config.max_latency, max_sigma=self.config.latency_max_sigma)
         self._estimator = LatencyEstimator(self.m_per_row, latency) if self.latency_ns is None else None
+        self._contacts = ContactTimer(self.config.max_latency) if self._estimator is not None else None
 
     # -- the queue -----------------------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
@@ -638,6 +646,7 @@ class WorldMapper:
             if np.isfinite(heights).any():
                 self._pressed_height = float(np.nanmin(heights))
                 self.stats.pressed_height = self._pressed_height
+        self._contact_events(final)
         self._prefetch_poses()
         while self._pending:
             frame = self._pending[0]
@@ -774,7 +783,11 @@ class WorldMapper:
         # starts and stops: the arm's speed along the rows crossing half its cruise, in agreeing stretches
         moving = np.abs(arm_speed) > max(0.5 * _percentile(np.abs(arm_speed), 90), 3.0)
         windows = len(self._estimator.windows)
-        for k in np.flatnonzero(moving[1:] != moving[:-1]) + 1:
+        # the speed is measured from the frame before: not at the track's first frame nor across a gap (a
+        # pass that touched down at speed begins moving, which is no start)
+        measured = np.zeros(len(stamps), bool)
+        measured[1:] = valid & (dt <= 0.2)
+        for k in np.flatnonzero((moving[1:] != moving[:-1]) & measured[1:] & measured[:-1]) + 1:
             event = int(stamps[k])
             if all(abs(event - e) > 300_000_000 for e in self._events):
                 self._events.append(event)
@@ -782,6 +795,20 @@ class WorldMapper:
         self._add_pass_windows(stamps, positions, heights, arm_speed, final)
         pending = any(not w.solved for w in self._estimator.windows)
         if self._estimator.windows and (len(self._estimator.windows) > windows or pending or final):
+            self._estimator.solve(self.poses)
+            self._use_estimate()
+
+    def _contact_events(self, final: bool) -> None:
+        """Touchdowns and lift-offs the image shows, once the pressed height is known (the latency from
+        contact timing: `touchroller_perception.contact_timing`)."""
+        if self._contacts is None or self._estimator is None or self._pressed_height is None:
+            return
+        if self._latest_stamp - self._last_contact_check < _EVENT_CHECK_NS and not final:
+            return
+        self._last_contact_check = self._latest_stamp
+        found = self._contacts.update(self.poses, self._pressed_height, self._latest_stamp, final)
+        if found:
+            self._estimator.add_contact_events(found)
             self._estimator.solve(self.poses)
             self._use_estimate()
 
@@ -1101,17 +1128,18 @@ class WorldMapper:
             self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
             self._level_field = frame.field
 
-    def _search(self, frame: _Frame, pose: np.ndarray) -> tuple[int, int, float, tuple[int, int]]:
-        """(columns, rows) registration searches, the frame's speed (m/s) and where the search is centred
-        (columns, rows): `search_px`, plus along the roll twice what the placing latency may be off times
-        the speed (the whole `max_latency` while it is the configured fallback, three sigma once
-        estimated), around the offset the estimate predicts (`_predicted_px`)."""
+    def _search(self, frame: _Frame, pose: np.ndarray) -> tuple[int, int, float, tuple[int, int], float]:
+        """(columns, rows) registration searches, the frame's speed (m/s), where the search is centred
+        (columns, rows) and the extra search along the roll (map px): `search_px`, plus along the roll
+        twice what the placing latency may be off times the speed (the whole `max_latency` while it is the
+        configured fallback, three sigma once estimated), around the offset the estimate predicts
+        (`_predicted_px`)."""
         latency = frame.pose_latency or 0
         # the poses up to the frame's own (known once it is: a later one may not have arrived yet, live)
         around = self.poses(np.array([frame.stamp_ns - latency - 40_000_000, frame.stamp_ns - latency], np.int64))
         base = self.config.search_px
         if not np.isfinite(around).all():
-            return base, base, 0.0, (0, 0)
+            return base, base, 0.0, (0, 0), 0.0
         velocity = (around[1, :2, 3] - around[0, :2, 3]) / 0.04
         speed = float(np.hypot(*velocity))
         if self.latency_ns is not None:
@@ -1125,7 +1153,8 @@ class WorldMapper:
             ux, uy = abs(float(velocity[0])) / speed, abs(float(velocity[1])) / speed
         else:
             ux = uy = 0.0
-        return base + math.ceil(extra * ux), base + math.ceil(extra * uy), speed, self._predicted_px(frame, velocity)
+        return (base + math.ceil(extra * ux), base + math.ceil(extra * uy), speed,
+                self._predicted_px(frame, velocity), extra)
 
     def _predicted_px(self, frame: _Frame, velocity: np.ndarray) -> tuple[int, int]:
         """The offset (columns, rows) of a frame against the pass before, as the current estimate L says:
@@ -1149,13 +1178,16 @@ class WorldMapper:
     def _register(self, frame: _Frame, pose: np.ndarray) -> tuple[float, float, float, float, float] | None:
         """This frame's offset (columns, rows, score) against the earlier passes where they overlap, with
         the latency it was placed with (ns) and its speed (m/s). The template is the band where it and
-        the earlier passes overlap at every shift searched."""
+        the earlier passes overlap at every shift searched. A band turned on the map (a raster not along
+        the world's axes) is registered on a grid turned with it (`_register_turned`)."""
         assert self._prior is not None and self._weights is not None
         try:
             placement = self._locate(pose, np.zeros(2))
         except MemoryError:   # beyond max_pixels: `_place` leaves it out and counts it
             return None
-        sx, sy, speed, (pc, pr) = self._search(frame, pose)
+        sx, sy, speed, (pc, pr), extra = self._search(frame, pose)
+        if placement.axes is None:
+            return self._register_turned(frame, placement, speed, (pc, pr), extra)
         # the overlap is judged on the weights alone; the band is put on the map only when it is usable
         weights = self._on_map(placement, self._weights, "w")
         c0, r0 = placement.c0, placement.r0
@@ -1163,12 +1195,85 @@ class WorldMapper:
         patch = self._prior.patch(r0 - sy + pr, c0 - sx + pc, h + 2 * sy, w + 2 * sx)
         if patch is None:
             return None
-        prior, prior_weight = patch
+
+        def band() -> np.ndarray:
+            weighted_band, weighted_field = (self._on_map(placement, plane, constant)
+                                             for plane, constant in zip(self._band_planes(frame), (None, "field"),
+                                                                        strict=True))
+            return np.divide(weighted_band, weighted_field, out=np.zeros((h, w), np.float32),
+                             where=weighted_field > 1e-6)
+
+        found = self._match(patch[0], patch[1], weights, band, sx, sy)
+        if found is None:
+            return None
+        dx, dy, best = found
+        return float(dx + pc), float(dy + pr), best, float(frame.pose_latency or 0), speed
+
+    def _register_turned(self, frame: _Frame, placement: _Placement, speed: float, predicted: tuple[int, int],
+                         extra: float) -> tuple[float, float, float, float, float] | None:
+        """`_register` for a band turned on the map by other than quarter turns: the band and the earlier
+        passes resampled onto a grid at the map's resolution whose columns run along the band's columns
+        (the roller's axis) and rows along its rows (the roll), where their overlap is a rectangle again;
+        the offset found there turned back to the map's columns and rows."""
+        assert self._prior is not None and self._weights is not None and placement.matrix is not None
+        matrix = placement.matrix.astype(np.float64)
+        matrix[:, 2] += (placement.c0, placement.r0)   # band -> map grid
+        scale_c, scale_r = float(np.hypot(*matrix[:, 0])), float(np.hypot(*matrix[:, 1]))
+        if not (scale_c > 1e-9 and scale_r > 1e-9):
+            return None
+        turn = np.stack([matrix[:, 0] / scale_c, matrix[:, 1] / scale_r], axis=1)   # grid step -> map step
+        rows, cols = self._weights.shape
+        w, h = math.ceil((cols - 1) * scale_c) + 3, math.ceil((rows - 1) * scale_r) + 3
+        to_grid = np.array([[scale_c, 0.0, 1.0], [0.0, scale_r, 1.0]])   # band -> grid (a cell to spare)
+        base = self.config.search_px
+        sx, sy = base, base + math.ceil(extra)
+        local = turn.T @ np.asarray(predicted, np.float64)   # the predicted offset on the grid
+        pl = np.round(local)
+        # grid (x, y) of the searched region -> map: turn @ ((x, y) - (sx, sy) + pl - 1) + origin
+        origin = matrix[:, 2] + turn @ (pl - np.array([sx + 1.0, sy + 1.0]))
+        W, H = w + 2 * sx, h + 2 * sy
+        corners = np.array([[0, 0], [W - 1, 0], [0, H - 1], [W - 1, H - 1]], np.float64) @ turn.T + origin
+        c0, r0 = math.floor(corners[:, 0].min()) - 1, math.floor(corners[:, 1].min()) - 1
+        c1, r1 = math.ceil(corners[:, 0].max()) + 2, math.ceil(corners[:, 1].max()) + 2
+        patch = self._prior.patch(r0, c0, r1 - r0, c1 - c0)
+        if patch is None:
+            return None
+        inverse = np.concatenate([turn, (origin - (c0, r0))[:, None]], axis=1)   # grid -> patch
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        prior, prior_weight = (cv2.warpAffine(plane, inverse, (W, H), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                                              borderValue=0) for plane in patch)
+
+        def on_grid(plane: np.ndarray) -> np.ndarray:
+            return cv2.warpAffine(plane, to_grid, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                  borderValue=0)
+
+        weights = on_grid(self._weights)
+
+        def band() -> np.ndarray:
+            weighted_band, weighted_field = (on_grid(plane) for plane in self._band_planes(frame))
+            return np.divide(weighted_band, weighted_field, out=np.zeros((h, w), np.float32),
+                             where=weighted_field > 1e-6)
+
+        found = self._match(prior, prior_weight, weights, band, sx, sy)
+        if found is None:
+            return None
+        dx, dy, best = found
+        offset = turn @ (np.array([dx, dy]) + pl)
+        return float(offset[0]), float(offset[1]), best, float(frame.pose_latency or 0), speed
+
+    def _match(self, prior: np.ndarray, prior_weight: np.ndarray, weights: np.ndarray,
+               band: Callable[[], np.ndarray], sx: int, sy: int) -> tuple[float, float, float] | None:
+        """(columns, rows, score): where the band (`band()`, weights `weights`, h x w) lies in the prior
+        (value and weight, h + 2 sy x w + 2 sx, searched +-sx, +-sy around its centre). The template is
+        the band where it and the prior overlap at every shift searched; None when that overlap is not a
+        rectangle of some size, or the match is not confident."""
+        assert self._weights is not None
+        h, w = weights.shape
         known = (prior_weight > 0.3 * self._prior_weight_max).view(np.uint8)
         # known at every shift: eroded by the search's extent
         known = cv2.erode(known, np.ones((2 * sy + 1, 2 * sx + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
                           borderValue=0)[sy:sy + h, sx:sx + w].view(bool)
-        mine = weights > 0.3 * float(self._weights.max() if self._weights is not None else 1.0)
+        mine = weights > 0.3 * float(self._weights.max())
         both = known & mine
         if np.count_nonzero(both) < 400:
             return None
@@ -1182,11 +1287,7 @@ class WorldMapper:
             a0, a1, b0, b1 = a0 + base, a1 - base, b0 + base, b1 - base
         if a1 - a0 < 12 or b1 - b0 < 12 or not both[a0:a1, b0:b1].all():
             return None   # the overlap is not a full rectangle
-        weighted_band, weighted_field = (self._on_map(placement, plane, constant)
-                                         for plane, constant in zip(self._band_planes(frame), (None, "field"),
-                                                                    strict=True))
-        band = np.divide(weighted_band, weighted_field, out=np.zeros((h, w), np.float32), where=weighted_field > 1e-6)
-        template = _highpass(band[a0:a1, b0:b1])
+        template = _highpass(band()[a0:a1, b0:b1])
         # the search region: the template's rectangle grown by the search, in the patch's cells
         search = _highpass(prior[a0:a1 + 2 * sy, b0:b1 + 2 * sx])
         scores = cv2.matchTemplate(search, template, cv2.TM_CCOEFF_NORMED)
@@ -1202,8 +1303,7 @@ class WorldMapper:
         fx = _parabola_peak(scores[by, bx - 1:bx + 2])
         fy = _parabola_peak(scores[by - 1:by + 2, bx])
         # the template sits at (bx + fx - sx, by + fy - sy) in the prior: move the frame by that much
-        return (float(bx + fx - sx + pc), float(by + fy - sy + pr), float(best), float(frame.pose_latency or 0),
-                speed)
+        return float(bx + fx - sx), float(by + fy - sy), float(best)
 
 
 def _grey_levels(band: np.ndarray) -> np.ndarray:

@@ -1,6 +1,8 @@
 """The world map on simulated raster scans: placed by TF, latency found from the data, passes registered."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -420,6 +422,13 @@ def test_a_smooth_surface_is_mapped_wherever_the_roller_was_pressed(variant):
     assert mapper.coverage((AREA[0], AREA[1], AREA[0] + AREA[2], AREA[1] + AREA[3])) >= 98.0
     # nothing there to register on: no pass was moved by a correction it could not trust
     assert all(dx == 0 and dy == 0 for dx, dy in mapper.stats.pass_corrections_px)
+    # and no texture to find the latency by: the touchdowns and lift-offs bound it (not told); two of each
+    # leave a range about a frame wide, too wide to place by (a third pass pins it: bench.world_map_grid)
+    estimate, timing = mapper.stats.latency, mapper._estimator.contact
+    assert timing is not None and timing.touchdowns == 2 and timing.liftoffs == 2
+    assert timing.low <= 0.04 <= timing.high
+    assert estimate is not None and [e.kind for e in estimate.evidence] == ["contact_timing"]
+    assert estimate.observable == (timing.sigma <= 0.006)
 
 
 @pytest.mark.slow
@@ -479,3 +488,35 @@ def test_property_any_motion_maps_in_place_or_warns(sensor, profile, latency, ji
     else:
         assert mapper.stats.latency_s == 0.0 and mapper.stats.latency_warning
     assert mapper.coverage((area[0], area[1], area[0] + area[2], area[1] + area[3])) >= 98.0
+
+
+@pytest.mark.slow
+def test_a_raster_turned_off_the_world_axes_at_speed_finds_the_latency_from_its_opposite_passes():
+    """Passes rolled at 35 deg to `base` x, touching down and lifting off at speed (no start or stop in
+    contact, constant speed): only the opposite passes say the latency. Their overlap on the map is a
+    turned strip, never an axis-aligned rectangle, so registration found nothing and the latency went
+    unobserved (the configured 0 used, the passes 0.8 mm off each other)."""
+    from scipy.spatial.transform import Rotation
+
+    yaw = math.radians(35.0)
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface", **{"world.surface_yaw": yaw}), seed=0)
+    turned = Rotation.from_euler("z", yaw) * Rotation.from_rotvec(DEFAULT_START_POSE[3:])
+    start = (*DEFAULT_START_POSE[:3], *turned.as_rotvec())
+    area = (0.40, -0.03, 0.045, 0.09)
+    plan = plan_raster(start, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4, clearance=0.002,
+                       approach_speed=0.005, direction=(math.cos(yaw), math.sin(yaw), 0.0), profile="constant")
+    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.04))
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"), WorldMapConfig())
+    for event in events:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+        else:
+            mapper.push(event[2], event[1])
+    mapper.finalise()
+    estimate = mapper.stats.latency
+    assert estimate is not None and estimate.observable, mapper.stats.latency_warning
+    assert "opposite_passes" in estimate.sources
+    assert mapper.stats.latency_s == pytest.approx(0.04, abs=0.003)
+    assert mapper.stats.passes == 2 and all(math.hypot(*c) > 0 for c in mapper.stats.pass_corrections_px)
