@@ -34,7 +34,7 @@ def test_the_band_relief_follows_the_true_indentation(grained):
     error = band.relief - truth
     assert float(np.std(error[:, 20:-20])) < 30e-6            # of ~600 um pressed with 300 um of grain
     rows_removed = (band.relief - band.relief.mean(axis=1, keepdims=True), truth - truth.mean(axis=1, keepdims=True))
-    assert np.corrcoef(rows_removed[0][:, 20:-20].ravel(), rows_removed[1][:, 20:-20].ravel())[0, 1] > 0.5   # one frame, 6 presses
+    assert np.corrcoef(rows_removed[0][:, 20:-20].ravel(), rows_removed[1][:, 20:-20].ravel())[0, 1] > 0.5
 
 
 def test_rows_cut_from_the_frame_give_the_same_relief(grained):
