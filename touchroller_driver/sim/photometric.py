@@ -20,10 +20,15 @@ from touchroller_driver.sim.scene import load_scene
 from touchroller_perception.height import (
     BallPress,
     PhotometricCalibration,
+    PhotometricConfig,
     PressCalibrationConfig,
     calibrate_photometric,
     pixel_size_at,
 )
+
+#: the calibration a world height map gets: the image smoothed by 1 px before the colour features, not the
+#: default 2 (a map cell averages some twenty frames, so it can take the noise; finer relief is kept)
+MAP_CALIBRATION = PressCalibrationConfig(model=PhotometricConfig(smoothing=1.0))
 
 
 @dataclass(frozen=True)
@@ -41,7 +46,9 @@ def no_contact_reference(sensor: SimulatedSensor, frames: int = 5) -> np.ndarray
     return np.median(stack, axis=0).astype(np.uint8)
 
 
-def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 16) -> SimPhotometric:
+def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 16,
+                    config: PressCalibrationConfig | None = None, ball_radius: float | None = None,
+                    press_depth: float | None = None) -> SimPhotometric:
     """Calibrate the photometric model of a simulated sensor from `presses` ball presses (the
     `ball_presses` scene with its scene's camera and sensor), and render its reference."""
     scene = sensor.scene
@@ -49,6 +56,10 @@ def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 16) -
         raise ValueError(f"a photometric calibration needs at least 4 presses, got {presses}")
     overrides: dict[str, Any] = {"camera": dict(scene.data["camera"]), "sensor": dict(scene.data["sensor"]),
                                  "motion.presses": presses}
+    if ball_radius is not None:
+        overrides["motion.ball_radius"] = ball_radius
+    if press_depth is not None:
+        overrides["motion.press_depth"] = press_depth
     balls = load_scene("ball_presses", **overrides)
     press_sensor = SimulatedSensor(balls, seed=seed + 1)
     camera = press_sensor.camera
@@ -70,5 +81,5 @@ def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 16) -
     if len(items) < 4:
         raise ValueError("too few ball presses in view to calibrate the simulated sensor")
     reference = np.median(np.stack(refs), axis=0).astype(np.uint8)
-    calibration = calibrate_photometric(items, reference, ball, PressCalibrationConfig())
+    calibration = calibrate_photometric(items, reference, ball, config or MAP_CALIBRATION)
     return SimPhotometric(calibration, no_contact_reference(sensor))
