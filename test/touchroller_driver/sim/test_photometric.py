@@ -31,10 +31,14 @@ def test_the_band_relief_follows_the_true_indentation(grained):
 
     v0, v1 = maker.rows
     truth = cv2.remap(layers["indentation"][v0:v1].astype(np.float32), *maker.maps, cv2.INTER_LINEAR) + maker.cylinder
-    error = band.relief - truth
-    assert float(np.std(error[:, 20:-20])) < 30e-6            # of ~600 um pressed with 300 um of grain
-    rows_removed = (band.relief - band.relief.mean(axis=1, keepdims=True), truth - truth.mean(axis=1, keepdims=True))
-    assert np.corrcoef(rows_removed[0][:, 20:-20].ravel(), rows_removed[1][:, 20:-20].ravel())[0, 1] > 0.5
+    # one frame's slow errors (the press's profile read a little flat, each column's sum across the band)
+    # differ from frame to frame or are the same at every place and average out in the map; its fine relief
+    # (what varies within 1 mm) is compared here
+    def fine(a: np.ndarray) -> np.ndarray:
+        return (a - cv2.GaussianBlur(a, (0, 0), 10.0))[:, 20:-20]
+
+    assert np.corrcoef(fine(band.relief).ravel(), fine(truth).ravel())[0, 1] > 0.8
+    assert float(np.std(fine(band.relief) - fine(truth))) < 0.6 * float(np.std(fine(truth)))
 
 
 def test_rows_cut_from_the_frame_give_the_same_relief(grained):
