@@ -165,7 +165,7 @@ class BandHeights:
 
     def __call__(self, image: np.ndarray, row0: int = 0) -> HeightBand:
         depth = self.indentation(image, row0)
-        band = cv2.remap(depth, self.maps[0], self.maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+        band = cv2.remap(depth, self.maps[0], self.maps[1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=0.0)
         contact = band > self.config.min_indentation
         return HeightBand(np.add(band, self.cylinder, dtype=np.float32), contact)
