@@ -611,6 +611,11 @@ def test_the_world_height_map_is_published_latched_as_32fc1_metres(ros_context, 
                    Parameter("map.height.reference", value=str(tmp_path / "none.png"))]
         assert all(r.successful for r in node.set_parameters(missing))
         assert node._height_source() is None   # said on the log, no height map
+        # the height map's config is a table of parameters: checked when set, applied to the next map
+        refused = node.set_parameters([Parameter("map.height.outer_fraction", value=0.9)])[0]
+        assert not refused.successful
+        assert node.set_parameters([Parameter("map.height.axis_sigma", value=0.0)])[0].successful
+        assert node._height_config().axis_sigma == 0.0
         height = np.full((3, 4), np.nan, np.float32)
         height[0, :2] = (1e-5, 2e-5)          # rows grow with y: row 0 is the bottom
         grey = np.zeros((3, 4), np.uint8)
