@@ -97,3 +97,51 @@ def read_world_map(yaml_path: str | Path) -> tuple[np.ndarray, np.ndarray, dict[
     with Image.open(yaml_path.parent / meta["image"]) as picture:
         la = np.asarray(picture.convert("LA"))
     return la[..., 0].copy(), la[..., 1].copy(), meta
+
+
+# GeoTIFF tags (GeoTIFF 1.1): the height map's placement in the map's frame
+_MODEL_PIXEL_SCALE, _MODEL_TIEPOINT, _GEO_KEY_DIRECTORY = 33550, 33922, 34735
+#: GTModelTypeGeoKey user-defined (the robot's frame, no Earth CRS); GTRasterTypeGeoKey PixelIsArea
+_GEO_KEYS = (1, 1, 0, 2, 1024, 0, 1, 32767, 1025, 0, 1, 1)
+
+
+def write_height_tif(path: str | Path, height: Any, frame_id: str) -> Path:
+    """`height.tif`: a world height map (`world_height.HeightMapLayer`: float32 metres, rows growing with y,
+    NaN where unmapped) as a float32 GeoTIFF, row 0 the top (largest y) as map.png, placed by
+    ModelPixelScale (resolution) and ModelTiepoint (raster (0, 0) -> the top-left corner's world x, y in
+    `frame_id`, also in the image description). Written whole or not at all; UserError on a bad path."""
+    import tifffile
+
+    path = Path(path)
+    values = np.ascontiguousarray(np.asarray(height.height, np.float32)[::-1])
+    if values.ndim != 2 or values.size == 0:
+        raise UserError("the height map is empty: no pass was mapped with a height")
+    res = float(height.resolution)
+    x0, y_top = float(height.origin[0]), float(height.origin[1]) + values.shape[0] * res
+    tags = [(_MODEL_PIXEL_SCALE, "d", 3, (res, res, 0.0), True),
+            (_MODEL_TIEPOINT, "d", 6, (0.0, 0.0, 0.0, x0, y_top, 0.0), True),
+            (_GEO_KEY_DIRECTORY, "H", len(_GEO_KEYS), _GEO_KEYS, True)]
+    description = (f"height above the surface's base plane under the roller, metres, NaN unmapped; frame_id "
+                   f"{frame_id}; top-left corner ({x0:.6f}, {y_top:.6f}) m; resolution {res:g} m")
+
+    def write(temporary: Path) -> None:
+        tifffile.imwrite(temporary, values, photometric="minisblack", description=description, extratags=tags,
+                         metadata=None)
+
+    try:
+        _replace(path, write)
+    except OSError as exc:
+        raise UserError(f"cannot write the height map to {path}: {exc.strerror or exc}") from None
+    return path
+
+
+def read_height_tif(path: str | Path) -> tuple[np.ndarray, tuple[float, float], float]:
+    """(float32 metres with row 0 the top, the top-left corner's world (x, y), resolution) of a height.tif."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        values = page.asarray()
+        scale = page.tags[_MODEL_PIXEL_SCALE].value
+        tie = page.tags[_MODEL_TIEPOINT].value
+    return values, (float(tie[3]), float(tie[4])), float(scale[0])

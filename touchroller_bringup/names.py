@@ -30,6 +30,7 @@ TCP_POSE = "tcp_pose"            # geometry_msgs/PoseStamped, the arm's tool pos
 SWEEP_PROGRESS = "sweep_progress"  # std_msgs/Float32, 0..1 of the rolling (all passes of a raster)
 COVERAGE = "coverage"            # std_msgs/Float32, percent of the sweep's rectangle rolled over
 SWEEP_PASS = "sweep_pass"        # std_msgs/UInt32MultiArray [pass (1-based), passes]
+MAP_HEIGHT = "map_height"        # sensor_msgs/Image 32FC1, the world height map in metres (latched)
 MAP_METADATA = "map_metadata"    # nav_msgs/MapMetaData of the world map (resolution, size, origin)
 IMAGE_DONE = "image_done"        # std_msgs/Header: the newest image perception has finished with
 DIAGNOSTICS = "/diagnostics"     # absolute: shared by every node of the robot

@@ -47,6 +47,16 @@ class Section:
     intro: str
 
 
+def _height_map(r: Any, surface: str, what: str) -> tuple[str, bool]:
+    """One surface's figure of `bench.height_map` (RMS error after one best plane, or correlation)."""
+    found = next((s for s in r.surfaces if s.surface == surface), None)
+    if found is None:
+        return f"no {surface} in this run", False
+    if what == "rms":
+        return f"{found.rms_um:.1f} um (true relief {found.relief_rms_um:.1f} um RMS)", found.rms_um <= 10.0
+    return f"{found.correlation:.3f}", found.correlation >= 0.95
+
+
 SECTIONS: tuple[Section, ...] = (
     Section("table_i", "Surface mapping: the paper's Table I reproduced", "map_tradeoffs",
             "An 8 cm x 11 cm fabric rolled in 15 s, 10 s and 5 s in the simulator; map quality against the "
@@ -88,6 +98,10 @@ SECTIONS: tuple[Section, ...] = (
     Section("height_sim", "Height in the simulator: ball-press calibration", "height_sim",
             "The simulator's `ball_presses` scene: calibrated on half the presses, the model's slopes against the "
             "renderer's own on the other half."),
+    Section("height_map", "World height map in the simulator", "height_map",
+            "A 2-pass raster of the `large_surface` grained surface and its `panel` variant (planted cracks and "
+            "dents), heights from a photometric model calibrated on simulated ball presses of the same sensor, "
+            "placed by the world mapper: the height map against the true relief in place (simulator only)."),
     Section("sim_to_real", "Simulated against real presses", "sim_to_real",
             "The simulator's presses against real ones at the same place and radius, with its ideal appearance and "
             "with a realistic one fitted on real frames (press shape, colour response, background, noise); and our "
@@ -521,6 +535,15 @@ GOALS: tuple[Goal, ...] = (
     Goal(23, "Height: <= 2 ms for the roller's band", "height_real", _height("roller band")),
     Goal(23, "Height, simulator: ball-press calibration recovers the renderer's slopes to <= 2 deg (median)",
          "height_sim", lambda r: (f"{r.angle_deg:.2f} deg (pooled p90 {r.angle_p90_deg:.2f})", r.angle_deg <= 2.0)),
+    Goal(23, "World height map, grained surface (simulator): RMS error <= 10 um after one best plane", "height_map",
+         lambda r: _height_map(r, "grain", "rms")),
+    Goal(23, "World height map, grained surface (simulator): correlation with the true relief >= 0.95",
+         "height_map", lambda r: _height_map(r, "grain", "correlation")),
+    Goal(23, "World height map, the second generator's grained surface (planted grooves and pits; shares nothing "
+         "with the simulator): RMS error <= 10 um after one best plane", "height_map",
+         lambda r: _height_map(r, "grained (second generator)", "rms")),
+    Goal(23, "World height map, the second generator's grained surface: correlation with the true relief >= 0.95",
+         "height_map", lambda r: _height_map(r, "grained (second generator)", "correlation")),
     Goal(4, "project(back_project(pixel)) round trip < 1e-9 m across the valid image", "stability", _round_trip),
     Goal(4, "Invalid pixels return NaN + valid=False, never a wrong finite number", "stability", _invalid_is_nan),
     Goal(5, "Map SSIM vs ground truth >= 0.85 at 15 s / 10 s / 5 s (worst seed)", "table_i", _map_ssim),

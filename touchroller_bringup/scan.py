@@ -65,8 +65,8 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS,
                    names.DIAGNOSTICS, names.TF, names.TF_STATIC)   # with TF a recording re-maps offline
 # the topics of the scan's namespace that only its own nodes may publish (and /clock when simulated)
-GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.TCP_POSE,
-                names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
+GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.MAP_HEIGHT,
+                names.TCP_POSE, names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
 
 
 OUTPUT_FILES = ("contacts.csv", "report.md", PREVIEW, "map.png", "map.yaml")
@@ -85,6 +85,7 @@ class ScanOptions:
     record: bool = False
     storage: str = "sqlite3"
     bag_format: str = "auto"      # touchroller_bringup.bag_format: which distribution's rosbag2 reads the recording
+    height: bool = False          # also the height map: simulated, a photometric model made on the fly
 
 
 @dataclass
@@ -361,11 +362,40 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
         except (OSError, ValueError, KeyError) as exc:
             raise UserError(f"scene {graph.arguments['scene']!r}: {exc}") from None
         overrides.setdefault("seed", options.seed)
+        if options.height and not overrides.get("map.height.photometric"):
+            overrides.update(_sim_photometric(options.out_dir, graph.arguments["scene"], int(overrides["seed"])))
+    if options.height and not (overrides.get("map.height.photometric") and overrides.get("map.height.reference")):
+        raise UserError("--height on a real sensor needs its photometric model: map.height.photometric:=P.npz "
+                        "map.height.reference:=REF.png ('touchroller calibrate photometric', docs/height.md)")
     sweep = create("sweep")
     camera = create("camera")
     perception = create("perception")
     _check_overrides(options.overrides, nodes)
     return sweep, camera, perception
+
+
+def _sim_photometric(out_dir: Path, scene_name: str, seed: int) -> dict[str, str]:
+    """The simulated sensor's photometric model, calibrated on the fly (`touchroller_driver.sim.photometric`)
+    and written to out_dir as photometric.npz + reference.png: the perception node's map.height.* overrides."""
+    import cv2
+
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+    from touchroller_driver.sim.photometric import sim_photometric
+
+    try:
+        made = sim_photometric(SimulatedSensor(load_scene(scene_name), seed=seed))
+    except ValueError as exc:
+        raise UserError(f"--height: cannot calibrate the simulated sensor of scene {scene_name!r}: {exc}") from None
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model, reference = out_dir / "photometric.npz", out_dir / "reference.png"
+    encoded, data = cv2.imencode(".png", made.reference)
+    if not encoded:
+        raise UserError("--height: cannot encode the reference frame as PNG")
+    with atomic_write(model, "wb") as stream:
+        made.calibration.model.save_to(stream)
+    with atomic_write(reference, "wb") as stream:
+        stream.write(data.tobytes())
+    return {"map.height.photometric": str(model), "map.height.reference": str(reference)}
 
 
 def _integer_for_double(exc: Exception, overrides: Mapping[str, Any]) -> str | None:
@@ -740,6 +770,12 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
             files["map"], files["map_yaml"] = write_world_map(out_dir / "map.png", world_image,
                                                               perception.world_frame, _latency_yaml(world))
         attempt("map", out_dir / "map.png", write_world)
+        height = world.height_layer()
+        if height is not None:
+            from touchroller_bringup.map_files import write_height_tif
+
+            attempt("height", out_dir / "height.tif",
+                    lambda: write_height_tif(out_dir / "height.tif", height, perception.world_frame))
     elif tactile_map is not None:
         attempt("map", out_dir / "map.png", lambda: write_png(out_dir / "map.png", tactile_map))
     return result

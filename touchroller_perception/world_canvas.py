@@ -26,7 +26,8 @@ class WorldCanvas:
     rectangle of cells bands were ever added to: everything outside it is zero."""
 
     def __init__(self, resolution: float, bounds: tuple[float, float, float, float] | None,
-                 max_pixels: int, grow_px: int = 512) -> None:
+                 max_pixels: int, grow_px: int = 512, layers: int = 3) -> None:
+        self.depth = layers   # planes per cell: the intensity's three, then any a caller adds (height)
         self.resolution = resolution
         self.max_pixels = max_pixels
         self.grow_px = grow_px
@@ -38,7 +39,7 @@ class WorldCanvas:
         else:
             cols, rows = 0, 0
             self.origin = (0.0, 0.0)
-        self._backing = np.zeros((3, rows, cols), np.float32)
+        self._backing = np.zeros((self.depth, rows, cols), np.float32)
         self._offset = (0, 0)   # (row, column) of the window's cell (0, 0) in the allocation
         self.layers = self._backing
         self._used: list[int] | None = None   # [row0, row1, column0, column1] in the allocation
@@ -68,7 +69,7 @@ class WorldCanvas:
             room = max(rows, cols)
             while room > 0 and (rows + 2 * room) * (cols + 2 * room) > self.max_pixels:
                 room //= 2
-            backing = np.zeros((3, rows + 2 * room, cols + 2 * room), np.float32)
+            backing = np.zeros((self.depth, rows + 2 * room, cols + 2 * room), np.float32)
             old_rows, old_cols = self.shape
             if self._used is not None:   # only the cells bands reached can be non-zero
                 r0, r1, c0, c1 = self.used()  # type: ignore[misc]
@@ -94,7 +95,7 @@ class WorldCanvas:
             if (r1 - r0 + 2 * pad) * (c1 - c0 + 2 * pad) > self.max_pixels:
                 raise MemoryError(f"one band needs more than {self.max_pixels} pixels at {self.resolution} m/px")
             new_c0, new_r0 = c0 - pad, r0 - pad
-            self._backing = np.zeros((3, 0, 0), np.float32)
+            self._backing = np.zeros((self.depth, 0, 0), np.float32)
             self._offset, self._used = (0, 0), None
             self._window(0, 0, r1 - r0 + 2 * pad, c1 - c0 + 2 * pad)
             self.origin = (self.origin[0] + new_c0 * self.resolution, self.origin[1] + new_r0 * self.resolution)
@@ -112,8 +113,8 @@ class WorldCanvas:
         self.origin = (self.origin[0] - left * self.resolution, self.origin[1] - bottom * self.resolution)
         return left, bottom
 
-    def add(self, planes: Sequence[np.ndarray | None] | np.ndarray, c0: int, r0: int) -> None:
-        """Add (h, w) patches to the layers (None: leave that layer; or a (3, h, w) stack of all three),
+    def add(self, planes: Sequence[np.ndarray | None] | np.ndarray, c0: int, r0: int, first: int = 0) -> None:
+        """Add (h, w) patches to the layers from `first` on (None: leave that layer; or a (n, h, w) stack),
         their lowest cell at (column c0, row r0), clipped to the map."""
         rows, cols = self.shape
         h, w = next(p for p in planes if p is not None).shape
@@ -121,7 +122,8 @@ class WorldCanvas:
         a1, b1 = min(r0 + h, rows), min(c0 + w, cols)
         if a1 <= a0 or b1 <= b0:
             return
-        for layer, plane in zip(self.layers, planes, strict=True):   # cv2.add: 2x numpy's speed on these views
+        # cv2.add: 2x numpy's speed on these views
+        for layer, plane in zip(self.layers[first:first + len(planes)], planes, strict=True):
             if plane is not None:
                 view = layer[a0:a1, b0:b1]
                 cv2.add(view, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], dst=view)
@@ -155,7 +157,7 @@ class WorldCanvas:
                  min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
         """`value` over rows [row0, row1) and columns [column0, column1) of the canvas."""
         r0, r1, c0, c1 = box
-        band, flat, weight = self.layers[:, r0:r1, c0:c1]
+        band, flat, weight = self.layers[:3, r0:r1, c0:c1]
         known = (weight > min_weight) & (flat > 1e-6)
         grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
         return grey, np.where(known, weight, np.float32(0.0))

@@ -60,6 +60,14 @@ from touchroller_perception.world_canvas import (  # noqa: F401 (WorldCanvas, _P
     _Placement,
     _Prior,
 )
+from touchroller_perception.world_height import (
+    HEIGHT_LAYERS,
+    BandHeights,
+    HeightBand,
+    HeightLayer,
+    HeightMapLayer,
+    HeightSource,
+)
 
 FloatArray = NDArray[np.float64]
 _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
@@ -240,6 +248,7 @@ class _Frame:
     step: StitchStep
     pose: np.ndarray | None = None        # T_world_cylinder at stamp - pose_latency, once known
     pose_latency: int | None = None
+    height: HeightBand | None = None      # its relief on the band (a height map's frames)
 
 
 @dataclass
@@ -323,8 +332,12 @@ class WorldMapper:
     sensor's calibrated model (the band's metric geometry)."""
 
     def __init__(self, camera: CameraModel, poses: PoseLookup, config: WorldMapConfig | None = None,
-                 stitcher: StitcherConfig | None = None) -> None:
+                 stitcher: StitcherConfig | None = None, height: HeightSource | None = None) -> None:
         self.config = config = config or WorldMapConfig()
+        # the height map (`world_height`): with a photometric model, two more pairs of canvas layers
+        self.height_source = height
+        self._height_layer = None if height is None else HeightLayer(3, height.config)
+        self._band_heights: BandHeights | None = None
         self.camera = camera
         self.poses = poses
         # The strip stitcher measures the image's roll (latency, contact) and keeps the flat field; it
@@ -335,10 +348,12 @@ class WorldMapper:
         # pass's centre).
         self.strip = Stitcher(strip.replace(history=1, live_map=False, keep_map=False, flat_sigma_cols=0.0),
                               camera=camera)
-        self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels)
+        self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels,
+                                  layers=3 + (HEIGHT_LAYERS if height is not None else 0))
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
-        self._inbox: deque[tuple[np.ndarray, int]] = deque()   # frames whose stamp the poses do not reach yet
+        # frames whose stamp the poses do not reach yet
+        self._inbox: deque[tuple[np.ndarray, int, HeightBand | None]] = deque()
         self._pending: deque[_Frame] = deque()
         self._pressed_height: float | None = None
         self._tf_heights: deque[tuple[int, float, float, float]] = deque(maxlen=3000)   # (stamp, x, y, z)
@@ -386,8 +401,55 @@ class WorldMapper:
 
     # -- public --------------------------------------------------------------------------------------
     def push(self, image: np.ndarray, stamp_ns: int) -> None:
-        """Take one frame (any image the strip stitcher takes)."""
-        self.push_band(self.strip.band(image), stamp_ns)
+        """Take one frame (any image the strip stitcher takes; a colour one for a height map)."""
+        band = self.strip.band(image)
+        self.push_band(band, stamp_ns, self.height_band(image))
+
+    def height_band(self, image: np.ndarray, row0: int = 0, frame_height: int | None = None) -> HeightBand | None:
+        """The frame's relief on the band `push_band` takes with it (None without a photometric model), from
+        a frame or from its rows from `row0` on (they must hold `height_rows`; stateless after the first)."""
+        if self.height_source is None:
+            return None
+        image = np.asarray(image)
+        shape = (int(image.shape[0] if frame_height is None else frame_height), int(image.shape[1]))
+        return self._height_maker(shape)(image, row0)
+
+    def height_rows(self, shape: tuple[int, int]) -> tuple[int, int] | None:
+        """(first, end): the rows of a frame of `shape` its height is made from; None without a height map."""
+        return None if self.height_source is None else self._height_maker(shape).rows
+
+    def _height_maker(self, shape: tuple[int, int]) -> BandHeights:
+        if self._band_heights is None:
+            assert self.height_source is not None
+            self.strip.source_rows(shape)
+            source = self.height_source
+            self._band_heights = BandHeights(source.model, source.reference, self.camera, self.strip.sampler,
+                                             source.config)
+        return self._band_heights
+
+    def height_layer(self, crop: bool = True) -> HeightMapLayer | None:
+        """The world height map (`world_height`): float32 metres, rows growing with y, NaN where unmapped,
+        with its origin (lower-left corner of cell (0, 0)) and resolution; `crop`: to the cells
+        `map_image(crop)` keeps (the same grid as map.png). None without a photometric model or before a
+        pass has ended (or `finalise`)."""
+        if self._height_layer is None:
+            return None
+        layer = self._height_layer.layer(self.canvas)
+        if layer is None or not crop or self.canvas.fixed:
+            return layer
+        box = self.canvas.used()
+        if box is None:
+            return layer
+        _, weight = self.canvas.value_in(self._level, box)
+        mapped = weight > 0.05
+        if not mapped.any():
+            return layer
+        rows, cols = np.flatnonzero(mapped.any(axis=1)), np.flatnonzero(mapped.any(axis=0))
+        r0, r1 = box[0] + int(rows[0]), box[0] + int(rows[-1]) + 1
+        k0, k1 = box[2] + int(cols[0]), box[2] + int(cols[-1]) + 1
+        res = self.config.resolution
+        origin = (layer.origin[0] + k0 * res, layer.origin[1] + r0 * res)
+        return HeightMapLayer(layer.height[r0:r1, k0:k1].copy(), origin, res)
 
     def band(self, image: np.ndarray, row0: int = 0, frame_height: int | None = None) -> np.ndarray:
         """The band `push_band` wants, cut from a frame or from the frame's rows from `row0` on (see
@@ -406,17 +468,17 @@ class WorldMapper:
             raise ValueError("the band's size is known once a frame's size is (source_rows or band)")
         return sampler.rows, sampler.cols
 
-    def push_band(self, band: np.ndarray, stamp_ns: int) -> None:
-        """`push` for a band cut with `band()`."""
+    def push_band(self, band: np.ndarray, stamp_ns: int, height: HeightBand | None = None) -> None:
+        """`push` for a band cut with `band()` (and its relief, `height_band()`, for a height map)."""
         if self._weights is None:
             self._setup()
-        self._inbox.append((band, int(stamp_ns)))
+        self._inbox.append((band, int(stamp_ns), height))
         while self._inbox:
-            band, stamp_ns = self._inbox[0]
+            band, stamp_ns, height = self._inbox[0]
             if len(self._inbox) <= self.config.wait_frames and not self._pose_known(stamp_ns):
                 return   # its pose has not arrived yet
             self._inbox.popleft()
-            self._take_band(band, stamp_ns)
+            self._take_band(band, stamp_ns, height)
 
     def _pose_known(self, stamp_ns: int) -> bool:
         covers = getattr(self.poses, "covers", None)   # a BufferPoses answers without interpolating
@@ -424,7 +486,7 @@ class WorldMapper:
             return bool(covers(stamp_ns))
         return bool(np.isfinite(self.poses(np.array([stamp_ns], np.int64))).all())
 
-    def _take_band(self, band: np.ndarray, stamp_ns: int) -> None:
+    def _take_band(self, band: np.ndarray, stamp_ns: int, height: HeightBand | None = None) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
         self.stats.frames += 1
         if self._contacts is not None:
@@ -442,7 +504,7 @@ class WorldMapper:
         step = self.strip.push_band(band, int(stamp_ns), prior, register=register)
         if register:
             self._steady_after(step, int(stamp_ns))
-        frame = _Frame(int(stamp_ns), band, self.strip.flat_field_now(), step, pose, pose_latency)
+        frame = _Frame(int(stamp_ns), band, self.strip.flat_field_now(), step, pose, pose_latency, height)
         if step.confidence >= self.strip.config.min_confidence and not step.used_prior:
             self._recent.append(frame.stamp_ns, step.position_px)
         self._pending.append(frame)
@@ -451,6 +513,7 @@ class WorldMapper:
             held = self._pending[-_HELD_FULL - 1]
             if held.band.dtype != np.uint16:   # grey 0..255 in steps of 1/256
                 held.band = cv2.multiply(held.band, 256.0, dtype=cv2.CV_16U)
+                held.height = None if held.height is None else held.height.compact()
 
     def _register_strip(self, prior: float | None, stamp_ns: int) -> bool:
         """Whether the strip stitcher registers this frame (`WorldMapConfig.steady_stride`): not while the
@@ -519,6 +582,8 @@ class WorldMapper:
             self._take_band(*self._inbox.popleft())
         self._drain(final=True)
         self._flush_pass_buffer()
+        if self._height_layer is not None:   # the pass under way is levelled with what it has (it may go on)
+            self._height_layer.end_pass(self.canvas)
         if self._in_contact and self._pass_log:   # the pass under way says what it can (it may go on)
             self._pass_log[-1].delta = (float(self._pass_delta[0]), float(self._pass_delta[1]))
             self._opposite_passes()
@@ -943,6 +1008,8 @@ class WorldMapper:
 
     def _end_pass(self) -> None:
         self._flush_pass_buffer()
+        if self._height_layer is not None:
+            self._height_layer.end_pass(self.canvas)
         if self._prior is not None and not (self._pass_log and self._pass_log[-1].ended):
             self.stats.pass_corrections_px.append((float(self._pass_delta[0]), float(self._pass_delta[1])))
         self._in_contact = False
@@ -1122,6 +1189,11 @@ class WorldMapper:
             planes = [self._on_map(placement, weighted_band), self._on_map(placement, weighted_field, "field"),
                       self._on_map(placement, self._weights, "w")]
             self.canvas.add(planes, placement.c0, placement.r0)
+        if frame.height is not None and self._height_layer is not None:
+            assert self._weights is not None
+            weighted, weights = self._height_layer.planes(self._weights, frame.height)
+            self.canvas.add([self._on_map(placement, weighted), self._on_map(placement, weights)], placement.c0,
+                            placement.r0, first=self._height_layer.first + 2)
         self._placements.append(placement)
         self.stats.mapped += 1
         if frame.field is not None:

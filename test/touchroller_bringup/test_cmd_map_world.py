@@ -283,3 +283,32 @@ def test_one_pass_at_constant_speed_warns_and_keeps_the_configured_latency(tmp_p
     assert "WARN: camera latency not observable" in printed.err
     meta = yaml.safe_load((tmp_path / "map.yaml").read_text())
     assert meta["camera_latency"]["observable"] is False and meta["camera_latency"]["value_ms"] == 0.0
+
+
+def test_with_a_photometric_model_the_height_map_lies_beside_the_map_in_place(scan_bag, tmp_path, capsys):
+    from touchroller_bringup.map_files import read_height_tif
+    from touchroller_driver.sim.camera import surface_frame
+    from touchroller_driver.sim.photometric import sim_photometric
+
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=1)
+    photometric = sim_photometric(sensor, presses=6)
+    model, reference = tmp_path / "photometric.npz", tmp_path / "reference.png"
+    photometric.calibration.model.save(model)
+    cv2.imwrite(str(reference), photometric.reference)
+    out = tmp_path / "map.png"
+    assert main(["map", str(scan_bag), "--out", str(out), "--latency", "0.03", "--photometric", str(model),
+                 "--reference", str(reference)]) == 0
+    assert "height.tif" in capsys.readouterr().out
+    height, (x0, y_top), resolution = read_height_tif(tmp_path / "height.tif")
+    grey, alpha, meta = read_world_map(tmp_path / "map.yaml")
+    assert height.dtype == np.float32 and height.shape == grey.shape and resolution == meta["resolution"]
+    assert x0 == pytest.approx(meta["origin"][0]) and y_top == pytest.approx(meta["origin"][1] + grey.shape[0] * 1e-4)
+    known = np.isfinite(height)
+    assert known.sum() > 0.5 * (alpha > 0).sum() and not (known & (alpha == 0)).any()
+    # in place against the true relief (rows growing with y for the truth)
+    truth, _ = sensor.world_truth(surface_frame(sensor.scene), (x0, y_top - grey.shape[0] * 1e-4), grey.shape, 1e-4)
+    mine, true = height[::-1][known[::-1]], truth[known[::-1]]
+    assert np.corrcoef(mine, true)[0, 1] > 0.4   # one pass, 6 presses, its ends included (misplaced: ~0)
+    # the arguments go together
+    assert main(["map", str(scan_bag), "--out", str(tmp_path / "m2.png"), "--photometric", str(model)]) == 2
+    assert "go together" in capsys.readouterr().err

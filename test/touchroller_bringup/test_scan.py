@@ -662,3 +662,31 @@ def test_a_scan_into_a_read_only_folder_is_one_line_before_any_node_starts(mount
     err = captured.err.strip()
     assert "\n" not in err and "read-only file system" in err, err
     assert "opening sim" not in captured.out + captured.err
+
+
+@pytest.mark.slow
+def test_a_simulated_scan_with_height_writes_the_height_map_beside_the_map(isolated_ros, tmp_path, capsys):
+    """--height: the simulated sensor's photometric model made on the fly, the height map written as
+    height.tif on map.png's grid, in place against the true relief."""
+    from touchroller_bringup.map_files import read_height_tif, read_world_map
+    from touchroller_driver.sim import SimulatedSensor, load_scene
+    from touchroller_driver.sim.camera import surface_frame
+
+    out = tmp_path / "scan"
+    assert main(["scan", "scene:=large_surface", "area:=0.42,-0.02,0.03,0.04", "sweep_speed:=0.02", "--height",
+                 "--quiet", "--out", str(out)]) == 0
+    assert (out / "photometric.npz").is_file() and (out / "reference.png").is_file()
+    height, (x0, y_top), resolution = read_height_tif(out / "height.tif")
+    grey, alpha, meta = read_world_map(out / "map.yaml")
+    assert height.shape == grey.shape and resolution == meta["resolution"]
+    assert x0 == pytest.approx(meta["origin"][0]) and y_top == pytest.approx(meta["origin"][1] + grey.shape[0] * 1e-4)
+    known = np.isfinite(height)
+    assert known.sum() > 0.5 * (alpha > 0).sum() and not (known & (alpha == 0)).any()
+    sensor = SimulatedSensor(load_scene("large_surface"), seed=0)
+    truth, _ = sensor.world_truth(surface_frame(sensor.scene), (x0, y_top - grey.shape[0] * 1e-4), grey.shape, 1e-4)
+    assert np.corrcoef(height[::-1][known[::-1]], truth[known[::-1]])[0, 1] > 0.4
+
+
+def test_height_on_a_real_sensor_needs_its_photometric_model(isolated_ros, tmp_path, capsys):
+    assert main(["scan", "use_sim:=false", "--height", "--quiet", "--out", str(tmp_path / "scan")]) == 2
+    assert "map.height.photometric" in capsys.readouterr().err

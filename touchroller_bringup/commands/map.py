@@ -66,6 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                                           "stamps lag the exposure), or 'auto' to estimate it")
     parser.add_argument("--no-register", action="store_true", help="world map: place by TF only, do not register "
                                                                    "the passes against each other")
+    parser.add_argument("--photometric", type=Path, help="world map: also the height map (height.tif beside the "
+                        "map, docs/height.md) with this PHOTOMETRIC.npz of 'touchroller calibrate photometric'")
+    parser.add_argument("--reference", type=Path, help="world map with --photometric: a no-contact image of the sensor")
     parser.add_argument("--strip", action="store_true", help="the strip map even when the bag has TF")
     parser.set_defaults(func=run)
 
@@ -92,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     world = not args.strip and _has_tf(args.bag, args.strip)
     if world:
         _check_world_arguments(args, out, camera)
-        check_outputs([Output("--out", out), Output("the map's YAML", out.with_suffix(".yaml"))],
+        heights = [Output("the height map", out.parent / "height.tif")] if args.photometric else []
+        check_outputs([Output("--out", out), Output("the map's YAML", out.with_suffix(".yaml"))] + heights,
                       {"BAG": args.bag, "--params": args.params})
     # OpenCV's own thread pool costs more than it saves on a 70-row band; the second core reads the bag.
     threads = cv2.getNumThreads()
@@ -139,6 +143,8 @@ def _check_world_arguments(args: argparse.Namespace, out: Path, camera) -> None:
             raise UserError(str(exc)) from None
     if not (math.isfinite(args.resolution) and 1e-6 <= args.resolution <= 0.01):
         raise UserError(f"--resolution must be in [1e-6, 0.01] m per pixel, got {args.resolution}")
+    if (args.photometric is None) != (args.reference is None):
+        raise UserError("--photometric and --reference go together (the height map needs both)")
     if args.latency != "auto":
         try:
             value = float(args.latency)
@@ -150,7 +156,7 @@ def _check_world_arguments(args: argparse.Namespace, out: Path, camera) -> None:
 
 def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     from touchroller_bringup.bags import ImageRecord, read_images_and_tf
-    from touchroller_bringup.map_files import write_world_map
+    from touchroller_bringup.map_files import write_height_tif, write_world_map
     from touchroller_perception.stitching import StitcherConfig
     from touchroller_perception.transforms import Transform, TransformBuffer
     from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
@@ -160,9 +166,16 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                             register=not args.no_register)
     # the world mapper's strip stitcher only measures the roll (no lateral tracking, coarser columns)
     stitcher = StitcherConfig(band_rows=args.band_rows, search=args.search, lateral=False, column_bin=8)
-    mapper = WorldMapper(camera, buffer_lookup(buffer, args.world_frame, args.cylinder_frame), config, stitcher)
+    mapper = WorldMapper(camera, buffer_lookup(buffer, args.world_frame, args.cylinder_frame), config, stitcher,
+                         height=_height_source(args))
 
     rows = mapper.source_rows((camera.height, camera.width))
+    try:
+        height_rows = mapper.height_rows((camera.height, camera.width))
+    except ValueError as exc:   # the model, the reference and the camera disagree
+        raise UserError(f"--photometric/--reference: {exc}") from None
+    if height_rows is not None:
+        rows = (min(rows[0], height_rows[0]), max(rows[1], height_rows[1]))
 
     def records() -> Iterator[tuple[object, Any]]:
         # The reader reads the bag (only the band's rows where it can) and cuts the bands: (stamp, band)
@@ -173,7 +186,9 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                 if (camera.width, camera.height) != (width, height):
                     raise UserError(f"the camera model is for {camera.width}x{camera.height} images but the bag "
                                     f"has {width}x{height}")
-                yield record.stamp_ns, mapper.band(record.image, record.row0, height)
+                band = mapper.band(record.image, record.row0, height)
+                relief = mapper.height_band(record.image, record.row0, height)
+                yield record.stamp_ns, (band if relief is None else (band, relief))
             else:
                 try:
                     transform = Transform(record.translation, record.rotation)
@@ -184,7 +199,10 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     frames = 0
     first_stamp: list = [None]
     with _set_up_objects_frozen():
-        for item, band in _reader(records, mapper.band_shape):
+        # bands with their relief go through a thread (the forked reader passes bands alone)
+        read = _read_ahead(records(), batch=8) if mapper.height_source is not None else _reader(records,
+                                                                                                 mapper.band_shape)
+        for item, band in read:
             if band is None:
                 record, transform = item
                 try:
@@ -196,7 +214,10 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                 if first_stamp[0] is None:
                     first_stamp[0] = item
                 try:
-                    mapper.push_band(band, item)
+                    if isinstance(band, tuple):
+                        mapper.push_band(band[0], item, band[1])
+                    else:
+                        mapper.push_band(band, item)
                 except MemoryError as exc:   # the canvas would pass its pixel bound (WorldMapConfig.max_pixels)
                     raise UserError(str(exc)) from None
                 frames += 1
@@ -217,6 +238,13 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     stats = mapper.stats
     latency, latency_yaml = latency_summary(stats)
     png, yaml_path = write_world_map(out, image, args.world_frame, latency_yaml)
+    if mapper.height_source is not None:
+        layer = mapper.height_layer()
+        if layer is None:
+            print("WARN: no pass was mapped with a height: height.tif not written", file=sys.stderr)
+        else:
+            tif = write_height_tif(out.parent / "height.tif", layer, args.world_frame)
+            print(f"height map -> {tif} (float32 metres, NaN where unmapped)")
     print(f"{frames} frames -> {png} + {yaml_path.name} ({image.grey.shape[1]}x{image.grey.shape[0]} px at "
           f"{image.resolution * 1e3:g} mm, origin ({image.origin[0]:.4f}, {image.origin[1]:.4f}) m in "
           f"{args.world_frame}); {stats.mapped} frames mapped in {stats.passes} pass(es), camera latency "
@@ -224,6 +252,23 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     if stats.latency_warning:
         print(f"WARN: {stats.latency_warning}; give --latency SECONDS if it is known", file=sys.stderr)
     return 0
+
+
+def _height_source(args: argparse.Namespace) -> Any:
+    """The world mapper's HeightSource from --photometric and --reference; None without them."""
+    if args.photometric is None:
+        return None
+    from touchroller_bringup.commands.height import _reference
+    from touchroller_perception.height import PhotometricModel
+    from touchroller_perception.world_height import HeightSource
+
+    if not args.photometric.is_file():
+        raise UserError(f"no such photometric model: {args.photometric}")
+    try:
+        model = PhotometricModel.load(args.photometric)
+    except (OSError, ValueError, KeyError) as exc:
+        raise UserError(f"--photometric {args.photometric}: not a photometric model ({exc})") from None
+    return HeightSource(model, _reference(args.reference))
 
 
 def _nothing_placed(buffer, args: argparse.Namespace, first_stamp: int | None) -> str:

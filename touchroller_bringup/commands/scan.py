@@ -41,6 +41,11 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                              "and launch arguments or parameter overrides")
     parser.add_argument("--out", type=Path, default=None,
                         help="output folder (default: scan_output/<UTC timestamp>/)")
+    parser.add_argument("--height", action="store_true",
+                        help="also the world height map, height.tif beside map.png (docs/height.md): simulated, the "
+                             "sensor's photometric model is calibrated on the fly (photometric.npz and reference.png "
+                             "in --out); a real scan names its own: map.height.photometric:=P.npz "
+                             "map.height.reference:=REF.png")
     parser.add_argument("--seed", type=int, default=0, help="simulator random seed (use_sim:=true)")
     parser.add_argument("--namespace", default=None, metavar="NS",
                         help="ROS namespace of the graph (default touchroller: /touchroller/contacts, ...); "
@@ -148,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     progress = None if args.quiet else (lambda line: print(line, flush=True))
     result = run_scan(ScanOptions(out_dir=out, arguments=arguments, params_files=files, overrides=overrides,
                                   seed=args.seed, progress=progress, record=args.record, storage=args.storage,
-                                  bag_format=args.bag_format))
+                                  bag_format=args.bag_format, height=args.height))
     map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
     print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
           f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")

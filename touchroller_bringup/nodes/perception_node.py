@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -169,9 +170,26 @@ BAD_INPUT_HOLD_S = 10.0
 #: the map stage is reported as failing (ERROR) after this many frames in a row it could not map
 MAP_FAILING_FRAMES = 10
 
+# parameter name -> (WorldHeightConfig field, description, min, max); a change starts a new map
+HEIGHT_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
+    "map.height.band_depth": ("band_depth", "Height map: the rows integrated are those a press this deep reaches, m "
+                              "(more than the scan presses: the rows beyond are the zero)", 1e-5, 0.0099),
+    "map.height.outer_fraction": ("outer_fraction", "Height map: fraction of those rows at either end taken as "
+                                  "undeformed", 0.02, 0.4),
+    "map.height.min_indentation": ("min_indentation", "Height map: band pixels indented less are not in contact "
+                                   "(no height there), m", 0.0, 1e-3),
+    "map.height.min_weight": ("min_weight", "Height map: a cell has a height where its summed weight is at least "
+                              "this", 1e-3, 100.0),
+    "map.height.min_overlap": ("min_overlap", "Height map: cells two passes must share to be levelled against each "
+                               "other", 10, 10_000_000),
+    "map.height.axis_sigma": ("axis_sigma", "Height map: along the axis, variation slower than a Gaussian of this "
+                              "sigma (px) comes from each column's slopes across the band (0: the 2-D solution)",
+                              0.0, 200.0),
+}
+
 # world-map parameters: a change starts a new map
 WORLD_PARAMETERS = ("world_frame", "map.world", "map.resolution", "map.bounds", "map.latency_estimate",
-                    "map.register")
+                    "map.register", "map.height.photometric", "map.height.reference")
 
 
 class PerceptionNode(Node):
@@ -227,6 +245,7 @@ class PerceptionNode(Node):
         self.contacts_pub = self.create_publisher(PointStamped, names.CONTACTS, 10)
         self.map_pub = self.create_publisher(Image, names.MAP, MAP_QOS)
         self.map_metadata_pub = self.create_publisher(MapMetaData, names.MAP_METADATA, MAP_QOS)
+        self.map_height_pub = self.create_publisher(Image, names.MAP_HEIGHT, MAP_QOS)
         self.done_pub = self.create_publisher(Header, names.IMAGE_DONE, QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
         # progress only from the sweep node of this namespace: another publisher must not cut a map short
@@ -269,6 +288,14 @@ class PerceptionNode(Node):
                 "lag the exposure after camera.latency) from the image-registered motion against the arm's")
         declare(self, "map.register", True, "World map: register each pass against the earlier ones where they "
                 "overlap")
+        declare(self, "map.height.photometric", "", "World map: PHOTOMETRIC.npz of 'touchroller calibrate "
+                "photometric'; with map.height.reference, also the height map on map_height (empty: none)")
+        declare(self, "map.height.reference", "", "World map: a no-contact image of the sensor for the height map")
+        from touchroller_perception.world_height import WorldHeightConfig
+
+        defaults_height = WorldHeightConfig()
+        for name, (field, description, lo, hi) in HEIGHT_PARAMETERS.items():
+            declare(self, name, getattr(defaults_height, field), description, min=lo, max=hi)
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
                 min=0.0, max=100.0)
 
@@ -284,7 +311,7 @@ class PerceptionNode(Node):
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config),
-                            (WORLD_PARAMETERS, self._world_config)):
+                            (WORLD_PARAMETERS, self._world_config), (HEIGHT_PARAMETERS, self._height_config)):
             changes = {p.name: p.value for p in parameters if p.name in table}
             if changes:
                 try:
@@ -306,7 +333,7 @@ class PerceptionNode(Node):
             self.detector.config = self._detector_config()
         if "world_frame" in changed:
             self.world_frame = str(self.get_parameter("world_frame").value)   # the robot's: no prefix
-        if changed & (set(STITCHER_PARAMETERS) | set(WORLD_PARAMETERS)):
+        if changed & (set(STITCHER_PARAMETERS) | set(WORLD_PARAMETERS) | set(HEIGHT_PARAMETERS)):
             self.stitcher_config = self._stitcher_config()
             self.reset_map()   # a map is stitched one way throughout
         if "reference.frames" in changed:
@@ -326,6 +353,13 @@ class PerceptionNode(Node):
                               bounds=None if not any(bounds) else (bounds[0], bounds[1], bounds[2], bounds[3]),
                               latency=None if values["map.latency_estimate"] else 0.0,
                               register=bool(values["map.register"]))
+
+    def _height_config(self, overrides: dict[str, Any] | None = None) -> Any:
+        from touchroller_perception.world_height import WorldHeightConfig
+
+        values = {name: self.get_parameter(name).value for name in HEIGHT_PARAMETERS}
+        values.update(overrides or {})
+        return WorldHeightConfig(**{HEIGHT_PARAMETERS[name][0]: value for name, value in values.items()})
 
     def _contacts_frame_id(self) -> str:
         return names.frame(str(self.get_parameter("contacts.frame_id").value), self.frame_prefix)
@@ -516,7 +550,8 @@ class PerceptionNode(Node):
                 with listener.lock:
                     return lookup(stamps)
 
-            self.world = WorldMapper(self.camera, poses, self._world_config(), self.stitcher_config)
+            self.world = WorldMapper(self.camera, poses, self._world_config(), self.stitcher_config,
+                                     height=self._height_source())
             self.get_logger().info(f"world map in {self.world_frame} at {self.world.config.resolution * 1e3:g} mm/px")
         else:
             self.stitcher = Stitcher(self.stitcher_config, camera=self.camera)
@@ -614,6 +649,44 @@ class PerceptionNode(Node):
         else:
             self.get_logger().error(f"map not saved to {path}: {reason}")
 
+    def _height_source(self) -> Any:
+        """The world mapper's HeightSource from map.height.*; None when not both are set or they do not load."""
+        model_path = str(self.get_parameter("map.height.photometric").value)
+        reference_path = str(self.get_parameter("map.height.reference").value)
+        if not model_path or not reference_path:
+            return None
+        import cv2
+
+        from touchroller_perception.height import PhotometricModel
+        from touchroller_perception.world_height import HeightSource
+
+        try:
+            model = PhotometricModel.load(model_path)
+            reference = cv2.imread(reference_path, cv2.IMREAD_COLOR)
+            if reference is None:
+                raise ValueError(f"cannot read {reference_path}")
+        except (OSError, ValueError, KeyError) as exc:
+            self.get_logger().error(f"no height map: {exc}")
+            return None
+        return HeightSource(model, reference, self._height_config())
+
+    def _publish_height(self, stamp_ns: int) -> None:
+        """The world height map on map_height: 32FC1 metres (REP 118), row 0 the top as the map, NaN unmapped."""
+        assert self.world is not None
+        layer = self.world.height_layer()
+        if layer is None or layer.height.size == 0:
+            return
+        values = np.ascontiguousarray(layer.height[::-1], np.float32)
+        msg = Image()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        msg.header.frame_id = self.world_frame
+        msg.height, msg.width = values.shape
+        msg.encoding = "32FC1"
+        msg.is_bigendian = int(sys.byteorder == "big")
+        msg.step = 4 * values.shape[1]
+        msg.data = values.tobytes()
+        self.map_height_pub.publish(msg)
+
     def publish_map(self) -> np.ndarray | None:
         """Publish the map if it changed since the last publication; returns what was published."""
         world_image: WorldMapImage | None = None
@@ -641,6 +714,8 @@ class PerceptionNode(Node):
         self.map_pub.publish(array_to_image(tactile_map, now, frame_id=frame_id))
         if world_image is not None:
             self.map_metadata_pub.publish(map_metadata(world_image, now))
+            with self._map_lock:
+                self._publish_height(now)
         return tactile_map
 
     # ------------------------------------------------------------------ diagnostics

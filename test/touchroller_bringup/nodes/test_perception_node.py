@@ -587,3 +587,55 @@ def test_a_resolution_given_as_text_is_the_number(ros_context):
         assert node.get_parameter("map.resolution").value == 1e-5
     finally:
         node.destroy_node()
+
+
+def test_the_world_height_map_is_published_latched_as_32fc1_metres(ros_context, spin_until, tmp_path):
+    """map_height: sensor_msgs/Image 32FC1 in metres (REP 118), row 0 the top as the map, NaN unmapped,
+    latched as `map`; map.height.* load the photometric model the world mapper gets."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+    from touchroller_perception.world_height import HeightMapLayer
+    from touchroller_perception.world_map import WorldMapImage
+
+    overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
+    node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
+    helper = rclpy_node("height_test_helper", ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(helper)
+    try:
+        assert node._height_source() is None   # not asked for
+        missing = [Parameter("map.height.photometric", value=str(tmp_path / "none.npz")),
+                   Parameter("map.height.reference", value=str(tmp_path / "none.png"))]
+        assert all(r.successful for r in node.set_parameters(missing))
+        assert node._height_source() is None   # said on the log, no height map
+        # the height map's config is a table of parameters: checked when set, applied to the next map
+        refused = node.set_parameters([Parameter("map.height.outer_fraction", value=0.9)])[0]
+        assert not refused.successful
+        assert node.set_parameters([Parameter("map.height.axis_sigma", value=0.0)])[0].successful
+        assert node._height_config().axis_sigma == 0.0
+        height = np.full((3, 4), np.nan, np.float32)
+        height[0, :2] = (1e-5, 2e-5)          # rows grow with y: row 0 is the bottom
+        grey = np.zeros((3, 4), np.uint8)
+        world = SimpleNamespace(map_image=lambda: WorldMapImage(grey, grey, 1e-4, (0.4, -0.1)),
+                                height_layer=lambda: HeightMapLayer(height, (0.4, -0.1), 1e-4))
+        node.world, node._map_dirty = world, True
+        node.publish_map()
+        maps: list = []
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        helper.create_subscription(Image, names.topic(names.MAP_HEIGHT), maps.append, latched)
+        assert spin_until(executor, lambda: len(maps) >= 1, timeout=20.0)
+        msg = maps[0]
+        assert (msg.encoding, msg.height, msg.width, msg.step) == ("32FC1", 3, 4, 16)
+        assert msg.header.frame_id == node.world_frame
+        values = np.frombuffer(bytes(msg.data), np.float32).reshape(3, 4)
+        np.testing.assert_array_equal(values[2, :2], np.float32([1e-5, 2e-5]))   # the bottom row last
+        assert np.isnan(values[:2]).all() and np.isnan(values[2, 2:]).all()
+    finally:
+        node.world = None
+        executor.shutdown()
+        node.destroy_node()
+        helper.destroy_node()

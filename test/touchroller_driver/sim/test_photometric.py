@@ -1,0 +1,60 @@
+"""A simulated sensor's photometric model made on the fly, and the relief it gives a world mapper's band."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+import touchroller_driver.sim as sim
+from touchroller_driver.sim.photometric import sim_photometric
+from touchroller_perception.world_height import HeightSource
+from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+
+@pytest.fixture(scope="module")
+def grained():
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
+    return sensor, sim_photometric(sensor, presses=6)
+
+
+def test_the_band_relief_follows_the_true_indentation(grained):
+    sensor, photometric = grained
+    assert photometric.reference.shape == (sensor.camera.height, sensor.camera.width, 3)
+    mapper = WorldMapper(sensor.camera, lambda stamps: np.full((len(stamps), 4, 4), np.nan), WorldMapConfig(),
+                         height=HeightSource(photometric.calibration.model, photometric.reference))
+    layers = sensor.render_layers(sim.RollerState(travel=0.1, depth=5e-4))
+    band = mapper.height_band(layers["image"])
+    assert band is not None and band.relief.shape == mapper.band_shape and band.contact.all()
+    # the truth on the band: the renderer's indentation resampled as the band is, plus the cylinder
+    maker = mapper._band_heights
+    assert maker is not None
+
+    v0, v1 = maker.rows
+    truth = cv2.remap(layers["indentation"][v0:v1].astype(np.float32), *maker.maps, cv2.INTER_LINEAR) + maker.cylinder
+    # one frame's slow errors (the press's profile read a little flat, each column's sum across the band)
+    # differ from frame to frame or are the same at every place and average out in the map; its fine relief
+    # (what varies within 1 mm) is compared here
+    def fine(a: np.ndarray) -> np.ndarray:
+        return (a - cv2.GaussianBlur(a, (0, 0), 10.0))[:, 20:-20]
+
+    assert np.corrcoef(fine(band.relief).ravel(), fine(truth).ravel())[0, 1] > 0.8
+    assert float(np.std(fine(band.relief) - fine(truth))) < 0.6 * float(np.std(fine(truth)))
+
+
+def test_rows_cut_from_the_frame_give_the_same_relief(grained):
+    sensor, photometric = grained
+    mapper = WorldMapper(sensor.camera, lambda stamps: np.full((len(stamps), 4, 4), np.nan), WorldMapConfig(),
+                         height=HeightSource(photometric.calibration.model, photometric.reference))
+    image = sensor.render(sim.RollerState(travel=0.05, depth=5e-4))
+    rows = mapper.height_rows(image.shape[:2])
+    assert rows is not None
+    whole = mapper.height_band(image)
+    cut = mapper.height_band(image[rows[0]:rows[1]], rows[0], image.shape[0])
+    assert whole is not None and cut is not None and np.array_equal(whole.relief, cut.relief)
+
+
+def test_without_a_photometric_model_there_is_no_height():
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
+    mapper = WorldMapper(sensor.camera, lambda stamps: np.full((len(stamps), 4, 4), np.nan), WorldMapConfig())
+    assert mapper.height_band(np.zeros((480, 640, 3), np.uint8)) is None and mapper.height_layer() is None
+    assert mapper.canvas.depth == 3

@@ -1,0 +1,72 @@
+"""The world height map's per-frame relief and its per-pass levelling (touchroller_perception.world_height)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from touchroller_perception.world_canvas import WorldCanvas
+from touchroller_perception.world_height import HEIGHT_LAYERS, HeightBand, HeightLayer, WorldHeightConfig
+
+
+def _canvas(shape=(120, 200)) -> tuple[WorldCanvas, HeightLayer]:
+    canvas = WorldCanvas(1e-4, (0.0, 0.0, shape[1] * 1e-4, shape[0] * 1e-4), 10**6, layers=3 + HEIGHT_LAYERS)
+    return canvas, HeightLayer(3, WorldHeightConfig(min_overlap=50))
+
+
+def _add_pass(canvas, layer, height, weight, c0, r0):
+    planes = [height * weight, weight]
+    canvas.add(planes, c0, r0, first=layer.first + 2)
+    layer.end_pass(canvas)
+
+
+def test_each_pass_loses_its_plane_and_meets_the_earlier_ones_where_they_overlap():
+    canvas, layer = _canvas()
+    rng = np.random.default_rng(0)
+    relief = rng.normal(0, 20e-6, (120, 200)).astype(np.float32)
+    rows, cols = np.mgrid[0:120, 0:200].astype(np.float32)
+    weight = np.ones((120, 120), np.float32)
+    # pass 1: columns 0..120, pressed 0.5 mm and tilted; pass 2: columns 80..200, 0.45 mm, another tilt
+    first = relief[:, :120] + 5e-4 + 1e-6 * cols[:, :120] - 2e-6 * rows[:, :120]
+    second = relief[:, 80:] + 4.5e-4 - 3e-6 * cols[:, :120] + 1e-6 * rows[:, :120]
+    _add_pass(canvas, layer, first, weight, 0, 0)
+    _add_pass(canvas, layer, second, weight, 80, 0)
+    value = layer.value(canvas)
+    assert np.isfinite(value).all()
+    error = value - relief
+    A = np.c_[np.ones(error.size), rows.ravel(), cols.ravel()]
+    coef, *_ = np.linalg.lstsq(A, error.ravel(), rcond=None)
+    residual = error.ravel() - A @ coef
+    assert float(np.sqrt(np.mean(residual**2))) < 2e-6   # 20 um of relief, the passes' planes gone
+    assert layer.passes == 2 and layer.levelled[1][2] == 120 * 40
+    assert abs(layer.levelled[0][0] - (5e-4 + (1e-6 - 2e-6) * 59.5)) < 2e-6   # the first pass's plane at its middle
+
+
+def test_a_pass_with_nothing_in_contact_adds_nothing_and_clears_the_pass_layers():
+    canvas, layer = _canvas()
+    _add_pass(canvas, layer, np.ones((10, 10), np.float32), np.zeros((10, 10), np.float32), 5, 5)
+    assert layer.passes == 0 and layer.layer(canvas) is None
+    assert not canvas.layers[3:].any()
+
+
+def test_unmapped_cells_are_nan():
+    canvas, layer = _canvas()
+    _add_pass(canvas, layer, np.full((30, 40), 1e-4, np.float32), np.ones((30, 40), np.float32), 10, 20)
+    result = layer.layer(canvas)
+    assert result is not None and result.resolution == 1e-4
+    assert np.isfinite(result.height[20:50, 10:50]).all()
+    assert np.isnan(result.height[:20]).all() and np.isnan(result.height[:, 60:]).all()
+    assert np.allclose(result.height[20:50, 10:50], 0.0, atol=1e-9)   # a constant is the pass's plane
+
+
+def test_a_held_band_keeps_its_relief_to_half_a_micrometre():
+    relief = np.linspace(-3e-4, 9e-4, 640 * 70, dtype=np.float32).reshape(70, 640)
+    band = HeightBand(relief, relief > 0).compact()
+    assert band.relief.dtype == np.float16
+    assert float(np.abs(band.relief.astype(np.float32) - relief).max()) <= 5e-7
+
+
+@pytest.mark.parametrize("field, value", [("band_depth", 0.0), ("outer_fraction", 0.5), ("min_indentation", -1.0),
+                                          ("min_weight", 0.0), ("min_overlap", 1), ("axis_sigma", -1.0)])
+def test_config_is_checked(field, value):
+    with pytest.raises(ValueError):
+        WorldHeightConfig(**{field: value})

@@ -1,0 +1,293 @@
+"""The world height map: each pressed frame's relief in metres, placed in the world as the intensity is.
+
+Per frame (`BandHeights`, stateless once built, so a node may cut it in another thread):
+
+1. slopes from the photometric model (`touchroller_perception.height`) over the image rows the contact can
+   reach and some beyond it (`contact_band` of `band_depth`): rows whose membrane a press of that depth
+   cannot reach;
+2. integrated to the membrane's indentation D (m, into the gel) by the exact DCT solver, its constant set
+   by those outer rows, where the membrane is undeformed (D = 0): a robust best plane through them is 0;
+3. resampled onto the world mapper's band (the strip stitcher's `BandSampler`: rows uniform in membrane y,
+   columns in x, the contact patch pressed flat), and turned into the surface's relief: under a flat press
+   at depth d the membrane at band row y is indented d - (r - sqrt(r^2 - y^2)), so relief = D + r -
+   sqrt(r^2 - y^2) - d; the unknown d (and a tilt of the surface) goes with the pass's best plane (below).
+   Band pixels indented less than `min_indentation` are not in contact (a valley the membrane did not
+   reach): no height there.
+
+Per pass (`HeightLayer`, on two pairs of layers of the mapper's canvas: the pass being rolled, and what
+earlier passes left): the pass's frames are accumulated as weighted sums (the intensity's weights times the
+contact), and when the pass ends its height is levelled: its best plane is removed (the press depth and
+the surface's tilt under the roller), then it is levelled against the earlier passes where they overlap
+(their difference's median, and its tilt along the directions the overlap spans), and added to them.
+The result is the relief relative to the surface's base plane under the roller, float32 metres, NaN
+where nothing was mapped. No rclpy here.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from touchroller_perception.geometry import CameraModel
+from touchroller_perception.height.estimate import contact_band, level_plane
+from touchroller_perception.height.integrate import integrate
+from touchroller_perception.height.photometric import PhotometricModel, SlopeLookup
+
+#: canvas layers the height uses, after the intensity's three: sum(w h) and sum(w) of the passes done,
+#: then of the pass being rolled
+HEIGHT_LAYERS = 4
+_DONE, _DONE_W, _PASS, _PASS_W = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class WorldHeightConfig:
+    """How each frame's height is made and passes are levelled; the perception node's `map.height.*`
+    parameters map onto these fields.
+
+    band_depth: the rows integrated are those a press this deep reaches (m); the rows beyond the actual
+      press (undeformed membrane) give the zero. More than the scan's press depth.
+    outer_fraction: the rows at either end of those, this fraction each, are taken as undeformed.
+    min_indentation: band pixels indented less than this are not in contact (no height there), m.
+    min_weight: a map cell has a height where its summed weight is at least this (the intensity's 0.05).
+    min_overlap: cells two passes must share to be levelled against each other (else only the plane).
+    axis_sigma: along the roller's axis, the height's variation slower than a Gaussian of this sigma
+      (px) comes from each column's own slopes across the band, summed from the undeformed rows on
+      either side (their closure removed), not from integrating along the axis: a slope bias along a
+      640-pixel band integrates to tens of micrometres, across the band it cannot. 0: the 2-D solution.
+    """
+
+    band_depth: float = 1.2e-3
+    outer_fraction: float = 0.12
+    min_indentation: float = 1e-5
+    min_weight: float = 0.05
+    min_overlap: int = 400
+    axis_sigma: float = 20.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.band_depth) and 0 < self.band_depth < 0.01):
+            raise ValueError(f"band_depth must be in (0, 0.01) m, got {self.band_depth}")
+        if not (math.isfinite(self.outer_fraction) and 0.02 <= self.outer_fraction <= 0.4):
+            raise ValueError(f"outer_fraction must be in [0.02, 0.4], got {self.outer_fraction}")
+        if not (math.isfinite(self.min_indentation) and self.min_indentation >= 0):
+            raise ValueError(f"min_indentation must be >= 0 m, got {self.min_indentation}")
+        if not (math.isfinite(self.min_weight) and self.min_weight > 0):
+            raise ValueError(f"min_weight must be > 0, got {self.min_weight}")
+        if not (math.isfinite(self.axis_sigma) and 0 <= self.axis_sigma <= 200):
+            raise ValueError(f"axis_sigma must be in [0, 200] px, got {self.axis_sigma}")
+        if self.min_overlap < 10:
+            raise ValueError(f"min_overlap must be >= 10 cells, got {self.min_overlap}")
+
+
+@dataclass(frozen=True)
+class HeightBand:
+    """One frame's relief on the world mapper's band: metres (float32, or float16 while held long) and
+    where it is in contact (bool), both the band's shape."""
+
+    relief: np.ndarray
+    contact: np.ndarray
+
+    def compact(self) -> HeightBand:
+        """The same in half the memory (float16 metres: steps of half a micrometre below a millimetre)."""
+        return self if self.relief.dtype == np.float16 else HeightBand(self.relief.astype(np.float16), self.contact)
+
+
+@dataclass(frozen=True)
+class HeightMapLayer:
+    """The world height map: float32 metres (rows growing with y, as the canvas), NaN where unmapped;
+    `origin` the world (x, y) of cell (0, 0)'s lower-left corner, `resolution` m per cell."""
+
+    height: np.ndarray
+    origin: tuple[float, float]
+    resolution: float
+
+
+class BandHeights:
+    """Per-frame relief on the mapper's band. `sampler`: the world mapper's band sampler (the strip
+    stitcher's `BandSampler`, rectified through the camera model)."""
+
+    def __init__(self, model: PhotometricModel, reference: np.ndarray, camera: CameraModel, sampler: Any,
+                 config: WorldHeightConfig | None = None) -> None:
+        self.config = config = config or WorldHeightConfig()
+        reference = np.asarray(reference)
+        if reference.ndim != 3 or reference.shape[2] != 3:
+            raise ValueError(f"the height reference must be a colour image (H x W x 3), got shape {reference.shape}")
+        if (reference.shape[1], reference.shape[0]) != (model.width, model.height):
+            raise ValueError(f"the reference is {reference.shape[1]}x{reference.shape[0]} but the photometric "
+                             f"model was calibrated on {model.width}x{model.height} images")
+        if (camera.width, camera.height) != (model.width, model.height):
+            raise ValueError(f"the camera is {camera.width}x{camera.height} but the photometric model was "
+                             f"calibrated on {model.width}x{model.height} images")
+        if sampler is None or sampler.maps is None or sampler.mm_per_px is None:
+            raise ValueError("a world height map needs the rectified band (the camera model's default method)")
+        band = contact_band(camera, config.band_depth)
+        s0, s1 = sampler.src_rows
+        self.rows = (min(band.rows[0], s0), max(band.rows[1], s1))   # the sampler's rows inside, always
+        self.src_offset = s0 - self.rows[0]
+        self.pixel_size = band.pixel_size
+        self.lookup: SlopeLookup = model.compile(reference)
+        self.maps = (sampler.maps[0], sampler.maps[1] + np.float32(self.src_offset))
+        n = self.rows[1] - self.rows[0]
+        k = max(2, round(config.outer_fraction * n))
+        self.outer = np.zeros((n, reference.shape[1]), bool)
+        self.outer[:k] = True
+        self.outer[-k:] = True
+        r = float(camera.radius)
+        ys = (np.arange(sampler.rows) - (sampler.rows - 1) / 2.0) * sampler.mm_per_px * 1e-3
+        self.cylinder = (r - np.sqrt(r * r - ys * ys)).astype(np.float32)[:, None]   # m below the contact line
+
+    def indentation(self, image: np.ndarray, row0: int = 0) -> np.ndarray:
+        """D (float32 m, into the gel) over `rows` of the frame, or of the frame's rows from `row0` on."""
+        v0, v1 = self.rows
+        image = np.asarray(image)
+        if v0 < row0 or v1 - row0 > image.shape[0]:
+            raise ValueError(f"the height needs frame rows {v0} to {v1}, got {row0} to {row0 + image.shape[0]}")
+        gx, gy = self.lookup.slopes(image[v0 - row0:v1 - row0], rows=slice(v0, v1))
+        z = integrate(gx, gy, self.pixel_size, dtype=np.float32)
+        z -= level_plane(z, self.outer)
+        sigma = self.config.axis_sigma
+        if sigma <= 0:
+            return z
+        # each column on its own: gy summed from the outer rows, its closure (both ends undeformed) removed
+        column = np.cumsum(gy - gy.mean(axis=0, keepdims=True), axis=0, dtype=np.float32)
+        column *= np.float32(self.pixel_size[1])
+        column -= column[self.outer[:, 0]].mean(axis=0, keepdims=True)
+        # the slow variation along the axis from the columns, the rest from the whole surface
+        kernel = cv2.getGaussianKernel(int(6 * sigma) | 1, sigma, cv2.CV_32F)
+        one = np.ones((1, 1), np.float32)
+
+        def along(a: np.ndarray) -> np.ndarray:
+            return cv2.sepFilter2D(a, cv2.CV_32F, kernel, one, borderType=cv2.BORDER_REFLECT)
+
+        return along(column) + z - along(z)
+
+    def __call__(self, image: np.ndarray, row0: int = 0) -> HeightBand:
+        depth = self.indentation(image, row0)
+        band = cv2.remap(depth, self.maps[0], self.maps[1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0.0)
+        contact = band > self.config.min_indentation
+        return HeightBand(np.add(band, self.cylinder, dtype=np.float32), contact)
+
+
+def _plane(values: np.ndarray, weights: np.ndarray, mask: np.ndarray, step: int = 4) -> np.ndarray:
+    """Coefficients (c, a_col, b_row) of the weighted least-squares plane through values over mask
+    (a 1-in-`step` grid of it, or every cell when that is too few)."""
+    h, w = values.shape
+    rr, cc = np.mgrid[0:h:step, 0:w:step]
+    sub = mask[::step, ::step]
+    z, wt = values[::step, ::step][sub], weights[::step, ::step][sub]
+    if len(z) < 3:
+        (rr, cc), sub = np.mgrid[0:h, 0:w], mask
+        z, wt = values[sub], weights[sub]
+    r, c = rr[sub].astype(np.float64), cc[sub].astype(np.float64)
+    if len(z) < 3:
+        return np.zeros(3)
+    sw = np.sqrt(np.asarray(wt, np.float64))
+    A = np.c_[np.ones(len(z)), c, r] * sw[:, None]
+    coef, *_ = np.linalg.lstsq(A, np.asarray(z, np.float64) * sw, rcond=None)
+    return np.asarray(coef, np.float64)
+
+
+def _plane_values(coef: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    rows = np.arange(shape[0], dtype=np.float32)[:, None]
+    cols = np.arange(shape[1], dtype=np.float32)[None, :]
+    out: np.ndarray = np.float32(coef[0]) + np.float32(coef[1]) * cols + np.float32(coef[2]) * rows
+    return out
+
+
+class HeightLayer:
+    """The height's share of the canvas: its four layers (`HEIGHT_LAYERS`, from `first`), a pass's frames
+    added with `add`, levelled and added to the earlier passes with `end_pass`."""
+
+    def __init__(self, first: int, config: WorldHeightConfig | None = None) -> None:
+        self.first = first
+        self.config = config or WorldHeightConfig()
+        self.passes = 0
+        self.levelled: list[tuple[float, float, float]] = []   # per pass: plane removed at the pass's centre
+        # (m), offset against the earlier passes (m), overlap cells
+
+    def planes(self, weights: np.ndarray, band: HeightBand) -> tuple[np.ndarray, np.ndarray]:
+        """(w relief, w) in band coordinates for the pass layers: weight zero where not in contact."""
+        w = np.where(band.contact, weights, np.float32(0.0))
+        return cv2.multiply(band.relief.astype(np.float32, copy=False), w), w
+
+    def end_pass(self, canvas: Any) -> None:
+        """Level the pass just rolled (its best plane, then against the earlier passes) and add it to them."""
+        box = canvas.used()
+        if box is None:
+            return
+        r0, r1, c0, c1 = box
+        layers = canvas.layers
+        done, done_w = layers[self.first + _DONE, r0:r1, c0:c1], layers[self.first + _DONE_W, r0:r1, c0:c1]
+        sums, weight = layers[self.first + _PASS, r0:r1, c0:c1], layers[self.first + _PASS_W, r0:r1, c0:c1]
+        mine = weight >= self.config.min_weight
+        if int(np.count_nonzero(mine)) >= 3:
+            height = np.divide(sums, weight, out=np.zeros_like(sums), where=mine)
+            coef = _plane(height, weight, mine)
+            height -= _plane_values(coef, height.shape)
+            theirs = done_w >= self.config.min_weight
+            both = mine & theirs
+            offset, shared = 0.0, int(np.count_nonzero(both))
+            if shared >= self.config.min_overlap:
+                before = np.divide(done, done_w, out=np.zeros_like(done), where=theirs)
+                height += _plane_values(self._level(before - height, both), height.shape)
+                offset = float(np.median((before - height)[both]))   # what is left: ~0 once levelled
+            centre = _plane_values(coef, height.shape)[mine].mean()
+            self.levelled.append((float(centre), offset, shared))
+            height[~mine] = 0.0
+            done += height * np.where(mine, weight, np.float32(0.0))
+            done_w += np.where(mine, weight, np.float32(0.0))
+            self.passes += 1
+        sums[...] = 0.0
+        weight[...] = 0.0
+
+    @staticmethod
+    def _level(difference: np.ndarray, both: np.ndarray) -> np.ndarray:
+        """The plane (c, a_col, b_row) to add to a pass to meet the earlier ones where they overlap: the
+        difference's median, and its tilt along the rows or columns where the overlap spans at least
+        a quarter of its bounding box's diagonal (a thin overlap holds only an offset)."""
+        rows, cols = np.nonzero(both)
+        values = difference[both].astype(np.float64)
+        centre = float(np.median(values))
+        span_r, span_c = float(np.ptp(rows)), float(np.ptp(cols))
+        extent = math.hypot(span_r, span_c)
+        coef = np.array([centre, 0.0, 0.0])
+        free = [span_c >= 0.25 * extent and span_c > 20, span_r >= 0.25 * extent and span_r > 20]
+        if any(free):
+            r, c = rows - rows.mean(), cols - cols.mean()
+            columns = [np.ones(len(values))] + [x for x, f in zip((c, r), free, strict=True) if f]
+            A = np.stack(columns, axis=1)
+            keep = np.abs(values - centre) <= 3.0 * (1.4826 * float(np.median(np.abs(values - centre))) + 1e-9)
+            solution, *_ = np.linalg.lstsq(A[keep], values[keep], rcond=None)
+            slopes = iter(solution[1:])
+            a = float(next(slopes)) if free[0] else 0.0
+            b = float(next(slopes)) if free[1] else 0.0
+            coef = np.array([float(solution[0]) - a * cols.mean() - b * rows.mean(), a, b])
+        return coef
+
+    def value(self, canvas: Any) -> np.ndarray:
+        """float32 metres over the whole canvas, NaN where no finished pass mapped (the pass being rolled
+        is not in it until it ends)."""
+        done_w = canvas.layers[self.first + _DONE_W]
+        known = done_w >= self.config.min_weight
+        out = np.full(done_w.shape, np.nan, np.float32)
+        np.divide(canvas.layers[self.first + _DONE], done_w, out=out, where=known)
+        return out
+
+    def layer(self, canvas: Any) -> HeightMapLayer | None:
+        """The height map with its placement; None when nothing has a height yet."""
+        if self.passes == 0:
+            return None
+        return HeightMapLayer(self.value(canvas), canvas.origin, canvas.resolution)
+
+
+@dataclass(frozen=True)
+class HeightSource:
+    """What a world mapper needs for a height map: the photometric model, its no-contact reference frame
+    (the sensor's, colour, the model's size) and how heights are made and levelled."""
+
+    model: PhotometricModel
+    reference: np.ndarray
+    config: WorldHeightConfig = WorldHeightConfig()
