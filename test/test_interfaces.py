@@ -82,6 +82,7 @@ def test_the_built_action_has_what_the_sweep_node_fills_in():
     for name in ARRAY_FIELDS:
         assert len(getattr(goal, name)) == 0, name
     assert {o.name: o.value for o in Outcome} == {name: getattr(sweep.Result, name) for name in Outcome.__members__}
-    assert {"pass_index", "pass_count", "coverage", "distance", "phase"} <= set(sweep.Feedback.get_fields_and_field_types())
+    assert {"pass_index", "pass_count", "coverage", "distance", "phase"} <= set(
+        sweep.Feedback.get_fields_and_field_types())
     assert {"outcome", "message", "passes_done", "pass_count", "distance"} <= set(
         sweep.Result.get_fields_and_field_types())

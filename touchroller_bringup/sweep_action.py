@@ -221,12 +221,13 @@ class SweepActionServer:
         try:
             return await self._run(goal, handle)
         finally:
+            # the execution ended before the goal's sweep (an exception, the coroutine closed): stop the arm,
+            # before the goal is let go (then a ~/start may begin a sweep that is not the goal's)
+            if goal.started and goal.ended is not None and not goal.ended.is_set() and self.node.active:
+                self.node.request_stop()
             with self._lock:
                 if self._goal is goal:
                     self._goal = None
-            if goal.started and goal.ended is not None and not goal.ended.is_set() and self.node.active:
-                # the execution ended before the sweep (an exception, the coroutine closed): stop the arm
-                self.node.request_stop()
 
     async def _run(self, goal: _Goal, handle: Any) -> Any:
         if goal.cancel_requested or handle.is_cancel_requested:
@@ -302,7 +303,10 @@ class SweepActionServer:
         now = time.monotonic()
         if active and now - goal.last_client_check >= CLIENT_CHECK_PERIOD_S:
             goal.last_client_check = now
-            if goal.clients and not (goal.clients & self._client_endpoints()):
+            present = self._client_endpoints()
+            if not goal.clients:   # not discovered yet when the goal was accepted: the first ones seen
+                goal.clients = present
+            elif not (goal.clients & present):
                 self.node.get_logger().error("Sweep goal: its client left the ROS graph; stopping the arm")
                 stop("the Sweep goal's client left the ROS graph")
                 return   # the next loop sees the sweep stopped
@@ -327,12 +331,16 @@ class SweepActionServer:
         self._wake()
 
     def end(self, message: str) -> None:
-        """The node is going away: end the running goal as STOPPED (the arm thread stops the arm)."""
+        """End the running goal as STOPPED with `message` (the node is going away, or this server failed
+        on the arm thread; the arm is stopped by the caller)."""
         with self._lock:
             goal = self._goal
         if goal is not None and goal.ended is not None and not goal.ended.is_set():
-            goal.result = SweepResult(Outcome.STOPPED, message, 0, 0, 0.0)
+            last = goal.last_feedback or SweepFeedback(0, 0, 0.0, 0.0, SweepPhase.STOPPED.value)
+            goal.result = SweepResult(Outcome.STOPPED, message, max(last.pass_index - 1, 0), last.pass_count,
+                                      last.distance)
             goal.ended.set()
+            self._wake()
 
     def _publish_feedback(self, goal: _Goal, feedback: SweepFeedback) -> None:
         message = self.action_type.Feedback()

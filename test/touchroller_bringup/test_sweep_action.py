@@ -283,6 +283,27 @@ def test_a_fault_aborts_the_goal_with_its_message(harness, spin_until):
     assert not h.send(spin_until).accepted and "protective stop" in h.node._action.last_rejection
 
 
+def test_a_failure_of_the_action_on_the_arm_thread_stops_the_arm_and_aborts_the_goal(harness, spin_until,
+                                                                                     monkeypatch):
+    from touchroller_bringup import sweep_action
+
+    h = harness(SlowRollArm())
+    handle = h.send(spin_until)
+    assert handle.accepted
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.SWEEPING, timeout=20.0)
+
+    def broken(self, goal, feedback):
+        raise RuntimeError("feedback publisher gone")
+
+    monkeypatch.setattr(sweep_action.SweepActionServer, "_publish_feedback", broken)
+    response = h.result(spin_until, handle)
+    assert response.status == GoalStatus.STATUS_ABORTED
+    assert response.result.outcome == Outcome.STOPPED and "feedback publisher gone" in response.result.message
+    assert spin_until(h.executor, h.node.finished.is_set, timeout=20.0)
+    assert h.node.status.phase is SweepPhase.STOPPED and not h.arm.is_moving()
+    assert h.node._worker.is_alive()   # the arm thread goes on watching the arm
+
+
 CLIENT = r'''
 import sys, time, rclpy
 from rclpy.action import ActionClient

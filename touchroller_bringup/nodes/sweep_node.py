@@ -539,7 +539,7 @@ class SweepNode(Node):
                 command = None
             was_active = self.sequencer.active
             if self._action is not None:   # the goal's feedback and end; its client gone stops the arm here
-                self._action.on_step(self.status, self.sequencer.plan, self.active, self._stop_on_arm_thread)
+                self._action_step()
             if command is not None:
                 self._execute(command)
             if self._deferred is not None and self.sim_clock is not None and self.sim_clock.on_whole_second():
@@ -603,6 +603,18 @@ class SweepNode(Node):
             command.success, command.message = False, str(exc)
         finally:
             command.done.set()
+
+    def _action_step(self) -> None:
+        """The Sweep goal's part of the arm loop; a failure there stops the arm and ends the goal (it must
+        never end the arm thread, which watches the arm)."""
+        assert self._action is not None
+        try:
+            self._action.on_step(self.status, self.sequencer.plan, self.active, self._stop_on_arm_thread)
+        except Exception as exc:  # noqa: BLE001 - whatever it is, the arm stops and the loop goes on
+            if self.active:
+                self.get_logger().error(f"Sweep action failed ({exc}); stopping the arm")
+                self._stop_on_arm_thread(f"the Sweep action failed: {exc}")
+            self._action.end(f"the Sweep action failed: {exc}")
 
     def _stop_on_arm_thread(self, message: str = "stopped on request") -> None:
         """What ~/stop does, on the arm thread."""
