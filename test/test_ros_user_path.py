@@ -201,12 +201,26 @@ def test_show_args_lists_the_launch_arguments(workspace: Path, ros_tools: Path) 
 def test_the_sweep_action_of_the_launched_graph(workspace: Path, ros_tools: Path,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """The README's `ros2 action send_goal` for the launched graph. ros2cli's `ros2 action` is not among the
-    tools installable here (shared/ros-extras), so the same goal goes through rclpy's ActionClient: accepted,
-    feedback, SUCCEEDED with the pass and the distance, from the sweep node of the workspace built as the
-    README says."""
+    tools installable here (shared/ros-extras), so the README's action name, type and goal YAML are turned
+    into the goal as ros2action does (rosidl_runtime_py's get_action and set_message_fields) and sent with
+    rclpy's ActionClient: accepted, feedback, SUCCEEDED with the pass and the distance, from the sweep node of
+    the workspace built as the README says."""
+    import yaml
+
     rclpy = pytest.importorskip("rclpy")
-    sweep = pytest.importorskip("touchroller_interfaces.action", reason="touchroller_interfaces is not built").Sweep
+    pytest.importorskip("touchroller_interfaces.action", reason="touchroller_interfaces is not built")
     from rclpy.action import ActionClient
+    from rosidl_runtime_py.set_message import set_message_fields
+    from rosidl_runtime_py.utilities import get_action
+
+    line = re.search(r"^ros2 action send_goal --feedback (\S+) (\S+) \"(.*)\"$",
+                     (ROOT / "README.md").read_text(encoding="utf-8"), re.MULTILINE)
+    assert line, "README: no `ros2 action send_goal --feedback NAME TYPE \"GOAL\"` line"
+    action_name, action_type, goal_yaml = line.groups()
+    assert action_name == names.topic(names.SWEEP_ACTION)
+    sweep = get_action(action_type)
+    goal = sweep.Goal()
+    set_message_fields(goal, yaml.safe_load(goal_yaml))
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
@@ -230,17 +244,19 @@ def test_the_sweep_action_of_the_launched_graph(workspace: Path, ros_tools: Path
 
         try:
             assert launch.wait_for(r"\[sweep_node-\d+\]: process started", timeout=60), launch.output
-            client = ActionClient(node, sweep, names.topic(names.SWEEP_ACTION))
+            client = ActionClient(node, sweep, action_name)
             assert spin_until(client.server_is_ready, 60.0), launch.output[-3000:]
-            goal = sweep.Goal(length=0.01, speed=0.011, depth=0.0005)
             sent = client.send_goal_async(goal, feedback_callback=lambda m: feedback.append(m.feedback))
             assert spin_until(sent.done, 60.0) and sent.result().accepted, launch.output[-3000:]
             result = sent.result().get_result_async()
             assert spin_until(result.done, 300.0), launch.output[-3000:]
             assert result.result().result.outcome == sweep.Result.SUCCEEDED, result.result().result.message
             assert (result.result().result.passes_done, result.result().result.pass_count) == (1, 1)
-            assert result.result().result.distance == pytest.approx(0.01)
-            assert feedback and feedback[-1].distance <= 0.01 + 1e-9
+            # the README's goal leaves the length to the parameter: config/scan.yaml's
+            length = yaml.safe_load((ROOT / "config" / "scan.yaml").read_text())["/**"]["ros__parameters"][
+                "sweep.length"]
+            assert result.result().result.distance == pytest.approx(length)
+            assert feedback and all(0.0 <= f.distance <= length + 1e-9 for f in feedback)
             assert launch.ctrl_c() == 0, launch.output[-3000:]
         finally:
             launch.kill()
