@@ -13,6 +13,8 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from touchroller_bringup.sweep_action import Outcome, SweepFeedback, goal_settings, passes_done, sweep_feedback
 from touchroller_driver.arm import SweepPhase, SweepStatus, plan_sweep
@@ -67,6 +69,24 @@ def test_feedback_of_a_single_roll():
     assert passes_done(half, SweepStatus(SweepPhase.STOPPED, "sweep", 0.5, "", 0, 0.5)) == 0
     done = SweepStatus(SweepPhase.DONE, None, 1.0, "sweep complete", 0, 1.0)
     assert passes_done(sweep_feedback(plan, done, 0.0), done) == 1
+
+
+@settings(max_examples=60)
+@given(width=st.floats(0.0, 0.5), length=st.floats(0.001, 0.2), roll=st.integers(0, 20),
+       fraction=st.floats(0.0, 1.0))
+def test_feedback_stays_within_the_plan(width, length, roll, fraction):
+    from touchroller_driver.arm import DEFAULT_MOUNT_RPY, DEFAULT_MOUNT_XYZ, mount_transform, plan_raster
+
+    plan = plan_raster(START, area=[0.3, -0.1, length, width], mount=mount_transform(DEFAULT_MOUNT_XYZ,
+                       DEFAULT_MOUNT_RPY), speed=0.02, accel=0.1, depth=0.0005)
+    status = SweepStatus(SweepPhase.SWEEPING, "sweep", 0.0, "", min(roll, len(plan.rolls) - 1), fraction)
+    feedback = sweep_feedback(plan, status, width)
+    assert 1 <= feedback.pass_index <= feedback.pass_count == len(plan.rolls)
+    assert 0.0 <= feedback.coverage <= 1.0
+    assert 0.0 <= feedback.distance <= plan.length + 1e-12
+    assert 0 <= passes_done(feedback, status) <= feedback.pass_count
+    further = sweep_feedback(plan, SweepStatus(SweepPhase.SWEEPING, "sweep", 0.0, "", status.roll, 1.0), width)
+    assert further.distance >= feedback.distance and further.coverage >= feedback.coverage - 1e-12
 
 
 # -- the node with rclpy ----------------------------------------------------------------------------
@@ -359,6 +379,16 @@ def test_a_client_killed_mid_goal_stops_the_arm(harness, spin_until, tmp_path):
         if client.poll() is None:
             client.kill()
             client.wait(timeout=10)
+
+
+def test_the_action_moves_with_the_namespace(ros_context):
+    node = SweepNode(arm=CountingArm(), context=ros_context, namespace="left", parameter_overrides=list(OVERRIDES))
+    try:
+        offered = dict(rclpy.action.get_action_names_and_types(node))
+        assert offered.get("/left/sweep") == ["touchroller_interfaces/action/Sweep"]
+        assert node._action is not None and node._action._feedback_topic == "/left/sweep/_action/feedback"
+    finally:
+        node.destroy_node()
 
 
 def test_without_the_interface_the_node_runs_without_the_action(ros_context, spin_until, monkeypatch):
