@@ -96,7 +96,7 @@ Sweep = pytest.importorskip("touchroller_interfaces.action", reason="touchroller
 
 from action_msgs.msg import GoalStatus  # noqa: E402
 from rclpy.action import ActionClient  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
@@ -159,11 +159,13 @@ class CountingArm(SimulatedArm):
 class Harness:
     """The sweep node and a probe node with an ActionClient and the Trigger clients, one executor."""
 
-    def __init__(self, context, arm, overrides=OVERRIDES, client: bool = True) -> None:
+    def __init__(self, context, arm, overrides=OVERRIDES, client: bool = True, threads: int = 1) -> None:
         self.arm = arm
         self.node = SweepNode(arm=arm, context=context, parameter_overrides=list(overrides))
         self.probe = Node("action_probe", context=context)
-        self.executor = SingleThreadedExecutor(context=context)   # the strictest: one thread for everything
+        # one thread for everything is the strictest (the console script's); touchroller scan runs several
+        self.executor = SingleThreadedExecutor(context=context) if threads == 1 else \
+            MultiThreadedExecutor(num_threads=threads, context=context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.probe)
         self.client = ActionClient(self.probe, Sweep, ACTION) if client else None
@@ -209,8 +211,9 @@ def harness(ros_context):
         h.close()
 
 
-def test_a_goal_runs_the_raster_with_feedback_and_a_result(harness, spin_until):
-    h = harness(CountingArm())
+@pytest.mark.parametrize("threads", [1, 4], ids=["single_threaded", "multi_threaded"])
+def test_a_goal_runs_the_raster_with_feedback_and_a_result(harness, spin_until, threads):
+    h = harness(CountingArm(), threads=threads)
     area = [0.4, -0.05, 0.02, 0.1]   # 2 passes of the 0.06 m usable width with 25 % overlap
     handle = h.send(spin_until, area=area, speed=0.02)
     assert handle.accepted
@@ -229,8 +232,9 @@ def test_a_goal_runs_the_raster_with_feedback_and_a_result(harness, spin_until):
     assert h.node.settings["sweep.area"] == [0.0, 0.0, 0.0, 0.0]    # the parameters are left as they were
 
 
-def test_cancel_mid_sweep_stops_the_arm_as_stop_does(harness, spin_until):
-    h = harness(SlowRollArm())
+@pytest.mark.parametrize("threads", [1, 4], ids=["single_threaded", "multi_threaded"])
+def test_cancel_mid_sweep_stops_the_arm_as_stop_does(harness, spin_until, threads):
+    h = harness(SlowRollArm(), threads=threads)
     handle = h.send(spin_until)
     assert handle.accepted
     assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.SWEEPING, timeout=20.0)
@@ -344,8 +348,8 @@ while True:
 SHORT_LEASE = """<?xml version="1.0" encoding="UTF-8" ?>
 <dds xmlns="http://www.eprosima.com"><profiles>
   <participant profile_name="short_lease" is_default_profile="true"><rtps><builtin><discovery_config>
-    <leaseDuration><sec>2</sec></leaseDuration>
-    <leaseAnnouncement><sec>0</sec><nanosec>500000000</nanosec></leaseAnnouncement>
+    <leaseDuration><sec>5</sec></leaseDuration>
+    <leaseAnnouncement><sec>1</sec></leaseAnnouncement>
   </discovery_config></builtin></rtps></participant>
 </profiles></dds>
 """
@@ -355,8 +359,9 @@ SHORT_LEASE = """<?xml version="1.0" encoding="UTF-8" ?>
 def test_a_client_killed_mid_goal_stops_the_arm(harness, spin_until, tmp_path):
     """The goal's client is the only action client of the action (see sweep_action: a second one, still
     alive, would keep the goal going until it is cancelled or ~/stop). DDS forgets a killed process when its
-    participant's lease runs out (Fast DDS: 20 s by default); the client here announces a 2 s lease, so the
-    test takes seconds, not the default's 20."""
+    participant's lease runs out (Fast DDS: 20 s by default); the client here announces a 5 s lease, so the
+    test takes seconds, not the default's 20 (a shorter one could run out on a loaded machine while the client
+    lives: then too the arm stops, as it should when the client cannot be seen)."""
     h = harness(SlowRollArm(), client=False)
     profile = tmp_path / "short_lease.xml"
     profile.write_text(SHORT_LEASE)
@@ -384,7 +389,7 @@ def test_a_client_killed_mid_goal_stops_the_arm(harness, spin_until, tmp_path):
 def test_the_action_moves_with_the_namespace(ros_context):
     node = SweepNode(arm=CountingArm(), context=ros_context, namespace="left", parameter_overrides=list(OVERRIDES))
     try:
-        offered = dict(rclpy.action.get_action_names_and_types(node))
+        offered = dict(rclpy.action.get_action_server_names_and_types_by_node(node, node.get_name(), "/left"))
         assert offered.get("/left/sweep") == ["touchroller_interfaces/action/Sweep"]
         assert node._action is not None and node._action._feedback_topic == "/left/sweep/_action/feedback"
     finally:
@@ -397,7 +402,8 @@ def test_without_the_interface_the_node_runs_without_the_action(ros_context, spi
     node = SweepNode(arm=arm, context=ros_context, parameter_overrides=list(OVERRIDES))
     try:
         assert node._action is None
-        assert not any(name == ACTION for name, _ in rclpy.action.get_action_names_and_types(node))
+        assert rclpy.action.get_action_server_names_and_types_by_node(node, node.get_name(),
+                                                                      node.get_namespace()) == []
         assert node.request_start()[0]
         assert spin_until(node, node.finished.is_set, timeout=20.0)
         assert node.status.phase is SweepPhase.DONE
