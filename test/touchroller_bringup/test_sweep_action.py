@@ -272,6 +272,37 @@ def test_an_invalid_goal_is_rejected_and_the_arm_never_moves(harness, spin_until
     assert h.call_start(spin_until).success   # the node is unharmed: a start runs
 
 
+def test_an_accepted_goal_whose_start_outlasts_the_wait_is_aborted_and_never_moves_the_arm(harness, spin_until,
+                                                                                           monkeypatch):
+    """#29.1 for goals: the goal passed its checks; its start's planning then outlasts the wait, the start is
+    abandoned, the goal aborted, and the arm never moves for it, then or later."""
+    from touchroller_bringup.nodes import sweep_node
+
+    original, calls = sweep_node.plan_sweep, []
+
+    def slow_on_the_second_call(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:   # the first plans the acceptance's dry run, the second the start
+            time.sleep(1.5)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(sweep_node, "plan_sweep", slow_on_the_second_call)
+    monkeypatch.setattr(sweep_node, "COMMAND_TIMEOUT_S", 0.3)
+    h = harness(CountingArm())
+    assert spin_until(h.executor, lambda: h.node.status.phase is SweepPhase.IDLE, timeout=20.0)
+    calls.clear()   # the node's start-up check planned once
+    rest = h.arm.tcp_pose()
+    handle = h.send(spin_until)
+    assert handle.accepted
+    response = h.result(spin_until, handle)
+    assert len(calls) == 2
+    assert response.status == GoalStatus.STATUS_ABORTED
+    assert response.result.outcome == Outcome.FAULT and "the arm does not move for it" in response.result.message
+    spin_until(h.executor, lambda: False, timeout=2.5)   # the planning is long done; the arm thread looped on
+    assert h.arm.moves == 0 and not h.arm.is_moving() and not h.node.active
+    np.testing.assert_allclose(h.arm.tcp_pose(), rest, rtol=0, atol=0)
+
+
 def test_one_sweep_at_a_time(harness, spin_until):
     h = harness(SlowRollArm())
     first = h.send(spin_until)
