@@ -776,8 +776,8 @@ class SweepNode(Node):
                                   "roll_progress": status.roll_progress,
                                   "pass": (status.roll or 0) + 1 if status.roll is not None else 0,
                                   "passes": len(plan.rolls) if plan is not None else 0,
-                                  "sweep_speed_m_s": float(self._plan_settings["sweep.speed"]),
-                                  "sweep_length_m": float(self._plan_settings["sweep.length"])}
+                                  "sweep_speed_m_s": float(self.settings["sweep.speed"]),
+                                  "sweep_length_m": float(self.settings["sweep.length"])}
         if pose is not None:
             values.update({f"tcp_{k}": float(v) for k, v in zip(("x", "y", "z", "rx", "ry", "rz"), pose, strict=True)})
         return Status(level, status.message or status.phase.value, values)
