@@ -7,10 +7,10 @@ STAMP := $(VENV)/.installed
 
 setup: $(STAMP)
 
-# Re-install only when the pins or the package metadata change. Message packages without a wheel
-# (tf2_msgs, ur_dashboard_msgs) are built from interfaces/ only when the venv cannot import them (a ROS
-# install can).
-$(STAMP): requirements.txt setup.py setup.cfg package.xml $(wildcard interfaces/*/msg/*.msg)
+# Re-install only when the pins or the package metadata change. Interface packages without a wheel
+# (tf2_msgs, ur_dashboard_msgs, touchroller_interfaces) are built from interfaces/ only when the venv cannot
+# import them (a ROS install or a built workspace can).
+$(STAMP): requirements.txt setup.py setup.cfg package.xml $(wildcard interfaces/*/msg/*.msg interfaces/*/action/*.action)
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	@echo "Setting up $(VENV) (pinned versions from requirements.txt)..."
 	@$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.txt

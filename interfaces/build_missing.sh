@@ -8,10 +8,13 @@ here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 venv="$(cd "${1:?usage: build_missing.sh VENV}" && pwd)"
 py="$venv/bin/python"
 
+# what a package defines (msg, srv, action), as the Python imports that must work once it is built
+imports() { local kinds=(); for kind in msg srv action; do [ -d "$here/$1/$kind" ] && kinds+=("import $1.$kind"); done
+            (IFS=';'; echo "${kinds[*]}"); }
 missing=()
 for pkg in "$here"/*/; do
   name="$(basename "$pkg")"
-  "$py" -c "import $name.msg" >/dev/null 2>&1 || missing+=("$name")
+  "$py" -c "$(imports "$name")" >/dev/null 2>&1 || missing+=("$name")
 done
 [ ${#missing[@]} -eq 0 ] && exit 0
 for tool in cmake gcc g++; do
@@ -45,5 +48,5 @@ for name in "${missing[@]}"; do
         && cmake --build "$build/$name" -j "$(nproc)" && cmake --install "$build/$name") >"$log" 2>&1; then
     echo "interfaces: building $name failed:" >&2; tail -n 20 "$log" >&2; exit 1
   fi
-  "$py" -c "import $name.msg" || { echo "interfaces: $name built but does not import" >&2; exit 1; }
+  "$py" -c "$(imports "$name")" || { echo "interfaces: $name built but does not import" >&2; exit 1; }
 done

@@ -49,6 +49,9 @@ RESET = "reset"                  # calibration: forget the captures
 SOLVE_PHOTOMETRIC = "solve_photometric"  # calibration: the photometric model from the captured ball presses
 SET_CAMERA_INFO = "set_camera_info"  # camera: sensor_msgs/srv/SetCameraInfo (camera_info_manager's)
 
+# -- actions, relative to the namespace ----------------------------------------------------------
+SWEEP_ACTION = "sweep"           # touchroller_interfaces/action/Sweep, served by the sweep node: /touchroller/sweep
+
 # -- frames (before the frame prefix) -----------------------------------------------------------
 BASE_FRAME = "base"              # the robot's base (UR convention)
 TOOL_FRAME = "tool0"             # the arm's flange (UR convention)

@@ -30,7 +30,9 @@ and every frame is rendered, delivered and processed as on an idle one
 clock's next whole second.
 
 Services `~/start`, `~/stop` and `~/reset_fault` are std_srvs/Trigger (`ros2 service call
-/touchroller/sweep/start std_srvs/srv/Trigger`).
+/touchroller/sweep/start std_srvs/srv/Trigger`). Beside them, where touchroller_interfaces is installed,
+the `sweep` action (touchroller_interfaces/action/Sweep, `/touchroller/sweep`): the same start with
+the goal's area, speed and depth, feedback, cancel and a result (`touchroller_bringup.sweep_action`).
 """
 from __future__ import annotations
 
@@ -57,6 +59,7 @@ from std_srvs.srv import Trigger
 from touchroller_bringup import names
 from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
 from touchroller_bringup.ros_params import declare, declare_frame_prefix
+from touchroller_bringup.sweep_action import SweepActionServer, make_sweep_action
 from touchroller_bringup.tf import TransformPublisher
 from touchroller_driver.arm import (
     DEFAULT_CLEARANCE,
@@ -121,6 +124,9 @@ class _Command:
     success: bool = False
     message: str = ""
     plan: SweepPlan | None = None
+    settings: dict[str, Any] | None = None   # a start's sweep parameters (None: the node's)
+    dry_run: bool = False    # a start checked whole (planner and arm thread) that never moves the arm
+    owner: Any = None        # the SweepActionServer whose goal this start is
     state: str = "pending"   # pending, committed, abandoned
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -197,6 +203,8 @@ class SweepNode(Node):
         self._start_srv = self.create_service(Trigger, f"~/{names.START}", self._on_start)
         self._stop_srv = self.create_service(Trigger, f"~/{names.STOP}", self._on_stop)
         self._reset_srv = self.create_service(Trigger, f"~/{names.RESET_FAULT}", self._on_reset_fault)
+        self._plan_settings: dict[str, Any] = dict(self.settings)   # the parameters of the sweep started last
+        self._action: SweepActionServer | None = make_sweep_action(self)
         simulated = isinstance(self.arm, SimulatedArm)
         through_driver = getattr(self.arm, "publishes_tool_tf", False)
         hardware = ("simulated arm" if simulated else "UR through ur_robot_driver" if through_driver
@@ -415,12 +423,12 @@ class SweepNode(Node):
         signals = StopSignals.installed()
         return self._shutdown.is_set() or not self.context.ok() or (signals is not None and signals.requested.is_set())
 
-    def _submit(self, name: str, timeout: float | None = None) -> _Command:
+    def _submit(self, name: str, timeout: float | None = None, **fields: Any) -> _Command:
         """Hand a request over (a start to the planner, the rest to the arm thread) and wait for its
         answer. A request not answered within `timeout` (COMMAND_TIMEOUT_S), or while shutting down, is
         abandoned: a start is then dropped without moving the arm. One the arm thread has committed to is
         waited for (its first motion command is under way, itself bounded by the arm's call timeouts)."""
-        command = _Command(name, threading.Event())
+        command = _Command(name, threading.Event(), **fields)
         (self._planning if name == "start" else self._commands).put(command)
         deadline = time.monotonic() + (COMMAND_TIMEOUT_S if timeout is None else timeout)
         while not command.done.wait(0.05):
@@ -471,6 +479,17 @@ class SweepNode(Node):
         command = self._submit("start")
         return command.success, command.message
 
+    def check_start(self, settings: dict[str, Any]) -> tuple[bool, str]:
+        """Every check of a `~/start` with these sweep parameters (planner and arm thread), without moving
+        the arm: (True, what would start) when a start would be answered success now."""
+        command = self._submit("start", settings=settings, dry_run=True, owner=self._action)
+        return command.success, command.message
+
+    def start_goal(self, settings: dict[str, Any], owner: SweepActionServer) -> tuple[bool, str]:
+        """A start with these sweep parameters for a Sweep goal of `owner` (told when the arm starts)."""
+        command = self._submit("start", settings=settings, owner=owner)
+        return command.success, command.message
+
     def request_stop(self) -> tuple[bool, str]:
         command = self._stop()
         return command.success, command.message
@@ -487,7 +506,7 @@ class SweepNode(Node):
             except queue.Empty:
                 continue
             try:
-                command.plan = self._plan_from(dict(self.settings), self.last_pose)
+                command.plan = self._plan_from(dict(command.settings or self.settings), self.last_pose)
             except (ArmError, ValueError) as exc:
                 command.success, command.message = False, str(exc)
                 command.done.set()
@@ -519,6 +538,8 @@ class SweepNode(Node):
             except queue.Empty:
                 command = None
             was_active = self.sequencer.active
+            if self._action is not None:   # the goal's feedback and end; its client gone stops the arm here
+                self._action_step()
             if command is not None:
                 self._execute(command)
             if self._deferred is not None and self.sim_clock is not None and self.sim_clock.on_whole_second():
@@ -545,12 +566,19 @@ class SweepNode(Node):
                 if self._fault is not None:
                     raise ArmError(f"arm faulted: {self._fault}; call ~/{names.RESET_FAULT} once the cause is "
                                    "cleared")
-                plan = command.plan if command.plan is not None else self._plan_from(dict(self.settings))
+                settings = dict(command.settings or self.settings)
+                plan = command.plan if command.plan is not None else self._plan_from(settings)
+                if command.owner is None and self._action is not None and self._action.running:
+                    raise ArmError("a Sweep action goal is running (cancel it, or call ~/stop)")
                 if self.sequencer.active or self._deferred is not None:
                     raise ArmError("a sweep is already running")
                 fault = self.arm.fault()
                 if fault is not None:
                     raise ArmError(f"arm faulted: {fault}")
+                if command.dry_run:
+                    command.success = True
+                    command.message = f"the sweep can start: {plan.length:.4g} m in {len(plan.rolls)} pass(es)"
+                    return
                 if not command.commit():   # its caller was answered failure: it must not move the arm
                     command.success, command.message = False, "abandoned by its caller"
                     return
@@ -561,20 +589,39 @@ class SweepNode(Node):
                     self._deferred = plan
                 else:
                     self.sequencer.start(plan)
+                self._plan_settings = settings
+                if command.owner is not None:
+                    command.owner.owns_start(plan)
                 self.finished.clear()
                 command.success = True
-                command.message = (f"sweep started: {plan.length:.4g} m at {self.settings['sweep.speed']:.4g} m/s, "
-                                   f"depth {self.settings['sweep.depth']:.4g} m")
+                command.message = (f"sweep started: {plan.length:.4g} m at {settings['sweep.speed']:.4g} m/s, "
+                                   f"depth {settings['sweep.depth']:.4g} m")
             else:
-                if self._deferred is not None:   # stopped before it began
-                    self._deferred = None
-                    self.finished.set()
-                self.sequencer.stop()
+                self._stop_on_arm_thread()
                 command.success, command.message = True, "arm stopped"
         except (ArmError, ValueError) as exc:
             command.success, command.message = False, str(exc)
         finally:
             command.done.set()
+
+    def _action_step(self) -> None:
+        """The Sweep goal's part of the arm loop; a failure there stops the arm and ends the goal (it must
+        never end the arm thread, which watches the arm)."""
+        assert self._action is not None
+        try:
+            self._action.on_step(self.status, self.sequencer.plan, self.active, self._stop_on_arm_thread)
+        except Exception as exc:  # noqa: BLE001 - whatever it is, the arm stops and the loop goes on
+            if self.active:
+                self.get_logger().error(f"Sweep action failed ({exc}); stopping the arm")
+                self._stop_on_arm_thread(f"the Sweep action failed: {exc}")
+            self._action.end(f"the Sweep action failed: {exc}")
+
+    def _stop_on_arm_thread(self, message: str = "stopped on request") -> None:
+        """What ~/stop does, on the arm thread."""
+        if self._deferred is not None:   # stopped before it began
+            self._deferred = None
+            self.finished.set()
+        self.sequencer.stop(message)
 
     def _begin(self, plan: SweepPlan) -> None:
         """Start a deferred sweep (simulated: on the clock's whole second)."""
@@ -677,7 +724,7 @@ class SweepNode(Node):
             self._progress_pub.publish(Float32(data=float(status.roll_progress)))
             plan = self.sequencer.plan
             if plan is not None and status.roll is not None:
-                width = float(self.settings["sweep.area"][3]) if plan.passes else 0.0
+                width = float(self._plan_settings["sweep.area"][3]) if plan.passes else 0.0
                 self._coverage_pub.publish(Float32(data=float(raster_coverage(plan, width, status.roll,
                                                                               status.roll_fraction))))
                 self._pass_pub.publish(UInt32MultiArray(data=[status.roll + 1, len(plan.rolls)]))
@@ -739,6 +786,9 @@ class SweepNode(Node):
         # Also called by the context's cleanup on a node whose __init__ failed half-way.
         if hasattr(self, "_shutdown"):
             self._shutdown.set()
+        action = getattr(self, "_action", None)
+        if action is not None:
+            action.end("the sweep node is shutting down")
         planner, worker = getattr(self, "_planner", None), getattr(self, "_worker", None)
         if planner is not None and planner.is_alive():
             planner.join(timeout=1.0)
