@@ -55,8 +55,8 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS,
                    names.DIAGNOSTICS, names.TF, names.TF_STATIC)   # with TF a recording re-maps offline
 # the topics of the scan's namespace that only its own nodes may publish (and /clock when simulated)
-GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.TCP_POSE,
-                names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
+GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.MAP_MARKERS,
+                names.TCP_POSE, names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
 
 
 OUTPUT_FILES = ("contacts.csv", "report.md", "map.png", "map.yaml")
