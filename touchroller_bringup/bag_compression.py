@@ -19,15 +19,17 @@ import numpy as np
 from touchroller_bringup.bags import COMPRESSED_SUFFIX, COMPRESSED_TYPE, parse_image_message
 from touchroller_bringup.image_conversion import encoding_for
 
-#: zlib level of the PNGs: 1 (the fastest) compresses a camera frame nearly as well as 9 at a fraction
-#: of the time (bench/recording_size.py)
+#: zlib level of the PNGs, with Huffman coding only: a camera frame's noise leaves deflate's string matching
+#: nothing to find, so Huffman coding alone writes smaller PNGs than level 1 or 3, in less time, and they
+#: decode faster (bench/recording_size.py)
 PNG_LEVEL = 1
 
 
 def png_of(image: np.ndarray, level: int = PNG_LEVEL) -> tuple[str, bytes]:
     """(image_transport's format string, PNG bytes) of an image as `image_to_array` gives it."""
     encoding = encoding_for(image)
-    ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, int(level)])
+    ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, int(level),
+                                            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY])
     if not ok:
         raise ValueError(f"PNG encoding of a {encoding} image failed")
     return f"{encoding}; png compressed {encoding}", data.tobytes()
@@ -49,11 +51,11 @@ def compressed_message(raw: bytes | memoryview, store: Any, level: int = PNG_LEV
 
 
 def compress_recording(source: str | Path, target: str | Path, storage: str = "mcap", distro: str = "auto",
-                       level: int = PNG_LEVEL) -> int:
+                       level: int = PNG_LEVEL, png: bool = True, zstd: bool = True) -> int:
     """Rewrite a recording as `touchroller record` writes it compressed: every sensor_msgs/Image topic as
-    CompressedImage PNG on `<topic>/compressed`, the rest as they are, MCAP chunks zstd; the receive times
-    and offered QoS kept. Returns the number of messages written; the target is written whole or not at
-    all (a failure removes it)."""
+    CompressedImage PNG on `<topic>/compressed` (`png`), the rest as they are, MCAP chunks zstd (`zstd`); the
+    receive times and offered QoS kept. Returns the number of messages written; the target is written whole
+    or not at all (a failure removes it)."""
     import shutil
 
     from touchroller_bringup.bags import IMAGE_TYPE, bag_writer, open_bag, typestore
@@ -63,12 +65,12 @@ def compress_recording(source: str | Path, target: str | Path, storage: str = "m
     reader = open_bag(source)
     count = 0
     try:
-        writer = bag_writer(target, storage, distro, compress=True)   # type: ignore[arg-type]
+        writer = bag_writer(target, storage, distro, compress=zstd)   # type: ignore[arg-type]
         try:
             with writer:
                 out: dict[int, Any] = {}
                 for connection in reader.connections:
-                    image = connection.msgtype == IMAGE_TYPE
+                    image = png and connection.msgtype == IMAGE_TYPE
                     offered = list(getattr(connection.ext, "offered_qos_profiles", []) or [])
                     out[connection.id] = (writer.add_connection(
                         connection.topic + COMPRESSED_SUFFIX if image else connection.topic,

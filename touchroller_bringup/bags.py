@@ -36,6 +36,7 @@ IMAGE_TOPIC = names.IMAGE_TOPIC   # /touchroller/image_raw
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 COMPRESSED_SUFFIX = "/compressed"   # image_transport's compressed topic beside a raw image topic
+MCAP_ZSTD_LEVEL = 1                 # zstd level of compressed MCAP chunks (bench/recording_size.py)
 Storage = Literal["sqlite3", "mcap"]
 
 
@@ -92,6 +93,12 @@ def _writer_class():
         # A chunk record is opcode (1 byte), length (8), message start and end time (8 + 8), uncompressed
         # size (8), then the uncompressed CRC-32 (4): written 0 by McapWriter.close_chunk, set here.
         CRC_OFFSET = 1 + 8 + 8 + 8 + 8
+
+        def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+            super().__init__(*args, **kwargs)
+            if self.compression == "zstd":   # level 1: camera frames' noise compresses little better at 3, 9x slower
+                compress = self.compressor
+                self.compressor = lambda data: compress(data, level=MCAP_ZSTD_LEVEL)
 
         def close_chunk(self) -> None:
             crc = crc32(self.chunk.bio.getbuffer())
@@ -156,11 +163,10 @@ def open_bag(path: str | Path):
 
 
 def _image_connections(reader, path, topic: str):
-    """The connections of the images on `topic`, or where image_transport puts them compressed
-    (`topic`/compressed) when the recording has only those."""
-    connections = [c for c in reader.connections if c.topic == topic]
-    if not connections:
-        connections = [c for c in reader.connections if c.topic == topic + COMPRESSED_SUFFIX]
+    """The connections of the images on `topic` and where image_transport puts them compressed
+    (`topic`/compressed): a compressed recording can hold both (frames the recorder wrote raw while it
+    was behind), read together in recording order."""
+    connections = [c for c in reader.connections if c.topic in (topic, topic + COMPRESSED_SUFFIX)]
     if not connections:
         topics = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
         raise UserError(f"bag {path} has no topic {topic} (topics: {topics})")

@@ -2,7 +2,8 @@
 
 With `compress`, the recording is lossless but smaller (`touchroller_bringup.bag_compression`): every
 sensor_msgs/Image topic is stored as sensor_msgs/CompressedImage PNG on `<topic>/compressed`, and MCAP
-chunks are compressed with zstd.
+chunks are compressed with zstd. A writer that falls `PNG_LAG_S` behind (PNG costs several ms a frame)
+writes frames raw on `<topic>` until it has caught up; readers take both topics in recording order.
 
 `Recorder` is a node: it discovers the wanted topics, subscribes with `raw=True` (serialized CDR,
 never deserialised), and hands each message to a writer thread that owns the `rosbags` Writer,
@@ -47,6 +48,9 @@ COMMIT_MESSAGES = 200      # ... or this many messages, whichever comes first
 #: room kept in the bag folder while recording and given back before it is finalised or indexed, so that a
 #: full disk still leaves room for metadata.yaml (compressed chunks leave too little behind when cut short)
 RESERVE_NAME, RESERVE_BYTES = ".touchroller-reserve", 256 * 1024
+#: with compression, an image that reaches the writer this long after it arrived is written raw (lossless,
+#: larger) instead of as PNG: the writer never falls further behind than this for the sake of compression
+PNG_LAG_S = 0.25
 _IDLE = ("idle",)
 
 
@@ -115,8 +119,10 @@ class _BagWriter(threading.Thread):
         self._typestore = get_typestore(Stores.ROS2_KILTED)
         self._writer = bag_writer(path, storage, distro, compress)   # MCAP chunks carry their CRC
         self.compress = compress
-        self._png: set[str] = set()   # raw image topics written as CompressedImage PNG on <topic>/compressed
+        self._png: dict[str, list[Any]] = {}   # raw image topics written as PNG on <topic>/compressed: their QoS
+        self._raw_fallback: dict[str, Any] = {}   # ... and their raw connections, made when first needed
         self.unconvertible = 0        # image messages that could not be compressed (malformed): left out
+        self.written_raw = 0          # images written raw because the writer was behind (PNG costs time)
         self.distro = self._writer.distro
         self._opened = threading.Event()
         self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
@@ -192,21 +198,31 @@ class _BagWriter(threading.Thread):
             _, topic, msgtype, offered = item
             stored_topic = topic
             if self.compress and msgtype == IMAGE_TYPE:
-                self._png.add(topic)
+                self._png[topic] = offered
                 stored_topic, msgtype = topic + COMPRESSED_SUFFIX, COMPRESSED_TYPE
             self._connections[topic] = self._writer.add_connection(
                 stored_topic, msgtype, typestore=self._typestore, offered_qos_profiles=offered)
         else:
-            _, topic, stamp_ns, data, _arrived = item
+            _, topic, stamp_ns, data, arrived = item
+            connection = self._connections[topic]
             if topic in self._png:
-                from touchroller_bringup.bag_compression import compressed_message
+                if time.monotonic() - arrived > PNG_LAG_S:
+                    # behind (a loaded machine): this frame raw on <topic>, so the writer catches up and a
+                    # failure is seen as soon as without compression; readers merge both topics in order
+                    if topic not in self._raw_fallback:
+                        self._raw_fallback[topic] = self._writer.add_connection(
+                            topic, IMAGE_TYPE, typestore=self._typestore, offered_qos_profiles=self._png[topic])
+                    connection = self._raw_fallback[topic]
+                    self.written_raw += 1
+                else:
+                    from touchroller_bringup.bag_compression import compressed_message
 
-                try:
-                    data = compressed_message(data, self._typestore)
-                except (ValueError, struct.error):   # a malformed image: what it holds cannot be kept
-                    self.unconvertible += 1
-                    return
-            self._writer.write(self._connections[topic], stamp_ns, data)
+                    try:
+                        data = compressed_message(data, self._typestore)
+                    except (ValueError, struct.error):   # a malformed image: what it holds cannot be kept
+                        self.unconvertible += 1
+                        return
+            self._writer.write(connection, stamp_ns, data)
             self.written += 1
 
     def _commit(self) -> None:

@@ -5,8 +5,8 @@ receive timing scaled by `rate`, with the QoS the recorded publishers offered (r
 durability kept when every recorded publisher agreed, like rosbag2). A truncated bag plays up to
 the damage and then reports one clear line. Images recorded compressed (sensor_msgs/CompressedImage on
 `<topic>/compressed`, `touchroller_bringup.bag_compression`) are published as recorded and, decoded, as
-sensor_msgs/Image on `<topic>` (as `image_transport republish` would), unless the recording has that topic
-too: a graph listening to `image_raw` runs on a compressed recording as on a raw one.
+sensor_msgs/Image on `<topic>` (as `image_transport republish` would; beside the frames the recording holds
+raw there, if any): a graph listening to `image_raw` runs on a compressed recording as on a raw one.
 """
 from __future__ import annotations
 
@@ -88,12 +88,11 @@ class Replayer(Node):
                 offered = list(getattr(connection.ext, "offered_qos_profiles", []) or [])
                 by_topic[connection.topic] = self.create_publisher(cls, connection.topic, playback_qos(offered))
             self._playback_publishers[connection.id] = by_topic[connection.topic]
-        # compressed images: also decoded, on the raw topic (unless the recording has it)
+        # compressed images: also decoded, on the raw topic (with the recording's own raw frames there, if any)
         self._decoded_publishers: dict[int, Any] = {}
-        recorded = {c.topic for c in connections}
         for connection in connections:
             raw_topic = connection.topic.removesuffix(COMPRESSED_SUFFIX)
-            if connection.msgtype != COMPRESSED_TYPE or raw_topic == connection.topic or raw_topic in recorded \
+            if connection.msgtype != COMPRESSED_TYPE or raw_topic == connection.topic \
                     or connection.id not in self._playback_publishers:
                 continue
             if raw_topic not in by_topic:

@@ -139,3 +139,35 @@ def test_the_recorder_stores_images_as_png_and_replay_decodes_them(ros_context, 
         listener.destroy_node()
         executor.shutdown()
         talker.destroy_node()
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_writer_behind_writes_frames_raw_and_the_recording_reads_every_frame_in_order(tmp_path, storage):
+    """PNG costs several ms a frame: a writer that fell PNG_LAG_S behind writes raw until it caught up.
+    Readers merge image_raw and image_raw/compressed in recording order; nothing is lost or reordered."""
+    import time
+
+    from touchroller_bringup.recorder import PNG_LAG_S, _BagWriter
+
+    frames = textured(10)
+    write_images(tmp_path / "raw", [(1_000 + k, f) for k, f in enumerate(frames)])
+    reader = open_bag(tmp_path / "raw")
+    raws = [bytes(raw) for _, _, raw in reader.messages()]
+    reader.close()
+    writer = _BagWriter(tmp_path / "bag", storage, compress=True)
+    writer.start()
+    try:
+        writer.add_topic(IMAGE_TOPIC, "sensor_msgs/msg/Image", [])
+        for k, raw in enumerate(raws):   # frames 3-6 reach the writer late
+            late = 3 <= k <= 6
+            writer.write(IMAGE_TOPIC, 5_000 + k, raw, arrived=time.monotonic() - (10 * PNG_LAG_S if late else 0.0))
+    finally:
+        writer.finish()
+    assert writer.written_raw == 4 and writer.written == 10 and writer.error is None
+    reader = open_bag(tmp_path / "bag")
+    counts = {c.topic: c.msgcount for c in reader.connections}
+    reader.close()
+    assert counts == {IMAGE_TOPIC + "/compressed": 6, IMAGE_TOPIC: 4}
+    again = list(read_images(tmp_path / "bag"))
+    assert [r.stamp_ns for r in again] == [1_000 + k for k in range(10)]
+    assert all(np.array_equal(r.image, f) for r, f in zip(again, frames, strict=True))
