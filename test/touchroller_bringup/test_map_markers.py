@@ -171,8 +171,11 @@ def test_a_map_past_the_budget_is_published_coarser_and_its_tiles_replaced(mappi
             big.canvas.add([band, np.ones_like(band), np.ones_like(band)], 0, 0)
             node.world = big
             node._map_dirty = True
-        assert spin_until(executor, lambda: len(arrays) > before and metadata
-                          and metadata[-1].resolution == pytest.approx(2 * RES), timeout=20.0)
+        # map, map_metadata and map_markers are separate topics, delivered independently: wait for all three
+        assert spin_until(executor, lambda: len(arrays) > before and metadata and maps
+                          and metadata[-1].resolution == pytest.approx(2 * RES)
+                          and (maps[-1].height, maps[-1].width) == (300, 300)
+                          and {m.ns for m in arrays[-1].markers[1:]} == {"touchroller_map/level_1"}, timeout=20.0)
         expected = view_at(world_map_raster(big), 1)
         assert np.array_equal(image_to_array(maps[-1]), expected.grey) and expected.grey.shape == (300, 300)
         assert (metadata[-1].width, metadata[-1].height) == (300, 300)
