@@ -27,7 +27,8 @@ def _topics(node) -> set[str]:
     return found
 
 
-OUR_TOPICS = {names.topic(t, names.DEFAULT_NAMESPACE) for t in (names.IMAGE, "contacts", "map")} | {"/diagnostics"}
+OUR_TOPICS = {names.topic(t, names.DEFAULT_NAMESPACE) for t in (names.IMAGE, "contacts", "map", "map_markers")} \
+    | {"/diagnostics"}
 
 
 def test_rviz_config_loads_with_the_robot_base_fixed_and_our_topics():
@@ -35,8 +36,11 @@ def test_rviz_config_loads_with_the_robot_base_fixed_and_our_topics():
     manager = config["Visualization Manager"]
     assert manager["Global Options"]["Fixed Frame"] == names.BASE_FRAME
     classes = {d["Class"] for d in manager["Displays"]}
-    assert {"rviz_default_plugins/TF", "rviz_default_plugins/PointStamped", "rviz_default_plugins/Image"} <= classes
-    assert _topics(config) <= OUR_TOPICS and len(_topics(config)) == 3
+    assert {"rviz_default_plugins/TF", "rviz_default_plugins/PointStamped", "rviz_default_plugins/Image",
+            "rviz_default_plugins/MarkerArray"} <= classes
+    assert _topics(config) <= OUR_TOPICS and len(_topics(config)) == 4
+    markers = next(d for d in manager["Displays"] if d["Class"] == "rviz_default_plugins/MarkerArray")
+    assert markers["Topic"]["Value"] == names.topic(names.MAP_MARKERS, names.DEFAULT_NAMESPACE)
     latched = next(d for d in manager["Displays"] if d.get("Topic", {}).get("Value", "").endswith("/map"))
     assert latched["Topic"]["Durability Policy"] == "Transient Local"   # the map is latched
 

@@ -20,6 +20,7 @@ import os
 import re
 import sqlite3
 import struct
+from binascii import crc32
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from io import BytesIO
@@ -188,20 +189,27 @@ def _chunk_records(chunk: bytes) -> bytes:
     payload = bytes(chunk[offset + 8:offset + 8 + size])
     if len(payload) != size:
         raise ValueError("chunk shorter than its records")
-    if compression == "zstd":
-        try:
-            from compression import zstd  # type: ignore[import-not-found]
-        except ImportError:
-            from backports import zstd  # type: ignore[import-not-found,no-redef]
-        payload = zstd.decompress(payload)
-    elif compression == "lz4":
-        from lz4.frame import decompress
+    try:   # a compressed chunk cut short or overwritten (a full disk) does not decompress: not whole
+        if compression == "zstd":
+            try:
+                from compression import zstd  # type: ignore[import-not-found]
+            except ImportError:
+                from backports import zstd  # type: ignore[import-not-found,no-redef]
+            payload = zstd.decompress(payload)
+        elif compression == "lz4":
+            from lz4.frame import decompress
 
-        payload = decompress(payload)
-    elif compression:
-        raise ValueError(f"unknown chunk compression {compression!r}")
+            payload = decompress(payload)
+        elif compression:
+            raise ValueError(f"unknown chunk compression {compression!r}")
+    except ValueError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - ZstdError, lz4's RuntimeError
+        raise ValueError(f"{compression} chunk does not decompress: {exc}") from None
     if len(payload) != uncompressed_size:
         raise ValueError("chunk records do not have their stated size")
+    if _crc and crc32(payload) != _crc:
+        raise ValueError("chunk records do not match their CRC")
     return payload
 
 

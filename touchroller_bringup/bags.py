@@ -35,6 +35,8 @@ from touchroller_bringup.image_conversion import (
 IMAGE_TOPIC = names.IMAGE_TOPIC   # /touchroller/image_raw
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+COMPRESSED_SUFFIX = "/compressed"   # image_transport's compressed topic beside a raw image topic
+MCAP_ZSTD_LEVEL = 1                 # zstd level of compressed MCAP chunks (bench/recording_size.py)
 Storage = Literal["sqlite3", "mcap"]
 
 
@@ -58,10 +60,11 @@ def typestore():
     return get_typestore(Stores.ROS2_KILTED)
 
 
-def bag_writer(path: str | Path, storage: Storage = "sqlite3", distro: str = "auto"):
+def bag_writer(path: str | Path, storage: Storage = "sqlite3", distro: str = "auto", compress: bool = False):
     """A rosbags Writer (not yet opened) for a new rosbag2 folder that `distro`'s rosbag2 reads
-    (`touchroller_bringup.bag_format`); with MCAP every chunk carries its CRC-32."""
-    from rosbags.rosbag2 import StoragePlugin
+    (`touchroller_bringup.bag_format`); with MCAP every chunk carries its CRC-32, and `compress` compresses
+    each chunk with zstd (rosbag2's MCAP chunk compression; sqlite3 has none: `compress` leaves it as is)."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 
     from touchroller_bringup import bag_format
 
@@ -74,6 +77,8 @@ def bag_writer(path: str | Path, storage: Storage = "sqlite3", distro: str = "au
     distro = bag_format.resolve(distro)
     writer = _writer_class()(path, version=bag_format.writer_version(distro), storage_plugin=plugin)
     writer.distro = distro
+    if compress and storage == "mcap":
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     return writer
 
 
@@ -88,6 +93,12 @@ def _writer_class():
         # A chunk record is opcode (1 byte), length (8), message start and end time (8 + 8), uncompressed
         # size (8), then the uncompressed CRC-32 (4): written 0 by McapWriter.close_chunk, set here.
         CRC_OFFSET = 1 + 8 + 8 + 8 + 8
+
+        def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+            super().__init__(*args, **kwargs)
+            if self.compression == "zstd":   # level 1: camera frames' noise compresses little better at 3, 9x slower
+                compress = self.compressor
+                self.compressor = lambda data: compress(data, level=MCAP_ZSTD_LEVEL)
 
         def close_chunk(self) -> None:
             crc = crc32(self.chunk.bio.getbuffer())
@@ -152,7 +163,10 @@ def open_bag(path: str | Path):
 
 
 def _image_connections(reader, path, topic: str):
-    connections = [c for c in reader.connections if c.topic == topic]
+    """The connections of the images on `topic` and where image_transport puts them compressed
+    (`topic`/compressed): a compressed recording can hold both (frames the recorder wrote raw while it
+    was behind), read together in recording order."""
+    connections = [c for c in reader.connections if c.topic in (topic, topic + COMPRESSED_SUFFIX)]
     if not connections:
         topics = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
         raise UserError(f"bag {path} has no topic {topic} (topics: {topics})")
@@ -368,7 +382,7 @@ def _parse_tf_cdr(raw: bytes | memoryview, static: bool) -> list[TransformRecord
 class _ImageView:
     """The fields of a sensor_msgs/Image, enough for `image_to_array`."""
 
-    __slots__ = ("height", "width", "encoding", "is_bigendian", "step", "data")
+    __slots__ = ("frame_id", "height", "width", "encoding", "is_bigendian", "step", "data")
 
 
 def _parse_image_header(raw: bytes | memoryview) -> tuple[int, _ImageView, int, int]:
@@ -396,8 +410,9 @@ def _parse_image_header(raw: bytes | memoryview) -> tuple[int, _ImageView, int, 
     sec, offset = read_u32(offset)
     nanosec, offset = read_u32(offset)
     sec = sec - (1 << 32) if sec >= 1 << 31 else sec   # int32
-    _frame_id, offset = read_string(offset)
+    frame_id, offset = read_string(offset)
     msg = _ImageView()
+    msg.frame_id = frame_id
     msg.height, offset = read_u32(offset)
     msg.width, offset = read_u32(offset)
     msg.encoding, offset = read_string(offset)
@@ -412,12 +427,18 @@ def _parse_image_header(raw: bytes | memoryview) -> tuple[int, _ImageView, int, 
 
 def _parse_image_cdr(raw: bytes | memoryview) -> tuple[int, np.ndarray]:
     """Parse a CDR-encoded sensor_msgs/Image (XCDR1, as rosbag2 stores it) without copying pixels."""
+    stamp_ns, _frame_id, image = parse_image_message(raw)
+    return stamp_ns, image
+
+
+def parse_image_message(raw: bytes | memoryview) -> tuple[int, str, np.ndarray]:
+    """(stamp ns, frame id, pixels as `image_to_array` gives them) of a CDR-encoded sensor_msgs/Image."""
     buf = memoryview(raw)
     stamp_ns, msg, offset, size = _parse_image_header(buf)
     if offset + size > len(buf):
         raise ValueError(f"pixel data truncated ({len(buf) - offset} of {size} bytes)")
     msg.data = np.frombuffer(buf, dtype=np.uint8, count=size, offset=offset)
-    return stamp_ns, image_to_array(msg)
+    return stamp_ns, msg.frame_id, image_to_array(msg)
 
 
 def offered_qos(latched: bool = False):

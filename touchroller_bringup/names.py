@@ -32,6 +32,7 @@ COVERAGE = "coverage"            # std_msgs/Float32, percent of the sweep's rect
 SWEEP_PASS = "sweep_pass"        # std_msgs/UInt32MultiArray [pass (1-based), passes]
 MAP_HEIGHT = "map_height"        # sensor_msgs/Image 32FC1, the world height map in metres (latched)
 MAP_METADATA = "map_metadata"    # nav_msgs/MapMetaData of the world map (resolution, size, origin)
+MAP_MARKERS = "map_markers"      # visualization_msgs/MarkerArray: the world map's tiles, textured quads in place
 IMAGE_DONE = "image_done"        # std_msgs/Header: the newest image perception has finished with
 DIAGNOSTICS = "/diagnostics"     # absolute: shared by every node of the robot
 TF = "/tf"                       # absolute, as tf2 publishes them; frame ids carry the prefix instead

@@ -1,5 +1,10 @@
 """Record ROS topics into a rosbag2 folder (sqlite3 or MCAP) like `ros2 bag record`, without rosbag2_py.
 
+With `compress`, the recording is lossless but smaller (`touchroller_bringup.bag_compression`): every
+sensor_msgs/Image topic is stored as sensor_msgs/CompressedImage PNG on `<topic>/compressed`, and MCAP
+chunks are compressed with zstd. A writer that falls `PNG_LAG_S` behind (PNG costs several ms a frame)
+writes frames raw on `<topic>` until it has caught up; readers take both topics in recording order.
+
 `Recorder` is a node: it discovers the wanted topics, subscribes with `raw=True` (serialized CDR,
 never deserialised), and hands each message to a writer thread that owns the `rosbags` Writer,
 so callbacks stay short and nothing is dropped while the disk is busy. The offered QoS profiles
@@ -20,6 +25,7 @@ from __future__ import annotations
 
 import importlib
 import queue
+import struct
 import threading
 import time
 from collections.abc import Iterable, Sequence
@@ -39,6 +45,12 @@ _INFINITE_NS = 2**63 - 1
 COMMIT_INTERVAL_S = 1.0    # a kill loses at most this much of a recording
 COMMIT_AGE_S = 0.5         # commit once the oldest uncommitted message arrived this long ago
 COMMIT_MESSAGES = 200      # ... or this many messages, whichever comes first
+#: room kept in the bag folder while recording and given back before it is finalised or indexed, so that a
+#: full disk still leaves room for metadata.yaml (compressed chunks leave too little behind when cut short)
+RESERVE_NAME, RESERVE_BYTES = ".touchroller-reserve", 256 * 1024
+#: with compression, an image that reaches the writer this long after it arrived is written raw (lossless,
+#: larger) instead of as PNG: the writer never falls further behind than this for the sake of compression
+PNG_LAG_S = 0.25
 _IDLE = ("idle",)
 
 
@@ -97,7 +109,7 @@ def subscription_qos(offered: Sequence[QoSProfile], depth: int = 100) -> QoSProf
 class _BagWriter(threading.Thread):
     """Owns the rosbags Writer; every call on it happens on this thread, in arrival order."""
 
-    def __init__(self, path: Path, storage: str, distro: str = "auto") -> None:
+    def __init__(self, path: Path, storage: str, distro: str = "auto", compress: bool = False) -> None:
         super().__init__(name="touchroller-bag-writer", daemon=True)
         from rosbags.typesys import Stores, get_typestore
 
@@ -105,7 +117,12 @@ class _BagWriter(threading.Thread):
 
         self.path = path
         self._typestore = get_typestore(Stores.ROS2_KILTED)
-        self._writer = bag_writer(path, storage, distro)   # MCAP chunks carry their CRC
+        self._writer = bag_writer(path, storage, distro, compress)   # MCAP chunks carry their CRC
+        self.compress = compress
+        self._png: dict[str, list[Any]] = {}   # raw image topics written as PNG on <topic>/compressed: their QoS
+        self._raw_fallback: dict[str, Any] = {}   # ... and their raw connections, made when first needed
+        self.unconvertible = 0        # image messages that could not be compressed (malformed): left out
+        self.written_raw = 0          # images written raw because the writer was behind (PNG costs time)
         self.distro = self._writer.distro
         self._opened = threading.Event()
         self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
@@ -138,6 +155,7 @@ class _BagWriter(threading.Thread):
     def run(self) -> None:
         try:
             self._writer.open()
+            self._reserve()
         except Exception as exc:  # noqa: BLE001 - reported by start() as one line
             self.error = _one_line(exc)
             return
@@ -174,13 +192,37 @@ class _BagWriter(threading.Thread):
             return _IDLE
 
     def _handle(self, item: tuple[Any, ...]) -> None:
+        from touchroller_bringup.bags import COMPRESSED_SUFFIX, COMPRESSED_TYPE, IMAGE_TYPE
+
         if item[0] == "topic":
             _, topic, msgtype, offered = item
+            stored_topic = topic
+            if self.compress and msgtype == IMAGE_TYPE:
+                self._png[topic] = offered
+                stored_topic, msgtype = topic + COMPRESSED_SUFFIX, COMPRESSED_TYPE
             self._connections[topic] = self._writer.add_connection(
-                topic, msgtype, typestore=self._typestore, offered_qos_profiles=offered)
+                stored_topic, msgtype, typestore=self._typestore, offered_qos_profiles=offered)
         else:
-            _, topic, stamp_ns, data, _arrived = item
-            self._writer.write(self._connections[topic], stamp_ns, data)
+            _, topic, stamp_ns, data, arrived = item
+            connection = self._connections[topic]
+            if topic in self._png:
+                if time.monotonic() - arrived > PNG_LAG_S:
+                    # behind (a loaded machine): this frame raw on <topic>, so the writer catches up and a
+                    # failure is seen as soon as without compression; readers merge both topics in order
+                    if topic not in self._raw_fallback:
+                        self._raw_fallback[topic] = self._writer.add_connection(
+                            topic, IMAGE_TYPE, typestore=self._typestore, offered_qos_profiles=self._png[topic])
+                    connection = self._raw_fallback[topic]
+                    self.written_raw += 1
+                else:
+                    from touchroller_bringup.bag_compression import compressed_message
+
+                    try:
+                        data = compressed_message(data, self._typestore)
+                    except (ValueError, struct.error):   # a malformed image: what it holds cannot be kept
+                        self.unconvertible += 1
+                        return
+            self._writer.write(connection, stamp_ns, data)
             self.written += 1
 
     def _commit(self) -> None:
@@ -202,15 +244,26 @@ class _BagWriter(threading.Thread):
         self.error = _one_line(exc)
         self.failed.set()
 
+    def _reserve(self) -> None:
+        """Hold RESERVE_BYTES in the bag folder (best effort: a disk already full holds none)."""
+        try:
+            with open(self.path / RESERVE_NAME, "wb") as reserve:
+                reserve.write(b"\0" * RESERVE_BYTES)
+        except OSError:
+            pass
+
     def _close(self) -> None:
         """Finalise the bag; after a failure keep what was committed and index it (no traceback here:
-        a thread's exception would print one, e.g. a full disk while MCAP writes its summary)."""
-        try:
-            self._writer.close()
-            closed = True
-        except Exception as exc:  # noqa: BLE001 - reported through error / failed
-            closed = False
-            if self.error is None:
+        a thread's exception would print one, e.g. a full disk while MCAP writes its summary). The reserve
+        is given back first: room for the summary and metadata.yaml. A bag whose writing failed is not
+        finalised (its last chunk may hold what a full disk made of it) but indexed as a killed one is."""
+        (self.path / RESERVE_NAME).unlink(missing_ok=True)
+        closed = False
+        if self.error is None:
+            try:
+                self._writer.close()
+                closed = True
+            except Exception as exc:  # noqa: BLE001 - reported through error / failed
                 self._fail(exc)
         if self.error is None:
             return
@@ -240,8 +293,8 @@ class Recorder(Node):
     """Records `topics` (all but /rosout and /parameter_events when None) to a new bag at `path`."""
 
     def __init__(self, path: str | Path, *, topics: Iterable[str] | None = None, storage: str = "sqlite3",
-                 distro: str = "auto", discovery_period: float = 0.2, node_name: str = "touchroller_recorder",
-                 **node_kwargs: Any) -> None:
+                 distro: str = "auto", compress: bool = False, discovery_period: float = 0.2,
+                 node_name: str = "touchroller_recorder", **node_kwargs: Any) -> None:
         # What close() and destroy_node use comes before Node.__init__: from there on the context tracks
         # the node and destroys it at shutdown, also when the rest of this constructor raises.
         self.path = Path(path)
@@ -252,7 +305,7 @@ class Recorder(Node):
         self._lock = threading.Lock()
         self._closed = False
         self._timer: Any = None
-        self._writer = _BagWriter(self.path, storage, distro)
+        self._writer = _BagWriter(self.path, storage, distro, compress)
         self._writer.start()   # opens the bag: UserError (e.g. a read-only folder) before any node exists
         try:
             super().__init__(node_name, **node_kwargs)

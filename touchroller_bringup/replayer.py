@@ -3,7 +3,10 @@
 Messages are published serialized (`publish(bytes)`, never deserialised) at their recorded
 receive timing scaled by `rate`, with the QoS the recorded publishers offered (reliability and
 durability kept when every recorded publisher agreed, like rosbag2). A truncated bag plays up to
-the damage and then reports one clear line.
+the damage and then reports one clear line. Images recorded compressed (sensor_msgs/CompressedImage on
+`<topic>/compressed`, `touchroller_bringup.bag_compression`) are published as recorded and, decoded, as
+sensor_msgs/Image on `<topic>` (as `image_transport republish` would; beside the frames the recording holds
+raw there, if any): a graph listening to `image_raw` runs on a compressed recording as on a raw one.
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
-from touchroller_bringup.bags import open_bag
+from touchroller_bringup.bags import COMPRESSED_SUFFIX, COMPRESSED_TYPE, open_bag
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.recorder import message_class, qos_time_to_duration
 
@@ -85,8 +88,23 @@ class Replayer(Node):
                 offered = list(getattr(connection.ext, "offered_qos_profiles", []) or [])
                 by_topic[connection.topic] = self.create_publisher(cls, connection.topic, playback_qos(offered))
             self._playback_publishers[connection.id] = by_topic[connection.topic]
+        # compressed images: also decoded, on the raw topic (with the recording's own raw frames there, if any)
+        self._decoded_publishers: dict[int, Any] = {}
+        for connection in connections:
+            raw_topic = connection.topic.removesuffix(COMPRESSED_SUFFIX)
+            if connection.msgtype != COMPRESSED_TYPE or raw_topic == connection.topic \
+                    or connection.id not in self._playback_publishers:
+                continue
+            if raw_topic not in by_topic:
+                from sensor_msgs.msg import Image
+
+                offered = list(getattr(connection.ext, "offered_qos_profiles", []) or [])
+                by_topic[raw_topic] = self.create_publisher(Image, raw_topic, playback_qos(offered))
+            self._decoded_publishers[connection.id] = by_topic[raw_topic]
+        self.undecodable = 0   # compressed images that did not decode (published as recorded only)
         self.topics = sorted(by_topic)
         self.published = 0
+        self._store: Any = None
         self.error: str | None = None
         self._done = threading.Event()
 
@@ -95,7 +113,8 @@ class Replayer(Node):
         return self._done.is_set()
 
     def publisher_for(self, topic: str) -> Any:
-        return next(p for p in self._playback_publishers.values() if p.topic_name == topic)
+        publishers = [*self._playback_publishers.values(), *self._decoded_publishers.values()]
+        return next(p for p in publishers if p.topic_name == topic)
 
     def start(self) -> None:
         if self._thread is None:
@@ -123,6 +142,27 @@ class Replayer(Node):
         finally:
             self._done.set()
 
+    def _publish_decoded(self, connection_id: int, data: Any) -> None:
+        from touchroller_bringup.bags import typestore
+        from touchroller_bringup.image_conversion import (
+            ImageFormatError,
+            array_to_image,
+            compressed_to_array,
+            stamp_to_ns,
+        )
+
+        if self._store is None:
+            self._store = typestore()
+        try:
+            msg = self._store.deserialize_cdr(bytes(data), COMPRESSED_TYPE)
+            image = compressed_to_array(msg)
+        except (ImageFormatError, ValueError) as exc:
+            self.undecodable += 1
+            self.get_logger().warning(f"a compressed image did not decode: {exc}", throttle_duration_sec=5.0)
+            return
+        self._decoded_publishers[connection_id].publish(
+            array_to_image(image, stamp_to_ns(msg.header.stamp), frame_id=msg.header.frame_id))
+
     def _play_once(self) -> None:
         reader = open_bag(self.path)
         try:
@@ -148,5 +188,7 @@ class Replayer(Node):
                     return
                 self._playback_publishers[connection.id].publish(bytes(data))
                 self.published += 1
+                if connection.id in self._decoded_publishers:
+                    self._publish_decoded(connection.id, data)
         finally:
             reader.close()

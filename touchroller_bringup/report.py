@@ -76,6 +76,12 @@ SECTIONS: tuple[Section, ...] = (
             "its own surfaces, contact band model, shading, noise and arm. Rasters under 4 motion profiles x 4 true "
             "camera latencies x 2 raster yaws, and weave, smooth-panel and glass rows, each through `touchroller map` "
             "not told the latency, scored in place against the generator's truth."),
+    Section("recording_size", "Recordings that fit: size and `touchroller map` speed, raw against compressed",
+            "recording_size",
+            "A 3-pass raster with /tf and /tf_static from the simulator and from the second raster generator, recorded "
+            "raw and rewritten as `touchroller record` writes it (PNG CompressedImage on image_raw/compressed, zstd "
+            "MCAP chunks) and each way alone: bytes per frame and per square metre mapped, the time to compress a "
+            "frame, `touchroller map` as a new process on each, and whether its map is the raw recording's."),
     Section("inspection", "Inspection: cracks, dents and bumps in a height map", "inspection",
             "The detector (`touchroller_perception.inspection`) on synthetic height maps from a generator of the "
             "bench's own (no sensor and no simulator in the loop: the end-to-end figure comes with the world height "
@@ -178,6 +184,23 @@ class Goal:
     measure: Measure | None = None
     script: str = ""              # for goals the report does not run: bench/<script>.py and its result file
     args: str = ""
+
+
+def _recording(r: Any, index: int) -> tuple[str, bool]:   # bench.recording_size.RecordingResult
+    source = r.sources[index]
+    raw, packed = source.variant("sqlite3 raw"), source.variant("sqlite3 PNG")
+    best = min(source.variants, key=lambda v: v.bytes)
+    same = all(v.same_map for v in source.variants)
+    return (f"default (PNG) {source.per_m2(packed) / 1e9:.1f} GB per m^2, {packed.bytes / raw.bytes:.2f}x raw's "
+            f"{source.per_m2(raw) / 1e9:.1f}; smallest ({best.name}) {best.bytes / raw.bytes:.2f}x; same map: "
+            f"{'yes' if same else 'NO'}", same and packed.bytes < raw.bytes)
+
+
+def _recording_speed(r: Any, index: int) -> tuple[str, bool | None]:
+    source = r.sources[index]
+    raw = source.variant("sqlite3 raw")
+    text = ", ".join(f"{v.name} {v.map_fps:.0f}" for v in source.variants if v is not raw)
+    return f"raw {raw.map_fps:.0f} frames/s; {text}", None
 
 
 def _sim_fps(r: Any) -> tuple[str, bool]:   # bench.sim_bench.SimBenchResult
@@ -593,6 +616,12 @@ GOALS: tuple[Goal, ...] = (
     Goal(22, "World map grid (simulator): no seam beyond 0.25 of the map's std", "world_map", _world_grid(5)),
     Goal(22, "World map: smooth panel and glass (simulator): every pressed frame mapped", "world_map",
          _world_grid(6)),
+    Goal(25, "Recordings: lossless compressed recordings (simulator): size per m^2 and the same map as raw",
+         "recording_size", lambda r: _recording(r, 0)),
+    Goal(25, "Recordings: lossless compressed recordings (second generator): size per m^2 and the same map as raw",
+         "recording_size", lambda r: _recording(r, 1)),
+    Goal(25, "Recordings: `touchroller map` on the compressed recording (simulator), frames/s against raw",
+         "recording_size", lambda r: _recording_speed(r, 0)),
     Goal(24, "Inspection (synthetic height maps): recall >= 0.95 for cracks 0.1-0.5 mm wide, >= 20 µm deep, >= 5 mm "
              "long", "inspection", _inspect(lambda s: (f"{s.crack_recall:.3f} of {s.cracks_in_scope}, worst seed "
                                                      f"{s.worst_seed} {s.crack_recall_worst_seed:.3f}",

@@ -62,10 +62,11 @@ from touchroller_perception.files import atomic_write, atomic_write_text
 
 # with `record`: these topics of the scan's namespace, and /diagnostics
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.TCP_POSE, names.SWEEP_PROGRESS,
-                   names.DIAGNOSTICS, names.TF, names.TF_STATIC)   # with TF a recording re-maps offline
+RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.TCP_POSE,
+                   names.SWEEP_PROGRESS, names.DIAGNOSTICS, names.TF, names.TF_STATIC)   # with TF: re-maps offline
 # the topics of the scan's namespace that only its own nodes may publish (and /clock when simulated)
 GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.MAP_HEIGHT,
+                names.MAP_MARKERS,
                 names.TCP_POSE, names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
 
 
@@ -86,6 +87,7 @@ class ScanOptions:
     storage: str = "sqlite3"
     bag_format: str = "auto"      # touchroller_bringup.bag_format: which distribution's rosbag2 reads the recording
     height: bool = False          # also the height map: simulated, a photometric model made on the fly
+    compress: bool = True         # the recording's images as lossless PNG (image_raw/compressed), MCAP chunks zstd
 
 
 @dataclass
@@ -422,7 +424,8 @@ def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: lis
     if path.exists():
         raise UserError(f"{path} already exists; choose another --out")
     topics = [names.topic(name, namespace) for name in RECORDED_TOPICS]
-    recorder = Recorder(path, topics=topics, storage=options.storage, distro=options.bag_format, context=context)
+    recorder = Recorder(path, topics=topics, storage=options.storage, distro=options.bag_format,
+                        compress=options.compress, context=context)
     nodes.append(recorder)
     return recorder
 

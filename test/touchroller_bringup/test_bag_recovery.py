@@ -127,3 +127,32 @@ def test_reindex_of_a_bag_on_a_read_only_disk_is_one_line_saying_what_to_do(bag_
     assert main(["reindex", str(folder / "bag")]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "copy the bag" in err and "metadata.yaml" in err, err
+
+
+@pytest.mark.parametrize("damage", ["garbage", "zeros"])
+def test_a_compressed_mcap_whose_last_chunk_was_overwritten_keeps_the_chunks_before(tmp_path, damage):
+    """A full disk can leave a zstd chunk of the right length whose bytes are not what was written: it
+    does not decompress (or not to its CRC). Reindex keeps the chunks before it instead of failing."""
+    from touchroller_bringup.bag_compression import compress_recording
+    from touchroller_bringup.bag_recovery import OP_CHUNK, _records
+
+    rng = np.random.default_rng(0)
+    noisy = [(s, rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)) for s, _ in frames(300)]
+    write_images(tmp_path / "raw", noisy, storage="mcap")
+    bag = tmp_path / "bag"
+    compress_recording(tmp_path / "raw", bag)
+    (bag / "metadata.yaml").unlink()
+    mcap = storage_file(bag)
+    data = bytearray(mcap.read_bytes())
+    chunks = [(content, stop) for op, _start, content, stop in _records(bytes(data), 8, len(data)) if op == OP_CHUNK]
+    assert len(chunks) >= 2
+    content, stop = chunks[-1]
+    middle = (content + stop) // 2
+    data[middle:middle + 64] = rng.integers(0, 256, 64, dtype=np.uint8).tobytes() if damage == "garbage" \
+        else bytes(64)
+    mcap.write_bytes(bytes(data[:stop]))   # cut after the damaged chunk, as a failed write leaves it
+    found = reindex(bag)
+    kept = list(read_images(bag))
+    assert 0 < len(kept) == found.message_count < 300 and found.repaired
+    for record, (stamp, image) in zip(kept, noisy, strict=False):
+        assert record.stamp_ns == stamp and np.array_equal(record.image, image)

@@ -245,3 +245,17 @@ def test_sigterm_leaves_no_temporary_and_the_next_run_sweeps_a_killed_runs(bag_f
     bag_small = bag_factory([(k * 1_000_000, rng.integers(0, 255, (24, 32, 3), np.uint8)) for k in range(8)])
     assert main(["contacts", str(bag_small), "--out", str(out)]) == 0
     assert not list(tmp_path.glob(".contacts.csv.*")) and out.is_file()
+
+
+def test_a_compressed_recording_gives_the_same_contacts(tapped_bag, tmp_path):
+    """`touchroller record` stores images as PNG on image_raw/compressed: the same rows as from the raw bag."""
+    from touchroller_bringup.bag_compression import compress_recording
+
+    bag, _ = tapped_bag
+    compressed = tmp_path / "compressed"
+    compress_recording(bag, compressed, storage="sqlite3")
+    params = tmp_path / "cal.yaml"
+    CAMERA.to_yaml(params)
+    for source, out in ((bag, tmp_path / "raw.csv"), (compressed, tmp_path / "png.csv")):
+        assert main(["contacts", str(source), "--params", str(params), "--out", str(out)]) == 0
+    assert _read(tmp_path / "png.csv") == _read(tmp_path / "raw.csv") and len(_read(tmp_path / "raw.csv")) == 3

@@ -1,4 +1,7 @@
-"""`touchroller record --out BAG [--storage sqlite3|mcap] [--topics T ...] [--duration S]`.
+"""`touchroller record --out BAG [--storage sqlite3|mcap] [--topics T ...] [--duration S] [--uncompressed]`.
+
+Images are stored losslessly compressed (sensor_msgs/CompressedImage PNG on `<topic>/compressed`, MCAP
+chunks zstd; `touchroller_bringup.bag_compression`) unless `--uncompressed`.
 
 Like `ros2 bag record`: raw subscriptions into a rosbag2 folder with the publishers' QoS in its
 metadata. Ctrl-C, SIGTERM or SIGHUP (the terminal closed) stop it between callbacks; what had arrived is
@@ -24,6 +27,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Record topics (all but /rosout and /parameter_events unless --topics) until Ctrl-C or --duration.")
     parser.add_argument("--out", "-o", required=True, help="new bag folder to write")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="storage plugin")
+    parser.add_argument("--uncompressed", action="store_true",
+                        help="store images as raw sensor_msgs/Image (default: lossless PNG CompressedImage on "
+                             "<topic>/compressed, and zstd MCAP chunks)")
     parser.add_argument("--bag-format", choices=bag_format.CHOICES, default="auto", help=bag_format.HELP)
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="topics to record (default: all)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
@@ -63,11 +69,12 @@ def run(args: argparse.Namespace) -> int:
     recorder = None
     try:
         recorder = Recorder(args.out, topics=args.topics, storage=args.storage, distro=args.bag_format,
-                            context=context)
+                            compress=not args.uncompressed, context=context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(recorder)
         deadline = None if args.duration is None else time.monotonic() + args.duration
-        print(f"recording to {args.out} ({args.storage}); Ctrl-C to stop", flush=True)
+        kind = "" if args.uncompressed else ", images as PNG"
+        print(f"recording to {args.out} ({args.storage}{kind}); Ctrl-C to stop", flush=True)
         while not stop.is_set() and not recorder.failed.is_set() \
                 and (deadline is None or time.monotonic() < deadline):
             executor.spin_once(timeout_sec=0.1)

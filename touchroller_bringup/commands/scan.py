@@ -57,6 +57,9 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                         help="storage of the --record bag (default sqlite3)")
     parser.add_argument("--bag-format", choices=bag_format.CHOICES, default=None,
                         help="the --record bag: " + bag_format.HELP)
+    parser.add_argument("--uncompressed", action="store_true",
+                        help="the --record bag stores raw sensor_msgs/Image (default: lossless PNG on "
+                             "image_raw/compressed, zstd MCAP chunks)")
 
 
 class _RestParser(argparse.ArgumentParser):
@@ -72,6 +75,7 @@ def _reparse(args: argparse.Namespace) -> argparse.Namespace:
     parsed.seed = parsed.seed or args.seed
     parsed.quiet = parsed.quiet or args.quiet
     parsed.record = parsed.record or args.record
+    parsed.uncompressed = parsed.uncompressed or args.uncompressed
     parsed.storage = parsed.storage or args.storage or "sqlite3"
     parsed.bag_format = parsed.bag_format or args.bag_format or "auto"
     parsed.namespace = parsed.namespace if parsed.namespace is not None else args.namespace
@@ -153,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
     progress = None if args.quiet else (lambda line: print(line, flush=True))
     result = run_scan(ScanOptions(out_dir=out, arguments=arguments, params_files=files, overrides=overrides,
                                   seed=args.seed, progress=progress, record=args.record, storage=args.storage,
-                                  bag_format=args.bag_format, height=args.height))
+                                  bag_format=args.bag_format, height=args.height,
+                                  compress=not args.uncompressed))
     map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
     print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
           f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")

@@ -15,7 +15,10 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   `map.world` and TF linking `world_frame` to touchroller_cylinder (/tf, /tf_static) one mosaic in the
   world frame (`touchroller_perception.world_map`: placed by TF at the latency-corrected stamps,
   refined by registration; mono8, row 0 the largest y, frame_id `world_frame`) with its resolution and
-  origin on `map_metadata` (nav_msgs/MapMetaData, as nav2's map_server); else the strip map of
+  origin on `map_metadata` (nav_msgs/MapMetaData, as nav2's map_server), at the level of detail that
+  fits `map.view_max_pixels` (the map downsampled by 2, 4, ... as it grows), and the map in place for
+  RViz on `map_markers` (visualization_msgs/MarkerArray: one textured quad per `map.tile_px` tile,
+  sent again only where the map changed; `touchroller_bringup.map_markers`); else the strip map of
   `touchroller_perception.stitching` (frame touchroller_cylinder);
   follows the sweep on `sweep_progress` (std_msgs/Float32, 0..1 of the rolling, all passes; only from
   the sweep node of its namespace, told by the publisher of each message: any other is ignored): a new
@@ -64,6 +67,7 @@ from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.map_files import write_world_map
+from touchroller_bringup.map_markers import MapViewPublisher
 from touchroller_bringup.publisher_filter import PublisherFilter
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
@@ -86,15 +90,10 @@ from touchroller_bringup.tf import TransformListener, TransformPublisher, camera
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
+from touchroller_perception.map_tiles import TileConfig, world_map_raster
 from touchroller_perception.stitching import Stitcher, StitcherConfig
 from touchroller_perception.transforms import TransformBuffer, TransformError
-from touchroller_perception.world_map import (
-    WorldMapConfig,
-    WorldMapImage,
-    WorldMapper,
-    buffer_lookup,
-    latency_summary,
-)
+from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
 
 
 def image_qos() -> QoSProfile:
@@ -187,6 +186,14 @@ HEIGHT_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
                               0.0, 200.0),
 }
 
+# parameter name -> (TileConfig field, description, min, max): the world map's live views
+VIEW_PARAMETERS: dict[str, tuple[str, str, int, int]] = {
+    "map.view_max_pixels": ("max_pixels", "World map: the most pixels of the view published on map (and of "
+                            "the tiles on map_markers): the map is downsampled by 2, 4, ... to fit", 262_144,
+                            100_000_000),
+    "map.tile_px": ("tile_px", "World map: the side of a tile on map_markers, view pixels", 64, 2048),
+}
+
 # world-map parameters: a change starts a new map
 WORLD_PARAMETERS = ("world_frame", "map.world", "map.resolution", "map.bounds", "map.latency_estimate",
                     "map.register", "map.height.photometric", "map.height.reference")
@@ -246,6 +253,7 @@ class PerceptionNode(Node):
         self.map_pub = self.create_publisher(Image, names.MAP, MAP_QOS)
         self.map_metadata_pub = self.create_publisher(MapMetaData, names.MAP_METADATA, MAP_QOS)
         self.map_height_pub = self.create_publisher(Image, names.MAP_HEIGHT, MAP_QOS)
+        self.map_views = MapViewPublisher(self, self.map_pub, self.map_metadata_pub, self._view_config())
         self.done_pub = self.create_publisher(Header, names.IMAGE_DONE, QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
         # progress only from the sweep node of this namespace: another publisher must not cut a map short
@@ -296,6 +304,9 @@ class PerceptionNode(Node):
         defaults_height = WorldHeightConfig()
         for name, (field, description, lo, hi) in HEIGHT_PARAMETERS.items():
             declare(self, name, getattr(defaults_height, field), description, min=lo, max=hi)
+        defaults_view = TileConfig()
+        for name, (field, description, lo, hi) in VIEW_PARAMETERS.items():
+            declare(self, name, getattr(defaults_view, field), description, min=lo, max=hi)
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
                 min=0.0, max=100.0)
 
@@ -309,9 +320,15 @@ class PerceptionNode(Node):
         values.update(overrides or {})
         return StitcherConfig(**{STITCHER_PARAMETERS[name][0]: value for name, value in values.items()})
 
+    def _view_config(self, overrides: dict[str, Any] | None = None) -> TileConfig:
+        values = {name: self.get_parameter(name).value for name in VIEW_PARAMETERS}
+        values.update(overrides or {})
+        return TileConfig(**{VIEW_PARAMETERS[name][0]: int(value) for name, value in values.items()})
+
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config),
-                            (WORLD_PARAMETERS, self._world_config), (HEIGHT_PARAMETERS, self._height_config)):
+                            (WORLD_PARAMETERS, self._world_config), (HEIGHT_PARAMETERS, self._height_config),
+                            (VIEW_PARAMETERS, self._view_config)):
             changes = {p.name: p.value for p in parameters if p.name in table}
             if changes:
                 try:
@@ -342,6 +359,10 @@ class PerceptionNode(Node):
             self.frame_id = self._contacts_frame_id()
         if "map.publish_rate" in changed:
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+        if changed & set(VIEW_PARAMETERS):
+            with self._map_lock:
+                self.map_views.configure(self._view_config())
+                self._map_dirty = True
 
     def _world_config(self, overrides: dict[str, Any] | None = None) -> WorldMapConfig:
         values = {name: self.get_parameter(name).value for name in WORLD_PARAMETERS}
@@ -587,6 +608,7 @@ class PerceptionNode(Node):
             self.stitcher = self.world = None
             self._map_dirty = False
             self._finish_after_ns = None
+            self.map_views.reset()
 
     def finish_map(self) -> None:
         """The roll ended: correct the whole map with its final flat field, publish it, and save it
@@ -688,34 +710,34 @@ class PerceptionNode(Node):
         self.map_height_pub.publish(msg)
 
     def publish_map(self) -> np.ndarray | None:
-        """Publish the map if it changed since the last publication; returns what was published."""
-        world_image: WorldMapImage | None = None
+        """Publish the map if it changed since the last publication; returns what was published (a
+        world map: its view within `map.view_max_pixels`)."""
+        world = None
         with self._map_lock:
             if (self.stitcher is None and self.world is None) or not self._map_dirty:
                 return None
             try:
                 if self.world is not None:
-                    world_image = self.world.map_image()
-                    tactile_map = world_image.grey
+                    world = world_map_raster(self.world)
                 else:
                     tactile_map = self.stitcher.map_image()
             except Exception as exc:  # noqa: BLE001
                 self.get_logger().warning(f"map not available: {exc}", throttle_duration_sec=10.0)
                 return None
             self._map_dirty = False
+            now = self.get_clock().now().nanoseconds
+            if world is not None:   # nothing mapped yet: None (a world map waits for the roller to roll)
+                view = self.map_views.publish(world, self.world_frame, now)
+                self._publish_height(now)
+                return None if view is None else view.grey
         from touchroller_bringup.image_conversion import array_to_image
 
-        if tactile_map.size == 0:   # nothing mapped yet (a world map waits for the roller to roll)
+        if tactile_map.size == 0:
             return None
         if tactile_map.dtype != np.uint8:
             tactile_map = np.clip(tactile_map, 0, 255).astype(np.uint8)
-        now = self.get_clock().now().nanoseconds
-        frame_id = self.world_frame if world_image is not None else names.frame(names.CYLINDER_FRAME, self.frame_prefix)
+        frame_id = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         self.map_pub.publish(array_to_image(tactile_map, now, frame_id=frame_id))
-        if world_image is not None:
-            self.map_metadata_pub.publish(map_metadata(world_image, now))
-            with self._map_lock:
-                self._publish_height(now)
         return tactile_map
 
     # ------------------------------------------------------------------ diagnostics
@@ -777,17 +799,6 @@ class PerceptionNode(Node):
         if world is not None and world.stats.latency_warning:
             return Status(WARN, world.stats.latency_warning, values)
         return Status(OK, "detecting contacts", values)
-
-
-def map_metadata(image: WorldMapImage, stamp_ns: int) -> MapMetaData:
-    """nav_msgs/MapMetaData of a world map (origin: the lower-left pixel's corner, as nav2 publishes)."""
-    meta = MapMetaData()
-    meta.map_load_time.sec, meta.map_load_time.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    meta.resolution = float(image.resolution)
-    meta.height, meta.width = (int(n) for n in image.grey.shape)
-    meta.origin.position.x, meta.origin.position.y = (float(v) for v in image.origin)
-    meta.origin.orientation.w = 1.0
-    return meta
 
 
 def _or_nan(value: float | None) -> float:

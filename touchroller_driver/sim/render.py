@@ -498,8 +498,7 @@ class SimulatedSensor:
             res = self.surface.resolution
             mx = self._map_x0[v0:v1] + np.float32(state.x_along / res)
             my = self._map_y0[v0:v1] + np.float32(state.travel / res)
-            relief = cv2.remap(self._relief.height, mx, my, cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+            relief = self._relief.remap(mx, my)   # a tiled surface reads only the tiles under the band
             if blur_px > 1.0:
                 relief = effects.motion_blur(relief, blur_px)
                 self._count("blur")

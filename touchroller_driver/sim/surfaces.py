@@ -3,7 +3,9 @@
 Grid convention: `height[row, col]`, rows along the rolling direction Y (world), columns along the
 roller axis X; cell centres at X = x0 + (col + 0.5) * resolution, Y = y0 + (row + 0.5) * resolution.
 Heights are >= 0 and add to the roller's penetration depth (0 = the surface's base plane).
-Outside the grid the surface is its flat base plane.
+Outside the grid the surface is its flat base plane. `surface.lazy: true`, or a grid past
+`EAGER_MAX_CELLS`, makes a `TiledSurface` instead (touchroller_driver.sim.tiled_surface: tiles made on
+demand, a bounded cache) for the kinds that can be made by window (`lazy_surfaces.LAZY_KINDS`).
 
 Procedural fabrics (plain weave, twill, knit) are built from yarn cross-section profiles with
 per-thread jitter, fibre noise and low-frequency wrinkles, so they are not perfectly periodic
@@ -22,7 +24,12 @@ from typing import Any
 import cv2
 import numpy as np
 
+from touchroller_driver.sim.lazy_surfaces import LAZY_KINDS, lazy_surface
+from touchroller_driver.sim.tiled_surface import TiledSurface
+
 FABRIC_PATTERNS = ("plain_weave", "twill", "knit")
+#: a surface grid larger than this is made tile by tile (LAZY_KINDS) or refused
+EAGER_MAX_CELLS = 40_000_000
 
 
 @dataclass(frozen=True)
@@ -70,8 +77,12 @@ class Surface:
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         return out.ravel()[:n].reshape(shape)
 
+    def remap(self, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
+        """Bilinear heights at grid coordinates (float32 column and row, cell centres whole; 0 outside)."""
+        return cv2.remap(self.height, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
 
-def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface:
+
+def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface | TiledSurface:
     """Build the scene's surface from its `surface:` block."""
     kind = spec.get("kind", "flat")
     width = float(spec.get("width", 0.08))
@@ -82,10 +93,13 @@ def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface:
         raise ValueError("surface: width, length and resolution must be > 0 and relief >= 0")
     cols = max(1, round(width / resolution))
     rows = max(1, round(length / resolution))
-    if rows * cols > 40_000_000:
-        raise ValueError(f"surface grid {rows}x{cols} is too large; raise surface.resolution")
     x0 = -0.5 * width + float(spec.get("x_offset", 0.0))
     y0 = float(spec.get("y_offset", 0.0))
+    if bool(spec.get("lazy", False)) or (rows * cols > EAGER_MAX_CELLS and kind in LAZY_KINDS):
+        return lazy_surface(spec, rows, cols, resolution, relief, x0, y0, rng)
+    if rows * cols > EAGER_MAX_CELLS:
+        raise ValueError(f"surface grid {rows}x{cols} is too large for a {kind} surface; raise surface.resolution "
+                         f"(kinds {', '.join(LAZY_KINDS)} are made tile by tile at any size)")
     if kind == "flat":
         unit = np.zeros((rows, cols), np.float32)
         desc = "flat plane"
