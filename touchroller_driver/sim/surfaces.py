@@ -22,6 +22,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from touchroller_driver.sim.defects import surface_defects
+
 FABRIC_PATTERNS = ("plain_weave", "twill", "knit")
 
 
@@ -124,7 +126,12 @@ def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface:
         unit = heights / relief if relief > 0 else heights
     else:
         raise ValueError(f"surface.kind must be flat, fabric, image, grain, stripes, panel or glass, got {kind!r}")
-    return Surface((unit * relief).astype(np.float32), resolution, x0, y0, desc)
+    height = (unit * relief).astype(np.float32)
+    plan = surface_defects(spec)   # `surface.defects`: planted on any kind (sim/defects.py), its own seed
+    if plan:
+        plan.render(height, x0, y0, resolution)
+        desc += f"; planted {len(plan.cracks)} crack(s), {len(plan.blobs)} dent(s)/bump(s)"
+    return Surface(height, resolution, x0, y0, desc)
 
 
 def _panel(spec: dict[str, Any], rows: int, cols: int, resolution: float, rng: np.random.Generator, *,
