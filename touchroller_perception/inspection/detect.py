@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from touchroller_perception.inspection.background import gaussian_mean, local_surface, texture_peak
+from touchroller_perception.inspection.background import local_surface, texture_peak
 from touchroller_perception.inspection.centreline import across, path_length, smooth_path, trace
 from touchroller_perception.inspection.types import (
     Finding,
@@ -82,7 +82,7 @@ def inspect_intensity(grey: np.ndarray, resolution: float, origin: Sequence[floa
     A tactile map's grey is shading: a defect shows as a bright and a dark side (a crack as two lines, a
     dent as two half-moons), not as one sign. So the map's anomaly is unsigned: |grey - its local mean|,
     smoothed over `intensity_blur_m` (which joins the two sides into one region), and the height method
-    runs on it with thresholds from the noise alone (`min_depth_m` does not apply). Places and shapes
+    runs on it with its thresholds from the noise, at least `min_intensity` grey levels. Places and shapes
     only: `depth_m` is NaN, widths include the shading's two sides, and a compact anomaly is a dent when
     its middle is darker than its surroundings, a bump when brighter (a shading's sign: not reliable)."""
     values = np.asarray(grey)
@@ -90,7 +90,8 @@ def inspect_intensity(grey: np.ndarray, resolution: float, origin: Sequence[floa
     if values.size == 0:
         return _empty()
     energy, signed = _anomaly(values, resolution, mask, config)
-    result = _detect(-energy, resolution, origin, mask, replace(config, min_depth_m=0.0), depth_known=False)
+    result = _detect(-energy, resolution, origin, mask, replace(config, min_depth_m=config.min_intensity),
+                     depth_known=False)
     return InspectionResult(_signed_kinds(result.findings, signed, resolution, origin), result.diagnostics)
 
 
@@ -100,7 +101,8 @@ def _anomaly(values: np.ndarray, resolution: float, mask: np.ndarray | None,
     finite = np.isfinite(values)
     usable = finite if mask is None else finite & ~np.asarray(mask, bool)
     v = np.where(usable, values, 0.0).astype(np.float32)
-    surface = gaussian_mean(v, usable.astype(np.float32), config.background_scale_m / resolution)
+    surface, _ = local_surface(v, usable, config.background_scale_m / resolution, config.background_iterations,
+                               config.background_reject, config.noise_sample)   # a defect kept out of its mean
     signed = np.where(usable, v - surface, 0.0).astype(np.float32)
     blur = config.intensity_blur_m / resolution
     energy = np.abs(signed)
