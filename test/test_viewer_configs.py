@@ -27,7 +27,8 @@ def _topics(node) -> set[str]:
     return found
 
 
-OUR_TOPICS = {names.topic(t, names.DEFAULT_NAMESPACE) for t in (names.IMAGE, "contacts", "map")} | {"/diagnostics"}
+OUR_TOPICS = {names.topic(t, names.DEFAULT_NAMESPACE) for t in (names.IMAGE, "contacts", "map", names.FINDINGS)} \
+    | {"/diagnostics"}
 
 
 def test_rviz_config_loads_with_the_robot_base_fixed_and_our_topics():
@@ -36,9 +37,12 @@ def test_rviz_config_loads_with_the_robot_base_fixed_and_our_topics():
     assert manager["Global Options"]["Fixed Frame"] == names.BASE_FRAME
     classes = {d["Class"] for d in manager["Displays"]}
     assert {"rviz_default_plugins/TF", "rviz_default_plugins/PointStamped", "rviz_default_plugins/Image"} <= classes
-    assert _topics(config) <= OUR_TOPICS and len(_topics(config)) == 3
-    latched = next(d for d in manager["Displays"] if d.get("Topic", {}).get("Value", "").endswith("/map"))
-    assert latched["Topic"]["Durability Policy"] == "Transient Local"   # the map is latched
+    assert _topics(config) <= OUR_TOPICS and len(_topics(config)) == 4
+    for latched_topic in ("/map", "/findings"):   # the map and the findings are latched
+        latched = next(d for d in manager["Displays"] if d.get("Topic", {}).get("Value", "").endswith(latched_topic))
+        assert latched["Topic"]["Durability Policy"] == "Transient Local"
+    findings = next(d for d in manager["Displays"] if d["Class"] == "rviz_default_plugins/MarkerArray")
+    assert findings["Topic"]["Value"] == names.topic(names.FINDINGS, names.DEFAULT_NAMESPACE)
 
 
 def test_foxglove_layout_loads_and_every_panel_it_lays_out_is_configured():

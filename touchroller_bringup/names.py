@@ -32,6 +32,7 @@ COVERAGE = "coverage"            # std_msgs/Float32, percent of the sweep's rect
 SWEEP_PASS = "sweep_pass"        # std_msgs/UInt32MultiArray [pass (1-based), passes]
 MAP_METADATA = "map_metadata"    # nav_msgs/MapMetaData of the world map (resolution, size, origin)
 IMAGE_DONE = "image_done"        # std_msgs/Header: the newest image perception has finished with
+FINDINGS = "findings"            # visualization_msgs/MarkerArray: defects found in the world map (latched)
 DIAGNOSTICS = "/diagnostics"     # absolute: shared by every node of the robot
 TF = "/tf"                       # absolute, as tf2 publishes them; frame ids carry the prefix instead
 TF_STATIC = "/tf_static"

@@ -30,7 +30,8 @@ def dented(shape=(200, 300)):
     rows, cols = shape
     yy, xx = np.mgrid[0:rows, 0:cols]
     r = np.hypot((xx + 0.5) * RES - 0.015, (rows - yy - 0.5) * RES - 0.01)
-    h = np.random.default_rng(0).normal(0, 0.3e-6, shape) - 50e-6 * np.where(r < 1e-3, 0.5 * (1 + np.cos(np.pi * r / 1e-3)), 0)
+    bell = np.where(r < 1e-3, 0.5 * (1 + np.cos(np.pi * r / 1e-3)), 0)
+    h = np.random.default_rng(0).normal(0, 0.3e-6, shape) - 50e-6 * bell
     gy, gx = np.gradient(h, RES)
     grey = np.clip(np.rint(128 + 400 * (0.8 * gx + 0.6 * gy)), 0, 255).astype(np.uint8)
     return h.astype(np.float32), grey

@@ -56,12 +56,15 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.time import Time
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32, Header
+from visualization_msgs.msg import MarkerArray
 
 from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
+from touchroller_bringup.live_findings import LIVE_FINDINGS_PARAMETERS, LiveFindings, LiveFindingsConfig, markers
 from touchroller_bringup.map_files import write_world_map
 from touchroller_bringup.publisher_filter import PublisherFilter
 from touchroller_bringup.ros_diagnostics import (
@@ -204,6 +207,9 @@ class PerceptionNode(Node):
         self._rolling = False
         self._finish_after_ns: int | None = None   # a world map is finished with the first frame after this
         self.saved_maps = 0
+        self.live_findings = LiveFindings(self._findings_config())   # `findings`: markers of the defects found
+        self.findings_pub = self.create_publisher(MarkerArray, names.FINDINGS, MAP_QOS)
+        self.findings_published = 0
 
         self.frames = RateMeter()
         self.contact_rate = RateMeter()
@@ -271,6 +277,9 @@ class PerceptionNode(Node):
                 "overlap")
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
                 min=0.0, max=100.0)
+        defaults_findings = LiveFindingsConfig()
+        for name, (field, description, lo, hi) in LIVE_FINDINGS_PARAMETERS.items():
+            declare(self, name, getattr(defaults_findings, field), description, min=lo, max=hi)
 
     def _detector_config(self, overrides: dict[str, Any] | None = None) -> DetectorConfig:
         values = {name: self.get_parameter(name).value for name in DETECTOR_PARAMETERS}
@@ -284,7 +293,7 @@ class PerceptionNode(Node):
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config),
-                            (WORLD_PARAMETERS, self._world_config)):
+                            (WORLD_PARAMETERS, self._world_config), (LIVE_FINDINGS_PARAMETERS, self._findings_config)):
             changes = {p.name: p.value for p in parameters if p.name in table}
             if changes:
                 try:
@@ -315,6 +324,13 @@ class PerceptionNode(Node):
             self.frame_id = self._contacts_frame_id()
         if "map.publish_rate" in changed:
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+        if changed & set(LIVE_FINDINGS_PARAMETERS):
+            self.live_findings.config = self._findings_config()
+
+    def _findings_config(self, overrides: dict[str, Any] | None = None) -> LiveFindingsConfig:
+        values = {name: self.get_parameter(name).value for name in LIVE_FINDINGS_PARAMETERS}
+        values.update(overrides or {})
+        return LiveFindingsConfig(**{LIVE_FINDINGS_PARAMETERS[name][0]: value for name, value in values.items()})
 
     def _world_config(self, overrides: dict[str, Any] | None = None) -> WorldMapConfig:
         values = {name: self.get_parameter(name).value for name in WORLD_PARAMETERS}
@@ -552,6 +568,10 @@ class PerceptionNode(Node):
             self.stitcher = self.world = None
             self._map_dirty = False
             self._finish_after_ns = None
+            gone = self.live_findings.reset()
+        if gone:   # the previous map's findings: their markers go with it
+            self.findings_pub.publish(markers([], gone, self.world_frame, self.get_clock().now().to_msg(), 0.0,
+                                              self.live_findings.config))
 
     def finish_map(self) -> None:
         """The roll ended: correct the whole map with its final flat field, publish it, and save it
@@ -565,7 +585,7 @@ class PerceptionNode(Node):
             else:
                 self.stitcher.finalise()
             self._map_dirty = True
-        tactile_map = self.publish_map()
+        tactile_map = self.publish_map(all_findings=True)
         path = str(self.get_parameter("map.save_path").value)
         if path and tactile_map is not None:
             self._save_map(tactile_map, path)
@@ -614,8 +634,9 @@ class PerceptionNode(Node):
         else:
             self.get_logger().error(f"map not saved to {path}: {reason}")
 
-    def publish_map(self) -> np.ndarray | None:
-        """Publish the map if it changed since the last publication; returns what was published."""
+    def publish_map(self, all_findings: bool = False) -> np.ndarray | None:
+        """Publish the map if it changed since the last publication; returns what was published. A world
+        map's newly mapped region is inspected (`findings.period` apart; `all_findings`: now)."""
         world_image: WorldMapImage | None = None
         with self._map_lock:
             if (self.stitcher is None and self.world is None) or not self._map_dirty:
@@ -641,7 +662,24 @@ class PerceptionNode(Node):
         self.map_pub.publish(array_to_image(tactile_map, now, frame_id=frame_id))
         if world_image is not None:
             self.map_metadata_pub.publish(map_metadata(world_image, now))
+            self._publish_findings(world_image, now, all_findings)
         return tactile_map
+
+    def _publish_findings(self, image: WorldMapImage, now_ns: int, force: bool) -> None:
+        """Inspect the newly mapped region and publish every finding so far (and the DELETEs of those gone)."""
+        try:
+            update = self.live_findings.update(image, now_ns * 1e-9, force=force, whole=force)
+        except (ValueError, MemoryError) as exc:
+            self.get_logger().warning(f"findings not updated: {exc}", throttle_duration_sec=10.0)
+            return
+        if update is None:
+            return
+        pressed = self.world.stats.pressed_height if self.world is not None else None
+        z = pressed - self.camera.radius if pressed is not None else 0.0   # the surface under the roller
+        stamp = Time(nanoseconds=int(now_ns)).to_msg()
+        self.findings_pub.publish(markers(update.findings, update.removed, self.world_frame, stamp, z,
+                                          self.live_findings.config))
+        self.findings_published += 1
 
     # ------------------------------------------------------------------ diagnostics
     def _diagnostic_status(self) -> Status:
