@@ -15,6 +15,9 @@ Topics are in the graph's namespace (`namespace:=...`, `touchroller` by default)
   (u, v re-projected through the perception node's camera model; score, area, ellipse and confidence
   are not carried by PointStamped and are `nan`);
 - `report.md`: duration, frames, contacts, map size, skipped/dropped frames, the sweep's outcome;
+- with `inspect:=true` (`auto`, the default: for a raster) `findings.csv` + `findings.png`, the defects in
+  the world map (`scan_findings`, docs/inspection.md); simulated, a scene with planted defects also gives
+  `truth_findings.csv`;
 - with `record`: `recording/`, a rosbag2 folder of the namespace's topics and `/diagnostics`
   (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
 

@@ -23,6 +23,9 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   the map `touchroller map` makes of a recording of the scan), and when it ends the map is finalised
   (whole-map flat field), published, and saved to `map.save_path` if that is set (a world map: the PNG,
   grey plus alpha, and a nav2 map.yaml beside it);
+* publishes on `findings` (visualization_msgs/MarkerArray, transient local, in `world_frame`) the defects
+  found in the world map as it grows (`touchroller_bringup.live_findings`, `findings.*` parameters): the
+  newly mapped region inspected at most once per `findings.period`, the whole map when it is finished;
 * `~/recapture_reference` (std_srvs/Trigger) re-captures the no-contact reference from the next
   `reference.frames` frames (and starts a new map);
 * `/diagnostics`: frame rate, processing time, contacts/s, malformed frames, and frames missed: all
