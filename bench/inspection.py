@@ -4,9 +4,9 @@ The maps come from `bench.inspection_maps`, a generator written for this bench a
 `touchroller_driver.sim`): height maps with no sensor in the loop, the detector's input as the world
 height map will give it. Beside them, one end-to-end scan (`end_to_end`: the simulator's inspection_panel
 scene, sensor, arm, world map and detector in the loop, findings.csv against the truth_findings.csv the
-scan writes), on the world map's intensity until it has a height layer. Five backgrounds (painted metal, a grained surface, brushed metal, a plain weave, a
-panel joint declared by a mask), each with planted cracks, dents and bumps and the truth in the findings'
-format; and the same backgrounds without defects, for false findings per m².
+scan writes), on the world map's intensity until it has a height layer. Five backgrounds (painted metal,
+a grained surface, brushed metal, a plain weave, a panel joint declared by a mask), each with planted
+cracks, dents and bumps and the truth in the findings' format; and the same backgrounds without defects, for false findings per m².
 
 The thresholds (`InspectionConfig`'s defaults) were set looking at seeds 0-4 only; the figures are on
 seeds 5-19 (the worst seed shown). Measures: recall of cracks 0.1-0.5 mm wide, >= 20 µm deep, >= 5 mm
@@ -417,7 +417,8 @@ def to_markdown(r: InspectionBenchResult) -> str:
     s = r.summary
     lines = [provenance_markdown(r.provenance), "",
              "Synthetic height maps (`bench/inspection_maps.py`, a generator of its own: no sensor and no simulator in "
-             "the loop) at 0.1 mm per pixel (the end-to-end scan through the simulator is at the end). Thresholds (InspectionConfig's defaults) set on seeds 0-4; figures on "
+             "the loop) at 0.1 mm per pixel (the end-to-end scan through the simulator is at the end). Thresholds "
+             "(InspectionConfig's defaults) set on seeds 0-4; figures on "
              f"seeds {r.seeds[0]}-{r.seeds[-1]}{' (quick run)' if r.quick else ''}.", "",
              "| seeds | cracks in scope | crack recall | false cracks per m² (defect-free) | centreline mm (median) | "
              "width error mm (median abs) | depth error (median rel) | length error (median rel) | dents/bumps in "
