@@ -6,7 +6,8 @@ height map will give it. Beside them, one end-to-end scan (`end_to_end`: the sim
 scene, sensor, arm, world map and detector in the loop, findings.csv against the truth_findings.csv the
 scan writes), on the world map's intensity until it has a height layer. Five backgrounds (painted metal,
 a grained surface, brushed metal, a plain weave, a panel joint declared by a mask), each with planted
-cracks, dents and bumps and the truth in the findings' format; and the same backgrounds without defects, for false findings per m².
+cracks, dents and bumps and the truth in the findings' format; and the same backgrounds without defects,
+for false findings per m².
 
 The thresholds (`InspectionConfig`'s defaults) were set looking at seeds 0-4 only; the figures are on
 seeds 5-19 (the worst seed shown). Measures: recall of cracks 0.1-0.5 mm wide, >= 20 µm deep, >= 5 mm
