@@ -400,6 +400,23 @@ def run(quick: bool = False) -> InspectionBenchResult:
                                  list(GRID_DEPTHS_UM), grid, smallest, speed, end_to_end())
 
 
+def load(path: Path) -> InspectionBenchResult:
+    """A result written by `main` (its JSON), e.g. for `touchroller report --recorded inspection`."""
+    import json
+
+    data = json.loads(Path(path).read_text())
+    data["provenance"] = Provenance(**data["provenance"])
+    data["config"] = InspectionConfig(**data["config"])
+    data["cracks"] = [CrackScore(**c) for c in data["cracks"]]
+    data["blobs"] = [BlobScore(**b) for b in data["blobs"]]
+    data["clean"] = [CleanScore(**c) for c in data["clean"]]
+    data["tune"] = None if data["tune"] is None else Summary(**data["tune"])
+    data["summary"] = Summary(**data["summary"])
+    data["speed"] = Speed(**data["speed"])
+    data["end_to_end"] = None if data.get("end_to_end") is None else EndToEnd(**data["end_to_end"])
+    return InspectionBenchResult(**data)
+
+
 def _pct(v: float) -> str:
     return f"{100 * v:.1f} %" if math.isfinite(v) else "—"
 
