@@ -2,10 +2,12 @@
 
 The maps come from `bench.inspection_maps`, a generator written for this bench alone (it does not import
 `touchroller_driver.sim`): height maps with no sensor in the loop, the detector's input as the world
-height map will give it. The end-to-end figure (simulator -> mapper -> height -> findings) comes when the
-world height map lands. Five backgrounds (painted metal, a grained surface, brushed metal, a plain weave, a
-panel joint declared by a mask), each with planted cracks, dents and bumps and the truth in the findings'
-format; and the same backgrounds without defects, for false findings per m².
+height map will give it. Beside them, one end-to-end scan (`end_to_end`: the simulator's inspection_panel
+scene, sensor, arm, world map and detector in the loop, findings.csv against the truth_findings.csv the
+scan writes), on the world map's intensity until it has a height layer. Five backgrounds (painted metal,
+a grained surface, brushed metal, a plain weave, a panel joint declared by a mask), each with planted
+cracks, dents and bumps and the truth in the findings' format; and the same backgrounds without defects,
+for false findings per m².
 
 The thresholds (`InspectionConfig`'s defaults) were set looking at seeds 0-4 only; the figures are on
 seeds 5-19 (the worst seed shown). Measures: recall of cracks 0.1-0.5 mm wide, >= 20 µm deep, >= 5 mm
@@ -109,6 +111,26 @@ class Speed:
 
 
 @dataclass(frozen=True)
+class EndToEnd:
+    """One `touchroller scan ... inspect:=true` of the simulator's inspection_panel scene (the simulator
+    plants the defects; sensor, arm, world map and detector in the loop): findings.csv against
+    truth_findings.csv."""
+
+    command: str
+    layer: str                     # what the scan inspected: the world map's height or intensity
+    cracks: int
+    cracks_found: int              # a found crack covers >= half the true trunk within max(0.5 mm, width)
+    crack_centre_mm: list[float]   # found crack centroid to the true one, per found crack
+    crack_centreline_mm: list[float]   # median distance of the true trunk to the found centreline
+    blobs: int
+    blobs_found: int               # a dent or bump (either sign) within max(0.5 mm, its diameter / 2)
+    blob_centre_mm: list[float]
+    false_findings: int            # findings on no planted defect
+    findings: int
+    scan_s: float
+
+
+@dataclass(frozen=True)
 class InspectionBenchResult:
     provenance: Provenance
     quick: bool
@@ -126,6 +148,7 @@ class InspectionBenchResult:
     grid_recall: list[list[float]]            # [width][depth]
     smallest_depth_um: dict[str, float | None]   # per width: the smallest depth found >= 90 % of the time
     speed: Speed
+    end_to_end: EndToEnd | None = None
 
 
 def densify(lines: tuple[tuple[tuple[float, float], ...], ...], step: float = 2e-5) -> np.ndarray:
@@ -297,6 +320,64 @@ def measure_speed(tiles: tuple[int, int], repeats: int, config: InspectionConfig
     return Speed(mp, best, mp / best, repeats)
 
 
+E2E_ARGUMENTS = {"scene": "inspection_panel", "sweep_length": "0.03", "sweep_speed": "0.02", "inspect": "true"}
+
+
+def end_to_end() -> EndToEnd:
+    """The scan of the inspection_panel scene, scored against the truth it writes."""
+    import tempfile
+
+    from touchroller_bringup.findings_files import read_findings_csv
+    from touchroller_bringup.ros_domains import reserve_domain_id
+    from touchroller_bringup.scan import ScanOptions, run_scan
+
+    out = Path(tempfile.mkdtemp(prefix="inspection_e2e_"))
+    saved = {name: os.environ.get(name) for name in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    try:
+        with reserve_domain_id() as lease:   # a domain of its own: another graph would stop the scan
+            os.environ["ROS_DOMAIN_ID"] = str(lease.domain_id)
+            os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+            started = time.monotonic()
+            result = run_scan(ScanOptions(out_dir=out, arguments=dict(E2E_ARGUMENTS), progress=None))
+            seconds = time.monotonic() - started
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+    if not result.ok:
+        raise RuntimeError(f"the end-to-end scan ended {result.outcome}: {result.message}")
+    found, truth = read_findings_csv(out / "findings.csv"), read_findings_csv(out / "truth_findings.csv")
+    found_cracks = [f for f in found if f.kind == "crack"]
+    trees = [cKDTree(densify(f.polylines)) for f in found_cracks]
+    centre, centreline, blob_centre = [], [], []
+    cracks_found = blobs_found = 0
+    for t in truth:
+        if t.kind == "crack":
+            trunk = densify(t.polylines[:1])
+            covers = [(float(np.mean(tree.query(trunk)[0] <= _tolerance(t.width_m))), j)
+                      for j, tree in enumerate(trees)]
+            cover, j = max(covers, default=(0.0, -1))
+            if cover >= 0.5:
+                cracks_found += 1
+                centre.append(math.hypot(found_cracks[j].x - t.x, found_cracks[j].y - t.y) * 1e3)
+                centreline.append(float(np.median(trees[j].query(trunk)[0])) * 1e3)
+        else:
+            near = [math.hypot(f.x - t.x, f.y - t.y) for f in found if f.kind != "crack"]
+            if near and min(near) <= max(5e-4, t.width_m):
+                blobs_found += 1
+                blob_centre.append(min(near) * 1e3)
+    planted = cKDTree(np.vstack([densify(t.polylines) for t in truth if t.polylines]
+                                + [np.array([[t.x, t.y]]) for t in truth]))
+    false = sum(float(np.median(planted.query(densify(f.polylines) if f.polylines else np.array([[f.x, f.y]]))[0]))
+                > 1e-3 for f in found)
+    layer = "height" if "in the height map" in (result.findings or "") else "intensity"
+    command = "touchroller scan " + " ".join(f"{k}:={v}" for k, v in E2E_ARGUMENTS.items())
+    return EndToEnd(command, layer, sum(t.kind == "crack" for t in truth), cracks_found, centre, centreline,
+                    sum(t.kind != "crack" for t in truth), blobs_found, blob_centre, false, len(found), seconds)
+
+
 def run(quick: bool = False) -> InspectionBenchResult:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     stamp = provenance("inspection", quick)
@@ -316,7 +397,7 @@ def run(quick: bool = False) -> InspectionBenchResult:
     speed = measure_speed(tuple(plan["speed_tiles"]), int(plan["speed_repeats"]), config)
     return InspectionBenchResult(stamp, quick, seeds, config, cracks, blobs, clean, false, area, tune,
                                  summarise(cracks, blobs, clean, false, area), list(GRID_WIDTHS_MM),
-                                 list(GRID_DEPTHS_UM), grid, smallest, speed)
+                                 list(GRID_DEPTHS_UM), grid, smallest, speed, end_to_end())
 
 
 def _pct(v: float) -> str:
@@ -337,8 +418,8 @@ def to_markdown(r: InspectionBenchResult) -> str:
     s = r.summary
     lines = [provenance_markdown(r.provenance), "",
              "Synthetic height maps (`bench/inspection_maps.py`, a generator of its own: no sensor and no simulator in "
-             "the loop) at 0.1 mm per pixel; the end-to-end figure through the simulator and the mapper comes when "
-             "the world height map lands. Thresholds (InspectionConfig's defaults) set on seeds 0-4; figures on "
+             "the loop) at 0.1 mm per pixel (the end-to-end scan through the simulator is at the end). Thresholds "
+             "(InspectionConfig's defaults) set on seeds 0-4; figures on "
              f"seeds {r.seeds[0]}-{r.seeds[-1]}{' (quick run)' if r.quick else ''}.", "",
              "| seeds | cracks in scope | crack recall | false cracks per m² (defect-free) | centreline mm (median) | "
              "width error mm (median abs) | depth error (median rel) | length error (median rel) | dents/bumps in "
@@ -364,7 +445,20 @@ def to_markdown(r: InspectionBenchResult) -> str:
     sp = r.speed
     lines += ["", f"Speed: {sp.megapixels_per_s:.1f} megapixels of map per second on one core (CPU time, best of "
               f"{sp.repeats}, a {sp.megapixels:.1f} MP map with defects; OpenCV on one thread)."]
+    if r.end_to_end is not None:
+        e = r.end_to_end
+        lines += ["", f"End to end (the simulator: it plants the defects and renders the sensor; arm, world map and "
+                  f"detector in the loop), `{e.command}`, the world map's {e.layer} inspected: cracks "
+                  f"{e.cracks_found} of {e.cracks} found (centroid {_list_mm(e.crack_centre_mm)} mm off, centreline "
+                  f"{_list_mm(e.crack_centreline_mm)} mm), dents and bumps {e.blobs_found} of {e.blobs} "
+                  f"(centre {_list_mm(e.blob_centre_mm)} mm), {e.false_findings} of {e.findings} findings on no "
+                  f"planted defect; the scan took {e.scan_s:.0f} s. One scene, one seed: a check of the path, not a "
+                  "statistic."]
     return "\n".join(lines)
+
+
+def _list_mm(values: list[float]) -> str:
+    return ", ".join(f"{v:.2f}" for v in values) or "—"
 
 
 def figures(r: InspectionBenchResult, out_dir: Path) -> list[Path]:
@@ -394,11 +488,11 @@ def figures(r: InspectionBenchResult, out_dir: Path) -> list[Path]:
     plt.close(fig)
     return [path]
 
+
 def load(path: Path) -> InspectionBenchResult:
     """A result this bench wrote (its JSON), for the report to render without running it again."""
     result: InspectionBenchResult = load_json(InspectionBenchResult, path)
     return result
-
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -50,9 +50,20 @@ class SyntheticMap:
 
 def _blurred_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float | tuple[float, float],
                    rms: float) -> np.ndarray:
-    noise = rng.standard_normal(shape).astype(np.float32)
+    """White noise blurred by a Gaussian of `sigma_px`, scaled to `rms`. A wide isotropic Gaussian (the
+    waviness) is drawn on a grid `factor` times coarser and interpolated up: the same smooth field
+    statistically, without a kernel of thousands of pixels."""
     sx, sy = (sigma_px, sigma_px) if isinstance(sigma_px, float | int) else sigma_px
-    noise = cv2.GaussianBlur(noise, (0, 0), sigmaX=float(sx), sigmaY=float(sy), borderType=cv2.BORDER_REFLECT)
+    factor = int(min(sx, sy) // 8) if sx == sy else 1
+    if factor > 1:
+        coarse = (max(2, -(-shape[0] // factor)), max(2, -(-shape[1] // factor)))
+        noise = rng.standard_normal(coarse).astype(np.float32)
+        noise = cv2.GaussianBlur(noise, (0, 0), sigmaX=float(sx) / factor, borderType=cv2.BORDER_REFLECT)
+        noise = cv2.resize(noise, (coarse[1] * factor, coarse[0] * factor), interpolation=cv2.INTER_LINEAR)
+        noise = np.ascontiguousarray(noise[:shape[0], :shape[1]])
+    else:
+        noise = rng.standard_normal(shape).astype(np.float32)
+        noise = cv2.GaussianBlur(noise, (0, 0), sigmaX=float(sx), sigmaY=float(sy), borderType=cv2.BORDER_REFLECT)
     std = float(noise.std())
     return noise * np.float32(rms / std) if std > 0 else noise
 
@@ -73,8 +84,10 @@ def background(kind: str, rng: np.random.Generator, shape: tuple[int, int]) -> t
         for _ in range(int(rows * fine * 1e3 * 0.6)):                          # a few deeper scratches per mm
             y0, x0 = rng.uniform(0, rows * fine), rng.uniform(0, cols * fine)
             length, width, depth = rng.uniform(3e-3, 40e-3), rng.uniform(0.02e-3, 0.1e-3), rng.uniform(1e-6, 4e-6)
-            along = np.clip(1 - np.abs(xs - x0) / (length / 2), 0, 1) ** 0.3
-            z -= (depth * along * np.exp(-4 * math.log(2) * ((ys - y0) / width) ** 2)).astype(np.float32)
+            r0, r1 = max(0, int((y0 - 5 * width) / fine)), min(rows, int((y0 + 5 * width) / fine) + 2)
+            band_x, band_y = xs[r0:r1], ys[r0:r1]         # the rows it reaches (beyond: < 1e-30 of its depth)
+            along = np.clip(1 - np.abs(band_x - x0) / (length / 2), 0, 1) ** 0.3
+            z[r0:r1] -= (depth * along * np.exp(-4 * math.log(2) * ((band_y - y0) / width) ** 2)).astype(np.float32)
     elif kind == "weave":
         pitch = 2.5e-3
         u, v = 2 * np.pi * xs / pitch, 2 * np.pi * ys / pitch

@@ -27,7 +27,8 @@ def _topics(node) -> set[str]:
     return found
 
 
-OUR_TOPICS = {names.topic(t, names.DEFAULT_NAMESPACE) for t in (names.IMAGE, "contacts", "map", "map_markers")} \
+OUR_TOPICS = {names.topic(t, names.DEFAULT_NAMESPACE)
+              for t in (names.IMAGE, "contacts", "map", names.MAP_MARKERS, names.FINDINGS)} \
     | {"/diagnostics"}
 
 
@@ -38,11 +39,13 @@ def test_rviz_config_loads_with_the_robot_base_fixed_and_our_topics():
     classes = {d["Class"] for d in manager["Displays"]}
     assert {"rviz_default_plugins/TF", "rviz_default_plugins/PointStamped", "rviz_default_plugins/Image",
             "rviz_default_plugins/MarkerArray"} <= classes
-    assert _topics(config) <= OUR_TOPICS and len(_topics(config)) == 4
-    markers = next(d for d in manager["Displays"] if d["Class"] == "rviz_default_plugins/MarkerArray")
-    assert markers["Topic"]["Value"] == names.topic(names.MAP_MARKERS, names.DEFAULT_NAMESPACE)
-    latched = next(d for d in manager["Displays"] if d.get("Topic", {}).get("Value", "").endswith("/map"))
-    assert latched["Topic"]["Durability Policy"] == "Transient Local"   # the map is latched
+    assert _topics(config) <= OUR_TOPICS and len(_topics(config)) == 5
+    for latched_topic in ("/map", "/findings"):   # the map and the findings are latched
+        latched = next(d for d in manager["Displays"] if d.get("Topic", {}).get("Value", "").endswith(latched_topic))
+        assert latched["Topic"]["Durability Policy"] == "Transient Local"
+    markers = {d["Topic"]["Value"] for d in manager["Displays"] if d["Class"] == "rviz_default_plugins/MarkerArray"}
+    assert markers == {names.topic(names.MAP_MARKERS, names.DEFAULT_NAMESPACE),
+                       names.topic(names.FINDINGS, names.DEFAULT_NAMESPACE)}
 
 
 def test_foxglove_layout_loads_and_every_panel_it_lays_out_is_configured():

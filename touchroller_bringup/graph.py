@@ -168,6 +168,10 @@ LAUNCH_ARGUMENTS: dict[str, tuple[LaunchArgument, ...]] = {
                        "ends (perception map.save_path); empty: not saved (touchroller scan writes map.png anyway)"),
         LaunchArgument("rviz", "false", "Open RViz 2 with config/rviz/touchroller.rviz (robot TF, contacts, the "
                        "tactile image and map) where RViz 2 is installed", _BOOL),
+        LaunchArgument("inspect", "auto", "Defects in the world map (docs/inspection.md): the perception node's live "
+                       "`findings` markers (findings.enabled) and, with touchroller scan, findings.csv + findings.png "
+                       "beside map.png when the sweep ends; auto: live markers on, the files for a raster (area)",
+                       ("auto", "true", "false")),
     ),
     "calibrate": (
         LaunchArgument("use_sim", "true", "Simulated calibration scene (true) or a V4L2 camera (false)", _BOOL),
@@ -326,6 +330,8 @@ def build_graph(launch: str, values: Mapping[str, str] | None = None,
         if args["area"]:
             sweep["sweep.area"] = _area(launch, args["area"])
         perception: dict[str, Any] = {}
+        if args["inspect"] != "auto":   # the live findings; auto: the params files' (on)
+            perception["findings.enabled"] = args["inspect"] == "true"
         if args["map_file"]:
             perception["map.save_path"] = str(Path(args["map_file"]).expanduser())
         camera = camera_parameters(on_arm=True)

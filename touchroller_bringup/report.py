@@ -363,6 +363,17 @@ def _inspect_smallest(r: Any) -> tuple[str, bool | None]:   # bench.inspection.I
     return "smallest depth found >= 90 % per width, " + ", ".join(parts), None
 
 
+def _inspect_end_to_end(r: Any) -> tuple[str, bool | None]:   # bench.inspection.InspectionBenchResult
+    e = getattr(r, "end_to_end", None)
+    if e is None:
+        return "not measured", None
+    worst_crack = max(e.crack_centre_mm, default=float("nan"))
+    worst_blob = max(e.blob_centre_mm, default=float("nan"))
+    return (f"cracks {e.cracks_found}/{e.cracks}, dents and bumps {e.blobs_found}/{e.blobs}, "
+            f"{e.false_findings} false of {e.findings}; crack centroids {worst_crack:.2f} mm off at worst, dents "
+            f"and bumps {worst_blob:.2f} mm (one simulated scan, the {e.layer} map)"), None
+
+
 def _calib(key: str, unit: str, goal_key: str) -> Measure:
     def measure(r: Any) -> tuple[str, bool]:
         s = getattr(r.full, key)
@@ -647,6 +658,8 @@ GOALS: tuple[Goal, ...] = (
     Goal(24, "Inspection: the smallest crack found 90 % of the time, by width and depth", "inspection",
          _inspect_smallest),
     Goal(24, "Inspection: >= 10 megapixels of map per second on one core", "inspection", _inspect_speed),
+    Goal(24, "Inspection end to end (simulator -> scan -> findings.csv vs truth_findings.csv)", "inspection",
+         _inspect_end_to_end),
     Goal(6, "Calibration: theta within 0.1 deg (20 chessboard + 10 hemisphere images)", "calibration",
          _calib("theta_err_deg", "°", "theta_deg")),
     Goal(6, "Calibration: d within 0.05 mm", "calibration", _calib("d_err_mm", " mm", "d_mm")),

@@ -17,6 +17,9 @@ Topics are in the graph's namespace (`namespace:=...`, `touchroller` by default)
 - `report.md`: the map as a picture (`map_preview.png`, linked to `map.png`), duration, frames, contacts, map
   size, skipped/dropped frames, the sweep's outcome, the coverage of the requested area and passes, and
   the findings of `findings.csv` when there is one (`touchroller_bringup.scan_report`);
+- with `inspect:=true` (`auto`, the default: for a raster) `findings.csv` + `findings.png`, the defects in
+  the world map (its height layer when it has one, else its intensity: `scan_findings`, docs/inspection.md);
+  simulated, a scene with planted defects also gives `truth_findings.csv`;
 - with `record`: `recording/`, a rosbag2 folder of the namespace's topics and `/diagnostics`
   (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
 
@@ -63,11 +66,12 @@ from touchroller_perception.files import atomic_write, atomic_write_text
 # with `record`: these topics of the scan's namespace, and /diagnostics
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 RECORDED_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.TCP_POSE,
-                   names.SWEEP_PROGRESS, names.DIAGNOSTICS, names.TF, names.TF_STATIC)   # with TF: re-maps offline
+                   names.SWEEP_PROGRESS, names.DIAGNOSTICS, names.TF, names.TF_STATIC,   # with TF: re-maps offline
+                   names.FINDINGS)
 # the topics of the scan's namespace that only its own nodes may publish (and /clock when simulated)
 GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names.MAP_METADATA, names.MAP_HEIGHT,
-                names.MAP_MARKERS,
-                names.TCP_POSE, names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS, names.IMAGE_DONE)
+                names.MAP_MARKERS, names.TCP_POSE, names.SWEEP_PROGRESS, names.COVERAGE, names.SWEEP_PASS,
+                names.IMAGE_DONE, names.FINDINGS)
 
 
 OUTPUT_FILES = ("contacts.csv", "report.md", PREVIEW, "map.png", "map.yaml")
@@ -106,6 +110,7 @@ class ScanResult:
     sweep: str = ""         # what the sweep node answered to ~/start (length, speed, depth)
     recorded: dict[str, int] = field(default_factory=dict)  # topic -> messages in recording/
     world_map: dict[str, Any] | None = None   # the world map's frame, resolution, origin, latency, passes
+    findings_summary: str = ""   # with inspect: what findings.csv holds (scan_findings.ScanFindings.summary)
     signal: int | None = None   # the signal that interrupted the scan
     frames_during_sweep: int | None = None   # published from ~/start to the end of the sweep
     failed: dict[str, str] = field(default_factory=dict)   # output -> why it could not be written
@@ -125,6 +130,7 @@ class _Collected:
     contacts: list[tuple[int, float, float, float]] = field(default_factory=list)
     map_msg: Any = None
     progress: float = 0.0
+    findings: int = 0       # MarkerArrays seen on `findings`
 
 
 class Interrupted(Exception):
@@ -448,6 +454,7 @@ def _make_probe(context: Any, nodes: list[Any], namespace: str) -> tuple[Any, _C
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float32
     from std_srvs.srv import Trigger
+    from visualization_msgs.msg import MarkerArray
 
     probe = Node("scan", namespace=namespace, context=context)   # relative names: the graph's namespace
     nodes.append(probe)
@@ -469,6 +476,10 @@ def _make_probe(context: Any, nodes: list[Any], namespace: str) -> tuple[Any, _C
     def on_progress(msg: Float32) -> None:
         collected.progress = float(msg.data)
 
+    def on_findings(_raw: bytes) -> None:
+        with collected.lock:
+            collected.findings += 1
+
     reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -476,6 +487,7 @@ def _make_probe(context: Any, nodes: list[Any], namespace: str) -> tuple[Any, _C
     probe.create_subscription(PointStamped, names.CONTACTS, on_contact, QoSProfile(depth=1000))
     probe.create_subscription(Image, names.MAP, on_map, latched)
     probe.create_subscription(Float32, names.SWEEP_PROGRESS, on_progress, 10)
+    probe.create_subscription(MarkerArray, names.FINDINGS, on_findings, latched, raw=True)   # count only
     start_client = probe.create_client(Trigger, f"{names.SWEEP_NODE}/{names.START}")
     return probe, collected, start_client
 
@@ -676,11 +688,16 @@ def _flush_map(perception: Any, collected: _Collected) -> None:
     if publish is None:
         return
     before = collected.map_msg
+    findings_before = getattr(perception, "findings_published", 0)
+    with collected.lock:
+        seen_before = collected.findings
     publish()
+    findings_after = getattr(perception, "findings_published", 0)
     deadline = time.monotonic() + 3.0
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline:   # the map, and the last findings if the map gave new ones
         with collected.lock:
-            if collected.map_msg is not None and collected.map_msg is not before:
+            if collected.map_msg is not None and collected.map_msg is not before \
+                    and (findings_after == findings_before or collected.findings > seen_before):
                 return
         time.sleep(0.02)
 
@@ -735,6 +752,11 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
         except (OSError, UserError) as exc:
             failed[path.name] = (f"{exc.strerror or exc}" if isinstance(exc, OSError) else str(exc))
 
+    from touchroller_bringup import scan_findings
+
+    found = (scan_findings.inspect_map(scan_findings.with_height(world_image, world))
+             if world_image is not None and scan_findings.enabled(graph.arguments) else None)
+
     attempt("contacts", out_dir / "contacts.csv",
             lambda: _write_contacts(out_dir / "contacts.csv", contacts, getattr(perception, "camera", None),
                                     float(_parameter(perception, "contacts.pixel_sigma", 0.3))))
@@ -743,9 +765,13 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     result = ScanResult(out_dir, outcome, message, duration, frames, processed,
                         int(getattr(perception, "dropped", 0)), int(getattr(perception, "malformed", 0)),
                         len(contacts), map_shape, files, sweep_answer, dict(recorded or {}), world_map,
-                        frames_during_sweep=during_sweep, failed=failed)
+                        frames_during_sweep=during_sweep, failed=failed,
+                        findings_summary=found.summary() if found is not None else "")
     if recorded:
         files["recording"] = out_dir / "recording"
+    if found is not None:   # before the report, which shows them
+        attempt("findings", out_dir / "findings.csv",
+                lambda: files.update(scan_findings.write_findings(out_dir, world_image, found)))
     result.coverage = _coverage(sweep, world_image, world_map, getattr(perception, "world_frame", names.BASE_FRAME))
     result.findings, result.findings_problem = read_findings(out_dir)
     preview = None
@@ -781,6 +807,9 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
                     lambda: write_height_tif(out_dir / "height.tif", height, perception.world_frame))
     elif tactile_map is not None:
         attempt("map", out_dir / "map.png", lambda: write_png(out_dir / "map.png", tactile_map))
+    if graph.arguments.get("use_sim") == "true" and scan_findings.plants_defects(_parameter(camera, "scene", "")):
+        scene = str(_parameter(camera, "scene", ""))
+        attempt("truth_findings", out_dir / "truth_findings.csv", lambda: scan_findings.write_truth(out_dir, scene))
     return result
 
 
@@ -804,7 +833,7 @@ def _world_summary(world: Any, frame: str, image: Any) -> dict[str, Any]:
 
 
 def _parameter(node: Any, name: str, default: Any) -> Any:
-    return node.get_parameter(name).value if node.has_parameter(name) else default
+    return node.get_parameter(name).value if node is not None and node.has_parameter(name) else default
 
 
 def _write_contacts(path: Path, contacts: Sequence[tuple[int, float, float, float]], camera: Any,

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from touchroller_perception.world_map import WorldMapper
+    from touchroller_perception.world_map import WorldMapImage, WorldMapper
 
 
 @dataclass(frozen=True)
@@ -237,12 +237,12 @@ class TileTracker:
         return len(self._sent)
 
 
-def world_map_raster(mapper: WorldMapper) -> MapRaster:
+def world_map_raster(mapper: WorldMapper, image: WorldMapImage | None = None) -> MapRaster:
     """The adapter between the world map and its views: the map as `WorldMapper.map_image` gives it (the
     mapped rectangle at full resolution), at the height of the surface the roller pressed on (the
     pressed height of its axis less the radius; 0 until it is known). The one place that reads the map's
     storage for the views: a tiled store answers here with its own level of detail."""
-    image = mapper.map_image()
+    image = mapper.map_image() if image is None else image   # `image`: the caller's map_image() already
     pressed = mapper.stats.pressed_height
     z = pressed - mapper.camera.radius if pressed is not None and math.isfinite(pressed) else 0.0
     return MapRaster(image.grey, image.alpha > 0, image.resolution, image.origin, z)

@@ -37,3 +37,15 @@ def test_a_planted_crack_is_found_and_scored(small_map):
     assert cracks[0].centreline_mm < 0.1 and abs(cracks[0].width_err_mm) < 0.05
     missed, _, _ = score(small_map, [], 7)
     assert not missed[0].found and math.isnan(missed[0].centreline_mm)
+
+
+def test_the_recorded_result_reads_back_and_renders_the_same():
+    from bench.inspection import load, to_markdown
+    from touchroller_driver.paths import checkout_dir
+
+    path = checkout_dir() / "bench" / "results" / "inspection.json"
+    result = load(path)
+    assert result.summary.cracks_in_scope > 0 and result.end_to_end is not None
+    text = to_markdown(result)
+    assert f"| {result.seeds[0]}-{result.seeds[-1]} | {result.summary.cracks_in_scope} |" in text
+    assert "End to end" in text

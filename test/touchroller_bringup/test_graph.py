@@ -397,3 +397,12 @@ def test_a_simulated_arm_in_a_namespace_gets_its_own_flange_beside_the_shared_ba
     assert "arm.tool_frame" not in build_graph("scan", {}).node("sweep").parameters
     hardware = build_graph("scan", {"namespace": "left", "use_sim": "false"}).node("sweep").parameters
     assert "arm.tool_frame" not in hardware   # a real robot's flange is its driver's name, set by the user
+
+
+def test_inspect_switches_the_perception_nodes_live_findings():
+    def findings(value):
+        return graph.build_graph("scan", {"inspect": value}).node("perception").parameters.get("findings.enabled")
+
+    assert findings("false") is False and findings("true") is True and findings("auto") is None
+    with pytest.raises(graph.GraphError, match="inspect"):
+        graph.build_graph("scan", {"inspect": "maybe"})

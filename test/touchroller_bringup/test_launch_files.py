@@ -97,7 +97,8 @@ def _example_values(launch: str, tmp_path: Path) -> dict[str, str]:
         values |= {"use_sim": "false", "camera_device": "/dev/v4l/by-id/usb-cam", "robot_ip": "127.0.0.1",
                    "arm_backend": "ur_driver",
                    "sweep_speed": "0.02", "sweep_length": "0.08", "area": "0.4,0.0,0.1,0.08",
-                   "scene": "surface_mapping", "map_file": str(tmp_path / "roll.png"), "rviz": "true"}
+                   "scene": "surface_mapping", "map_file": str(tmp_path / "roll.png"), "rviz": "true",
+                   "inspect": "false"}
     elif launch == "calibrate":
         values |= {"use_sim": "true", "camera_device": "", "output_file": str(tmp_path / "out.yaml"),
                    "scene": "calibration_hemispheres"}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import math
 import os
 import time
 from pathlib import Path
@@ -690,3 +691,61 @@ def test_a_simulated_scan_with_height_writes_the_height_map_beside_the_map(isola
 def test_height_on_a_real_sensor_needs_its_photometric_model(isolated_ros, tmp_path, capsys):
     assert main(["scan", "use_sim:=false", "--height", "--quiet", "--out", str(tmp_path / "scan")]) == 2
     assert "map.height.photometric" in capsys.readouterr().err
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(300)
+def test_a_scan_of_planted_defects_ends_with_findings_near_the_truth_and_their_markers_in_base(isolated_ros, tmp_path):
+    """One short roll over the inspection_panel scene (3 cracks, 2 dents, 1 bump planted): findings.csv
+    and findings.png beside the map, truth_findings.csv from the scene, every planted defect found near its
+    place, and the recording's last `findings` MarkerArray draws the findings.csv findings in base."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    from touchroller_bringup.findings_files import read_findings_csv
+
+    out = tmp_path / "scan"
+    assert main(["scan", "scene:=inspection_panel", "sweep_length:=0.03", "sweep_speed:=0.02", "inspect:=true",
+                 "--record", "--quiet", "--out", str(out)]) == 0
+    found, truth = read_findings_csv(out / "findings.csv"), read_findings_csv(out / "truth_findings.csv")
+    assert (out / "findings.png").stat().st_size > 0 and len(truth) == 6
+    assert "## Findings" in (out / "report.md").read_text()
+
+    def near(t, kinds, tolerance):
+        return [f for f in found if f.kind in kinds and math.hypot(f.x - t.x, f.y - t.y) < tolerance]
+
+    # the world map has no height layer yet: the intensity map gives places and shapes (no depth, and a
+    # dent's or bump's sign is the shading's guess). Measured on this scene: crack centroids 0.1-0.5 mm
+    # off, dents and bumps 0.0-0.1 mm off; the shallowest crack (48 um deep, 0.16 mm wide) is at the
+    # intensity map's limit (missed in 1 of 5 scans: the live map differs a little from scan to scan)
+    cracks = sorted((t for t in truth if t.kind == "crack"), key=lambda t: t.depth_m)
+    assert all(near(t, ("crack",), 1e-3) for t in cracks[1:]), cracks
+    for t in truth:
+        if t.kind != "crack":
+            assert near(t, ("dent", "bump"), 3e-4), t
+    from scipy.spatial import cKDTree
+
+    planted = cKDTree(np.vstack([np.array(line) for t in truth for line in t.polylines]
+                                + [np.array([[t.x, t.y]]) for t in truth]))
+
+    def on_a_planted_defect(f):   # a crack found in pieces is on its crack, whatever its centroid
+        vertices = np.vstack([np.array(line) for line in f.polylines] or [np.array([[f.x, f.y]])])
+        return float(np.median(planted.query(vertices)[0])) < (1e-3 if f.kind == "crack" else 2e-3)
+
+    # at most one finding that is no planted defect (measured: one streak along the roll, 37 mm long, where
+    # a speck of the simulated camera's background stays in the map)
+    assert sum(not on_a_planted_defect(f) for f in found) <= 1, found
+
+    typestore = get_typestore(Stores.ROS2_KILTED)
+    with Reader(out / "recording") as reader:
+        connections = [c for c in reader.connections if c.topic == "/touchroller/findings"]
+        arrays = [typestore.deserialize_cdr(raw, c.msgtype) for c, _, raw in reader.messages(connections=connections)]
+    assert arrays, "the perception node published findings"
+    labels = [m for m in arrays[-1].markers if m.type == 9 and m.action == 0]   # TEXT_VIEW_FACING, ADD
+    assert all(m.header.frame_id == "base" for m in arrays[-1].markers)
+    assert len(labels) == len(found)
+    for f in found:
+        label = min(labels, key=lambda m: math.hypot(m.pose.position.x - f.x, m.pose.position.y - f.y))
+        assert math.hypot(label.pose.position.x - f.x, label.pose.position.y - f.y) < 3e-4
+        assert label.text.startswith("#") and f.kind in label.text
+        assert abs(label.pose.position.z - 0.05) < 5e-3   # on the surface (the scene's plane at z 0.05 m)

@@ -26,7 +26,7 @@ def world(rows: int = 500, cols: int = 1500) -> SimpleNamespace:
     alpha[:, : cols // 2] = 255
     image = WorldMapImage(grey, alpha, RES, (0.40, -0.05))
     stats = SimpleNamespace(mapped=120, passes=2, latency_s=0.03, latency_estimated=True, pass_corrections_px=[])
-    mapper = SimpleNamespace(map_image=lambda: image, stats=stats)
+    mapper = SimpleNamespace(map_image=lambda: image, stats=stats, height_layer=lambda: None)
     return SimpleNamespace(world=mapper, world_frame="base", camera=None, received=100, dropped=0, malformed=0,
                            has_parameter=lambda name: False)
 

@@ -26,6 +26,9 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   the map `touchroller map` makes of a recording of the scan), and when it ends the map is finalised
   (whole-map flat field), published, and saved to `map.save_path` if that is set (a world map: the PNG,
   grey plus alpha, and a nav2 map.yaml beside it);
+* publishes on `findings` (visualization_msgs/MarkerArray, transient local, in `world_frame`) the defects
+  found in the world map as it grows (`touchroller_bringup.live_findings`, `findings.*` parameters): the
+  newly mapped region inspected at most once per `findings.period`, the whole map when it is finished;
 * `~/recapture_reference` (std_srvs/Trigger) re-captures the no-contact reference from the next
   `reference.frames` frames (and starts a new map);
 * `/diagnostics`: frame rate, processing time, contacts/s, malformed frames, and frames missed: all
@@ -60,12 +63,15 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.time import Time
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32, Header
+from visualization_msgs.msg import MarkerArray
 
 from touchroller_bringup import names
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
+from touchroller_bringup.live_findings import LIVE_FINDINGS_PARAMETERS, LiveFindings, LiveFindingsConfig, markers
 from touchroller_bringup.map_files import write_world_map
 from touchroller_bringup.map_markers import MapViewPublisher
 from touchroller_bringup.publisher_filter import PublisherFilter
@@ -86,6 +92,7 @@ from touchroller_bringup.ros_params import (
     frame_id_problem,
 )
 from touchroller_bringup.ros_services import create_trigger_service
+from touchroller_bringup.scan_findings import with_height
 from touchroller_bringup.tf import TransformListener, TransformPublisher, camera_in_cylinder
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
@@ -229,6 +236,9 @@ class PerceptionNode(Node):
         self._rolling = False
         self._finish_after_ns: int | None = None   # a world map is finished with the first frame after this
         self.saved_maps = 0
+        self.live_findings = LiveFindings(self._findings_config())   # `findings`: markers of the defects found
+        self.findings_pub = self.create_publisher(MarkerArray, names.FINDINGS, MAP_QOS)
+        self.findings_published = 0
 
         self.frames = RateMeter()
         self.contact_rate = RateMeter()
@@ -309,6 +319,9 @@ class PerceptionNode(Node):
             declare(self, name, getattr(defaults_view, field), description, min=lo, max=hi)
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
                 min=0.0, max=100.0)
+        defaults_findings = LiveFindingsConfig()
+        for name, (field, description, lo, hi) in LIVE_FINDINGS_PARAMETERS.items():
+            declare(self, name, getattr(defaults_findings, field), description, min=lo, max=hi)
 
     def _detector_config(self, overrides: dict[str, Any] | None = None) -> DetectorConfig:
         values = {name: self.get_parameter(name).value for name in DETECTOR_PARAMETERS}
@@ -328,7 +341,7 @@ class PerceptionNode(Node):
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
         for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config),
                             (WORLD_PARAMETERS, self._world_config), (HEIGHT_PARAMETERS, self._height_config),
-                            (VIEW_PARAMETERS, self._view_config)):
+                            (VIEW_PARAMETERS, self._view_config), (LIVE_FINDINGS_PARAMETERS, self._findings_config)):
             changes = {p.name: p.value for p in parameters if p.name in table}
             if changes:
                 try:
@@ -363,6 +376,13 @@ class PerceptionNode(Node):
             with self._map_lock:
                 self.map_views.configure(self._view_config())
                 self._map_dirty = True
+        if changed & set(LIVE_FINDINGS_PARAMETERS):
+            self.live_findings.config = self._findings_config()
+
+    def _findings_config(self, overrides: dict[str, Any] | None = None) -> LiveFindingsConfig:
+        values = {name: self.get_parameter(name).value for name in LIVE_FINDINGS_PARAMETERS}
+        values.update(overrides or {})
+        return LiveFindingsConfig(**{LIVE_FINDINGS_PARAMETERS[name][0]: value for name, value in values.items()})
 
     def _world_config(self, overrides: dict[str, Any] | None = None) -> WorldMapConfig:
         values = {name: self.get_parameter(name).value for name in WORLD_PARAMETERS}
@@ -609,6 +629,10 @@ class PerceptionNode(Node):
             self._map_dirty = False
             self._finish_after_ns = None
             self.map_views.reset()
+            gone = self.live_findings.reset()
+        if gone:   # the previous map's findings: their markers go with it
+            self.findings_pub.publish(markers([], gone, self.world_frame, self.get_clock().now().to_msg(), 0.0,
+                                              self.live_findings.config))
 
     def finish_map(self) -> None:
         """The roll ended: correct the whole map with its final flat field, publish it, and save it
@@ -622,7 +646,7 @@ class PerceptionNode(Node):
             else:
                 self.stitcher.finalise()
             self._map_dirty = True
-        tactile_map = self.publish_map()
+        tactile_map = self.publish_map(all_findings=True)
         path = str(self.get_parameter("map.save_path").value)
         if path and tactile_map is not None:
             self._save_map(tactile_map, path)
@@ -709,16 +733,19 @@ class PerceptionNode(Node):
         msg.data = values.tobytes()
         self.map_height_pub.publish(msg)
 
-    def publish_map(self) -> np.ndarray | None:
+    def publish_map(self, all_findings: bool = False) -> np.ndarray | None:
         """Publish the map if it changed since the last publication; returns what was published (a
-        world map: its view within `map.view_max_pixels`)."""
-        world = None
+        world map: its view within `map.view_max_pixels`). A world map's newly mapped region is inspected
+        (`findings.period` apart; `all_findings`: now)."""
+        world = inspected = None
         with self._map_lock:
             if (self.stitcher is None and self.world is None) or not self._map_dirty:
                 return None
             try:
                 if self.world is not None:
-                    world = world_map_raster(self.world)
+                    image = self.world.map_image()
+                    world = world_map_raster(self.world, image)
+                    inspected = with_height(image, self.world) if image.grey.size else None
                 else:
                     tactile_map = self.stitcher.map_image()
             except Exception as exc:  # noqa: BLE001
@@ -729,7 +756,10 @@ class PerceptionNode(Node):
             if world is not None:   # nothing mapped yet: None (a world map waits for the roller to roll)
                 view = self.map_views.publish(world, self.world_frame, now)
                 self._publish_height(now)
-                return None if view is None else view.grey
+        if world is not None:
+            if inspected is not None:   # a copy of the map: inspected outside the lock
+                self._publish_findings(inspected, now, all_findings)
+            return None if view is None else view.grey
         from touchroller_bringup.image_conversion import array_to_image
 
         if tactile_map.size == 0:
@@ -739,6 +769,22 @@ class PerceptionNode(Node):
         frame_id = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         self.map_pub.publish(array_to_image(tactile_map, now, frame_id=frame_id))
         return tactile_map
+
+    def _publish_findings(self, image: Any, now_ns: int, force: bool) -> None:
+        """Inspect the newly mapped region and publish every finding so far (and the DELETEs of those gone)."""
+        try:
+            update = self.live_findings.update(image, now_ns * 1e-9, force=force, whole=force)
+        except (ValueError, MemoryError) as exc:
+            self.get_logger().warning(f"findings not updated: {exc}", throttle_duration_sec=10.0)
+            return
+        if update is None:
+            return
+        pressed = self.world.stats.pressed_height if self.world is not None else None
+        z = pressed - self.camera.radius if pressed is not None else 0.0   # the surface under the roller
+        stamp = Time(nanoseconds=int(now_ns)).to_msg()
+        self.findings_pub.publish(markers(update.findings, update.removed, self.world_frame, stamp, z,
+                                          self.live_findings.config))
+        self.findings_published += 1
 
     # ------------------------------------------------------------------ diagnostics
     def _diagnostic_status(self) -> Status:

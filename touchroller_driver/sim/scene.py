@@ -260,6 +260,13 @@ def validate(scene: Scene) -> None:
     if not origin_ok or not _finite(yaw):
         raise ValueError(f"{where}: world.surface_origin must be 3 finite numbers and world.surface_yaw a finite "
                          f"angle, got {origin!r} and {yaw!r}")
+    if (d.get("surface") or {}).get("defects"):
+        from touchroller_driver.sim.defects import surface_defects
+
+        try:
+            surface_defects(d["surface"])
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
     p = scene.effect_params("dropped_frames")["probability"]
     if not 0.0 <= float(p) < 1.0:
         raise ValueError(f"{where}: dropped_frames.probability must be in [0, 1), got {p}")

@@ -24,6 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from touchroller_driver.sim.defects import surface_defects
 from touchroller_driver.sim.lazy_surfaces import LAZY_KINDS, lazy_surface
 from touchroller_driver.sim.tiled_surface import TiledSurface
 
@@ -138,7 +139,12 @@ def make_surface(spec: dict[str, Any], rng: np.random.Generator) -> Surface | Ti
         unit = heights / relief if relief > 0 else heights
     else:
         raise ValueError(f"surface.kind must be flat, fabric, image, grain, stripes, panel or glass, got {kind!r}")
-    return Surface((unit * relief).astype(np.float32), resolution, x0, y0, desc)
+    height = (unit * relief).astype(np.float32)
+    plan = surface_defects(spec)   # `surface.defects`: planted on any kind (sim/defects.py), its own seed
+    if plan:
+        plan.render(height, x0, y0, resolution)
+        desc += f"; planted {len(plan.cracks)} crack(s), {len(plan.blobs)} dent(s)/bump(s)"
+    return Surface(height, resolution, x0, y0, desc)
 
 
 def _panel(spec: dict[str, Any], rows: int, cols: int, resolution: float, rng: np.random.Generator, *,

@@ -81,10 +81,11 @@ def local_surface(values: np.ndarray, usable: np.ndarray, sigma_px: float, itera
     surface = gaussian_mean(values, weights, sigma_px)
     sigma = robust_sigma(values - surface, usable, sample)
     grow = np.ones((3, 3), np.uint8)
+    outliers = np.zeros(values.shape, np.uint8)
     for _ in range(iterations):
         residual = np.abs(values - surface)
-        outliers = np.zeros(values.shape, np.uint8)
-        if sigma > 0 or reject_floor > 0:
+        if sigma > 0 or reject_floor > 0:   # (a noise-free rest, sigma 0, keeps what the last round left out)
+            outliers = np.zeros(values.shape, np.uint8)
             outliers[usable & (residual > max(reject * sigma, reject_floor))] = 1
             outliers = cv2.dilate(outliers, grow)   # the defect's flanks, below the cut, go with it
         weights = (usable & (outliers == 0)).astype(np.float32)

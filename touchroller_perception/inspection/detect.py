@@ -77,20 +77,67 @@ def inspect_height(height: np.ndarray, resolution: float, origin: Sequence[float
 
 def inspect_intensity(grey: np.ndarray, resolution: float, origin: Sequence[float], mask: np.ndarray | None = None,
                       config: InspectionConfig = DEFAULT_CONFIG) -> InspectionResult:
-    """Findings in an intensity map (grey levels; NaN or masked where unmapped) when no height exists: the
-    same method in grey levels, thresholds from the noise alone (`min_depth_m` does not apply), anomalies
-    of either sign; `depth_m` is NaN (an intensity is no depth), a compact anomaly is a dent when darker
-    than its surroundings and a bump when brighter, and an elongated one of either sign is a crack."""
-    return _detect(np.asarray(grey), resolution, origin, mask, replace(config, min_depth_m=0.0), depth_known=False)
+    """Findings in an intensity map (grey levels; NaN or masked where unmapped) when no height exists.
+
+    A tactile map's grey is shading: a defect shows as a bright and a dark side (a crack as two lines, a
+    dent as two half-moons), not as one sign. So the map's anomaly is unsigned: |grey - its local mean|,
+    smoothed over `intensity_blur_m` (which joins the two sides into one region), and the height method
+    runs on it with its thresholds from the noise, at least `min_intensity` grey levels. Places and shapes
+    only: `depth_m` is NaN, widths include the shading's two sides, and a compact anomaly is a dent when
+    its middle is darker than its surroundings, a bump when brighter (a shading's sign: not reliable)."""
+    values = np.asarray(grey)
+    _check(values, resolution, origin, mask)
+    if values.size == 0:
+        return _empty()
+    energy, signed = _anomaly(values, resolution, mask, config)
+    result = _detect(-energy, resolution, origin, mask, replace(config, min_depth_m=config.min_intensity),
+                     depth_known=False)
+    return InspectionResult(_signed_kinds(result.findings, signed, resolution, origin), result.diagnostics)
+
+
+def _anomaly(values: np.ndarray, resolution: float, mask: np.ndarray | None,
+             config: InspectionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(unsigned anomaly |grey - local mean| smoothed, NaN where unusable; the signed residual)."""
+    finite = np.isfinite(values)
+    usable = finite if mask is None else finite & ~np.asarray(mask, bool)
+    v = np.where(usable, values, 0.0).astype(np.float32)
+    surface, _ = local_surface(v, usable, config.background_scale_m / resolution, config.background_iterations,
+                               config.background_reject, config.noise_sample)   # a defect kept out of its mean
+    signed = np.where(usable, v - surface, 0.0).astype(np.float32)
+    blur = config.intensity_blur_m / resolution
+    energy = np.abs(signed)
+    if blur > 0:
+        weight = cv2.GaussianBlur(usable.astype(np.float32), (0, 0), blur, borderType=cv2.BORDER_CONSTANT)
+        energy = cv2.GaussianBlur(energy, (0, 0), blur, borderType=cv2.BORDER_CONSTANT) / np.maximum(weight, 1e-6)
+    return np.where(usable, energy, np.nan).astype(np.float32), signed
+
+
+def _signed_kinds(findings: list[Finding], signed: np.ndarray, resolution: float,
+                  origin: Sequence[float]) -> list[Finding]:
+    """Compact anomalies named by their middle's sign: darker a dent, brighter a bump."""
+    rows, cols = signed.shape
+    out = []
+    for f in findings:
+        if f.kind != "crack":
+            col = (f.x - float(origin[0])) / resolution - 0.5
+            row = rows - 0.5 - (f.y - float(origin[1])) / resolution
+            half = max(1, round(0.25 * f.width_m / resolution))
+            r0, r1 = max(0, round(row) - half), min(rows, round(row) + half + 1)
+            c0, c1 = max(0, round(col) - half), min(cols, round(col) + half + 1)
+            middle = float(signed[r0:r1, c0:c1].mean()) if r1 > r0 and c1 > c0 else 0.0
+            f = replace(f, kind="bump" if middle > 0 else "dent")
+        out.append(replace(f, depth_m=math.nan))
+    return out
 
 
 def inspect_region(height: np.ndarray, resolution: float, origin: Sequence[float],
                    region: tuple[float, float, float, float], margin_m: float | None = None,
-                   mask: np.ndarray | None = None, config: InspectionConfig = DEFAULT_CONFIG) -> InspectionResult:
-    """`inspect` on a window of the map: `region` (x_min, y_min, x_max, y_max) plus `margin_m` around it
-    (default three background scales: the local surface there is then the whole map's), keeping the
-    findings whose centre lies in `region`. For a live map: the newly mapped region, inspected while the
-    rest of the map stays as it was."""
+                   mask: np.ndarray | None = None, config: InspectionConfig = DEFAULT_CONFIG,
+                   intensity: bool = False) -> InspectionResult:
+    """`inspect` (`inspect_intensity` with `intensity`) on a window of the map: `region` (x_min, y_min, x_max,
+    y_max) plus `margin_m` around it (default three background scales: the local surface there is then
+    the whole map's), keeping the findings whose centre lies in `region`. For a live map: the newly mapped
+    region, inspected while the rest of the map stays as it was."""
     values = np.asarray(height)
     _check(values, resolution, origin, mask)
     margin = 3 * config.background_scale_m if margin_m is None else float(margin_m)
@@ -102,10 +149,11 @@ def inspect_region(height: np.ndarray, resolution: float, origin: Sequence[float
     r0 = max(0, math.floor((y0 + rows * resolution - (y_max + margin)) / resolution))
     r1 = min(rows, math.ceil((y0 + rows * resolution - (y_min - margin)) / resolution))
     if c1 <= c0 or r1 <= r0:
-        return _detect(values[:0, :0], resolution, origin, None, config, depth_known=True)
+        return _empty()
     window = (x0 + c0 * resolution, y0 + (rows - r1) * resolution)
-    result = _detect(values[r0:r1, c0:c1], resolution, window,
-                     None if mask is None else np.asarray(mask)[r0:r1, c0:c1], config, depth_known=True)
+    how = inspect_intensity if intensity else inspect
+    result = how(values[r0:r1, c0:c1], resolution, window, None if mask is None else np.asarray(mask)[r0:r1, c0:c1],
+                 config)
     kept = [f for f in result.findings if x_min <= f.x <= x_max and y_min <= f.y <= y_max]
     return InspectionResult([replace(f, id=i + 1) for i, f in enumerate(kept)], result.diagnostics)
 
@@ -199,6 +247,9 @@ def _crack(depth: np.ndarray, region: np.ndarray, corner: tuple[int, int], grid:
     rough_width = float(region.sum()) / max(total_px, 1.0)
     if trunk_px < config.crack_aspect * rough_width or trunk.shape[0] < 3:
         return None
+    if not depth_known and (float(np.hypot(*(trunk[-1] - trunk[0]))) < 0.6 * trunk_px
+                            or trunk_px * res < config.intensity_min_crack_m):
+        return None     # an intensity map's ring, horseshoe or short streak: the shaded sides of a dent or bump
     profiles = across(depth, trunk, half_width_px=float(np.clip(2.5 * rough_width + 2, 4, 40)))
     good = np.isfinite(profiles.fwhm_px) & (profiles.peak > 0)
     if good.sum() < 2:
@@ -224,8 +275,9 @@ def _crack(depth: np.ndarray, region: np.ndarray, corner: tuple[int, int], grid:
         counts.short += 1
         return None
     centre = _extend(centre, 0.5 * width_px)
-    lines = [centre] + [smooth_path(b + offset) for b in skeleton.branches
-                        if path_length(b) >= max(config.min_branch_length_m / res, 2 * width_px)]
+    lines = [centre] + [smooth_path(b + offset) for b in skeleton.branches   # (an intensity map's are the
+                        if depth_known                                       # shading's two sides: none)
+                        and path_length(b) >= max(config.min_branch_length_m / res, 2 * width_px)]
     lines = [_simplify(line) for line in lines]
     mids, weights = [], []
     for line in lines:
@@ -278,8 +330,11 @@ def _compact(depth: np.ndarray, region: np.ndarray, corner: tuple[int, int], gri
     if not peak >= high:        # the seed was a pixel or two of noise past the threshold
         counts.shallow += 1
         return None
-    n, labels = cv2.connectedComponents((crop >= 0.5 * peak).astype(np.uint8), connectivity=8)
-    half = labels == labels[at]
+    if depth_known:
+        n, labels = cv2.connectedComponents((crop >= 0.5 * peak).astype(np.uint8), connectivity=8)
+        half = labels == labels[at]
+    else:   # an intensity map: the shading's sides are apart, each a piece past half the peak
+        half = (crop >= 0.5 * peak) & inside
     count = int(half.sum())
     if math.sqrt(4 * count / math.pi) * res < config.min_blob_diameter_m:
         counts.small += 1
@@ -293,6 +348,8 @@ def _compact(depth: np.ndarray, region: np.ndarray, corner: tuple[int, int], gri
     eig = np.sort(np.linalg.eigvalsh(cov + np.eye(2) / 12.0))[::-1]
     length, width = (4 * math.sqrt(max(float(e), 0.0)) * res for e in eig)
     contours, _ = cv2.findContours(half.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not depth_known and len(contours) > 1:   # the pieces' hull
+        contours = [cv2.convexHull(np.vstack(contours))]
     outline = max(contours, key=len).reshape(-1, 2)[:, ::-1].astype(np.float64) if contours else np.zeros((0, 2))
     if outline.shape[0] < 3:   # a line or a point: the pixels' outer square
         top, left = rr.min() - 0.5, cc.min() - 0.5

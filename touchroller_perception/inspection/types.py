@@ -40,6 +40,11 @@ class InspectionConfig:
     max_blob_width_m: float = 3.5e-3        # dents/bumps: short axis at half depth above this is surface form
     edge_margin_m: float = 2e-4             # nothing is found this close to the map's edge, a NaN or the mask
     footprint_fwhm_px: float = 1.0          # the map's pixel footprint (FWHM, px) taken out of crack widths
+    intensity_blur_m: float = 1.5e-4        # intensity maps: |anomaly| smoothed by this (sigma), joining a
+                                            # shading's bright and dark sides into one region
+    min_intensity: float = 2.0              # intensity maps: the high threshold's floor, grey levels
+    intensity_min_crack_m: float = 5e-3     # intensity maps: a shorter elongated anomaly is compact (a dent's
+                                            # shaded sides are elongated along the light)
     noise_sample: int = 1_000_000           # at most this many pixels for the robust noise estimate
 
     def __post_init__(self) -> None:
@@ -53,7 +58,8 @@ class InspectionConfig:
                 raise ValueError(f"InspectionConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("min_depth_m", "texture_multiple", "gap_m", "max_crack_width_m", "max_blob_width_m",
                      "min_crack_length_m", "min_branch_length_m", "min_blob_diameter_m",
-                     "edge_margin_m", "footprint_fwhm_px"):
+                     "edge_margin_m", "footprint_fwhm_px", "intensity_blur_m",
+                     "intensity_min_crack_m", "min_intensity"):
             if getattr(self, name) < 0:
                 raise ValueError(f"InspectionConfig.{name} must be >= 0, got {getattr(self, name)}")
         if not 0 < self.low_fraction <= 1:

@@ -179,3 +179,37 @@ def test_hard_inputs_never_fail_and_stay_inside_the_map(rows, cols, fill, seed):
         assert 0 <= f.x <= cols * RES and 0 <= f.y <= rows * RES
         assert f.kind in ("crack", "dent", "bump") and 0 <= f.confidence <= 1
         parse_wkt(f.wkt)
+
+
+def shaded(h):
+    """A tactile map's grey: shading by the slopes along one light direction (a defect's bright and dark
+    sides), 128 on the flat, plus a little noise."""
+    gy, gx = np.gradient(h.astype(np.float64), RES)
+    rng = np.random.default_rng(3)
+    return (128 + 400 * (0.8 * gx + 0.6 * gy) + rng.normal(0, 0.3, h.shape)).astype(np.float32)
+
+
+def test_an_intensity_map_shows_each_defect_once_where_it_is_without_a_depth():
+    """Shading draws a crack as a bright and a dark line and a dent as two half-moons: each is one
+    finding in its place (before the unsigned anomaly, each crack came out as two)."""
+    from touchroller_perception.inspection import inspect_intensity
+
+    h = surface(noise=0.0)
+    carve_line(h, (0.006, 0.008), (0.030, 0.012), 0.25e-3, 50e-6)
+    carve_blob(h, (0.012, 0.022), 2e-3, 40e-6)
+    carve_blob(h, (0.030, 0.022), 2e-3, -40e-6)
+    found = inspect_intensity(shaded(h), RES, (0.0, 0.0)).findings
+    cracks = [f for f in found if f.kind == "crack"]
+    compact = sorted((f for f in found if f.kind != "crack"), key=lambda f: f.x)
+    assert len(cracks) == 1 and len(compact) == 2, found
+    # on the true line (the shading's two sides joined about it); along it the ends decide the centroid
+    p = np.array(cracks[0].polylines[0])
+    assert (np.abs((p[:, 0] - 0.006) * 0.004 - (p[:, 1] - 0.008) * 0.024) / math.hypot(0.024, 0.004)).max() < 3e-4
+    assert (cracks[0].x, cracks[0].y) == pytest.approx((0.018, 0.010), abs=6e-4)
+    assert cracks[0].length_m == pytest.approx(math.hypot(0.024, 0.004), rel=0.1)
+    assert [(f.x, f.y) for f in compact] == [pytest.approx((0.012, 0.022), abs=3e-4),
+                                              pytest.approx((0.030, 0.022), abs=3e-4)]
+    assert all(math.isnan(f.depth_m) for f in found)
+    # the same through a window of the map (the live node's way)
+    window = inspect_region(shaded(h), RES, (0.0, 0.0), (0.0, 0.0, 0.04, 0.016), intensity=True).findings
+    assert [f.kind for f in window] == ["crack"] and window[0].x == pytest.approx(cracks[0].x, abs=1e-4)

@@ -1,0 +1,133 @@
+"""Live findings: a growing world map inspected region by region, stable ids, deletions, and the markers."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from touchroller_bringup.live_findings import MARKERS_PER_FINDING, LiveFindings, LiveFindingsConfig, label, markers
+from touchroller_perception.inspection import Finding
+
+RES = 1e-4
+ORIGIN = (0.40, -0.02)
+
+
+@dataclass
+class MapImage:      # a WorldMapImage with the height layer the world height map adds
+    grey: np.ndarray
+    alpha: np.ndarray
+    resolution: float
+    origin: tuple[float, float]
+    height: np.ndarray | None = None
+
+
+def panel(shape=(400, 600), seed=0):
+    """Height (m) with a crack along x across the map's middle and a dent and a bump; row 0 the top."""
+    rng = np.random.default_rng(seed)
+    h = rng.normal(0, 0.4e-6, shape).astype(np.float32)
+    rows, cols = shape
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    x, y = ORIGIN[0] + (xx + 0.5) * RES, ORIGIN[1] + (rows - yy - 0.5) * RES
+    crack_y = -0.005 + 0.05 * (x - 0.43)
+    inside = (x > 0.410) & (x < 0.450)
+    h -= np.where(inside, 60e-6 * np.exp(-4 * math.log(2) * ((y - crack_y) / 2.5e-4) ** 2), 0).astype(np.float32)
+    for cx, cy, depth in ((0.415, 0.010, 50e-6), (0.445, 0.010, -50e-6)):
+        r = np.hypot(x - cx, y - cy)
+        h -= (depth * np.where(r < 1e-3, 0.5 * (1 + np.cos(np.pi * r / 1e-3)), 0)).astype(np.float32)
+    return h
+
+
+def image(h, mapped):
+    return MapImage(np.full(h.shape, 128, np.uint8), np.where(mapped, 255, 0).astype(np.uint8), RES, ORIGIN,
+                    np.where(mapped, h, np.nan).astype(np.float32))
+
+
+def test_the_map_grows_and_findings_keep_their_ids_until_they_are_gone():
+    h = panel()
+    cols = h.shape[1]
+    live = LiveFindings(LiveFindingsConfig(period_s=1.0, reach_m=5e-3, margin_m=7.5e-3))
+    left = np.zeros(h.shape, bool)
+    left[:, : cols * 2 // 3] = True      # the first pass: the dent and most of the crack
+    first = live.update(image(h, left), now_s=10.0)
+    assert first is not None and first.layer == "height"
+    kinds = {f.kind: f for f in first.findings}
+    assert set(kinds) == {"crack", "dent"} and first.removed == []
+    assert kinds["dent"].x == pytest.approx(0.415, abs=2e-4) and kinds["dent"].depth_m > 0
+    assert live.update(image(h, np.ones(h.shape, bool)), now_s=10.5) is None    # within the period
+    assert live.update(image(h, left), now_s=20.0) is None                       # nothing new mapped
+    second = live.update(image(h, np.ones(h.shape, bool)), now_s=20.0)
+    assert second is not None and second.removed == []
+    now = {f.kind: f for f in second.findings}
+    assert set(now) == {"crack", "dent", "bump"}
+    # the crack, mapped whole now, is the same finding (same id), measured longer
+    assert now["crack"].id == kinds["crack"].id and now["crack"].length_m > kinds["crack"].length_m + 5e-3
+    assert now["crack"].length_m == pytest.approx(0.04 * math.hypot(1, 0.05), rel=0.1)
+    assert now["dent"].id == kinds["dent"].id and now["bump"].id not in (kinds["crack"].id, kinds["dent"].id)
+    # the map grows to the left (its origin moves) and the dent's place is re-mapped smooth: the dent is gone
+    grown = np.pad(h, ((0, 0), (50, 0)))
+    rows = grown.shape[0]
+    yy, xx = np.mgrid[0:rows, 0:grown.shape[1]]
+    x = ORIGIN[0] - 50 * RES + (xx + 0.5) * RES
+    y = ORIGIN[1] + (rows - yy - 0.5) * RES
+    grown[np.hypot(x - 0.415, y - 0.010) < 1.5e-3] = 0.0
+    moved = MapImage(np.full(grown.shape, 128, np.uint8), np.full(grown.shape, 255, np.uint8), RES,
+                     (ORIGIN[0] - 50 * RES, ORIGIN[1]), grown)
+    third = live.update(moved, now_s=30.0)      # only the new strip (and what reaches into it) is inspected
+    assert third is not None and third.removed == [] and {f.kind for f in third.findings} == set(now)
+    finished = live.update(moved, now_s=30.1, force=True, whole=True)   # the finished map: all of it
+    assert finished is not None and finished.removed == [kinds["dent"].id]
+    assert {f.kind for f in finished.findings} == {"crack", "bump"}
+    assert live.reset() == sorted(f.id for f in finished.findings) and live.findings == {}
+
+
+def test_without_a_height_layer_the_intensity_is_inspected_and_depths_are_unknown():
+    h = panel()
+    gy, gx = np.gradient(h.astype(np.float64), RES)
+    noise = np.random.default_rng(1).normal(0, 0.5, h.shape)
+    grey = np.clip(np.rint(128 + 400 * (0.8 * gx + 0.6 * gy) + noise), 0, 255).astype(np.uint8)
+    shown = MapImage(grey, np.full(h.shape, 255, np.uint8), RES, ORIGIN)
+    update = LiveFindings().update(shown, now_s=0.0)
+    assert update is not None and update.layer == "intensity"
+    crack = [f for f in update.findings if f.kind == "crack"]
+    assert len(crack) == 1 and all(math.isnan(f.depth_m) for f in update.findings)
+    assert len(update.findings) == 3, update.findings
+
+
+def test_disabled_does_nothing():
+    h = panel()
+    assert LiveFindings(LiveFindingsConfig(enabled=False)).update(image(h, np.ones(h.shape, bool)), 0.0) is None
+
+
+@pytest.mark.parametrize("field, value", [("period_s", -1.0), ("reach_m", math.nan), ("text_size_m", 0.0)])
+def test_a_bad_configuration_is_refused(field, value):
+    with pytest.raises(ValueError, match=field):
+        LiveFindingsConfig(**{field: value})
+
+
+def test_markers_draw_each_finding_in_the_map_frame_with_stable_ids_and_delete_the_gone():
+    pytest.importorskip("visualization_msgs")
+    from visualization_msgs.msg import Marker
+
+    crack = Finding(3, "crack", 0.42, 0.01, 0.012, 2.5e-4, 60e-6, 3e-6, 0.99,
+                    polylines=(((0.414, 0.01), (0.426, 0.01)), ((0.42, 0.01), (0.422, 0.013))))
+    bump = Finding(5, "bump", 0.44, 0.0, 1e-3, 0.9e-3, -40e-6, 7e-7, 0.9,
+                   polygon=((0.4395, 0.0), (0.44, 0.0005), (0.4405, 0.0), (0.4395, 0.0)))
+    array = markers([crack, bump], [7], "base", None, 0.05, LiveFindingsConfig())
+    by_id = {m.id: m for m in array.markers}
+    assert all(m.header.frame_id == "base" and m.ns == "findings" for m in array.markers)
+    trunk, branch = by_id[MARKERS_PER_FINDING * 3], by_id[MARKERS_PER_FINDING * 3 + 2]
+    assert trunk.type == branch.type == Marker.LINE_STRIP and trunk.action == Marker.ADD
+    assert [(p.x, p.y, p.z) for p in trunk.points] == [(0.414, 0.01, 0.05), (0.426, 0.01, 0.05)]
+    assert trunk.scale.x == pytest.approx(2.5e-4)
+    # the crack's other branch slots are deleted (a branch it had before is gone from RViz)
+    assert all(by_id[MARKERS_PER_FINDING * 3 + k].action == Marker.DELETE for k in range(3, MARKERS_PER_FINDING))
+    disc = by_id[MARKERS_PER_FINDING * 5]
+    assert disc.type == Marker.CYLINDER and (disc.pose.position.x, disc.pose.position.y) == (0.44, 0.0)
+    assert disc.scale.x == disc.scale.y == pytest.approx(1e-3)
+    text = by_id[MARKERS_PER_FINDING * 5 + 1]
+    assert text.type == Marker.TEXT_VIEW_FACING and text.text == label(bump) == "#5 bump 0.9 mm, 40 um high"
+    assert label(crack) == "#3 crack 12.0 x 0.25 mm, 60 um deep"
+    gone = [m for m in array.markers if MARKERS_PER_FINDING * 7 <= m.id < MARKERS_PER_FINDING * 8]
+    assert len(gone) == MARKERS_PER_FINDING and all(m.action == Marker.DELETE for m in gone)

@@ -1,0 +1,125 @@
+"""The findings of a scan (docs/inspection.md): `touchroller scan ... inspect:=true` inspects the world map it
+made and writes `DIR/findings.csv` and `DIR/findings.png` with it; a simulated scan whose scene plants
+defects (`surface.defects`) also writes their truth, `DIR/truth_findings.csv`, in the same format and frame.
+
+Which layer: the world map's height (metres, `height_layer`) when the map has one, else its intensity
+(grey levels: shapes and places, no depth).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from touchroller_perception.inspection import Finding, InspectionResult, inspect, inspect_intensity
+
+INSPECT_CHOICES = ("auto", "true", "false")
+
+
+@dataclass(frozen=True)
+class ScanFindings:
+    findings: list[Finding]
+    layer: str                      # "height" or "intensity": what was inspected
+    result: InspectionResult
+
+    def summary(self) -> str:
+        counts = {kind: sum(f.kind == kind for f in self.findings) for kind in ("crack", "dent", "bump")}
+        return (f"{len(self.findings)} finding(s) ({', '.join(f'{n} {k}' for k, n in counts.items())}) "
+                f"in the {self.layer} map: `findings.csv` + `findings.png`")
+
+
+def enabled(arguments: Mapping[str, str]) -> bool:
+    """`inspect:=true`, or `auto` (the default) for a raster (`area:=...`)."""
+    value = arguments.get("inspect", "auto")
+    return value == "true" or (value == "auto" and bool(arguments.get("area")))
+
+
+@dataclass(frozen=True)
+class MapWithHeight:
+    """A world map image (grey + alpha, row 0 the largest y, origin its lower-left corner) with its height
+    layer on the same grid (float metres, row 0 the largest y, NaN where unmapped)."""
+
+    grey: np.ndarray
+    alpha: np.ndarray
+    resolution: float
+    origin: tuple[float, float]
+    height: np.ndarray
+
+
+def with_height(image: Any, world: Any) -> Any:
+    """`image` (the world mapper's `map_image()`) with the mapper's height layer when it has one
+    (`height_layer()`, cropped as map_image is; its rows grow with y); else `image` itself."""
+    layer = world.height_layer() if hasattr(world, "height_layer") else None
+    if layer is None or layer.height.shape != np.asarray(image.grey).shape:
+        return image
+    return MapWithHeight(image.grey, image.alpha, image.resolution, tuple(image.origin), layer.height[::-1])
+
+
+def height_layer(image: Any) -> np.ndarray | None:
+    """The height layer of a map image from `with_height` (float metres on the grey's grid), else None."""
+    height = getattr(image, "height", None)
+    if height is None:
+        return None
+    height = np.asarray(height)
+    if height.shape != np.asarray(image.grey).shape or not np.issubdtype(height.dtype, np.floating):
+        return None
+    return height
+
+
+def inspect_map(image: Any) -> ScanFindings:
+    """Inspect a `WorldMapImage` (grey + alpha, row 0 the largest y, origin the lower-left corner): its
+    height layer if it has one, else its intensity."""
+    mapped = np.asarray(image.alpha) > 0
+    height = height_layer(image)
+    if height is not None:
+        values = np.where(mapped, height, np.nan).astype(np.float32)
+        result = inspect(values, image.resolution, image.origin)
+        return ScanFindings(result.findings, "height", result)
+    grey = np.where(mapped, np.asarray(image.grey, np.float32), np.nan).astype(np.float32)
+    result = inspect_intensity(grey, image.resolution, image.origin)
+    return ScanFindings(result.findings, "intensity", result)
+
+
+def write_findings(out_dir: Path, image: Any, found: ScanFindings) -> dict[str, Path]:
+    """`findings.csv` and `findings.png` (the map with the findings drawn and numbered)."""
+    from touchroller_bringup.findings_files import write_findings_csv, write_findings_png
+
+    write_findings_csv(out_dir / "findings.csv", found.findings)
+    write_findings_png(out_dir / "findings.png", np.asarray(image.grey), np.asarray(image.alpha) > 0,
+                       image.resolution, image.origin, found.findings)
+    return {"findings": out_dir / "findings.csv", "findings_png": out_dir / "findings.png"}
+
+
+def truth_findings(scene_name: str) -> list[Finding]:
+    """The defects a simulator scene plants, as findings in the world frame (the map's `base`): empty when
+    it plants none."""
+    from touchroller_driver.sim.camera import surface_frame
+    from touchroller_driver.sim.defects import surface_defects
+    from touchroller_driver.sim.scene import load_scene
+
+    scene = load_scene(scene_name)
+    plan = surface_defects(scene.surface)
+    return plan.truth(surface_frame(scene)) if plan else []
+
+
+def plants_defects(scene_name: str) -> bool:
+    """The simulator scene asks for `surface.defects` (False for no scene or one that does not load)."""
+    from touchroller_driver.sim.scene import load_scene
+
+    if not scene_name:
+        return False
+    try:
+        return bool((load_scene(scene_name).surface or {}).get("defects"))
+    except (OSError, ValueError):
+        return False
+
+
+def write_truth(out_dir: Path, scene_name: str) -> Path:
+    """`truth_findings.csv`: the scene's planted defects in the world frame (no rows when it plants none)."""
+    from touchroller_bringup.findings_files import write_findings_csv
+
+    write_findings_csv(out_dir / "truth_findings.csv", truth_findings(scene_name))
+    return out_dir / "truth_findings.csv"
