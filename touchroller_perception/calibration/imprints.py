@@ -9,7 +9,9 @@ balance of `extrinsics`). Two things a roller's lighting does to imprints are ha
   from the part of the pattern that is symmetric under any directional light;
 * the light falls off across the membrane, so an absolute strength reads the brighter row as the
   deeper one: strengths are taken relative to the light (`_relative_energy`): the no-contact
-  reference's brightness, or, given a frame with the lights off, the reference minus it (`_light`).
+  reference's brightness, or, given a frame with the lights off, the reference minus it (`_light`);
+  without that frame, a background the light does not make would be divided in with the light, so
+  strengths are then the imprints' extent (`_window_sizes`), which no light level changes.
 """
 from __future__ import annotations
 
