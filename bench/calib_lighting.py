@@ -220,7 +220,8 @@ def trial(renderer: str, azimuth: float, seed: int, presses: crosscheck.Presses,
         return Trial(renderer, azimuth, seed, str(exc), plain_solves, nan, nan, nan, nan, nan, nan, nan, "", False,
                      nan, nan, False, ())
     try:
-        no_dark = cal.calibrate_extrinsics(presses.images, start, reference=presses.reference)
+        no_dark = cal.calibrate_extrinsics(presses.images, start, reference=presses.reference,
+                                           intrinsics_covariance=intrinsics.covariance)
         theta_no_dark, d_no_dark = math.degrees(no_dark.theta - truth.theta), 1e3 * (no_dark.d - truth.d)
         sigmas_no_dark = math.degrees(no_dark.theta_sigma), 1e3 * no_dark.d_sigma
     except cal.CalibrationError:
