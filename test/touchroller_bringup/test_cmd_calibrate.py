@@ -110,13 +110,18 @@ def test_calibrate_image_folder_with_reference(scenes, tmp_path, capsys):
     assert main(["calibrate", "extrinsics", str(folder), "--params", str(params), "--reference", str(reference),
                  "--out", str(out)]) == 0
     assert abs(math.degrees(CameraModel.from_yaml(out).theta - truth.theta)) < 0.1
-    # a lights-off frame: black here (no background of its own), so the same result
+    # a lights-off frame: black here (no background of its own), so the same result as strengths relative to
+    # the whole reference (without a lights-off frame the default measures the imprints' extent instead)
     dark = tmp_path / "dark.png"
     cv2.imwrite(str(dark), np.zeros_like(hemi[0][1]))
     with_dark = tmp_path / "cal_dark.yaml"
     assert main(["calibrate", "extrinsics", str(folder), "--params", str(params), "--reference", str(reference),
                  "--dark", str(dark), "--out", str(with_dark)]) == 0
-    assert CameraModel.from_yaml(with_dark).theta == pytest.approx(CameraModel.from_yaml(out).theta, abs=1e-9)
+    relative = tmp_path / "cal_relative.yaml"
+    assert main(["calibrate", "extrinsics", str(folder), "--params", str(params), "--reference", str(reference),
+                 "--imprint-strength", "relative", "--out", str(relative)]) == 0
+    assert CameraModel.from_yaml(with_dark).theta == pytest.approx(CameraModel.from_yaml(relative).theta, abs=1e-9)
+    assert abs(math.degrees(CameraModel.from_yaml(with_dark).theta - truth.theta)) < 0.1
     assert main(["calibrate", "extrinsics", str(folder), "--params", str(params), "--dark",
                  str(tmp_path / "missing.png"), "--out", str(with_dark)]) == 2
     assert "cannot read image" in capsys.readouterr().err

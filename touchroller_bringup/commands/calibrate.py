@@ -88,6 +88,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     extr.add_argument("--imprint-centre", choices=("shading", "centroid"), default="shading",
                       help="shading (default): centres corrected for light from one side; centroid: the "
                            "change-weighted centroid")
+    extr.add_argument("--imprint-strength", choices=("auto", "relative", "size", "absolute"), default="auto",
+                      help="what the row balance compares between the rows: auto (default): relative with "
+                           "--dark, else size; relative: energy relative to the light; size: the imprints' extent, "
+                           "which no light level changes; absolute: grey levels")
     extr.set_defaults(func=run_extrinsics)
 
     from touchroller_bringup.commands.height import register_calibration
@@ -260,7 +264,8 @@ def run_extrinsics(args: argparse.Namespace) -> int:
                                     hemisphere_radius=args.hemisphere_radius, press_depth=args.press_depth)
         config = cal.ExtrinsicsConfig(frame=frame, balance_rows=not args.no_row_balance,
                                       max_view_rms=args.max_view_rms,
-                                      detector=cal.ImprintDetectorConfig(centre=args.imprint_centre))
+                                      detector=cal.ImprintDetectorConfig(centre=args.imprint_centre,
+                                                                         strength=args.imprint_strength))
         result = cal.calibrate_extrinsics(images, camera, config, reference=reference, dark=dark,
                                           intrinsics_sigma=_intrinsics_sigma(args.params))
     except cal.CalibrationError as exc:

@@ -97,6 +97,9 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
                                 None, None),
     "imprints.centre": ("shading", "Imprint centres: shading (corrected for light from one side) or centroid",
                         None, None),
+    "imprints.strength": ("auto", "Imprint strengths for the row balance: auto (relative given a dark capture, "
+                                  "else size), relative (energy relative to the light), size (extent, which no "
+                                  "light level changes) or absolute", None, None),
 }
 #: string parameters and the values they accept
 CHOICES: dict[str, tuple[str, ...]] = {
@@ -104,6 +107,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "intrinsics.distortion": ("auto", *cal.DISTORTION_MODELS),
     "intrinsics.corners": cal.CORNER_METHODS,
     "imprints.centre": cal.CENTRE_ESTIMATORS,
+    "imprints.strength": cal.STRENGTH_MEASURES,
 }
 
 
@@ -207,7 +211,8 @@ class CalibrationNode(Node):
                                     corners=str(self.get_parameter("intrinsics.corners").value))
 
     def _extrinsics_config(self) -> cal.ExtrinsicsConfig:
-        detector = cal.ImprintDetectorConfig(centre=str(self.get_parameter("imprints.centre").value))
+        detector = cal.ImprintDetectorConfig(centre=str(self.get_parameter("imprints.centre").value),
+                                             strength=str(self.get_parameter("imprints.strength").value))
         return cal.ExtrinsicsConfig(frame=self._frame(), detector=detector,
                                     balance_rows=bool(self.get_parameter("row_balance").value))
 

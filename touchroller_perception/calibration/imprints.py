@@ -9,7 +9,9 @@ balance of `extrinsics`). Two things a roller's lighting does to imprints are ha
   from the part of the pattern that is symmetric under any directional light;
 * the light falls off across the membrane, so an absolute strength reads the brighter row as the
   deeper one: strengths are taken relative to the light (`_relative_energy`): the no-contact
-  reference's brightness, or, given a frame with the lights off, the reference minus it (`_light`).
+  reference's brightness, or, given a frame with the lights off, the reference minus it (`_light`);
+  without that frame, a background the light does not make would be divided in with the light, so
+  strengths are then the imprints' extent (`_window_sizes`), which no light level changes.
 """
 from __future__ import annotations
 
@@ -24,8 +26,9 @@ from touchroller_perception.calibration.common import CalibrationError, FloatArr
 
 #: `ImprintDetectorConfig.centre`: "shading" corrects the centroid for one-sided light, "centroid" keeps it
 CENTRE_ESTIMATORS = ("shading", "centroid")
-#: `ImprintDetectorConfig.strength`: "relative" to the light (energy), or "absolute" grey levels
-STRENGTH_MEASURES = ("relative", "absolute")
+#: `ImprintDetectorConfig.strength`: "auto" ("relative" given a lights-off frame, else "size"), "relative" to
+#: the light (energy), "size" (the imprint's extent, which no light level changes), or "absolute" grey levels
+STRENGTH_MEASURES = ("auto", "relative", "size", "absolute")
 
 
 #: Most hemisphere rows or columns of a frame: the sizes of what the solve allocates (the paper's is 2x5).
@@ -103,7 +106,9 @@ class ImprintDetectorConfig:
     `min_spread` (second / first singular value) are collinear. `centre` and `strength`: see
     CENTRE_ESTIMATORS and STRENGTH_MEASURES. `window_scale`: the disc over which a centre is
     refined, `strength_window_scale`: the one over which a strength is summed (wide, so that the
-    slow tail of an imprint counts alike in both rows), in median blob RMS radii.
+    slow tail of an imprint counts alike in both rows), `size_window_scale`: the one over which a
+    "size" is measured (narrow: the light's fall-off across a wide disc weights one side of the
+    imprint more), in median blob RMS radii.
     """
 
     min_area: float = 12.0
@@ -111,9 +116,10 @@ class ImprintDetectorConfig:
     max_elongation: float = 1.8
     min_spread: float = 0.08
     centre: str = "shading"
-    strength: str = "relative"
+    strength: str = "auto"
     window_scale: float = 2.5
     strength_window_scale: float = 4.0
+    size_window_scale: float = 2.0
 
     def __post_init__(self) -> None:
         if self.centre not in CENTRE_ESTIMATORS:
@@ -123,7 +129,7 @@ class ImprintDetectorConfig:
         if not (0 < self.min_area <= self.max_area):
             raise CalibrationError(f"need 0 < min_area <= max_area, got {self.min_area}, {self.max_area}")
         if not (self.max_elongation >= 1 and 0 < self.min_spread < 1 and self.window_scale >= 1
-                and self.strength_window_scale >= 1):
+                and self.strength_window_scale >= 1 and self.size_window_scale >= 1):
             raise CalibrationError("need max_elongation >= 1, 0 < min_spread < 1 and window scales >= 1")
 
 
@@ -174,9 +180,12 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
     if config.centre == "shading":
         centres = np.array([_shading_symmetric_centre(signed, b.centroid, config.window_scale * radius)
                             for b in blobs])
-    if config.strength == "relative":
+    measure = config.strength if config.strength != "auto" else ("relative" if dark is not None else "size")
+    if measure == "relative":
         strengths = _window_strengths(_relative_energy(signed, _light(background, dark)), centres,
                                       config.strength_window_scale * radius, clip=False)
+    elif measure == "size":
+        strengths = _window_sizes(_relative_energy(signed, None), centres, config.size_window_scale * radius)
     else:
         magnitude = cv2.GaussianBlur(np.abs(signed).sum(axis=2), (0, 0), 1.0)
         strengths = _window_strengths(magnitude, centres, config.strength_window_scale * radius)
@@ -335,6 +344,31 @@ def _window_strengths(relative: NDArray[np.float32], centres: FloatArray, radius
     return np.array(strengths)
 
 
+def _window_sizes(energy: NDArray[np.float32], centres: FloatArray, radius: float) -> FloatArray:
+    """Each imprint's extent: the second moment about its centre (px^2) of the change's energy
+    (less the noise's) over a disc of `radius` px.
+
+    What the light does to an imprint's change is to scale it: the change is the light reaching the
+    membrane there times what the slopes do to it, and a background the light does not make
+    (ambient light, an uneven gel) is in the reference and the press alike, so it cancels in the
+    change. A ratio of two sums of the same energy is therefore the same under any light level,
+    with no lights-off frame and no division by the reference; a deeper press leaves a wider
+    imprint (a sphere's contact radius grows as the square root of its depth), so the extent
+    measures the depth. An area, like `_window_strengths`' sums, so it is made per mm^2 of membrane
+    the same way."""
+    reach = int(math.ceil(radius))
+    offsets = np.arange(-reach, reach + 1, dtype=np.float64)
+    sizes = []
+    for u, v in centres:
+        us = np.clip(int(round(u)) + offsets.astype(int), 0, energy.shape[1] - 1)
+        vs = np.clip(int(round(v)) + offsets.astype(int), 0, energy.shape[0] - 1)
+        rho2 = (offsets[None, :] + round(u) - u) ** 2 + (offsets[:, None] + round(v) - v) ** 2
+        window = energy[np.ix_(vs, us)] * (rho2 <= radius * radius)
+        total = float(window.sum())
+        sizes.append(float((window * rho2).sum()) / total if total > 0 else math.nan)
+    return np.array(sizes)
+
+
 def _light(background: NDArray[np.float32], dark: np.ndarray | None) -> NDArray[np.float32]:
     """What of the no-contact background the sensor's lights make: the background minus the frame
     with the lights off, when there is one; else the whole background.
@@ -357,7 +391,7 @@ def _light(background: NDArray[np.float32], dark: np.ndarray | None) -> NDArray[
     return np.asarray(background - off, dtype=np.float32)
 
 
-def _relative_energy(signed: NDArray[np.float32], light: NDArray[np.float32]) -> NDArray[np.float32]:
+def _relative_energy(signed: NDArray[np.float32], light: NDArray[np.float32] | None) -> NDArray[np.float32]:
     """The change's energy relative to the light, per pixel: sum over the channels of
     (change^2 - noise^2) / light^2 (a flat-field correction).
 
@@ -369,10 +403,13 @@ def _relative_energy(signed: NDArray[np.float32], light: NDArray[np.float32]) ->
     where the light is weaker: squared, its share is one constant per channel (the median square
     of the change over the image, which imprints hardly touch, / 0.4549, the median of chi-square
     with 1 degree of freedom), and subtracting it leaves no bias (the magnitude's floor, |change|,
-    depends on the signal under it and cannot be taken out exactly)."""
+    depends on the signal under it and cannot be taken out exactly). `light` None: the energy as it
+    is, in grey levels squared (for `_window_sizes`, which a light level does not change)."""
     change = signed.astype(np.float64)
     noise = np.median(change[::3, ::3].reshape(-1, change.shape[2]) ** 2, axis=0) / 0.4549
-    energy = (change**2 - noise) / np.maximum(light.astype(np.float64), 1.0) ** 2
+    energy = change**2 - noise
+    if light is not None:
+        energy /= np.maximum(light.astype(np.float64), 1.0) ** 2
     return np.asarray(energy.sum(axis=2), dtype=np.float32)
 
 

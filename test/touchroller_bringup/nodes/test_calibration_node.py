@@ -146,7 +146,7 @@ def test_rejects_an_unknown_target(graph):
     node = graph[0]
     result = node.set_parameters([Parameter("target", value="teapot")])[0]
     assert not result.successful and "target must be one of" in result.reason
-    for name in ("intrinsics.distortion", "intrinsics.corners", "imprints.centre"):
+    for name in ("intrinsics.distortion", "intrinsics.corners", "imprints.centre", "imprints.strength"):
         result = node.set_parameters([Parameter(name, value="teapot")])[0]
         assert not result.successful and f"{name} must be one of" in result.reason
 
@@ -156,6 +156,13 @@ def test_the_corner_path_is_a_parameter(graph):
     assert node._intrinsics_config().corners == "fronto_parallel"
     assert node.set_parameters([Parameter("intrinsics.corners", value="image")])[0].successful
     assert node._intrinsics_config().corners == "image"
+
+
+def test_the_imprint_strength_is_a_parameter(graph):
+    node = graph[0]
+    assert node._extrinsics_config().detector.strength == "auto"
+    assert node.set_parameters([Parameter("imprints.strength", value="relative")])[0].successful
+    assert node._extrinsics_config().detector.strength == "relative"
 
 
 def test_coverage_is_published_on_diagnostics(graph, spin_until):

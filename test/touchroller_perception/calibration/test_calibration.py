@@ -74,7 +74,9 @@ def render_hemispheres(camera: CameraModel, frame: cal.HemisphereFrame, *, seed:
                        shift_px: tuple[float, float] = (0.0, 0.0), points: np.ndarray | None = None,
                        smear_px: float = 0.0, strength: np.ndarray | None = None) -> np.ndarray:
     """A gel background with shaded imprints (lit on one side, dark on the other, per colour) at the
-    projections of the frame's imprint centres."""
+    projections of the frame's imprint centres. `strength`: each imprint's press depth relative to
+    the nominal; a sphere's imprint grows with it in width (its contact radius, as the square root)
+    and in slope (the same), so both scale."""
     rng = np.random.default_rng(seed)
     h, w = camera.height, camera.width
     vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -90,9 +92,10 @@ def render_hemispheres(camera: CameraModel, frame: cal.HemisphereFrame, *, seed:
         u0, v0 = max(int(cu) - half, 0), max(int(cv_) - half, 0)
         window = (slice(v0, min(int(cv_) + half, h)), slice(u0, min(int(cu) + half, w)))
         du, dv = uu[window] - cu, vv[window] - cv_
-        g = gain * np.exp(-(du**2 + dv**2) / (2 * sigma**2))
+        width = sigma * math.sqrt(max(float(gain), 0.0))
+        g = math.sqrt(max(float(gain), 0.0)) * np.exp(-(du**2 + dv**2) / (2 * width**2))
         for c, (lu, lv) in enumerate(lights):
-            image[window + (c,)] += 60.0 * (du * lu + dv * lv) / sigma * g
+            image[window + (c,)] += 60.0 * (du * lu + dv * lv) / width * g
     if smear_px > 0:
         kernel = np.ones((int(smear_px), 1), np.float32) / int(smear_px)
         image = cv2.filter2D(image, -1, kernel)
@@ -220,9 +223,11 @@ def test_extrinsics_report_a_neglected_yaw():
                                      cal.ExtrinsicsConfig(solve_placement=False))
 
 
-def test_row_balance_removes_the_frame_shift_along_y():
+@pytest.mark.parametrize("strength", ["auto", "relative"])
+def test_row_balance_removes_the_frame_shift_along_y(strength):
     """Frames shifted along y turn the picture like theta; the deeper (nearer) row leaves the stronger
-    imprint, which the row balance uses to take the shift out."""
+    (wider and steeper) imprint, which the row balance uses to take the shift out, measured by the
+    imprints' extent (the default without a lights-off frame) or their energy."""
     images = []
     for k, shift in enumerate((-1.2e-3, -0.6e-3, 0.0, 0.4e-3, 1.0e-3, 1.4e-3)):
         layout = FRAME.layout()
@@ -231,7 +236,8 @@ def test_row_balance_removes_the_frame_shift_along_y():
         depth = FRAME.press_depth - (layout[:, 1] + shift) ** 2 / (2 * plate_z)
         images.append(render_hemispheres(TRUE_CAMERA, FRAME, seed=k, points=points, strength=depth / FRAME.press_depth))
     prior = TRUE_CAMERA.replace(theta=0.0, d=0.0)
-    result = cal.calibrate_extrinsics(images, prior)
+    result = cal.calibrate_extrinsics(images, prior, cal.ExtrinsicsConfig(
+        detector=cal.ImprintDetectorConfig(strength=strength)))
     plain = cal.calibrate_extrinsics(images, prior, cal.ExtrinsicsConfig(balance_rows=False))
     assert abs(math.degrees(plain.theta - TRUE_CAMERA.theta)) > 0.15      # mean shift 0.17 mm = 0.19 deg
     assert abs(math.degrees(result.theta - TRUE_CAMERA.theta)) < 0.05

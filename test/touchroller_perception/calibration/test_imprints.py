@@ -89,7 +89,8 @@ def test_relative_strength_takes_the_light_falloff_out():
 def test_a_lights_off_frame_tells_the_light_from_an_uneven_background():
     """Equal dents under an even light, over a background that is brighter towards +v but is not
     light (an uneven gel, ambient light): relative to the whole reference the darker row reads as
-    the deeper pressed; relative to the light alone (reference minus a lights-off frame) it does not."""
+    the deeper pressed; relative to the light alone (reference minus a lights-off frame) it does not,
+    and neither does the imprints' extent, the default without a lights-off frame."""
     vv = np.mgrid[0:SIZE[0], 0:SIZE[1]][0].astype(np.float64)
     ambient = 20.0 + 40.0 * (vv - 120.0) / 360.0
     image, reference = lit_membrane(GRID, ambient=ambient, noise=1.0, seed=3)
@@ -98,10 +99,13 @@ def test_a_lights_off_frame_tells_the_light_from_an_uneven_background():
     def asymmetry(s: np.ndarray) -> float:
         return float((s[5:].sum() - s[:5].sum()) / s.sum())
 
-    whole = cal.find_imprints(image, FRAME, reference=reference).strengths
+    whole = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(strength="relative"),
+                              reference=reference).strengths
     light = cal.find_imprints(image, FRAME, reference=reference, dark=dark).strengths
+    extent = cal.find_imprints(image, FRAME, reference=reference).strengths
     assert asymmetry(whole) < -0.03
     assert abs(asymmetry(light)) < 0.01
+    assert abs(asymmetry(extent)) < 0.01
     with pytest.raises(cal.CalibrationError, match="lights-off frame"):
         cal.find_imprints(image, FRAME, reference=reference, dark=dark[:100])
 
@@ -115,12 +119,29 @@ def test_strength_noise_floor_does_not_favour_the_darker_row():
     assert abs(float((strengths[5:].sum() - strengths[:5].sum()) / strengths.sum())) < 0.01
 
 
+@settings(max_examples=5, deadline=None)
+@given(gain=st.floats(0.3, 1.0), ambient=st.floats(0.0, 60.0), azimuth=st.sampled_from([0.0, 90.0, 180.0, 270.0]))
+def test_the_imprints_extent_is_the_same_under_any_light_level(gain, ambient, azimuth):
+    """The "size" strength of the same dents does not change when the light is dimmed or an ambient
+    level the light does not make is added, from whichever side the light comes."""
+    image, reference = lit_membrane(GRID, azimuth_deg=azimuth)
+    dimmed, dim_reference = lit_membrane(GRID, azimuth_deg=azimuth, ambient=ambient)
+    dimmed = np.clip(np.rint(ambient + gain * (dimmed.astype(float) - ambient)), 0, 255).astype(np.uint8)
+    dim_reference = np.clip(np.rint(ambient + gain * (dim_reference.astype(float) - ambient)), 0, 255).astype(np.uint8)
+    config = cal.ImprintDetectorConfig(strength="size")
+    bright = cal.find_imprints(image, FRAME, config, reference=reference).strengths
+    dim = cal.find_imprints(dimmed, FRAME, config, reference=dim_reference).strengths
+    assert np.all(np.isfinite(bright)) and np.abs(dim / bright - 1.0).max() < 0.03
+
+
 def test_deeper_dents_are_stronger():
     image, reference = lit_membrane(GRID[:5], height=3.0)
     deep, _ = lit_membrane(GRID[5:], height=4.5)
     combined = np.minimum(image.astype(int) + deep.astype(int) - reference.astype(int), 255).clip(0).astype(np.uint8)
-    strengths = cal.find_imprints(combined, FRAME, reference=reference).strengths
-    assert strengths[5:].min() > strengths[:5].max()
+    for strength in ("relative", "size"):
+        strengths = cal.find_imprints(combined, FRAME, cal.ImprintDetectorConfig(strength=strength),
+                                      reference=reference).strengths
+        assert strengths[5:].min() > strengths[:5].max()
 
 
 def test_detector_config_is_checked_when_made():
