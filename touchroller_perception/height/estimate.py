@@ -31,6 +31,7 @@ class HeightConfig:
     flat_slope: float = 0.03         # |slope| below this counts as undeformed for the zero level
     level: str = "plane"             # "plane": a robust best plane through the flat pixels is 0; "offset": their median
     downsample: int = 1              # integrate on a grid this many times coarser (speed), then upsample
+    still_change: float = 0.0        # relative colour change (every channel) within which a pixel reads slope 0
 
     def __post_init__(self) -> None:
         if self.level not in ("plane", "offset"):
@@ -39,6 +40,8 @@ class HeightConfig:
             raise ValueError(f"flat_slope must be > 0, got {self.flat_slope}")
         if self.downsample not in (1, 2, 4):
             raise ValueError(f"downsample must be 1, 2 or 4, got {self.downsample}")
+        if not (math.isfinite(self.still_change) and 0.0 <= self.still_change < 1.0):
+            raise ValueError(f"still_change must be in [0, 1), got {self.still_change}")
 
 
 def _spacing(pixel_size: float | tuple[float, float]) -> tuple[float, float]:
@@ -136,7 +139,7 @@ class HeightEstimator:
             self.rows: tuple[int, int] = (v0, v1)
         else:
             self.rows = (0, h)
-        self.lookup: SlopeLookup = model.compile(reference)
+        self.lookup: SlopeLookup = model.compile(reference, self.config.still_change)
         self.shape = reference.shape[:2]
 
     def slopes(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -175,7 +178,8 @@ def band_height(band_image: np.ndarray, band_reference: np.ndarray, model: Photo
     if band_image.shape[1] != model.width or not 0 <= first_row <= model.height - band_image.shape[0]:
         raise ValueError(f"a band of {band_image.shape[1]}x{band_image.shape[0]} at row {first_row} does not fit "
                          f"the model's {model.width}x{model.height} images")
-    gx, gy = model.slopes(band_image, band_reference, first_row=first_row)
+    config = config or HeightConfig()
+    gx, gy = model.slopes(band_image, band_reference, first_row=first_row, still_change=config.still_change)
     return slopes_to_height(gx, gy, pixel_size, config)
 
 

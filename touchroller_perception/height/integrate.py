@@ -34,7 +34,7 @@ def _eigenvalues(n: int, dtype: type) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _inverse_operator(h: int, w: int, dtype: type) -> np.ndarray:
+def _inverse_operator(h: int, w: int, dtype: str) -> np.ndarray:
     """1 / the Neumann Laplacian's eigenvalues on an h x w grid (0 for the constant), read-only, cached per size."""
     denom = _eigenvalues(h, np.float64)[:, None] + _eigenvalues(w, np.float64)[None, :]
     denom[0, 0] = 1.0
@@ -100,7 +100,7 @@ def _solve(f: np.ndarray, workers: int) -> np.ndarray:
     """z (mean zero) with (Dx^T Dx + Dy^T Dy) z = f, in f's dtype (f is overwritten)."""
     dtype = f.dtype.type
     hat = scipy.fft.dctn(f, type=2, norm="ortho", workers=workers, overwrite_x=True)
-    hat *= _inverse_operator(f.shape[0], f.shape[1], dtype)
+    hat *= _inverse_operator(f.shape[0], f.shape[1], f.dtype.str)
     z = scipy.fft.idctn(hat, type=2, norm="ortho", workers=workers, overwrite_x=True)
     return np.asarray(z, dtype=dtype)
 
@@ -144,8 +144,9 @@ def integrate(gx: np.ndarray, gy: np.ndarray, spacing: float | tuple[float, floa
     if H == 1 or W == 1:
         z = _integrate_line(gx, gy, spacing, sampled, dtype)
     elif sampled == "centre":
-        sx, sy = (spacing, spacing) if np.isscalar(spacing) else spacing  # type: ignore[misc]
-        z = _solve(centre_divergence(_finite(gx, dtype), _finite(gy, dtype), float(sx), float(sy)), workers)
+        sx, sy = (spacing, spacing) if np.ndim(spacing) == 0 else spacing  # type: ignore[misc]
+        z = _solve(centre_divergence(_finite(gx, dtype), _finite(gy, dtype), float(sx), float(sy)),  # type: ignore[arg-type]
+                   workers)
     else:
         px, py = forward_differences(gx, gy, spacing, sampled, dtype)
         z = poisson_solve(px, py, workers=workers)

@@ -154,18 +154,23 @@ class PhotometricModel:
         result: np.ndarray = self.design(features, u, v) @ self.coefficients
         return result
 
-    def slopes(self, image: np.ndarray, reference: np.ndarray, first_row: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def slopes(self, image: np.ndarray, reference: np.ndarray, first_row: int = 0,
+               still_change: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(gx, gy) float32 per pixel from the polynomial, of an image (or a band of rows of one that starts
-        at `first_row`) and the same rows of the reference."""
+        at `first_row`) and the same rows of the reference; 0 where every channel's relative change is
+        within `still_change`."""
         feats = colour_features(image, reference, self.config.smoothing, self.config.gain)
         h, w = feats.shape[:2]
         vv, uu = np.mgrid[first_row:first_row + h, 0:w]
         out = self.slopes_at(feats.reshape(-1, 3).astype(np.float64), uu.ravel(), vv.ravel())
+        if still_change > 0:
+            out[(np.abs(feats.reshape(-1, 3)) <= still_change).all(axis=1)] = 0.0
         return out[:, 0].reshape(h, w).astype(np.float32), out[:, 1].reshape(h, w).astype(np.float32)
 
-    def compile(self, reference: np.ndarray) -> SlopeLookup:
-        """The fast per-frame form of this model for one reference frame."""
-        return SlopeLookup.build(self, reference)
+    def compile(self, reference: np.ndarray, still_change: float = 0.0) -> SlopeLookup:
+        """The fast per-frame form of this model for one reference frame (`still_change`: see
+        `SlopeLookup.build`)."""
+        return SlopeLookup.build(self, reference, still_change)
 
     # ------------------------------------------------------------------ file
     def save(self, path: str | Path) -> None:
@@ -309,7 +314,12 @@ class SlopeLookup:
     raw: np.ndarray          # H x W x 3 uint8/float: the reference as given
 
     @classmethod
-    def build(cls, model: PhotometricModel, reference: np.ndarray) -> SlopeLookup:
+    def build(cls, model: PhotometricModel, reference: np.ndarray, still_change: float = 0.0) -> SlopeLookup:
+        """still_change: a colour step whose relative change is within this in every channel reads slope 0
+        (the frame matches the reference there: a zero-slope prior where nothing touches, at no cost per
+        frame); 0 keeps only the step at no change, which the polynomial maps to 0 anyway."""
+        if not (np.isfinite(still_change) and 0.0 <= still_change < 1.0):
+            raise ValueError(f"still_change must be a relative colour change in [0, 1), got {still_change}")
         cfg = model.config
         ref = smooth(reference, cfg.smoothing)
         h, w = ref.shape[:2]
@@ -334,6 +344,8 @@ class SlopeLookup:
                 coefficients.append(colour_coefficients(model, float(pu), float(pv)))
         # one product for all cells: bins^3 x (cells * 2), then cell-major
         values = colour @ np.concatenate(coefficients, axis=1)
+        if still_change > 0:
+            values[(np.abs(grid) <= still_change).all(axis=1)] = 0.0
         tables = values.reshape(len(grid), cu * cv, 2).transpose(1, 0, 2).reshape(-1, 2)
         fixed = np.clip(np.rint(tables / SLOPE_UNIT), -32767, 32767).astype(np.int16)
         table = np.ascontiguousarray(fixed).view(np.uint32).ravel()
