@@ -64,6 +64,12 @@ from touchroller_perception.height import (
 BALL = 2.0e-3
 BAND_DEPTH = 5.0e-4     # the roller's band: rows a 0.5 mm press reaches (the scenes' press depth)
 FOLDS = 6
+# HeightConfig.still_change for the trade-off row: on gelsight_mini (even presses calibrate, odd measured) the
+# largest relative colour change that left the sphere-fit RMS unchanged (0.03: 35.04 -> 35.07 um; 0.04: 35.23)
+STILL_CHANGE = 0.03
+# PressCalibrationConfig.far_fraction for the trade-off row: chosen on the even presses alone (0 mod 4 calibrate,
+# 2 mod 4 measured), where 0.01 -> 0.05 took the no-contact window 8.2 -> 3.5 um and the sphere-fit RMS 21.8 -> 18.2
+FAR_DENSE = 0.05
 BASELINE = {"angle_deg": 6.2, "rms_um": 25.0, "radius_mm": 1.89, "depth_ratio": 0.96, "ms": 40.0}
 GOALS = {"angle_deg": 4.0, "rms_um": 15.0, "radius_rel": 0.03, "depth_lo": 0.9, "depth_hi": 1.1, "flat_um": 5.0,
          "frame_ms": 10.0, "band_ms": 2.0}
@@ -111,6 +117,7 @@ class TradeoffRow:
     angle_deg: float
     ms: float
     rows: str
+    flat_um: float = math.nan     # median no-contact window RMS (whole-frame lookup rows only)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -263,18 +270,22 @@ def cpu_ms(fn: Any, repeats: int) -> float:
 
 
 def split_angle(data: PressSet, cfg: PressCalibrationConfig, lookup: bool = True, rows: tuple[int, int] | None = None,
-                height: HeightConfig | None = None, repeats: int = 10) -> tuple[float, float]:
-    """(median normal-angle error on the odd presses calibrated on the even ones, CPU ms per frame)."""
+                height: HeightConfig | None = None, repeats: int = 10) -> tuple[float, float, float]:
+    """(median normal-angle error on the odd presses calibrated on the even ones, CPU ms per frame, median
+    no-contact window RMS in um: whole frames through the lookup only, else nan)."""
     pixel = data.mm_per_pixel * 1e-3
     cal = calibrate_photometric(presses_of(data, range(0, len(data), 2)), data.background, BALL, cfg)
     est = HeightEstimator(cal.model, data.background, pixel, rows=rows, config=height)
-    errors = []
+    errors, flats = [], []
     for i in range(1, len(data), 2):
         image = data.presses[i]
         circle = refine_circle(change_magnitude(image, data.background), *data.centres[i], data.radii[i], cfg)
         tx, ty, rho, _ = sphere_slopes(image.shape[:2], circle, (pixel, pixel), BALL)
         inside = rho * circle.radius_px < circle.radius_px - 2.0
         gx, gy = est.slopes(image) if lookup else cal.model.slopes(image, data.background)
+        window = flat_window(image.shape[:2], circle.u, circle.v, circle.radius_px)
+        if lookup and rows is None and window is not None:     # as measure_press does
+            flats.append(float(np.sqrt(np.mean(slopes_to_height(gx[window], gy[window], pixel, est.config) ** 2))))
         if rows is not None:
             full_x = np.full(image.shape[:2], np.nan, np.float32)
             full_y = full_x.copy()
@@ -288,7 +299,14 @@ def split_angle(data: PressSet, cfg: PressCalibrationConfig, lookup: bool = True
         ms = cpu_ms(lambda: est.band(image), repeats)
     else:
         ms = cpu_ms(lambda: cal.model.slopes(image, data.background), max(1, repeats // 5))
-    return float(np.median(errors)) if errors else math.nan, ms
+    return (float(np.median(errors)) if errors else math.nan, ms,
+            float(np.median(flats)) * 1e6 if flats else math.nan)
+
+
+def add_split(data: PressSet, cfg: PressCalibrationConfig, repeats: int) -> TradeoffRow:
+    """The whole-frame default row for a calibration setting."""
+    angle, ms, flat = split_angle(data, cfg, True, None, None, repeats)
+    return TradeoffRow("", angle, ms, "frame", flat)
 
 
 def tradeoffs(data: PressSet, base: PressCalibrationConfig, band: tuple[int, int], quick: bool) -> list[TradeoffRow]:
@@ -298,14 +316,19 @@ def tradeoffs(data: PressSet, base: PressCalibrationConfig, band: tuple[int, int
 
     def add(label: str, model: PhotometricConfig, lookup: bool = True, rows_: tuple[int, int] | None = None,
             height: HeightConfig | None = None) -> None:
-        angle, ms = split_angle(data, dataclasses.replace(base, model=model), lookup, rows_, height, reps)
-        rows.append(TradeoffRow(label, angle, ms, "band" if rows_ else "frame"))
+        angle, ms, flat = split_angle(data, dataclasses.replace(base, model=model), lookup, rows_, height, reps)
+        rows.append(TradeoffRow(label, angle, ms, "band" if rows_ else "frame", flat))
 
     add(f"default: lookup {m.lookup_bins}^3 x {m.lookup_cells[0]}x{m.lookup_cells[1]} cells, smoothing "
         f"{m.smoothing:g} px", m)
     add("band only (roller, default settings)", m, rows_=band)
     add("exact polynomial (no lookup), slopes only", m, lookup=False)
     add("integration on a 2x coarser grid", m, height=HeightConfig(downsample=2))
+    add(f"zero-slope prior: colour change within {STILL_CHANGE:g} reads flat (chosen on gelsight_mini)", m,
+        height=HeightConfig(still_change=STILL_CHANGE))
+    rows.append(dataclasses.replace(
+        add_split(data, dataclasses.replace(base, far_fraction=FAR_DENSE), reps),
+        setting=f"far-field targets {FAR_DENSE:.0%} of the far pixels (default {base.far_fraction:.0%})"))
     if not quick:
         add("lookup 17^3", dataclasses.replace(m, lookup_bins=17))
         add("lookup 49^3", dataclasses.replace(m, lookup_bins=49))
@@ -317,9 +340,8 @@ def tradeoffs(data: PressSet, base: PressCalibrationConfig, band: tuple[int, int
         add("offset term (position alone -> slope)", dataclasses.replace(m, offset=True))
         add("no frame gain (drift not divided out)", dataclasses.replace(m, gain=False))
         add("circles as labelled (no refinement)", m)   # replaced below
-        rows[-1] = TradeoffRow("circles as labelled (no refinement)",
-                               split_angle(data, dataclasses.replace(base, refine=False), True, None, None, reps)[0],
-                               rows[0].ms, "frame")
+        unrefined = split_angle(data, dataclasses.replace(base, refine=False), True, None, None, reps)
+        rows[-1] = TradeoffRow("circles as labelled (no refinement)", unrefined[0], rows[0].ms, "frame", unrefined[2])
     return rows
 
 
@@ -424,9 +446,12 @@ def to_markdown(r: HeightRealResult) -> str:
                   f"(consistency: {100 * (m.radius_p90_mm - m.radius_p10_mm) / max(m.radius_mm, 1e-9):.1f} % of the "
                   f"median); normal-angle error {m.angle_deg:.2f} deg; sphere-fit RMS {m.rms_um:.1f} um"]
     lines += ["", "What accuracy costs in time (even presses calibrate, odd measured; CPU ms of slopes + integration "
-              "per frame or band, one thread; the exact polynomial row is slopes only):", "",
-              "| setting | normal-angle error, median | ms | region |", "|---|---|---|---|"]
-    lines += [f"| {t.setting} | {t.angle_deg:.2f} deg | {t.ms:.2f} | {t.rows} |" for t in r.tradeoffs]
+              "per frame or band, one thread; the exact polynomial row is slopes only; no-contact: the median "
+              "window RMS as above, whole-frame lookup rows):", "",
+              "| setting | normal-angle error, median | ms | region | no-contact window, median |",
+              "|---|---|---|---|---|"]
+    lines += [f"| {t.setting} | {t.angle_deg:.2f} deg | {t.ms:.2f} | {t.rows} | "
+              + (f"{t.flat_um:.2f} um |" if math.isfinite(t.flat_um) else "|") for t in r.tradeoffs]
     lines += ["", "Per press (index: angle deg, RMS um, R mm, depth ratio, no-contact um):", ""]
     lines += ["; ".join(f"{m.index}: {m.angle_deg:.1f}, {m.rms_um:.0f}, {m.radius_mm:.2f}, {m.depth_ratio:.2f}, "
                         f"{m.flat_um:.1f}" for m in r.per_press)]

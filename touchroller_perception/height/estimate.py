@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from touchroller_perception.geometry import CameraModel
@@ -30,6 +31,7 @@ class HeightConfig:
     flat_slope: float = 0.03         # |slope| below this counts as undeformed for the zero level
     level: str = "plane"             # "plane": a robust best plane through the flat pixels is 0; "offset": their median
     downsample: int = 1              # integrate on a grid this many times coarser (speed), then upsample
+    still_change: float = 0.0        # relative colour change (every channel) within which a pixel reads slope 0
 
     def __post_init__(self) -> None:
         if self.level not in ("plane", "offset"):
@@ -38,6 +40,8 @@ class HeightConfig:
             raise ValueError(f"flat_slope must be > 0, got {self.flat_slope}")
         if self.downsample not in (1, 2, 4):
             raise ValueError(f"downsample must be 1, 2 or 4, got {self.downsample}")
+        if not (math.isfinite(self.still_change) and 0.0 <= self.still_change < 1.0):
+            raise ValueError(f"still_change must be in [0, 1), got {self.still_change}")
 
 
 def _spacing(pixel_size: float | tuple[float, float]) -> tuple[float, float]:
@@ -59,8 +63,6 @@ def slopes_to_height(gx: np.ndarray, gy: np.ndarray, pixel_size: float | tuple[f
         gxs = gx[:hh, :ww].reshape(hh // k, k, ww // k, k).mean(axis=(1, 3))
         gys = gy[:hh, :ww].reshape(hh // k, k, ww // k, k).mean(axis=(1, 3))
         small = _integrate_zeroed(gxs, gys, (su * k, sv * k), config)
-        import cv2
-
         z = cv2.resize(small, (ww, hh), interpolation=cv2.INTER_LINEAR)
         if (hh, ww) != (h, w):
             z = np.pad(z, ((0, h - hh), (0, w - ww)), mode="edge")
@@ -72,7 +74,7 @@ def slopes_to_height(gx: np.ndarray, gy: np.ndarray, pixel_size: float | tuple[f
 def _integrate_zeroed(gx: np.ndarray, gy: np.ndarray, spacing: tuple[float, float], config: HeightConfig) -> np.ndarray:
     gx = np.asarray(gx, np.float32)
     gy = np.asarray(gy, np.float32)
-    flat = (gx * gx + gy * gy) < config.flat_slope**2
+    flat = cv2.magnitude(gx, gy) < np.float32(config.flat_slope)
     plane = config.level == "plane" and min(gx.shape) >= 2 and int(np.count_nonzero(flat)) >= 3
     # the plane holds the constant too: the median zero is needed only without it
     z = integrate(gx, gy, spacing, zero=None if plane or not flat.any() else flat, dtype=np.float32)
@@ -86,24 +88,30 @@ def level_plane(z: np.ndarray, flat: np.ndarray, step: int = 4, iterations: int 
     """The best plane through z over the `flat` pixels (a 1-in-`step` grid of them), refitted without
     the pixels more than 2.5 robust sigmas off it (a contact's flat top is not the undeformed gel)."""
     h, w = z.shape
-    vv, uu = np.mgrid[0:h:step, 0:w:step]
     sub, zs = flat[::step, ::step], z[::step, ::step]
-    if sub.sum() < 3:
-        (vv, uu), sub, zs = np.mgrid[0:h, 0:w], flat, z
-    u, v, zz = uu[sub].astype(np.float64), vv[sub].astype(np.float64), zs[sub].astype(np.float64)
+    if np.count_nonzero(sub) < 3:
+        step, sub, zs = 1, flat, z
+    vs, us = np.nonzero(sub)
+    u, v, zz = (us * step).astype(np.float64), (vs * step).astype(np.float64), zs[vs, us].astype(np.float64)
     keep = np.isfinite(zz)
     coef = np.zeros(3)
+    design = np.stack([np.ones_like(u), u / w, v / h])          # 3 x N, scaled for conditioning
     for _ in range(iterations):
-        if keep.sum() < 3:
+        n = int(np.count_nonzero(keep))
+        if n < 3:
             break
-        A = np.c_[np.ones(int(keep.sum())), u[keep], v[keep]]
-        coef, *_ = np.linalg.lstsq(A, zz[keep], rcond=None)
-        res = zz - (coef[0] + coef[1] * u + coef[2] * v)
-        sigma = 1.4826 * float(np.median(np.abs(res[keep]))) + 1e-12
-        keep = np.abs(res) <= 2.5 * sigma
-    cols = np.arange(w, dtype=np.float32)
-    rows = np.arange(h, dtype=np.float32)[:, None]
-    plane: np.ndarray = (np.float32(coef[0]) + np.float32(coef[1]) * cols + np.float32(coef[2]) * rows)
+        a = design[:, keep]
+        gram = a @ a.T
+        if np.linalg.cond(gram) < 1e10:
+            coef = np.linalg.solve(gram, a @ zz[keep])        # least squares by the normal equations (3 x 3)
+        else:                                                # the flat pixels on one line: minimum norm
+            coef, *_ = np.linalg.lstsq(a.T, zz[keep], rcond=None)
+        res = np.abs(zz - coef @ design)
+        sigma = 1.4826 * float(np.median(res[keep])) + 1e-12
+        keep = res <= 2.5 * sigma
+    cols = np.float32(coef[0]) + np.float32(coef[1] / w) * np.arange(w, dtype=np.float32)
+    rows = np.float32(coef[2] / h) * np.arange(h, dtype=np.float32)[:, None]
+    plane: np.ndarray = cols + rows
     return plane
 
 
@@ -131,7 +139,7 @@ class HeightEstimator:
             self.rows: tuple[int, int] = (v0, v1)
         else:
             self.rows = (0, h)
-        self.lookup: SlopeLookup = model.compile(reference)
+        self.lookup: SlopeLookup = model.compile(reference, self.config.still_change)
         self.shape = reference.shape[:2]
 
     def slopes(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -170,7 +178,8 @@ def band_height(band_image: np.ndarray, band_reference: np.ndarray, model: Photo
     if band_image.shape[1] != model.width or not 0 <= first_row <= model.height - band_image.shape[0]:
         raise ValueError(f"a band of {band_image.shape[1]}x{band_image.shape[0]} at row {first_row} does not fit "
                          f"the model's {model.width}x{model.height} images")
-    gx, gy = model.slopes(band_image, band_reference, first_row=first_row)
+    config = config or HeightConfig()
+    gx, gy = model.slopes(band_image, band_reference, first_row=first_row, still_change=config.still_change)
     return slopes_to_height(gx, gy, pixel_size, config)
 
 

@@ -19,6 +19,7 @@ smoothly); the caller masks the height where it knows nothing.
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Literal
 
 import numpy as np
@@ -30,6 +31,17 @@ Sampling = Literal["centre", "forward"]
 def _eigenvalues(n: int, dtype: type) -> np.ndarray:
     k = np.arange(n, dtype=np.float64)
     return (2.0 - 2.0 * np.cos(np.pi * k / n)).astype(dtype)
+
+
+@lru_cache(maxsize=16)
+def _inverse_operator(h: int, w: int, dtype: str) -> np.ndarray:
+    """1 / the Neumann Laplacian's eigenvalues on an h x w grid (0 for the constant), read-only, cached per size."""
+    denom = _eigenvalues(h, np.float64)[:, None] + _eigenvalues(w, np.float64)[None, :]
+    denom[0, 0] = 1.0
+    inverse = (1.0 / denom).astype(dtype)
+    inverse[0, 0] = 0.0
+    inverse.setflags(write=False)
+    return inverse
 
 
 def _finite(a: np.ndarray, dtype: type) -> np.ndarray:
@@ -80,15 +92,38 @@ def poisson_solve(px: np.ndarray, py: np.ndarray, workers: int = 1) -> np.ndarra
     H, W = py.shape[0] + 1, px.shape[1] + 1
     if px.shape != (H, W - 1):
         raise ValueError(f"px must be H x (W-1) = {H} x {W - 1}, got {px.shape}")
-    dtype = px.dtype.type
     # (Dx^T Dx + Dy^T Dy) z = Dx^T px + Dy^T py: the operator is positive semi-definite
-    hat = scipy.fft.dctn(divergence(px, py), type=2, norm="ortho", workers=workers)
-    denom = _eigenvalues(H, dtype)[:, None] + _eigenvalues(W, dtype)[None, :]
-    denom[0, 0] = 1.0
-    hat /= denom
-    hat[0, 0] = 0.0
-    z = scipy.fft.idctn(hat, type=2, norm="ortho", workers=workers)
+    return _solve(divergence(px, py), workers)
+
+
+def _solve(f: np.ndarray, workers: int) -> np.ndarray:
+    """z (mean zero) with (Dx^T Dx + Dy^T Dy) z = f, in f's dtype (f is overwritten)."""
+    dtype = f.dtype.type
+    hat = scipy.fft.dctn(f, type=2, norm="ortho", workers=workers, overwrite_x=True)
+    hat *= _inverse_operator(f.shape[0], f.shape[1], f.dtype.str)
+    z = scipy.fft.idctn(hat, type=2, norm="ortho", workers=workers, overwrite_x=True)
     return np.asarray(z, dtype=dtype)
+
+
+def centre_divergence(gx: np.ndarray, gy: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """`divergence(*forward_differences(gx, gy, (sx, sy), "centre"))` in one pass over the slopes (H, W >= 2):
+    with px[:, j] = (gx[:, j] + gx[:, j+1]) sx / 2, Dx^T px is sx / 2 (gx[:, j-1] - gx[:, j+1]) inside,
+    -px[:, 0] at the first column and px[:, -1] at the last (and alike along y)."""
+    dtype = gx.dtype.type
+    hx, hy = dtype(0.5 * sx), dtype(0.5 * sy)
+    f = np.empty(gx.shape, dtype=gx.dtype)
+    np.subtract(gx[:, :-2], gx[:, 2:], out=f[:, 1:-1])
+    f[:, 1:-1] *= hx
+    np.add(gx[:, 0], gx[:, 1], out=f[:, 0])
+    f[:, 0] *= -hx
+    np.add(gx[:, -2], gx[:, -1], out=f[:, -1])
+    f[:, -1] *= hx
+    inner = gy[:-2] - gy[2:]
+    inner *= hy
+    f[1:-1] += inner
+    f[0] -= hy * (gy[0] + gy[1])
+    f[-1] += hy * (gy[-2] + gy[-1])
+    return f
 
 
 def integrate(gx: np.ndarray, gy: np.ndarray, spacing: float | tuple[float, float] = 1.0,
@@ -108,6 +143,10 @@ def integrate(gx: np.ndarray, gy: np.ndarray, spacing: float | tuple[float, floa
         return np.zeros((H, W), dtype=dtype)
     if H == 1 or W == 1:
         z = _integrate_line(gx, gy, spacing, sampled, dtype)
+    elif sampled == "centre":
+        sx, sy = (spacing, spacing) if np.ndim(spacing) == 0 else spacing  # type: ignore[misc]
+        z = _solve(centre_divergence(_finite(gx, dtype), _finite(gy, dtype), float(sx), float(sy)),  # type: ignore[arg-type]
+                   workers)
     else:
         px, py = forward_differences(gx, gy, spacing, sampled, dtype)
         z = poisson_solve(px, py, workers=workers)

@@ -18,8 +18,8 @@ rows), dimensionless.
 
 Evaluating the polynomial per pixel is exact but slow; `PhotometricModel.compile` tabulates it once
 per reference and image size (`SlopeLookup`): the colour cube in `lookup_bins` steps per channel
-times `lookup_cells` position cells (float16, gx and gy side by side), so a frame costs a few array
-operations and one gather.
+times `lookup_cells` position cells (gx and gy as two 16-bit fixed-point numbers side by side), so a
+frame costs a few array operations and one gather.
 """
 from __future__ import annotations
 
@@ -68,12 +68,28 @@ class PhotometricConfig:
             raise ValueError(f"lookup_cells must be two counts 1..64, got {self.lookup_cells}")
 
 
+def gaussian_kernel(sigma: float) -> np.ndarray:
+    """The float32 1-D kernel `cv2.GaussianBlur` uses for a float32 image and sigma (size 8 sigma + 1, odd)."""
+    size = int(round(sigma * 4 * 2 + 1)) | 1
+    kernel: np.ndarray = cv2.getGaussianKernel(size, sigma, cv2.CV_32F)
+    return kernel
+
+
 def smooth(image: np.ndarray, sigma: float) -> np.ndarray:
-    """float32 copy of an H x W x 3 image, Gaussian-smoothed by sigma px (none at 0)."""
-    out = np.asarray(image, dtype=np.float32)
-    if out.ndim != 3 or out.shape[2] != 3:
-        raise ValueError(f"expected an H x W x 3 colour image, got shape {out.shape}")
-    return cv2.GaussianBlur(out, (0, 0), sigma) if sigma > 0 else out.copy()
+    """float32 copy of an H x W x 3 image, Gaussian-smoothed by sigma px (none at 0): what
+    `cv2.GaussianBlur` gives the image made float32, without that conversion's copy (8- and 16-bit
+    images are filtered straight into float32)."""
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"expected an H x W x 3 colour image, got shape {img.shape}")
+    if sigma <= 0:
+        return img.astype(np.float32)
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        img = img.astype(np.float32)
+    kernel = gaussian_kernel(sigma)
+    out: np.ndarray = cv2.sepFilter2D(np.ascontiguousarray(img), cv2.CV_32F, kernel, kernel,
+                                      borderType=cv2.BORDER_REFLECT_101)
+    return out
 
 
 def frame_gain(image: np.ndarray, reference: np.ndarray, step: int = 8) -> np.ndarray:
@@ -138,18 +154,23 @@ class PhotometricModel:
         result: np.ndarray = self.design(features, u, v) @ self.coefficients
         return result
 
-    def slopes(self, image: np.ndarray, reference: np.ndarray, first_row: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def slopes(self, image: np.ndarray, reference: np.ndarray, first_row: int = 0,
+               still_change: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(gx, gy) float32 per pixel from the polynomial, of an image (or a band of rows of one that starts
-        at `first_row`) and the same rows of the reference."""
+        at `first_row`) and the same rows of the reference; 0 where every channel's relative change is
+        within `still_change`."""
         feats = colour_features(image, reference, self.config.smoothing, self.config.gain)
         h, w = feats.shape[:2]
         vv, uu = np.mgrid[first_row:first_row + h, 0:w]
         out = self.slopes_at(feats.reshape(-1, 3).astype(np.float64), uu.ravel(), vv.ravel())
+        if still_change > 0:
+            out[(np.abs(feats.reshape(-1, 3)) <= still_change).all(axis=1)] = 0.0
         return out[:, 0].reshape(h, w).astype(np.float32), out[:, 1].reshape(h, w).astype(np.float32)
 
-    def compile(self, reference: np.ndarray) -> SlopeLookup:
-        """The fast per-frame form of this model for one reference frame."""
-        return SlopeLookup.build(self, reference)
+    def compile(self, reference: np.ndarray, still_change: float = 0.0) -> SlopeLookup:
+        """The fast per-frame form of this model for one reference frame (`still_change`: see
+        `SlopeLookup.build`)."""
+        return SlopeLookup.build(self, reference, still_change)
 
     # ------------------------------------------------------------------ file
     def save(self, path: str | Path) -> None:
@@ -269,18 +290,23 @@ def fit_model(config: PhotometricConfig, features: np.ndarray, u: np.ndarray, v:
     return dataclasses.replace(model, coefficients=coefficients)
 
 
+SLOPE_UNIT = 1.0 / 8192.0   # the lookup's fixed-point slope step: int16 spans slopes of +-4 (76 deg)
+
+
 @dataclass(frozen=True)
 class SlopeLookup:
-    """A model tabulated for one reference frame: per frame, slopes are two gathers from `table`.
+    """A model tabulated for one reference frame: per frame, slopes are one gather from `table`.
 
     Colour ratios are quantised to `bins` steps over +-colour_range per channel (nearest step); each
     pixel belongs to one of cells_u x cells_v position cells, whose polynomial is evaluated at the
     cell's centre. `scale`, `offset` fold the reference and the quantisation into one multiply-add per
-    channel: q_c = rint(I_c * scale_c + offset_c).
+    channel: q_c = rint(I_c * scale_c + offset_c) (`offset` is one value per channel). The table holds
+    gx, gy as two int16 in units of `SLOPE_UNIT` (clipped to +-4, steeper than any membrane the
+    calibration saw) packed into one uint32, so one gather gives both.
     """
 
     model: PhotometricModel
-    table: np.ndarray        # cells * bins^3 uint32: gx, gy as two float16 packed (one gather per pixel)
+    table: np.ndarray        # cells * bins^3 uint32: gx, gy as two int16 (SLOPE_UNIT) packed (one gather per pixel)
     scale: np.ndarray        # H x W x 3 float32
     offset: np.ndarray       # H x W x 3 float32
     cell_base: np.ndarray    # H x W int32: cell index * bins^3
@@ -288,7 +314,12 @@ class SlopeLookup:
     raw: np.ndarray          # H x W x 3 uint8/float: the reference as given
 
     @classmethod
-    def build(cls, model: PhotometricModel, reference: np.ndarray) -> SlopeLookup:
+    def build(cls, model: PhotometricModel, reference: np.ndarray, still_change: float = 0.0) -> SlopeLookup:
+        """still_change: a colour step whose relative change is within this in every channel reads slope 0
+        (the frame matches the reference there: a zero-slope prior where nothing touches, at no cost per
+        frame); 0 keeps only the step at no change, which the polynomial maps to 0 anyway."""
+        if not (np.isfinite(still_change) and 0.0 <= still_change < 1.0):
+            raise ValueError(f"still_change must be a relative colour change in [0, 1), got {still_change}")
         cfg = model.config
         ref = smooth(reference, cfg.smoothing)
         h, w = ref.shape[:2]
@@ -313,8 +344,11 @@ class SlopeLookup:
                 coefficients.append(colour_coefficients(model, float(pu), float(pv)))
         # one product for all cells: bins^3 x (cells * 2), then cell-major
         values = colour @ np.concatenate(coefficients, axis=1)
+        if still_change > 0:
+            values[(np.abs(grid) <= still_change).all(axis=1)] = 0.0
         tables = values.reshape(len(grid), cu * cv, 2).transpose(1, 0, 2).reshape(-1, 2)
-        table = np.ascontiguousarray(tables.astype(np.float16)).view(np.uint32).ravel()
+        fixed = np.clip(np.rint(tables / SLOPE_UNIT), -32767, 32767).astype(np.int16)
+        table = np.ascontiguousarray(fixed).view(np.uint32).ravel()
         return cls(model, table, scale, offset, (cell * b**3).astype(np.int32), ref, np.asarray(reference))
 
     def slopes(self, image: np.ndarray, rows: slice | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -328,17 +362,22 @@ class SlopeLookup:
         if img.shape[:2] != scale.shape[:2] or img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"image {img.shape} does not match the reference {self.scale.shape}")
         smoothed = smooth(img, cfg.smoothing)
-        if cfg.gain:
-            # f = I / (R g) - 1: the same as dividing the image by the gain before the lookup
-            smoothed *= 1.0 / frame_gain(img, self.raw[sl] if img.shape[0] != self.raw.shape[0] else self.raw)
-        q = cv2.multiply(smoothed, scale)
-        q = cv2.add(q, offset)
+        # q = I * scale / gain + offset per channel: the gain (f = I / (R g) - 1 divides the image by the
+        # frame's drift) and the constant offset go in one affine colour transform
+        inverse_gain = (1.0 / frame_gain(img, self.raw[sl] if img.shape[0] != self.raw.shape[0] else self.raw)
+                        if cfg.gain else np.ones(3, np.float32))
+        affine = np.zeros((3, 4), np.float32)
+        affine[[0, 1, 2], [0, 1, 2]] = inverse_gain
+        affine[:, 3] = offset.reshape(-1, 3)[0] if offset.size else 0.0
+        q = cv2.transform(cv2.multiply(smoothed, scale), affine)
         b = cfg.lookup_bins
-        qi = q.astype(np.int32)        # q >= 0 after clipping below; truncation of (x + 0.5) = rounding
-        np.clip(qi, 0, b - 1, out=qi)
-        index = qi[..., 0] * (b * b)
-        index += qi[..., 1] * b
-        index += qi[..., 2]
+        np.clip(q, 0, b - 1, out=q)    # q >= 0: truncation of (x + 0.5) is rounding to the nearest step
+        np.trunc(q, out=q)
+        # the cell's index: q0 b^2 + q1 b + q2 (< 2^24 for b <= 129, exact in float32), plus the cell's base
+        index = cv2.transform(q, np.array([[b * b, b, 1.0]], np.float32)).astype(np.int32)
         index += base
-        both = self.table.take(index).view(np.float16).astype(np.float32)   # H x 2W: gx, gy interleaved
-        return both[:, 0::2], both[:, 1::2]
+        pairs = self.table.take(index).view(np.int16).reshape(*index.shape, 2)
+        both = pairs.astype(np.float32)
+        both *= np.float32(SLOPE_UNIT)
+        gx, gy = cv2.split(both)
+        return gx, gy

@@ -55,7 +55,7 @@ class PressCalibrationConfig:
     max_slope_angle_deg: float = 75.0    # targets steeper than this (close to the ball's equator) are left out
     inside_fraction: float = 0.5         # fraction of the inside pixels used (deterministic subsample)
     far_factor: float = 2.2              # far field: beyond this many contact radii ...
-    far_fraction: float = 0.01           # ... this fraction of its pixels, slope 0
+    far_fraction: float = 0.01           # ... this fraction of its pixels, slope 0 (0.05: see docs/height.md)
     seed: int = 0
 
     def __post_init__(self) -> None:

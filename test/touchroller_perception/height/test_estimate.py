@@ -102,3 +102,27 @@ def test_contact_band_of_the_default_camera():
     assert deeper.rows[1] - deeper.rows[0] > v1 - v0
     with pytest.raises(ValueError):
         contact_band(camera, max_depth=0.0)
+
+
+def test_still_change_reads_a_frame_that_matches_the_reference_as_flat(synthetic_presses, calibrated):
+    """A no-contact frame whose colour wanders by up to 2 % against the reference (light that changed
+    unevenly: no gain takes it out) integrates into a bowl without the zero-slope prior, and to 0 with
+    it; a press still reads its depth."""
+    reference, presses = synthetic_presses
+    h, w = reference.shape[:2]
+    vv, uu = np.mgrid[0:h, 0:w]
+    wander = 1.0 + 0.02 * np.stack([np.cos(np.pi * uu / w), np.sin(np.pi * vv / h), np.cos(np.pi * (uu + vv) / w)],
+                                   axis=-1)
+    frame = np.clip(reference.astype(np.float64) * wander, 0, 255).astype(np.uint8)
+    plain = HeightEstimator(calibrated, reference, PIXEL).height(frame)
+    still = HeightEstimator(calibrated, reference, PIXEL, config=HeightConfig(still_change=0.05))
+    assert np.sqrt(np.mean(plain**2)) > 1e-6
+    assert np.sqrt(np.mean(still.height(frame) ** 2)) < 1e-9
+    img, cu, cv, _contact, _gx, _gy, z = presses[10]
+    got = still.height(img)
+    assert got[int(round(cv)), int(round(cu))] == pytest.approx(z[int(round(cv)), int(round(cu))], rel=0.1)
+    exact = band_height(frame[30:90], reference[30:90], calibrated, PIXEL, first_row=30,
+                        config=HeightConfig(still_change=0.05))
+    assert np.abs(exact).max() < 1e-9
+    with pytest.raises(ValueError):
+        HeightConfig(still_change=-0.1)

@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from touchroller_perception.height import forward_differences, integrate, poisson_solve
+from touchroller_perception.height import divergence, forward_differences, integrate, poisson_solve
+from touchroller_perception.height.integrate import centre_divergence
 
 
 def sphere_cap(h: int, w: int, cu: float, cv: float, radius: float, depth: float):
@@ -118,3 +119,25 @@ def test_lines_and_shapes():
         integrate(np.zeros((3, 4)), np.zeros((4, 3)))
     with pytest.raises(ValueError):
         integrate(np.zeros((3, 4)), np.zeros((3, 4)), zero=np.zeros((2, 2), bool))
+
+
+@settings(max_examples=30, deadline=None)
+@given(h=st.integers(2, 40), w=st.integers(2, 40), sx=st.floats(1e-5, 1e-2), sy=st.floats(1e-5, 1e-2),
+       seed=st.integers(0, 1000))
+def test_centre_divergence_is_the_operators_transpose(h, w, sx, sy, seed):
+    """The one-pass right side equals Dx^T px + Dy^T py built from the averaged differences themselves,
+    down to two-row and two-column grids (where there is no inside)."""
+    rng = np.random.default_rng(seed)
+    gx, gy = rng.normal(size=(h, w)), rng.normal(size=(h, w))
+    want = divergence(*forward_differences(gx, gy, (sx, sy), "centre"))
+    np.testing.assert_allclose(centre_divergence(gx, gy, sx, sy), want, rtol=1e-12, atol=1e-15)
+
+
+def test_cached_operator_is_not_mutated_by_a_solve():
+    """The eigenvalue cache is shared between calls: two solves of one size give the same answer."""
+    rng = np.random.default_rng(3)
+    gx, gy = rng.normal(size=(30, 40)), rng.normal(size=(30, 40))
+    first = integrate(gx, gy, 1e-4, dtype=np.float32)
+    second = integrate(gx, gy, 1e-4, dtype=np.float32)
+    np.testing.assert_array_equal(first, second)
+    np.testing.assert_allclose(integrate(gx, gy, 1e-4), first, rtol=1e-4, atol=1e-9)

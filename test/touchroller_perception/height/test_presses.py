@@ -16,7 +16,7 @@ from touchroller_perception.height import (
     refine_circle,
 )
 
-from .conftest import BALL, PIXEL, press_image
+from .conftest import BALL, PIXEL, cap_slopes, press_image, shade
 
 CONFIG = PressCalibrationConfig(model=PhotometricConfig(colour_degree=3, position_degree=1, smoothing=0.7,
                                                         lookup_cells=(4, 3)), far_fraction=0.05)
@@ -84,3 +84,42 @@ def test_find_press_labels_the_one_press(synthetic_presses):
     assert np.hypot(u - cu, v - cv) < 3.0 and 0.5 * contact < r < 1.6 * contact
     with pytest.raises(CalibrationError, match="no press found"):
         find_press(reference, reference)
+
+
+def _haloed_presses(n, seed):
+    """Presses with a halo: about 3 contact radii below the press the colour changes as a slope of 0.08 would
+    change it, with the gel flat there (light the press redirects, as on taxim's real GelSight presses, where
+    such a zone lies 3-4.5 radii below a press), so the only slope there is 0."""
+    rng = np.random.default_rng(seed)
+    shape = (150, 190)
+    out = []
+    for _ in range(n):
+        cu, cv, contact = rng.uniform(70, 120), rng.uniform(55, 95), rng.uniform(13, 16)
+        gx, gy, _z = cap_slopes(shape, cu, cv, contact, skirt=0.15)
+        vv, uu = np.mgrid[0:shape[0], 0:shape[1]]
+        rho = np.hypot(uu - cu, vv - cv) / contact
+        # the halo shades like a slope of 0.08 facing away from one side of the press, the gel flat
+        halo = 0.08 * np.exp(-(((rho - 3.2) / 0.6) ** 2)) * (vv > cv)
+        img = shade(gx, gy + halo)
+        img = np.clip(np.rint(img + rng.normal(0, 0.8, img.shape)), 0, 255).astype(np.uint8)
+        out.append((img, cu, cv, contact, halo > 0.04))
+    reference = np.clip(np.rint(shade(np.zeros(shape), np.zeros(shape))), 0, 255).astype(np.uint8)
+    return reference, out
+
+
+def test_far_field_targets_teach_a_halo_to_read_flat():
+    """With the far field sampled 5x denser than the default 1 %, the halo reads flatter."""
+    reference, presses = _haloed_presses(12, 5)
+    items = [BallPress(img, cu, cv, c, (PIXEL, PIXEL), str(k)) for k, (img, cu, cv, c, _) in enumerate(presses[:9])]
+    model_cfg = PhotometricConfig(position_degree=1, smoothing=0.7, lookup_cells=(4, 3))
+    halo_slope = {}
+    for fraction in (PressCalibrationConfig().far_fraction, 0.05):
+        model = calibrate_photometric(items, reference, BALL, PressCalibrationConfig(model=model_cfg,
+                                                                                      far_fraction=fraction)).model
+        lookup = model.compile(reference)
+        values = []
+        for img, _cu, _cv, _c, zone in presses[9:]:
+            gx, gy = lookup.slopes(img)
+            values.append(np.hypot(gx, gy)[zone])
+        halo_slope[fraction] = float(np.median(np.concatenate(values)))
+    assert halo_slope[0.05] < 0.85 * halo_slope[PressCalibrationConfig().far_fraction]

@@ -1,0 +1,58 @@
+"""The compiled lookup: its smoothing is OpenCV's Gaussian, and its slopes are the model's polynomial up to
+the colour quantisation (also for a band of rows and with the frame's gain divided out)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from touchroller_perception.height import BallPress, PhotometricConfig, PressCalibrationConfig, calibrate_photometric
+from touchroller_perception.height.photometric import SLOPE_UNIT, smooth
+
+from .conftest import BALL, PIXEL
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
+@pytest.mark.parametrize("sigma", [0.0, 0.7, 2.0])
+def test_smooth_is_opencvs_gaussian_of_the_float_image(dtype, sigma):
+    rng = np.random.default_rng(1)
+    img = (rng.random((37, 53, 3)) * 200).astype(dtype)
+    want = cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma) if sigma > 0 else img.astype(np.float32)
+    got = smooth(img, sigma)
+    assert got.dtype == np.float32 and got.shape == img.shape
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def model(synthetic_presses):
+    reference, presses = synthetic_presses
+    items = [BallPress(img, cu, cv, contact, (PIXEL, PIXEL), str(k))
+             for k, (img, cu, cv, contact, *_rest) in enumerate(presses[:10])]
+    config = PressCalibrationConfig(model=PhotometricConfig(position_degree=1, smoothing=0.7, lookup_cells=(4, 3),
+                                                            lookup_bins=65), far_fraction=0.05)
+    return calibrate_photometric(items, reference, BALL, config).model
+
+
+@pytest.mark.parametrize("drift", [1.0, 1.08])
+def test_lookup_slopes_follow_the_polynomial(synthetic_presses, model, drift):
+    """A held-out press (its light drifted by `drift`): the lookup's slopes against the exact polynomial's."""
+    reference, presses = synthetic_presses
+    img = np.clip(presses[11][0].astype(np.float64) * drift, 0, 255).astype(np.uint8)
+    lookup = model.compile(reference)
+    gx, gy = lookup.slopes(img)
+    ex, ey = model.slopes(img, reference)
+    assert gx.dtype == np.float32 and gx.shape == img.shape[:2] and gx.flags.c_contiguous
+    steep = np.hypot(ex, ey) > 0.05
+    assert np.median(np.abs(gx - ex)[steep]) < 0.02 and np.median(np.abs(gy - ey)[steep]) < 0.02
+    assert np.corrcoef(gx[steep], ex[steep])[0, 1] > 0.98
+    # the fixed-point step is far finer than the colour quantisation
+    assert SLOPE_UNIT < 1e-3
+    band_x, band_y = lookup.slopes(img[40:80], rows=slice(40, 80))
+    np.testing.assert_array_equal(band_x, lookup.slopes(img, rows=slice(40, 80))[0])
+    assert band_x.shape == (40, img.shape[1]) and band_y.shape == (40, img.shape[1])
+
+
+def test_lookup_reads_the_reference_as_flat(synthetic_presses, model):
+    reference, _ = synthetic_presses
+    gx, gy = model.compile(reference).slopes(reference)
+    assert np.abs(gx).max() == 0.0 and np.abs(gy).max() == 0.0
