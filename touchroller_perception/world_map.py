@@ -24,10 +24,11 @@ A frame is taken only once the poses reach its stamp (it waits, in arrival order
 of them): every pose the mapper looks up for it then lies at or before that stamp, so the map does
 not depend on whether a frame or its pose arrived first (a live graph where the image may come before
 its TF, or a recording read in the order it was written). Frames then wait (a bounded queue) until
-their pose, the pressed height and the latency are known. Memory
-is bounded by the map (a fixed rectangle given by `bounds`, else growing up to `max_pixels`; frames
-that would grow it further are left out and counted in `stats.beyond_max_pixels`), not by the
-number of frames. No rclpy here; the caller looks poses up (`touchroller_perception.transforms`).
+their pose, the pressed height and the latency are known. The map
+is kept as tiles (`touchroller_perception.tiles`): a bounded cache in memory, the rest on disk, so memory
+is bounded by neither the map's area nor the number of frames; frames whose new tiles would not fit on
+the disk are left out and counted (`stats.left_out_storage_full`), the map so far kept.
+No rclpy here; the caller looks poses up (`touchroller_perception.transforms`).
 """
 from __future__ import annotations
 
@@ -48,6 +49,7 @@ from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.latency import LatencyConfig, LatencyEstimate, LatencyEstimator
 from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, taper
+from touchroller_perception.tiles import LayerView, StorageFull, TileConfig, render_tile
 from touchroller_perception.world_canvas import (  # noqa: F401 (WorldCanvas, _Prior: part of this module's API)
     WorldCanvas,
     _axis_aligned,
@@ -103,8 +105,10 @@ class WorldMapConfig:
 
     resolution: metres per map pixel.
     bounds: (x_min, y_min, x_max, y_max) of the map in the world frame, m (e.g. the scan's rectangle plus
-      a margin); None: it grows with what is mapped, up to `max_pixels`.
-    max_pixels: the most pixels the map may hold (memory: 12 bytes each).
+      a margin); None: it grows with what is mapped (tiles made where bands land, without bound but the disk).
+    max_pixels: the most pixels `bounds` may span (a sanity check on a typing error: tiles are made only
+      where bands land, but the map's files span the bounds).
+    tiles: the tile store (tile size, memory cache, spill folder, disk reserve).
     latency: the camera's latency (s, exposure to stamp) if known; None: estimated from the data
       (`touchroller_perception.latency`).
     latency_fallback: the latency used when the data do not pin it down (a single pass at constant
@@ -127,7 +131,7 @@ class WorldMapConfig:
 
     resolution: float = 1e-4
     bounds: tuple[float, float, float, float] | None = None
-    max_pixels: int = 16_000_000
+    max_pixels: int = 10 ** 11
     latency: float | None = None
     latency_fallback: float = 0.0
     latency_max_sigma: float = 0.002
@@ -139,6 +143,7 @@ class WorldMapConfig:
     steady_stride: int = 3
     hold_frames: int = 600
     wait_frames: int = 30
+    tiles: TileConfig = TileConfig()
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.resolution) and 1e-6 <= self.resolution <= 0.01):
@@ -294,7 +299,8 @@ class MapStats:
     not_in_contact: int = 0
     no_pose: int = 0
     passes: int = 0
-    beyond_max_pixels: int = 0   # frames left out: mapping them would have grown the map past max_pixels
+    left_out_storage_full: int = 0   # frames left out: their new tiles would not have fitted on the disk
+    storage_warning: str | None = None
     pass_corrections_px: list[tuple[float, float]] = field(default_factory=list)
     latency_s: float | None = None
     latency_estimated: bool = False
@@ -332,7 +338,7 @@ class WorldMapper:
         # pass's centre).
         self.strip = Stitcher(strip.replace(history=1, live_map=False, keep_map=False, flat_sigma_cols=0.0),
                               camera=camera)
-        self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels)
+        self.canvas = WorldCanvas(config.resolution, config.bounds, config.tiles)
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
         self._inbox: deque[tuple[np.ndarray, int]] = deque()   # frames whose stamp the poses do not reach yet
@@ -522,8 +528,8 @@ class WorldMapper:
         weighted = cv2.multiply(field.astype(np.float32), self._weights)
         oriented: dict[tuple[bool, bool, bool], np.ndarray] = {}
         box = self.canvas.used()
-        if box is not None:   # layer 1 is zero elsewhere
-            self.canvas.layers[1, box[0]:box[1], box[2]:box[3]] = 0.0
+        if box is not None:
+            self.canvas.clear("flat")
         for placement in self._placements:
             if placement.axes is not None:
                 if placement.axes not in oriented:
@@ -598,13 +604,40 @@ class WorldMapper:
 
     def coverage(self, bounds: tuple[float, float, float, float]) -> float:
         """Percent of the rectangle (x_min, y_min, x_max, y_max) mapped."""
-        _, weight = self.canvas.value(self._level)
-        c0, r0 = np.floor(self.canvas.to_grid(np.array(bounds[:2])) + 0.5).astype(int)
-        c1, r1 = np.floor(self.canvas.to_grid(np.array(bounds[2:])) + 0.5).astype(int)
+        c0, r0 = (int(v) for v in np.floor(self.canvas.to_grid(np.array(bounds[:2])) + 0.5))
+        c1, r1 = (int(v) for v in np.floor(self.canvas.to_grid(np.array(bounds[2:])) + 0.5))
         total = max((c1 - c0) * (r1 - r0), 1)
-        rows, cols = weight.shape
-        window = weight[max(r0, 0):min(r1, rows), max(c0, 0):min(c1, cols)]
-        return 100.0 * float(np.count_nonzero(window > 0.05)) / total
+        rows, cols = self.canvas.shape
+        box = (max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols))
+        if box[1] <= box[0] or box[3] <= box[2]:
+            return 0.0
+        _, weight = self.canvas.value_in(self._level, box)
+        return 100.0 * float(np.count_nonzero(weight > 0.05)) / total
+
+    # -- tiles: files and live views --------------------------------------------------------------------
+    def view(self) -> LayerView:
+        """The map (flat-field-corrected grey, weights) as a `tiles.LayerView` on the tile store's absolute
+        cells: what the GeoTIFF writer streams and live views render, a tile at a time."""
+        return self.canvas.view(self._level)
+
+    def touched_tiles(self) -> set[tuple[int, int]]:
+        """(ix, iy) of the level-0 tiles bands changed since the last call (absolute tile indices)."""
+        return self.canvas.store.touched()
+
+    def render_tile(self, level: int, ix: int, iy: int, low: float = 0.0,
+                    high: float = 255.0) -> tuple[np.ndarray, np.ndarray]:
+        """Tile (level, ix, iy) of the map's pyramid as (grey uint8, alpha uint8), image rows (row 0 the
+        largest y); see `tiles.render_tile`. Its lower-left corner lies at world `tile_corner(level, ix, iy)`."""
+        return render_tile(self.view(), level, ix, iy, low, high)
+
+    def tile_corner(self, level: int, ix: int, iy: int) -> tuple[float, float]:
+        """World (x, y) of the lower-left corner of tile (level, ix, iy); its side is tile * 2^level * res."""
+        side = self.canvas.tile * 2 ** level * self.config.resolution
+        return self.canvas.anchor[0] + ix * side, self.canvas.anchor[1] + iy * side
+
+    def close(self) -> None:
+        """Remove the tiles spilled to disk (the mapper is not used after)."""
+        self.canvas.store.close()
 
     # -- setup ---------------------------------------------------------------------------------------
     def _setup(self) -> None:
@@ -907,12 +940,9 @@ class WorldMapper:
         self._delta_offsets = 0
         self._pass_frames = 0
         if self.stats.passes > 1 and self.config.register:
-            # the value where bands were added (zero elsewhere): the canvas can be much larger
-            rows, cols = self.canvas.shape
-            box = self.canvas.used() or (0, 0, 0, 0)
-            value, weight = self.canvas.value_in(self._level, box)
-            self._prior = _Prior(value, weight, box[0], box[2], rows, cols)
-            self._prior_weight_max = (float(weight.max()) if weight.size else 0.0) or 1.0
+            # the map as it is now, kept copy-on-write as the pass's bands change its tiles
+            self._prior = _Prior(self.canvas, self._level)
+            self._prior_weight_max = self._prior.weight_max or 1.0
 
     def _end_pass(self) -> None:
         self._flush_pass_buffer()
@@ -1082,19 +1112,20 @@ class WorldMapper:
         return _Placement(c0, r0, None, matrix=local, size=(c1 - c0, r1 - r0))
 
     def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
+        placement = self._locate(pose, delta)
         try:
-            placement = self._locate(pose, delta)
-        except MemoryError:   # the map keeps what it has; the caller sees the count (max_pixels bounds memory)
-            self.stats.beyond_max_pixels += 1
+            if placement.axes is not None and frame.field is not None:
+                self.canvas.add(self._blend_stack(frame, placement), placement.c0, placement.r0)
+            else:
+                assert self._weights is not None
+                weighted_band, weighted_field = self._band_planes(frame)
+                planes = [self._on_map(placement, weighted_band), self._on_map(placement, weighted_field, "field"),
+                          self._on_map(placement, self._weights, "w")]
+                self.canvas.add(planes, placement.c0, placement.r0)
+        except StorageFull as exc:   # the map keeps what it has; the caller sees the count and the reason
+            self.stats.left_out_storage_full += 1
+            self.stats.storage_warning = str(exc)
             return
-        if placement.axes is not None and frame.field is not None:
-            self.canvas.add(self._blend_stack(frame, placement), placement.c0, placement.r0)
-        else:
-            assert self._weights is not None
-            weighted_band, weighted_field = self._band_planes(frame)
-            planes = [self._on_map(placement, weighted_band), self._on_map(placement, weighted_field, "field"),
-                      self._on_map(placement, self._weights, "w")]
-            self.canvas.add(planes, placement.c0, placement.r0)
         self._placements.append(placement)
         self.stats.mapped += 1
         if frame.field is not None:
@@ -1151,10 +1182,7 @@ class WorldMapper:
         the latency it was placed with (ns) and its speed (m/s). The template is the band where it and
         the earlier passes overlap at every shift searched."""
         assert self._prior is not None and self._weights is not None
-        try:
-            placement = self._locate(pose, np.zeros(2))
-        except MemoryError:   # beyond max_pixels: `_place` leaves it out and counts it
-            return None
+        placement = self._locate(pose, np.zeros(2))
         sx, sy, speed, (pc, pr) = self._search(frame, pose)
         # the overlap is judged on the weights alone; the band is put on the map only when it is usable
         weights = self._on_map(placement, self._weights, "w")
