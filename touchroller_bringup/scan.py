@@ -671,10 +671,13 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     world_map = None
     world_image = tactile_map = None
     if world is not None:   # the world map in the robot's frame: map.png (grey + alpha) and map.yaml
-        world_image = world.map_image()
-        if world_image.grey.size:
-            map_shape = tuple(int(n) for n in world_image.grey.shape)
-            world_map = _world_summary(world, perception.world_frame, world_image)
+        world_image = world.view()   # read a tile at a time (the map may be far larger than memory)
+        extent = world_image.extent()
+        if extent is not None:
+            map_shape = (extent[1] - extent[0], extent[3] - extent[2])
+            origin = (world_image.origin[0] + extent[2] * world_image.resolution,
+                      world_image.origin[1] + extent[0] * world_image.resolution)
+            world_map = _world_summary(world, perception.world_frame, world_image.resolution, origin)
         else:
             world_image = None
     elif map_msg is not None:
@@ -728,16 +731,16 @@ def _latency_yaml(world: Any) -> dict[str, Any]:
     return latency_summary(world.stats)[1]
 
 
-def _world_summary(world: Any, frame: str, image: Any) -> dict[str, Any]:
+def _world_summary(world: Any, frame: str, resolution: float, origin: tuple[float, float]) -> dict[str, Any]:
     from touchroller_perception.world_map import latency_summary
 
     stats = world.stats
-    return {"frame": frame, "resolution_m": image.resolution, "origin": tuple(image.origin),
+    return {"frame": frame, "resolution_m": resolution, "origin": tuple(origin),
             "frames_mapped": stats.mapped, "passes": stats.passes,
             "latency_ms": None if stats.latency_s is None else stats.latency_s * 1e3,
             "latency_estimated": stats.latency_estimated,
             "latency": latency_summary(stats)[0],
-            "pass_corrections_mm": [(dx * image.resolution * 1e3, dy * image.resolution * 1e3)
+            "pass_corrections_mm": [(dx * resolution * 1e3, dy * resolution * 1e3)
                                     for dx, dy in stats.pass_corrections_px]}
 
 

@@ -38,7 +38,8 @@ class TileConfig:
 
     tile: the side of a tile, cells (a multiple of 16: GeoTIFF tiles are written at the same size).
     cache_bytes: the most bytes of tiles held in memory; the least recently used beyond it go to disk.
-    folder: where tiles are spilled (created if needed); None: a temporary folder, removed on `close()`.
+    folder: where tiles are spilled: a temporary folder made in it (None: in the system's temporary folder),
+      removed with its tiles on `close()`.
     min_free_bytes: a new tile is refused (`StorageFull`) when its bytes, and those of the tiles in memory
       that were never written out, would leave less than this free on the folder's disk.
     """
@@ -165,13 +166,14 @@ class TileStore:
 
     @property
     def folder(self) -> Path:
+        """The spill folder: a temporary folder in `config.folder` (or the system's), made when first needed."""
         if self._folder is None:
-            if self.config.folder is None:
-                self._temporary = tempfile.TemporaryDirectory(prefix="touchroller-tiles-")
-                self._folder = Path(self._temporary.name)
-            else:
-                self._folder = Path(self.config.folder)
-                self._folder.mkdir(parents=True, exist_ok=True)
+            parent = None
+            if self.config.folder is not None:
+                Path(self.config.folder).mkdir(parents=True, exist_ok=True)
+                parent = self.config.folder
+            self._temporary = tempfile.TemporaryDirectory(prefix=".touchroller-tiles-", dir=parent)
+            self._folder = Path(self._temporary.name)
         return self._folder
 
     def close(self) -> None:

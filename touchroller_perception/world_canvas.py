@@ -51,7 +51,7 @@ class WorldCanvas:
             self._size = (0, 0)
             self.anchor = (0.0, 0.0)
         self.offset = (0, 0)   # absolute (row, column) of the canvas's cell (0, 0)
-        self.origin = self.anchor
+        self._origin = self.anchor
         self._used: list[int] | None = None   # [row0, row1, column0, column1], absolute
         self.weight_max = 0.0                 # the largest sum of weights anywhere
         self._saved: dict[tuple[int, int], bool] | None = None   # tiles copied aside for the prior (existed?)
@@ -60,6 +60,18 @@ class WorldCanvas:
     @property
     def shape(self) -> tuple[int, int]:
         return self._size
+
+    @property
+    def origin(self) -> tuple[float, float]:
+        """World (x, y) of the lower-left corner of the canvas's cell (0, 0)."""
+        return self._origin
+
+    @origin.setter
+    def origin(self, xy: tuple[float, float]) -> None:
+        """Move the whole map (its absolute grid's `anchor` with it)."""
+        dx, dy = xy[0] - self._origin[0], xy[1] - self._origin[1]
+        self.anchor = (self.anchor[0] + dx, self.anchor[1] + dy)
+        self._origin = (float(xy[0]), float(xy[1]))
 
     def add_layer(self, name: str, dtype: type | np.dtype | str = np.float32, fill: float = 0.0) -> None:
         """A further layer on the same tiles (e.g. a height sum); `add_named` adds to it."""
@@ -100,7 +112,7 @@ class WorldCanvas:
         ty0, ty1, tx0, tx1 = tiles
         self.offset = (ty0 * t, tx0 * t)
         self._size = ((ty1 - ty0) * t, (tx1 - tx0) * t)
-        self.origin = (self.anchor[0] + tx0 * t * self.resolution, self.anchor[1] + ty0 * t * self.resolution)
+        self._origin = (self.anchor[0] + tx0 * t * self.resolution, self.anchor[1] + ty0 * t * self.resolution)
         return shift_base[0] - self.offset[1], shift_base[1] - self.offset[0]
 
     def _clip(self, h: int, w: int, c0: int, r0: int) -> tuple[int, int, int, int] | None:

@@ -68,6 +68,7 @@ _RESUME_NS = 300_000_000       # pressed again this soon after a pass ended: the
 _PLACING_STEP_S = 5e-4          # frames are placed with the latency estimate on this grid, s
 _MIN_SCORE = 0.5                # a registration's NCC peak below this is not trusted (too little texture)
 _PEAK_MARGIN = 0.1              # a registration's peak stands this much (NCC) above any other 3 px away
+_MAX_BAND_PIXELS = 16_000_000   # one band placed on the map may span at most this many map cells
 _DELTA_MAD_PX = 1.0             # a pass's offsets agree (median absolute deviation, map px) to be applied
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet): e.g.
 #: `TransformBuffer.lookup_many(world, cylinder, stamps, missing=True)`.
@@ -1095,6 +1096,9 @@ class WorldMapper:
         matrix = self._affine(pose)
         matrix[:, 2] += delta
         c0, r0, c1, r1 = self._footprint(matrix)
+        if (c1 - c0) * (r1 - r0) > _MAX_BAND_PIXELS:
+            raise MemoryError(f"one band needs {(c1 - c0) * (r1 - r0):.3g} pixels at {self.config.resolution:g} m/px "
+                              f"(at most {_MAX_BAND_PIXELS:.3g})")
         shift = self.canvas.ensure(c0, r0, c1, r1)
         if shift != (0, 0):
             matrix[:, 2] += shift
