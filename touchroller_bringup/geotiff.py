@@ -91,7 +91,7 @@ def write_geotiff(path: str | Path, view: LayerView, kind: Kind = "intensity", f
         raise ValueError("the layer holds nothing to write")
     r0, r1, c0, c1 = box
     shape = (r1 - r0, c1 - c0)
-    levels = levels_for(shape, tile)
+    levels = max(levels_for(shape, tile), (keep_level or 0) + 1)
     samples = 2 if kind == "intensity" else 1
     dtype = np.dtype(np.uint8 if kind == "intensity" else np.float32)
     raw = sum(level_shape(shape, k)[0] * level_shape(shape, k)[1] for k in range(levels)) * samples * dtype.itemsize
