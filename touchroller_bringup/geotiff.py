@@ -18,10 +18,11 @@ from __future__ import annotations
 import contextlib
 import math
 import tempfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -182,35 +183,65 @@ def _file_tile(value: np.ndarray, weight: np.ndarray, kind: Kind, mapped_weight:
     return np.where(weight > mapped_weight, value, np.float32(np.nan)).astype(np.float32)
 
 
-def read_window(path: str | Path, level: int, row0: int, col0: int, rows: int, cols: int) -> np.ndarray:
-    """Rows [row0, row0 + rows) x columns [col0, ...) of one level (0: full resolution) of a tiled TIFF,
-    decoding only the tiles the window touches (clipped to the image)."""
-    import tifffile
+class PyramidReader:
+    """A tiled (pyramidal) TIFF kept open for window reads: `window(level, row0, col0, rows, cols)` decodes
+    only the tiles the window touches. A context manager (closes the file)."""
 
-    with tifffile.TiffFile(path) as tif:
-        series = tif.series[0]
-        if not 0 <= level < len(series.levels):
-            raise ValueError(f"{path} has levels 0..{len(series.levels) - 1}, not {level}")
-        page = series.levels[level].keyframe
+    def __init__(self, path: str | Path) -> None:
+        import tifffile
+
+        self.path = Path(path)
+        self._tif = tifffile.TiffFile(path)
+        self.pages = [level.keyframe for level in self._tif.series[0].levels]
+
+    def __enter__(self) -> PyramidReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._tif.close()
+
+    @staticmethod
+    def _decode(page: Any, data: bytes, index: int) -> np.ndarray:
+        """One tile: deflate (or none) without a predictor decoded here (five times tifffile's generic path),
+        anything else by tifffile."""
+        shape = (page.tilelength, page.tilewidth, *page.shape[2:])
+        if int(page.predictor) == 1 and int(page.compression) in (1, 8, 32946):
+            raw = data if int(page.compression) == 1 else zlib.decompress(data)
+            return np.frombuffer(raw, page.dtype).reshape(shape)
+        segment = page.decode(data, index)[0]
+        assert segment is not None
+        return segment.reshape(shape)
+
+    def window(self, level: int, row0: int, col0: int, rows: int, cols: int) -> np.ndarray:
+        """Rows [row0, row0 + rows) x columns [col0, ...) of one level (0: full resolution), clipped to it."""
+        if not 0 <= level < len(self.pages):
+            raise ValueError(f"{self.path} has levels 0..{len(self.pages) - 1}, not {level}")
+        page = self.pages[level]
         height, width = page.imagelength, page.imagewidth
         th, tw = page.tilelength, page.tilewidth
         if not th or not tw:
-            raise ValueError(f"{path} is not tiled")
+            raise ValueError(f"{self.path} is not tiled")
         row1, col1 = min(row0 + rows, height), min(col0 + cols, width)
         row0, col0 = max(row0, 0), max(col0, 0)
         out = np.zeros((max(row1 - row0, 0), max(col1 - col0, 0), *page.shape[2:]), page.dtype)
         across = math.ceil(width / tw)
-        handle = tif.filehandle
+        handle = self._tif.filehandle
         for ti in range(row0 // th, (row1 - 1) // th + 1) if out.size else ():
             for tj in range(col0 // tw, (col1 - 1) // tw + 1):
                 index = ti * across + tj
                 handle.seek(page.dataoffsets[index])
-                data = handle.read(page.databytecounts[index])
-                segment = page.decode(data, index)[0]
-                assert segment is not None
-                segment = segment.reshape(th, tw, *page.shape[2:])
+                segment = self._decode(page, handle.read(page.databytecounts[index]), index)
                 y0, y1 = max(row0, ti * th), min(row1, (ti + 1) * th)
                 x0, x1 = max(col0, tj * tw), min(col1, (tj + 1) * tw)
                 out[y0 - row0:y1 - row0, x0 - col0:x1 - col0] = segment[y0 - ti * th:y1 - ti * th,
                                                                         x0 - tj * tw:x1 - tj * tw]
         return out
+
+
+def read_window(path: str | Path, level: int, row0: int, col0: int, rows: int, cols: int) -> np.ndarray:
+    """One window of one level of a tiled TIFF (`PyramidReader.window`, the file opened for it)."""
+    with PyramidReader(path) as reader:
+        return reader.window(level, row0, col0, rows, cols)
