@@ -14,8 +14,8 @@ The frames are synthesised straight into the mapper API (`WorldMapper.push_band`
 rendered by the simulator, whose surfaces are allocated whole (a 1 m² scene does not fit): each band is
 the bench's own procedural texture (band-limited noise, periodic over 0.2 m, sampled at the world points
 of the band's pixels as the mapper's geometry defines them) at a boustrophedon raster's pose (20 mm/s at
-30 frames/s, pressed; lifted by 3 mm between passes, over a fifth of the 1 s move each way); the latency is told (0), registration is on. Each
-area runs in a new process (`--case`), so its peak RSS is its own.
+30 frames/s, pressed; lifted by 3 mm between passes, over a fifth of the 1 s move each way); the latency
+is told (0), registration is on. Each area runs in a new process (`--case`), so its peak RSS is its own.
 
 `python -m bench.map_scale [--quick]` -> bench/results/map_scale.md + .json. The report calls `run(quick)`
 and `to_markdown(result)`; quick mode maps 0.2 m x 0.2 m and 0.1 m x 0.1 m.

@@ -264,7 +264,7 @@ class WorldCanvas:
                         part[...] = self.store.read(f"prior_{name}", y0, y1, x0, x1)
                     else:
                         part[...] = 0
-        return _value(*sums, self.prior_level)
+        return _value(sums[0], sums[1], sums[2], self.prior_level)
 
 
 def _value(band: np.ndarray, flat: np.ndarray, weight: np.ndarray, level: float,
@@ -285,7 +285,8 @@ class IntensityView:
 
     def read(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
         store = self.canvas.store
-        return _value(*(store.read(name, r0, r1, c0, c1) for name in LAYERS), self.level)
+        band, flat, weight = (store.read(name, r0, r1, c0, c1) for name in LAYERS)
+        return _value(band, flat, weight, self.level)
 
     def extent(self) -> tuple[int, int, int, int] | None:
         """The absolute cells a file of the map holds: a fixed map's bounds, else around what was mapped."""
