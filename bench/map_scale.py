@@ -5,7 +5,8 @@ Issue 25's measures, at 0.1 mm per pixel:
 * peak resident memory (RSS) of mapping a 1 m x 1 m raster (22 passes) and writing its files, against the
   same for 0.5 m x 0.5 m (11 passes): <= 1 GB, and the 1 m² run within 15 % of the 0.25 m² run's
   (memory flat in area: the map's tiles beyond the cache live on disk);
-* writing the pyramid of 1 m² (map.tif with its overviews, map.png + map.yaml): goal <= 10 s;
+* writing the pyramid of 1 m² (map.tif with its overviews, map.png + map.yaml): goal <= 10 s, judged in CPU
+  time (wall time beside it);
 * any 512 x 512 window of any level read back from map.tif (the file open, as a viewer keeps it): goal
   <= 10 ms (the slowest of 10 random windows per level), in CPU time beside the wall time (the machine
   the figures are taken on is shared: its wall time includes waits for the other jobs).
@@ -60,14 +61,16 @@ class CaseResult:
     frames: int
     mapped: int
     map_px: tuple[int, int]          # (rows, columns) of map.tif
-    map_s: float                     # pushing the frames and finalise()
+    map_s: float                     # pushing the frames and finalise() (wall time)
+    map_cpu_s: float                 # the same in CPU time (the machine may be shared)
     frames_per_s: float
     peak_rss_map_mb: float           # after mapping
     peak_rss_mb: float               # after writing the files too
     most_tiles_in_memory: int
     tiles: int                       # level-0 tiles of one layer the map has
     spilled: int
-    write_s: float                   # map.tif + map.png + map.yaml
+    write_s: float                   # map.tif + map.png + map.yaml (wall time)
+    write_cpu_s: float               # the same in CPU time (all threads of the process)
     tif_mb: float
     levels: int
     view_downscale: int
@@ -170,7 +173,7 @@ def run_case(side: float, out_dir: Path) -> CaseResult:
     texture = _texture()
     stamps = np.arange(0, raster.duration, 1.0 / FPS)
     most = 0
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     for k, t in enumerate(stamps):
         stamp = int(round(t * 1e9))
         pose = raster.poses(np.array([stamp]))[0]
@@ -178,12 +181,12 @@ def run_case(side: float, out_dir: Path) -> CaseResult:
         if k % 50 == 0:
             most = max(most, mapper.canvas.store.resident())
     mapper.finalise()
-    map_s = time.perf_counter() - start
+    map_s, map_cpu_s = time.perf_counter() - start, time.process_time() - start_cpu
     most = max(most, mapper.canvas.store.resident())
     rss_map = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     png, yaml_path = write_world_map(out_dir / "map.png", mapper.view(), "base")
-    write_s = time.perf_counter() - start
+    write_s, write_cpu_s = time.perf_counter() - start, time.process_time() - start_cpu
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     import yaml
 
@@ -201,11 +204,12 @@ def run_case(side: float, out_dir: Path) -> CaseResult:
                 times.append(time.perf_counter() - begin)
                 cpu.append(time.thread_time() - begin_cpu)
                 assert window.shape[0] == min(512, h - r0)
-    result = CaseResult(side, raster.passes, len(stamps), mapper.stats.mapped,
-                        (meta["geotiff"]["size"][1], meta["geotiff"]["size"][0]), map_s, len(stamps) / map_s,
-                        rss_map, rss, most, len(mapper.canvas.store.tiles("weight")), mapper.canvas.store.spilled,
-                        write_s, tif.stat().st_size / 1e6, meta["geotiff"]["levels"], meta["view"]["downscale"],
-                        1e3 * max(times), 1e3 * float(np.median(times)), 1e3 * max(cpu), 1e3 * float(np.median(cpu)))
+    geotiff = meta["geotiff"]
+    result = CaseResult(side, raster.passes, len(stamps), mapper.stats.mapped, (geotiff["size"][1], geotiff["size"][0]),
+                        map_s, map_cpu_s, len(stamps) / map_s, rss_map, rss, most,
+                        len(mapper.canvas.store.tiles("weight")), mapper.canvas.store.spilled, write_s, write_cpu_s,
+                        tif.stat().st_size / 1e6, geotiff["levels"], meta["view"]["downscale"], 1e3 * max(times),
+                        1e3 * float(np.median(times)), 1e3 * max(cpu), 1e3 * float(np.median(cpu)))
     mapper.close()
     return result
 
@@ -248,8 +252,9 @@ def goals(result: MapScaleResult) -> list[tuple[str, str, bool | None]]:
                      f"at most of {big.tiles})", judge(big.peak_rss_mb <= result.goal_rss_mb)),
         ("flat in area", f"{result.rss_ratio:.2f}x the smallest raster's peak RSS",
          judge(result.rss_ratio <= result.goal_rss_ratio)),
-        ("pyramid write", f"{big.write_s:.1f} s for {area} ({big.map_px[1]} x {big.map_px[0]} px, {big.levels} "
-                          f"levels, {big.tif_mb:.0f} MB)", judge(big.write_s <= result.goal_write_s)),
+        ("pyramid write", f"{big.write_cpu_s:.1f} s CPU ({big.write_s:.1f} s wall) for {area} ({big.map_px[1]} x "
+                          f"{big.map_px[0]} px, {big.levels} levels, {big.tif_mb:.0f} MB)",
+         judge(big.write_cpu_s <= result.goal_write_s)),
         ("window read", f"slowest {big.window_cpu_ms_max:.2f} ms CPU ({big.window_ms_max:.2f} ms wall) of "
                         f"{10 * big.levels} random 512 x 512 windows over {big.levels} levels",
          judge(big.window_cpu_ms_max <= result.goal_window_ms)),
@@ -266,9 +271,11 @@ def to_markdown(result: MapScaleResult) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in sorted(result.cases, key=lambda c: -c.side_m):
         lines.append(f"| {c.side_m:g} m x {c.side_m:g} m | {c.passes} | {c.frames} | {c.map_px[1]} x {c.map_px[0]} "
-                     f"| {c.map_s:.1f} s ({c.frames_per_s:.0f} frames/s) | {c.peak_rss_map_mb:.0f} MB "
+                     f"| {c.map_s:.1f} s ({c.frames_per_s:.0f} frames/s; {c.map_cpu_s:.1f} s CPU) "
+                     f"| {c.peak_rss_map_mb:.0f} MB "
                      f"| {c.peak_rss_mb:.0f} MB | {c.most_tiles_in_memory} / {c.tiles} ({c.spilled} spilled) "
-                     f"| {c.write_s:.1f} s | {c.tif_mb:.0f} MB | {c.levels} (map.png 1/{c.view_downscale}) "
+                     f"| {c.write_s:.1f} s ({c.write_cpu_s:.1f} s CPU) | {c.tif_mb:.0f} MB "
+                     f"| {c.levels} (map.png 1/{c.view_downscale}) "
                      f"| {c.window_ms_max:.2f} / {c.window_ms_median:.2f} ms; {c.window_cpu_ms_max:.2f} / "
                      f"{c.window_cpu_ms_median:.2f} ms |")
     lines += ["", f"Peak RSS of the largest raster over the smallest's: {result.rss_ratio:.2f} "

@@ -78,11 +78,13 @@ def _geokeys(citation: str) -> tuple[tuple[int, ...], str]:
 
 
 def write_geotiff(path: str | Path, view: LayerView, kind: Kind = "intensity", frame_id: str = "base",
-                  tile: int = 512, keep_level: int | None = None, compression: str | None = "zlib",
+                  tile: int = 512, keep_level: int | None = None, compression: str | None = None,
                   bigtiff: bool | None = None, scratch: TileConfig | None = None,
                   into: Path | None = None) -> TiffResult:
     """Write `view` over its `extent()` as a tiled pyramidal GeoTIFF (module docstring); `keep_level`: also
-    return that level's value and weight (e.g. a view under 16 megapixels for map.png). Written whole
+    return that level's value and weight (e.g. a view under 16 megapixels for map.png); `compression`:
+    None (the default: writing and window reads several times faster, the files about twice the size) or
+    "zlib" (deflate, level 1). Written whole
     or not at all (a temporary renamed into place; `into`: written there instead, the caller renames it).
     ValueError when the view holds nothing."""
     import tifffile
@@ -116,7 +118,8 @@ def write_geotiff(path: str | Path, view: LayerView, kind: Kind = "intensity", f
         temporary = Path(path) if into is not None else stack.enter_context(atomic_path(path))
         if into is not None:
             temporary = into
-        store = TileStore(scratch or TileConfig(tile=tile, folder=folder))
+        # the levels being built are read back in the order they were written: a small cache does
+        store = TileStore(scratch or TileConfig(tile=tile, folder=folder, cache_bytes=32 * 2 ** 20))
         try:
             with tifffile.TiffWriter(temporary, bigtiff=big) as tif:
                 for level in range(levels):

@@ -88,6 +88,7 @@ class ImageView:
 def stretch_of(value: np.ndarray, mapped: np.ndarray) -> tuple[float, float]:
     """(low, high): `STRETCH_PERCENTILES` of the mapped cells' values (at least one grey level apart)."""
     values = value[mapped]
+    values = values[::max(1, values.size // 2_000_000)]   # a display stretch: 2 million values are plenty
     if values.size == 0:
         return 0.0, 255.0
     low, high = (float(v) for v in np.percentile(values, STRETCH_PERCENTILES))

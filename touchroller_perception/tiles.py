@@ -299,11 +299,14 @@ def reduce2(value: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarr
     if h % 2 or w % 2:
         value = np.pad(value, ((0, h % 2), (0, w % 2)))
         weight = np.pad(weight, ((0, h % 2), (0, w % 2)))
-    h2, w2 = value.shape[0] // 2, value.shape[1] // 2
-    weighted = (value * weight).reshape(h2, 2, w2, 2).sum(axis=(1, 3), dtype=np.float32)
-    total = weight.reshape(h2, 2, w2, 2).sum(axis=(1, 3), dtype=np.float32)
-    mean = np.divide(weighted, total, out=np.zeros_like(total), where=total > 0)
-    return mean, total * np.float32(0.25)
+    size = (value.shape[1] // 2, value.shape[0] // 2)
+    weight = weight.astype(np.float32, copy=False)
+    # INTER_AREA at exactly half the size: the mean of each 2 x 2 block (OpenCV's fast path)
+    mean_weight = cv2.resize(weight, size, interpolation=cv2.INTER_AREA)
+    mean_weighted = cv2.resize(cv2.multiply(value.astype(np.float32, copy=False), weight), size,
+                               interpolation=cv2.INTER_AREA)
+    mean = np.divide(mean_weighted, mean_weight, out=np.zeros_like(mean_weight), where=mean_weight > 0)
+    return mean, mean_weight
 
 
 def pyramid_tile(view: LayerView, level: int, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
