@@ -196,6 +196,13 @@ class WorldCanvas:
         """The flat-field-corrected map at grey `level` as a `tiles.LayerView` (absolute cells)."""
         return IntensityView(self, level)
 
+    def ratio_view(self, numerator: str, denominator: str = "weight", scale: float = 1.0,
+                   min_denominator: float = 1e-3) -> RatioView:
+        """A layer kept as a weighted sum (e.g. sum(w height) beside sum(w)) as a `tiles.LayerView`: value =
+        scale numerator / denominator where the denominator is above `min_denominator`, weights the
+        canvas's `weight` (absolute cells); what `geotiff.write_geotiff(..., kind="float")` writes."""
+        return RatioView(self, numerator, denominator, scale, min_denominator)
+
     def mapped_extent(self) -> tuple[int, int, int, int] | None:
         """(row0, row1, column0, column1) of the canvas around the mapped cells (weight above
         `MAPPED_WEIGHT`), read a tile at a time; None: nothing mapped."""
@@ -272,6 +279,30 @@ def _value(band: np.ndarray, flat: np.ndarray, weight: np.ndarray, level: float,
     known = (weight > min_weight) & (flat > 1e-6)
     grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
     return grey, np.where(known, weight, np.float32(0.0))
+
+
+class RatioView:
+    """`WorldCanvas.ratio_view`: one layer over another, with the canvas's weights and extent."""
+
+    mapped_weight = MAPPED_WEIGHT
+
+    def __init__(self, canvas: WorldCanvas, numerator: str, denominator: str, scale: float,
+                 min_denominator: float) -> None:
+        self.canvas, self.numerator, self.denominator = canvas, numerator, denominator
+        self.scale, self.min_denominator = scale, min_denominator
+        self.tile, self.resolution, self.origin = canvas.tile, canvas.resolution, canvas.anchor
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        store = self.canvas.store
+        top = store.read(self.numerator, r0, r1, c0, c1).astype(np.float32, copy=False)
+        bottom = store.read(self.denominator, r0, r1, c0, c1).astype(np.float32, copy=False)
+        known = bottom > self.min_denominator
+        value = np.divide(top * np.float32(self.scale), bottom, out=np.zeros_like(top), where=known)
+        weight = np.where(known, store.read("weight", r0, r1, c0, c1), np.float32(0))
+        return value, weight
+
+    def extent(self) -> tuple[int, int, int, int] | None:
+        return IntensityView(self.canvas, 1.0).extent()
 
 
 class IntensityView:

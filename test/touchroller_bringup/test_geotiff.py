@@ -104,28 +104,22 @@ def test_an_overview_is_the_weighted_mean_of_the_full_resolution(tmp_path):
 
 
 def test_a_float_layer_is_written_as_float32_with_nan_where_nothing_is_known(tmp_path):
-    """The writer other layers use (a height in metres): float32, NaN unmapped, GDAL_NODATA nan."""
+    """The writer other layers use (a height in metres kept as sum(w height) beside sum(w): the canvas's
+    `ratio_view`): float32, NaN unmapped, GDAL_NODATA nan."""
     canvas = _canvas(seed=3, rows=300, cols=400)
-    heights = canvas.value_in(1.0, (0, 300, 0, 400))[0] * np.float32(1e-6)
-
-    class HeightView:
-        tile, resolution, origin, mapped_weight = 256, RES, canvas.anchor, 0.05
-
-        def read(self, r0, r1, c0, c1):
-            value, weight = canvas.view(1.0).read(r0, r1, c0, c1)
-            return value * np.float32(1e-6), weight
-
-        def extent(self):
-            return canvas.view(1.0).extent()
-
-    result = write_geotiff(tmp_path / "height.tif", HeightView(), "float", tile=256)
+    canvas.add_layer("height_sum")
+    rng = np.random.default_rng(3)
+    weight = canvas.read("weight", (0, 300, 0, 400))
+    heights = rng.normal(0, 20e-6, (300, 400)).astype(np.float32)
+    canvas.add_named({"height_sum": heights * weight}, 0, 0)
+    result = write_geotiff(tmp_path / "height.tif", canvas.ratio_view("height_sum"), "float", tile=256)
     with tifffile.TiffFile(tmp_path / "height.tif") as tif:
         data = tif.series[0].asarray()
         assert data.dtype == np.float32 and tif.pages[0].tags["GDAL_NODATA"].value == "nan"
     assert result.shape == (300, 400) and data.shape == (300, 400)
     known = np.isfinite(data)
     assert (~known).sum() == 100 * 200
-    np.testing.assert_array_equal(data[known], heights[::-1][known])
+    np.testing.assert_allclose(data[known], heights[::-1][known], rtol=1e-5, atol=1e-12)
 
 
 def test_map_png_in_nav2_map_servers_scale_mode_shows_the_texture(tmp_path):
