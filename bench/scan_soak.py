@@ -5,9 +5,9 @@ A sampler thread reads the process's resident set size (VmRSS) and the perceptio
 taken every `--every` seconds, and the bytes of the world map's tiles in memory (they grow with the
 area mapped up to the tile cache: that growth is the map's, not a leak). Memory growth is the
 least-squares slope of (RSS - those bytes) against frames, after warm-up; a steady rate compares the
-frames per second of the last quarter of the run with the first quarter after warm-up. `--trace` also takes tracemalloc snapshots after
-warm-up and at the end and lists where Python memory grew most (slower: for finding a leak, not for the
-figures).
+frames per second of the last quarter of the run with the first quarter after warm-up. `--trace` also
+takes tracemalloc snapshots after warm-up and at the end and lists where Python memory grew most
+(slower: for finding a leak, not for the figures).
 """
 from __future__ import annotations
 
