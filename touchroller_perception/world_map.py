@@ -530,7 +530,11 @@ class WorldMapper:
         oriented: dict[tuple[bool, bool, bool], np.ndarray] = {}
         box = self.canvas.used()
         if box is not None:
-            self.canvas.clear("flat")
+            try:
+                self.canvas.clear("flat")   # (copies the tiles aside first while a pass registers: may not fit)
+            except StorageFull as exc:   # nothing cleared: the map keeps the flat field it was built with
+                self.stats.storage_warning = f"not re-weighted with the final flat field: {exc}"
+                return
         for placement in self._placements:
             if placement.axes is not None:
                 if placement.axes not in oriented:

@@ -221,6 +221,37 @@ def test_a_growing_map_keeps_a_bounded_number_of_tiles_in_memory_and_maps_the_sa
     np.testing.assert_array_equal(a.alpha, b.alpha)
 
 
+@pytest.mark.slow
+def test_when_the_disk_would_fill_frames_needing_new_tiles_are_left_out_and_the_map_so_far_kept(scans, sensor):
+    """Part-way through the first pass the disk "fills" (the store's reserve raised past the free space):
+    frames that need a new tile are left out and counted with the reason; frames on tiles that exist are
+    still mapped, and the map so far stays whole. (In a later pass every frame needs room: the tiles it
+    changes are first copied aside for registration.)"""
+    from touchroller_perception.tiles import TileConfig
+
+    _, _, events = scans
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                         WorldMapConfig(latency=0.0, tiles=TileConfig(tile=64)))
+    tiles_then = None
+    for event in events[0.0]:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+            continue
+        if tiles_then is None and mapper.stats.mapped >= 40:
+            tiles_then = len(mapper.canvas.store.tiles("weight"))
+            mapped_then = mapper.stats.mapped
+            mapper.canvas.store.config = TileConfig(tile=64, min_free_bytes=2 ** 62)
+        mapper.push(event[2], event[1])
+    mapper.finalise()
+    assert mapper.stats.left_out_storage_full > 0 and "MB free" in mapper.stats.storage_warning
+    assert len(mapper.canvas.store.tiles("weight")) == tiles_then   # no tile was made after
+    assert mapper.stats.mapped > mapped_then   # frames on the tiles there were still mapped
+    image = mapper.map_image()
+    assert image.alpha.any() and image.grey[image.alpha > 0].min() > 0
+
+
 def _reordered(events, tf_lead_ns: int):
     """The same frames and transforms, each image delivered once TF reaches its stamp + `tf_lead_ns`
     (negative: before its own pose has arrived, as a live graph may deliver it)."""

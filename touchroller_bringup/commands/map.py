@@ -215,6 +215,8 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
         mapper.finalise()
     except MemoryError as exc:
         raise _too_fine(args, exc) from None
+    if stats_warning := mapper.stats.storage_warning:
+        print(f"WARN: the map's tiles: {stats_warning}", file=sys.stderr)
     view = mapper.view()
     if view.extent() is None:
         raise UserError(_nothing_placed(buffer, args, first_stamp[0]))
@@ -232,7 +234,7 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
           f"{meta['view']['stretch'][1]:g} stretched); {stats.mapped} frames mapped in {stats.passes} pass(es), "
           f"camera latency {latency}")
     if stats.left_out_storage_full:
-        print(f"WARN: {stats.left_out_storage_full} frames not mapped: {stats.storage_warning}", file=sys.stderr)
+        print(f"WARN: {stats.left_out_storage_full} frames not mapped (the disk is full)", file=sys.stderr)
     if stats.latency_warning:
         print(f"WARN: {stats.latency_warning}; give --latency SECONDS if it is known", file=sys.stderr)
     return 0
