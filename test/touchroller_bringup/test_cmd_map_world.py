@@ -55,8 +55,9 @@ def test_a_recording_with_tf_maps_into_the_world_frame(scan_bag, tmp_path, capsy
     out = tmp_path / "map.png"
     assert main(["map", str(scan_bag), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "map.yaml" in printed and "1 pass(es)" in printed, printed
+    assert "map.yaml" in printed and "map.tif" in printed and "1 pass(es)" in printed, printed
     assert "camera latency estimated " in printed, printed
+    assert {p.name for p in tmp_path.iterdir()} == {"map.png", "map.yaml", "map.tif"}   # no tiles left behind
     estimated = float(printed.split("camera latency estimated ")[1].split(" ms")[0])
     assert estimated == pytest.approx(LATENCY * 1e3, abs=3.0)
     grey, alpha, meta = read_world_map(tmp_path / "map.yaml")
