@@ -183,3 +183,27 @@ def test_gdal_opens_the_map_with_its_size_overviews_and_placement(tmp_path):
     assert len(bands) == 2 and bands[1]["colorInterpretation"] == "Alpha"
     assert [o["size"] for o in bands[0]["overviews"]] == [[1050, 650], [525, 325], [263, 163]]
     assert "ENGCRS" in described["coordinateSystem"]["wkt"] and "metre" in described["coordinateSystem"]["wkt"]
+
+
+def test_the_files_hold_what_map_image_holds_pixel_for_pixel(tmp_path):
+    """Streamed from the tiles (map.tif) or built whole in memory (`WorldMapper.map_image`, the live topic):
+    the same grey, alpha and origin, for a growing map cropped to what was mapped."""
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+    rng = np.random.default_rng(9)
+    mapper = WorldMapper.__new__(WorldMapper)   # the canvas and the map's level only
+    mapper.config = WorldMapConfig()
+    mapper.canvas = WorldCanvas(RES, None, TileConfig(tile=64, cache_bytes=8 * 64 * 64 * 4))
+    mapper._level = 117.0
+    for c, r in [(0, 0), (150, -90), (-200, 260), (333, 41)]:
+        dc, dr = mapper.canvas.ensure(c, r, c + 120, r + 70)
+        weight = rng.uniform(0, 1, (70, 120)).astype(np.float32)
+        flat = weight * rng.uniform(80, 120, (70, 120)).astype(np.float32)
+        mapper.canvas.add([flat * rng.uniform(0.5, 1.5, (70, 120)).astype(np.float32), flat, weight],
+                          c + dc, r + dr)
+    image = mapper.map_image()
+    write_world_map(tmp_path / "map.png", mapper.view(), "base")
+    grey, alpha, meta = read_world_map(tmp_path / "map.yaml")
+    np.testing.assert_array_equal(grey, image.grey)
+    np.testing.assert_array_equal(alpha, image.alpha)
+    assert meta["origin"][:2] == pytest.approx(list(image.origin), abs=1e-12)
