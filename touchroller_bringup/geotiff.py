@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import shutil
 import tempfile
 import zlib
 from collections.abc import Iterator
@@ -27,7 +28,16 @@ from typing import Any, Literal
 import numpy as np
 
 from touchroller_perception.files import atomic_path
-from touchroller_perception.tiles import LayerView, TileConfig, TileStore, levels_for, reduce2, to_alpha, to_grey
+from touchroller_perception.tiles import (
+    LayerView,
+    StorageFull,
+    TileConfig,
+    TileStore,
+    levels_for,
+    reduce2,
+    to_alpha,
+    to_grey,
+)
 
 Kind = Literal["intensity", "float"]
 _GEO_PIXEL_SCALE, _GEO_TIEPOINT, _GEO_KEYS, _GEO_ASCII, _GDAL_NODATA = 33550, 33922, 34735, 34737, 42113
@@ -113,6 +123,10 @@ def write_geotiff(path: str | Path, view: LayerView, kind: Kind = "intensity", f
                **({"extrasamples": ["unassalpha"]} if samples == 2 else {})}
     result = TiffResult(Path(path), shape, levels, top_left, res, big)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
+    free = shutil.disk_usage(Path(path).parent).free
+    if compression is None and raw + raw // 20 > free:   # checked before writing: nothing half-written
+        raise StorageFull(f"{Path(path).name} needs {raw / 2 ** 20:.0f} MB and {Path(path).parent} has "
+                          f"{free / 2 ** 20:.0f} MB free")
     with contextlib.ExitStack() as stack:
         folder = stack.enter_context(tempfile.TemporaryDirectory(prefix=".pyramid-", dir=Path(path).parent))
         temporary = Path(path) if into is not None else stack.enter_context(atomic_path(path))

@@ -207,3 +207,20 @@ def test_the_files_hold_what_map_image_holds_pixel_for_pixel(tmp_path):
     np.testing.assert_array_equal(grey, image.grey)
     np.testing.assert_array_equal(alpha, image.alpha)
     assert meta["origin"][:2] == pytest.approx(list(image.origin), abs=1e-12)
+
+
+def test_a_map_that_would_not_fit_on_the_disk_is_refused_before_writing(tmp_path, monkeypatch):
+    """The file's size is known before it is written: too little room is one line, the old map kept."""
+    from collections import namedtuple
+
+    import touchroller_bringup.geotiff as geotiff
+    from touchroller_bringup.errors import UserError
+
+    canvas = _canvas(seed=7, rows=300, cols=400)
+    write_world_map(tmp_path / "map.png", canvas.view(1.0), "base")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(geotiff.shutil, "disk_usage", lambda _path: usage(10**9, 10**9 - 100_000, 100_000))
+    with pytest.raises(UserError, match="needs 0 MB and .* has 0 MB free"):
+        write_world_map(tmp_path / "map.png", canvas.view(2.0), "base")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
