@@ -224,3 +224,15 @@ def test_a_map_that_would_not_fit_on_the_disk_is_refused_before_writing(tmp_path
     with pytest.raises(UserError, match="needs 0 MB and .* has 0 MB free"):
         write_world_map(tmp_path / "map.png", canvas.view(2.0), "base")
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_bigtiff_when_asked_or_large_and_the_same_image_either_way(tmp_path):
+    canvas = _canvas(seed=8, rows=300, cols=400)
+    small = write_geotiff(tmp_path / "small.tif", canvas.view(1.0), tile=256)
+    big = write_geotiff(tmp_path / "big.tif", canvas.view(1.0), tile=256, bigtiff=True)
+    assert not small.bigtiff and big.bigtiff
+    with tifffile.TiffFile(tmp_path / "small.tif") as a, tifffile.TiffFile(tmp_path / "big.tif") as b:
+        assert not a.is_bigtiff and b.is_bigtiff
+        assert len(b.series[0].levels) == len(a.series[0].levels) == 2
+        np.testing.assert_array_equal(a.series[0].asarray(), b.series[0].asarray())
+        assert b.pages[0].geotiff_tags["ModelTiepoint"] == a.pages[0].geotiff_tags["ModelTiepoint"]
