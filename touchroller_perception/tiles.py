@@ -134,7 +134,8 @@ class TileStore:
         elif create:
             self.reserve([key])
             layer = self.layers[name]
-            tile = np.full((self.tile, self.tile), layer.fill, layer.dtype)
+            shape = (self.tile, self.tile)   # zeros: calloc'd, its pages made only as bands land
+            tile = np.zeros(shape, layer.dtype) if layer.fill == 0 else np.full(shape, layer.fill, layer.dtype)
             self._hold(key, tile)
             self._new.add(key)
             self._unwritten += tile.nbytes
@@ -149,7 +150,8 @@ class TileStore:
 
     def reserve(self, keys: list[Key]) -> None:
         """Raise `StorageFull` unless the tiles `keys` that do not exist yet can be made."""
-        new = [k for k in keys if k not in self._memory and k not in self._on_disk]
+        memory, disk = self._memory, self._on_disk
+        new = [k for k in keys if k not in memory and k not in disk]
         if not new:
             return
         need = self._unwritten + sum(self.tile * self.tile * self.layers[k[0]].dtype.itemsize for k in new)
@@ -249,14 +251,16 @@ class TileStore:
             assert tile is not None
             tile[tr, tc] = data[wr, wc]
 
-    def add(self, name: str, data: np.ndarray, r0: int, c0: int, track_max: bool = False) -> float:
+    def add(self, name: str, data: np.ndarray, r0: int, c0: int, track_max: bool = False,
+            reserved: bool = False) -> float:
         """Add `data` (float32) to the cells from (r0, c0), tiles made as needed; `track_max`: returns the
-        largest of the sums where it was added (else 0)."""
+        largest of the sums where it was added (else 0); `reserved`: the caller checked the room (`reserve`)."""
         h, w = data.shape
         if not h or not w:
             return 0.0
         spans = list(self._spans(r0, r0 + h, c0, c0 + w))
-        self.reserve([(name, s[0], s[1]) for s in spans])
+        if not reserved:
+            self.reserve([(name, s[0], s[1]) for s in spans])
         largest = 0.0
         for ix, iy, tr, tc, wr, wc in spans:
             tile = self.get(name, ix, iy, create=True, write=True)

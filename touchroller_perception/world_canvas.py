@@ -149,7 +149,7 @@ class WorldCanvas:
             plane = planes[name]
             assert plane is not None
             largest = self.store.add(name, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], a0 + ro, b0 + co,
-                                     track_max=name == "weight")
+                                     track_max=name == "weight", reserved=True)
             if largest > self.weight_max:
                 self.weight_max = largest
         self._mark(a0 + ro, a1 + ro, b0 + co, b1 + co)
