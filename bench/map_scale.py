@@ -293,6 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         print(to_json(run_case(args.case, Path(args.dir))))
         return 0
     result = run(args.quick)
+    results_path("map_scale", args.quick).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(results_path("map_scale", args.quick, ".json"), to_json(result, indent=1) + "\n")
     atomic_write_text(results_path("map_scale", args.quick), "# Square metres: memory, pyramid, windows\n\n"
                       + to_markdown(result))
