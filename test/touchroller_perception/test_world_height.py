@@ -4,23 +4,26 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from touchroller_perception.tiles import TileConfig
 from touchroller_perception.world_canvas import WorldCanvas
-from touchroller_perception.world_height import HEIGHT_LAYERS, HeightBand, HeightLayer, WorldHeightConfig
+from touchroller_perception.world_height import HEIGHT_LAYERS, PASS, PASS_W, HeightBand, HeightLayer, WorldHeightConfig
 
 
-def _canvas(shape=(120, 200)) -> tuple[WorldCanvas, HeightLayer]:
-    canvas = WorldCanvas(1e-4, (0.0, 0.0, shape[1] * 1e-4, shape[0] * 1e-4), 10**6, layers=3 + HEIGHT_LAYERS)
-    return canvas, HeightLayer(3, WorldHeightConfig(min_overlap=50))
+def _canvas(shape=(120, 200), tile=512) -> tuple[WorldCanvas, HeightLayer]:
+    canvas = WorldCanvas(1e-4, (0.0, 0.0, shape[1] * 1e-4, shape[0] * 1e-4), TileConfig(tile=tile))
+    layer = HeightLayer(WorldHeightConfig(min_overlap=50))
+    layer.add_layers(canvas)
+    return canvas, layer
 
 
 def _add_pass(canvas, layer, height, weight, c0, r0):
-    planes = [height * weight, weight]
-    canvas.add(planes, c0, r0, first=layer.first + 2)
+    canvas.add_named(layer.pass_planes(height * weight, weight), c0, r0)
     layer.end_pass(canvas)
 
 
-def test_each_pass_loses_its_plane_and_meets_the_earlier_ones_where_they_overlap():
-    canvas, layer = _canvas()
+@pytest.mark.parametrize("tile", [512, 32])   # one tile, or passes spanning many (and windows of them)
+def test_each_pass_loses_its_plane_and_meets_the_earlier_ones_where_they_overlap(tile):
+    canvas, layer = _canvas(tile=tile)
     rng = np.random.default_rng(0)
     relief = rng.normal(0, 20e-6, (120, 200)).astype(np.float32)
     rows, cols = np.mgrid[0:120, 0:200].astype(np.float32)
@@ -45,7 +48,9 @@ def test_a_pass_with_nothing_in_contact_adds_nothing_and_clears_the_pass_layers(
     canvas, layer = _canvas()
     _add_pass(canvas, layer, np.ones((10, 10), np.float32), np.zeros((10, 10), np.float32), 5, 5)
     assert layer.passes == 0 and layer.layer(canvas) is None
-    assert not canvas.layers[3:].any()
+    for name in HEIGHT_LAYERS:   # nothing kept, and the pass's tiles are gone
+        assert not canvas.read(name, (0, 120, 0, 200)).any()
+    assert not canvas.store.tiles(PASS) and not canvas.store.tiles(PASS_W)
 
 
 def test_unmapped_cells_are_nan():

@@ -643,7 +643,7 @@ class PerceptionNode(Node):
         world = self.world
         if world is not None:
             try:
-                png, yaml_path = write_world_map(path, world.map_image(), self.world_frame,
+                png, yaml_path = write_world_map(path, world.view(), self.world_frame,
                                                  latency_summary(world.stats)[1])
             except UserError as exc:
                 self.get_logger().error(f"map not saved: {exc}")
@@ -763,8 +763,8 @@ class PerceptionNode(Node):
         }
         world, stitcher = self.world, self.stitcher
         dropped_rows = stitcher.dropped_rows if stitcher is not None else 0
-        beyond = world.stats.beyond_max_pixels if world is not None else 0
-        values.update({"map_rows_dropped": dropped_rows, "map_frames_beyond_max_pixels": beyond})
+        left_out = world.stats.left_out_storage_full if world is not None else 0
+        values.update({"map_rows_dropped": dropped_rows, "map_frames_left_out_disk_full": left_out})
         if world is not None:
             values.update({"map_frames_mapped": world.stats.mapped, "map_passes": world.stats.passes,
                            "map_latency_ms": float("nan") if world.stats.latency_s is None
@@ -794,8 +794,9 @@ class PerceptionNode(Node):
         if dropped_rows:
             return Status(WARN, f"map longer than map.max_rows: its {dropped_rows} oldest rows dropped (a sweep "
                                 "starts a new map)", values)
-        if beyond:
-            return Status(WARN, f"world map at its size bound: {beyond} frames not mapped", values)
+        if left_out and world is not None:
+            return Status(WARN, f"world map: the disk is full, {left_out} frames not mapped "
+                                f"({world.stats.storage_warning})", values)
         if world is not None and world.stats.latency_warning:
             return Status(WARN, world.stats.latency_warning, values)
         return Status(OK, "detecting contacts", values)
