@@ -718,7 +718,7 @@ class PerceptionNode(Node):
                 return None
             try:
                 if self.world is not None:
-                    world = world_map_raster(self.world)
+                    world = world_map_raster(self.world, self.map_views.config.max_pixels)
                 else:
                     tactile_map = self.stitcher.map_image()
             except Exception as exc:  # noqa: BLE001
