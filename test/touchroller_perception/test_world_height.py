@@ -75,3 +75,27 @@ def test_a_held_band_keeps_its_relief_to_half_a_micrometre():
 def test_config_is_checked(field, value):
     with pytest.raises(ValueError):
         WorldHeightConfig(**{field: value})
+
+
+def test_a_pass_is_levelled_on_the_window_of_its_tiles_not_the_whole_map():
+    """On a map of many 32-cell tiles, ending a pass reads and writes only the tiles the pass reached (the
+    earlier passes' tiles elsewhere are never read), and the pass's own tiles are dropped after."""
+    canvas, layer = _canvas(shape=(256, 512), tile=32)
+    weight = np.ones((40, 60), np.float32)
+    _add_pass(canvas, layer, np.full((40, 60), 2e-4, np.float32), weight, 400, 200)   # far corner
+    reads: list[tuple[str, int, int, int, int]] = []
+    read = canvas.store.read
+
+    def logged(name, r0, r1, c0, c1):
+        reads.append((name, r0, r1, c0, c1))
+        return read(name, r0, r1, c0, c1)
+
+    canvas.store.read = logged
+    _add_pass(canvas, layer, np.full((50, 70), 1e-4, np.float32), np.ones((50, 70), np.float32), 10, 20)
+    assert {name for name, *_ in reads} == set(HEIGHT_LAYERS)
+    for _, r0, r1, c0, c1 in reads:   # rows 20..70, columns 10..80: tiles rows 0..96, columns 0..96
+        assert (r0, r1, c0, c1) == (0, 96, 0, 96)
+    assert layer.passes == 2 and not canvas.store.tiles(PASS) and not canvas.store.tiles(PASS_W)
+    value = layer.value(canvas)
+    assert np.isfinite(value[20:70, 10:80]).all() and np.isfinite(value[200:240, 400:460]).all()
+    assert np.isnan(value[100:180, 100:380]).all()
