@@ -52,7 +52,7 @@ from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.latency import LatencyConfig, LatencyEstimate, LatencyEstimator
 from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, taper
-from touchroller_perception.tiles import LayerView, StorageFull, TileConfig, render_tile
+from touchroller_perception.tiles import LayerView, StorageFull, TileConfig, pyramid_tile, render_tile
 from touchroller_perception.world_canvas import (  # noqa: F401 (WorldCanvas, _Prior: part of this module's API)
     LAYERS,
     WorldCanvas,
@@ -453,6 +453,28 @@ class WorldMapper:
         if self._height_layer is None or self._height_layer.passes == 0:
             return None
         return self._height_layer.view(self.canvas)
+
+    def height_level(self, level: int) -> HeightMapLayer | None:
+        """The height map over the map's extent (`level_extent`) at pyramid level `level` (each cell the
+        weighted mean of 2^level x 2^level cells; level 0: `height_layer()`), read from the tiles a tile at
+        a time: memory for the result alone. None without a height map or before a pass has ended."""
+        view = self.height_view()
+        box = self.level_extent(level)
+        if view is None or box is None:
+            return None
+        r0, r1, c0, c1 = box
+        t = self.canvas.tile
+        out = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
+        for iy in range(r0 // t, (r1 - 1) // t + 1):
+            for ix in range(c0 // t, (c1 - 1) // t + 1):
+                y0, y1, x0, x1 = max(r0, iy * t), min(r1, (iy + 1) * t), max(c0, ix * t), min(c1, (ix + 1) * t)
+                value, weight = pyramid_tile(view, level, ix, iy)
+                part = (slice(y0 - iy * t, y1 - iy * t), slice(x0 - ix * t, x1 - ix * t))
+                known = weight[part] > view.mapped_weight
+                out[y0 - r0:y1 - r0, x0 - c0:x1 - c0][known] = value[part][known]
+        res = self.config.resolution * 2 ** level
+        anchor = self.canvas.anchor
+        return HeightMapLayer(out, (anchor[0] + c0 * res, anchor[1] + r0 * res), res)
 
     def _end_height_pass(self) -> None:
         assert self._height_layer is not None

@@ -99,3 +99,36 @@ def test_a_pass_is_levelled_on_the_window_of_its_tiles_not_the_whole_map():
     value = layer.value(canvas)
     assert np.isfinite(value[20:70, 10:80]).all() and np.isfinite(value[200:240, 400:460]).all()
     assert np.isnan(value[100:180, 100:380]).all()
+
+
+def test_the_height_map_at_a_level_is_read_from_the_tiles_in_place():
+    """`WorldMapper.height_level(k)` (what map_height publishes within the view's budget): level 0 is
+    `height_layer()` cell for cell; level 1 each cell the weighted mean of the 2 x 2 cells it covers, at
+    twice the resolution, its corner on the same extent; NaN where nothing has a height."""
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.world_height import DONE, DONE_W, HeightSource
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+    camera = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
+    res = 2.0 ** -13
+    mapper = WorldMapper(camera, lambda stamps: np.zeros((len(stamps), 4, 4)),
+                         WorldMapConfig(resolution=res, bounds=(0.25, -0.125, 0.25 + 200 * res, -0.125 + 120 * res),
+                                        tiles=TileConfig(tile=32)),
+                         height=HeightSource(None, None, WorldHeightConfig()))   # type: ignore[arg-type]
+    assert mapper.height_level(0) is None   # no pass yet
+    rng = np.random.default_rng(7)
+    relief = rng.normal(0, 2e-5, (60, 100)).astype(np.float32)
+    weight = rng.uniform(0.5, 2.0, (60, 100)).astype(np.float32)
+    mapper.canvas.add([np.ones_like(weight), np.ones_like(weight), np.ones_like(weight)], 40, 20)
+    mapper.canvas.add_named({DONE: relief * weight, DONE_W: weight}, 40, 20)
+    mapper._height_layer.passes = 1
+    whole, level0, level1 = mapper.height_layer(), mapper.height_level(0), mapper.height_level(1)
+    assert whole is not None and level0 is not None and level1 is not None
+    np.testing.assert_array_equal(level0.height, whole.height)
+    assert level0.origin == whole.origin and level0.resolution == whole.resolution == res
+    assert level1.resolution == 2 * res and level1.height.shape == (60, 100)   # a fixed map: all its cells
+    assert level1.origin == pytest.approx(whole.origin)
+    mean = ((relief * weight).reshape(30, 2, 50, 2).sum(axis=(1, 3)) / weight.reshape(30, 2, 50, 2).sum(axis=(1, 3)))
+    np.testing.assert_allclose(level1.height[10:40, 20:70], mean, atol=1e-9)
+    known = np.isfinite(level1.height)
+    assert known[10:40, 20:70].all() and known.sum() == 30 * 50

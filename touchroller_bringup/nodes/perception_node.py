@@ -90,7 +90,7 @@ from touchroller_bringup.tf import TransformListener, TransformPublisher, camera
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
-from touchroller_perception.map_tiles import TileConfig, world_map_raster
+from touchroller_perception.map_tiles import TileConfig, choose_level, world_map_raster
 from touchroller_perception.stitching import Stitcher, StitcherConfig
 from touchroller_perception.transforms import TransformBuffer, TransformError
 from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
@@ -693,9 +693,15 @@ class PerceptionNode(Node):
         return HeightSource(model, reference, self._height_config())
 
     def _publish_height(self, stamp_ns: int) -> None:
-        """The world height map on map_height: 32FC1 metres (REP 118), row 0 the top as the map, NaN unmapped."""
+        """The world height map on map_height: 32FC1 metres (REP 118), row 0 the top as the map, NaN unmapped,
+        at the level of detail of the map view (`map.view_max_pixels`)."""
         assert self.world is not None
-        layer = self.world.height_layer()
+        box = self.world.level_extent(0)
+        if box is None:
+            return
+        # the level the map view has (within map.view_max_pixels), read from the tiles
+        layer = self.world.height_level(choose_level(box[1] - box[0], box[3] - box[2],
+                                                     self.map_views.config.max_pixels))
         if layer is None or layer.height.size == 0:
             return
         values = np.ascontiguousarray(layer.height[::-1], np.float32)
