@@ -228,14 +228,16 @@ class HeightLayer:
         Reads and writes only the window of the tiles the pass reached; the pass's tiles are then dropped."""
         store = canvas.store
         touched = store.tiles(PASS_W)
-        if touched:
-            t = store.tile
-            ix0, ix1 = min(i for i, _ in touched), max(i for i, _ in touched) + 1
-            iy0, iy1 = min(j for _, j in touched), max(j for _, j in touched) + 1
-            self._level_pass(store, (iy0 * t, iy1 * t, ix0 * t, ix1 * t))
-        for name in (PASS, PASS_W):   # the pass's sums go with their tiles (memory and spill files)
-            store.drop_layer(name)
-            store.add_layer(name, np.float32)
+        try:
+            if touched:
+                t = store.tile
+                ix0, ix1 = min(i for i, _ in touched), max(i for i, _ in touched) + 1
+                iy0, iy1 = min(j for _, j in touched), max(j for _, j in touched) + 1
+                self._level_pass(store, (iy0 * t, iy1 * t, ix0 * t, ix1 * t))
+        finally:   # the pass's sums go with their tiles (memory and spill files), also when it did not fit
+            for name in (PASS, PASS_W):
+                store.drop_layer(name)
+                store.add_layer(name, np.float32)
 
     def _level_pass(self, store: Any, box: tuple[int, int, int, int]) -> None:
         r0, r1, c0, c1 = box   # absolute cells of the store
@@ -258,8 +260,10 @@ class HeightLayer:
         self.levelled.append((float(centre), offset, shared))
         height[~mine] = 0.0
         added_w = np.where(mine, weight, np.float32(0.0))
-        store.add(DONE, height * added_w, r0, c0)
-        store.add(DONE_W, added_w, r0, c0)
+        # room for both sums' new tiles first (StorageFull: neither is added, the finished passes kept)
+        store.reserve([(name, ix, iy) for name in (DONE, DONE_W) for ix, iy in store.spans(r0, r1, c0, c1)])
+        store.add(DONE, height * added_w, r0, c0, reserved=True)
+        store.add(DONE_W, added_w, r0, c0, reserved=True)
         self.passes += 1
 
     @staticmethod

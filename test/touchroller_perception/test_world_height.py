@@ -132,3 +132,25 @@ def test_the_height_map_at_a_level_is_read_from_the_tiles_in_place():
     np.testing.assert_allclose(level1.height[10:40, 20:70], mean, atol=1e-9)
     known = np.isfinite(level1.height)
     assert known[10:40, 20:70].all() and known.sum() == 30 * 50
+
+
+def test_a_pass_whose_height_does_not_fit_on_the_disk_leaves_the_finished_passes_as_they_were(monkeypatch):
+    from touchroller_perception.tiles import StorageFull
+    from touchroller_perception.world_height import DONE, DONE_W
+
+    canvas, layer = _canvas(tile=32)
+    _add_pass(canvas, layer, np.full((40, 60), 1e-4, np.float32), np.ones((40, 60), np.float32), 0, 0)
+    before = {name: canvas.read(name, (0, 120, 0, 200)) for name in (DONE, DONE_W)}
+    reserve = canvas.store.reserve
+
+    def full(keys):
+        if any(k[0] == DONE_W for k in keys):   # the weights' new tiles do not fit
+            raise StorageFull("the disk is full")
+        reserve(keys)
+
+    monkeypatch.setattr(canvas.store, "reserve", full)
+    with pytest.raises(StorageFull):   # a second pass partly on new tiles
+        _add_pass(canvas, layer, np.full((40, 100), 2e-4, np.float32), np.ones((40, 100), np.float32), 40, 30)
+    assert layer.passes == 1 and not canvas.store.tiles(PASS) and not canvas.store.tiles(PASS_W)
+    for name, values in before.items():   # neither sum changed (not one without the other)
+        np.testing.assert_array_equal(canvas.read(name, (0, 120, 0, 200)), values)
