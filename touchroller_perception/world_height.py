@@ -233,14 +233,14 @@ class HeightLayer:
                 t = store.tile
                 ix0, ix1 = min(i for i, _ in touched), max(i for i, _ in touched) + 1
                 iy0, iy1 = min(j for _, j in touched), max(j for _, j in touched) + 1
-                self._level_pass(store, (iy0 * t, iy1 * t, ix0 * t, ix1 * t))
+                self._level_pass(store, (iy0 * t, iy1 * t, ix0 * t, ix1 * t), touched)
         finally:   # the pass's sums go with their tiles (memory and spill files), also when it did not fit
             for name in (PASS, PASS_W):
                 store.drop_layer(name)
                 store.add_layer(name, np.float32)
 
-    def _level_pass(self, store: Any, box: tuple[int, int, int, int]) -> None:
-        r0, r1, c0, c1 = box   # absolute cells of the store
+    def _level_pass(self, store: Any, box: tuple[int, int, int, int], touched: set[tuple[int, int]]) -> None:
+        r0, r1, c0, c1 = box   # absolute cells of the store: the tiles `touched` span
         sums, weight = store.read(PASS, r0, r1, c0, c1), store.read(PASS_W, r0, r1, c0, c1)
         mine = weight >= self.config.min_weight
         if int(np.count_nonzero(mine)) < 3:
@@ -260,10 +260,15 @@ class HeightLayer:
         self.levelled.append((float(centre), offset, shared))
         height[~mine] = 0.0
         added_w = np.where(mine, weight, np.float32(0.0))
-        # room for both sums' new tiles first (StorageFull: neither is added, the finished passes kept)
-        store.reserve([(name, ix, iy) for name in (DONE, DONE_W) for ix, iy in store.spans(r0, r1, c0, c1)])
-        store.add(DONE, height * added_w, r0, c0, reserved=True)
-        store.add(DONE_W, added_w, r0, c0, reserved=True)
+        # room for both sums' new tiles first (StorageFull: neither is added, the finished passes kept); only
+        # the pass's own tiles (its window's others hold nothing of it)
+        store.reserve([(name, ix, iy) for name in (DONE, DONE_W) for ix, iy in touched])
+        weighted = height * added_w
+        t = store.tile
+        for ix, iy in touched:
+            part = (slice(iy * t - r0, (iy + 1) * t - r0), slice(ix * t - c0, (ix + 1) * t - c0))
+            store.add(DONE, weighted[part], iy * t, ix * t, reserved=True)
+            store.add(DONE_W, added_w[part], iy * t, ix * t, reserved=True)
         self.passes += 1
 
     @staticmethod

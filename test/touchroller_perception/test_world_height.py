@@ -154,3 +154,20 @@ def test_a_pass_whose_height_does_not_fit_on_the_disk_leaves_the_finished_passes
     assert layer.passes == 1 and not canvas.store.tiles(PASS) and not canvas.store.tiles(PASS_W)
     for name, values in before.items():   # neither sum changed (not one without the other)
         np.testing.assert_array_equal(canvas.read(name, (0, 120, 0, 200)), values)
+
+
+def test_the_finished_passes_get_tiles_only_where_a_pass_reached():
+    """A pass along the diagonal of its window: its levelled height is added on its own tiles, not on the
+    window's others (they would hold zeros, in memory or on disk, for nothing)."""
+    from touchroller_perception.world_height import DONE, DONE_W
+
+    canvas, layer = _canvas(shape=(256, 256), tile=32)
+    for k in range(0, 200, 20):   # 20 x 20 squares down the diagonal: one pass
+        canvas.add_named(layer.pass_planes(np.full((20, 20), 1e-4, np.float32), np.ones((20, 20), np.float32)), k, k)
+    reached = canvas.store.tiles(PASS_W)
+    layer.end_pass(canvas)
+    assert layer.passes == 1
+    assert canvas.store.tiles(DONE) == reached and canvas.store.tiles(DONE_W) == reached
+    assert len(reached) < 7 * 7 / 2
+    value = layer.value(canvas)
+    assert np.isfinite(value[np.arange(200), np.arange(200)]).all() and np.isnan(value[0, 100])
