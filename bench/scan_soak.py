@@ -2,12 +2,12 @@
 the large scene: memory against frames processed, the world map's own growth taken out, and the rate.
 
 A sampler thread reads the process's resident set size (VmRSS) and the perception node's count of frames
-taken every `--every` seconds, and the bytes of the world map's canvas (its arrays, which grow with the
-area mapped: that growth is the map's, not a leak). Memory growth is the least-squares slope of (RSS -
-canvas bytes) against frames, after warm-up; a steady rate compares the frames per second of the last
-quarter of the run with the first quarter after warm-up. `--trace` also takes tracemalloc snapshots after
-warm-up and at the end and lists where Python memory grew most (slower: for finding a leak, not for the
-figures).
+taken every `--every` seconds, and the bytes of the world map's tiles in memory (they grow with the
+area mapped up to the tile cache: that growth is the map's, not a leak). Memory growth is the
+least-squares slope of (RSS - those bytes) against frames, after warm-up; a steady rate compares the
+frames per second of the last quarter of the run with the first quarter after warm-up. `--trace` also
+takes tracemalloc snapshots after warm-up and at the end and lists where Python memory grew most
+(slower: for finding a leak, not for the figures).
 """
 from __future__ import annotations
 
@@ -85,17 +85,12 @@ def _perception() -> object | None:
 
 
 def _canvas_mb(perception: object | None) -> float:
-    """The world map's own memory: its canvas's cells that bands were added to (3 float32 layers; the
-    rest of the allocation is never touched, so never resident), plus the copy a pass registers against."""
+    """The world map's own memory: the bytes of its tiles in memory (the layers' and the copies a pass
+    registers against; the tile store's cache bounds them, the rest is on disk)."""
     world = getattr(perception, "world", None)
     canvas = getattr(world, "canvas", None)
-    box = canvas.used() if canvas is not None else None
-    if box is None:
-        return 0.0
-    cells = (box[1] - box[0]) * (box[3] - box[2])
-    prior = getattr(world, "_prior", None)
-    copies = sum(v.nbytes for v in vars(prior).values() if isinstance(v, np.ndarray)) if prior is not None else 0
-    return (3 * 4 * cells + copies) / 2**20
+    store = getattr(canvas, "store", None)
+    return store.resident_bytes / 2**20 if store is not None else 0.0
 
 
 def _malloc_trim() -> None:

@@ -695,7 +695,7 @@ def evaluate_scan(folder: Path, area: list[float]) -> ScanFiles:
     resolution = float(meta["resolution"])
     rows, cols = grey.shape
     canvas = WorldCanvas(resolution, (meta["origin"][0], meta["origin"][1], meta["origin"][0] + cols * resolution,
-                                      meta["origin"][1] + rows * resolution), 10**9)
+                                      meta["origin"][1] + rows * resolution))
     value, weight = grey[::-1].astype(np.float32), (alpha[::-1] > 0).astype(np.float32)   # rows growing with y
     _, tactile = sensor.world_truth(surface_frame(sensor.scene), canvas.origin, value.shape, resolution)
     (c0, r0), (c1, r1) = (np.round(canvas.to_grid(np.array(p)) + 0.5).astype(int)

@@ -1,7 +1,18 @@
-"""Map files: `map.png` (8-bit grey plus alpha, alpha 0 where nothing was mapped) and `map.yaml` beside it
-in the nav2 map_server format (image, resolution, origin of the lower-left pixel's corner, negate,
-occupied_thresh, free_thresh) plus `frame_id`. Both are written whole or not at all (a temporary file
-renamed into place), so a failed write leaves an existing map as it was.
+"""Map files of a world map, beside each other (each written whole or not at all: a temporary file renamed
+into place, so a failed write leaves an existing map as it was):
+
+* `map.tif`: the map itself at full resolution, a tiled pyramidal GeoTIFF (`touchroller_bringup.geotiff`:
+  grey plus alpha, the map's own grey levels, overviews at 1/2, 1/4, ..., placed by GeoTIFF tags),
+  written streamed from the map's tiles;
+* `map.png` + `map.yaml`: nav2 map_server's view of it: the map (downscaled by a power of two until it
+  has at most `VIEW_MAX_PIXELS`) contrast-stretched, 8-bit grey plus alpha (0 where nothing was
+  mapped); `map.yaml` says image, resolution (the view's), origin (its lower-left corner), `mode: scale`
+  with negate 0 and thresholds 0 and 1 (map_server then shows every grey level as an occupancy of
+  0..100 and leaves unmapped cells unknown), plus `frame_id`, `view` (the downscale and the stretch) and
+  `geotiff` (the full-resolution file: image, resolution, size, origin).
+
+`read_world_map` reads both kinds: a map with `geotiff` in its YAML from the TIFF (full resolution), an
+older one (map.png at full resolution, `mode: trinary`) from the PNG.
 """
 from __future__ import annotations
 
@@ -16,25 +27,74 @@ import yaml
 
 from touchroller_bringup.errors import UserError
 from touchroller_perception.files import atomic_path
+from touchroller_perception.tiles import LayerView, StorageFull, to_alpha, to_grey
 from touchroller_perception.world_map import WorldMapImage
+
+VIEW_MAX_PIXELS = 16_000_000   # map.png (nav2 map_server's view) is downscaled until it has at most this many
+STRETCH_PERCENTILES = (0.5, 99.5)   # map.png's grey spans these percentiles of the mapped cells' values
 
 
 @dataclass(frozen=True)
 class MapYaml:
+    """map.yaml: nav2 map_server's keys (image, mode, resolution, origin, negate, thresholds) for the view,
+    plus frame_id, the view's downscale and stretch, and the full-resolution GeoTIFF."""
+
     image: str
     resolution: float
     origin: tuple[float, float, float]
     frame_id: str
     negate: int = 0
-    occupied_thresh: float = 0.65
-    free_thresh: float = 0.25
+    occupied_thresh: float = 1.0
+    free_thresh: float = 0.0
     latency: dict[str, Any] | None = None   # the camera latency the map was placed with (value_ms, sigma_ms, ...)
+    mode: str = "scale"
+    view: dict[str, Any] | None = None      # downscale (a power of two), stretch [low, high] of the map's grey
+    geotiff: dict[str, Any] | None = None   # image, resolution, size [columns, rows], origin [x, y, 0], levels
 
     def as_dict(self) -> dict[str, Any]:
-        return {"image": self.image, "mode": "trinary", "resolution": float(self.resolution),
+        return {"image": self.image, "mode": self.mode, "resolution": float(self.resolution),
                 "origin": [float(v) for v in self.origin], "negate": int(self.negate),
                 "occupied_thresh": float(self.occupied_thresh), "free_thresh": float(self.free_thresh),
-                "frame_id": self.frame_id, **({"camera_latency": self.latency} if self.latency else {})}
+                "frame_id": self.frame_id, **({"view": self.view} if self.view else {}),
+                **({"geotiff": self.geotiff} if self.geotiff else {}),
+                **({"camera_latency": self.latency} if self.latency else {})}
+
+
+class ImageView:
+    """A `WorldMapImage` (grey, alpha; row 0 the top) as a `tiles.LayerView` (rows growing with y)."""
+
+    mapped_weight = 0.5
+
+    def __init__(self, image: WorldMapImage, tile: int = 512) -> None:
+        self.image, self.tile = image, tile
+        self.resolution, self.origin = image.resolution, image.origin
+        self._value = np.ascontiguousarray(image.grey[::-1], np.float32)
+        self._weight = (np.asarray(image.alpha[::-1]) > 0).astype(np.float32)
+
+    def extent(self) -> tuple[int, int, int, int] | None:
+        rows, cols = self._value.shape
+        return (0, rows, 0, cols) if rows and cols and self._weight.any() else None
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        rows, cols = self._value.shape
+        value, weight = np.zeros((2, r1 - r0, c1 - c0), np.float32)
+        a0, a1, b0, b1 = max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols)
+        if a1 > a0 and b1 > b0:
+            value[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = self._value[a0:a1, b0:b1]
+            weight[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = self._weight[a0:a1, b0:b1]
+        return value, weight
+
+
+def stretch_of(value: np.ndarray, mapped: np.ndarray) -> tuple[float, float]:
+    """(low, high): `STRETCH_PERCENTILES` of the mapped cells' values (at least one grey level apart)."""
+    values = value[mapped]
+    values = values[::max(1, values.size // 2_000_000)]   # a display stretch: 2 million values are plenty
+    if values.size == 0:
+        return 0.0, 255.0
+    low, high = (float(v) for v in np.percentile(values, STRETCH_PERCENTILES))
+    if high - low < 1.0:
+        low, high = low - 0.5, low + 0.5
+    return round(low, 3), round(high, 3)
 
 
 def _replace(path: Path, write: Any) -> None:
@@ -68,68 +128,92 @@ def write_png_grey_alpha(path: Path, grey: np.ndarray, alpha: np.ndarray) -> Non
     _replace(path, lambda temporary: Path(temporary).write_bytes(data))
 
 
-def write_world_map(png: str | Path, image: WorldMapImage, frame_id: str,
+def write_world_map(png: str | Path, source: WorldMapImage | LayerView, frame_id: str,
                     latency: dict[str, Any] | None = None) -> tuple[Path, Path]:
-    """map.png + map.yaml (same stem) for a world map; returns both paths. UserError on a bad path.
-    `latency`: the camera latency it was placed with (`world_map.latency_summary`), as `camera_latency`."""
+    """map.tif, map.png + map.yaml (same stem: module docstring) of a world map, streamed from a tiled
+    `source` (`WorldMapper.view()`) or from a `WorldMapImage`; returns the PNG's and the YAML's paths.
+    UserError on a bad path, an empty map or a full disk. `latency`: the camera latency it was placed
+    with (`world_map.latency_summary`), as `camera_latency`."""
+    from touchroller_bringup.geotiff import view_level, write_geotiff
+
     png = Path(png)
     if png.suffix.lower() != ".png":
         raise UserError(f"a world map is written as PNG with a YAML beside it; got {png}")
-    if image.grey.size == 0:
+    view = ImageView(source) if isinstance(source, WorldMapImage) else source
+    box = view.extent()
+    if box is None:
         raise UserError("the world map is empty: no frame was mapped (was the roller ever pressed and rolled?)")
-    meta = MapYaml(png.name, image.resolution, (image.origin[0], image.origin[1], 0.0), frame_id, latency=latency)
-    yaml_path = png.with_suffix(".yaml")
+    shape = (box[1] - box[0], box[3] - box[2])
+    level = view_level(shape, VIEW_MAX_PIXELS)
+    tif_path, yaml_path = png.with_suffix(".tif"), png.with_suffix(".yaml")
     try:
-        write_png_grey_alpha(png, image.grey, image.alpha)
-        _replace(yaml_path, lambda temporary: temporary.write_text(yaml.safe_dump(meta.as_dict(), sort_keys=False),
-                                                                   encoding="utf-8"))
+        png.parent.mkdir(parents=True, exist_ok=True)
+        # all three to temporaries, renamed over the old ones only once all three are written
+        with atomic_path(tif_path) as tif_file, atomic_path(png) as png_file, atomic_path(yaml_path) as yaml_file:
+            tif = write_geotiff(tif_path, view, "intensity", frame_id, keep_level=level, into=tif_file)
+            assert tif.kept is not None
+            value, weight = tif.kept
+            mapped = weight > view.mapped_weight
+            low, high = stretch_of(value, mapped)
+            grey = to_grey(value, low, high, flip=False)
+            alpha = to_alpha(weight, view.mapped_weight, flip=False)
+            view_res = tif.resolution * 2 ** level
+            origin = (tif.top_left[0], tif.top_left[1] - grey.shape[0] * view_res, 0.0)
+            meta = MapYaml(png.name, view_res, origin, frame_id, latency=latency,
+                           view={"downscale": 2 ** level, "stretch": [low, high],
+                                 "grey": "255 (value - low) / (high - low), clipped; geotiff: the map's grey levels"},
+                           geotiff={"image": tif_path.name, "resolution": float(tif.resolution),
+                                    "size": [tif.shape[1], tif.shape[0]],
+                                    "origin": [float(tif.origin[0]), float(tif.origin[1]), 0.0],
+                                    "levels": tif.levels, "bigtiff": tif.bigtiff})
+            Path(png_file).write_bytes(png_grey_alpha(grey, alpha))
+            Path(yaml_file).write_text(yaml.safe_dump(meta.as_dict(), sort_keys=False), encoding="utf-8")
+    except StorageFull as exc:
+        raise UserError(f"cannot write the map to {png}: {exc}") from None
     except OSError as exc:
         raise UserError(f"cannot write the map to {png}: {exc.strerror or exc}") from None
     return png, yaml_path
 
 
 def read_world_map(yaml_path: str | Path) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """(grey, alpha, the YAML) of a map written by `write_world_map`."""
+    """(grey, alpha, the YAML) of a map written by `write_world_map`, at full resolution: from its GeoTIFF
+    when the YAML names one (the YAML returned with that image's `resolution` and `origin`), else from
+    its PNG (older maps)."""
     from PIL import Image
 
     yaml_path = Path(yaml_path)
     meta = yaml.safe_load(yaml_path.read_text(encoding="utf-8"))
+    geotiff = meta.get("geotiff") if isinstance(meta, dict) else None
+    if geotiff:
+        import tifffile
+
+        data = tifffile.imread(yaml_path.parent / geotiff["image"], level=0)
+        meta = {**meta, "resolution": geotiff["resolution"], "origin": geotiff["origin"]}
+        return np.ascontiguousarray(data[..., 0]), np.ascontiguousarray(data[..., 1]), meta
     with Image.open(yaml_path.parent / meta["image"]) as picture:
         la = np.asarray(picture.convert("LA"))
     return la[..., 0].copy(), la[..., 1].copy(), meta
 
 
-# GeoTIFF tags (GeoTIFF 1.1): the height map's placement in the map's frame
-_MODEL_PIXEL_SCALE, _MODEL_TIEPOINT, _GEO_KEY_DIRECTORY = 33550, 33922, 34735
-#: GTModelTypeGeoKey user-defined (the robot's frame, no Earth CRS); GTRasterTypeGeoKey PixelIsArea
-_GEO_KEYS = (1, 1, 0, 2, 1024, 0, 1, 32767, 1025, 0, 1, 1)
+# GeoTIFF tags (GeoTIFF 1.1) read_height_tif places the height map by (written by `geotiff.write_geotiff`)
+_MODEL_PIXEL_SCALE, _MODEL_TIEPOINT = 33550, 33922
 
 
-def write_height_tif(path: str | Path, height: Any, frame_id: str) -> Path:
-    """`height.tif`: a world height map (`world_height.HeightMapLayer`: float32 metres, rows growing with y,
-    NaN where unmapped) as a float32 GeoTIFF, row 0 the top (largest y) as map.png, placed by
-    ModelPixelScale (resolution) and ModelTiepoint (raster (0, 0) -> the top-left corner's world x, y in
-    `frame_id`, also in the image description). Written whole or not at all; UserError on a bad path."""
-    import tifffile
+def write_height_tif(path: str | Path, height: LayerView, frame_id: str) -> Path:
+    """`height.tif`: a world height map (`WorldMapper.height_view()`: float32 metres, NaN where unmapped)
+    streamed from the tiles as a tiled pyramidal float32 GeoTIFF (`geotiff.write_geotiff(view, "float")`:
+    the full resolution first, row 0 the top (largest y) as map.png, over the cells map.tif spans, placed by
+    ModelPixelScale and ModelTiepoint in `frame_id`; overviews the weighted means). Written whole or not at
+    all; UserError on a bad path, a full disk or an empty map."""
+    from touchroller_bringup.geotiff import write_geotiff
 
     path = Path(path)
-    values = np.ascontiguousarray(np.asarray(height.height, np.float32)[::-1])
-    if values.ndim != 2 or values.size == 0:
-        raise UserError("the height map is empty: no pass was mapped with a height")
-    res = float(height.resolution)
-    x0, y_top = float(height.origin[0]), float(height.origin[1]) + values.shape[0] * res
-    tags = [(_MODEL_PIXEL_SCALE, "d", 3, (res, res, 0.0), True),
-            (_MODEL_TIEPOINT, "d", 6, (0.0, 0.0, 0.0, x0, y_top, 0.0), True),
-            (_GEO_KEY_DIRECTORY, "H", len(_GEO_KEYS), _GEO_KEYS, True)]
-    description = (f"height above the surface's base plane under the roller, metres, NaN unmapped; frame_id "
-                   f"{frame_id}; top-left corner ({x0:.6f}, {y_top:.6f}) m; resolution {res:g} m")
-
-    def write(temporary: Path) -> None:
-        tifffile.imwrite(temporary, values, photometric="minisblack", description=description, extratags=tags,
-                         metadata=None)
-
     try:
-        _replace(path, write)
+        write_geotiff(path, height, "float", frame_id)
+    except ValueError:
+        raise UserError("the height map is empty: no pass was mapped with a height") from None
+    except StorageFull as exc:
+        raise UserError(f"cannot write the height map to {path}: {exc}") from None
     except OSError as exc:
         raise UserError(f"cannot write the height map to {path}: {exc.strerror or exc}") from None
     return path

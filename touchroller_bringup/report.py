@@ -82,6 +82,12 @@ SECTIONS: tuple[Section, ...] = (
             "raw and rewritten as `touchroller record` writes it (PNG CompressedImage on image_raw/compressed, zstd "
             "MCAP chunks) and each way alone: bytes per frame and per square metre mapped, the time to compress a "
             "frame, `touchroller map` as a new process on each, and whether its map is the raw recording's."),
+    Section("map_scale", "Square metres: the tiled world map's memory, pyramid and windows", "map_scale",
+            "Frames synthesised straight into the mapper API (the bench's own texture and raster poses, not the "
+            "simulator, whose surfaces are allocated whole): 1 m x 1 m and 0.5 m x 0.5 m rasters at 0.1 mm per "
+            "pixel, each in its own process: peak resident memory mapping and writing the files, the time to write "
+            "the pyramid (map.tif with its overviews, map.png + map.yaml), and random 512 x 512 windows of every "
+            "level read back."),
     Section("inspection", "Inspection: cracks, dents and bumps in a height map", "inspection",
             "The detector (`touchroller_perception.inspection`) on synthetic height maps from a generator of the "
             "bench's own (no sensor and no simulator in the loop: the end-to-end figure comes with the world height "
@@ -332,6 +338,14 @@ def _world_speed(key: str, fmt: str, goal: float, below: bool) -> Measure:
         if r.quick:
             return f"{fmt.format(value)} ({note}; not judged on a quick run)", None
         return f"{fmt.format(value)} ({note})", value <= goal if below else value >= goal
+    return measure
+
+
+def _scale_goal(start: str) -> Measure:
+    """One of `bench.map_scale.goals` (the goal whose name is `start`)."""
+    def measure(r: Any) -> tuple[str, bool | None]:   # bench.map_scale.MapScaleResult
+        _, figure, met = next(row for row in load_bench_script("map_scale").goals(r) if row[0] == start)
+        return figure, met
     return measure
 
 
@@ -608,6 +622,14 @@ GOALS: tuple[Goal, ...] = (
          "world_map", _world_speed("command_fps", "{:.0f} frames/s", 500.0, below=False)),
     Goal(15, "World map: `touchroller map` within 1.5x of reading the bag (new processes)", "world_map",
          _world_speed("read_ratio", "{:.2f}x", 1.5, below=True)),
+    Goal(25, "World map, 1 m x 1 m at 0.1 mm/px: peak RSS <= 1 GB mapping and writing the files (frames "
+             "synthesised into the mapper API)", "map_scale", _scale_goal("peak RSS")),
+    Goal(25, "World map: peak RSS within 15 % of the 0.25 m² raster's (memory flat in area)", "map_scale",
+         _scale_goal("flat in area")),
+    Goal(25, "World map: writing the pyramid of 1 m² (map.tif + overviews, map.png, map.yaml) <= 10 s", "map_scale",
+         _scale_goal("pyramid write")),
+    Goal(25, "World map: any 512 x 512 window of any level of map.tif read back <= 10 ms (CPU)", "map_scale",
+         _scale_goal("window read")),
     Goal(22, "World map, 4 motion profiles x latencies 0-120 ms x 2 raster yaws, not told the latency: latency "
              "within 3 ms of the truth on every cell (second generator)", "world_map_grid", _grid_goal("latency")),
     Goal(22, "World map grid: SSIM in place >= 0.90 on every cell (second generator)", "world_map_grid",

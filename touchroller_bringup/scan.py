@@ -735,12 +735,22 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     world_map = None
     world_image = tactile_map = None
     if world is not None:   # the world map in the robot's frame: map.png (grey + alpha) and map.yaml
-        world_image = world.map_image()
-        if world_image.grey.size:
-            map_shape = tuple(int(n) for n in world_image.grey.shape)
-            world_map = _world_summary(world, perception.world_frame, world_image)
+        world_image = world.view()   # read a tile at a time (the map may be far larger than memory)
+        extent = world_image.extent()
+        if extent is not None:
+            map_shape = (extent[1] - extent[0], extent[3] - extent[2])
+            origin = (world_image.origin[0] + extent[2] * world_image.resolution,
+                      world_image.origin[1] + extent[0] * world_image.resolution)
+            world_map = _world_summary(world, perception.world_frame, world_image.resolution, origin)
         else:
             world_image = None
+    # the report's picture and coverage: the map at the level map.png has (full resolution up to 16 MP)
+    small_image = None
+    if world_image is not None and map_shape is not None:
+        from touchroller_bringup.geotiff import view_level
+        from touchroller_bringup.map_files import VIEW_MAX_PIXELS
+
+        small_image = world.level_image(view_level(map_shape, VIEW_MAX_PIXELS))
     elif map_msg is not None:
         tactile_map = image_to_array(map_msg)
         map_shape = tuple(int(n) for n in tactile_map.shape)
@@ -754,8 +764,11 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
 
     from touchroller_bringup import scan_findings
 
-    found = (scan_findings.inspect_map(scan_findings.with_height(world_image, world))
-             if world_image is not None and scan_findings.enabled(graph.arguments) else None)
+    found = inspected = None
+    if world_image is not None and scan_findings.enabled(graph.arguments):
+        # the inspection reads the whole map at full resolution (the files are written from the tiles)
+        inspected = scan_findings.with_height(world.map_image(), world)
+        found = scan_findings.inspect_map(inspected)
 
     attempt("contacts", out_dir / "contacts.csv",
             lambda: _write_contacts(out_dir / "contacts.csv", contacts, getattr(perception, "camera", None),
@@ -771,12 +784,12 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
         files["recording"] = out_dir / "recording"
     if found is not None:   # before the report, which shows them
         attempt("findings", out_dir / "findings.csv",
-                lambda: files.update(scan_findings.write_findings(out_dir, world_image, found)))
-    result.coverage = _coverage(sweep, world_image, world_map, getattr(perception, "world_frame", names.BASE_FRAME))
+                lambda: files.update(scan_findings.write_findings(out_dir, inspected, found)))
+    result.coverage = _coverage(sweep, small_image, world_map, getattr(perception, "world_frame", names.BASE_FRAME))
     result.findings, result.findings_problem = read_findings(out_dir)
     preview = None
-    if world_image is not None:
-        preview = preview_image(world_image.grey, world_image.alpha > 0, world_image.resolution, world_image.origin,
+    if small_image is not None:
+        preview = preview_image(small_image.grey, small_image.alpha > 0, small_image.resolution, small_image.origin,
                                 result.coverage.rectangle if result.coverage else None, result.findings or ())
     elif tactile_map is not None:
         preview = preview_image(tactile_map)
@@ -799,8 +812,8 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
             files["map"], files["map_yaml"] = write_world_map(out_dir / "map.png", world_image,
                                                               perception.world_frame, _latency_yaml(world))
         attempt("map", out_dir / "map.png", write_world)
-        height = world.height_layer()
-        if height is not None:
+        height = world.height_view()
+        if height is not None and height.extent() is not None:
             from touchroller_bringup.map_files import write_height_tif
 
             attempt("height", out_dir / "height.tif",
@@ -819,16 +832,16 @@ def _latency_yaml(world: Any) -> dict[str, Any]:
     return latency_summary(world.stats)[1]
 
 
-def _world_summary(world: Any, frame: str, image: Any) -> dict[str, Any]:
+def _world_summary(world: Any, frame: str, resolution: float, origin: tuple[float, float]) -> dict[str, Any]:
     from touchroller_perception.world_map import latency_summary
 
     stats = world.stats
-    return {"frame": frame, "resolution_m": image.resolution, "origin": tuple(image.origin),
+    return {"frame": frame, "resolution_m": resolution, "origin": tuple(origin),
             "frames_mapped": stats.mapped, "passes": stats.passes,
             "latency_ms": None if stats.latency_s is None else stats.latency_s * 1e3,
             "latency_estimated": stats.latency_estimated,
             "latency": latency_summary(stats)[0],
-            "pass_corrections_mm": [(dx * image.resolution * 1e3, dy * image.resolution * 1e3)
+            "pass_corrections_mm": [(dx * resolution * 1e3, dy * resolution * 1e3)
                                     for dx, dy in stats.pass_corrections_px]}
 
 

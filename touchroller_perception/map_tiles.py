@@ -12,6 +12,9 @@ while the map grows around it.
 y) and reports the tiles whose pixels changed since the last call: new frames land in a few tiles, and
 only those are sent again. A change of level (the map outgrew the budget of the one before) replaces
 every tile. Pure geometry and arrays: the ROS messages are built by `touchroller_bringup.map_markers`.
+
+`world_map_raster(mapper, max_pixels)` reads a world map for its views from the map's tile store at the
+pyramid level that fits (a `MapRaster` with `level` set), never the whole map at full resolution.
 """
 from __future__ import annotations
 
@@ -23,20 +26,22 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from touchroller_perception.world_map import WorldMapImage, WorldMapper
+    from touchroller_perception.world_map import WorldMapper
 
 
 @dataclass(frozen=True)
 class MapRaster:
     """A map layer at full resolution: `grey` (uint8) and `mapped` (bool), row 0 the top (largest y);
     `origin` the world (x, y) of the lower-left cell's lower-left corner, m; `z` the height of the
-    mapped surface in the map's frame, m."""
+    mapped surface in the map's frame, m; `level`: the raster is already the map's level `level` (read
+    from a tiled store's pyramid at 2^level x the map's resolution), views count their levels from it."""
 
     grey: np.ndarray
     mapped: np.ndarray
     resolution: float
     origin: tuple[float, float]
     z: float = 0.0
+    level: int = 0
 
     def __post_init__(self) -> None:
         if self.grey.shape != self.mapped.shape or self.grey.ndim != 2:
@@ -160,8 +165,9 @@ def view_at(raster: MapRaster, level: int) -> MapView:
     level_grey = np.where(known, np.clip(np.rint(value), 0, 255), 0).astype(np.uint8)
     alpha = np.where(known, np.uint8(255), np.uint8(0))
     origin = (lx0 * factor * res + dx, ly0 * factor * res + dy)
-    return MapView(np.ascontiguousarray(np.flipud(level_grey)), np.ascontiguousarray(np.flipud(alpha)), level,
-                   factor, res * factor, origin, (int(lx0), int(ly0)), raster.z)
+    return MapView(np.ascontiguousarray(np.flipud(level_grey)), np.ascontiguousarray(np.flipud(alpha)),
+                   raster.level + level, 2 ** (raster.level + level), res * factor, origin, (int(lx0), int(ly0)),
+                   raster.z)
 
 
 def tiles_of(view: MapView, tile_px: int) -> list[MapTile]:
@@ -237,12 +243,18 @@ class TileTracker:
         return len(self._sent)
 
 
-def world_map_raster(mapper: WorldMapper, image: WorldMapImage | None = None) -> MapRaster:
-    """The adapter between the world map and its views: the map as `WorldMapper.map_image` gives it (the
-    mapped rectangle at full resolution), at the height of the surface the roller pressed on (the
-    pressed height of its axis less the radius; 0 until it is known). The one place that reads the map's
-    storage for the views: a tiled store answers here with its own level of detail."""
-    image = mapper.map_image() if image is None else image   # `image`: the caller's map_image() already
+def world_map_raster(mapper: WorldMapper, max_pixels: int | None = None) -> MapRaster:
+    """The adapter between the world map and its views, at the height of the surface the roller pressed
+    on (the pressed height of its axis less the radius; 0 until it is known). The map is read from its
+    tile store (`WorldMapper.level_image`): at the coarsest pyramid level whose view fits `max_pixels`
+    (`choose_level` on the mapped extent; None: full resolution), rendered a tile at a time, so building
+    a view costs memory for the view alone however large the map grows. Empty while nothing is mapped."""
     pressed = mapper.stats.pressed_height
     z = pressed - mapper.camera.radius if pressed is not None and math.isfinite(pressed) else 0.0
-    return MapRaster(image.grey, image.alpha > 0, image.resolution, image.origin, z)
+    box = mapper.level_extent(0)
+    level = 0 if box is None or max_pixels is None else choose_level(box[1] - box[0], box[3] - box[2], max_pixels)
+    image = mapper.level_image(level)
+    if image is None:
+        empty = np.zeros((0, 0), np.uint8)
+        return MapRaster(empty, empty.astype(bool), mapper.config.resolution, (0.0, 0.0), z)
+    return MapRaster(image.grey, image.alpha > 0, image.resolution, image.origin, z, level)

@@ -12,47 +12,76 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from touchroller_perception.tiles import TileConfig, TileStore
 
 # ------------------------------------------------------------------------------------------------ canvas
-class WorldCanvas:
-    """Weighted sums on a grid of the world plane: layer 0 sum(w band), 1 sum(w field), 2 sum(w), each a
-    plane of `layers` (3, rows, columns). Cell (row r, column c) covers world x in origin_x + [c, c + 1] *
-    res, y in origin_y + [r, r + 1] * res (rows grow with y; images flip it). Grows by at least `grow_px`
-    (or half its size) on the side that needs it, unless fixed by `bounds`.
+LAYERS = ("band", "flat", "weight")   # sum(w band), sum(w field), sum(w)
+MAPPED_WEIGHT = 0.05                  # a cell with more weight than this counts as mapped
 
-    A growing map's `layers` is a window of a larger zeroed allocation (room on every side, within
-    `max_pixels`): growing into that room moves the window, without copying the sums or allocating again,
-    and the pages of the room are not touched (not made resident) until bands land there. `used()` is the
-    rectangle of cells bands were ever added to: everything outside it is zero."""
+
+class WorldCanvas:
+    """Weighted sums on a grid of the world plane, kept as tiles (`touchroller_perception.tiles`): layer
+    "band" sum(w band), "flat" sum(w field), "weight" sum(w) (0, 1, 2 where planes are given in order),
+    and any further layer a caller adds (`add_layer`). Cell (row r, column c) covers world x in origin_x
+    + [c, c + 1] * res, y in origin_y + [r, r + 1] * res (rows grow with y; images flip it).
+
+    The canvas is the rectangle of tiles that bands reached (or `bounds`, fixed): growing only changes
+    which tiles it spans, never copies a sum; tiles are made when first touched, and beyond the store's
+    cache they live on disk. `used()` is the rectangle of cells bands were ever added to: everything
+    outside it is zero. Cells are also addressed absolutely (`offset`: the absolute (row, column) of the
+    canvas's cell (0, 0)), as the store and the pyramid views see them.
+
+    Registration's prior (the map as it was when a pass began) is kept copy-on-write: `begin_prior()`
+    marks the moment, and a tile is copied aside just before the first band after it changes it."""
 
     def __init__(self, resolution: float, bounds: tuple[float, float, float, float] | None,
-                 max_pixels: int, grow_px: int = 512, layers: int = 3) -> None:
-        self.depth = layers   # planes per cell: the intensity's three, then any a caller adds (height)
+                 tiles: TileConfig | None = None, grow_px: int = 512) -> None:
         self.resolution = resolution
-        self.max_pixels = max_pixels
         self.grow_px = grow_px
+        self.store = TileStore(tiles)
+        self.tile = self.store.tile
+        for name in LAYERS:
+            self.store.add_layer(name, np.float32)
         self.fixed = bounds is not None
         if bounds is not None:
             x0, y0, x1, y1 = bounds
-            cols, rows = math.ceil((x1 - x0) / resolution), math.ceil((y1 - y0) / resolution)
-            self.origin = (float(x0), float(y0))
+            self._size = (math.ceil((y1 - y0) / resolution), math.ceil((x1 - x0) / resolution))
+            self.anchor = (float(x0), float(y0))
         else:
-            cols, rows = 0, 0
-            self.origin = (0.0, 0.0)
-        self._backing = np.zeros((self.depth, rows, cols), np.float32)
-        self._offset = (0, 0)   # (row, column) of the window's cell (0, 0) in the allocation
-        self.layers = self._backing
-        self._used: list[int] | None = None   # [row0, row1, column0, column1] in the allocation
+            self._size = (0, 0)
+            self.anchor = (0.0, 0.0)
+        self.offset = (0, 0)   # absolute (row, column) of the canvas's cell (0, 0)
+        self._origin = self.anchor
+        self._used: list[int] | None = None   # [row0, row1, column0, column1], absolute
+        self.weight_max = 0.0                 # the largest sum of weights anywhere
+        self._saved: dict[tuple[int, int], bool] | None = None   # tiles copied aside for the prior (existed?)
+        self.prior_level = 1.0
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.layers.shape[1], self.layers.shape[2]
+        return self._size
+
+    @property
+    def origin(self) -> tuple[float, float]:
+        """World (x, y) of the lower-left corner of the canvas's cell (0, 0)."""
+        return self._origin
+
+    @origin.setter
+    def origin(self, xy: tuple[float, float]) -> None:
+        """Move the whole map (its absolute grid's `anchor` with it)."""
+        dx, dy = xy[0] - self._origin[0], xy[1] - self._origin[1]
+        self.anchor = (self.anchor[0] + dx, self.anchor[1] + dy)
+        self._origin = (float(xy[0]), float(xy[1]))
+
+    def add_layer(self, name: str, dtype: type | np.dtype | str = np.float32, fill: float = 0.0) -> None:
+        """A further layer on the same tiles (e.g. a height sum); `add_named` adds to it."""
+        self.store.add_layer(name, dtype, fill)
 
     def used(self) -> tuple[int, int, int, int] | None:
         """(row0, row1, column0, column1): the cells bands were added to (the rest is zero); None: none."""
         if self._used is None:
             return None
-        ro, co = self._offset
+        ro, co = self.offset
         r0, r1, c0, c1 = self._used
         return r0 - ro, r1 - ro, c0 - co, c1 - co
 
@@ -60,92 +89,97 @@ class WorldCanvas:
         """World (x, y) -> fractional (column, row) where pixel centres are whole numbers."""
         return (np.asarray(xy) - np.asarray(self.origin)) / self.resolution - 0.5
 
-    def _window(self, row0: int, col0: int, rows: int, cols: int) -> None:
-        """Make the canvas rows x cols cells whose cell (0, 0) is the old one's (row0, col0): within the
-        allocation if it has room, else in a new one with room on every side (the sums copied)."""
-        ro, co = self._offset[0] + row0, self._offset[1] + col0
-        _, total_rows, total_cols = self._backing.shape
-        if not (ro >= 0 and co >= 0 and ro + rows <= total_rows and co + cols <= total_cols):
-            room = max(rows, cols)
-            while room > 0 and (rows + 2 * room) * (cols + 2 * room) > self.max_pixels:
-                room //= 2
-            backing = np.zeros((self.depth, rows + 2 * room, cols + 2 * room), np.float32)
-            old_rows, old_cols = self.shape
-            if self._used is not None:   # only the cells bands reached can be non-zero
-                r0, r1, c0, c1 = self.used()  # type: ignore[misc]
-                backing[:, room - row0 + r0:room - row0 + r1, room - col0 + c0:room - col0 + c1] = \
-                    self.layers[:, r0:r1, c0:c1]
-                self._used = [room - row0 + r0, room - row0 + r1, room - col0 + c0, room - col0 + c1]
-            elif old_rows and old_cols:
-                backing[:, room - row0:room - row0 + old_rows, room - col0:room - col0 + old_cols] = self.layers
-            self._backing, ro, co = backing, room, room
-        self._offset = (ro, co)
-        self.layers = self._backing[:, ro:ro + rows, co:co + cols]
-
     def ensure(self, c0: int, r0: int, c1: int, r1: int) -> tuple[int, int]:
         """Make columns [c0, c1) and rows [r0, r1) exist (growing, unless fixed); returns the shift of
-        the old indices (the new index of old (0, 0)). Raises MemoryError past max_pixels."""
-        rows, cols = self.shape
+        the old indices (the new index of old (0, 0)): whole tiles (nothing is copied)."""
+        rows, cols = self._size
         if self.fixed or (rows and cols and c0 >= 0 and r0 >= 0 and c1 <= cols and r1 <= rows):
             return 0, 0
-        if not rows or not cols:   # the first band: start around it with room to grow (within max_pixels)
+        t = self.tile
+        if not rows or not cols:   # the first band: the absolute grid's cell (0, 0) a little below it
             pad = self.grow_px // 2
-            while pad > 0 and (r1 - r0 + 2 * pad) * (c1 - c0 + 2 * pad) > self.max_pixels:
-                pad //= 2
-            if (r1 - r0 + 2 * pad) * (c1 - c0 + 2 * pad) > self.max_pixels:
-                raise MemoryError(f"one band needs more than {self.max_pixels} pixels at {self.resolution} m/px")
-            new_c0, new_r0 = c0 - pad, r0 - pad
-            self._backing = np.zeros((self.depth, 0, 0), np.float32)
-            self._offset, self._used = (0, 0), None
-            self._window(0, 0, r1 - r0 + 2 * pad, c1 - c0 + 2 * pad)
-            self.origin = (self.origin[0] + new_c0 * self.resolution, self.origin[1] + new_r0 * self.resolution)
-            return -new_c0, -new_r0
-        need = (max(0, -c0), max(0, c1 - cols), max(0, -r0), max(0, r1 - rows))   # left, right, bottom, top
-        sizes = (cols, cols, rows, rows)
-        grow = [max(n, self.grow_px, size // 2) if n else 0 for n, size in zip(need, sizes, strict=True)]
-        left, right, bottom, top = grow
-        if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
-            left, right, bottom, top = need
-            if (rows + bottom + top) * (cols + left + right) > self.max_pixels:
-                raise MemoryError(f"the map would exceed {self.max_pixels} pixels at {self.resolution} m/px "
-                                  "(set bounds or a coarser resolution)")
-        self._window(-bottom, -left, rows + bottom + top, cols + left + right)
-        self.origin = (self.origin[0] - left * self.resolution, self.origin[1] - bottom * self.resolution)
-        return left, bottom
+            anchor_c, anchor_r = c0 - pad, r0 - pad
+            self.anchor = (self.origin[0] + anchor_c * self.resolution, self.origin[1] + anchor_r * self.resolution)
+            a = (r0 - anchor_r, r1 - anchor_r, c0 - anchor_c, c1 - anchor_c)
+            shift_base = (-anchor_c, -anchor_r)   # old canvas index (c, r) -> absolute (c - anchor_c, ...)
+            tiles = (a[0] // t, (a[1] - 1) // t + 1, a[2] // t, (a[3] - 1) // t + 1)
+        else:
+            ro, co = self.offset
+            shift_base = (co, ro)
+            a = (r0 + ro, r1 + ro, c0 + co, c1 + co)
+            tiles = (min(a[0], ro) // t, (max(a[1], ro + rows) - 1) // t + 1,
+                     min(a[2], co) // t, (max(a[3], co + cols) - 1) // t + 1)
+        ty0, ty1, tx0, tx1 = tiles
+        self.offset = (ty0 * t, tx0 * t)
+        self._size = ((ty1 - ty0) * t, (tx1 - tx0) * t)
+        self._origin = (self.anchor[0] + tx0 * t * self.resolution, self.anchor[1] + ty0 * t * self.resolution)
+        return shift_base[0] - self.offset[1], shift_base[1] - self.offset[0]
 
-    def add(self, planes: Sequence[np.ndarray | None] | np.ndarray, c0: int, r0: int, first: int = 0) -> None:
-        """Add (h, w) patches to the layers from `first` on (None: leave that layer; or a (n, h, w) stack),
-        their lowest cell at (column c0, row r0), clipped to the map."""
-        rows, cols = self.shape
-        h, w = next(p for p in planes if p is not None).shape
+    def _clip(self, h: int, w: int, c0: int, r0: int) -> tuple[int, int, int, int] | None:
+        rows, cols = self._size
         a0, b0 = max(r0, 0), max(c0, 0)
         a1, b1 = min(r0 + h, rows), min(c0 + w, cols)
         if a1 <= a0 or b1 <= b0:
+            return None
+        return a0, a1, b0, b1
+
+    def add(self, planes: Sequence[np.ndarray | None] | np.ndarray, c0: int, r0: int) -> None:
+        """Add (h, w) patches to the layers band, flat, weight (None: leave that layer; or a (3, h, w)
+        stack of all three), their lowest cell at (column c0, row r0), clipped to the map. Raises
+        `StorageFull` (nothing added) when its new tiles would not fit on the disk."""
+        self.add_named(dict(zip(LAYERS, planes, strict=True)), c0, r0)
+
+    def add_named(self, planes: dict[str, np.ndarray | None], c0: int, r0: int) -> None:
+        """`add` by layer name (any layer of the canvas)."""
+        first = next((p for p in planes.values() if p is not None), None)
+        if first is None:
             return
-        # cv2.add: 2x numpy's speed on these views
-        for layer, plane in zip(self.layers[first:first + len(planes)], planes, strict=True):
-            if plane is not None:
-                view = layer[a0:a1, b0:b1]
-                cv2.add(view, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], dst=view)
-        self._mark(a0, a1, b0, b1)
+        h, w = first.shape
+        box = self._clip(h, w, c0, r0)
+        if box is None:
+            return
+        a0, a1, b0, b1 = box
+        ro, co = self.offset
+        spans = self.store.spans(a0 + ro, a1 + ro, b0 + co, b1 + co)
+        names = [name for name, plane in planes.items() if plane is not None]
+        self.store.reserve([(name, ix, iy) for name in names for ix, iy in spans])   # all or nothing
+        if self._saved is not None:
+            self._save_for_prior(spans)
+        for name in names:
+            plane = planes[name]
+            assert plane is not None
+            largest = self.store.add(name, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], a0 + ro, b0 + co,
+                                     track_max=name == "weight", reserved=True)
+            if largest > self.weight_max:
+                self.weight_max = largest
+        self._mark(a0 + ro, a1 + ro, b0 + co, b1 + co)
 
     def _mark(self, a0: int, a1: int, b0: int, b1: int) -> None:
-        ro, co = self._offset
         used = self._used
         if used is None:
-            self._used = [a0 + ro, a1 + ro, b0 + co, b1 + co]
+            self._used = [a0, a1, b0, b1]
         else:
-            if a0 + ro < used[0]:
-                used[0] = a0 + ro
-            if a1 + ro > used[1]:
-                used[1] = a1 + ro
-            if b0 + co < used[2]:
-                used[2] = b0 + co
-            if b1 + co > used[3]:
-                used[3] = b1 + co
+            used[0], used[1] = min(used[0], a0), max(used[1], a1)
+            used[2], used[3] = min(used[2], b0), max(used[3], b1)
+
+    def clear(self, name: str) -> None:
+        """Set a layer to zero everywhere (its tiles kept)."""
+        tiles = sorted(self.store.tiles(name))
+        if self._saved is not None:
+            self._save_for_prior(tiles)
+        for ix, iy in tiles:
+            tile = self.store.get(name, ix, iy, write=True)
+            if tile is not None:
+                tile[...] = 0
+
+    def read(self, name: str, box: tuple[int, int, int, int]) -> np.ndarray:
+        """A layer over rows [row0, row1) and columns [column0, column1) of the canvas (a copy)."""
+        r0, r1, c0, c1 = box
+        ro, co = self.offset
+        return self.store.read(name, r0 + ro, r1 + ro, c0 + co, c1 + co)
 
     def value(self, level: float, min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
-        """(flat-field-corrected map as float32 grey, weight), rows growing with y."""
+        """(flat-field-corrected map as float32 grey, weight), rows growing with y, the whole canvas."""
         grey, weight = np.zeros(self.shape, np.float32), np.zeros(self.shape, np.float32)
         box = self.used()
         if box is not None:
@@ -156,11 +190,148 @@ class WorldCanvas:
     def value_in(self, level: float, box: tuple[int, int, int, int],
                  min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
         """`value` over rows [row0, row1) and columns [column0, column1) of the canvas."""
-        r0, r1, c0, c1 = box
-        band, flat, weight = self.layers[:3, r0:r1, c0:c1]
-        known = (weight > min_weight) & (flat > 1e-6)
-        grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
-        return grey, np.where(known, weight, np.float32(0.0))
+        return _value(self.read("band", box), self.read("flat", box), self.read("weight", box), level, min_weight)
+
+    def view(self, level: float) -> IntensityView:
+        """The flat-field-corrected map at grey `level` as a `tiles.LayerView` (absolute cells)."""
+        return IntensityView(self, level)
+
+    def ratio_view(self, numerator: str, denominator: str = "weight", scale: float = 1.0,
+                   min_denominator: float = 1e-3, weight: str = "weight") -> RatioView:
+        """A layer kept as a weighted sum (e.g. sum(w height) beside sum(w)) as a `tiles.LayerView`: value =
+        scale numerator / denominator where the denominator is at least `min_denominator`, weights the
+        layer `weight` there (the canvas's own by default; a file leaves cells of weight below
+        `min_denominator`, or `MAPPED_WEIGHT` with the canvas's, out) (absolute cells); what
+        `geotiff.write_geotiff(..., kind="float")` writes."""
+        return RatioView(self, numerator, denominator, scale, min_denominator, weight)
+
+    def mapped_extent(self) -> tuple[int, int, int, int] | None:
+        """(row0, row1, column0, column1) of the canvas around the mapped cells (weight above
+        `MAPPED_WEIGHT`), read a tile at a time; None: nothing mapped."""
+        box = self.used()
+        if box is None:
+            return None
+        ro, co = self.offset
+        rows: list[int] = []
+        cols: list[int] = []
+        t = self.tile
+        for ix, iy in self.store.tiles("weight"):
+            tile = self.store.get("weight", ix, iy)
+            assert tile is not None
+            mapped = tile > MAPPED_WEIGHT
+            any_rows, any_cols = np.flatnonzero(mapped.any(axis=1)), np.flatnonzero(mapped.any(axis=0))
+            if len(any_rows):
+                rows += [iy * t + int(any_rows[0]) - ro, iy * t + int(any_rows[-1]) + 1 - ro]
+                cols += [ix * t + int(any_cols[0]) - co, ix * t + int(any_cols[-1]) + 1 - co]
+        if not rows:
+            return None
+        h, w = self.shape
+        return max(min(rows), 0), min(max(rows), h), max(min(cols), 0), min(max(cols), w)
+
+    # -- the prior: copy-on-write --------------------------------------------------------------------
+    def begin_prior(self, level: float) -> None:
+        """From now on `prior_read` gives the sums as they are now (and `prior_level` the grey level)."""
+        for name in LAYERS:
+            self.store.drop_layer(f"prior_{name}")
+            self.store.add_layer(f"prior_{name}", np.float32)
+        self._saved = {}
+        self.prior_level = level
+        self.prior_weight_max = self.weight_max
+
+    def _save_for_prior(self, tiles: Sequence[tuple[int, int]]) -> None:
+        assert self._saved is not None
+        for ix, iy in tiles:
+            if (ix, iy) in self._saved:
+                continue
+            exists = self.store.has("weight", ix, iy)
+            if exists:
+                for name in LAYERS:
+                    source = self.store.get(name, ix, iy)
+                    if source is not None:
+                        target = self.store.get(f"prior_{name}", ix, iy, create=True, write=True)
+                        assert target is not None
+                        target[...] = source
+            self._saved[(ix, iy)] = exists
+
+    def prior_value(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        """(value, weight) of canvas cells [r0, r0 + h) x [c0, c0 + w) as they were at `begin_prior`
+        (zero weight where nothing was mapped then), at the grey level of then."""
+        ro, co = self.offset
+        a0, b0 = r0 + ro, c0 + co
+        sums = [self.store.read(name, a0, a0 + h, b0, b0 + w) for name in LAYERS]
+        if self._saved:
+            t = self.tile
+            for ix, iy in self.store.spans(a0, a0 + h, b0, b0 + w):
+                existed = self._saved.get((ix, iy))
+                if existed is None:
+                    continue
+                y0, y1 = max(a0, iy * t), min(a0 + h, (iy + 1) * t)
+                x0, x1 = max(b0, ix * t), min(b0 + w, (ix + 1) * t)
+                for k, name in enumerate(LAYERS):
+                    part = sums[k][y0 - a0:y1 - a0, x0 - b0:x1 - b0]
+                    if existed:
+                        part[...] = self.store.read(f"prior_{name}", y0, y1, x0, x1)
+                    else:
+                        part[...] = 0
+        return _value(sums[0], sums[1], sums[2], self.prior_level)
+
+
+def _value(band: np.ndarray, flat: np.ndarray, weight: np.ndarray, level: float,
+           min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    known = (weight > min_weight) & (flat > 1e-6)
+    grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
+    return grey, np.where(known, weight, np.float32(0.0))
+
+
+class RatioView:
+    """`WorldCanvas.ratio_view`: one layer over another, with the canvas's weights and extent."""
+
+    mapped_weight = MAPPED_WEIGHT
+
+    def __init__(self, canvas: WorldCanvas, numerator: str, denominator: str, scale: float,
+                 min_denominator: float, weight: str = "weight") -> None:
+        self.canvas, self.numerator, self.denominator = canvas, numerator, denominator
+        self.scale, self.min_denominator, self.weight = scale, min_denominator, weight
+        self.tile, self.resolution, self.origin = canvas.tile, canvas.resolution, canvas.anchor
+        if weight != "weight":   # a cell counts where its own weight is at least min_denominator
+            self.mapped_weight = float(np.nextafter(np.float32(min_denominator), np.float32(0)))
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        store = self.canvas.store
+        top = store.read(self.numerator, r0, r1, c0, c1).astype(np.float32, copy=False)
+        bottom = store.read(self.denominator, r0, r1, c0, c1).astype(np.float32, copy=False)
+        known = bottom >= np.float32(self.min_denominator)
+        value = np.divide(top * np.float32(self.scale), bottom, out=np.zeros_like(top), where=known)
+        weights = bottom if self.weight == self.denominator else store.read(self.weight, r0, r1, c0, c1)
+        weight = np.where(known, weights, np.float32(0))
+        return value, weight
+
+    def extent(self) -> tuple[int, int, int, int] | None:
+        return IntensityView(self.canvas, 1.0).extent()
+
+
+class IntensityView:
+    """The canvas's flat-field-corrected map as a `tiles.LayerView`: cells absolute (the store's)."""
+
+    mapped_weight = MAPPED_WEIGHT
+
+    def __init__(self, canvas: WorldCanvas, level: float) -> None:
+        self.canvas, self.level = canvas, level
+        self.tile, self.resolution, self.origin = canvas.tile, canvas.resolution, canvas.anchor
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        store = self.canvas.store
+        band, flat, weight = (store.read(name, r0, r1, c0, c1) for name in LAYERS)
+        return _value(band, flat, weight, self.level)
+
+    def extent(self) -> tuple[int, int, int, int] | None:
+        """The absolute cells a file of the map holds: a fixed map's bounds, else around what was mapped."""
+        canvas = self.canvas
+        box = (0, canvas.shape[0], 0, canvas.shape[1]) if canvas.fixed else canvas.mapped_extent()
+        if box is None or box[1] <= box[0] or box[3] <= box[2]:
+            return None
+        ro, co = canvas.offset
+        return box[0] + ro, box[1] + ro, box[2] + co, box[3] + co
 
 
 # ------------------------------------------------------------------------------------------------ placing
@@ -249,36 +420,20 @@ def _blend(padded: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out[:-1, :-1]
 
 
-@dataclass(frozen=True)
 class _Prior:
-    """The map's value and weight at a pass's start (what registration compares the pass's frames with):
-    the canvas then was `rows` x `columns`, its cells (r, c) now at (r + r_shift, c + c_shift); computed
-    only over rows [row0, row0 + value rows) and columns [column0, ...) (zero elsewhere)."""
+    """The map's value and weight at a pass's start (what registration compares the pass's frames with),
+    read from the canvas's copy-on-write prior (`WorldCanvas.begin_prior`)."""
 
-    value: np.ndarray
-    weight: np.ndarray
-    row0: int
-    col0: int
-    rows: int
-    cols: int
-    r_shift: int = 0
-    c_shift: int = 0
+    def __init__(self, canvas: WorldCanvas, level: float) -> None:
+        self.canvas = canvas
+        canvas.begin_prior(level)
+        self.weight_max = canvas.prior_weight_max
 
     def moved(self, dc: int, dr: int) -> _Prior:
-        return dataclasses.replace(self, r_shift=self.r_shift + dr, c_shift=self.c_shift + dc)
+        """The canvas grew (its cells moved by (dc, dr)): the prior reads absolute cells, so it is the same."""
+        return self
 
     def patch(self, r0: int, c0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(value, weight) of the canvas's cells [r0, r0 + h) x [c0, c0 + w) as they were at the pass's
         start (zero weight where nothing was mapped then, also cells the canvas has grown by since)."""
-        pr0, pc0 = r0 - self.r_shift, c0 - self.c_shift
-        lr0, lc0 = pr0 - self.row0, pc0 - self.col0
-        rows, cols = self.value.shape
-        if lr0 >= 0 and lc0 >= 0 and lr0 + h <= rows and lc0 + w <= cols:
-            return self.value[lr0:lr0 + h, lc0:lc0 + w], self.weight[lr0:lr0 + h, lc0:lc0 + w]
-        value, weight = np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
-        a0, a1 = max(lr0, 0), min(lr0 + h, rows)
-        b0, b1 = max(lc0, 0), min(lc0 + w, cols)
-        if a1 > a0 and b1 > b0:
-            value[a0 - lr0:a1 - lr0, b0 - lc0:b1 - lc0] = self.value[a0:a1, b0:b1]
-            weight[a0 - lr0:a1 - lr0, b0 - lc0:b1 - lc0] = self.weight[a0:a1, b0:b1]
-        return value, weight
+        return self.canvas.prior_value(r0, c0, h, w)

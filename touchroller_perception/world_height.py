@@ -14,10 +14,10 @@ Per frame (`BandHeights`, stateless once built, so a node may cut it in another 
    Band pixels indented less than `min_indentation` are not in contact (a valley the membrane did not
    reach): no height there.
 
-Per pass (`HeightLayer`, on two pairs of layers of the mapper's canvas: the pass being rolled, and what
-earlier passes left): the pass's frames are accumulated as weighted sums (the intensity's weights times the
-contact), and when the pass ends its height is levelled: its best plane is removed (the press depth and
-the surface's tilt under the roller), then it is levelled against the earlier passes where they overlap
+Per pass (`HeightLayer`, on two pairs of named float32 layers of the mapper's tiled canvas: the pass being
+rolled, and what earlier passes left): the pass's frames are accumulated as weighted sums (the intensity's
+weights times the contact), and when the pass ends its height is levelled: its best plane is removed (the press depth
+and the surface's tilt under the roller), then it is levelled against the earlier passes where they overlap
 (their difference's median, and its tilt along the directions the overlap spans), and added to them.
 The result is the relief relative to the surface's base plane under the roller, float32 metres, NaN
 where nothing was mapped. No rclpy here.
@@ -36,10 +36,10 @@ from touchroller_perception.height.estimate import contact_band, level_plane
 from touchroller_perception.height.integrate import integrate
 from touchroller_perception.height.photometric import PhotometricModel, SlopeLookup
 
-#: canvas layers the height uses, after the intensity's three: sum(w h) and sum(w) of the passes done,
+#: the canvas's named layers the height uses (float32 tiles): sum(w h) and sum(w) of the passes done,
 #: then of the pass being rolled
-HEIGHT_LAYERS = 4
-_DONE, _DONE_W, _PASS, _PASS_W = 0, 1, 2, 3
+DONE, DONE_W, PASS, PASS_W = "height_done", "height_done_w", "height_pass", "height_pass_w"
+HEIGHT_LAYERS = (DONE, DONE_W, PASS, PASS_W)
 
 
 @dataclass(frozen=True)
@@ -198,50 +198,78 @@ def _plane_values(coef: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 class HeightLayer:
-    """The height's share of the canvas: its four layers (`HEIGHT_LAYERS`, from `first`), a pass's frames
-    added with `add`, levelled and added to the earlier passes with `end_pass`."""
+    """The height's share of the canvas: its four named layers (`HEIGHT_LAYERS`, made by `add_layers`), a
+    pass's frames added with `add` (`pass_planes`), levelled and added to the earlier passes with `end_pass`
+    over the window the pass reached (its tiles), never the whole map."""
 
-    def __init__(self, first: int, config: WorldHeightConfig | None = None) -> None:
-        self.first = first
+    def __init__(self, config: WorldHeightConfig | None = None) -> None:
         self.config = config or WorldHeightConfig()
         self.passes = 0
         self.levelled: list[tuple[float, float, float]] = []   # per pass: plane removed at the pass's centre
         # (m), offset against the earlier passes (m), overlap cells
+
+    @staticmethod
+    def add_layers(canvas: Any) -> None:
+        for name in HEIGHT_LAYERS:
+            canvas.add_layer(name, np.float32)
 
     def planes(self, weights: np.ndarray, band: HeightBand) -> tuple[np.ndarray, np.ndarray]:
         """(w relief, w) in band coordinates for the pass layers: weight zero where not in contact."""
         w = np.where(band.contact, weights, np.float32(0.0))
         return cv2.multiply(band.relief.astype(np.float32, copy=False), w), w
 
+    @staticmethod
+    def pass_planes(weighted: np.ndarray | None, weights: np.ndarray | None) -> dict[str, np.ndarray | None]:
+        """`planes` on the map grid, by layer name, for `WorldCanvas.add_named`."""
+        return {PASS: weighted, PASS_W: weights}
+
     def end_pass(self, canvas: Any) -> None:
-        """Level the pass just rolled (its best plane, then against the earlier passes) and add it to them."""
-        box = canvas.used()
-        if box is None:
-            return
-        r0, r1, c0, c1 = box
-        layers = canvas.layers
-        done, done_w = layers[self.first + _DONE, r0:r1, c0:c1], layers[self.first + _DONE_W, r0:r1, c0:c1]
-        sums, weight = layers[self.first + _PASS, r0:r1, c0:c1], layers[self.first + _PASS_W, r0:r1, c0:c1]
+        """Level the pass just rolled (its best plane, then against the earlier passes) and add it to them.
+        Reads and writes only the window of the tiles the pass reached; the pass's tiles are then dropped."""
+        store = canvas.store
+        touched = store.tiles(PASS_W)
+        try:
+            if touched:
+                t = store.tile
+                ix0, ix1 = min(i for i, _ in touched), max(i for i, _ in touched) + 1
+                iy0, iy1 = min(j for _, j in touched), max(j for _, j in touched) + 1
+                self._level_pass(store, (iy0 * t, iy1 * t, ix0 * t, ix1 * t), touched)
+        finally:   # the pass's sums go with their tiles (memory and spill files), also when it did not fit
+            for name in (PASS, PASS_W):
+                store.drop_layer(name)
+                store.add_layer(name, np.float32)
+
+    def _level_pass(self, store: Any, box: tuple[int, int, int, int], touched: set[tuple[int, int]]) -> None:
+        r0, r1, c0, c1 = box   # absolute cells of the store: the tiles `touched` span
+        sums, weight = store.read(PASS, r0, r1, c0, c1), store.read(PASS_W, r0, r1, c0, c1)
         mine = weight >= self.config.min_weight
-        if int(np.count_nonzero(mine)) >= 3:
-            height = np.divide(sums, weight, out=np.zeros_like(sums), where=mine)
-            coef = _plane(height, weight, mine)
-            height -= _plane_values(coef, height.shape)
-            theirs = done_w >= self.config.min_weight
-            both = mine & theirs
-            offset, shared = 0.0, int(np.count_nonzero(both))
-            if shared >= self.config.min_overlap:
-                before = np.divide(done, done_w, out=np.zeros_like(done), where=theirs)
-                height += _plane_values(self._level(before - height, both), height.shape)
-                offset = float(np.median((before - height)[both]))   # what is left: ~0 once levelled
-            centre = _plane_values(coef, height.shape)[mine].mean()
-            self.levelled.append((float(centre), offset, shared))
-            height[~mine] = 0.0
-            done += height * np.where(mine, weight, np.float32(0.0))
-            done_w += np.where(mine, weight, np.float32(0.0))
-            self.passes += 1
-        sums[...] = 0.0
-        weight[...] = 0.0
+        if int(np.count_nonzero(mine)) < 3:
+            return
+        done, done_w = store.read(DONE, r0, r1, c0, c1), store.read(DONE_W, r0, r1, c0, c1)
+        height = np.divide(sums, weight, out=np.zeros_like(sums), where=mine)
+        coef = _plane(height, weight, mine)
+        height -= _plane_values(coef, height.shape)
+        theirs = done_w >= self.config.min_weight
+        both = mine & theirs
+        offset, shared = 0.0, int(np.count_nonzero(both))
+        if shared >= self.config.min_overlap:
+            before = np.divide(done, done_w, out=np.zeros_like(done), where=theirs)
+            height += _plane_values(self._level(before - height, both), height.shape)
+            offset = float(np.median((before - height)[both]))   # what is left: ~0 once levelled
+        centre = _plane_values(coef, height.shape)[mine].mean()
+        self.levelled.append((float(centre), offset, shared))
+        height[~mine] = 0.0
+        added_w = np.where(mine, weight, np.float32(0.0))
+        # room for both sums' new tiles first (StorageFull: neither is added, the finished passes kept); only
+        # the pass's own tiles (its window's others hold nothing of it)
+        store.reserve([(name, ix, iy) for name in (DONE, DONE_W) for ix, iy in touched])
+        weighted = height * added_w
+        t = store.tile
+        for ix, iy in touched:
+            part = (slice(iy * t - r0, (iy + 1) * t - r0), slice(ix * t - c0, (ix + 1) * t - c0))
+            store.add(DONE, weighted[part], iy * t, ix * t, reserved=True)
+            store.add(DONE_W, added_w[part], iy * t, ix * t, reserved=True)
+        self.passes += 1
 
     @staticmethod
     def _level(difference: np.ndarray, both: np.ndarray) -> np.ndarray:
@@ -267,20 +295,34 @@ class HeightLayer:
             coef = np.array([float(solution[0]) - a * cols.mean() - b * rows.mean(), a, b])
         return coef
 
-    def value(self, canvas: Any) -> np.ndarray:
-        """float32 metres over the whole canvas, NaN where no finished pass mapped (the pass being rolled
-        is not in it until it ends)."""
-        done_w = canvas.layers[self.first + _DONE_W]
+    def view(self, canvas: Any) -> Any:
+        """The finished passes' height as a `tiles.LayerView` (`WorldCanvas.ratio_view`): metres where their
+        summed weight is at least `min_weight`, weighted by it; what `geotiff.write_geotiff(..., "float")`
+        writes (height.tif) a tile at a time, over the same cells as the intensity's files."""
+        return canvas.ratio_view(DONE, DONE_W, weight=DONE_W, min_denominator=self.config.min_weight)
+
+    def value_in(self, canvas: Any, box: tuple[int, int, int, int]) -> np.ndarray:
+        """float32 metres over rows [row0, row1) and columns [column0, column1) of the canvas, NaN where no
+        finished pass mapped (the pass being rolled is not in it until it ends)."""
+        done_w = canvas.read(DONE_W, box)
         known = done_w >= self.config.min_weight
         out = np.full(done_w.shape, np.nan, np.float32)
-        np.divide(canvas.layers[self.first + _DONE], done_w, out=out, where=known)
+        np.divide(canvas.read(DONE, box), done_w, out=out, where=known)
         return out
 
-    def layer(self, canvas: Any) -> HeightMapLayer | None:
-        """The height map with its placement; None when nothing has a height yet."""
+    def value(self, canvas: Any) -> np.ndarray:
+        """`value_in` over the whole canvas."""
+        return self.value_in(canvas, (0, canvas.shape[0], 0, canvas.shape[1]))
+
+    def layer(self, canvas: Any, box: tuple[int, int, int, int] | None = None) -> HeightMapLayer | None:
+        """The height map with its placement (over `box` of the canvas, else all of it); None when nothing
+        has a height yet."""
         if self.passes == 0:
             return None
-        return HeightMapLayer(self.value(canvas), canvas.origin, canvas.resolution)
+        box = box or (0, canvas.shape[0], 0, canvas.shape[1])
+        res = canvas.resolution
+        origin = (canvas.origin[0] + box[2] * res, canvas.origin[1] + box[0] * res)
+        return HeightMapLayer(self.value_in(canvas, box), origin, res)
 
 
 @dataclass(frozen=True)

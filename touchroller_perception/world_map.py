@@ -26,10 +26,11 @@ A frame is taken only once the poses reach its stamp (it waits, in arrival order
 of them): every pose the mapper looks up for it then lies at or before that stamp, so the map does
 not depend on whether a frame or its pose arrived first (a live graph where the image may come before
 its TF, or a recording read in the order it was written). Frames then wait (a bounded queue) until
-their pose, the pressed height and the latency are known. Memory
-is bounded by the map (a fixed rectangle given by `bounds`, else growing up to `max_pixels`; frames
-that would grow it further are left out and counted in `stats.beyond_max_pixels`), not by the
-number of frames. No rclpy here; the caller looks poses up (`touchroller_perception.transforms`).
+their pose, the pressed height and the latency are known. The map
+is kept as tiles (`touchroller_perception.tiles`): a bounded cache in memory, the rest on disk, so memory
+is bounded by neither the map's area nor the number of frames; frames whose new tiles would not fit on
+the disk are left out and counted (`stats.left_out_storage_full`), the map so far kept.
+No rclpy here; the caller looks poses up (`touchroller_perception.transforms`).
 """
 from __future__ import annotations
 
@@ -51,7 +52,9 @@ from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.latency import LatencyConfig, LatencyEstimate, LatencyEstimator
 from touchroller_perception.stitching import Stitcher, StitcherConfig, StitchStep, taper
+from touchroller_perception.tiles import LayerView, StorageFull, TileConfig, pyramid_tile, render_tile
 from touchroller_perception.world_canvas import (  # noqa: F401 (WorldCanvas, _Prior: part of this module's API)
+    LAYERS,
     WorldCanvas,
     _axis_aligned,
     _blend,
@@ -61,7 +64,6 @@ from touchroller_perception.world_canvas import (  # noqa: F401 (WorldCanvas, _P
     _Prior,
 )
 from touchroller_perception.world_height import (
-    HEIGHT_LAYERS,
     BandHeights,
     HeightBand,
     HeightLayer,
@@ -77,6 +79,7 @@ _RESUME_NS = 300_000_000       # pressed again this soon after a pass ended: the
 _PLACING_STEP_S = 5e-4          # frames are placed with the latency estimate on this grid, s
 _MIN_SCORE = 0.5                # a registration's NCC peak below this is not trusted (too little texture)
 _PEAK_MARGIN = 0.1              # a registration's peak stands this much (NCC) above any other 3 px away
+_MAX_BAND_PIXELS = 16_000_000   # one band placed on the map may span at most this many map cells
 _DELTA_MAD_PX = 1.0             # a pass's offsets agree (median absolute deviation, map px) to be applied
 #: T_world_cylinder (N, 4, 4) at each of N stamps (ns), all-NaN where it is not known (yet): e.g.
 #: `TransformBuffer.lookup_many(world, cylinder, stamps, missing=True)`.
@@ -114,8 +117,10 @@ class WorldMapConfig:
 
     resolution: metres per map pixel.
     bounds: (x_min, y_min, x_max, y_max) of the map in the world frame, m (e.g. the scan's rectangle plus
-      a margin); None: it grows with what is mapped, up to `max_pixels`.
-    max_pixels: the most pixels the map may hold (memory: 12 bytes each).
+      a margin); None: it grows with what is mapped (tiles made where bands land, without bound but the disk).
+    max_pixels: the most pixels `bounds` may span (a sanity check on a typing error: tiles are made only
+      where bands land, but the map's files span the bounds).
+    tiles: the tile store (tile size, memory cache, spill folder, disk reserve).
     latency: the camera's latency (s, exposure to stamp) if known; None: estimated from the data
       (`touchroller_perception.latency`).
     latency_fallback: the latency used when the data do not pin it down (a single pass at constant
@@ -138,7 +143,7 @@ class WorldMapConfig:
 
     resolution: float = 1e-4
     bounds: tuple[float, float, float, float] | None = None
-    max_pixels: int = 16_000_000
+    max_pixels: int = 10 ** 11
     latency: float | None = None
     latency_fallback: float = 0.0
     latency_max_sigma: float = 0.002
@@ -150,6 +155,7 @@ class WorldMapConfig:
     steady_stride: int = 3
     hold_frames: int = 600
     wait_frames: int = 30
+    tiles: TileConfig = TileConfig()
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.resolution) and 1e-6 <= self.resolution <= 0.01):
@@ -306,7 +312,8 @@ class MapStats:
     not_in_contact: int = 0
     no_pose: int = 0
     passes: int = 0
-    beyond_max_pixels: int = 0   # frames left out: mapping them would have grown the map past max_pixels
+    left_out_storage_full: int = 0   # frames left out: their new tiles would not have fitted on the disk
+    storage_warning: str | None = None
     pass_corrections_px: list[tuple[float, float]] = field(default_factory=list)
     latency_s: float | None = None
     latency_estimated: bool = False
@@ -336,7 +343,7 @@ class WorldMapper:
         self.config = config = config or WorldMapConfig()
         # the height map (`world_height`): with a photometric model, two more pairs of canvas layers
         self.height_source = height
-        self._height_layer = None if height is None else HeightLayer(3, height.config)
+        self._height_layer = None if height is None else HeightLayer(height.config)
         self._band_heights: BandHeights | None = None
         self.camera = camera
         self.poses = poses
@@ -348,8 +355,9 @@ class WorldMapper:
         # pass's centre).
         self.strip = Stitcher(strip.replace(history=1, live_map=False, keep_map=False, flat_sigma_cols=0.0),
                               camera=camera)
-        self.canvas = WorldCanvas(config.resolution, config.bounds, config.max_pixels,
-                                  layers=3 + (HEIGHT_LAYERS if height is not None else 0))
+        self.canvas = WorldCanvas(config.resolution, config.bounds, config.tiles)
+        if self._height_layer is not None:
+            self._height_layer.add_layers(self.canvas)
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
         # frames whose stamp the poses do not reach yet
@@ -430,26 +438,50 @@ class WorldMapper:
     def height_layer(self, crop: bool = True) -> HeightMapLayer | None:
         """The world height map (`world_height`): float32 metres, rows growing with y, NaN where unmapped,
         with its origin (lower-left corner of cell (0, 0)) and resolution; `crop`: to the cells
-        `map_image(crop)` keeps (the same grid as map.png). None without a photometric model or before a
-        pass has ended (or `finalise`)."""
+        `map_image(crop)` and map.tif keep (the same grid), read from the tiles over that window only.
+        None without a photometric model or before a pass has ended (or `finalise`)."""
         if self._height_layer is None:
             return None
-        layer = self._height_layer.layer(self.canvas)
-        if layer is None or not crop or self.canvas.fixed:
-            return layer
-        box = self.canvas.used()
-        if box is None:
-            return layer
-        _, weight = self.canvas.value_in(self._level, box)
-        mapped = weight > 0.05
-        if not mapped.any():
-            return layer
-        rows, cols = np.flatnonzero(mapped.any(axis=1)), np.flatnonzero(mapped.any(axis=0))
-        r0, r1 = box[0] + int(rows[0]), box[0] + int(rows[-1]) + 1
-        k0, k1 = box[2] + int(cols[0]), box[2] + int(cols[-1]) + 1
-        res = self.config.resolution
-        origin = (layer.origin[0] + k0 * res, layer.origin[1] + r0 * res)
-        return HeightMapLayer(layer.height[r0:r1, k0:k1].copy(), origin, res)
+        box = None
+        if crop and not self.canvas.fixed:
+            box = self.canvas.mapped_extent()
+        return self._height_layer.layer(self.canvas, box)
+
+    def height_view(self) -> LayerView | None:
+        """The height map as a `tiles.LayerView` (what height.tif is streamed from, a tile at a time, over
+        the cells map.tif spans); None without a photometric model or before a pass has a height."""
+        if self._height_layer is None or self._height_layer.passes == 0:
+            return None
+        return self._height_layer.view(self.canvas)
+
+    def height_level(self, level: int) -> HeightMapLayer | None:
+        """The height map over the map's extent (`level_extent`) at pyramid level `level` (each cell the
+        weighted mean of 2^level x 2^level cells; level 0: `height_layer()`), read from the tiles a tile at
+        a time: memory for the result alone. None without a height map or before a pass has ended."""
+        view = self.height_view()
+        box = self.level_extent(level)
+        if view is None or box is None:
+            return None
+        r0, r1, c0, c1 = box
+        t = self.canvas.tile
+        out = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
+        for iy in range(r0 // t, (r1 - 1) // t + 1):
+            for ix in range(c0 // t, (c1 - 1) // t + 1):
+                y0, y1, x0, x1 = max(r0, iy * t), min(r1, (iy + 1) * t), max(c0, ix * t), min(c1, (ix + 1) * t)
+                value, weight = pyramid_tile(view, level, ix, iy)
+                part = (slice(y0 - iy * t, y1 - iy * t), slice(x0 - ix * t, x1 - ix * t))
+                known = weight[part] > view.mapped_weight
+                out[y0 - r0:y1 - r0, x0 - c0:x1 - c0][known] = value[part][known]
+        res = self.config.resolution * 2 ** level
+        anchor = self.canvas.anchor
+        return HeightMapLayer(out, (anchor[0] + c0 * res, anchor[1] + r0 * res), res)
+
+    def _end_height_pass(self) -> None:
+        assert self._height_layer is not None
+        try:
+            self._height_layer.end_pass(self.canvas)
+        except StorageFull as exc:   # the finished passes keep what they had
+            self.stats.storage_warning = f"a pass's height was left out: {exc}"
 
     def band(self, image: np.ndarray, row0: int = 0, frame_height: int | None = None) -> np.ndarray:
         """The band `push_band` wants, cut from a frame or from the frame's rows from `row0` on (see
@@ -583,7 +615,7 @@ class WorldMapper:
         self._drain(final=True)
         self._flush_pass_buffer()
         if self._height_layer is not None:   # the pass under way is levelled with what it has (it may go on)
-            self._height_layer.end_pass(self.canvas)
+            self._end_height_pass()
         if self._in_contact and self._pass_log:   # the pass under way says what it can (it may go on)
             self._pass_log[-1].delta = (float(self._pass_delta[0]), float(self._pass_delta[1]))
             self._opposite_passes()
@@ -594,8 +626,12 @@ class WorldMapper:
         weighted = cv2.multiply(field.astype(np.float32), self._weights)
         oriented: dict[tuple[bool, bool, bool], np.ndarray] = {}
         box = self.canvas.used()
-        if box is not None:   # layer 1 is zero elsewhere
-            self.canvas.layers[1, box[0]:box[1], box[2]:box[3]] = 0.0
+        if box is not None:
+            try:
+                self.canvas.clear("flat")   # (copies the tiles aside first while a pass registers: may not fit)
+            except StorageFull as exc:   # nothing cleared: the map keeps the flat field it was built with
+                self.stats.storage_warning = f"not re-weighted with the final flat field: {exc}"
+                return
         for placement in self._placements:
             if placement.axes is not None:
                 if placement.axes not in oriented:
@@ -670,13 +706,72 @@ class WorldMapper:
 
     def coverage(self, bounds: tuple[float, float, float, float]) -> float:
         """Percent of the rectangle (x_min, y_min, x_max, y_max) mapped."""
-        _, weight = self.canvas.value(self._level)
-        c0, r0 = np.floor(self.canvas.to_grid(np.array(bounds[:2])) + 0.5).astype(int)
-        c1, r1 = np.floor(self.canvas.to_grid(np.array(bounds[2:])) + 0.5).astype(int)
+        c0, r0 = (int(v) for v in np.floor(self.canvas.to_grid(np.array(bounds[:2])) + 0.5))
+        c1, r1 = (int(v) for v in np.floor(self.canvas.to_grid(np.array(bounds[2:])) + 0.5))
         total = max((c1 - c0) * (r1 - r0), 1)
-        rows, cols = weight.shape
-        window = weight[max(r0, 0):min(r1, rows), max(c0, 0):min(c1, cols)]
-        return 100.0 * float(np.count_nonzero(window > 0.05)) / total
+        rows, cols = self.canvas.shape
+        box = (max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols))
+        if box[1] <= box[0] or box[3] <= box[2]:
+            return 0.0
+        _, weight = self.canvas.value_in(self._level, box)
+        return 100.0 * float(np.count_nonzero(weight > 0.05)) / total
+
+    # -- tiles: files and live views --------------------------------------------------------------------
+    def view(self) -> LayerView:
+        """The map (flat-field-corrected grey, weights) as a `tiles.LayerView` on the tile store's absolute
+        cells: what the GeoTIFF writer streams and live views render, a tile at a time."""
+        return self.canvas.view(self._level)
+
+    def touched_tiles(self) -> set[tuple[int, int]]:
+        """(ix, iy) of the level-0 tiles bands changed since the last call (absolute tile indices)."""
+        return self.canvas.store.touched()
+
+    def render_tile(self, level: int, ix: int, iy: int, low: float = 0.0,
+                    high: float = 255.0) -> tuple[np.ndarray, np.ndarray]:
+        """Tile (level, ix, iy) of the map's pyramid as (grey uint8, alpha uint8), image rows (row 0 the
+        largest y); see `tiles.render_tile`. Its lower-left corner lies at world `tile_corner(level, ix, iy)`."""
+        return render_tile(self.view(), level, ix, iy, low, high)
+
+    def tile_corner(self, level: int, ix: int, iy: int) -> tuple[float, float]:
+        """World (x, y) of the lower-left corner of tile (level, ix, iy); its side is tile * 2^level * res."""
+        side = self.canvas.tile * 2 ** level * self.config.resolution
+        return self.canvas.anchor[0] + ix * side, self.canvas.anchor[1] + iy * side
+
+    def level_extent(self, level: int) -> tuple[int, int, int, int] | None:
+        """(row0, row1, column0, column1) of pyramid level `level`'s cells (absolute, 2^level grid cells
+        each) that hold the map's extent (`view().extent()`); None: nothing mapped."""
+        box = self.view().extent()
+        if box is None:
+            return None
+        f = 2 ** level
+        return box[0] // f, -(-box[1] // f), box[2] // f, -(-box[3] // f)
+
+    def level_image(self, level: int) -> WorldMapImage | None:
+        """The map's extent at pyramid level `level` (downscaled by 2^level, weighted means; level 0: the
+        map cropped as map.tif holds it) as one image, rendered a tile at a time from the tile store
+        (`render_tile`): memory is the image, not the map. None: nothing mapped."""
+        box = self.level_extent(level)
+        if box is None:
+            return None
+        r0, r1, c0, c1 = box
+        t = self.canvas.tile
+        grey, alpha = np.zeros((r1 - r0, c1 - c0), np.uint8), np.zeros((r1 - r0, c1 - c0), np.uint8)
+        view = self.view()
+        for iy in range(r0 // t, (r1 - 1) // t + 1):
+            for ix in range(c0 // t, (c1 - 1) // t + 1):
+                y0, y1, x0, x1 = max(r0, iy * t), min(r1, (iy + 1) * t), max(c0, ix * t), min(c1, (ix + 1) * t)
+                tile_grey, tile_alpha = render_tile(view, level, ix, iy)   # image rows: row 0 the top
+                rows = slice((iy + 1) * t - y1, (iy + 1) * t - y0)
+                target = (slice(r1 - y1, r1 - y0), slice(x0 - c0, x1 - c0))
+                grey[target] = tile_grey[rows, x0 - ix * t:x1 - ix * t]
+                alpha[target] = tile_alpha[rows, x0 - ix * t:x1 - ix * t]
+        res = self.config.resolution * 2 ** level
+        anchor = self.canvas.anchor
+        return WorldMapImage(grey, alpha, res, (anchor[0] + c0 * res, anchor[1] + r0 * res))
+
+    def close(self) -> None:
+        """Remove the tiles spilled to disk (the mapper is not used after)."""
+        self.canvas.store.close()
 
     # -- setup ---------------------------------------------------------------------------------------
     def _setup(self) -> None:
@@ -999,17 +1094,14 @@ class WorldMapper:
         self._delta_offsets = 0
         self._pass_frames = 0
         if self.stats.passes > 1 and self.config.register:
-            # the value where bands were added (zero elsewhere): the canvas can be much larger
-            rows, cols = self.canvas.shape
-            box = self.canvas.used() or (0, 0, 0, 0)
-            value, weight = self.canvas.value_in(self._level, box)
-            self._prior = _Prior(value, weight, box[0], box[2], rows, cols)
-            self._prior_weight_max = (float(weight.max()) if weight.size else 0.0) or 1.0
+            # the map as it is now, kept copy-on-write as the pass's bands change its tiles
+            self._prior = _Prior(self.canvas, self._level)
+            self._prior_weight_max = self._prior.weight_max or 1.0
 
     def _end_pass(self) -> None:
         self._flush_pass_buffer()
         if self._height_layer is not None:
-            self._height_layer.end_pass(self.canvas)
+            self._end_height_pass()
         if self._prior is not None and not (self._pass_log and self._pass_log[-1].ended):
             self.stats.pass_corrections_px.append((float(self._pass_delta[0]), float(self._pass_delta[1])))
         self._in_contact = False
@@ -1159,6 +1251,9 @@ class WorldMapper:
         matrix = self._affine(pose)
         matrix[:, 2] += delta
         c0, r0, c1, r1 = self._footprint(matrix)
+        if (c1 - c0) * (r1 - r0) > _MAX_BAND_PIXELS:
+            raise MemoryError(f"one band needs {(c1 - c0) * (r1 - r0):.3g} pixels at {self.config.resolution:g} m/px "
+                              f"(at most {_MAX_BAND_PIXELS:.3g})")
         shift = self.canvas.ensure(c0, r0, c1, r1)
         if shift != (0, 0):
             matrix[:, 2] += shift
@@ -1176,24 +1271,27 @@ class WorldMapper:
         return _Placement(c0, r0, None, matrix=local, size=(c1 - c0, r1 - r0))
 
     def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
-        try:
-            placement = self._locate(pose, delta)
-        except MemoryError:   # the map keeps what it has; the caller sees the count (max_pixels bounds memory)
-            self.stats.beyond_max_pixels += 1
-            return
+        placement = self._locate(pose, delta)
+        planes: dict[str, np.ndarray | None]
         if placement.axes is not None and frame.field is not None:
-            self.canvas.add(self._blend_stack(frame, placement), placement.c0, placement.r0)
+            planes = dict(zip(LAYERS, self._blend_stack(frame, placement), strict=True))
         else:
             assert self._weights is not None
             weighted_band, weighted_field = self._band_planes(frame)
-            planes = [self._on_map(placement, weighted_band), self._on_map(placement, weighted_field, "field"),
-                      self._on_map(placement, self._weights, "w")]
-            self.canvas.add(planes, placement.c0, placement.r0)
+            planes = {"band": self._on_map(placement, weighted_band),
+                      "flat": self._on_map(placement, weighted_field, "field"),
+                      "weight": self._on_map(placement, self._weights, "w")}
         if frame.height is not None and self._height_layer is not None:
             assert self._weights is not None
             weighted, weights = self._height_layer.planes(self._weights, frame.height)
-            self.canvas.add([self._on_map(placement, weighted), self._on_map(placement, weights)], placement.c0,
-                            placement.r0, first=self._height_layer.first + 2)
+            planes.update(self._height_layer.pass_planes(self._on_map(placement, weighted),
+                                                         self._on_map(placement, weights)))
+        try:   # one call: the band and its height land together or not at all
+            self.canvas.add_named(planes, placement.c0, placement.r0)
+        except StorageFull as exc:   # the map keeps what it has; the caller sees the count and the reason
+            self.stats.left_out_storage_full += 1
+            self.stats.storage_warning = str(exc)
+            return
         self._placements.append(placement)
         self.stats.mapped += 1
         if frame.field is not None:
@@ -1253,10 +1351,7 @@ class WorldMapper:
         the earlier passes overlap at every shift searched. A band turned on the map (a raster not along
         the world's axes) is registered on a grid turned with it (`_register_turned`)."""
         assert self._prior is not None and self._weights is not None
-        try:
-            placement = self._locate(pose, np.zeros(2))
-        except MemoryError:   # beyond max_pixels: `_place` leaves it out and counts it
-            return None
+        placement = self._locate(pose, np.zeros(2))
         sx, sy, speed, (pc, pr), extra = self._search(frame, pose)
         if placement.axes is None:
             return self._register_turned(frame, placement, speed, (pc, pr), extra)

@@ -87,7 +87,7 @@ def test_pass_shift_finds_a_known_displacement():
 
     truth = cv2.GaussianBlur(rng.normal(128, 40, (300, 400)).astype(np.float32), (0, 0), 1.5)
     shifted = np.roll(truth, (3, -2), axis=(0, 1))   # content moved up 3 rows (+y) and 2 columns left (-x)
-    canvas = WorldCanvas(1e-4, (0.0, 0.0, 0.04, 0.03), 10**7)
+    canvas = WorldCanvas(1e-4, (0.0, 0.0, 0.04, 0.03))
     dx, dy = bench._pass_shift(shifted, truth, np.ones_like(truth), canvas, (0.005, 0.005, 0.035, 0.025), 1e-4)
     assert (dx, dy) == (pytest.approx(0.2, abs=0.02), pytest.approx(-0.3, abs=0.02))
     assert not math.isnan(dx)
@@ -104,7 +104,7 @@ def test_pass_shift_measures_what_a_100_ms_latency_does_to_a_pass(rows, cols):
     bench = load_bench()
     truth = cv2.GaussianBlur(np.random.default_rng(1).normal(128, 40, (300, 400)).astype(np.float32), (0, 0), 1.5)
     shifted = np.roll(truth, (rows, cols), axis=(0, 1))
-    canvas = WorldCanvas(1e-4, (0.0, 0.0, 0.04, 0.03), 10**7)
+    canvas = WorldCanvas(1e-4, (0.0, 0.0, 0.04, 0.03))
     dx, dy = bench._pass_shift(shifted, truth, np.ones_like(truth), canvas, (0.005, 0.005, 0.035, 0.025), 1e-4)
     assert (dx, dy) == (pytest.approx(-cols * 0.1, abs=0.02), pytest.approx(-rows * 0.1, abs=0.02))
 

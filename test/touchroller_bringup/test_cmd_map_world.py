@@ -55,8 +55,9 @@ def test_a_recording_with_tf_maps_into_the_world_frame(scan_bag, tmp_path, capsy
     out = tmp_path / "map.png"
     assert main(["map", str(scan_bag), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "map.yaml" in printed and "1 pass(es)" in printed, printed
+    assert "map.yaml" in printed and "map.tif" in printed and "1 pass(es)" in printed, printed
     assert "camera latency estimated " in printed, printed
+    assert {p.name for p in tmp_path.iterdir()} == {"map.png", "map.yaml", "map.tif"}   # no tiles left behind
     estimated = float(printed.split("camera latency estimated ")[1].split(" ms")[0])
     assert estimated == pytest.approx(LATENCY * 1e3, abs=3.0)
     grey, alpha, meta = read_world_map(tmp_path / "map.yaml")
@@ -139,17 +140,23 @@ def test_map_files_are_nav2_maps_written_whole(tmp_path, monkeypatch):
     image = WorldMapImage(grey, alpha, 0.001, (0.5, -0.25))
     png, yaml_path = write_world_map(tmp_path / "scan.png", image, "left/base")
     meta = yaml.safe_load(yaml_path.read_text())
-    assert meta == {"image": "scan.png", "mode": "trinary", "resolution": 0.001, "origin": [0.5, -0.25, 0.0],
-                    "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.25, "frame_id": "left/base"}
-    back_grey, back_alpha, _ = read_world_map(yaml_path)
-    assert np.array_equal(back_grey, grey) and np.array_equal(back_alpha, alpha)
+    low, high = meta["view"]["stretch"]
+    assert {k: meta[k] for k in ("image", "mode", "resolution", "origin", "negate", "occupied_thresh",
+                                 "free_thresh", "frame_id")} == \
+        {"image": "scan.png", "mode": "scale", "resolution": 0.001, "origin": [0.5, -0.25, 0.0],
+         "negate": 0, "occupied_thresh": 1.0, "free_thresh": 0.0, "frame_id": "left/base"}
+    assert meta["view"]["downscale"] == 1 and meta["geotiff"]["image"] == "scan.tif"
+    assert meta["geotiff"]["size"] == [10, 6] and meta["geotiff"]["origin"] == [0.5, -0.25, 0.0]
+    back_grey, back_alpha, back = read_world_map(yaml_path)   # full range, from the GeoTIFF
+    assert np.array_equal(back_grey, grey) and np.array_equal(back_alpha, alpha) and back["resolution"] == 0.001
     import PIL.Image
 
     with PIL.Image.open(png) as picture:
         assert picture.mode == "LA" and picture.size == (10, 6)   # 8-bit grey plus alpha, as nav2 reads it
     unchanged = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)   # another reader: OpenCV's (grey + alpha as BGRA)
-    assert np.array_equal(unchanged[..., 0], grey) and np.array_equal(unchanged[..., 3], alpha)
-    before = png.read_bytes()
+    stretched = np.clip(np.floor((grey - low) * 255.0 / (high - low) + 0.5), 0, 255)
+    assert np.array_equal(unchanged[..., 0], stretched) and np.array_equal(unchanged[..., 3], alpha)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
 
     def broken(*_args, **_kwargs):
         raise OSError(28, "No space left on device")
@@ -158,9 +165,25 @@ def test_map_files_are_nav2_maps_written_whole(tmp_path, monkeypatch):
     from touchroller_bringup.errors import UserError
 
     with pytest.raises(UserError, match="No space left"):
-        write_world_map(png, WorldMapImage(grey * 0, alpha, 0.001, (0.0, 0.0)), "base")
-    assert png.read_bytes() == before   # the old map stands, and no temporary file is left behind
-    assert {p.name for p in tmp_path.iterdir()} == {"scan.png", "scan.yaml"}
+        write_world_map(png, WorldMapImage(grey * 0 + 9, alpha, 0.001, (0.0, 0.0)), "base")
+    # the old map stands, all three files of it, and no temporary file is left behind
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    assert set(before) == {"scan.png", "scan.yaml", "scan.tif"}
+
+
+def test_an_old_map_png_at_full_resolution_still_reads(tmp_path):
+    """A map written before the GeoTIFF (map.png at full resolution, `mode: trinary`) reads as it did."""
+    from touchroller_bringup.map_files import png_grey_alpha
+
+    grey = np.arange(60, dtype=np.uint8).reshape(6, 10)
+    alpha = np.where(grey > 20, 255, 0).astype(np.uint8)
+    (tmp_path / "old.png").write_bytes(png_grey_alpha(grey, alpha))
+    (tmp_path / "old.yaml").write_text(yaml.safe_dump({"image": "old.png", "mode": "trinary", "resolution": 0.001,
+                                                       "origin": [0.5, -0.25, 0.0], "negate": 0,
+                                                       "occupied_thresh": 0.65, "free_thresh": 0.25,
+                                                       "frame_id": "base"}))
+    back_grey, back_alpha, meta = read_world_map(tmp_path / "old.yaml")
+    assert np.array_equal(back_grey, grey) and np.array_equal(back_alpha, alpha) and meta["resolution"] == 0.001
 
 
 def _small_tf_bag(path, tf, static, hour_late=False):

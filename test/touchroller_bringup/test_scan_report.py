@@ -25,8 +25,20 @@ def world(rows: int = 500, cols: int = 1500) -> SimpleNamespace:
     alpha = np.zeros((rows, cols), np.uint8)
     alpha[:, : cols // 2] = 255
     image = WorldMapImage(grey, alpha, RES, (0.40, -0.05))
-    stats = SimpleNamespace(mapped=120, passes=2, latency_s=0.03, latency_estimated=True, pass_corrections_px=[])
-    mapper = SimpleNamespace(map_image=lambda: image, stats=stats, height_layer=lambda: None)
+    # a world mapper holding that image on its tiles (the scan reads its map from them)
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+    camera = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
+    bounds = (0.40, -0.05, 0.40 + (cols - 0.5) * RES, -0.05 + (rows - 0.5) * RES)
+    mapper = WorldMapper(camera, lambda stamps: np.zeros((len(stamps), 4, 4)), WorldMapConfig(resolution=RES,
+                                                                                              bounds=bounds))
+    values = np.flipud(grey).astype(np.float32)[:, : cols // 2]   # rows growing with y, the mapped half
+    mapper.canvas.add([values, np.ones_like(values), np.ones_like(values)], 0, 0)
+    assert mapper.canvas.shape == (rows, cols)
+    np.testing.assert_array_equal(mapper.map_image().grey[alpha > 0], image.grey[alpha > 0])
+    mapper.stats.mapped, mapper.stats.passes, mapper.stats.latency_s = 120, 2, 0.03
+    mapper.stats.latency_estimated = True
     return SimpleNamespace(world=mapper, world_frame="base", camera=None, received=100, dropped=0, malformed=0,
                            has_parameter=lambda name: False)
 

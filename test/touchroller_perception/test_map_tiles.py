@@ -188,3 +188,41 @@ def test_the_adapter_reads_the_world_map_as_its_files_have_it():
     assert np.array_equal(r.grey, image.grey) and np.array_equal(r.mapped, image.alpha > 0)
     assert r.origin == image.origin and r.resolution == image.resolution and r.z == 0.0
     assert r.mapped.sum() == 50 * 120
+
+
+def test_the_adapter_renders_a_large_map_at_the_level_that_fits_from_the_tiles(monkeypatch):
+    """A map of many tiles (1600 x 1200 cells on 128-cell tiles, room in memory for 8 of them, the rest
+    spilled) is read for a view at the coarsest level that fits the budget, from the tile store's pyramid:
+    never built whole (`map_image` is not called), the view within the budget, read through the bounded
+    cache, each level cell the mean of the cells it covers, in place."""
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.tiles import TileConfig as StoreConfig
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+    camera = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
+    res = 2.0 ** -13   # the bounds an exact number of cells
+    mapper = WorldMapper(camera, lambda stamps: np.zeros((len(stamps), 4, 4)),
+                         WorldMapConfig(resolution=res, bounds=(0.25, -0.125, 0.25 + 1600 * res, -0.125 + 1200 * res),
+                                        tiles=StoreConfig(tile=128, cache_bytes=8 * 128 * 128 * 4)))
+    rng = np.random.default_rng(5)
+    band = rng.uniform(10, 200, (400, 400)).astype(np.float32)
+    ones = np.ones_like(band)
+    for r0 in range(0, 1200, 400):
+        for c0 in range(0, 1600, 400):
+            mapper.canvas.add([band, ones, ones], c0, r0)
+    whole = mapper.map_image()
+    assert whole.grey.shape == (1200, 1600) and (whole.alpha > 0).all()
+
+    def built_whole(*args, **kwargs):
+        raise AssertionError("the view built the whole map")
+
+    monkeypatch.setattr(type(mapper), "map_image", built_whole)
+    r = world_map_raster(mapper, 200_000)
+    assert r.level == 2 and r.grey.shape == (300, 400) and r.resolution == 4 * res
+    assert r.mapped.all() and r.origin == pytest.approx(whole.origin)
+    assert mapper.canvas.store.resident() <= 8   # read a tile at a time through the bounded cache
+    view = map_view(r, 200_000)
+    assert view.level == 2 and view.grey.size <= 200_000
+    # level cell (row, col) (row 0 the top) is the mean of the 4 x 4 full-resolution cells it covers
+    means = whole.grey.astype(np.float64).reshape(300, 4, 400, 4).mean(axis=(1, 3))
+    assert float(np.abs(r.grey - means).max()) <= 1.0

@@ -4,23 +4,26 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from touchroller_perception.tiles import TileConfig
 from touchroller_perception.world_canvas import WorldCanvas
-from touchroller_perception.world_height import HEIGHT_LAYERS, HeightBand, HeightLayer, WorldHeightConfig
+from touchroller_perception.world_height import HEIGHT_LAYERS, PASS, PASS_W, HeightBand, HeightLayer, WorldHeightConfig
 
 
-def _canvas(shape=(120, 200)) -> tuple[WorldCanvas, HeightLayer]:
-    canvas = WorldCanvas(1e-4, (0.0, 0.0, shape[1] * 1e-4, shape[0] * 1e-4), 10**6, layers=3 + HEIGHT_LAYERS)
-    return canvas, HeightLayer(3, WorldHeightConfig(min_overlap=50))
+def _canvas(shape=(120, 200), tile=512) -> tuple[WorldCanvas, HeightLayer]:
+    canvas = WorldCanvas(1e-4, (0.0, 0.0, shape[1] * 1e-4, shape[0] * 1e-4), TileConfig(tile=tile))
+    layer = HeightLayer(WorldHeightConfig(min_overlap=50))
+    layer.add_layers(canvas)
+    return canvas, layer
 
 
 def _add_pass(canvas, layer, height, weight, c0, r0):
-    planes = [height * weight, weight]
-    canvas.add(planes, c0, r0, first=layer.first + 2)
+    canvas.add_named(layer.pass_planes(height * weight, weight), c0, r0)
     layer.end_pass(canvas)
 
 
-def test_each_pass_loses_its_plane_and_meets_the_earlier_ones_where_they_overlap():
-    canvas, layer = _canvas()
+@pytest.mark.parametrize("tile", [512, 32])   # one tile, or passes spanning many (and windows of them)
+def test_each_pass_loses_its_plane_and_meets_the_earlier_ones_where_they_overlap(tile):
+    canvas, layer = _canvas(tile=tile)
     rng = np.random.default_rng(0)
     relief = rng.normal(0, 20e-6, (120, 200)).astype(np.float32)
     rows, cols = np.mgrid[0:120, 0:200].astype(np.float32)
@@ -45,7 +48,9 @@ def test_a_pass_with_nothing_in_contact_adds_nothing_and_clears_the_pass_layers(
     canvas, layer = _canvas()
     _add_pass(canvas, layer, np.ones((10, 10), np.float32), np.zeros((10, 10), np.float32), 5, 5)
     assert layer.passes == 0 and layer.layer(canvas) is None
-    assert not canvas.layers[3:].any()
+    for name in HEIGHT_LAYERS:   # nothing kept, and the pass's tiles are gone
+        assert not canvas.read(name, (0, 120, 0, 200)).any()
+    assert not canvas.store.tiles(PASS) and not canvas.store.tiles(PASS_W)
 
 
 def test_unmapped_cells_are_nan():
@@ -70,3 +75,99 @@ def test_a_held_band_keeps_its_relief_to_half_a_micrometre():
 def test_config_is_checked(field, value):
     with pytest.raises(ValueError):
         WorldHeightConfig(**{field: value})
+
+
+def test_a_pass_is_levelled_on_the_window_of_its_tiles_not_the_whole_map():
+    """On a map of many 32-cell tiles, ending a pass reads and writes only the tiles the pass reached (the
+    earlier passes' tiles elsewhere are never read), and the pass's own tiles are dropped after."""
+    canvas, layer = _canvas(shape=(256, 512), tile=32)
+    weight = np.ones((40, 60), np.float32)
+    _add_pass(canvas, layer, np.full((40, 60), 2e-4, np.float32), weight, 400, 200)   # far corner
+    reads: list[tuple[str, int, int, int, int]] = []
+    read = canvas.store.read
+
+    def logged(name, r0, r1, c0, c1):
+        reads.append((name, r0, r1, c0, c1))
+        return read(name, r0, r1, c0, c1)
+
+    canvas.store.read = logged
+    _add_pass(canvas, layer, np.full((50, 70), 1e-4, np.float32), np.ones((50, 70), np.float32), 10, 20)
+    assert {name for name, *_ in reads} == set(HEIGHT_LAYERS)
+    for _, r0, r1, c0, c1 in reads:   # rows 20..70, columns 10..80: tiles rows 0..96, columns 0..96
+        assert (r0, r1, c0, c1) == (0, 96, 0, 96)
+    assert layer.passes == 2 and not canvas.store.tiles(PASS) and not canvas.store.tiles(PASS_W)
+    value = layer.value(canvas)
+    assert np.isfinite(value[20:70, 10:80]).all() and np.isfinite(value[200:240, 400:460]).all()
+    assert np.isnan(value[100:180, 100:380]).all()
+
+
+def test_the_height_map_at_a_level_is_read_from_the_tiles_in_place():
+    """`WorldMapper.height_level(k)` (what map_height publishes within the view's budget): level 0 is
+    `height_layer()` cell for cell; level 1 each cell the weighted mean of the 2 x 2 cells it covers, at
+    twice the resolution, its corner on the same extent; NaN where nothing has a height."""
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.world_height import DONE, DONE_W, HeightSource
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+    camera = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
+    res = 2.0 ** -13
+    mapper = WorldMapper(camera, lambda stamps: np.zeros((len(stamps), 4, 4)),
+                         WorldMapConfig(resolution=res, bounds=(0.25, -0.125, 0.25 + 200 * res, -0.125 + 120 * res),
+                                        tiles=TileConfig(tile=32)),
+                         height=HeightSource(None, None, WorldHeightConfig()))   # type: ignore[arg-type]
+    assert mapper.height_level(0) is None   # no pass yet
+    rng = np.random.default_rng(7)
+    relief = rng.normal(0, 2e-5, (60, 100)).astype(np.float32)
+    weight = rng.uniform(0.5, 2.0, (60, 100)).astype(np.float32)
+    mapper.canvas.add([np.ones_like(weight), np.ones_like(weight), np.ones_like(weight)], 40, 20)
+    mapper.canvas.add_named({DONE: relief * weight, DONE_W: weight}, 40, 20)
+    mapper._height_layer.passes = 1
+    whole, level0, level1 = mapper.height_layer(), mapper.height_level(0), mapper.height_level(1)
+    assert whole is not None and level0 is not None and level1 is not None
+    np.testing.assert_array_equal(level0.height, whole.height)
+    assert level0.origin == whole.origin and level0.resolution == whole.resolution == res
+    assert level1.resolution == 2 * res and level1.height.shape == (60, 100)   # a fixed map: all its cells
+    assert level1.origin == pytest.approx(whole.origin)
+    mean = ((relief * weight).reshape(30, 2, 50, 2).sum(axis=(1, 3)) / weight.reshape(30, 2, 50, 2).sum(axis=(1, 3)))
+    np.testing.assert_allclose(level1.height[10:40, 20:70], mean, atol=1e-9)
+    known = np.isfinite(level1.height)
+    assert known[10:40, 20:70].all() and known.sum() == 30 * 50
+
+
+def test_a_pass_whose_height_does_not_fit_on_the_disk_leaves_the_finished_passes_as_they_were(monkeypatch):
+    from touchroller_perception.tiles import StorageFull
+    from touchroller_perception.world_height import DONE, DONE_W
+
+    canvas, layer = _canvas(tile=32)
+    _add_pass(canvas, layer, np.full((40, 60), 1e-4, np.float32), np.ones((40, 60), np.float32), 0, 0)
+    before = {name: canvas.read(name, (0, 120, 0, 200)) for name in (DONE, DONE_W)}
+    reserve = canvas.store.reserve
+
+    def full(keys):
+        if any(k[0] == DONE_W for k in keys):   # the weights' new tiles do not fit
+            raise StorageFull("the disk is full")
+        reserve(keys)
+
+    monkeypatch.setattr(canvas.store, "reserve", full)
+    with pytest.raises(StorageFull):   # a second pass partly on new tiles
+        _add_pass(canvas, layer, np.full((40, 100), 2e-4, np.float32), np.ones((40, 100), np.float32), 40, 30)
+    assert layer.passes == 1 and not canvas.store.tiles(PASS) and not canvas.store.tiles(PASS_W)
+    for name, values in before.items():   # neither sum changed (not one without the other)
+        np.testing.assert_array_equal(canvas.read(name, (0, 120, 0, 200)), values)
+
+
+def test_the_finished_passes_get_tiles_only_where_a_pass_reached():
+    """A pass along the diagonal of its window: its levelled height is added on its own tiles, not on the
+    window's others (they would hold zeros, in memory or on disk, for nothing)."""
+    from touchroller_perception.world_height import DONE, DONE_W
+
+    canvas, layer = _canvas(shape=(256, 256), tile=32)
+    for k in range(0, 200, 20):   # 20 x 20 squares down the diagonal: one pass
+        canvas.add_named(layer.pass_planes(np.full((20, 20), 1e-4, np.float32), np.ones((20, 20), np.float32)), k, k)
+    reached = canvas.store.tiles(PASS_W)
+    layer.end_pass(canvas)
+    assert layer.passes == 1
+    assert canvas.store.tiles(DONE) == reached and canvas.store.tiles(DONE_W) == reached
+    assert len(reached) < 7 * 7 / 2
+    value = layer.value(canvas)
+    assert np.isfinite(value[np.arange(200), np.arange(200)]).all() and np.isnan(value[0, 100])

@@ -160,7 +160,7 @@ def test_config_is_checked():
     with pytest.raises(ValueError, match="bounds"):
         WorldMapConfig(bounds=(1.0, 0.0, 0.0, 1.0))
     with pytest.raises(ValueError, match="max_pixels"):
-        WorldMapConfig(bounds=(0.0, 0.0, 10.0, 10.0))
+        WorldMapConfig(bounds=(0.0, 0.0, 1000.0, 1000.0))   # 1e14 pixels: a typing error
     with pytest.raises(ValueError, match="steady_stride"):
         WorldMapConfig(steady_stride=0)
 
@@ -190,23 +190,68 @@ def test_an_axis_aligned_band_lands_where_the_bilinear_warp_puts_it(turn):
 
 
 @pytest.mark.slow
-def test_frames_past_max_pixels_are_left_out_and_counted(scans, sensor):
-    """A growing map (no bounds) that reaches max_pixels keeps what it has and counts what it leaves out,
-    rather than failing (the live node then switched its map off for good)."""
+def test_a_growing_map_keeps_a_bounded_number_of_tiles_in_memory_and_maps_the_same(scans, sensor):
+    """The raster on tiles of 64 cells with room in memory for 12 (the rest spilled to disk) maps, pixel
+    for pixel, what it maps on one tile holding the whole map: tiling changes memory, not the result.
+    And no more than the cache's tiles were ever in memory at once."""
+    from touchroller_perception.tiles import TileConfig
+
+    _, _, events = scans
+    maps = {}
+    for name, tiles in (("small", TileConfig(tile=64, cache_bytes=12 * 64 * 64 * 4)),
+                        ("whole", TileConfig(tile=4096, cache_bytes=2 ** 30))):
+        buffer = TransformBuffer(cache_ns=None)
+        buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+        mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                             WorldMapConfig(latency=0.0, tiles=tiles))
+        most = 0
+        for event in events[0.04]:
+            if event[0] == "tf":
+                buffer.set_transform("base", "tool0", event[1], event[2])
+            else:
+                mapper.push(event[2], event[1])
+                most = max(most, mapper.canvas.store.resident())
+        mapper.finalise()
+        maps[name] = mapper, most
+    (small, most), (whole, _) = maps["small"], maps["whole"]
+    assert most <= 12 and small.canvas.store.spilled > 100 and small.canvas.store.loaded > 0
+    assert len(small.canvas.store.tiles("weight")) > 12   # the map needed more tiles than memory holds
+    assert whole.canvas.store.spilled == 0 and small.stats.mapped == whole.stats.mapped
+    a, b = small.map_image(), whole.map_image()
+    assert a.origin == pytest.approx(b.origin, abs=1e-12)
+    np.testing.assert_array_equal(a.grey, b.grey)
+    np.testing.assert_array_equal(a.alpha, b.alpha)
+
+
+@pytest.mark.slow
+def test_when_the_disk_would_fill_frames_needing_new_tiles_are_left_out_and_the_map_so_far_kept(scans, sensor):
+    """Part-way through the first pass the disk "fills" (the store's reserve raised past the free space):
+    frames that need a new tile are left out and counted with the reason; frames on tiles that exist are
+    still mapped, and the map so far stays whole. (In a later pass every frame needs room: the tiles it
+    changes are first copied aside for registration.)"""
+    from touchroller_perception.tiles import TileConfig
+
     _, _, events = scans
     buffer = TransformBuffer(cache_ns=None)
     buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
     mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                         WorldMapConfig(max_pixels=200_000, latency=0.0))   # the raster needs ~600 000
+                         WorldMapConfig(latency=0.0, tiles=TileConfig(tile=64)))
+    tiles_then = None
     for event in events[0.0]:
         if event[0] == "tf":
             buffer.set_transform("base", "tool0", event[1], event[2])
-        else:
-            mapper.push(event[2], event[1])
+            continue
+        if tiles_then is None and mapper.stats.mapped >= 40:
+            tiles_then = len(mapper.canvas.store.tiles("weight"))
+            mapped_then = mapper.stats.mapped
+            mapper.canvas.store.config = TileConfig(tile=64, min_free_bytes=2 ** 62)
+        mapper.push(event[2], event[1])
     mapper.finalise()
-    assert mapper.stats.beyond_max_pixels > 0 and mapper.stats.mapped > 0
-    assert mapper.canvas.shape[0] * mapper.canvas.shape[1] <= 200_000
-    assert mapper.map_image().grey.size > 0
+    assert mapper.stats.left_out_storage_full > 0 and "MB free" in mapper.stats.storage_warning
+    assert len(mapper.canvas.store.tiles("weight")) == tiles_then   # no tile was made after
+    assert mapper.stats.mapped > mapped_then   # frames on the tiles there were still mapped
+    image = mapper.map_image()
+    assert image.alpha.any() and image.grey[image.alpha > 0].min() > 0
 
 
 def _reordered(events, tf_lead_ns: int):
@@ -246,44 +291,41 @@ def _naive_sums(patches, shape_hint=(4000, 4000)):
 
 
 def test_a_growing_canvas_keeps_its_sums_and_knows_where_bands_were_added():
-    """Growing moves a window over a larger allocation (and past it, into a new one): the sums, the origin
-    and `used()` are those of a canvas that had every cell from the start."""
+    """Growing on every side (by whole tiles, some spilled to disk): the sums, the origin and `used()` are
+    those of a canvas that had every cell from the start."""
+    from touchroller_perception.tiles import TileConfig
     from touchroller_perception.world_map import WorldCanvas
 
     rng = np.random.default_rng(5)
-    canvas = WorldCanvas(1e-4, None, max_pixels=6_000_000, grow_px=64)
+    canvas = WorldCanvas(1e-4, None, TileConfig(tile=128, cache_bytes=6 * 128 * 128 * 4), grow_px=64)
     patches = []
     off_c = off_r = 0   # canvas index of grid cell (0, 0)
-    allocations, grown = {}, 0   # (kept alive: ids are not reused)
-    # a walk that grows the canvas on every side, far enough to need a new allocation
-    for k, (c, r) in enumerate([(0, 0), (-300, 40), (500, -200), (900, 700), (-800, -900), (100, 1200)]):
+    for c, r in [(0, 0), (-300, 40), (500, -200), (900, 700), (-800, -900), (100, 1200)]:
         plane = rng.uniform(1, 2, (40, 60)).astype(np.float32)
         dc, dr = canvas.ensure(c + off_c, r + off_r, c + off_c + 60, r + off_r + 40)
         off_c, off_r = off_c + dc, off_r + dr
-        grown += k > 0 and canvas.layers.base is not None and id(canvas.layers.base) in allocations
-        allocations[id(canvas.layers.base)] = canvas.layers.base
         assert canvas.origin == pytest.approx((-off_c * 1e-4, -off_r * 1e-4))
         patches.append((plane, c, r))
         canvas.add([plane, plane * 2, None], c + off_c, r + off_r)
         expected, c_lo, r_lo = _naive_sums(patches)
         r0, r1, c0, c1 = canvas.used()
         assert (r0, c0) == (r_lo + off_r, c_lo + off_c)
-        np.testing.assert_array_equal(canvas.layers[0, r0:r1, c0:c1], expected[0, :r1 - r0, :c1 - c0])
-        np.testing.assert_array_equal(canvas.layers[1, r0:r1, c0:c1], 2 * expected[0, :r1 - r0, :c1 - c0])
-        assert not canvas.layers[2].any()
-        outside = canvas.layers.copy()
-        outside[:, r0:r1, c0:c1] = 0
-        assert not outside.any()   # nothing but the added cells
-        assert canvas.layers.base is not None   # a window of an allocation
-    assert len(allocations) > 1 and grown > 0   # grown within an allocation, and into a new one
-    assert canvas.shape[0] * canvas.shape[1] <= 6_000_000
+        rows, cols = canvas.shape
+        assert rows % 128 == 0 and cols % 128 == 0
+        band, flat, weight = (canvas.read(name, (0, rows, 0, cols)) for name in ("band", "flat", "weight"))
+        np.testing.assert_array_equal(band[r0:r1, c0:c1], expected[0, :r1 - r0, :c1 - c0])
+        np.testing.assert_array_equal(flat[r0:r1, c0:c1], 2 * expected[0, :r1 - r0, :c1 - c0])
+        assert not weight.any()
+        band[r0:r1, c0:c1] = 0
+        assert not band.any()   # nothing but the added cells
+    assert canvas.store.spilled > 0 and canvas.store.resident() <= 6
 
 
 def test_the_value_where_bands_were_added_is_the_whole_canvas_value():
     from touchroller_perception.world_map import WorldCanvas
 
     rng = np.random.default_rng(6)
-    canvas = WorldCanvas(1e-4, None, max_pixels=1_000_000)
+    canvas = WorldCanvas(1e-4, None)
     canvas.ensure(0, 0, 50, 30)
     weights = rng.uniform(0, 1, (30, 50)).astype(np.float32)
     weights[:5] = 0   # some cells known to no band
@@ -301,30 +343,32 @@ def test_the_value_where_bands_were_added_is_the_whole_canvas_value():
     assert not part[0][~known].any()
 
 
-def test_a_registration_prior_outside_what_was_mapped_reads_as_unmapped():
-    """The prior is computed where bands were added; a patch partly outside it is zero there, and so is
-    one partly outside the canvas of the pass's start (the canvas grew since)."""
-    from touchroller_perception.world_map import _Prior
+def test_the_registration_prior_is_the_map_of_the_passs_start_whatever_was_added_since():
+    """Copy-on-write: after `begin_prior`, bands added (to tiles that existed, to new ones, after the canvas
+    grew, with tiles spilled to disk) do not change the prior; cells mapped only since read as unmapped."""
+    from touchroller_perception.tiles import TileConfig
+    from touchroller_perception.world_map import WorldCanvas, _Prior
 
     rng = np.random.default_rng(7)
-    full_value, full_weight = np.zeros((2, 100, 120), np.float32)
-    full_value[20:60, 30:90] = rng.uniform(1, 2, (40, 60))
-    full_weight[20:60, 30:90] = rng.uniform(0.5, 1, (40, 60))
-    prior = _Prior(full_value[20:60, 30:90].copy(), full_weight[20:60, 30:90].copy(), 20, 30, 100, 120)
-    moved = prior.moved(5, 3)   # the canvas grew: 5 columns on the left, 3 rows at the bottom
-    for r0, c0, h, w in [(25, 40, 10, 10), (10, 20, 30, 80), (0, 0, 100, 120), (55, 85, 20, 30)]:
-        value, weight = moved.patch(r0 + 3, c0 + 5, h, w)
-        np.testing.assert_array_equal(value, full_value[r0:r0 + h, c0:c0 + w])
-        np.testing.assert_array_equal(weight, full_weight[r0:r0 + h, c0:c0 + w])
-    # cells the canvas grew by after the pass's start read as unmapped (zero weight), not as no patch: a
-    # band reaching past what the earlier passes mapped is still registered where they overlap
-    _, weight = moved.patch(2, 5, 10, 10)   # one row below the old canvas
-    assert not weight[0].any()
-    np.testing.assert_array_equal(weight[1:], full_weight[:9, :10])
-    _, weight = moved.patch(3, 4, 10, 10)   # one column left of it
-    assert not weight[:, 0].any()
-    np.testing.assert_array_equal(weight[:, 1:], full_weight[:10, :9])
-    assert not moved.patch(3 + 95, 5, 6, 10)[1].any() and not moved.patch(3, 5 + 111, 10, 10)[1].any()
+    canvas = WorldCanvas(1e-4, None, TileConfig(tile=32, cache_bytes=6 * 32 * 32 * 4), grow_px=0)
+    canvas.ensure(0, 0, 60, 40)
+    first = rng.uniform(0.5, 1, (3, 40, 60)).astype(np.float32)
+    canvas.add(first, 0, 0)
+    before = canvas.value_in(50.0, (0, 40, 0, 60))
+    prior = _Prior(canvas, 50.0)
+    dc, dr = canvas.ensure(-70, -30, 100, 80)   # grows on every side
+    assert (dc, dr) != (0, 0)
+    canvas.add(rng.uniform(0.5, 1, (3, 110, 170)).astype(np.float32), -70 + dc, -30 + dr)
+    prior = prior.moved(dc, dr)
+    value, weight = prior.patch(dr, dc, 40, 60)
+    np.testing.assert_array_equal(value, before[0])
+    np.testing.assert_array_equal(weight, before[1])
+    value, weight = prior.patch(dr - 20, dc - 10, 80, 90)   # around it: mapped only since, unmapped then
+    np.testing.assert_array_equal(weight[20:60, 10:70], before[1])
+    weight[20:60, 10:70] = 0
+    assert not weight.any()
+    assert canvas.value_in(50.0, (dr, dr + 40, dc, dc + 60))[1].min() > before[1].min()   # the map did change
+    assert canvas.store.spilled > 0
 
 
 def test_map_image_of_a_fixed_map_keeps_its_bounds_and_a_growing_one_is_cropped():
@@ -336,7 +380,7 @@ def test_map_image_of_a_fixed_map_keeps_its_bounds_and_a_growing_one_is_cropped(
     for bounds in ((0.0, 0.0, 0.01, 0.008), None):
         mapper = WorldMapper.__new__(WorldMapper)   # the canvas and the map's level only
         mapper.config = WorldMapConfig(bounds=bounds)
-        mapper.canvas = WorldCanvas(1e-4, bounds, 10**6)
+        mapper.canvas = WorldCanvas(1e-4, bounds)
         mapper._level = 100.0
         mapper.canvas.ensure(10, 15, 40, 35)
         mapper.canvas.add([band * 1.2, band, band], 10, 15)
@@ -384,12 +428,13 @@ def test_a_stack_of_the_three_layers_adds_as_the_planes_do():
     from touchroller_perception.world_map import WorldCanvas
 
     rng = np.random.default_rng(10)
-    canvases = [WorldCanvas(1e-4, (0.0, 0.0, 0.01, 0.008), 10**6) for _ in range(2)]
+    canvases = [WorldCanvas(1e-4, (0.0, 0.0, 0.01, 0.008)) for _ in range(2)]
     for c0, r0 in [(10, 20), (-5, 70), (90, -3)]:   # inside, and clipped at the map's sides
         planes = rng.uniform(0, 1, (3, 25, 15)).astype(np.float32)
         canvases[0].add(list(planes), c0, r0)
         canvases[1].add(planes, c0, r0)   # the (3, h, w) stack itself
-    np.testing.assert_array_equal(canvases[0].layers, canvases[1].layers)
+    for name in ("band", "flat", "weight"):
+        np.testing.assert_array_equal(canvases[0].read(name, (0, 80, 0, 100)), canvases[1].read(name, (0, 80, 0, 100)))
     assert canvases[0].used() == canvases[1].used() == (0, 80, 0, 100)
 
 

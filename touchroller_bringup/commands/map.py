@@ -24,6 +24,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
+import yaml
+
 from touchroller_bringup.commands import read_calibration
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
@@ -96,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
     if world:
         _check_world_arguments(args, out, camera)
         heights = [Output("the height map", out.parent / "height.tif")] if args.photometric else []
-        check_outputs([Output("--out", out), Output("the map's YAML", out.with_suffix(".yaml"))] + heights,
+        check_outputs([Output("--out", out), Output("the map's YAML", out.with_suffix(".yaml")),
+                       Output("the map's GeoTIFF", out.with_suffix(".tif"))] + heights,
                       {"BAG": args.bag, "--params": args.params})
     # OpenCV's own thread pool costs more than it saves on a 70-row band; the second core reads the bag.
     threads = cv2.getNumThreads()
@@ -158,12 +161,14 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     from touchroller_bringup.bags import ImageRecord, read_images_and_tf
     from touchroller_bringup.map_files import write_height_tif, write_world_map
     from touchroller_perception.stitching import StitcherConfig
+    from touchroller_perception.tiles import TileConfig
     from touchroller_perception.transforms import Transform, TransformBuffer
     from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
 
     buffer = TransformBuffer(cache_ns=None)
+    # the map's tiles beyond the memory cache are spilled beside the output (removed at the end)
     config = WorldMapConfig(resolution=args.resolution, latency=None if args.latency == "auto" else float(args.latency),
-                            register=not args.no_register)
+                            register=not args.no_register, tiles=TileConfig(folder=str(out.parent)))
     # the world mapper's strip stitcher only measures the roll (no lateral tracking, coarser columns)
     stitcher = StitcherConfig(band_rows=args.band_rows, search=args.search, lateral=False, column_bin=8)
     mapper = WorldMapper(camera, buffer_lookup(buffer, args.world_frame, args.cylinder_frame), config, stitcher,
@@ -218,8 +223,8 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                         mapper.push_band(band[0], item, band[1])
                     else:
                         mapper.push_band(band, item)
-                except MemoryError as exc:   # the canvas would pass its pixel bound (WorldMapConfig.max_pixels)
-                    raise UserError(str(exc)) from None
+                except MemoryError as exc:   # one band would span too many cells at this resolution
+                    raise _too_fine(args, exc) from None
                 frames += 1
     if frames == 0:
         raise UserError(f"{args.bag} has no images on {args.topic}")
@@ -227,28 +232,40 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
         raise UserError(f"the bag's TF has no {args.world_frame} -> {args.cylinder_frame} (frames: "
                         f"{', '.join(sorted(buffer.frames)) or 'none'}); give --world-frame/--cylinder-frame "
                         "or --strip")
-    mapper.finalise()
-    image = mapper.map_image()
-    if image.grey.size == 0:
-        if mapper.stats.beyond_max_pixels:
-            raise UserError(f"--resolution {args.resolution:g} m per pixel: the map would pass its pixel bound "
-                            f"(WorldMapConfig.max_pixels) from the first frame on, so nothing was mapped; give a "
-                            "coarser --resolution (the default is 1e-4)")
+    try:
+        mapper.finalise()
+    except MemoryError as exc:
+        raise _too_fine(args, exc) from None
+    if stats_warning := mapper.stats.storage_warning:
+        print(f"WARN: the map's tiles: {stats_warning}", file=sys.stderr)
+    view = mapper.view()
+    if view.extent() is None:
         raise UserError(_nothing_placed(buffer, args, first_stamp[0]))
     stats = mapper.stats
     latency, latency_yaml = latency_summary(stats)
-    png, yaml_path = write_world_map(out, image, args.world_frame, latency_yaml)
-    if mapper.height_source is not None:
-        layer = mapper.height_layer()
-        if layer is None:
-            print("WARN: no pass was mapped with a height: height.tif not written", file=sys.stderr)
-        else:
-            tif = write_height_tif(out.parent / "height.tif", layer, args.world_frame)
-            print(f"height map -> {tif} (float32 metres, NaN where unmapped)")
-    print(f"{frames} frames -> {png} + {yaml_path.name} ({image.grey.shape[1]}x{image.grey.shape[0]} px at "
-          f"{image.resolution * 1e3:g} mm, origin ({image.origin[0]:.4f}, {image.origin[1]:.4f}) m in "
-          f"{args.world_frame}); {stats.mapped} frames mapped in {stats.passes} pass(es), camera latency "
-          f"{latency}")
+    height_note = ""
+    try:
+        png, yaml_path = write_world_map(out, view, args.world_frame, latency_yaml)
+        if mapper.height_source is not None:
+            height_view = mapper.height_view()
+            if height_view is None or height_view.extent() is None:
+                print("WARN: no pass was mapped with a height: height.tif not written", file=sys.stderr)
+            else:
+                tif_path = write_height_tif(out.parent / "height.tif", height_view, args.world_frame)
+                height_note = f"height map -> {tif_path} (float32 metres, NaN where unmapped)"
+    finally:
+        mapper.close()   # the tiles spilled to disk
+    meta = yaml.safe_load(yaml_path.read_text(encoding="utf-8"))
+    tif = meta["geotiff"]
+    print(f"{frames} frames -> {png} + {yaml_path.name} + {tif['image']} ({tif['size'][0]}x{tif['size'][1]} px at "
+          f"{tif['resolution'] * 1e3:g} mm, origin ({tif['origin'][0]:.4f}, {tif['origin'][1]:.4f}) m in "
+          f"{args.world_frame}; {png.name} 1/{meta['view']['downscale']}, grey {meta['view']['stretch'][0]:g}.."
+          f"{meta['view']['stretch'][1]:g} stretched); {stats.mapped} frames mapped in {stats.passes} pass(es), "
+          f"camera latency {latency}")
+    if height_note:
+        print(height_note)
+    if stats.left_out_storage_full:
+        print(f"WARN: {stats.left_out_storage_full} frames not mapped (the disk is full)", file=sys.stderr)
     if stats.latency_warning:
         print(f"WARN: {stats.latency_warning}; give --latency SECONDS if it is known", file=sys.stderr)
     return 0
@@ -269,6 +286,11 @@ def _height_source(args: argparse.Namespace) -> Any:
     except (OSError, ValueError, KeyError) as exc:
         raise UserError(f"--photometric {args.photometric}: not a photometric model ({exc})") from None
     return HeightSource(model, _reference(args.reference))
+
+
+def _too_fine(args: argparse.Namespace, exc: MemoryError) -> UserError:
+    return UserError(f"--resolution {args.resolution:g} m per pixel: {exc}; give a coarser --resolution (the "
+                     "default is 1e-4)")
 
 
 def _nothing_placed(buffer, args: argparse.Namespace, first_stamp: int | None) -> str:

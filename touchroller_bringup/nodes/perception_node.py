@@ -97,7 +97,7 @@ from touchroller_bringup.tf import TransformListener, TransformPublisher, camera
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
-from touchroller_perception.map_tiles import TileConfig, world_map_raster
+from touchroller_perception.map_tiles import TileConfig, choose_level, world_map_raster
 from touchroller_perception.stitching import Stitcher, StitcherConfig
 from touchroller_perception.transforms import TransformBuffer, TransformError
 from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
@@ -667,7 +667,7 @@ class PerceptionNode(Node):
         world = self.world
         if world is not None:
             try:
-                png, yaml_path = write_world_map(path, world.map_image(), self.world_frame,
+                png, yaml_path = write_world_map(path, world.view(), self.world_frame,
                                                  latency_summary(world.stats)[1])
             except UserError as exc:
                 self.get_logger().error(f"map not saved: {exc}")
@@ -717,9 +717,15 @@ class PerceptionNode(Node):
         return HeightSource(model, reference, self._height_config())
 
     def _publish_height(self, stamp_ns: int) -> None:
-        """The world height map on map_height: 32FC1 metres (REP 118), row 0 the top as the map, NaN unmapped."""
+        """The world height map on map_height: 32FC1 metres (REP 118), row 0 the top as the map, NaN unmapped,
+        at the level of detail of the map view (`map.view_max_pixels`)."""
         assert self.world is not None
-        layer = self.world.height_layer()
+        box = self.world.level_extent(0)
+        if box is None:
+            return
+        # the level the map view has (within map.view_max_pixels), read from the tiles
+        layer = self.world.height_level(choose_level(box[1] - box[0], box[3] - box[2],
+                                                     self.map_views.config.max_pixels))
         if layer is None or layer.height.size == 0:
             return
         values = np.ascontiguousarray(layer.height[::-1], np.float32)
@@ -743,9 +749,11 @@ class PerceptionNode(Node):
                 return None
             try:
                 if self.world is not None:
-                    image = self.world.map_image()
-                    world = world_map_raster(self.world, image)
-                    inspected = with_height(image, self.world) if image.grey.size else None
+                    world = world_map_raster(self.world, self.map_views.config.max_pixels)
+                    if all_findings or self.live_findings.due(self.get_clock().now().nanoseconds * 1e-9):
+                        # the inspection reads the map at full resolution (a copy, inspected outside the lock)
+                        image = self.world.map_image()
+                        inspected = with_height(image, self.world) if image.grey.size else None
                 else:
                     tactile_map = self.stitcher.map_image()
             except Exception as exc:  # noqa: BLE001
@@ -809,8 +817,8 @@ class PerceptionNode(Node):
         }
         world, stitcher = self.world, self.stitcher
         dropped_rows = stitcher.dropped_rows if stitcher is not None else 0
-        beyond = world.stats.beyond_max_pixels if world is not None else 0
-        values.update({"map_rows_dropped": dropped_rows, "map_frames_beyond_max_pixels": beyond})
+        left_out = world.stats.left_out_storage_full if world is not None else 0
+        values.update({"map_rows_dropped": dropped_rows, "map_frames_left_out_disk_full": left_out})
         if world is not None:
             values.update({"map_frames_mapped": world.stats.mapped, "map_passes": world.stats.passes,
                            "map_latency_ms": float("nan") if world.stats.latency_s is None
@@ -840,8 +848,9 @@ class PerceptionNode(Node):
         if dropped_rows:
             return Status(WARN, f"map longer than map.max_rows: its {dropped_rows} oldest rows dropped (a sweep "
                                 "starts a new map)", values)
-        if beyond:
-            return Status(WARN, f"world map at its size bound: {beyond} frames not mapped", values)
+        if left_out and world is not None:
+            return Status(WARN, f"world map: the disk is full, {left_out} frames not mapped "
+                                f"({world.stats.storage_warning})", values)
         if world is not None and world.stats.latency_warning:
             return Status(WARN, world.stats.latency_warning, values)
         return Status(OK, "detecting contacts", values)

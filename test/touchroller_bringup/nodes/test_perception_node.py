@@ -619,7 +619,10 @@ def test_the_world_height_map_is_published_latched_as_32fc1_metres(ros_context, 
         height = np.full((3, 4), np.nan, np.float32)
         height[0, :2] = (1e-5, 2e-5)          # rows grow with y: row 0 is the bottom
         grey = np.zeros((3, 4), np.uint8)
-        world = SimpleNamespace(map_image=lambda: WorldMapImage(grey, grey, 1e-4, (0.4, -0.1)),
+        world = SimpleNamespace(level_extent=lambda level: (0, 3, 0, 4),
+                                level_image=lambda level: WorldMapImage(grey, grey, 1e-4, (0.4, -0.1)),
+                                height_level=lambda level: HeightMapLayer(height, (0.4, -0.1), 1e-4),
+                                map_image=lambda: WorldMapImage(grey, grey, 1e-4, (0.4, -0.1)),   # live findings
                                 height_layer=lambda: HeightMapLayer(height, (0.4, -0.1), 1e-4),
                                 stats=SimpleNamespace(pressed_height=None), camera=SimpleNamespace(radius=0.01))
         node.world, node._map_dirty = world, True

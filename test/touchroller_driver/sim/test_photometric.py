@@ -57,4 +57,4 @@ def test_without_a_photometric_model_there_is_no_height():
     sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
     mapper = WorldMapper(sensor.camera, lambda stamps: np.full((len(stamps), 4, 4), np.nan), WorldMapConfig())
     assert mapper.height_band(np.zeros((480, 640, 3), np.uint8)) is None and mapper.height_layer() is None
-    assert mapper.canvas.depth == 3
+    assert set(mapper.canvas.store.layers) == {"band", "flat", "weight"}   # no height layers
