@@ -10,13 +10,10 @@ from touchroller_driver.arm import (
     DEFAULT_MOUNT_RPY,
     DEFAULT_MOUNT_XYZ,
     DEFAULT_START_POSE,
-    ArmError,
-    SimulatedArm,
-    SweepSequencer,
     mount_transform,
     plan_raster,
 )
-from touchroller_driver.path import BlendedPath
+from touchroller_driver.path import BlendedPath, corner_accelerations, least_blend, rounded_polyline
 
 MOUNT = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
 
@@ -44,14 +41,42 @@ def test_a_path_profile_touches_down_and_lifts_off_at_speed(profile):
     assert len(edges) == 4 and (speed[edges] > 0.015).all()
 
 
-def test_ramp_plans_have_no_path_and_the_sequencer_refuses_a_path_plan():
-    assert _plan("ramp").path is None
-    arm = SimulatedArm(DEFAULT_START_POSE)
-    arm.connect()
-    with pytest.raises(ArmError, match="simulate_sweep"):
-        SweepSequencer(arm).start(_plan("blend"))
+def test_ramp_plans_have_no_path_and_path_plans_run_each_pass_as_one_path_move():
+    ramp = _plan("ramp")
+    assert ramp.path is None and ramp.motion() == (ramp.segments, ramp.rolls)
+    plan = _plan("blend")
+    moves, rolls = plan.motion()
+    assert [type(m).__name__ for m in moves] == ["Segment", "PathSegment"] * 2 and rolls == (1, 3)
+    for k, index in enumerate(rolls):   # before, touchdown, lift-off, after: the ramp pass's press and roll
+        np.testing.assert_allclose(moves[index].waypoints[1], plan.segments[plan.rolls[k] - 1].target)
+        np.testing.assert_allclose(moves[index].waypoints[2], plan.segments[plan.rolls[k]].target)
+        np.testing.assert_allclose(moves[index - 1].target, moves[index].waypoints[0])
     with pytest.raises(ValueError, match="sweep.profile"):
         _plan("zigzag")
+
+
+@pytest.mark.parametrize("speed", [0.005, 0.02, 0.1])
+def test_corner_accelerations_and_the_least_blend_agree_with_the_rounded_path(speed):
+    points = np.array([[0, 0, 0.01, 0, 0, 0], [0.01, 0, 0, 0, 0, 0], [0.05, 0, 0, 0, 0, 0],
+                       [0.05, 0.03, 0, 0, 0, 0]], float)
+    r = least_blend(points, speed, 0.5)
+    needed = corner_accelerations(points, speed, r)
+    assert needed[[0, -1]].tolist() == [0.0, 0.0]
+    if r <= 0.005:   # half the shortest leg: the radius fits
+        assert needed.max() == pytest.approx(0.5, rel=1e-6)
+    else:   # clamped to half a leg, the corner is too tight at this speed (an arm refuses the path)
+        assert speed == 0.1 and needed.max() > 0.5
+    assert np.isinf(corner_accelerations(points, speed, 0.0)[1:-1]).all()   # a sharp turn at speed
+    # the rounded path's curvature (turning angle per arc length) at the sharpest corner (the right angle)
+    blend = 0.004
+    dense = rounded_polyline(points, blend, step=blend / 400)[:, :3]
+    steps = np.diff(dense, axis=0)
+    lengths = np.linalg.norm(steps, axis=1)
+    heading = steps / lengths[:, None]
+    w = 20
+    turn = np.arccos(np.clip(np.einsum("ij,ij->i", heading[:-w], heading[w:]), -1, 1))
+    arc = np.convolve(lengths, np.ones(w), "valid")[1:]
+    assert (turn / arc).max() == pytest.approx(corner_accelerations(points, 1.0, blend)[2], rel=0.05)
 
 
 @settings(max_examples=30, deadline=None)
