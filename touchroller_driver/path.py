@@ -187,6 +187,24 @@ def _line(a: np.ndarray, b: np.ndarray, step: float) -> list[np.ndarray]:
     return list(a + (b - a) * np.linspace(0.0, 1.0, n + 1)[1:, None])
 
 
+def fraction_along_path(waypoints: ArrayLike, pose: ArrayLike) -> float:
+    """Fraction (0..1) of a polyline's length up to the point on it nearest to the pose's position."""
+    points = np.asarray(waypoints, np.float64)[:, :3]
+    here = np.asarray(pose, np.float64)[:3]
+    if len(points) < 2 or not np.all(np.isfinite(here)):
+        return 1.0 if np.all(np.isfinite(here)) else float("nan")
+    starts, legs = points[:-1], np.diff(points, axis=0)
+    lengths_sq = np.einsum("ij,ij->i", legs, legs)
+    total = float(np.sqrt(lengths_sq).sum())
+    if total == 0.0:
+        return 1.0
+    t = np.clip(np.einsum("ij,ij->i", here - starts, legs) / np.where(lengths_sq > 0, lengths_sq, 1.0), 0.0, 1.0)
+    gaps = np.linalg.norm(starts + t[:, None] * legs - here, axis=1)
+    k = int(np.argmin(gaps))
+    before = float(np.sqrt(lengths_sq[:k]).sum())
+    return min(max((before + float(t[k]) * float(np.sqrt(lengths_sq[k]))) / total, 0.0), 1.0)
+
+
 def raster_waypoints(passes: Sequence[tuple[ArrayLike, ArrayLike]], above: float, lead: float) -> np.ndarray:
     """Tool poses of a raster rolled at speed: for every pass (pressed start pose, pressed end pose), a
     point `above` m higher and `lead` m before its start, the start, the end, and a point `above` higher

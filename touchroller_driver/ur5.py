@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from touchroller_driver.arm import ArmError, ArmLimits, check_path_start
-from touchroller_driver.path import blend_radii
+from touchroller_driver.path import blend_radii, fraction_along_path
 from touchroller_driver.ur_rtde_process import CALL_TIMEOUT_S, OPEN_TIMEOUT_S, LocalRtde, RtdeChild, RtdeGone
 
 # Every ur_rtde call this module makes, with the positional arguments it passes (besides self).
@@ -332,7 +332,7 @@ class UR5Arm:
     def progress(self) -> float:
         """Fraction (0..1) of the current or last move (of a path: of its length), from the measured TCP."""
         if self._move_path is not None:
-            return _fraction_along_path(self._move_path, self.tcp_pose())
+            return fraction_along_path(self._move_path, self.tcp_pose())
         if self._move_start is None or self._move_target is None:
             return self._halted_fraction
         return _fraction_along(self._move_start, self._move_target, self.tcp_pose())
@@ -379,7 +379,7 @@ class UR5Arm:
             return
         try:
             if self._move_path is not None and self._receive is not None:
-                self._halted_fraction = _fraction_along_path(self._move_path, self.tcp_pose())
+                self._halted_fraction = fraction_along_path(self._move_path, self.tcp_pose())
             elif self._move_start is not None and self._move_target is not None and self._receive is not None:
                 self._halted_fraction = _fraction_along(self._move_start, self._move_target, self.tcp_pose())
             self._move_start = self._move_target = self._move_path = None
@@ -409,24 +409,6 @@ def _fraction_along(start: np.ndarray, target: np.ndarray, pose: np.ndarray) -> 
         return 1.0
     fraction = float((pose[:3] - start[:3]) @ delta) / length_sq
     return min(max(fraction, 0.0), 1.0) if math.isfinite(fraction) else float("nan")
-
-
-def _fraction_along_path(waypoints: np.ndarray, pose: np.ndarray) -> float:
-    """Fraction (0..1) of a polyline's length up to the point on it nearest to the pose's position."""
-    points = np.asarray(waypoints, np.float64)[:, :3]
-    here = np.asarray(pose, np.float64)[:3]
-    if len(points) < 2 or not np.all(np.isfinite(here)):
-        return 1.0 if np.all(np.isfinite(here)) else float("nan")
-    starts, legs = points[:-1], np.diff(points, axis=0)
-    lengths_sq = np.einsum("ij,ij->i", legs, legs)
-    total = float(np.sqrt(lengths_sq).sum())
-    if total == 0.0:
-        return 1.0
-    t = np.clip(np.einsum("ij,ij->i", here - starts, legs) / np.where(lengths_sq > 0, lengths_sq, 1.0), 0.0, 1.0)
-    gaps = np.linalg.norm(starts + t[:, None] * legs - here, axis=1)
-    k = int(np.argmin(gaps))
-    before = float(np.sqrt(lengths_sq[:k]).sum())
-    return min(max((before + float(t[k]) * float(np.sqrt(lengths_sq[k]))) / total, 0.0), 1.0)
 
 
 def _one_line(exc: BaseException) -> str:
