@@ -779,9 +779,12 @@ class SweepSequencer:
                                    asynchronous=True)
             else:
                 self.arm.move_linear(segment.target, segment.speed, segment.accel, asynchronous=True)
-        except ArmError as exc:
-            self.arm.stop()
-            self._status = self._make_status(SweepPhase.FAULT, segment.name, str(exc))
+        except Exception as exc:  # noqa: BLE001 - whatever failed (a refusal, a bug), the arm stops: FAULT
+            try:
+                self.arm.stop()
+            finally:
+                message = str(exc) if isinstance(exc, ArmError) else f"{type(exc).__name__}: {exc}"
+                self._status = self._make_status(SweepPhase.FAULT, segment.name, " ".join(message.split()))
             return
         self._status = self._make_status(phase, segment.name)
 

@@ -494,3 +494,25 @@ def test_move_path_refuses_a_sharp_corner_at_speed_and_a_path_that_starts_elsewh
     arm.move_path(corner, 0.02, 0.1, 0.01)   # rounded by 1 cm: 0.02^2 * sqrt(2) / 0.01 = 0.057 m/s^2
     clock.t += 10.0
     np.testing.assert_allclose(arm.tcp_pose(), corner[-1], atol=1e-9)
+
+
+def test_any_exception_from_a_motion_command_stops_the_arm_and_ends_the_sweep_in_fault():
+    class BrokenPathArm(SimulatedArm):
+        stops = 0
+
+        def move_path(self, *args, **kwargs):
+            raise TypeError("a bug in the back end")
+
+        def stop(self) -> None:
+            BrokenPathArm.stops += 1
+            super().stop()
+
+    plan = _raster("blend")
+    arm = BrokenPathArm(plan.segments[0].target, clock=(clock := FakeClock()))
+    arm.connect()
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan)   # the first move is linear: it runs
+    run_traced(arm, clock, sequencer)
+    assert sequencer.status.phase is SweepPhase.FAULT and not sequencer.active
+    assert "TypeError: a bug in the back end" in sequencer.status.message and BrokenPathArm.stops == 1
+    assert not arm.is_moving()

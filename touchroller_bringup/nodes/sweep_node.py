@@ -675,7 +675,7 @@ class SweepNode(Node):
                 if fault is not None:
                     status = SweepStatus(SweepPhase.FAULT, None, status.roll_progress, fault)
             pose = self.arm.tcp_pose()
-        except (ArmError, RuntimeError) as exc:  # e.g. the connection dropped mid-call
+        except Exception as exc:  # noqa: BLE001 - e.g. the connection dropped mid-call; whatever it is, stop
             self.sequencer.stop(str(exc))
             status = SweepStatus(SweepPhase.FAULT, self.sequencer.status.segment,
                                  self.sequencer.status.roll_progress, str(exc))
