@@ -20,8 +20,10 @@ What the driver gives and what it does not, and so how this back end works:
   program starting while our move runs (it ends our program) is a fault.
 - `robot_program_running` is the External Control program's state, not ours: false while our moves run.
 - Each move is one movel to a checked target (`ArmLimits` before anything is published; a NaN never
-  reaches the robot). If this process hangs or dies, the robot finishes at most the current segment
-  and stops there: nothing of ours is queued behind it, and there is no watchdog to kick.
+  reaches the robot); a pass of `sweep.profile` blend/constant is one program of movels with blend radii
+  (`path_program`), every waypoint and corner checked first. If this process hangs or dies, the robot
+  finishes at most the current segment (or pass) and stops there: nothing of ours is queued behind it,
+  and there is no watchdog to kick.
 - `stop()` sends `stopl(a)` when a program of ours may still be moving the robot, and never interrupts
   a program it did not start (an idle sweep node leaves MoveIt's External Control program alone).
 - `fault()`: a safety mode other than NORMAL/REDUCED (protective, safeguard or emergency stop, ...), a

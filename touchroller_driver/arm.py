@@ -678,15 +678,20 @@ def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: flo
 
 def plan_duration(plan: SweepPlan, from_pose: ArrayLike | None = None) -> float:
     """Seconds the plan's moves take at their speeds and accelerations (trapezoid profiles, rest to rest,
-    as the simulated arm moves; a UR blends nothing between our moves either), from `from_pose` (the
-    arm's pose now), or from the first target when it is not known."""
-    if not plan.segments:
+    as the simulated arm moves; a UR blends nothing between our moves either; a path of `sweep.profile`
+    blend/constant is one trapezoid over its waypoints' polyline), from `from_pose` (the arm's pose now),
+    or from the first target when it is not known."""
+    moves = plan.motion()[0]
+    if not moves:
         return 0.0
-    targets = np.array([segment.target[:3] for segment in plan.segments])
+    targets = np.array([move.target[:3] for move in moves])
     start = targets[0] if from_pose is None else as_pose(from_pose)[:3]
     distances = np.linalg.norm(np.diff(np.vstack([start, targets]), axis=0), axis=1)
-    speeds = np.array([segment.speed for segment in plan.segments])
-    accels = np.array([segment.accel for segment in plan.segments])
+    for k, move in enumerate(moves):   # a path's length is its polyline's (a blend only shortens it)
+        if isinstance(move, PathSegment):
+            distances[k] = float(np.linalg.norm(np.diff(move.waypoints[:, :3], axis=0), axis=1).sum())
+    speeds = np.array([move.speed for move in moves])
+    accels = np.array([move.accel for move in moves])
     # TrapezoidProfile's duration, vectorised: 2 v/a + (d - v^2/a)/v with v = min(v_max, sqrt(a d))
     peaks = np.minimum(speeds, np.sqrt(accels * distances))
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -516,3 +516,19 @@ def test_any_exception_from_a_motion_command_stops_the_arm_and_ends_the_sweep_in
     assert sequencer.status.phase is SweepPhase.FAULT and not sequencer.active
     assert "TypeError: a bug in the back end" in sequencer.status.message and BrokenPathArm.stops == 1
     assert not arm.is_moving()
+
+
+@pytest.mark.parametrize("profile", ["blend", "constant"])
+def test_plan_duration_of_a_path_plan_bounds_the_simulated_run(profile):
+    from touchroller_driver.arm import plan_duration
+
+    plan = _raster(profile)
+    arm = SimulatedArm(plan.segments[0].target, clock=(clock := FakeClock()))
+    arm.connect()
+    sequencer = SweepSequencer(arm)
+    start = clock.t
+    sequencer.start(plan)
+    run_traced(arm, clock, sequencer, dt=0.001)
+    taken = clock.t - start
+    # at least the run (a blend only shortens the path), and not much more than it
+    assert taken - 0.01 <= plan_duration(plan, plan.segments[0].target) <= 1.05 * taken

@@ -5,6 +5,8 @@ planned and checked whole on a planner thread (every segment against `arm.max_sp
 `arm.reach`, read-only at run time; at most MAX_PASSES passes; at most `sweep.max_duration` from where the
 arm is), then the arm thread commits to it just before the first motion command; a start its caller
 stopped waiting for (COMMAND_TIMEOUT_S, or shutdown) is abandoned instead, and never moves the arm.
+`sweep.profile` (ramp, blend, constant) says how each pass moves: stop-and-go linear moves, or the pass as
+one blended path through the arm (`Arm.move_path`), every waypoint and corner checked first (docs/ur5.md).
 Start-up parameter values get the on-set callback's checks (one line, exit 2). All arm calls happen on
 one worker thread; a fault (protective/emergency stop, lost connection, refused command, a robot that
 stopped answering), during a sweep or while idle, stops the sweep, shows as ERROR on `/diagnostics` and
