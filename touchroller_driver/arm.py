@@ -8,6 +8,7 @@ has faulted refuses further motion until `reset_fault()` clears the fault (what 
 """
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -413,11 +414,21 @@ class SweepPlan:
     lengths: tuple[float, ...]
     passes: tuple[RasterPass, ...] = ()
     profile: str = "ramp"              # SWEEP_PROFILES
-    path: BlendedPath | None = None    # profile blend/constant: the whole raster as one path at speed
+    #: profile blend/constant: (waypoints, speed, accel, blend) of the whole raster as one path (`path`)
+    raster_path: tuple[np.ndarray, float, float, float] | None = None
     #: profile blend/constant: what an arm runs (a linear move above each pass's start, then the pass as
     #: one PathSegment), and the indices of the passes among them
     path_moves: tuple[Move, ...] = ()
     path_rolls: tuple[int, ...] = ()
+
+    @functools.cached_property
+    def path(self) -> BlendedPath | None:
+        """profile blend/constant: the whole raster as one path at speed (what `simulate_sweep` films),
+        made on first use: planning and checking a start never samples it (a long raster's is large)."""
+        if self.raster_path is None:
+            return None
+        waypoints, speed, accel, blend = self.raster_path
+        return BlendedPath(waypoints, speed, accel, blend)
 
     def motion(self) -> tuple[tuple[Move, ...], tuple[int, ...]]:
         """(moves, indices of the rolls among them) an arm runs: the segments (ramp) or the path moves."""
@@ -602,14 +613,16 @@ def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transfor
         segments.append(Segment("lift", tool_at(finish, clearance), slow, accel))
         passes.append(RasterPass((float(begin[0]), float(begin[1])), (float(finish[0]), float(finish[1])),
                                  (centre - usable_width / 2.0, centre + usable_width / 2.0)))
-    path, moves, path_rolls = None, (), ()
+    whole: tuple[np.ndarray, float, float, float] | None = None
+    moves: tuple[Move, ...] = ()
+    path_rolls: tuple[int, ...] = ()
     if profile != "ramp":
         rolled = [(segments[k - 1].target, segments[k].target) for k in rolls]
         radius = blend if profile == "blend" else 0.0
-        path = BlendedPath(raster_waypoints(rolled, depth + clearance, lead), speed, accel, radius)
+        whole = (raster_waypoints(rolled, depth + clearance, lead), speed, accel, radius)
         moves, path_rolls = _path_moves(rolled, above=depth + clearance, lead=lead, speed=speed, accel=accel,
                                         slow=slow, blend=radius)
-    return SweepPlan(tuple(segments), tuple(rolls), tuple([length] * len(passes)), tuple(passes), profile, path,
+    return SweepPlan(tuple(segments), tuple(rolls), tuple([length] * len(passes)), tuple(passes), profile, whole,
                      moves, path_rolls)
 
 

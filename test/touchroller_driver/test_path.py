@@ -93,3 +93,15 @@ def test_property_a_path_is_continuous_ends_where_it_should_and_holds_its_speed(
     np.testing.assert_allclose(poses[0], path.waypoints[0], atol=1e-9)
     np.testing.assert_allclose(poses[-1], path.waypoints[-1], atol=1e-6)   # to within a micrometre
     assert path.duration >= path.length / (0.02 * (1 + 4 * jitter)) + pause - 1e-3
+
+
+def test_planning_a_long_blended_raster_never_samples_its_whole_path():
+    """The raster's whole path (what simulate_sweep films) is made on first use only: 0.9 m x 0.8 m in 1 mm
+    passes would be 720 m of path sampled every 0.2 mm, for 18 h at 11 mm/s at 1 ms, gigabytes."""
+    plan = plan_raster((0.0, 0.0, 0.2, 3.141592653589793, 0.0, 0.0), area=(-0.45, -0.4, 0.9, 0.8), mount=MOUNT,
+                       speed=0.011, accel=0.1, depth=5e-4, clearance=0.002, usable_width=0.001, overlap=0.2,
+                       profile="blend")
+    assert len(plan.passes) == 1000 and "path" not in vars(plan)
+    assert len(plan.motion()[0]) == 2000
+    small = _plan("blend")
+    assert small.path is not None and "path" in vars(small)   # made when asked for, then kept
