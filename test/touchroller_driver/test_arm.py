@@ -532,3 +532,15 @@ def test_plan_duration_of_a_path_plan_bounds_the_simulated_run(profile):
     taken = clock.t - start
     # at least the run (a blend only shortens the path), and not much more than it
     assert taken - 0.01 <= plan_duration(plan, plan.segments[0].target) <= 1.05 * taken
+
+
+def test_a_single_roll_with_a_path_profile_is_one_path_and_must_lift_off():
+    plan = plan_sweep(START, length=0.05, speed=0.011, accel=0.1, depth=5e-4, clearance=0.002, profile="blend")
+    moves, rolls = plan.motion()
+    assert [m.name for m in moves] == ["to_start", "pass"] and rolls == (1,)
+    np.testing.assert_allclose(moves[1].waypoints[1:3], [plan.segments[1].target, plan.segments[2].target])
+    assert moves[1].waypoints[-1][2] == pytest.approx(START[2] + 0.002)   # lifted back to the clearance
+    with pytest.raises(ArmLimitError, match="sweep.retract"):
+        plan_sweep(START, length=0.05, speed=0.011, accel=0.1, depth=5e-4, retract=False, profile="constant")
+    with pytest.raises(ArmLimitError, match="sweep.profile"):
+        plan_sweep(START, length=0.05, speed=0.011, accel=0.1, depth=5e-4, profile="fast")
