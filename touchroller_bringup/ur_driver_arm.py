@@ -20,8 +20,10 @@ What the driver gives and what it does not, and so how this back end works:
   program starting while our move runs (it ends our program) is a fault.
 - `robot_program_running` is the External Control program's state, not ours: false while our moves run.
 - Each move is one movel to a checked target (`ArmLimits` before anything is published; a NaN never
-  reaches the robot). If this process hangs or dies, the robot finishes at most the current segment
-  and stops there: nothing of ours is queued behind it, and there is no watchdog to kick.
+  reaches the robot); a pass of `sweep.profile` blend/constant is one program of movels with blend radii
+  (`path_program`), every waypoint and corner checked first. If this process hangs or dies, the robot
+  finishes at most the current segment (or pass) and stops there: nothing of ours is queued behind it,
+  and there is no watchdog to kick.
 - `stop()` sends `stopl(a)` when a program of ours may still be moving the robot, and never interrupts
   a program it did not start (an idle sweep node leaves MoveIt's External Control program alone).
 - `fault()`: a safety mode other than NORMAL/REDUCED (protective, safeguard or emergency stop, ...), a
@@ -55,7 +57,8 @@ from std_msgs.msg import Bool, String
 from std_srvs.srv import Trigger
 
 from touchroller_bringup.tf import TransformListener
-from touchroller_driver.arm import ArmError, ArmLimits, as_pose
+from touchroller_driver.arm import ArmError, ArmLimits, as_pose, check_path_start
+from touchroller_driver.path import blend_radii, fraction_along_path
 from touchroller_perception.transforms import TransformBuffer, TransformError
 
 # ur_dashboard_msgs/msg/SafetyMode and RobotMode values (the messages' constants, here so that the
@@ -212,6 +215,24 @@ def movel_program(target: ArrayLike, speed: float, accel: float) -> str:
             "end\n")
 
 
+def path_program(waypoints: ArrayLike, speed: float, accel: float, blend: float) -> str:
+    """A path as one URScript program: a movel to every waypoint with its blend radius (`blend_radii`: 0
+    at both ends, so the robot stops only at the last), checked values only (see `URDriverArm.move_path`)."""
+    points = np.asarray(waypoints, np.float64)
+    if points.ndim != 2 or points.shape[1] != 6 or len(points) < 1:
+        raise ArmError(f"a path is waypoints (N, 6), got an array of shape {points.shape}")
+    if not (math.isfinite(speed) and speed > 0 and math.isfinite(accel) and accel > 0
+            and math.isfinite(blend) and blend >= 0):
+        raise ArmError(f"movel needs a finite speed and acceleration > 0 and a blend >= 0, got v={speed}, "
+                       f"a={accel}, r={blend}")
+    lines = []
+    for pose, radius in zip(points, blend_radii(points, blend), strict=True):
+        values = ", ".join(format_number(v) for v in as_pose(pose))
+        lines.append(f"  movel(p[{values}], a={format_number(accel)}, v={format_number(speed)}, "
+                     f"r={format_number(float(radius))})\n")
+    return f"def {MOVE_PROGRAM}():\n{''.join(lines)}end\n"
+
+
 def stopl_program(deceleration: float) -> str:
     if not (math.isfinite(deceleration) and deceleration > 0):
         raise ArmError(f"stopl needs a finite deceleration > 0, got {deceleration}")
@@ -224,6 +245,7 @@ class _Move:
     target: np.ndarray
     sent: float                  # monotonic time the program was published
     programs_started: int        # the External Control program's starts seen when it was sent
+    path: np.ndarray | None = None   # a path's waypoints (N, 6): progress is along them
 
 
 class URDriverArm:
@@ -377,7 +399,7 @@ class URDriverArm:
         move = self._move
         if move is None:
             return self._halted_fraction
-        return _fraction_along(move.start, move.target, self.tcp_pose())
+        return _move_fraction(move, self.tcp_pose())
 
     # -- motion --------------------------------------------------------------------------------
     def move_linear(self, target_pose: ArrayLike, speed: float, accel: float, asynchronous: bool = True) -> None:
@@ -399,15 +421,43 @@ class URDriverArm:
             self._move = _Move(start, target, time.monotonic(), self._program_starts)
         self._publish(program)
         if not asynchronous:
-            while self.is_moving():
-                if self._aborted.is_set():
-                    self.stop()
-                    self._check_aborted()
-                fault = self.fault()
-                if fault is not None:
-                    self.stop()
-                    raise ArmError(f"arm faulted: {fault}")
-                time.sleep(0.01)
+            self._wait_for_move()
+
+    def move_path(self, waypoints: ArrayLike, speed: float, accel: float, blend: float,
+                  asynchronous: bool = True) -> None:
+        """Publish one program of movels through the waypoints with blend radii (`path_program`): touchdown
+        and lift-off at speed. Everything is checked first (every waypoint and corner, `ArmLimits.check_path`;
+        the tool at the first waypoint; a healthy driver with a script subscriber), so a refused path
+        publishes nothing. If this process hangs, the robot finishes at most this path (one pass)."""
+        points = self.limits.check_path(waypoints, speed, accel, blend)
+        program = path_program(points, speed, accel, blend)
+        self._check_aborted()
+        if self._node is None:
+            raise ArmError(self._fault or "arm not connected")
+        fault = self.fault()
+        if fault is not None:
+            raise ArmError(f"arm faulted: {fault}")
+        if self._node.count_subscribers(self._script_pub.topic_name) == 0:
+            raise ArmError(f"nobody subscribes to {self._script_pub.topic_name}: is the driver's urscript_interface "
+                           "running?")
+        start = self.tcp_pose()
+        check_path_start(start, points)
+        with self._lock:
+            self._move = _Move(start, points[-1], time.monotonic(), self._program_starts, points)
+        self._publish(program)
+        if not asynchronous:
+            self._wait_for_move()
+
+    def _wait_for_move(self) -> None:
+        while self.is_moving():
+            if self._aborted.is_set():
+                self.stop()
+                self._check_aborted()
+            fault = self.fault()
+            if fault is not None:
+                self.stop()
+                raise ArmError(f"arm faulted: {fault}")
+            time.sleep(0.01)
 
     def stop(self) -> None:
         """stopl, when a movel of ours may still move the robot; nothing otherwise (a program we did not start
@@ -417,7 +467,7 @@ class URDriverArm:
             return
         with self._lock:
             pose = self._pose
-        self._halted_fraction = _fraction_along(move.start, move.target, pose) if pose is not None else 0.0
+        self._halted_fraction = _move_fraction(move, pose) if pose is not None else 0.0
         self._move = None
         try:
             self._publish(stopl_program(self.config.stop_deceleration))
@@ -604,6 +654,12 @@ def _distance(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray) 
     return float(np.linalg.norm(np.asarray(a, np.float64)[:3] - np.asarray(b, np.float64)[:3]))
 
 
+def _move_fraction(move: _Move, pose: np.ndarray) -> float:
+    if move.path is not None:
+        return fraction_along_path(move.path, pose)
+    return _fraction_along(move.start, move.target, pose)
+
+
 def _fraction_along(start: np.ndarray, target: np.ndarray, pose: np.ndarray) -> float:
     delta = target[:3] - start[:3]
     length_sq = float(delta @ delta)
@@ -614,4 +670,4 @@ def _fraction_along(start: np.ndarray, target: np.ndarray, pose: np.ndarray) -> 
 
 
 __all__ = ["UR_DRIVER_PARAMETERS", "URDriverArm", "URDriverConfig", "declare_ur_driver_parameters",
-           "make_ur_driver_arm", "movel_program", "stopl_program", "ur_driver_config"]
+           "make_ur_driver_arm", "movel_program", "path_program", "stopl_program", "ur_driver_config"]

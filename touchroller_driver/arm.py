@@ -8,6 +8,7 @@ has faulted refuses further motion until `reset_fault()` clears the fault (what 
 """
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -20,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from touchroller_driver.motion import TrapezoidProfile
-from touchroller_driver.path import BlendedPath, raster_waypoints
+from touchroller_driver.path import BlendedPath, blend_radii, corner_accelerations, least_blend, raster_waypoints
 from touchroller_perception.transforms import Transform
 
 
@@ -74,6 +75,30 @@ class ArmLimits:
         self.check_reach(pose[:3])
         return pose
 
+    def check_path(self, waypoints: ArrayLike, speed: float, accel: float, blend: float) -> np.ndarray:
+        """Validate a blended path (`Arm.move_path`): every waypoint as a linear move's target (the blended
+        corners lie in the waypoints' convex hull, and the workspace box and the reach ball are convex, so
+        they are inside too), and every corner taken at `speed` with its blend radius within `accel`
+        (`corner_accelerations`: a sharp turn at speed is refused); return the waypoints as a float64
+        (N, 6) array or raise ArmLimitError (one line)."""
+        array = np.asarray(waypoints, dtype=np.float64)
+        if array.ndim != 2 or array.shape[1] != 6 or len(array) < 1:
+            raise ArmLimitError(f"a path is waypoints (N, 6) poses, got an array of shape {array.shape}")
+        if not (math.isfinite(blend) and blend >= 0):
+            raise ArmLimitError(f"blend radius {blend} m must be a finite number >= 0")
+        for k, pose in enumerate(array):
+            try:
+                self.check(pose, speed, accel)
+            except ArmLimitError as exc:
+                raise ArmLimitError(f"path waypoint {k + 1} of {len(array)}: {exc}") from None
+        needed = corner_accelerations(array, speed, blend)
+        if np.any(needed > accel):
+            k = int(np.argmax(needed))
+            raise ArmLimitError(f"path waypoint {k + 1} of {len(array)}: its corner at {speed:g} m/s with a blend "
+                                f"radius of {blend_radii(array, blend)[k]:.3g} m needs {needed[k]:.3g} m/s^2, more "
+                                f"than the acceleration {accel:g} (a larger blend, or a lower speed)")
+        return array
+
 
 def as_pose(pose: ArrayLike) -> np.ndarray:
     """A finite (6,) float64 pose, or ArmLimitError (a NaN target must never reach a robot)."""
@@ -125,6 +150,12 @@ class Arm(Protocol):
     def tcp_pose(self) -> np.ndarray: ...
     def move_linear(self, target_pose: ArrayLike, speed: float, accel: float,
                     asynchronous: bool = True) -> None: ...
+    # through the waypoints (N, 6) as one motion, inner corners blended by `blend` m (`blend_radii`), at
+    # `speed`: touchdown and lift-off without stopping (sweep.profile blend/constant). Every waypoint and
+    # corner is checked (`ArmLimits.check_path`) and the tool must be within PATH_START_TOLERANCE of the
+    # first waypoint, else ArmLimitError/ArmError and nothing moves
+    def move_path(self, waypoints: ArrayLike, speed: float, accel: float, blend: float,
+                  asynchronous: bool = True) -> None: ...
     def progress(self) -> float: ...
     def is_moving(self) -> bool: ...
     def stop(self) -> None: ...
@@ -164,6 +195,22 @@ class _Move:
         return self.t0 + self.profile.duration
 
 
+@dataclass(frozen=True)
+class _PathMove:
+    t0: float
+    path: BlendedPath
+
+    def pose(self, t: float) -> np.ndarray:
+        return self.path.pose(t - self.t0)
+
+    def fraction(self, t: float) -> float:
+        length = self.path.length
+        return self.path.travelled(t - self.t0) / length if length > 0 else 1.0
+
+    def end_time(self) -> float:
+        return self.t0 + self.path.duration
+
+
 class SimulatedArm:
     """A kinematic arm: linear moves follow a trapezoid velocity profile in the time of `clock` (seconds:
     real time by default; the sweep node's simulated clock in simulation, which the simulated camera
@@ -181,7 +228,7 @@ class SimulatedArm:
         self._connected = False
         self._fault: str | None = None
         self._fault_resettable = True
-        self._move: _Move | None = None
+        self._move: _Move | _PathMove | None = None
         self._rest_pose = self.origin.copy()
         self._halted_fraction = 1.0  # progress of a move that was stopped part-way
 
@@ -207,9 +254,29 @@ class SimulatedArm:
             now = self.clock()
             start = self._pose_locked(now)
             distance = float(np.linalg.norm(target[:3] - start[:3]))
-            self._move = _Move(now, start, target, TrapezoidProfile(distance, speed, accel))
+            self._move = move = _Move(now, start, target, TrapezoidProfile(distance, speed, accel))
         if not asynchronous:
-            self._wait_until(self._move.end_time())
+            self._wait_until(move.end_time())
+
+    def move_path(self, waypoints: ArrayLike, speed: float, accel: float, blend: float,
+                  asynchronous: bool = True) -> None:
+        """From the first waypoint (where the tool is) through the rest as one `BlendedPath` (one trapezoid
+        over its length: it stops only at its end), every waypoint and corner checked first."""
+        points = self.limits.check_path(waypoints, speed, accel, blend).copy()
+        with self._lock:
+            self._require_ready()
+            now = self.clock()
+            start = self._pose_locked(now)
+            _check_path_start(start, points)
+            points[0] = start
+            move: _Move | _PathMove
+            if float(np.linalg.norm(np.diff(points[:, :3], axis=0), axis=1).sum()) < 1e-9:   # nowhere to go
+                move = _Move(now, start, points[-1], TrapezoidProfile(0.0, speed, accel))
+            else:
+                move = _PathMove(now, BlendedPath(points, speed, accel, blend))
+            self._move = move
+        if not asynchronous:
+            self._wait_until(move.end_time())
 
     def progress(self) -> float:
         """Fraction (0..1) of the current or last move; 1.0 if there was none."""
@@ -310,6 +377,34 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class PathSegment:
+    """A pass rolled as one blended path (`Arm.move_path`): from above and `lead` before the pass down to
+    the surface, along it and up again, at `speed` all the way (waypoints: before, touchdown, lift-off,
+    after), so the roller touches down and lifts off while moving."""
+
+    name: str
+    waypoints: np.ndarray
+    speed: float
+    accel: float
+    blend: float
+
+    @property
+    def target(self) -> np.ndarray:
+        return np.asarray(self.waypoints[-1])
+
+    def roll_fraction(self, progress: float) -> float:
+        """How much of the pass's roll (touchdown to lift-off) is done at `progress` (0..1) of the path."""
+        legs = np.linalg.norm(np.diff(self.waypoints[:, :3], axis=0), axis=1)
+        total = float(legs.sum())
+        if total <= 0 or len(legs) < 2 or legs[1] <= 0:
+            return min(max(progress, 0.0), 1.0)
+        return min(max((progress * total - float(legs[0])) / float(legs[1]), 0.0), 1.0)
+
+
+Move = Segment | PathSegment
+
+
+@dataclass(frozen=True)
 class SweepPlan:
     """Linear moves: above the start pose, press in by `depth`, roll, lift off; a raster repeats that
     for every pass. `rolls` are the indices of the rolling segments, `lengths` their lengths."""
@@ -319,7 +414,27 @@ class SweepPlan:
     lengths: tuple[float, ...]
     passes: tuple[RasterPass, ...] = ()
     profile: str = "ramp"              # SWEEP_PROFILES
-    path: BlendedPath | None = None    # profile blend/constant: the whole raster as one path at speed
+    #: profile blend/constant: (waypoints, speed, accel, blend) of the whole raster as one path (`path`)
+    raster_path: tuple[np.ndarray, float, float, float] | None = None
+    #: profile blend/constant: what an arm runs (a linear move above each pass's start, then the pass as
+    #: one PathSegment), and the indices of the passes among them
+    path_moves: tuple[Move, ...] = ()
+    path_rolls: tuple[int, ...] = ()
+
+    @functools.cached_property
+    def path(self) -> BlendedPath | None:
+        """profile blend/constant: the whole raster as one path at speed (what `simulate_sweep` films),
+        made on first use: planning and checking a start never samples it (a long raster's is large)."""
+        if self.raster_path is None:
+            return None
+        waypoints, speed, accel, blend = self.raster_path
+        return BlendedPath(waypoints, speed, accel, blend)
+
+    def motion(self) -> tuple[tuple[Move, ...], tuple[int, ...]]:
+        """(moves, indices of the rolls among them) an arm runs: the segments (ramp) or the path moves."""
+        if self.path_moves:
+            return self.path_moves, self.path_rolls
+        return self.segments, self.rolls
 
     @property
     def length(self) -> float:
@@ -327,8 +442,51 @@ class SweepPlan:
         return float(sum(self.lengths))
 
     def roll_number(self, index: int) -> int | None:
-        """Which roll (0-based) segment `index` is, None if it is not one."""
-        return self.rolls.index(index) if index in self.rolls else None
+        """Which roll (0-based) move `index` (of `motion()`) is, None if it is not one."""
+        rolls = self.motion()[1]
+        return rolls.index(index) if index in rolls else None
+
+
+def _check_path_start(pose: np.ndarray, waypoints: np.ndarray) -> None:
+    """ArmError unless the tool (`pose`) is within PATH_START_TOLERANCE of the path's first waypoint."""
+    gap = float(np.linalg.norm(np.asarray(pose, np.float64)[:3] - waypoints[0, :3]))
+    if not gap <= PATH_START_TOLERANCE:
+        raise ArmError(f"a path starts where the tool is: it is {1000 * gap:.3g} mm from the first waypoint "
+                       f"(at most {1000 * PATH_START_TOLERANCE:g} mm)")
+
+
+def check_path_start(pose: ArrayLike, waypoints: ArrayLike) -> None:
+    """`Arm.move_path`'s start rule for every back end: ArmError unless the tool is at the first waypoint."""
+    _check_path_start(np.asarray(pose, np.float64), np.asarray(waypoints, np.float64).reshape(-1, 6))
+
+
+def check_plan(limits: ArmLimits, plan: SweepPlan) -> None:
+    """Every move an arm would run for `plan` (each waypoint and blended corner of a path) against
+    `limits`; ArmLimitError (one line) before anything moves."""
+    for move in plan.motion()[0]:
+        if isinstance(move, PathSegment):
+            limits.check_path(move.waypoints, move.speed, move.accel, move.blend)
+        else:
+            limits.check(move.target, move.speed, move.accel)
+
+
+def _path_moves(rolled: Sequence[tuple[np.ndarray, np.ndarray]], *, above: float, lead: float, speed: float,
+                accel: float, slow: float, blend: float) -> tuple[tuple[Move, ...], tuple[int, ...]]:
+    """Each pass (pressed start, pressed end) as a linear move to above and `lead` before its start, then
+    one PathSegment through its touchdown and lift-off to above and `lead` beyond its end. Its blend
+    radius is `blend` (0: constant, as sharp as allowed), and at least what takes its corners at `speed`
+    within `accel` (`least_blend`, with a margin): a real arm cannot turn a sharp corner without stopping."""
+    waypoints = raster_waypoints(rolled, above, lead)
+    moves: list[Move] = []
+    rolls: list[int] = []
+    for k in range(len(rolled)):
+        points = waypoints[4 * k:4 * k + 4]
+        moves.append(Segment("to_start" if k == 0 else "across", points[0], slow if k == 0 else max(slow, speed),
+                             accel))
+        rolls.append(len(moves))
+        radius = max(blend, CORNER_MARGIN * least_blend(points, speed, accel))
+        moves.append(PathSegment("pass", points, speed, accel, radius))
+    return tuple(moves), tuple(rolls)
 
 
 @dataclass(frozen=True)
@@ -345,6 +503,12 @@ class RasterPass:
 #: and lift-off at speed, corners rounded by `blend` as a UR program with blend radii), constant (the same
 #: path at speed with sharp corners)
 SWEEP_PROFILES = ("ramp", "blend", "constant")
+
+#: path profiles: a pass's blend radius is at least this times the least that keeps its corners within accel
+CORNER_MARGIN = 1.5
+
+#: how far (m) the tool may be from a path's first waypoint when the path is sent (`Arm.move_path`)
+PATH_START_TOLERANCE = 1e-3
 
 #: the most passes a raster may have: its plan (4 moves a pass) is built and checked at once, and a
 #: raster of more passes is a typo (a width in mm given in m) far more often than a wish
@@ -394,8 +558,9 @@ def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transfor
     checked against its reach before any pass is planned (the tool's path lies within their hull), so an
     area kilometres wide is refused at once; and no raster has more than MAX_PASSES passes. `profile`
     (SWEEP_PROFILES): with blend or constant the plan's `path` rolls the raster at speed, descending over
-    `lead` m before each pass and rising over `lead` after it (`touchroller_driver.path`); its segments stay
-    those of ramp."""
+    `lead` m before each pass and rising over `lead` after it (`touchroller_driver.path`: what
+    `simulate_sweep` films); its segments stay those of ramp, and its `path_moves` are what an arm runs
+    through `SweepSequencer` (each pass one blended path, the moves between them linear)."""
     if profile not in SWEEP_PROFILES:
         raise ArmLimitError(f"sweep.profile must be one of {', '.join(SWEEP_PROFILES)}, got {profile!r}")
     start = as_pose(start_pose)
@@ -448,12 +613,17 @@ def plan_raster(start_pose: ArrayLike, *, area: Sequence[float], mount: Transfor
         segments.append(Segment("lift", tool_at(finish, clearance), slow, accel))
         passes.append(RasterPass((float(begin[0]), float(begin[1])), (float(finish[0]), float(finish[1])),
                                  (centre - usable_width / 2.0, centre + usable_width / 2.0)))
-    path = None
+    whole: tuple[np.ndarray, float, float, float] | None = None
+    moves: tuple[Move, ...] = ()
+    path_rolls: tuple[int, ...] = ()
     if profile != "ramp":
         rolled = [(segments[k - 1].target, segments[k].target) for k in rolls]
-        path = BlendedPath(raster_waypoints(rolled, depth + clearance, lead), speed, accel,
-                           blend if profile == "blend" else 0.0)
-    return SweepPlan(tuple(segments), tuple(rolls), tuple([length] * len(passes)), tuple(passes), profile, path)
+        radius = blend if profile == "blend" else 0.0
+        whole = (raster_waypoints(rolled, depth + clearance, lead), speed, accel, radius)
+        moves, path_rolls = _path_moves(rolled, above=depth + clearance, lead=lead, speed=speed, accel=accel,
+                                        slow=slow, blend=radius)
+    return SweepPlan(tuple(segments), tuple(rolls), tuple([length] * len(passes)), tuple(passes), profile, whole,
+                     moves, path_rolls)
 
 
 def raster_coverage(plan: SweepPlan, width: float, roll: int, fraction: float) -> float:
@@ -482,9 +652,16 @@ def _horizontal(vector: ArrayLike, what: str) -> np.ndarray:
 
 def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: float, depth: float,
                direction: Sequence[float] = (1.0, 0.0, 0.0), approach_speed: float | None = None,
-               retract: bool = True, clearance: float = 0.0) -> SweepPlan:
+               retract: bool = True, clearance: float = 0.0, profile: str = "ramp", lead: float = 0.01,
+               blend: float = 0.004) -> SweepPlan:
     """The moves of one sweep. `start_pose` is where the roller just touches the surface (z up); the
-    roller approaches it from `clearance` above and lifts back to that height at the end."""
+    roller approaches it from `clearance` above and lifts back to that height at the end. `profile`
+    blend or constant: the roll as one path touching down and lifting off at speed (as `plan_raster`;
+    it always lifts off)."""
+    if profile not in SWEEP_PROFILES:
+        raise ArmLimitError(f"sweep.profile must be one of {', '.join(SWEEP_PROFILES)}, got {profile!r}")
+    if profile != "ramp" and not retract:
+        raise ArmLimitError(f"sweep.profile {profile} lifts off while moving: it needs sweep.retract true")
     start = as_pose(start_pose)
     for name, value in (("length", length), ("depth", depth), ("clearance", clearance)):
         if not (math.isfinite(value) and value >= 0):
@@ -504,20 +681,30 @@ def plan_sweep(start_pose: ArrayLike, *, length: float, speed: float, accel: flo
                 Segment("sweep", end, speed, accel)]
     if retract:
         segments.append(Segment("lift", end + (depth + clearance) * up, slow, accel))
-    return SweepPlan(tuple(segments), rolls=(2,), lengths=(float(length),))
+    if profile == "ramp":
+        return SweepPlan(tuple(segments), rolls=(2,), lengths=(float(length),))
+    moves, rolls = _path_moves([(pressed, end)], above=depth + clearance, lead=lead, speed=speed, accel=accel,
+                               slow=slow, blend=blend if profile == "blend" else 0.0)
+    return SweepPlan(tuple(segments), rolls=(2,), lengths=(float(length),), profile=profile, path_moves=moves,
+                     path_rolls=rolls)
 
 
 def plan_duration(plan: SweepPlan, from_pose: ArrayLike | None = None) -> float:
     """Seconds the plan's moves take at their speeds and accelerations (trapezoid profiles, rest to rest,
-    as the simulated arm moves; a UR blends nothing between our moves either), from `from_pose` (the
-    arm's pose now), or from the first target when it is not known."""
-    if not plan.segments:
+    as the simulated arm moves; a UR blends nothing between our moves either; a path of `sweep.profile`
+    blend/constant is one trapezoid over its waypoints' polyline), from `from_pose` (the arm's pose now),
+    or from the first target when it is not known."""
+    moves = plan.motion()[0]
+    if not moves:
         return 0.0
-    targets = np.array([segment.target[:3] for segment in plan.segments])
+    targets = np.array([move.target[:3] for move in moves])
     start = targets[0] if from_pose is None else as_pose(from_pose)[:3]
     distances = np.linalg.norm(np.diff(np.vstack([start, targets]), axis=0), axis=1)
-    speeds = np.array([segment.speed for segment in plan.segments])
-    accels = np.array([segment.accel for segment in plan.segments])
+    for k, move in enumerate(moves):   # a path's length is its polyline's (a blend only shortens it)
+        if isinstance(move, PathSegment):
+            distances[k] = float(np.linalg.norm(np.diff(move.waypoints[:, :3], axis=0), axis=1).sum())
+    speeds = np.array([move.speed for move in moves])
+    accels = np.array([move.accel for move in moves])
     # TrapezoidProfile's duration, vectorised: 2 v/a + (d - v^2/a)/v with v = min(v_max, sqrt(a d))
     peaks = np.minimum(speeds, np.sqrt(accels * distances))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -559,11 +746,7 @@ class SweepSequencer:
     def start(self, plan: SweepPlan) -> None:
         if self.active:
             raise ArmError("a sweep is already running")
-        if plan.path is not None:
-            raise ArmError(f"sweep profile {plan.profile!r} is run by the simulator's simulate_sweep only (the "
-                           "sequencer drives ramp plans)")
-        for segment in plan.segments:
-            self.arm.limits.check(segment.target, segment.speed, segment.accel)
+        check_plan(self.arm.limits, plan)
         fault = self.arm.fault()
         if fault is not None:
             raise ArmError(f"arm faulted: {fault}")
@@ -602,16 +785,24 @@ class SweepSequencer:
     def _next_segment(self) -> None:
         assert self.plan is not None
         self._index += 1
-        if self._index >= len(self.plan.segments):
-            self._status = SweepStatus(SweepPhase.DONE, None, 1.0, "sweep complete", len(self.plan.rolls) - 1, 1.0)
+        moves, rolls = self.plan.motion()
+        if self._index >= len(moves):
+            self._status = SweepStatus(SweepPhase.DONE, None, 1.0, "sweep complete", len(rolls) - 1, 1.0)
             return
-        segment = self.plan.segments[self._index]
+        segment = moves[self._index]
         phase = SweepPhase.SWEEPING if self.plan.roll_number(self._index) is not None else SweepPhase.MOVING
         try:
-            self.arm.move_linear(segment.target, segment.speed, segment.accel, asynchronous=True)
-        except ArmError as exc:
-            self.arm.stop()
-            self._status = self._make_status(SweepPhase.FAULT, segment.name, str(exc))
+            if isinstance(segment, PathSegment):
+                self.arm.move_path(segment.waypoints, segment.speed, segment.accel, segment.blend,
+                                   asynchronous=True)
+            else:
+                self.arm.move_linear(segment.target, segment.speed, segment.accel, asynchronous=True)
+        except Exception as exc:  # noqa: BLE001 - whatever failed (a refusal, a bug), the arm stops: FAULT
+            try:
+                self.arm.stop()
+            finally:
+                message = str(exc) if isinstance(exc, ArmError) else f"{type(exc).__name__}: {exc}"
+                self._status = self._make_status(SweepPhase.FAULT, segment.name, " ".join(message.split()))
             return
         self._status = self._make_status(phase, segment.name)
 
@@ -623,14 +814,20 @@ class SweepSequencer:
         """(the roll under way or last done, its fraction done)."""
         if self.plan is None:
             return None, 0.0
-        done = [k for k, index in enumerate(self.plan.rolls) if index <= self._index]
+        moves, rolls = self.plan.motion()
+        done = [k for k, index in enumerate(rolls) if index <= self._index]
         if not done:
             return None, 0.0
         roll = done[-1]
-        if self.plan.rolls[roll] < self._index:
+        if rolls[roll] < self._index:
             return roll, 1.0
         progress = self.arm.progress()
-        return roll, min(max(progress, 0.0), 1.0) if math.isfinite(progress) else 0.0
+        if not math.isfinite(progress):
+            return roll, 0.0
+        move = moves[rolls[roll]]
+        if isinstance(move, PathSegment):
+            return roll, move.roll_fraction(progress)
+        return roll, min(max(progress, 0.0), 1.0)
 
     def _roll_progress(self) -> float:
         roll, fraction = self._roll_state()

@@ -82,6 +82,10 @@ class BlendedPath:
         p = np.asarray(point, np.float64)[:3]
         return float(self._arc[int(np.argmin(np.linalg.norm(self._points[:, :3] - p, axis=1)))])
 
+    def travelled(self, t: float) -> float:
+        """The arc length (m) covered t s after the path's start (clamped to its ends)."""
+        return float(np.interp(t, self._times, self._travel))
+
     def pose(self, t: float) -> np.ndarray:
         """The tool pose (6,) at t s after the path's start (clamped to its ends)."""
         return self.poses(np.array([t]))[0]
@@ -95,17 +99,74 @@ class BlendedPath:
         return np.asarray(self._points[k] + f[:, None] * (self._points[k + 1] - self._points[k]), np.float64)
 
 
+def blend_radii(points: ArrayLike, blend: float) -> np.ndarray:
+    """The blend radius (m) at each of the waypoints (N, 6): `blend` at an inner corner, at most half the
+    shorter leg beside it (so neighbouring blends never overlap, as a UR controller requires), 0 at the
+    first and last waypoint."""
+    p = np.asarray(points, np.float64)
+    legs = np.linalg.norm(np.diff(p[:, :3], axis=0), axis=1)
+    radii = np.zeros(len(p))
+    if len(p) > 2 and blend > 0:
+        radii[1:-1] = np.minimum(blend, 0.5 * np.minimum(legs[:-1], legs[1:]))
+    return radii
+
+
+def _corner_angles(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cos(alpha/2), sin(alpha/2)) at each waypoint, alpha the angle between its two legs (pi: straight on;
+    the ends count as straight)."""
+    half_cos, half_sin = np.zeros(len(points)), np.ones(len(points))
+    if len(points) > 2:
+        u1 = points[:-2, :3] - points[1:-1, :3]
+        u2 = points[2:, :3] - points[1:-1, :3]
+        n1, n2 = np.linalg.norm(u1, axis=1), np.linalg.norm(u2, axis=1)
+        valid = (n1 > 0) & (n2 > 0)
+        cos_alpha = np.where(valid, np.einsum("ij,ij->i", u1, u2) / np.where(valid, n1 * n2, 1.0), -1.0)
+        cos_alpha = np.clip(cos_alpha, -1.0, 1.0)
+        half_cos[1:-1] = np.sqrt((1.0 + cos_alpha) / 2.0)
+        half_sin[1:-1] = np.sqrt((1.0 - cos_alpha) / 2.0)
+    return half_cos, half_sin
+
+
+def corner_accelerations(points: ArrayLike, speed: float, blend: float) -> np.ndarray:
+    """The centripetal acceleration (m/s^2) at each waypoint (N, 6) of a path followed at `speed` with
+    corners rounded by `blend_radii` (a symmetric quadratic Bezier, sharpest at its middle: curvature
+    cos(alpha/2) / (r sin^2(alpha/2))): 0 on a straight line, infinite at a sharp turn (radius 0)."""
+    p = np.asarray(points, np.float64)
+    half_cos, half_sin = _corner_angles(p)
+    radii = blend_radii(p, blend)
+    turning = half_cos > 1e-9
+    with np.errstate(divide="ignore", invalid="ignore"):
+        curvature = np.where(turning, half_cos / (radii * half_sin ** 2), 0.0)
+    return np.asarray(np.where(turning & ~np.isfinite(curvature), np.inf, speed ** 2 * curvature), np.float64)
+
+
+def least_blend(points: ArrayLike, speed: float, accel: float) -> float:
+    """The smallest blend radius (m) with which every corner of the path is taken at `speed` within
+    `accel` (m/s^2): `constant`'s corners, as sharp as the arm may take them without stopping."""
+    p = np.asarray(points, np.float64)
+    half_cos, half_sin = _corner_angles(p)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        radii = np.where(half_cos > 1e-9, speed ** 2 * half_cos / (accel * half_sin ** 2), 0.0)
+    return float(np.max(radii, initial=0.0))
+
+
+def rounded_polyline(points: np.ndarray, blend: float, step: float = 2e-4) -> np.ndarray:
+    """The polyline sampled about every `step` m, each inner corner rounded (quadratic Bezier) by its
+    `blend_radii` radius: the path a blended motion follows (checked against the arm's limits whole)."""
+    return _rounded(np.asarray(points, np.float64), blend, step)
+
+
 def _rounded(points: np.ndarray, blend: float, step: float) -> np.ndarray:
     """The polyline sampled about every `step` m, each inner corner rounded (quadratic Bezier) by `blend`."""
     out: list[np.ndarray] = [points[0]]
     cursor = points[0]
+    radii = blend_radii(points, blend)
     for k in range(1, len(points)):
         corner = points[k]
-        r = 0.0
-        if k < len(points) - 1 and blend > 0:
+        r = float(radii[k])
+        if r > 0:
             before = float(np.linalg.norm(corner[:3] - points[k - 1][:3]))
             after = float(np.linalg.norm(points[k + 1][:3] - corner[:3]))
-            r = min(blend, 0.5 * before, 0.5 * after)
             a = corner + (points[k - 1] - corner) * (r / before if before > 0 else 0.0)
             b = corner + (points[k + 1] - corner) * (r / after if after > 0 else 0.0)
         else:
@@ -124,6 +185,24 @@ def _rounded(points: np.ndarray, blend: float, step: float) -> np.ndarray:
 def _line(a: np.ndarray, b: np.ndarray, step: float) -> list[np.ndarray]:
     n = max(int(math.ceil(float(np.linalg.norm(b[:3] - a[:3])) / step)), 1)
     return list(a + (b - a) * np.linspace(0.0, 1.0, n + 1)[1:, None])
+
+
+def fraction_along_path(waypoints: ArrayLike, pose: ArrayLike) -> float:
+    """Fraction (0..1) of a polyline's length up to the point on it nearest to the pose's position."""
+    points = np.asarray(waypoints, np.float64)[:, :3]
+    here = np.asarray(pose, np.float64)[:3]
+    if len(points) < 2 or not np.all(np.isfinite(here)):
+        return 1.0 if np.all(np.isfinite(here)) else float("nan")
+    starts, legs = points[:-1], np.diff(points, axis=0)
+    lengths_sq = np.einsum("ij,ij->i", legs, legs)
+    total = float(np.sqrt(lengths_sq).sum())
+    if total == 0.0:
+        return 1.0
+    t = np.clip(np.einsum("ij,ij->i", here - starts, legs) / np.where(lengths_sq > 0, lengths_sq, 1.0), 0.0, 1.0)
+    gaps = np.linalg.norm(starts + t[:, None] * legs - here, axis=1)
+    k = int(np.argmin(gaps))
+    before = float(np.sqrt(lengths_sq[:k]).sum())
+    return min(max((before + float(t[k]) * float(np.sqrt(lengths_sq[k]))) / total, 0.0), 1.0)
 
 
 def raster_waypoints(passes: Sequence[tuple[ArrayLike, ArrayLike]], above: float, lead: float) -> np.ndarray:

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from touchroller_driver.arm import ArmError, ArmLimits
+from touchroller_driver.arm import ArmError, ArmLimits, check_path_start
+from touchroller_driver.path import blend_radii, fraction_along_path
 from touchroller_driver.ur_rtde_process import CALL_TIMEOUT_S, OPEN_TIMEOUT_S, LocalRtde, RtdeChild, RtdeGone
 
 # Every ur_rtde call this module makes, with the positional arguments it passes (besides self).
@@ -48,6 +49,8 @@ CONTROL_CALLS: dict[str, int] = {
     "setWatchdog": 1,  # minimum frequency
     "kickWatchdog": 0,
 }
+# moveL's other overload, a path: moveL([[x, y, z, rx, ry, rz, speed, accel, blend], ...], asynchronous)
+PATH_CALLS: dict[str, int] = {"moveL": 2}
 RECEIVE_CALLS: dict[str, int] = {
     "getActualTCPPose": 0,
     "isProtectiveStopped": 0,
@@ -175,6 +178,7 @@ class UR5Arm:
         self._fault: str | None = None
         self._move_start: np.ndarray | None = None
         self._move_target: np.ndarray | None = None
+        self._move_path: np.ndarray | None = None   # the waypoints (N, 6) of a path under way
         self._halted_fraction = 1.0
 
     # -- connection ----------------------------------------------------------------------------
@@ -326,7 +330,9 @@ class UR5Arm:
         return control.getAsyncOperationProgress() >= 0 or not control.isSteady()
 
     def progress(self) -> float:
-        """Fraction (0..1) of the current or last move, from the measured TCP position."""
+        """Fraction (0..1) of the current or last move (of a path: of its length), from the measured TCP."""
+        if self._move_path is not None:
+            return fraction_along_path(self._move_path, self.tcp_pose())
         if self._move_start is None or self._move_target is None:
             return self._halted_fraction
         return _fraction_along(self._move_start, self._move_target, self.tcp_pose())
@@ -340,17 +346,43 @@ class UR5Arm:
             raise ArmError(f"arm faulted: {self._fault}")
         if self.check_reachability and not control.isPoseWithinSafetyLimits(target.tolist()):
             raise ArmError(f"target {np.round(target, 4).tolist()} is outside the robot's safety limits")
-        self._move_start, self._move_target = self.tcp_pose(), target
+        self._move_start, self._move_target, self._move_path = self.tcp_pose(), target, None
         if not control.moveL(target.tolist(), float(speed), float(accel), bool(asynchronous)):
             raise ArmError(self.fault() or "the robot refused moveL")
+
+    def move_path(self, waypoints: ArrayLike, speed: float, accel: float, blend: float,
+                  asynchronous: bool = True) -> None:
+        """One ur_rtde moveL of a path: every waypoint [x, y, z, rx, ry, rz, speed, accel, blend] (its
+        `blend_radii` radius: 0 at both ends, so it stops only at the last), after every waypoint and corner
+        passed `ArmLimits.check_path`, the controller's safety limits and the tool is at the first one.
+        Asynchronous (the default), the control script runs it while the sweep node keeps kicking the
+        watchdog; `stop()` (stopL) ends it where it is."""
+        points = self.limits.check_path(waypoints, speed, accel, blend)
+        control = self._require_control()
+        if self.fault() is not None:
+            raise ArmError(f"arm faulted: {self._fault}")
+        if self.check_reachability:
+            for k, pose in enumerate(points):
+                if not control.isPoseWithinSafetyLimits(pose.tolist()):
+                    raise ArmError(f"path waypoint {k + 1} of {len(points)} {np.round(pose, 4).tolist()} is "
+                                   "outside the robot's safety limits")
+        start = self.tcp_pose()
+        check_path_start(start, points)
+        path = [[*pose.tolist(), float(speed), float(accel), float(radius)]
+                for pose, radius in zip(points, blend_radii(points, blend), strict=True)]
+        self._move_start, self._move_target, self._move_path = start, points[-1], points
+        if not control.moveL(path, bool(asynchronous)):
+            raise ArmError(self.fault() or "the robot refused the moveL path")
 
     def stop(self) -> None:
         if self._control is None:
             return
         try:
-            if self._move_start is not None and self._move_target is not None and self._receive is not None:
+            if self._move_path is not None and self._receive is not None:
+                self._halted_fraction = fraction_along_path(self._move_path, self.tcp_pose())
+            elif self._move_start is not None and self._move_target is not None and self._receive is not None:
                 self._halted_fraction = _fraction_along(self._move_start, self._move_target, self.tcp_pose())
-            self._move_start = self._move_target = None
+            self._move_start = self._move_target = self._move_path = None
             self._control.stopL(STOP_DECELERATION)
         except RtdeGone as exc:   # the robot stopped answering: given up, its watchdog stops it
             self._gone(str(exc))
@@ -383,5 +415,5 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-__all__ = ["CONSTRUCTOR_CALLS", "CONTROL_CALLS", "DASHBOARD_CALLS", "RECEIVE_CALLS", "UR5Arm", "probe_dashboard",
-           "probe_rtde"]
+__all__ = ["CONSTRUCTOR_CALLS", "CONTROL_CALLS", "DASHBOARD_CALLS", "PATH_CALLS", "RECEIVE_CALLS", "UR5Arm",
+           "probe_dashboard", "probe_rtde"]

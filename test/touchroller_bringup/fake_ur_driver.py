@@ -3,8 +3,9 @@
 What it mimics (the upstream driver's, as documented and as its io_and_status_controller publishes):
 - `/urscript_interface/script_command` (std_msgs/String, depth 1): a program replaces whatever runs on
   the robot (the arm halts, the External Control program stops: `robot_program_running` goes false);
-  only `movel(p[x, y, z, rx, ry, rz], a=A, v=V)` and `stopl(A)` programs, bare or in a `def name(): ...
-  end`, are understood; anything else is silently not run (as a real robot does with invalid script);
+  only `movel(p[x, y, z, rx, ry, rz], a=A, v=V)`, a path of such movels with `, r=R` (one a line, run as
+  `SimulatedArm.move_path`) and `stopl(A)` programs, bare or in a `def name(): ... end`, are understood;
+  anything else is silently not run (as a real robot does with invalid script);
   programs are refused during a protective stop.
 - `/tf`: `base -> tool0` at 125 Hz, stamped with the node's clock; with `chain=True` as the real tree
   is shaped: `base_link -> base` on /tf_static (a half turn about z, as ur_description has it) and
@@ -36,7 +37,7 @@ from touchroller_perception.transforms import Transform
 
 _NUM = r"-?\d+(?:\.\d*)?"
 MOVEL = re.compile(rf"movel\(p\[\s*({_NUM}(?:\s*,\s*{_NUM}){{5}})\s*\]"
-                   rf"\s*,\s*a\s*=\s*({_NUM})\s*,\s*v\s*=\s*({_NUM})\s*\)")
+                   rf"\s*,\s*a\s*=\s*({_NUM})\s*,\s*v\s*=\s*({_NUM})\s*(?:,\s*r\s*=\s*({_NUM})\s*)?\)")
 STOPL = re.compile(rf"stopl\(\s*({_NUM})\s*\)")
 PROGRAM = re.compile(r"def\s+\w+\(\)\s*:\s*\n(.*)\n\s*end\s*", re.S)
 
@@ -44,10 +45,20 @@ BASE_LINK_TO_BASE = Transform.from_rpy((0.0, 0.0, 0.0), (0.0, 0.0, math.pi))
 
 
 def parse_program(text: str) -> tuple[str, tuple[float, ...]] | None:
-    """("movel", (x, y, z, rx, ry, rz, a, v)) or ("stopl", (a,)); None for anything else."""
+    """("movel", (x, y, z, rx, ry, rz, a, v)), ("path", (x, y, z, rx, ry, rz, a, v, r) * N: movels with blend
+    radii, one a line) or ("stopl", (a,)); None for anything else."""
     match = PROGRAM.fullmatch(text)
     body = (match.group(1) if match else text).strip()
-    if (m := MOVEL.fullmatch(body)) is not None:
+    lines = [line.strip() for line in body.split("\n")]
+    if lines and all(m is not None and m.group(4) is not None for m in map(MOVEL.fullmatch, lines)):
+        values: list[float] = []
+        for line in lines:
+            m = MOVEL.fullmatch(line)
+            assert m is not None
+            values += [*(float(v) for v in m.group(1).split(",")), float(m.group(2)), float(m.group(3)),
+                       float(m.group(4))]
+        return "path", tuple(values)
+    if (m := MOVEL.fullmatch(body)) is not None and m.group(4) is None:
         pose = tuple(float(v) for v in m.group(1).split(","))
         return "movel", (*pose, float(m.group(2)), float(m.group(3)))
     if (m := STOPL.fullmatch(body)) is not None:
@@ -157,11 +168,15 @@ class FakeURDriver:
                 self._running_pub.publish(Bool(data=False))
             self.arm.stop()   # the new program replaces the running one
             kind, values = parsed
-            if kind == "movel":
-                try:
+            try:
+                if kind == "movel":
                     self.arm.move_linear(values[:6], speed=values[7], accel=values[6])
-                except ArmError:
-                    return
+                elif kind == "path":   # the robot's own blending, as the simulated arm follows a path
+                    rows = np.array(values).reshape(-1, 9)
+                    self.arm.move_path(rows[:, :6], speed=float(rows[0, 7]), accel=float(rows[0, 6]),
+                                       blend=float(rows[:, 8].max()))
+            except ArmError:
+                return
             self.executed.append(parsed)
 
     def _on_unlock(self, request: Any, response: Any) -> Any:

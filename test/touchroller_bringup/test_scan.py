@@ -277,6 +277,29 @@ def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_rem
     assert mapped > 0.98 and similarity >= 0.9, (similarity, mapped)
 
 
+def test_a_blended_raster_scan_maps_its_passes_with_the_latency_estimated(isolated_ros, tmp_path, capsys):
+    """sweep.profile:=blend: each pass one path that touches down and lifts off at speed (no start or stop
+    while pressed); the map still covers the rectangle and the camera latency (sim.latency, 40 ms) is
+    estimated from the evidence such a raster holds."""
+    from touchroller_bringup.map_files import read_world_map
+
+    out = tmp_path / "scan"
+    area = (0.42, -0.045, 0.03, 0.09)
+    assert main(["scan", "scene:=large_surface", f"area:={','.join(map(str, area))}", "sweep_speed:=0.02",
+                 "sweep.profile:=blend", "sim.latency:=0.04", "--quiet", "--out", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    assert "2 pass(es)" in report and "- passes mapped: 2 of 2" in report
+    grey, alpha, meta = read_world_map(out / "map.yaml")
+    latency = meta["camera_latency"]
+    assert latency["observable"] and abs(latency["value_ms"] - 40.0) <= 3.0, latency
+    rows, cols = alpha.shape
+    x = meta["origin"][0] + (np.arange(cols) + 0.5) * meta["resolution"]
+    y = meta["origin"][1] + (rows - np.arange(rows) - 0.5) * meta["resolution"]
+    inside = (((x >= area[0]) & (x <= area[0] + area[2]))[None, :]
+              & ((y >= area[1]) & (y <= area[1] + area[3]))[:, None])
+    assert float((alpha[inside] > 0).mean()) >= 0.98
+
+
 def test_scan_in_its_own_namespace(isolated_ros, tmp_path, capsys):
     """--namespace left moves the whole graph: the recording holds /left/* and no /touchroller/* topic."""
     from touchroller_bringup.bags import read_images

@@ -24,6 +24,7 @@ from touchroller_bringup.ur_driver_arm import (  # noqa: E402
     URDriverConfig,
     make_ur_driver_arm,
     movel_program,
+    path_program,
     stopl_program,
 )
 from touchroller_driver.arm import (  # noqa: E402
@@ -82,10 +83,10 @@ def run(sequencer: SweepSequencer, timeout: float = 60.0) -> None:
         time.sleep(0.02)
 
 
-def small_raster():
+def small_raster(profile: str = "ramp"):
     return plan_raster(DEFAULT_START_POSE, area=[0.4, 0.0, 0.02, 0.1], mount=mount_transform(DEFAULT_MOUNT_XYZ,
                        DEFAULT_MOUNT_RPY), speed=0.05, accel=0.5, depth=0.0005, approach_speed=0.05,
-                       clearance=0.002)
+                       clearance=0.002, profile=profile)
 
 
 # -- the programs ------------------------------------------------------------------------------
@@ -436,3 +437,81 @@ def test_the_pose_read_from_tf_is_the_ur_rotation_vector(translation, axis, angl
     rotation = axis_array / np.linalg.norm(axis_array) * angle
     read = _rotation_vector(Transform.from_rotation_vector(translation, rotation))
     assert np.allclose(read, rotation, atol=1e-6)
+
+
+# -- sweep.profile blend/constant: a pass as one program of blended movels ------------------------------
+
+def test_a_path_program_is_one_movel_a_waypoint_with_its_blend_radius():
+    plan = small_raster("blend")
+    move = plan.motion()[0][1]
+    kind, values = parse_program(path_program(move.waypoints, move.speed, move.accel, move.blend))
+    rows = np.array(values).reshape(-1, 9)
+    assert kind == "path" and rows.shape == (4, 9)
+    np.testing.assert_array_equal(rows[:, :6], move.waypoints)
+    assert (rows[:, 6:8] == [move.accel, move.speed]).all()
+    assert rows[0, 8] == rows[-1, 8] == 0.0 and rows[1, 8] == rows[2, 8] == move.blend > 0
+    with pytest.raises(ArmError):
+        path_program(move.waypoints, move.speed, move.accel, math.nan)
+
+
+def trace_sweep(arm, fake, plan, until=lambda status: False, timeout: float = 60.0):
+    """Run the plan through the driver arm, sampling the robot's pose (its clock is the monotonic one)."""
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan)
+    rows = []
+    deadline = time.monotonic() + timeout
+    while sequencer.active and time.monotonic() < deadline:
+        status = sequencer.poll()
+        t = time.monotonic()
+        rows.append((t, *fake.pose()[:3]))
+        if until(status):
+            break
+        time.sleep(0.005)
+    return sequencer, np.array(rows)
+
+
+@pytest.mark.parametrize("profile", ["ramp", "blend"])
+def test_a_blended_raster_through_the_driver_touches_down_at_speed(ros_context, driver, arm, profile):
+    plan = small_raster(profile)
+    sequencer, trace = trace_sweep(arm, driver, plan)
+    assert sequencer.status.phase is SweepPhase.DONE, sequencer.status
+    pressed_z = plan.segments[plan.rolls[0]].target[2]
+    speed = np.hypot(*np.diff(trace[:, 1:3], axis=0).T) / np.diff(trace[:, 0])
+    pressed = np.abs(trace[:-1, 3] - pressed_z) < 1e-5
+    edges = np.flatnonzero(np.diff(pressed.astype(int)))
+    assert len(edges) == 4   # both passes touch down and lift off once
+    kinds = [kind for kind, _ in driver.executed]
+    if profile == "ramp":
+        assert speed[edges].max() < 0.2 * 0.05 and set(kinds) == {"movel"}   # stop-and-go, as before
+    else:
+        assert speed[edges].min() > 0.8 * 0.05   # at the roll speed when touching down and lifting off
+        assert kinds == ["movel", "path"] * 2
+    assert np.allclose(driver.pose(), plan.motion()[0][-1].target, atol=1e-9)
+    assert arm.fault() is None
+
+
+def test_stop_mid_path_halts_the_robot_and_a_path_out_of_limits_publishes_nothing(driver, arm):
+    plan = small_raster("blend")
+    sequencer, _ = trace_sweep(arm, driver, plan, until=lambda status: status.segment == "pass"
+                               and arm.progress() > 0.3)
+    assert sequencer.status.segment == "pass" and arm.is_moving()
+    sequencer.stop()
+    assert not arm.is_moving()
+    assert wait_for(lambda: driver.executed and driver.executed[-1][0] == "stopl")
+    halted = driver.pose()
+    time.sleep(0.3)
+    assert np.array_equal(driver.pose(), halted)
+    assert 0.0 < arm.progress() < 1.0 and arm.fault() is None
+    sent = len(driver.programs)
+    here = arm.tcp_pose()
+    ahead = np.array([here, here + [0.01, 0, 0, 0, 0, 0], here + [0.02, 0, 0, 0, 0, 0]])
+    from touchroller_driver.arm import ArmLimits
+
+    arm.limits = ArmLimits(workspace_max=(float(here[0]) + 0.015, 1.0, 1.0))
+    with pytest.raises(ArmLimitError, match="path waypoint 3 of 3"):
+        arm.move_path(ahead, 0.01, 0.1, 0.002)
+    arm.limits = ArmLimits()
+    with pytest.raises(ArmError, match="first waypoint"):
+        arm.move_path(ahead[1:], 0.01, 0.1, 0.002)
+    time.sleep(0.2)
+    assert len(driver.programs) == sent and np.array_equal(driver.pose(), halted)

@@ -388,3 +388,159 @@ def test_reach_refuses_a_target_beyond_it_and_the_pass_count_is_analytic():
     plan = plan_sweep(START, length=0.11, speed=0.011, accel=0.1, depth=0.001, clearance=0.002)
     # each move: distance / speed + speed / accel (the two ramps); roll, press and lift (3 mm each way)
     assert plan_duration(plan) == pytest.approx(0.11 / 0.011 + 3 * 0.011 / 0.1 + 2 * 0.003 / 0.011, rel=1e-9)
+
+
+# -- sweep.profile blend/constant: each pass one blended path (Arm.move_path) ----------------------------
+
+def _raster(profile: str):
+    from touchroller_driver.arm import DEFAULT_MOUNT_RPY, DEFAULT_MOUNT_XYZ, mount_transform, plan_raster
+
+    return plan_raster(START, area=(0.42, -0.045, 0.05, 0.09), mount=mount_transform(DEFAULT_MOUNT_XYZ,
+                       DEFAULT_MOUNT_RPY), speed=0.02, accel=0.1, depth=5e-4, clearance=0.002, profile=profile)
+
+
+def run_traced(arm: SimulatedArm, clock: FakeClock, sequencer: SweepSequencer, dt: float = 0.005,
+               until=lambda t, status: False) -> np.ndarray:
+    """Poll the sequencer every dt s of the fake clock; rows (t, x, y, z, roll progress)."""
+    rows = []
+    while sequencer.active:
+        clock.t += dt
+        status = sequencer.poll()
+        rows.append((clock.t, *arm.tcp_pose()[:3], status.roll_progress))
+        if until(clock.t, status):
+            break
+    return np.array(rows)
+
+
+def touchdown_speeds(trace: np.ndarray, pressed_z: float) -> np.ndarray:
+    """The tool's horizontal speed at every first and last instant of contact (pressed height)."""
+    speed = np.hypot(*np.diff(trace[:, 1:3], axis=0).T) / np.diff(trace[:, 0])
+    pressed = np.abs(trace[:-1, 3] - pressed_z) < 1e-5
+    return speed[np.flatnonzero(np.diff(pressed.astype(int)))]
+
+
+@pytest.mark.parametrize("profile", ["ramp", "blend", "constant"])
+def test_a_path_profile_touches_down_at_speed_and_ramp_still_stops_and_goes(profile):
+    plan = _raster(profile)
+    arm = SimulatedArm(plan.segments[0].target, clock=(clock := FakeClock()))
+    arm.connect()
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan)
+    trace = run_traced(arm, clock, sequencer)
+    assert sequencer.status.phase is SweepPhase.DONE and trace[-1, 4] == pytest.approx(1.0)
+    assert np.all(np.diff(trace[:, 4]) >= -1e-12)   # the roll progress never goes back
+    speeds = touchdown_speeds(trace, plan.segments[plan.rolls[0]].target[2])
+    assert len(speeds) == 4   # 2 passes: each touches down and lifts off once
+    if profile == "ramp":
+        assert speeds.max() < 0.002    # pressed at rest, stopped before the lift: as before
+    else:
+        assert speeds.min() > 0.019    # at the roll speed (0.02) on both corners of both passes
+    np.testing.assert_allclose(arm.tcp_pose(), plan.motion()[0][-1].target, atol=1e-9)
+
+
+def test_stop_and_a_fault_mid_path_halt_the_arm_at_once():
+    for interrupt in ("stop", "fault"):
+        plan = _raster("blend")
+        arm = SimulatedArm(plan.segments[0].target, clock=(clock := FakeClock()))
+        arm.connect()
+        sequencer = SweepSequencer(arm)
+        sequencer.start(plan)
+        run_traced(arm, clock, sequencer, until=lambda t, status: (status.roll_progress or 0) > 0.2)
+        assert sequencer.status.segment == "pass" and arm.is_moving()
+        if interrupt == "stop":
+            sequencer.stop()
+        else:
+            arm.inject_fault()
+            sequencer.poll()
+        here = arm.tcp_pose()
+        clock.t += 5.0
+        np.testing.assert_array_equal(arm.tcp_pose(), here)
+        assert not arm.is_moving()
+        assert sequencer.status.phase is (SweepPhase.STOPPED if interrupt == "stop" else SweepPhase.FAULT)
+        assert 0.2 < sequencer.status.roll_progress < 0.5
+
+
+def test_a_path_out_of_limits_refuses_the_start_and_the_arm_never_moves():
+    plan = _raster("blend")
+    # the lead-out waypoint of the first pass lies beyond the rolled rectangle: a workspace that ends
+    # at the rectangle's far edge refuses it, though every ramp segment fits
+    pass_end = max(s.target[0] for s in plan.segments)
+    limits = ArmLimits(workspace_max=(pass_end + 1e-4, 1.0, 1.0))
+    for segment in plan.segments:
+        limits.check(segment.target, segment.speed, segment.accel)
+    arm = SimulatedArm(plan.segments[0].target, limits=limits, clock=(clock := FakeClock()))
+    arm.connect()
+    before = arm.tcp_pose()
+    with pytest.raises(ArmLimitError, match="path waypoint"):
+        SweepSequencer(arm).start(plan)
+    clock.t += 1.0
+    np.testing.assert_array_equal(arm.tcp_pose(), before)
+    assert not arm.is_moving()
+
+
+def test_move_path_refuses_a_sharp_corner_at_speed_and_a_path_that_starts_elsewhere():
+    arm, clock = make_arm()
+    here = np.array(START)
+    corner = [here, here + [0.02, 0, 0, 0, 0, 0], here + [0.02, 0.02, 0, 0, 0, 0]]
+    with pytest.raises(ArmLimitError, match="corner") as info:
+        arm.move_path(corner, 0.02, 0.1, 0.0)   # a right angle at 2 cm/s needs an infinite acceleration
+    assert "\n" not in str(info.value)
+    with pytest.raises(ArmError, match="first waypoint"):
+        arm.move_path([here + [0.01, 0, 0, 0, 0, 0], here + [0.03, 0, 0, 0, 0, 0]], 0.02, 0.1, 0.0)
+    with pytest.raises(ArmLimitError, match="speed"):
+        arm.move_path(corner, 0.5, 0.1, 0.01)
+    clock.t += 1.0
+    np.testing.assert_array_equal(arm.tcp_pose(), here)
+    arm.move_path(corner, 0.02, 0.1, 0.01)   # rounded by 1 cm: 0.02^2 * sqrt(2) / 0.01 = 0.057 m/s^2
+    clock.t += 10.0
+    np.testing.assert_allclose(arm.tcp_pose(), corner[-1], atol=1e-9)
+
+
+def test_any_exception_from_a_motion_command_stops_the_arm_and_ends_the_sweep_in_fault():
+    class BrokenPathArm(SimulatedArm):
+        stops = 0
+
+        def move_path(self, *args, **kwargs):
+            raise TypeError("a bug in the back end")
+
+        def stop(self) -> None:
+            BrokenPathArm.stops += 1
+            super().stop()
+
+    plan = _raster("blend")
+    arm = BrokenPathArm(plan.segments[0].target, clock=(clock := FakeClock()))
+    arm.connect()
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan)   # the first move is linear: it runs
+    run_traced(arm, clock, sequencer)
+    assert sequencer.status.phase is SweepPhase.FAULT and not sequencer.active
+    assert "TypeError: a bug in the back end" in sequencer.status.message and BrokenPathArm.stops == 1
+    assert not arm.is_moving()
+
+
+@pytest.mark.parametrize("profile", ["blend", "constant"])
+def test_plan_duration_of_a_path_plan_bounds_the_simulated_run(profile):
+    from touchroller_driver.arm import plan_duration
+
+    plan = _raster(profile)
+    arm = SimulatedArm(plan.segments[0].target, clock=(clock := FakeClock()))
+    arm.connect()
+    sequencer = SweepSequencer(arm)
+    start = clock.t
+    sequencer.start(plan)
+    run_traced(arm, clock, sequencer, dt=0.001)
+    taken = clock.t - start
+    # at least the run (a blend only shortens the path), and not much more than it
+    assert taken - 0.01 <= plan_duration(plan, plan.segments[0].target) <= 1.05 * taken
+
+
+def test_a_single_roll_with_a_path_profile_is_one_path_and_must_lift_off():
+    plan = plan_sweep(START, length=0.05, speed=0.011, accel=0.1, depth=5e-4, clearance=0.002, profile="blend")
+    moves, rolls = plan.motion()
+    assert [m.name for m in moves] == ["to_start", "pass"] and rolls == (1,)
+    np.testing.assert_allclose(moves[1].waypoints[1:3], [plan.segments[1].target, plan.segments[2].target])
+    assert moves[1].waypoints[-1][2] == pytest.approx(START[2] + 0.002)   # lifted back to the clearance
+    with pytest.raises(ArmLimitError, match="sweep.retract"):
+        plan_sweep(START, length=0.05, speed=0.011, accel=0.1, depth=5e-4, retract=False, profile="constant")
+    with pytest.raises(ArmLimitError, match="sweep.profile"):
+        plan_sweep(START, length=0.05, speed=0.011, accel=0.1, depth=5e-4, profile="fast")

@@ -55,6 +55,7 @@ def overload_arities(function, name: str) -> list[tuple[int, int]]:
 
 @pytest.mark.parametrize(("cls", "calls"), [
     (rtde_control.RTDEControlInterface, ur5.CONTROL_CALLS),
+    (rtde_control.RTDEControlInterface, ur5.PATH_CALLS),
     (rtde_receive.RTDEReceiveInterface, ur5.RECEIVE_CALLS),
     (dashboard_client.DashboardClient, ur5.DASHBOARD_CALLS),
 ])
@@ -71,6 +72,12 @@ def test_constructors_take_host_and_frequency():
         cls = getattr(rtde_control if "Control" in cls_name else rtde_receive, cls_name)
         arities = overload_arities(cls.__init__, "__init__")
         assert any(lo <= n_args <= hi for lo, hi in arities), (cls_name, arities)
+
+
+def test_the_path_overload_of_moveL_takes_waypoints_with_speed_accel_and_blend():
+    doc = rtde_control.RTDEControlInterface.moveL.__doc__ or ""
+    assert re.search(r"moveL\(self[^,]*, path: list\[list\[float\]\], asynchronous: bool = False\) -> bool", doc)
+    assert "acceleration, speed and blend" in doc
 
 
 def test_signature_parser_rejects_a_wrong_arity():
@@ -540,3 +547,126 @@ def test_the_isolated_connect_reports_the_control_interfaces_own_error(fake_rtde
         arm.connect()
     assert str(info.value).startswith(f"cannot connect to the UR at {host}: ") and "\n" not in str(info.value)
     assert arm._child is None   # ended with the failed connection
+
+
+# -- sweep.profile blend/constant: a pass as one moveL path ---------------------------------------------
+
+@pytest.fixture()
+def robot_arm(connected_arm):
+    """connected_arm whose doubles move a simulated robot (on a fake clock): moveL of a pose or a path,
+    stopL, the TCP pose and the async progress, as the real control script does."""
+    from touchroller_driver.arm import SimulatedArm
+
+    arm, control, receive = connected_arm
+    clock = [100.0]
+    robot = SimulatedArm(POSE, limits=ArmLimits(max_speed=1.0, max_accel=5.0), clock=lambda: clock[0])
+    robot.connect()
+    sent = []
+
+    def move_l(*args):
+        sent.append(args)
+        if isinstance(args[0][0], list):   # a path: [x, y, z, rx, ry, rz, v, a, r] each
+            path = np.array(args[0])
+            robot.move_path(path[:, :6], float(path[1, 6]), float(path[1, 7]), float(path[:, 8].max()))
+        else:
+            robot.move_linear(args[0], args[1], args[2])
+        return True
+
+    control.moveL.side_effect = move_l
+    control.stopL.side_effect = lambda *a: robot.stop()
+    control.getAsyncOperationProgress.side_effect = lambda: 0 if robot.is_moving() else -1
+    control.isSteady.side_effect = lambda: not robot.is_moving()
+    receive.getActualTCPPose.side_effect = lambda: robot.tcp_pose().tolist()
+    return arm, control, robot, clock, sent
+
+
+def _ur_raster(profile):
+    from touchroller_driver.arm import DEFAULT_MOUNT_RPY, DEFAULT_MOUNT_XYZ, mount_transform, plan_raster
+
+    return plan_raster(POSE, area=(0.42, -0.045, 0.05, 0.09), mount=mount_transform(DEFAULT_MOUNT_XYZ,
+                       DEFAULT_MOUNT_RPY), speed=0.02, accel=0.1, depth=5e-4, clearance=0.002, profile=profile)
+
+
+def _run(arm, clock, plan, until=lambda status: False):
+    from touchroller_driver.arm import SweepSequencer
+
+    sequencer = SweepSequencer(arm)
+    sequencer.start(plan)
+    rows = []
+    while sequencer.active:
+        clock[0] += 0.005
+        status = sequencer.poll()
+        rows.append((clock[0], *arm.tcp_pose()[:3]))
+        if until(status):
+            break
+    return sequencer, np.array(rows)
+
+
+def _touchdown_speeds(trace, pressed_z):
+    speed = np.hypot(*np.diff(trace[:, 1:3], axis=0).T) / np.diff(trace[:, 0])
+    pressed = np.abs(trace[:-1, 3] - pressed_z) < 1e-5
+    return speed[np.flatnonzero(np.diff(pressed.astype(int)))]
+
+
+@pytest.mark.parametrize("profile", ["ramp", "blend"])
+def test_a_blended_pass_is_one_moveL_path_and_touches_down_at_speed(robot_arm, profile):
+    arm, control, robot, clock, sent = robot_arm
+    plan = _ur_raster(profile)
+    arm.move_linear(plan.segments[0].target, 0.05, 0.5, True)   # the rest pose above the first pass
+    clock[0] += 10.0
+    sent.clear()
+    sequencer, trace = _run(arm, clock, plan)
+    assert sequencer.status.phase.value == "done"
+    speeds = _touchdown_speeds(trace, plan.segments[plan.rolls[0]].target[2])
+    assert len(speeds) == 4
+    if profile == "ramp":
+        assert speeds.max() < 0.002 and all(len(args) == 4 for args in sent)   # as before: one pose a moveL
+        return
+    assert speeds.min() > 0.019
+    paths = [args for args in sent if len(args) == 2]
+    assert len(paths) == 2 and all(args[1] is True for args in paths)   # asynchronous: stopL can end it
+    for (path, _), index in zip(paths, plan.motion()[1], strict=True):
+        move = plan.motion()[0][index]
+        assert [len(w) for w in path] == [9] * 4
+        np.testing.assert_allclose(np.array(path)[:, :6], move.waypoints)
+        assert [w[6:8] for w in path] == [[0.02, 0.1]] * 4
+        assert path[0][8] == 0.0 and path[-1][8] == 0.0 and path[1][8] == path[2][8] == pytest.approx(move.blend)
+
+
+def test_stop_mid_path_sends_stopL_and_the_robot_stays(robot_arm):
+    arm, control, robot, clock, _ = robot_arm
+    plan = _ur_raster("blend")
+    arm.move_linear(plan.segments[0].target, 0.05, 0.5, True)
+    clock[0] += 10.0
+    sequencer, _ = _run(arm, clock, plan, until=lambda status: status.roll_progress > 0.2)
+    assert sequencer.status.segment == "pass" and arm.is_moving()
+    sequencer.stop()
+    control.stopL.assert_called_with(ur5.STOP_DECELERATION)
+    here = arm.tcp_pose()
+    clock[0] += 5.0
+    np.testing.assert_array_equal(arm.tcp_pose(), here)
+    assert not arm.is_moving() and sequencer.status.phase.value == "stopped"
+    assert 0.0 < arm.progress() < 1.0
+
+
+def test_a_path_waypoint_out_of_limits_or_unsafe_refuses_before_any_moveL(robot_arm):
+    arm, control, robot, clock, sent = robot_arm
+    plan = _ur_raster("blend")
+    arm.move_linear(plan.segments[0].target, 0.05, 0.5, True)
+    clock[0] += 10.0
+    sent.clear()
+    path = plan.motion()[0][1]
+    before = robot.tcp_pose()
+    with pytest.raises(ArmLimitError, match="path waypoint 4 of 4"):   # the lead-out beyond the workspace
+        arm.limits = ArmLimits(max_speed=0.05, workspace_max=(float(path.waypoints[2][0]) + 1e-4, 1.0, 1.0))
+        arm.move_path(path.waypoints, path.speed, path.accel, path.blend)
+    arm.limits = ArmLimits(max_speed=0.05)
+    control.isPoseWithinSafetyLimits.side_effect = lambda pose: pose[2] > path.waypoints[1][2] + 1e-6
+    with pytest.raises(ArmError, match="safety limits"):   # the controller refuses the pressed waypoints
+        arm.move_path(path.waypoints, path.speed, path.accel, path.blend)
+    control.isPoseWithinSafetyLimits.side_effect = None
+    with pytest.raises(ArmError, match="first waypoint"):   # not where the tool is
+        arm.move_path(plan.motion()[0][3].waypoints, path.speed, path.accel, path.blend)
+    assert sent == []
+    clock[0] += 1.0
+    np.testing.assert_array_equal(robot.tcp_pose(), before)

@@ -5,6 +5,8 @@ planned and checked whole on a planner thread (every segment against `arm.max_sp
 `arm.reach`, read-only at run time; at most MAX_PASSES passes; at most `sweep.max_duration` from where the
 arm is), then the arm thread commits to it just before the first motion command; a start its caller
 stopped waiting for (COMMAND_TIMEOUT_S, or shutdown) is abandoned instead, and never moves the arm.
+`sweep.profile` (ramp, blend, constant) says how each pass moves: stop-and-go linear moves, or the pass as
+one blended path through the arm (`Arm.move_path`), every waypoint and corner checked first (docs/ur5.md).
 Start-up parameter values get the on-set callback's checks (one line, exit 2). All arm calls happen on
 one worker thread; a fault (protective/emergency stop, lost connection, refused command, a robot that
 stopped answering), during a sweep or while idle, stops the sweep, shows as ERROR on `/diagnostics` and
@@ -67,6 +69,7 @@ from touchroller_driver.arm import (
     DEFAULT_MOUNT_RPY,
     DEFAULT_MOUNT_XYZ,
     DEFAULT_START_POSE,
+    SWEEP_PROFILES,
     Arm,
     ArmError,
     ArmLimits,
@@ -75,6 +78,7 @@ from touchroller_driver.arm import (
     SweepPlan,
     SweepSequencer,
     SweepStatus,
+    check_plan,
     mount_transform,
     plan_duration,
     plan_raster,
@@ -99,7 +103,7 @@ LOCKSTEP_STALL_S = 10.0
 # Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
 SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
                     "sweep.start_pose", "sweep.direction", "sweep.retract", "sweep.clearance", "sweep.area",
-                    "sweep.usable_width", "sweep.overlap")
+                    "sweep.usable_width", "sweep.overlap", "sweep.profile")
 
 
 def rotation_vector_to_quaternion(rotation: Sequence[float]) -> tuple[float, float, float, float]:
@@ -254,6 +258,11 @@ class SweepNode(Node):
         declare(self, "sweep.overlap", 0.25, "Least fraction of sweep.usable_width neighbouring passes share",
                 min=0.0, max=0.9)
         declare(self, "sweep.direction", list(DEFAULT_DIRECTION), "Rolling direction in the base frame (horizontal)")
+        declare(self, "sweep.profile", "ramp", "Motion of each pass: ramp (stop above the pass, press in at "
+                "rest, accelerate, roll, stop, lift: moves one at a time), blend (each pass one path at "
+                "sweep.speed through its waypoints with blend radii: descending before the pass, touching down "
+                "and lifting off while moving, as a UR program of movels with blend radii) or constant (the same "
+                "path with sharp corners); docs/ur5.md", additional_constraints="one of: " + ", ".join(SWEEP_PROFILES))
         declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
         declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "Height above the start pose the roller approaches "
                 "from and lifts back to, m", min=0.0, max=0.05)
@@ -330,16 +339,15 @@ class SweepNode(Node):
                 depth=float(settings["sweep.depth"]), direction=list(settings["sweep.direction"]),
                 usable_width=float(settings["sweep.usable_width"]), overlap=float(settings["sweep.overlap"]),
                 approach_speed=float(settings["sweep.approach_speed"]), clearance=float(settings["sweep.clearance"]),
-                limits=self.limits)
+                limits=self.limits, profile=str(settings["sweep.profile"]))
         else:
             plan = plan_sweep(
                 list(settings["sweep.start_pose"]), length=float(settings["sweep.length"]),
                 speed=float(settings["sweep.speed"]), accel=float(settings["sweep.accel"]),
                 depth=float(settings["sweep.depth"]), direction=list(settings["sweep.direction"]),
                 approach_speed=float(settings["sweep.approach_speed"]), retract=bool(settings["sweep.retract"]),
-                clearance=float(settings["sweep.clearance"]))
-        for segment in plan.segments:
-            self.limits.check(segment.target, segment.speed, segment.accel)
+                clearance=float(settings["sweep.clearance"]), profile=str(settings["sweep.profile"]))
+        check_plan(self.limits, plan)   # every move, each path's waypoints and blended corners
         limit = float(self.get_parameter("sweep.max_duration").value)
         duration = plan_duration(plan, from_pose)
         if not duration <= limit:
@@ -669,7 +677,7 @@ class SweepNode(Node):
                 if fault is not None:
                     status = SweepStatus(SweepPhase.FAULT, None, status.roll_progress, fault)
             pose = self.arm.tcp_pose()
-        except (ArmError, RuntimeError) as exc:  # e.g. the connection dropped mid-call
+        except Exception as exc:  # noqa: BLE001 - e.g. the connection dropped mid-call; whatever it is, stop
             self.sequencer.stop(str(exc))
             status = SweepStatus(SweepPhase.FAULT, self.sequencer.status.segment,
                                  self.sequencer.status.roll_progress, str(exc))

@@ -401,6 +401,7 @@ def test_a_start_answered_failure_never_moves_the_arm(harness_factory, spin_unti
     ("sweep.direction", [0.0, 0.0, 1.0], "horizontal"),
     ("sweep.direction", [float("nan"), 0.0, 0.0], "finite"),
     ("sweep.speed", 0.5, "speed"),
+    ("sweep.profile", "zigzag", "sweep.profile must be one of ramp, blend, constant"),
 ])
 def test_out_of_bounds_sweeps_are_refused_at_set_time_and_at_start_up(harness_factory, ros_context, name, value,
                                                                       why):
@@ -528,3 +529,58 @@ def test_two_rollers_in_two_namespaces_share_the_robots_base(ros_context, spin_u
         executor.shutdown()
         for node in (*rollers, perception, probe):
             node.destroy_node()
+
+
+# -- sweep.profile ---------------------------------------------------------------------------------------
+
+class PathRecordingArm(SimulatedArm):
+    """A SimulatedArm that records its path moves; `slow_paths` makes a path roll at SLOW_ROLL x real time."""
+
+    def __init__(self, slow_paths: bool = False) -> None:
+        super().__init__(START, clock=ScaledClock())
+        self.paths: list[tuple] = []
+        self.slow_paths = slow_paths
+        self.rolling = threading.Event()
+
+    def move_path(self, waypoints, speed, accel, blend, asynchronous=True) -> None:
+        super().move_path(waypoints, speed, accel, blend, asynchronous)
+        self.paths.append((np.array(waypoints), speed, accel, blend))
+        if self.slow_paths and not self.rolling.is_set():
+            self.clock.set_rate(SLOW_ROLL)
+            self.rolling.set()
+
+
+def test_sweep_profile_is_declared_validated_and_blend_runs_each_pass_as_one_path(harness_factory, spin_until):
+    arm = PathRecordingArm()
+    h = harness_factory(arm=arm)
+    descriptor = h.node.describe_parameter("sweep.profile")
+    assert "blend" in descriptor.description and "ramp, blend, constant" in descriptor.additional_constraints
+    assert h.node.get_parameter("sweep.profile").value == "ramp"   # the default: nothing changes
+    assert h.node.set_parameters([Parameter("sweep.profile", value="blend")])[0].successful
+    assert h.call(spin_until, "start").success
+    assert spin_until(h.executor, h.node.finished.is_set, timeout=20.0)
+    assert h.node.status.phase is SweepPhase.DONE
+    plan = h.node.plan
+    assert plan is not None and plan.profile == "blend" and len(arm.paths) == 1
+    waypoints, speed, _, blend = arm.paths[0]
+    np.testing.assert_allclose(waypoints[1:3], [plan.segments[1].target, plan.segments[2].target])
+    assert speed == pytest.approx(SWEEP_SPEED) and blend > 0
+    np.testing.assert_allclose(arm.tcp_pose(), waypoints[-1], atol=1e-9)
+    h.node.set_parameters([Parameter("sweep.profile", value="ramp")])
+    assert h.call(spin_until, "start").success
+    assert spin_until(h.executor, h.node.finished.is_set, timeout=20.0)
+    assert len(arm.paths) == 1   # ramp: linear moves only, as before
+
+
+def test_stop_mid_path_halts_the_arm(harness_factory, spin_until):
+    arm = PathRecordingArm(slow_paths=True)
+    h = harness_factory(arm=arm, overrides=[*OVERRIDES, Parameter("sweep.profile", value="constant")])
+    assert h.call(spin_until, "start").success
+    assert arm.rolling.wait(20.0)
+    assert arm.is_moving()
+    assert h.call(spin_until, "stop").success
+    assert h.node.finished.wait(10.0)
+    assert h.node.status.phase is SweepPhase.STOPPED
+    here = arm.tcp_pose()
+    time.sleep(0.2)
+    assert not arm.is_moving() and np.array_equal(arm.tcp_pose(), here)
