@@ -40,7 +40,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -63,15 +63,18 @@ from touchroller_perception.world_canvas import (  # noqa: F401 (WorldCanvas, _P
     _Placement,
     _Prior,
 )
-from touchroller_perception.world_height import (
-    BandHeights,
-    HeightBand,
-    HeightLayer,
-    HeightMapLayer,
-    HeightSource,
-)
+
+if TYPE_CHECKING:   # imported where used: the height map needs SciPy, a map without one does not
+    from touchroller_perception.world_height import BandHeights, HeightBand, HeightMapLayer, HeightSource
 
 FloatArray = NDArray[np.float64]
+
+
+def _height_module() -> Any:
+    """`touchroller_perception.world_height`, imported when a height map is made (it brings SciPy)."""
+    from touchroller_perception import world_height
+
+    return world_height
 _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
 _EVENT_CHECK_NS = 250_000_000   # how often (stamp time) the pressed height, starts and stops are looked for
 _PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in this many is registered
@@ -343,7 +346,7 @@ class WorldMapper:
         self.config = config = config or WorldMapConfig()
         # the height map (`world_height`): with a photometric model, two more pairs of canvas layers
         self.height_source = height
-        self._height_layer = None if height is None else HeightLayer(height.config)
+        self._height_layer = None if height is None else _height_module().HeightLayer(height.config)
         self._band_heights: BandHeights | None = None
         self.camera = camera
         self.poses = poses
@@ -431,8 +434,8 @@ class WorldMapper:
             assert self.height_source is not None
             self.strip.source_rows(shape)
             source = self.height_source
-            self._band_heights = BandHeights(source.model, source.reference, self.camera, self.strip.sampler,
-                                             source.config)
+            self._band_heights = _height_module().BandHeights(source.model, source.reference, self.camera,
+                                                              self.strip.sampler, source.config)
         return self._band_heights
 
     def height_layer(self, crop: bool = True) -> HeightMapLayer | None:
@@ -474,7 +477,7 @@ class WorldMapper:
                 out[y0 - r0:y1 - r0, x0 - c0:x1 - c0][known] = value[part][known]
         res = self.config.resolution * 2 ** level
         anchor = self.canvas.anchor
-        return HeightMapLayer(out, (anchor[0] + c0 * res, anchor[1] + r0 * res), res)
+        return _height_module().HeightMapLayer(out, (anchor[0] + c0 * res, anchor[1] + r0 * res), res)
 
     def _end_height_pass(self) -> None:
         assert self._height_layer is not None

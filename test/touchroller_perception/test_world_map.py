@@ -565,3 +565,15 @@ def test_a_raster_turned_off_the_world_axes_at_speed_finds_the_latency_from_its_
     assert "opposite_passes" in estimate.sources
     assert mapper.stats.latency_s == pytest.approx(0.04, abs=0.003)
     assert mapper.stats.passes == 2 and all(math.hypot(*c) > 0 for c in mapper.stats.pass_corrections_px)
+
+
+def test_a_map_without_height_does_not_import_scipy():
+    """`touchroller map` of a world map imports the height map's modules (SciPy: about 0.2 s, which broke
+    the map's 1.5x-of-reading goal) only when a height map is made."""
+    import subprocess
+    import sys
+
+    code = ("import sys; import touchroller_bringup.map_files, touchroller_perception.world_map; "
+            "print(sorted(m for m in sys.modules if m == 'scipy' or m.startswith('touchroller_perception.height')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]", done.stdout
