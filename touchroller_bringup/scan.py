@@ -842,7 +842,9 @@ def _world_summary(world: Any, frame: str, resolution: float, origin: tuple[floa
             "latency_estimated": stats.latency_estimated,
             "latency": latency_summary(stats)[0],
             "pass_corrections_mm": [(dx * resolution * 1e3, dy * resolution * 1e3)
-                                    for dx, dy in stats.pass_corrections_px]}
+                                    for dx, dy in stats.pass_corrections_px],
+            "pass_residuals_mm": [(dx * resolution * 1e3, dy * resolution * 1e3)
+                                  for dx, dy in stats.pass_residuals_px]}
 
 
 def _parameter(node: Any, name: str, default: Any) -> Any:

@@ -128,11 +128,13 @@ def write_png(path: Path, image: np.ndarray) -> None:
 def _world_lines(world: Mapping[str, Any]) -> list[str]:
     latency = "not found" if world["latency_ms"] is None else f"{world['latency_ms']:.1f} ms"
     corrections = ", ".join(f"({dx:+.3f}, {dy:+.3f})" for dx, dy in world["pass_corrections_mm"]) or "none"
+    residuals = ", ".join(f"({dx:+.3f}, {dy:+.3f})" for dx, dy in world.get("pass_residuals_mm", ())) or "none"
     return [f"- world map in `{world['frame']}`: `map.png` + `map.yaml`, {world['resolution_m'] * 1e3:g} mm per pixel, "
             f"origin ({world['origin'][0]:.4f}, {world['origin'][1]:.4f}) m; {world['frames_mapped']} frames "
             f"mapped in {world['passes']} pass(es)",
             f"- camera latency {world.get('latency') or latency}; "
-            f"pass corrections by registration (x, y mm): {corrections}"]
+            f"passes moved by registration off where TF and the final latency put them (x, y mm): {residuals} "
+            f"(as placed, with the latency known then: {corrections})"]
 
 
 def _picture_lines(result: ScanResult) -> list[str]:

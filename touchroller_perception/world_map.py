@@ -318,6 +318,10 @@ class MapStats:
     left_out_storage_full: int = 0   # frames left out: their new tiles would not have fitted on the disk
     storage_warning: str | None = None
     pass_corrections_px: list[tuple[float, float]] = field(default_factory=list)
+    # each later pass's correction net of the latency: how far registration moved it from where TF and the
+    # final latency put it (the raw correction holds the latency's effect when the pass was placed before
+    # the latency was known: 2 v L for a pass rolled back); the reports show these
+    pass_residuals_px: list[tuple[float, float]] = field(default_factory=list)
     latency_s: float | None = None
     latency_estimated: bool = False
     latency: LatencyEstimate | None = None   # what the data said (value, sigma, sources); None when told
@@ -681,6 +685,21 @@ class WorldMapper:
         ox, oy = self.canvas.origin
         self.canvas.origin = (ox - float(shift[0] - done[0]), oy - float(shift[1] - done[1]))
         self.stats.map_shift_m = (-float(shift[0]), -float(shift[1]))
+        self._net_corrections(estimate.value, first.latency(), velocity)
+
+    def _net_corrections(self, latency: float, first_latency: float, first_velocity: np.ndarray) -> None:
+        """`stats.pass_residuals_px`: a pass placed with latency L_p and moved by registration by delta_p
+        lies, after the map's final shift, delta_p + (L - L_p) v_p - (L - L_1) v_1 from where TF and the
+        final latency L put it."""
+        residuals = []
+        for record in self._pass_log[1:]:
+            velocity = record.velocity()
+            if velocity is None:   # a pass that did not roll
+                continue
+            net = (np.asarray(record.delta) * self.config.resolution + (latency - record.latency()) * velocity
+                   - (latency - first_latency) * first_velocity) / self.config.resolution
+            residuals.append((float(net[0]), float(net[1])))
+        self.stats.pass_residuals_px = residuals
 
     def map_image(self, crop: bool = True) -> WorldMapImage:
         """The map for files and topics; `crop`: to what was mapped (a growing map's spare room goes;

@@ -658,8 +658,8 @@ class PerceptionNode(Node):
         latency = latency_summary(stats)[0]
         self.get_logger().info(
             f"world map: {stats.mapped} of {stats.frames} frames mapped in {stats.passes} pass(es); camera "
-            f"latency {latency}; pass corrections "
-            + ", ".join(f"({dx * mm:+.2f}, {dy * mm:+.2f}) mm" for dx, dy in stats.pass_corrections_px))
+            f"latency {latency}; passes off TF and the latency by "
+            + (", ".join(f"({dx * mm:+.2f}, {dy * mm:+.2f}) mm" for dx, dy in stats.pass_residuals_px) or "-"))
 
     def _save_map(self, tactile_map: np.ndarray, path: str) -> None:
         import cv2
