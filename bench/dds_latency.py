@@ -27,7 +27,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -683,6 +683,11 @@ RECORDED_BY = "--section"
 def load(path: Path) -> DdsSection:
     """A result this bench wrote (its JSON), for the report to render without running it again."""
     result: DdsSection = load_json(DdsSection, path)
+    if result.slow_consumer:   # typed Any above (another bench's type): rebuilt by its own from_json
+        from bench.dds_slow_consumer import SlowConsumerRun
+
+        result = replace(result, slow_consumer=tuple(
+            SlowConsumerRun.from_json(r) if isinstance(r, dict) else r for r in result.slow_consumer))
     return result
 
 
