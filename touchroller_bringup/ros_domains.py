@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import itertools
 import os
 import socket
 import tempfile
@@ -71,6 +72,9 @@ def domain_in_use(domain_id: int) -> bool:
     return False
 
 
+_LEASES = itertools.count()
+
+
 def reserve_domain_id(candidates: Iterable[int] | None = None, *, start: int | None = None) -> DomainLease:
     """The first free domain of `candidates` (default 1..232), tried from `start` (default: spread by
     pid, so concurrent processes rarely contend for the same lock); RuntimeError if none is free."""
@@ -79,7 +83,9 @@ def reserve_domain_id(candidates: Iterable[int] | None = None, *, start: int | N
         raise ValueError("no candidate domain IDs")
     if any(not 0 <= d <= 232 for d in ids):
         raise ValueError(f"ROS domain IDs must be in 0..232, got {ids}")
-    first = (os.getpid() * 7 if start is None else start) % len(ids)
+    # spread by pid, and moved on at each lease of this process: a graph just shut down in this process can
+    # linger in discovery for a moment, and the next lease must not hand its domain straight back
+    first = (os.getpid() * 7 + 13 * next(_LEASES) if start is None else start) % len(ids)
     LOCK_DIR.mkdir(parents=True, exist_ok=True)
     for domain_id in ids[first:] + ids[:first]:
         lock = open(LOCK_DIR / f"{domain_id}.lock", "a+", encoding="utf-8")  # noqa: SIM115 - held by the lease

@@ -27,7 +27,7 @@ def test_a_window_of_the_bicubic_resize_is_cv2s(rows, cols, scale, r, c, h, w, s
     r0, c0 = min(r, rows - 1), min(c, cols - 1)
     r1, c1 = min(r0 + h, rows), min(c0 + w, cols)
     np.testing.assert_allclose(cubic_window(small, rows, cols, r0, r1, c0, c1), whole[r0:r1, c0:c1],
-                               atol=2e-6 * max(1.0, float(np.abs(whole).max())))
+                               atol=1e-5 * max(1.0, float(np.abs(whole).max())))   # float32 sums: ~30 ulp
 
 
 @pytest.mark.parametrize("kind", ["grain", "stripes", "flat"])
