@@ -402,11 +402,9 @@ class URDriverArm:
         return _move_fraction(move, self.tcp_pose())
 
     # -- motion --------------------------------------------------------------------------------
-    def move_linear(self, target_pose: ArrayLike, speed: float, accel: float, asynchronous: bool = True) -> None:
-        """Publish one movel program; everything is checked first (limits, a finite target, a healthy
-        driver with a script subscriber), so a refused move publishes nothing."""
-        target = self.limits.check(target_pose, speed, accel)
-        program = movel_program(target, speed, accel)
+    def _check_ready(self) -> None:
+        """ArmError unless a program may be published now: not aborted, connected, no fault, and the
+        driver's urscript_interface subscribed."""
         self._check_aborted()
         if self._node is None:
             raise ArmError(self._fault or "arm not connected")
@@ -416,6 +414,13 @@ class URDriverArm:
         if self._node.count_subscribers(self._script_pub.topic_name) == 0:
             raise ArmError(f"nobody subscribes to {self._script_pub.topic_name}: is the driver's urscript_interface "
                            "running?")
+
+    def move_linear(self, target_pose: ArrayLike, speed: float, accel: float, asynchronous: bool = True) -> None:
+        """Publish one movel program; everything is checked first (limits, a finite target, a healthy
+        driver with a script subscriber), so a refused move publishes nothing."""
+        target = self.limits.check(target_pose, speed, accel)
+        program = movel_program(target, speed, accel)
+        self._check_ready()
         start = self.tcp_pose()
         with self._lock:
             self._move = _Move(start, target, time.monotonic(), self._program_starts)
@@ -431,15 +436,7 @@ class URDriverArm:
         publishes nothing. If this process hangs, the robot finishes at most this path (one pass)."""
         points = self.limits.check_path(waypoints, speed, accel, blend)
         program = path_program(points, speed, accel, blend)
-        self._check_aborted()
-        if self._node is None:
-            raise ArmError(self._fault or "arm not connected")
-        fault = self.fault()
-        if fault is not None:
-            raise ArmError(f"arm faulted: {fault}")
-        if self._node.count_subscribers(self._script_pub.topic_name) == 0:
-            raise ArmError(f"nobody subscribes to {self._script_pub.topic_name}: is the driver's urscript_interface "
-                           "running?")
+        self._check_ready()
         start = self.tcp_pose()
         check_path_start(start, points)
         with self._lock:
