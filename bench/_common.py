@@ -18,13 +18,13 @@ import numpy as np
 
 from touchroller_bringup.report import loadavg
 from touchroller_bringup.report import machine_description as machine
-from touchroller_perception.files import atomic_path
+from touchroller_perception.files import atomic_path, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 
 __all__ = ["RESULTS", "ROOT", "Provenance", "command", "loadavg", "machine", "provenance", "provenance_markdown",
-           "results_path", "to_json", "from_json", "load_json"]
+           "results_path", "to_json", "from_json", "load_json", "load_dict", "write_results"]
 
 
 def subpixel_peak(values: np.ndarray, i: int) -> float:
@@ -148,3 +148,20 @@ def from_json(kind: Any, data: Any) -> Any:
 def load_json(kind: Any, path: Path) -> Any:
     """A result a bench wrote with `to_json`, read back as `kind` (see `from_json`)."""
     return from_json(kind, json.loads(Path(path).read_text(encoding="utf-8")))
+
+
+def load_dict(path: Path) -> dict[str, Any]:
+    """A result a bench wrote as a plain JSON object, for the report to render without running it again
+    (the `load` of the benches whose results are string-keyed tables)."""
+    result: dict[str, Any] = load_json(dict, path)
+    return result
+
+
+def write_results(out: Path, title: str, result: Any, to_markdown: Any, figures: Any = None) -> None:
+    """A bench's recorded run: `out` (Markdown under `# title`), the JSON beside it that the report
+    renders from, then the bench's figures into the same folder; each file whole or not at all."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, f"# {title}\n\n" + to_markdown(result))
+    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
+    for figure in (figures(result, out.parent) if figures is not None else []):
+        print(f"wrote {figure}")

@@ -19,9 +19,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import load_json, provenance, provenance_markdown, results_path, save_figure, to_json
+from bench._common import load_dict, provenance, provenance_markdown, results_path, save_figure, write_results
 from touchroller_perception.contacts import BackgroundModel, ContactDetector, DetectorConfig
-from touchroller_perception.files import atomic_write_text
 from touchroller_perception.localisation import SurfaceLookup, localise
 
 #: Detector settings compared for accuracy against time on the tap frames.
@@ -182,10 +181,7 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
     plt.close(fig)
     return [path]
 
-def load(path: Path) -> dict[str, Any]:
-    """A result this bench wrote (its JSON), for the report to render without running it again."""
-    result: dict[str, Any] = load_json(dict, path)
-    return result
+load = load_dict   # the report reads the recorded JSON back through the bench's `load`
 
 
 
@@ -200,11 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.note:
         result["note"] = args.note
     out = Path(args.out) if args.out else results_path("contacts_bench", args.quick)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, "# Contact detection + localisation time per frame\n\n" + to_markdown(result))
-    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
-    for figure in figures(result, out.parent):
-        print(f"wrote {figure}")
+    write_results(out, "Contact detection + localisation time per frame", result, to_markdown, figures)
     print(f"wrote {out}")
     return 0
 

@@ -30,11 +30,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import load_json, provenance, provenance_markdown, results_path, save_figure, to_json
+from bench._common import load_dict, provenance, provenance_markdown, results_path, save_figure, write_results
 from bench.real_presses import SENSORS, PressSet, Scorecard, StreamTime, available, load_presses, score, stream_time
 from touchroller_driver.sim.realistic import fit_appearance, refine_centres
 from touchroller_perception.contacts import DetectorConfig
-from touchroller_perception.files import atomic_write_text
 
 METHODS = {"ours (colour)": DetectorConfig(), "paper's pipeline": DetectorConfig(method="paper")}
 #: the Mini's presses come in two runs at two indenter positions along u (see `label_scatter`)
@@ -353,10 +352,7 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
     plt.close(fig)
     return [path]
 
-def load(path: Path) -> dict[str, Any]:
-    """A result this bench wrote (its JSON), for the report to render without running it again."""
-    result: dict[str, Any] = load_json(dict, path)
-    return result
+load = load_dict   # the report reads the recorded JSON back through the bench's `load`
 
 
 
@@ -367,11 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
     out = Path(args.out) if args.out else results_path("contacts_real", args.quick)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, "# Contacts on real GelSight presses\n\n" + to_markdown(result))
-    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
-    for figure in figures(result, out.parent):
-        print(f"wrote {figure}")
+    write_results(out, "Contacts on real GelSight presses", result, to_markdown, figures)
     print(f"wrote {out}")
     return 0
 

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bench._common import command, load_json, results_path, save_figure, to_json
+from bench._common import command, load_dict, results_path, save_figure, write_results
 from bench.table_ii import (
     explain_markdown,
     explain_paper_table,
@@ -22,7 +22,6 @@ from bench.table_ii import (
     table_ii_markdown,
 )
 from touchroller_driver.sim import SimulatedSensor, load_scene
-from touchroller_perception.files import atomic_write_text
 
 
 def run(quick: bool = False) -> dict[str, Any]:
@@ -107,10 +106,7 @@ def _detection_example():
     crop = tap.image[max(v0, 0):v0 + 2 * half, max(u0, 0):u0 + 2 * half]
     return crop, [((mu - max(u0, 0), mv - max(v0, 0)), style, label) for (mu, mv), style, label in marks]
 
-def load(path: Path) -> dict[str, Any]:
-    """A result this bench wrote (its JSON), for the report to render without running it again."""
-    result: dict[str, Any] = load_json(dict, path)
-    return result
+load = load_dict   # the report reads the recorded JSON back through the bench's `load`
 
 
 
@@ -121,11 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
     out = Path(args.out) if args.out else results_path("contacts_table_ii", args.quick)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, "# Contact localisation: the paper's Table II in simulation\n\n" + to_markdown(result))
-    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
-    for figure in figures(result, out.parent):
-        print(f"wrote {figure}")
+    write_results(out, "Contact localisation: the paper's Table II in simulation", result, to_markdown, figures)
     summary = result["table_ii"]["summary"]
     print(f"exact calibration: mean {summary['exact']['mean_mm']:.4f} mm, worst cell "
           f"{summary['exact']['max_cell_mean_mm']:.4f} mm (goal <= 0.25 mm); wrote {out}")

@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench._common import load_json, provenance, provenance_markdown, results_path, to_json
+from bench._common import load_dict, provenance, provenance_markdown, results_path, write_results
 from bench.real_presses import SENSORS, PressSet, available, load_presses, match
 from touchroller_driver.sim.realistic import (
     REACH,
@@ -37,7 +37,7 @@ from touchroller_driver.sim.realistic import (
     refine_centres,
 )
 from touchroller_perception.contacts import ContactDetector, DetectorConfig
-from touchroller_perception.files import atomic_path, atomic_write_text
+from touchroller_perception.files import atomic_path
 
 METHODS = {"ours (colour)": DetectorConfig(), "paper's pipeline": DetectorConfig(method="paper")}
 
@@ -215,10 +215,7 @@ def figures(result: dict[str, Any], out_dir: Path) -> list[Path]:
             raise OSError(f"cannot write {path}")
     return [path]
 
-def load(path: Path) -> dict[str, Any]:
-    """A result this bench wrote (its JSON), for the report to render without running it again."""
-    result: dict[str, Any] = load_json(dict, path)
-    return result
+load = load_dict   # the report reads the recorded JSON back through the bench's `load`
 
 
 
@@ -229,11 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     result = run(quick=args.quick)
     out = Path(args.out) if args.out else results_path("sim_to_real", args.quick)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, "# Simulated against real presses\n\n" + to_markdown(result))
-    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
-    for figure in figures(result, out.parent):
-        print(f"wrote {figure}")
+    write_results(out, "Simulated against real presses", result, to_markdown, figures)
     print(f"wrote {out}")
     return 0
 
