@@ -4,12 +4,14 @@ time; a client that disappears mid-goal stops the arm; a fault aborts the goal; 
 touchroller_interfaces is missing."""
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,10 +21,13 @@ from hypothesis import strategies as st
 from touchroller_bringup.sweep_action import Outcome, SweepFeedback, goal_settings, passes_done, sweep_feedback
 from touchroller_driver.arm import SweepPhase, SweepStatus, plan_sweep
 
-START = [0.4, 0.0, 0.2, math.pi, 0.0, 0.0]
-SWEEP_SPEED = 0.02
-SPEEDUP = 10.0
-SLOW_ROLL = 0.02   # while rolling, the arm's clock runs 0.02 x real time: a 2 cm roll takes 50 s of wall time
+_spec = importlib.util.spec_from_file_location("sweep_arms", Path(__file__).with_name("sweep_arms.py"))
+assert _spec is not None and _spec.loader is not None
+sweep_arms = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(sweep_arms)
+START, SWEEP_SPEED, SPEEDUP = sweep_arms.START, sweep_arms.SWEEP_SPEED, sweep_arms.SPEEDUP
+SLOW_ROLL = sweep_arms.SLOW_ROLL
+ScaledClock, SlowRollArm = sweep_arms.ScaledClock, sweep_arms.SlowRollArm
 SETTINGS = {"sweep.length": 0.11, "sweep.speed": 0.011, "sweep.depth": 0.0005, "sweep.accel": 0.1,
             "sweep.approach_speed": 0.005, "sweep.overlap": 0.25, "sweep.area": [0.0, 0.0, 0.0, 0.0],
             "sweep.start_pose": START, "sweep.direction": [1.0, 0.0, 0.0], "sweep.retract": True}
@@ -110,40 +115,6 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 OVERRIDES = [Parameter("sweep.length", value=0.02), Parameter("sweep.speed", value=SWEEP_SPEED),
              Parameter("sweep.approach_speed", value=0.01), Parameter("sweep.start_pose", value=START)]
 ACTION = names.topic(names.SWEEP_ACTION)
-
-
-class ScaledClock:
-    """Wall time scaled by a rate the test can change while it runs (continuous)."""
-
-    def __init__(self, rate: float = SPEEDUP) -> None:
-        self._lock = threading.Lock()
-        self._since, self._base, self.rate = time.monotonic(), time.monotonic() * rate, rate
-
-    def __call__(self) -> float:
-        with self._lock:
-            return self._base + (time.monotonic() - self._since) * self.rate
-
-    def set_rate(self, rate: float) -> None:
-        with self._lock:
-            now = time.monotonic()
-            self._base += (now - self._since) * self.rate
-            self._since, self.rate = now, rate
-
-
-class SlowRollArm(SimulatedArm):
-    """Fast to the surface, then the roll at SLOW_ROLL x real time: a test acts on a sweep while it rolls."""
-
-    def __init__(self) -> None:
-        super().__init__(START, clock=ScaledClock())
-        self.rolling = threading.Event()
-        self.moves = 0
-
-    def move_linear(self, target_pose, speed: float, accel: float, asynchronous: bool = True) -> None:
-        self.moves += 1
-        super().move_linear(target_pose, speed, accel, asynchronous)
-        if speed == pytest.approx(SWEEP_SPEED) and not self.rolling.is_set():
-            self.clock.set_rate(SLOW_ROLL)
-            self.rolling.set()
 
 
 class CountingArm(SimulatedArm):

@@ -1,9 +1,11 @@
 """The sweep node in a real rclpy context: explicit start, limits, progress, faults, diagnostics."""
 from __future__ import annotations
 
+import importlib.util
 import math
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,55 +26,19 @@ from touchroller_driver.arm import ArmLimits, SimulatedArm, SweepPhase  # noqa: 
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
 
-START = [0.4, 0.0, 0.2, math.pi, 0.0, 0.0]
-SWEEP_SPEED = 0.02
-SPEEDUP = 10.0  # the simulated arm's clock runs 10x faster than wall time to keep tests short
+_spec = importlib.util.spec_from_file_location("sweep_arms", Path(__file__).parents[1] / "sweep_arms.py")
+assert _spec is not None and _spec.loader is not None
+sweep_arms = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(sweep_arms)
+START, SWEEP_SPEED, SPEEDUP = sweep_arms.START, sweep_arms.SWEEP_SPEED, sweep_arms.SPEEDUP
+SLOW_ROLL = sweep_arms.SLOW_ROLL
+ScaledClock, SlowRollArm, fast_clock = sweep_arms.ScaledClock, sweep_arms.SlowRollArm, sweep_arms.fast_clock
 OVERRIDES = [
     Parameter("sweep.length", value=0.02),
     Parameter("sweep.speed", value=SWEEP_SPEED),
     Parameter("sweep.approach_speed", value=0.01),
     Parameter("sweep.start_pose", value=START),
 ]
-
-
-def fast_clock() -> float:
-    return time.monotonic() * SPEEDUP
-
-
-class ScaledClock:
-    """Wall time scaled by a rate the test can change while it runs (continuous, never jumps back)."""
-
-    def __init__(self, rate: float = SPEEDUP) -> None:
-        self._lock = threading.Lock()
-        self._since, self._base, self.rate = time.monotonic(), time.monotonic() * rate, rate
-
-    def __call__(self) -> float:
-        with self._lock:
-            return self._base + (time.monotonic() - self._since) * self.rate
-
-    def set_rate(self, rate: float) -> None:
-        with self._lock:
-            now = time.monotonic()
-            self._base += (now - self._since) * self.rate
-            self._since, self.rate = now, rate
-
-
-SLOW_ROLL = 0.02   # the roll (1 s of arm time) then lasts 50 s of wall time: no stall on a loaded machine ends it
-
-
-class SlowRollArm(SimulatedArm):
-    """Moves to the surface 10x faster than real time, then rolls SLOW_ROLL x real time: tests that act on a
-    sweep *while it rolls* are not racing a 0.1 s window (a descheduled test thread misses it)."""
-
-    def __init__(self) -> None:
-        super().__init__(START, clock=ScaledClock())
-        self.rolling = threading.Event()
-
-    def move_linear(self, target_pose, speed: float, accel: float, asynchronous: bool = True) -> None:
-        super().move_linear(target_pose, speed, accel, asynchronous)
-        if speed == pytest.approx(SWEEP_SPEED) and not self.rolling.is_set():   # the roll segment
-            self.clock.set_rate(SLOW_ROLL)
-            self.rolling.set()
 
 
 class Harness:
