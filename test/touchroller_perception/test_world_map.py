@@ -49,12 +49,15 @@ def scans(sensor):
     return plan, rest, out
 
 
-def run(events, sensor, **config):
+def run(events, sensor, area=AREA, **config):
+    """The world map of simulated events (TF and images in time order); `area` (x, y, width, height) bounds
+    the map 1 cm beyond it, None leaves the map unbounded."""
     buffer = TransformBuffer(cache_ns=None)
     buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
-    bounds = (AREA[0] - 0.01, AREA[1] - 0.01, AREA[0] + AREA[2] + 0.01, AREA[1] + AREA[3] + 0.01)
+    if area is not None:
+        config["bounds"] = (area[0] - 0.01, area[1] - 0.01, area[0] + area[2] + 0.01, area[1] + area[3] + 0.01)
     mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                         WorldMapConfig(bounds=bounds, **config))
+                         WorldMapConfig(**config))
     for event in events:
         if event[0] == "tf":
             buffer.set_transform("base", "tool0", event[1], event[2])
@@ -514,17 +517,7 @@ def test_property_any_motion_maps_in_place_or_warns(sensor, profile, latency, ji
     options = {"jitter": jitter} if profile != "ramp" else {}
     events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=latency,
                                  tf_hz=tf_hz, tf_jitter_s=0.0005 if tf_hz else 0.0, seed=seed, **options))
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
-    bounds = (area[0] - 0.01, area[1] - 0.01, area[0] + area[2] + 0.01, area[1] + area[3] + 0.01)
-    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                         WorldMapConfig(bounds=bounds))
-    for event in events:
-        if event[0] == "tf":
-            buffer.set_transform("base", "tool0", event[1], event[2])
-        else:
-            mapper.push(event[2], event[1])
-    mapper.finalise()
+    mapper = run(events, sensor, area)
     estimate = mapper.stats.latency
     assert estimate is not None
     if estimate.observable:
@@ -551,15 +544,7 @@ def test_a_raster_turned_off_the_world_axes_at_speed_finds_the_latency_from_its_
     plan = plan_raster(start, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4, clearance=0.002,
                        approach_speed=0.005, direction=(math.cos(yaw), math.sin(yaw), 0.0), profile="constant")
     events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.04))
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
-    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"), WorldMapConfig())
-    for event in events:
-        if event[0] == "tf":
-            buffer.set_transform("base", "tool0", event[1], event[2])
-        else:
-            mapper.push(event[2], event[1])
-    mapper.finalise()
+    mapper = run(events, sensor, area=None)
     estimate = mapper.stats.latency
     assert estimate is not None and estimate.observable, mapper.stats.latency_warning
     assert "opposite_passes" in estimate.sources
