@@ -92,6 +92,13 @@ def show(executor, spin_until, node, image_pub, frame) -> None:
     image_pub.publish(array_to_image(frame.image, frame.stamp_ns))
     assert spin_until(executor, lambda: node.latest is not None and node.latest[0] == frame.stamp_ns, timeout=20)
 
+def capture_all(executor, spin_until, node, image_pub, helper, target: str, frames) -> None:
+    """Shows each frame to the calibration node with `target` set and captures it; every capture succeeds."""
+    node.set_parameters([Parameter("target", value=target)])
+    for frame in frames:
+        show(executor, spin_until, node, image_pub, frame)
+        assert call(executor, spin_until, helper, "capture").success
+
 
 def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
     from touchroller_perception.geometry import CameraModel
@@ -103,10 +110,7 @@ def test_capture_solve_and_hand_over(graph, presses, spin_until, tmp_path):
     assert not failed.success and "nothing captured" in failed.message
     assert not call(executor, spin_until, helper, "capture").success     # no image yet
 
-    node.set_parameters([Parameter("target", value="reference")])
-    for frame in references:
-        show(executor, spin_until, node, image_pub, frame)
-        assert call(executor, spin_until, helper, "capture").success
+    capture_all(executor, spin_until, node, image_pub, helper, "reference", references)
     again = call(executor, spin_until, helper, "capture")
     assert not again.success and "no new image" in again.message
 
@@ -215,10 +219,7 @@ def test_intrinsics_then_extrinsics_reach_the_perception_node(graph, presses, sp
     node.set_parameters([Parameter("target", value="reference")])
     show(executor, spin_until, node, image_pub, references[0])
     assert call(executor, spin_until, helper, "capture").success
-    node.set_parameters([Parameter("target", value="hemispheres")])
-    for frame in pressed:
-        show(executor, spin_until, node, image_pub, frame)
-        assert call(executor, spin_until, helper, "capture").success
+    capture_all(executor, spin_until, node, image_pub, helper, "hemispheres", pressed)
     solved = call(executor, spin_until, helper, "solve")
     assert solved.success, solved.message
     assert "intrinsics from 8/8 views" in solved.message and "setting 9 parameters" in solved.message
@@ -274,14 +275,8 @@ def test_ball_presses_solve_the_photometric_model(graph, spin_until, tmp_path):
     assert not early.success and "reference first" in early.message
     nothing = call(executor, spin_until, helper, "solve_photometric")
     assert not nothing.success and "nothing to solve" in nothing.message
-    node.set_parameters([Parameter("target", value="reference")])
-    for frame in refs:
-        show(executor, spin_until, node, image_pub, frame)
-        assert call(executor, spin_until, helper, "capture").success
-    node.set_parameters([Parameter("target", value="ball")])
-    for frame in balls:
-        show(executor, spin_until, node, image_pub, frame)
-        assert call(executor, spin_until, helper, "capture").success
+    capture_all(executor, spin_until, node, image_pub, helper, "reference", refs)
+    capture_all(executor, spin_until, node, image_pub, helper, "ball", balls)
     solved = call(executor, spin_until, helper, "solve_photometric")
     assert solved.success, solved.message
     assert "6 presses" in solved.message and (tmp_path / "p.npz").is_file()
@@ -299,10 +294,7 @@ def test_an_implausible_result_is_refused_and_never_set_on_perception(graph, pre
     for frame in references:
         show(executor, spin_until, node, image_pub, frame)
         assert call(executor, spin_until, helper, "capture").success
-    node.set_parameters([Parameter("target", value="hemispheres")])
-    for frame in pressed:
-        show(executor, spin_until, node, image_pub, frame)
-        assert call(executor, spin_until, helper, "capture").success
+    capture_all(executor, spin_until, node, image_pub, helper, "hemispheres", pressed)
     solved = call(executor, spin_until, helper, "solve")
     assert not solved.success
     assert "implausible result, not applied: d = " in solved.message and "intrinsics" in solved.message
