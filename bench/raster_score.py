@@ -12,9 +12,10 @@ passes, w across, at the map's resolution), where:
   (32 mm from a pass line) inside the rectangle. The mean profile across the passes of the map and of
   the truth (each standardised, averaged along u) are compared locally: on the profile 2-8 mm either
   side of the border, the map's profile is fitted as a level on each side, a common slope, and a short
-  filter of the truth's profile (taps +-0.2 mm: the texture's local gain, blur and subpixel phase); the
-  dip is the largest departure of the map's profile from that fit within 1.5 mm of the border (where
-  nothing was fitted), the step the difference of the two sides' levels, both in units of the map's
+  filter of the truth's profile (taps +-0.2 mm: the texture's local gain, blur and subpixel phase; held
+  towards the whole width's gain where the truth's profile barely varies, as on glass); the dip is the
+  largest departure of the map's profile from that fit within 1.5 mm of the border (where nothing was
+  fitted), the step the difference of the two sides' levels, both in units of the map's
   standard deviation. Texture the map and the truth share is explained by the fit and is no seam; a
   line (or a step) the truth does not have at the border is not, because the fit never saw it. The same
   measure at lines 4 mm or more from any border (`seam_floor`, its 95th percentile) says how much the
