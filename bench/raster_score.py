@@ -8,10 +8,18 @@ passes, w across, at the map's resolution), where:
 * coverage: the mapped share of the rectangle;
 * each pass's residual shift: the pass's central strip (+-12 mm across, 5 mm in from the ends) located
   in the truth by normalised cross-correlation of high-passed images (subpixel), as (along, across) mm;
-* seams: the mean profile across the passes (the map less the truth, each standardised, averaged along
-  u): at every pass border (half-way between pass lines) and every band edge (32 mm from a pass line)
-  inside the rectangle, the largest dip (against a line through the profile 2-6 mm either side) and the
-  step (the two sides' means), in units of the map's standard deviation;
+* seams: lines along the passes, at every pass border (half-way between pass lines) and every band edge
+  (32 mm from a pass line) inside the rectangle. The mean profile across the passes of the map and of
+  the truth (each standardised, averaged along u) are compared locally: on the profile 2-8 mm either
+  side of the border, the map's profile is fitted as a level on each side, a common slope, and a short
+  filter of the truth's profile (taps +-0.2 mm: the texture's local gain, blur and subpixel phase; held
+  towards the whole width's gain where the truth's profile barely varies, as on glass); the dip is the
+  largest departure of the map's profile from that fit within 1.5 mm of the border (where nothing was
+  fitted), the step the difference of the two sides' levels, both in units of the map's
+  standard deviation. Texture the map and the truth share is explained by the fit and is no seam; a
+  line (or a step) the truth does not have at the border is not, because the fit never saw it. The same
+  measure at lines 4 mm or more from any border (`seam_floor`, its 95th percentile) says how much the
+  map's texture alone departs from the truth's: a border is a seam only where it stands out of that;
 * planted features (cracks, dents, grooves, pits): each one's 8 x 8 mm neighbourhood in the map located
   in the truth (+-1.5 mm), mm off.
 """
@@ -31,6 +39,11 @@ from bench.raster_generator.truth import RasterTruth
 
 STRIP_HALF = 0.012
 SEEN_HALF = 0.032
+SEAM_NEAR = 0.0015            # m either side of a border where a line is looked for
+SEAM_SIDES = (0.002, 0.008)   # m from the border: the profile the texture fit sees on each side
+SEAM_TAPS = 2                 # the truth's profile filtered over +-2 rows (+-0.2 mm at 0.1 mm)
+SEAM_CLEAR = 0.004            # m: the floor's lines lie at least this far from every border
+SEAM_RIDGE = 0.03             # map stds: the truth's profile varying less than this leaves the taps at the gain
 
 
 @dataclass(frozen=True)
@@ -83,6 +96,7 @@ class MapScore:
     seams: list[tuple[float, float, float]]       # (w mm, dip, step) per border
     features: list[FeatureScore]
     worst_feature_mm: float
+    seam_floor: float = math.nan      # the same measure's 95th percentile at lines away from any border
 
 
 def read_map(yaml_path: Path) -> tuple[np.ndarray, np.ndarray, tuple[float, float], float]:
@@ -148,11 +162,12 @@ def score_map(yaml_path: Path, truth: RasterTruth) -> MapScore:
         dx, dy, _ = _locate(_highpass(strip_a[edge:-edge, edge:-edge]), _highpass(strip_b))
         residuals.append((-dx * resolution * 1e3, -dy * resolution * 1e3))   # map minus truth
     seams = _seams(a, b, region, ws, truth)
+    floor = _seam_floor(a, b, region, ws, truth)
     features = _features(grey, weight, expected, origin, resolution, truth)
     shifts = [math.hypot(*r) for r in residuals if math.isfinite(r[0])]
     return MapScore(ssim, coverage, residuals, max(shifts) if shifts else math.nan,
                     max((max(dip, step) for _, dip, step in seams), default=0.0), seams, features,
-                    max((f.error_mm for f in features), default=math.nan))
+                    max((f.error_mm for f in features), default=math.nan), floor)
 
 
 def _ssim(a: np.ndarray, b: np.ndarray, region: np.ndarray) -> float:
@@ -166,34 +181,95 @@ def _ssim(a: np.ndarray, b: np.ndarray, region: np.ndarray) -> float:
     return float(full[inner].mean()) if inner.any() else math.nan
 
 
-def _seams(a: np.ndarray, b: np.ndarray, region: np.ndarray, ws: np.ndarray, truth: RasterTruth
-           ) -> list[tuple[float, float, float]]:
-    """(w mm, dip, step) at every pass border and band edge inside the rectangle (see the module)."""
-    spec = truth.spec
-    difference = np.where(region, a - b, np.nan)
+def _profiles(a: np.ndarray, b: np.ndarray, region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The map's and the truth's mean profile across the passes (averaged along u over the mapped cells;
+    nan on rows less than half as mapped as the best row)."""
     counts = region.sum(axis=1)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)   # rows with nothing mapped: nan
-        profile = np.where(counts >= 0.5 * max(int(counts.max()), 1), np.nanmean(difference, axis=1), np.nan)
+        enough = counts >= 0.5 * max(int(counts.max()), 1)
+        return (np.where(enough, np.nanmean(np.where(region, a, np.nan), axis=1), np.nan),
+                np.where(enough, np.nanmean(np.where(region, b, np.nan), axis=1), np.nan))
+
+
+def _borders(ws: np.ndarray, truth: RasterTruth) -> list[float]:
+    """Every pass border and band edge (m across) inside the rectangle, clear of its edges."""
     lines = sorted(p.w for p in truth.passes)
     borders = [0.5 * (p + q) for p, q in zip(lines, lines[1:], strict=False)]
     borders += [w + sign * SEEN_HALF for w in lines for sign in (-1, 1)]
+    return [b for b in borders if 0.006 <= b <= truth.spec.width - 0.006]
+
+
+def seam_at(ws: np.ndarray, profile: np.ndarray, truth_profile: np.ndarray, border: float, gain: float = 1.0
+            ) -> tuple[float, float] | None:
+    """(dip, step) of `profile` at `border` (see the module: the truth's texture fitted on both sides, the
+    near rows left out of the fit; the filter held towards `gain` times the truth where the truth's profile
+    says too little to fit it); None where too little of either side or the border row is mapped."""
+    near = np.abs(ws - border) <= SEAM_NEAR
+    distance = np.abs(ws - border)
+    sides = (distance >= SEAM_SIDES[0]) & (distance <= SEAM_SIDES[1])
+    left, right = sides & (ws < border), sides & (ws > border)
+    rows = np.flatnonzero(distance <= SEAM_SIDES[1])
+    rows = rows[(rows >= SEAM_TAPS) & (rows < len(ws) - SEAM_TAPS)]
+    taps = np.stack([truth_profile[rows + j] for j in range(-SEAM_TAPS, SEAM_TAPS + 1)], axis=1)
+    finite = np.isfinite(profile[rows]) & np.isfinite(taps).all(axis=1)
+    fit = finite & sides[rows]
+    columns = taps.shape[1] + 3
+    if (finite & near[rows]).sum() == 0 or (fit & left[rows]).sum() < columns or (fit & right[rows]).sum() < columns:
+        return None
+    offset = (ws[rows] - border) * 1e3    # mm: the slope's column stays of order one
+    design = np.column_stack([left[rows], right[rows], offset, np.where(finite[:, None], taps, 0.0)])
+    # the taps are held (ridge) towards `gain` times the truth (the whole width's fit): where the truth's
+    # profile is nearly flat (glass) a free filter would take any value, and a speck of texture near the
+    # border times such a tap would read as a line
+    weight = math.sqrt(fit.sum()) * SEAM_RIDGE
+    ridge = np.zeros((taps.shape[1], columns))
+    ridge[:, 3:] = weight * np.eye(taps.shape[1])
+    prior = np.zeros(taps.shape[1])
+    prior[SEAM_TAPS] = weight * gain
+    coefficients, *_ = np.linalg.lstsq(np.vstack([design[fit], ridge]),
+                                       np.concatenate([profile[rows][fit], prior]), rcond=None)
+    level_left, level_right, slope = coefficients[:3]
+    texture = design[:, 3:] @ coefficients[3:]
+    baseline = 0.5 * (level_left + level_right) + slope * offset
+    departure = np.abs(profile[rows] - texture - baseline)[finite & near[rows]]
+    return float(departure.max()), float(abs(level_right - level_left))
+
+
+def profile_gain(profile: np.ndarray, truth_profile: np.ndarray) -> float:
+    """The map's profile against the truth's over the whole width: the least-squares gain of the two less
+    their means (1 where the truth's profile is flat or nothing is mapped)."""
+    finite = np.isfinite(profile) & np.isfinite(truth_profile)
+    if finite.sum() < 2:
+        return 1.0
+    p, q = profile[finite] - profile[finite].mean(), truth_profile[finite] - truth_profile[finite].mean()
+    power = float(np.dot(q, q))
+    return float(np.dot(p, q)) / power if power > 1e-12 else 1.0
+
+
+def _seams(a: np.ndarray, b: np.ndarray, region: np.ndarray, ws: np.ndarray, truth: RasterTruth
+           ) -> list[tuple[float, float, float]]:
+    """(w mm, dip, step) at every pass border and band edge inside the rectangle (see the module)."""
+    profile, truth_profile = _profiles(a, b, region)
+    gain = profile_gain(profile, truth_profile)
     out = []
-    for border in borders:
-        if not 0.006 <= border <= spec.width - 0.006:
-            continue
-        near = np.abs(ws - border) <= 0.0015
-        left = (ws >= border - 0.006) & (ws <= border - 0.002)
-        right = (ws >= border + 0.002) & (ws <= border + 0.006)
-        finite = np.isfinite(profile)
-        sides = (left | right) & finite
-        if (near & finite).sum() == 0 or (left & finite).sum() < 5 or (right & finite).sum() < 5:
-            continue
-        slope, intercept = np.polyfit(ws[sides], profile[sides], 1)
-        dip = float(np.nanmax(np.abs(profile[near] - (slope * ws[near] + intercept))))
-        step = float(abs(np.nanmean(profile[right]) - np.nanmean(profile[left])))
-        out.append((border * 1e3, dip, step))
+    for border in _borders(ws, truth):
+        found = seam_at(ws, profile, truth_profile, border, gain)
+        if found is not None:
+            out.append((border * 1e3, *found))
     return out
+
+
+def _seam_floor(a: np.ndarray, b: np.ndarray, region: np.ndarray, ws: np.ndarray, truth: RasterTruth) -> float:
+    """The seam measure's 95th percentile (the larger of dip and step) at lines every 0.5 mm at least
+    `SEAM_CLEAR` from every border and band edge: what the map's texture alone reads (nan: no such line)."""
+    profile, truth_profile = _profiles(a, b, region)
+    borders = np.array(_borders(ws, truth) or [-1.0])
+    lines = np.arange(0.006, truth.spec.width - 0.006 + 1e-9, 5e-4)
+    lines = lines[np.abs(lines[:, None] - borders[None, :]).min(axis=1) >= SEAM_CLEAR]
+    gain = profile_gain(profile, truth_profile)
+    values = [max(found) for line in lines if (found := seam_at(ws, profile, truth_profile, line, gain)) is not None]
+    return float(np.percentile(values, 95)) if values else math.nan
 
 
 def _features(grey: np.ndarray, weight: np.ndarray, expected: np.ndarray, origin: tuple[float, float],

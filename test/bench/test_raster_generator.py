@@ -186,23 +186,3 @@ def test_any_raster_plan_moves_continuously_and_presses_every_pass(profile: str,
     for k, p in enumerate(trajectory.passes):
         assert p.contact_end_s - p.contact_start_s >= 0.9 * length / (speed * (1 + 4 * jitter))
         assert (p.u_start, p.u_end) == ((0.0, length) if k % 2 == 0 else (length, 0.0))
-
-
-def test_the_seam_measure_sees_a_dark_line_at_a_pass_border_and_nothing_without_one() -> None:
-    from types import SimpleNamespace
-
-    from bench.raster_score import _seams
-
-    rng = np.random.default_rng(1)
-    ws = (np.arange(1000) + 0.5) * 1e-4                   # 0..100 mm across, 0.1 mm rows
-    truth_image = rng.standard_normal((1000, 400)).astype(np.float32)
-    region = np.ones_like(truth_image, bool)
-    truth = SimpleNamespace(spec=SimpleNamespace(width=0.1),
-                            passes=[SimpleNamespace(w=0.032), SimpleNamespace(w=0.068)])
-    clean = truth_image + 0.3 * rng.standard_normal(truth_image.shape).astype(np.float32)
-    assert max(max(dip, step) for _, dip, step in _seams(clean, truth_image, region, ws, truth)) < 0.1
-    seamed = clean.copy()
-    seamed[495:505] -= 0.5                                # a 1 mm dark line at the border (50 mm), half a std deep
-    seams = _seams(seamed, truth_image, region, ws, truth)
-    at_border = [dip for w, dip, _ in seams if abs(w - 50.0) < 0.1]
-    assert at_border and at_border[0] == pytest.approx(0.5, abs=0.1)
