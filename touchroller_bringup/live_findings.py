@@ -44,6 +44,7 @@ class LiveFindingsConfig:
     margin_m: float = 7.5e-3    # context around it for the local surface (inspect_region's margin)
     match_m: float = 1e-3       # a finding this close to an earlier one of the same kind keeps its id
     text_size_m: float = 1.5e-3  # the labels' letter height
+    blur_m: float = 0.0         # the map's point spread beyond its pixel, FWHM (InspectionConfig.blur_fwhm_m)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -66,6 +67,8 @@ LIVE_FINDINGS_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]]
     "findings.match_distance": ("match_m", "A finding this close to an earlier one of the same kind replaces it "
                                 "(same marker ids), m", 0.0, 0.05),
     "findings.text_size": ("text_size_m", "Height of the findings' labels, m", 1e-4, 0.1),
+    "findings.blur": ("blur_m", "The map's point spread beyond its pixel (the sensor's gel, optics, calibration "
+                      "smoothing), FWHM, m: taken out of widths, put back in depths (docs/inspection.md)", 0.0, 0.01),
 }
 
 
@@ -104,6 +107,11 @@ class LiveFindings:
         self._last_s = -math.inf
         return gone
 
+    def inspection_config(self) -> InspectionConfig:
+        """The detector's configuration with the declared blur (`findings.blur`): what the scan's own
+        inspection of the finished map uses too."""
+        return replace(self.inspection, blur_fwhm_m=self.config.blur_m)
+
     def due(self, now_s: float) -> bool:
         return self.config.enabled and now_s - self._last_s >= self.config.period_s
 
@@ -131,8 +139,8 @@ class LiveFindings:
         layer = "height" if height is not None else "intensity"
         source = height if height is not None else np.asarray(image.grey, np.float32)
         values = np.where(mapped, source, np.nan).astype(np.float32)
-        result = inspect_region(values, resolution, origin, region, self.config.margin_m, config=self.inspection,
-                                intensity=height is None)
+        result = inspect_region(values, resolution, origin, region, self.config.margin_m,
+                                config=self.inspection_config(), intensity=height is None)
         self.inspections += 1
         return FindingsUpdate(*self._merge(result.findings, region), region, layer)
 

@@ -95,6 +95,18 @@ def test_without_a_height_layer_the_intensity_is_inspected_and_depths_are_unknow
     assert len(update.findings) == 3, update.findings
 
 
+def test_the_declared_blur_reaches_the_detector():
+    # findings.blur (LiveFindingsConfig.blur_m) is what the live detector and the scan's own inspection use
+    h = panel()
+    mapped = np.ones(h.shape, bool)
+    plain = {f.kind: f for f in LiveFindings().update(image(h, mapped), 0.0).findings}
+    live = LiveFindings(LiveFindingsConfig(blur_m=0.2e-3))
+    assert live.inspection_config().blur_fwhm_m == pytest.approx(0.2e-3)
+    blurred = {f.kind: f for f in live.update(image(h, mapped), 0.0).findings}
+    assert blurred["crack"].width_m < plain["crack"].width_m - 0.05e-3
+    assert blurred["crack"].depth_m > plain["crack"].depth_m
+
+
 def test_disabled_does_nothing():
     h = panel()
     assert LiveFindings(LiveFindingsConfig(enabled=False)).update(image(h, np.ones(h.shape, bool)), 0.0) is None
