@@ -96,7 +96,7 @@ class LiveFindings:
     findings: dict[int, Finding] = field(default_factory=dict)
     _seen: _Grid | None = None
     _next_id: int = 1
-    _last_s: float = -math.inf
+    _next_s: float = -math.inf    # when the next inspection is due (on the period's grid)
     inspections: int = 0
 
     def reset(self) -> list[int]:
@@ -104,7 +104,7 @@ class LiveFindings:
         gone = sorted(self.findings)
         self.findings.clear()
         self._seen = None
-        self._last_s = -math.inf
+        self._next_s = -math.inf
         return gone
 
     def inspection_config(self) -> InspectionConfig:
@@ -113,7 +113,9 @@ class LiveFindings:
         return replace(self.inspection, blur_fwhm_m=self.config.blur_m)
 
     def due(self, now_s: float) -> bool:
-        return self.config.enabled and now_s - self._last_s >= self.config.period_s
+        # a tenth of a period early is on time: the map timer that calls this has the same period, and its
+        # jitter must not skip a tick (which would double the latency)
+        return self.config.enabled and now_s >= self._next_s - 0.1 * self.config.period_s
 
     def update(self, image: Any, now_s: float, force: bool = False, whole: bool = False) -> FindingsUpdate | None:
         """Inspect what `image` (a `WorldMapImage`) mapped since the last update; None when not due (the
@@ -127,7 +129,9 @@ class LiveFindings:
         new = mapped if whole else mapped & ~self._previous(mapped.shape, origin, resolution)
         if not new.any():
             return None
-        self._last_s = now_s
+        # the next one a period after this one's due time (its grid: no drift), or after now when far behind
+        period = self.config.period_s
+        self._next_s = self._next_s + period if abs(now_s - self._next_s) < period else now_s + period
         self._seen = _Grid(mapped.copy(), origin, resolution)
         rows = mapped.shape[0]
         rr, cc = np.nonzero(new)

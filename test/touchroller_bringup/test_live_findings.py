@@ -107,6 +107,21 @@ def test_the_declared_blur_reaches_the_detector():
     assert blurred["crack"].depth_m > plain["crack"].depth_m
 
 
+def test_a_timer_of_the_same_period_with_jitter_is_never_skipped():
+    # the node's map timer fires once per findings.period, a few ms late or early: every tick inspects
+    h = panel()
+    cols = h.shape[1]
+    live = LiveFindings(LiveFindingsConfig(period_s=1.0))
+    ticks = [10.004, 10.998, 12.003, 12.996, 14.0]
+    done = []
+    for k, now in enumerate(ticks):
+        mapped = np.zeros(h.shape, bool)
+        mapped[:, : cols * (k + 1) // len(ticks)] = True        # a strip more at every tick
+        done.append(live.update(image(h, mapped), now_s=now) is not None)
+    assert done == [True] * len(ticks)
+    assert live.update(image(h, np.ones(h.shape, bool)), now_s=14.5) is None     # still at most once a period
+
+
 def test_disabled_does_nothing():
     h = panel()
     assert LiveFindings(LiveFindingsConfig(enabled=False)).update(image(h, np.ones(h.shape, bool)), 0.0) is None
