@@ -44,6 +44,7 @@ class LiveFindingsConfig:
     margin_m: float = 7.5e-3    # context around it for the local surface (inspect_region's margin)
     match_m: float = 1e-3       # a finding this close to an earlier one of the same kind keeps its id
     text_size_m: float = 1.5e-3  # the labels' letter height
+    blur_m: float = 0.0         # the map's point spread beyond its pixel, FWHM (InspectionConfig.blur_fwhm_m)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -66,6 +67,8 @@ LIVE_FINDINGS_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]]
     "findings.match_distance": ("match_m", "A finding this close to an earlier one of the same kind replaces it "
                                 "(same marker ids), m", 0.0, 0.05),
     "findings.text_size": ("text_size_m", "Height of the findings' labels, m", 1e-4, 0.1),
+    "findings.blur": ("blur_m", "The map's point spread beyond its pixel (the sensor's gel, optics, calibration "
+                      "smoothing), FWHM, m: taken out of widths, put back in depths (docs/inspection.md)", 0.0, 0.01),
 }
 
 
@@ -93,7 +96,7 @@ class LiveFindings:
     findings: dict[int, Finding] = field(default_factory=dict)
     _seen: _Grid | None = None
     _next_id: int = 1
-    _last_s: float = -math.inf
+    _next_s: float = -math.inf    # when the next inspection is due (on the period's grid)
     inspections: int = 0
 
     def reset(self) -> list[int]:
@@ -101,11 +104,18 @@ class LiveFindings:
         gone = sorted(self.findings)
         self.findings.clear()
         self._seen = None
-        self._last_s = -math.inf
+        self._next_s = -math.inf
         return gone
 
+    def inspection_config(self) -> InspectionConfig:
+        """The detector's configuration with the declared blur (`findings.blur`): what the scan's own
+        inspection of the finished map uses too."""
+        return replace(self.inspection, blur_fwhm_m=self.config.blur_m)
+
     def due(self, now_s: float) -> bool:
-        return self.config.enabled and now_s - self._last_s >= self.config.period_s
+        # a tenth of a period early is on time: the map timer that calls this has the same period, and its
+        # jitter must not skip a tick (which would double the latency)
+        return self.config.enabled and now_s >= self._next_s - 0.1 * self.config.period_s
 
     def update(self, image: Any, now_s: float, force: bool = False, whole: bool = False) -> FindingsUpdate | None:
         """Inspect what `image` (a `WorldMapImage`) mapped since the last update; None when not due (the
@@ -119,7 +129,9 @@ class LiveFindings:
         new = mapped if whole else mapped & ~self._previous(mapped.shape, origin, resolution)
         if not new.any():
             return None
-        self._last_s = now_s
+        # the next one a period after this one's due time (its grid: no drift), or after now when far behind
+        period = self.config.period_s
+        self._next_s = self._next_s + period if abs(now_s - self._next_s) < period else now_s + period
         self._seen = _Grid(mapped.copy(), origin, resolution)
         rows = mapped.shape[0]
         rr, cc = np.nonzero(new)
@@ -131,8 +143,8 @@ class LiveFindings:
         layer = "height" if height is not None else "intensity"
         source = height if height is not None else np.asarray(image.grey, np.float32)
         values = np.where(mapped, source, np.nan).astype(np.float32)
-        result = inspect_region(values, resolution, origin, region, self.config.margin_m, config=self.inspection,
-                                intensity=height is None)
+        result = inspect_region(values, resolution, origin, region, self.config.margin_m,
+                                config=self.inspection_config(), intensity=height is None)
         self.inspections += 1
         return FindingsUpdate(*self._merge(result.findings, region), region, layer)
 

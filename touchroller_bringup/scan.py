@@ -768,7 +768,7 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
     if world_image is not None and scan_findings.enabled(graph.arguments):
         # the inspection reads the whole map at full resolution (the files are written from the tiles)
         inspected = scan_findings.with_height(world.map_image(), world)
-        found = scan_findings.inspect_map(inspected)
+        found = scan_findings.inspect_map(inspected, perception.live_findings.inspection_config())
 
     attempt("contacts", out_dir / "contacts.csv",
             lambda: _write_contacts(out_dir / "contacts.csv", contacts, getattr(perception, "camera", None),

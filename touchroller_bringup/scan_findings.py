@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from touchroller_perception.inspection import Finding, InspectionResult, inspect, inspect_intensity
+from touchroller_perception.inspection import Finding, InspectionConfig, InspectionResult, inspect, inspect_intensity
 
 INSPECT_CHOICES = ("auto", "true", "false")
 
@@ -69,17 +69,18 @@ def height_layer(image: Any) -> np.ndarray | None:
     return height
 
 
-def inspect_map(image: Any) -> ScanFindings:
+def inspect_map(image: Any, config: InspectionConfig | None = None) -> ScanFindings:
     """Inspect a `WorldMapImage` (grey + alpha, row 0 the largest y, origin the lower-left corner): its
     height layer if it has one, else its intensity."""
+    config = config or InspectionConfig()
     mapped = np.asarray(image.alpha) > 0
     height = height_layer(image)
     if height is not None:
         values = np.where(mapped, height, np.nan).astype(np.float32)
-        result = inspect(values, image.resolution, image.origin)
+        result = inspect(values, image.resolution, image.origin, config=config)
         return ScanFindings(result.findings, "height", result)
     grey = np.where(mapped, np.asarray(image.grey, np.float32), np.nan).astype(np.float32)
-    result = inspect_intensity(grey, image.resolution, image.origin)
+    result = inspect_intensity(grey, image.resolution, image.origin, config=config)
     return ScanFindings(result.findings, "intensity", result)
 
 

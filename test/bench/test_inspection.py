@@ -32,10 +32,10 @@ def test_truth_is_written_and_read_as_findings(small_map, tmp_path):
 
 def test_a_planted_crack_is_found_and_scored(small_map):
     found = inspect_height(small_map.height, small_map.resolution, small_map.origin)
-    cracks, blobs, false = score(small_map, found, 7)
+    cracks, blobs, false = score(small_map.truth, found, small_map.background, 7)
     assert false == 0 and cracks[0].found
     assert cracks[0].centreline_mm < 0.1 and abs(cracks[0].width_err_mm) < 0.05
-    missed, _, _ = score(small_map, [], 7)
+    missed, _, _ = score(small_map.truth, [], small_map.background, 7)
     assert not missed[0].found and math.isnan(missed[0].centreline_mm)
 
 

@@ -86,6 +86,16 @@ def test_without_height_the_intensity_is_inspected_and_depth_is_nan(tmp_path, ca
     assert [f.kind for f in found] == ["crack"] and math.isnan(found[0].depth_m)
 
 
+def test_a_declared_blur_is_taken_out_of_the_widths(tmp_path):
+    # the map's crack is 0.3 mm wide: declaring a 0.25 mm blur reads it narrower and deeper
+    yaml_path = _write_map(tmp_path)
+    assert main(["inspect", str(yaml_path), "--out", str(tmp_path / "plain")]) == 0
+    assert main(["inspect", str(yaml_path), "--out", str(tmp_path / "blur"), "--blur-mm", "0.25"]) == 0
+    plain, blur = ({f.kind: f for f in read_findings_csv(tmp_path / d / "findings.csv")} for d in ("plain", "blur"))
+    assert blur["crack"].width_m < plain["crack"].width_m - 0.08e-3
+    assert blur["crack"].depth_m > plain["crack"].depth_m * 1.2
+
+
 @pytest.mark.parametrize("argv, message", [
     (["inspect", "{tmp}/missing.yaml", "--out", "{tmp}/o"], "no such map or recording"),
     (["inspect", "{tmp}/notes.txt", "--out", "{tmp}/o"], "map.yaml"),
@@ -93,6 +103,7 @@ def test_without_height_the_intensity_is_inspected_and_depth_is_nan(tmp_path, ca
     (["inspect", "{tmp}/map.yaml", "--out", "{tmp}/o", "--ignore", "1,2,3"], "--ignore"),
     (["inspect", "{tmp}/map.yaml", "--out", "{tmp}/notes.txt"], "is a file"),
     (["inspect", "{tmp}/bad/map.yaml", "--out", "{tmp}/o"], "height"),
+    (["inspect", "{tmp}/map.yaml", "--out", "{tmp}/o", "--blur-mm", "-1"], "--blur-mm"),
 ])
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, argv, message):
     _write_map(tmp_path)

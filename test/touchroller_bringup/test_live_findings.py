@@ -95,6 +95,33 @@ def test_without_a_height_layer_the_intensity_is_inspected_and_depths_are_unknow
     assert len(update.findings) == 3, update.findings
 
 
+def test_the_declared_blur_reaches_the_detector():
+    # findings.blur (LiveFindingsConfig.blur_m) is what the live detector and the scan's own inspection use
+    h = panel()
+    mapped = np.ones(h.shape, bool)
+    plain = {f.kind: f for f in LiveFindings().update(image(h, mapped), 0.0).findings}
+    live = LiveFindings(LiveFindingsConfig(blur_m=0.2e-3))
+    assert live.inspection_config().blur_fwhm_m == pytest.approx(0.2e-3)
+    blurred = {f.kind: f for f in live.update(image(h, mapped), 0.0).findings}
+    assert blurred["crack"].width_m < plain["crack"].width_m - 0.05e-3
+    assert blurred["crack"].depth_m > plain["crack"].depth_m
+
+
+def test_a_timer_of_the_same_period_with_jitter_is_never_skipped():
+    # the node's map timer fires once per findings.period, a few ms late or early: every tick inspects
+    h = panel()
+    cols = h.shape[1]
+    live = LiveFindings(LiveFindingsConfig(period_s=1.0))
+    ticks = [10.004, 10.998, 12.003, 12.996, 14.0]
+    done = []
+    for k, now in enumerate(ticks):
+        mapped = np.zeros(h.shape, bool)
+        mapped[:, : cols * (k + 1) // len(ticks)] = True        # a strip more at every tick
+        done.append(live.update(image(h, mapped), now_s=now) is not None)
+    assert done == [True] * len(ticks)
+    assert live.update(image(h, np.ones(h.shape, bool)), now_s=14.5) is None     # still at most once a period
+
+
 def test_disabled_does_nothing():
     h = panel()
     assert LiveFindings(LiveFindingsConfig(enabled=False)).update(image(h, np.ones(h.shape, bool)), 0.0) is None

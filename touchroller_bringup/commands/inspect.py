@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import replace
 from pathlib import Path
 
 from touchroller_bringup.errors import UserError
@@ -26,6 +27,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "joint; repeatable")
     parser.add_argument("--min-depth-um", type=float, default=None,
                         help="the smallest depth reported, micrometres (default: the detector's)")
+    parser.add_argument("--blur-mm", type=float, default=None,
+                        help="the map's point spread beyond its pixel (the sensor's gel, optics, calibration "
+                             "smoothing), FWHM in millimetres: taken out of widths, put back in depths (default 0)")
     parser.add_argument("--params", help="recording only: the calibration YAML `touchroller map` uses")
     parser.set_defaults(func=run)
 
@@ -83,7 +87,11 @@ def run(args: argparse.Namespace) -> int:
     if args.min_depth_um is not None:
         if not (math.isfinite(args.min_depth_um) and args.min_depth_um >= 0):
             raise UserError(f"--min-depth-um must be a number >= 0, got {args.min_depth_um}")
-        config = InspectionConfig(min_depth_m=args.min_depth_um * 1e-6)
+        config = replace(config, min_depth_m=args.min_depth_um * 1e-6)
+    if args.blur_mm is not None:
+        if not (math.isfinite(args.blur_mm) and 0 <= args.blur_mm <= 10):
+            raise UserError(f"--blur-mm must be a number from 0 to 10, got {args.blur_mm}")
+        config = replace(config, blur_fwhm_m=args.blur_mm * 1e-3)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file; give a folder")
     try:

@@ -49,6 +49,7 @@ class _Counts:
     small: int = 0
     broad: int = 0
     shallow: int = 0
+    edge: int = 0
 
 
 def _check(values: np.ndarray, resolution: float, origin: Sequence[float], mask: np.ndarray | None) -> None:
@@ -196,6 +197,10 @@ def _detect(values: np.ndarray, resolution: float, origin: Sequence[float], mask
     counts = _Counts()
     findings: list[Finding] = []
     components = 0
+    edge_distance = None
+    if config.edge_band_m > 0:   # px from the nearest unusable pixel or the array's border
+        inside = np.pad(usable.astype(np.uint8), 1)
+        edge_distance = cv2.distanceTransform(inside, cv2.DIST_L2, 5)[1:-1, 1:-1]
     gap = max(1, round(config.gap_m / resolution))
     closing = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1)) if gap > 1 else None
     for sign in (1.0, -1.0):
@@ -218,11 +223,14 @@ def _detect(values: np.ndarray, resolution: float, origin: Sequence[float], mask
             if finding is None:
                 finding = _compact(depth, region, (r, c), grid, config, sigma, high, sign, counts, depth_known)
             if finding is not None and finding is not _BROAD:
+                if _along_edge(finding, region, (r, c), edge_distance, config, resolution):
+                    counts.edge += 1
+                    continue
                 findings.append(finding)
     findings.sort(key=lambda f: (-f.y, f.x))
     findings = [replace(f, id=i + 1) for i, f in enumerate(findings)]
     diagnostics = InspectionDiagnostics(sigma, texture, high, low, n_valid, components, counts.short, counts.small,
-                                        counts.broad, counts.shallow)
+                                        counts.broad, counts.shallow, counts.edge)
     return InspectionResult(findings, diagnostics)
 
 
@@ -255,10 +263,14 @@ def _crack(depth: np.ndarray, region: np.ndarray, corner: tuple[int, int], grid:
     if good.sum() < 2:
         return None
     fwhm = profiles.fwhm_px[good]
-    true_width = np.sqrt(np.maximum(fwhm**2 - config.footprint_fwhm_px**2, 0.25**2))
-    width_px = float(np.median(true_width))
     peaks = profiles.peak[good]
-    depth_value = float(np.median(peaks * fwhm / true_width))   # the cross-section's area is kept by the footprint
+    # the map's footprint (its pixel and the sensor's blur) widens a crack in quadrature and keeps its
+    # cross-section's area: the width is the median full width less the footprint, the depth the median
+    # area over that width (medians first: a width near the footprint's would make per-profile ratios explode)
+    footprint = _footprint_px(config, res)
+    measured = float(np.median(fwhm))
+    width_px = math.sqrt(max(measured**2 - footprint**2, 0.25**2))
+    depth_value = float(np.median(peaks * fwhm)) / width_px
     centre = profiles.centre.copy()
     centre[~good] = trunk[~good]
     centre = smooth_path(centre, 5)
@@ -291,6 +303,22 @@ def _crack(depth: np.ndarray, region: np.ndarray, corner: tuple[int, int], grid:
     return Finding(0, "crack", x, y, length_px * res, width_px * res, depth_value if depth_known else math.nan,
                    total * width_px * res * res, _confidence(float(np.median(peaks)), sigma, config),
                    polylines=tuple(grid.points(line) for line in lines))
+
+
+def _along_edge(finding: Finding, region: np.ndarray, corner: tuple[int, int], edge_distance: np.ndarray | None,
+                config: InspectionConfig, resolution: float) -> bool:
+    """An elongated finding (length >= crack_aspect x width) whose pixels lie, by their median, within
+    `edge_band_m` of the map's edge (or a NaN, or the mask): the edge's artefact, not a defect."""
+    if edge_distance is None or not finding.length_m >= config.crack_aspect * finding.width_m:
+        return False
+    r, c = corner
+    distances = edge_distance[r:r + region.shape[0], c:c + region.shape[1]][region]
+    return bool(distances.size) and float(np.median(distances)) * resolution <= config.edge_band_m
+
+
+def _footprint_px(config: InspectionConfig, resolution: float) -> float:
+    """The map's footprint (FWHM, px): its pixel's and the sensor's blur in quadrature."""
+    return math.hypot(config.footprint_fwhm_px, config.blur_fwhm_m / resolution)
 
 
 def _extend(path: np.ndarray, by: float) -> np.ndarray:
@@ -360,8 +388,16 @@ def _compact(depth: np.ndarray, region: np.ndarray, corner: tuple[int, int], gri
     if width > config.max_blob_width_m:
         counts.broad += 1
         return None
+    measured_peak = peak
+    if config.blur_fwhm_m > 0:
+        # a compact bell blurred by the sensor: wider in quadrature, its volume kept (its peak x diameter²);
+        # at most a factor 2 in diameter taken out (a dent narrower than the blur is not deconvolved further)
+        measured = math.sqrt(4 * count / math.pi) * res
+        true = math.sqrt(max(measured**2 - config.blur_fwhm_m**2, (measured / 2) ** 2))
+        peak *= (measured / true) ** 2
+        length, width = (math.sqrt(max(a**2 - config.blur_fwhm_m**2, (a / 2) ** 2)) for a in (length, width))
     (x, y), = grid.points(centre[None, :])
     kind: Kind = "dent" if sign > 0 else "bump"
     value = (peak if sign > 0 else -peak) if depth_known else math.nan
-    return Finding(0, kind, x, y, length, width, value, count * res * res, _confidence(peak, sigma, config),
+    return Finding(0, kind, x, y, length, width, value, count * res * res, _confidence(measured_peak, sigma, config),
                    polygon=grid.points(outline))

@@ -40,6 +40,11 @@ class InspectionConfig:
     max_blob_width_m: float = 3.5e-3        # dents/bumps: short axis at half depth above this is surface form
     edge_margin_m: float = 2e-4             # nothing is found this close to the map's edge, a NaN or the mask
     footprint_fwhm_px: float = 1.0          # the map's pixel footprint (FWHM, px) taken out of crack widths
+    blur_fwhm_m: float = 0.0                # the map's point spread beyond its pixel (a sensor's gel, optics,
+                                            # calibration smoothing, motion), FWHM: taken out of crack widths
+                                            # and dent/bump diameters, their depths put back
+    edge_band_m: float = 1e-3               # an elongated finding lying along the map's edge within this is an
+                                            # edge artefact (a map's first and last rows curl), not reported
     intensity_blur_m: float = 1.5e-4        # intensity maps: |anomaly| smoothed by this (sigma), joining a
                                             # shading's bright and dark sides into one region
     min_intensity: float = 2.0              # intensity maps: the high threshold's floor, grey levels
@@ -58,7 +63,7 @@ class InspectionConfig:
                 raise ValueError(f"InspectionConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("min_depth_m", "texture_multiple", "gap_m", "max_crack_width_m", "max_blob_width_m",
                      "min_crack_length_m", "min_branch_length_m", "min_blob_diameter_m",
-                     "edge_margin_m", "footprint_fwhm_px", "intensity_blur_m",
+                     "edge_margin_m", "footprint_fwhm_px", "blur_fwhm_m", "edge_band_m", "intensity_blur_m",
                      "intensity_min_crack_m", "min_intensity"):
             if getattr(self, name) < 0:
                 raise ValueError(f"InspectionConfig.{name} must be >= 0, got {getattr(self, name)}")
@@ -114,6 +119,7 @@ class InspectionDiagnostics:
     dropped_broad: int              # regions wider than max_crack_width_m / max_blob_width_m (surface form)
     dropped_shallow: int            # regions whose measured depth (a crack's median, a dent's smoothed peak)
                                     # stays below the high threshold
+    dropped_edge: int = 0           # elongated regions along the map's edge (InspectionConfig.edge_band_m)
 
 
 @dataclass(frozen=True)

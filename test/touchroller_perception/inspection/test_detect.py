@@ -111,6 +111,45 @@ def test_unmapped_areas_and_map_edges_are_not_findings():
     assert result.diagnostics.valid_pixels > 0
 
 
+def test_a_map_whose_first_rows_curl_up_reports_no_ridge_along_its_edge():
+    # a height map's first and last columns of a roll curl (the band's outer rows alone see them): a ridge
+    # along the edge, 15 um over 1.5 mm, is the edge's, not a bump; a dent and a crack beside it still are
+    h = surface()
+    cols = (np.arange(h.shape[1]) + 0.5) * RES
+    h += (15e-6 * np.exp(-cols / 1.5e-3) + 15e-6 * np.exp(-(0.040 - cols) / 1.5e-3)).astype(np.float32)[None, :]
+    carve_blob(h, (0.004, 0.015), 2e-3, 40e-6)
+    carve_line(h, (0.001, 0.005), (0.015, 0.006), 0.3e-3, 50e-6)   # from the edge inwards: kept
+    result = inspect(h, RES, (0.0, 0.0))
+    assert sorted(f.kind for f in result.findings) == ["crack", "dent"]
+    assert result.diagnostics.dropped_edge >= 1
+    assert [f.kind for f in inspect(h, RES, (0.0, 0.0), config=InspectionConfig(edge_band_m=0)).findings
+            ].count("bump") >= 1                                    # without the rule the ridges are bumps
+
+
+def blurred(h, fwhm_m):
+    import cv2
+
+    sigma = fwhm_m / RES / (2 * math.sqrt(2 * math.log(2)))
+    return cv2.GaussianBlur(h, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+
+
+def test_a_map_blurred_by_its_sensor_gives_true_widths_and_depths_when_the_blur_is_declared():
+    # a sensor's gel blurs a 0.3 mm crack to 0.5 mm, 30 um deep: its width and depth come back with blur_fwhm_m
+    h = surface(noise=0.1e-6)
+    carve_line(h, (0.008, 0.010), (0.030, 0.020), 0.3e-3, 50e-6)
+    carve_blob(h, (0.010, 0.022), 2e-3, 40e-6)
+    blur = 0.4e-3
+    h = blurred(h, blur)
+    plain = {f.kind: f for f in inspect_height(h, RES, (0.0, 0.0))}
+    assert plain["crack"].width_m > 0.45e-3 and plain["crack"].depth_m < 35e-6      # what the blur does
+    found = {f.kind: f for f in inspect_height(h, RES, (0.0, 0.0), config=InspectionConfig(blur_fwhm_m=blur))}
+    assert found["crack"].width_m == pytest.approx(0.3e-3, abs=0.04e-3)
+    assert found["crack"].depth_m == pytest.approx(50e-6, rel=0.15)
+    assert found["dent"].depth_m == pytest.approx(40e-6, rel=0.15)
+    assert abs(found["dent"].depth_m - 40e-6) < abs(plain["dent"].depth_m - 40e-6)
+    assert found["crack"].confidence == pytest.approx(plain["crack"].confidence)
+
+
 def test_a_crack_across_a_pass_seam_is_one_crack():
     h = surface()
     h[150:] += np.float32(3e-6)                     # the second pass sits 3 um higher
