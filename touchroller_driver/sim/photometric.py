@@ -77,7 +77,7 @@ def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 16,
                 continue   # pressed out of view
             ball = float(contact["ball_radius"])
             items.append(BallPress(frame.image, float(u), float(v), float(contact["radius_px"]),
-                                   pixel_size_at(camera, u, v), str(len(items))))
+                                   pixel_size_at(camera, u, v), str(len(items)), float(camera.radius)))
     if len(items) < 4:
         raise ValueError("too few ball presses in view to calibrate the simulated sensor")
     reference = np.median(np.stack(refs), axis=0).astype(np.uint8)
