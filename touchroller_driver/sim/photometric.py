@@ -18,17 +18,17 @@ from touchroller_driver.sim.render import RollerState, SimulatedSensor
 from touchroller_driver.sim.scenarios import NO_CONTACT_DEPTH
 from touchroller_driver.sim.scene import load_scene
 from touchroller_perception.height import (
+    MAP_PHOTOMETRIC,
     BallPress,
     PhotometricCalibration,
-    PhotometricConfig,
     PressCalibrationConfig,
     calibrate_photometric,
     pixel_size_at,
 )
 
-#: the calibration a world height map gets: the image smoothed by 1 px before the colour features, not the
-#: default 2 (a map cell averages some twenty frames, so it can take the noise; finer relief is kept)
-MAP_CALIBRATION = PressCalibrationConfig(model=PhotometricConfig(smoothing=1.0))
+#: the calibration a world height map gets: the product's map model (`MAP_PHOTOMETRIC`: the image smoothed by
+#: 1 px before the colour features, not the default 2; a map cell averages some twenty frames)
+MAP_CALIBRATION = PressCalibrationConfig(model=MAP_PHOTOMETRIC)
 
 
 @dataclass(frozen=True)
