@@ -12,10 +12,14 @@ model calibrated and measured).
 The same on a source that shares nothing with the simulator: the second raster generator
 (bench/raster_generator: its own contact model, LEDs with a specular highlight, flat field and sensor
 noise, its own grained surface with planted grooves and pits, its own rosbag2 recording). Its sensor is
-calibrated as a user would: a 4 mm ball cap pressed 0.6 mm at 16 places of the band, rendered by the
-generator, each press labelled by `find_press` (no truth), the pixel size from config/touchroller.yaml's
-camera model; its raster is mapped by `touchroller map --photometric --reference` as a whole command, and
-height.tif is scored against the generator's surface (low-passed as its gel is) in place.
+calibrated as a user would: a 4 mm ball cap pressed 0.6 mm at random places over the band the map is made
+from (along the axis nearly across the image, around it over the rows the mapper places: the model learns
+how a slope looks where it is, and cannot extrapolate where no press was), rendered by the generator, each
+press labelled by `find_press` (no truth), the pixel size and the roller's radius from
+config/touchroller.yaml's camera model, the features smoothed as a world map's calibration has
+them (`touchroller_perception.height.MAP_PHOTOMETRIC`); its raster is mapped by `touchroller map
+--photometric --reference` as a whole command, and height.tif is scored against the generator's surface (low-passed
+as its gel is) in place.
 """
 from __future__ import annotations
 
@@ -36,6 +40,10 @@ from touchroller_perception.files import atomic_write_text
 PARAMS = ROOT / "config" / "touchroller.yaml"
 GOAL_RMS_UM = 10.0
 GOAL_CORRELATION = 0.95
+# where the second generator's calibration presses land (m from the contact line's centre): along the axis
+# nearly across the image (+-32 mm at the contact line), around it so that the 2.2 mm contacts cover the rows
+# the world mapper places (+-3.5 mm)
+PRESS_ALONG, PRESS_ACROSS = 0.029, 1.5e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,8 +132,8 @@ def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, flo
     from bench.raster_generator.surfaces import Surface
     from touchroller_bringup.commands import read_calibration
     from touchroller_perception.height import (
+        MAP_PHOTOMETRIC,
         BallPress,
-        PhotometricConfig,
         PressCalibrationConfig,
         calibrate_photometric,
         find_press,
@@ -146,12 +154,11 @@ def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, flo
                           axis=0).astype(np.uint8)
     items = []
     for k in range(presses):
-        along, across = rng.uniform(-0.025, 0.025), rng.uniform(-1.5e-3, 1.5e-3)
+        along, across = rng.uniform(-PRESS_ALONG, PRESS_ALONG), rng.uniform(-PRESS_ACROSS, PRESS_ACROSS)
         image = renderer.frame([(np.array([0.5, 0.0]) - along * axis - across * roll, roll, 0.0)])
         u, v, r = find_press(image, reference)
-        items.append(BallPress(image, u, v, r, pixel_size_at(model_camera, u, v), str(k)))
-    calibration = calibrate_photometric(items, reference, radius,
-                                        PressCalibrationConfig(model=PhotometricConfig(smoothing=1.0)))
+        items.append(BallPress(image, u, v, r, pixel_size_at(model_camera, u, v), str(k), float(model_camera.radius)))
+    calibration = calibrate_photometric(items, reference, radius, PressCalibrationConfig(model=MAP_PHOTOMETRIC))
     return calibration.model, reference, float(calibration.normal_error_deg)
 
 
@@ -227,7 +234,7 @@ def run(quick: bool = False) -> HeightMapResult:
         score, error = score_surface(variant, presses)
         scores.append(score)
         fit = error if variant is None else fit
-    second, second_fit = second_generator(presses)
+    second, second_fit = second_generator(2 * presses)   # its presses cover the whole band: twice as many
     scores.append(second)
     return HeightMapResult(stamp, quick, presses, fit, scores, second_fit)
 
@@ -254,8 +261,9 @@ def to_markdown(r: HeightMapResult) -> str:
              f"2-pass raster (4 x 9 cm, 20 mm/s, 0.5 mm pressed) of `large_surface`, photometric model from "
              f"{r.presses} simulated ball presses of the same sensor (in-sample fit {r.normal_error_deg:.2f} deg); "
              "the height map against the true relief in place, on the cells 1 mm inside the mapped area; "
-             f"the second generator (shares nothing with the simulator) calibrated on its own ball caps (in-sample "
-             f"fit {r.second_normal_error_deg:.2f} deg), its raster mapped by `touchroller map`.", "",
+             f"the second generator (shares nothing with the simulator) calibrated on {2 * r.presses} of its own ball "
+             f"caps over the band (in-sample fit {r.second_normal_error_deg:.2f} deg), its raster mapped by "
+             "`touchroller map`.", "",
              "| surface | true relief RMS, um | error RMS (one best plane removed), um | correlation | cells | "
              "fine relief cells | fine relief read / true | fine relief correlation | passes | frames | s |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -68,7 +68,7 @@ def run(quick: bool = False, seed: int = 7) -> HeightSimResult:
         r = contact["radius_px"]
         du, dv = rng.uniform(-2, 2, size=2)
         presses.append(BallPress(frame.image, u + du, v + dv, r * rng.uniform(0.85, 1.15), pixel_size_at(camera, u, v),
-                                 str(k)))
+                                 str(k), float(camera.radius)))
         state = sim.RollerState(depth=-1.0, indenters=tuple(
             sim.Indenter(tuple(i["centre"]), i["radius"]) for i in frame.truth["state"]["indenters"]))
         D = sensor.render_layers(state)["indentation"]

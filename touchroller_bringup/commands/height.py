@@ -157,7 +157,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
             size = (args.pixel_size, args.pixel_size) if camera is None else ht.pixel_size_at(camera, u, v)
         except ValueError as exc:
             raise UserError(f"{args.labels}: {name}: {exc}") from None
-        presses.append(ht.BallPress(images[name], u, v, r, size, name))
+        presses.append(ht.BallPress(images[name], u, v, r, size, name,
+                                    math.inf if camera is None else float(camera.radius)))
     config = ht.PressCalibrationConfig(refine=not args.no_refine)
     try:
         result = ht.calibrate_photometric(presses, reference, args.ball_radius, config)

@@ -358,7 +358,8 @@ class CalibrationNode(Node):
             presses = []
             for k, image in enumerate(balls):
                 u, v, r = height.find_press(image, reference)
-                presses.append(height.BallPress(image, u, v, r, height.pixel_size_at(camera, u, v), str(k)))
+                presses.append(height.BallPress(image, u, v, r, height.pixel_size_at(camera, u, v), str(k),
+                                                float(camera.radius)))
             result = height.calibrate_photometric(
                 presses, reference, float(self.get_parameter("photometric.ball_radius").value))
         except ValueError as exc:

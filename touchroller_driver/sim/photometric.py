@@ -18,17 +18,17 @@ from touchroller_driver.sim.render import RollerState, SimulatedSensor
 from touchroller_driver.sim.scenarios import NO_CONTACT_DEPTH
 from touchroller_driver.sim.scene import load_scene
 from touchroller_perception.height import (
+    MAP_PHOTOMETRIC,
     BallPress,
     PhotometricCalibration,
-    PhotometricConfig,
     PressCalibrationConfig,
     calibrate_photometric,
     pixel_size_at,
 )
 
-#: the calibration a world height map gets: the image smoothed by 1 px before the colour features, not the
-#: default 2 (a map cell averages some twenty frames, so it can take the noise; finer relief is kept)
-MAP_CALIBRATION = PressCalibrationConfig(model=PhotometricConfig(smoothing=1.0))
+#: the calibration a world height map gets: the product's map model (`MAP_PHOTOMETRIC`: the image smoothed by
+#: 1 px before the colour features, not the default 2; a map cell averages some twenty frames)
+MAP_CALIBRATION = PressCalibrationConfig(model=MAP_PHOTOMETRIC)
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 16,
                 continue   # pressed out of view
             ball = float(contact["ball_radius"])
             items.append(BallPress(frame.image, float(u), float(v), float(contact["radius_px"]),
-                                   pixel_size_at(camera, u, v), str(len(items))))
+                                   pixel_size_at(camera, u, v), str(len(items)), float(camera.radius)))
     if len(items) < 4:
         raise ValueError("too few ball presses in view to calibrate the simulated sensor")
     reference = np.median(np.stack(refs), axis=0).astype(np.uint8)

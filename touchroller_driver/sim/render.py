@@ -39,6 +39,25 @@ class Indenter:
     radius: float
 
 
+def sphere_indentation(points: np.ndarray, indenter: Indenter) -> np.ndarray:
+    """How far (m, float32, 0 outside the contact) each membrane point (..., 3: on the tube, cylinder frame)
+    is pushed in along its normal (radial, towards the axis) by the sphere: the membrane point P moved
+    in by D along the outward normal n lies on the sphere, |P - D n - C| = R, so with w = P - C,
+    D = w.n + sqrt((w.n)^2 - |w|^2 + R^2) (the root on the sphere's side facing the axis). Pressed
+    into a flat membrane by d this is the cap sqrt(R^2 - rho^2) - (R - d); the distance inside the
+    sphere along the line to its centre, R - |P - C|, is not (near the centre it is d - rho^2 / (2 (R - d)):
+    curved as a ball of radius R - d, its slopes steeper by about R / (R - d))."""
+    P = np.asarray(points, np.float32)
+    w = P - np.asarray(indenter.centre, np.float32)
+    radial = np.sqrt(P[..., 1] ** 2 + P[..., 2] ** 2)
+    safe = np.where(radial > 0, radial, np.float32(1.0))
+    wn = (w[..., 1] * P[..., 1] + w[..., 2] * P[..., 2]) / safe
+    disc = wn * wn - (w * w).sum(axis=-1) + np.float32(indenter.radius) ** 2
+    depth = wn + np.sqrt(np.maximum(disc, 0.0))
+    out: np.ndarray = np.where((disc > 0) & (radial > 0), np.maximum(depth, 0.0), 0.0).astype(np.float32)
+    return out
+
+
 @dataclass(frozen=True)
 class RollerState:
     """Where the roller is, as the arm reports it.
@@ -507,10 +526,8 @@ class SimulatedSensor:
             np.maximum(D, 0.0, out=D)
         for ind, box in zip((i for i in state.indenters if self._indenter_box(i) is not None), boxes, strict=True):
             b0, b1, u0, u1 = box
-            P = self._points[b0:b1, u0:u1]
-            dist = np.sqrt(((P - np.asarray(ind.centre, np.float32)) ** 2).sum(axis=-1))
             sub = D[b0 - v0:b1 - v0, u0:u1]
-            np.maximum(sub, ind.radius - dist, out=sub)
+            np.maximum(sub, sphere_indentation(self._points[b0:b1, u0:u1], ind), out=sub)
             sub *= self._valid[b0:b1, u0:u1]
         self._count("indentation")
         if layers is not None:

@@ -17,6 +17,7 @@ from touchroller_perception.height.estimate import (
 )
 from touchroller_perception.height.integrate import divergence, forward_differences, integrate, poisson_solve
 from touchroller_perception.height.photometric import (
+    MAP_PHOTOMETRIC,
     PhotometricConfig,
     PhotometricModel,
     SlopeLookup,
@@ -38,9 +39,9 @@ from touchroller_perception.height.presses import (
 )
 
 __all__ = [
-    "BallPress", "ContactBand", "FittedCircle", "HeightConfig", "HeightEstimator", "PhotometricCalibration",
-    "PhotometricConfig", "PhotometricModel", "PressCalibrationConfig", "PressFit", "SlopeLookup", "band_height",
-    "calibrate_photometric", "change_magnitude", "colour_features", "contact_band", "divergence", "find_press",
-    "fit_model", "forward_differences", "integrate", "normal_angles_deg", "pixel_size_at", "poisson_solve",
-    "refine_circle", "slopes_to_height", "sphere_slopes",
+    "MAP_PHOTOMETRIC", "BallPress", "ContactBand", "FittedCircle", "HeightConfig", "HeightEstimator",
+    "PhotometricCalibration", "PhotometricConfig", "PhotometricModel", "PressCalibrationConfig", "PressFit",
+    "SlopeLookup", "band_height", "calibrate_photometric", "change_magnitude", "colour_features", "contact_band",
+    "divergence", "find_press", "fit_model", "forward_differences", "integrate", "normal_angles_deg",
+    "pixel_size_at", "poisson_solve", "refine_circle", "slopes_to_height", "sphere_slopes",
 ]

@@ -10,7 +10,12 @@ size (su, sv) and ball radius R, dx = (u - u0) su, dy = (v - v0) sv, rho^2 = dx^
 
     gx = -dx / sqrt(R^2 - rho^2),   gy = -dy / sqrt(R^2 - rho^2)
 
-(indentation positive into the gel, deepest at the centre). Those are the targets, together with a
+(indentation positive into the gel, deepest at the centre). On a roller the membrane is a cylinder of
+radius r curved along the image rows (v), and the indentation is measured from it: away from the press's
+centre the tube recedes from the ball by r - sqrt(r^2 - dy^2), so the indentation's slope along v is
+the sphere's plus the tube's, gy = -dy / sqrt(R^2 - rho^2) - dy / sqrt(r^2 - dy^2) (`membrane_radius`;
+a flat sensor's is infinite). Leaving it out teaches the model a slope along v too gentle by about
+r / (R + r). Those are the targets, together with a
 sparse sample of the far field (beyond `far_factor` radii, where the gel is undeformed: slope 0).
 The ring between is left out: there the gel sinks around the ball with slopes nobody knows.
 """
@@ -34,7 +39,9 @@ from touchroller_perception.height.photometric import (
 
 @dataclass(frozen=True)
 class BallPress:
-    """One press: the image, the labelled circle (px) and the pixel size there (m, along u and v)."""
+    """One press: the image, the labelled circle (px) and the pixel size there (m, along u and v).
+    `membrane_radius`: the membrane's radius of curvature along the image rows (v) there, m: the
+    roller's radius (`CameraModel.radius`); infinite for a flat sensor."""
 
     image: np.ndarray
     u: float
@@ -42,6 +49,12 @@ class BallPress:
     radius_px: float
     pixel_size: tuple[float, float]
     name: str = ""
+    membrane_radius: float = math.inf
+
+    def __post_init__(self) -> None:
+        if not (self.membrane_radius > 0 and not math.isnan(self.membrane_radius)):
+            raise CalibrationError(f"press {self.name or '?'}: membrane radius must be positive metres (inf: flat), "
+                                   f"got {self.membrane_radius}")
 
 
 @dataclass(frozen=True)
@@ -204,8 +217,10 @@ def find_press(image: np.ndarray, reference: np.ndarray, min_area_px: int = 30) 
 
 
 def sphere_slopes(shape: tuple[int, int], circle: FittedCircle, pixel_size: tuple[float, float],
-                  ball_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(gx, gy, rho in contact radii, slope angle deg) of the ball's cap over the whole image."""
+                  ball_radius: float, membrane_radius: float = math.inf
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(gx, gy, rho in contact radii, slope angle deg) of the ball's cap over the whole image: the
+    indentation's slopes, measured from a membrane curved with `membrane_radius` along v (inf: flat)."""
     h, w = shape
     vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
     dx = (uu - circle.u) * pixel_size[0]
@@ -214,7 +229,10 @@ def sphere_slopes(shape: tuple[int, int], circle: FittedCircle, pixel_size: tupl
     s = np.sqrt(np.maximum(ball_radius**2 - rho2, (1e-3 * ball_radius) ** 2))
     rho_rel = np.hypot(uu - circle.u, vv - circle.v) / circle.radius_px
     angle = np.degrees(np.arctan(np.sqrt(rho2) / s))
-    return -dx / s, -dy / s, rho_rel, angle
+    gy = -dy / s
+    if math.isfinite(membrane_radius):   # the tube recedes from the ball along v: its slope adds
+        gy -= dy / np.sqrt(np.maximum(membrane_radius**2 - dy * dy, (1e-3 * membrane_radius) ** 2))
+    return -dx / s, gy, rho_rel, angle
 
 
 def normal_angles_deg(gx: np.ndarray, gy: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
@@ -231,7 +249,7 @@ def press_samples(press: BallPress, circle: FittedCircle, reference: np.ndarray,
     """(features N x 3, u N, v N, target slopes N x 2) of one press: inside the circle and the far field."""
     feats = colour_features(press.image, reference, config.model.smoothing, config.model.gain)
     h, w = feats.shape[:2]
-    gx, gy, rho, angle = sphere_slopes((h, w), circle, press.pixel_size, ball_radius)
+    gx, gy, rho, angle = sphere_slopes((h, w), circle, press.pixel_size, ball_radius, press.membrane_radius)
     inside = (rho * circle.radius_px < circle.radius_px - config.edge_margin_px) & (angle <= config.max_slope_angle_deg)
     inside &= rng.random((h, w)) < config.inside_fraction
     far = (rho > config.far_factor) & (rng.random((h, w)) < config.far_fraction)
@@ -287,7 +305,7 @@ def press_fit(model: PhotometricModel, press: BallPress, circle: FittedCircle, r
     """The model's normal-angle residual inside one press's circle (radius - 2 px)."""
     feats = colour_features(press.image, reference, model.config.smoothing, model.config.gain)
     h, w = feats.shape[:2]
-    gx, gy, rho, angle = sphere_slopes((h, w), circle, press.pixel_size, ball_radius)
+    gx, gy, rho, angle = sphere_slopes((h, w), circle, press.pixel_size, ball_radius, press.membrane_radius)
     mask = (rho * circle.radius_px < circle.radius_px - 2.0) & (angle <= config.max_slope_angle_deg)
     vv, uu = np.mgrid[0:h, 0:w]
     pred = model.slopes_at(feats[mask].astype(np.float64), uu[mask], vv[mask])

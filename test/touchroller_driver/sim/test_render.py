@@ -302,3 +302,34 @@ def test_directional_light_lights_every_imprint_from_its_side(azimuth):
     near = grey[rows // 2 + int(60 * towards[1]), cols // 2 + int(60 * towards[0])]
     far = grey[rows // 2 - int(60 * towards[1]), cols // 2 - int(60 * towards[0])]
     assert near > far
+
+
+def test_a_pressed_ball_indents_the_membrane_as_a_sphere_cap():
+    """The membrane under a ball pressed d deep lies on the ball: each point pushed in along its normal by
+    D sits on the sphere, the deepest by d, and along the axis D is the cap sqrt(R^2 - x^2) - (R - d)
+    (not the distance inside the ball towards its centre, R - |P - C|, a ball of radius R - d)."""
+    from touchroller_driver.sim import Indenter
+
+    sensor = SimulatedSensor(load_scene("ball_presses", effects=[]), seed=0)
+    radius, depth, alpha = 4e-3, 6e-4, 0.03
+    membrane = sensor.membrane_point(0.002, alpha)
+    dist = float(np.hypot(membrane[1], membrane[2])) + radius - depth
+    centre = np.array([0.002, dist * math.sin(alpha), dist * math.cos(alpha)])
+    state = RollerState(depth=-1.0, indenters=(Indenter(tuple(centre), radius),))
+    D = sensor.render_layers(state)["indentation"].astype(np.float64)
+    points = sensor._points.astype(np.float64)
+    inside = D > 1e-5
+    assert inside.sum() > 200
+    normal = points[inside] * np.array([0.0, 1.0, 1.0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    moved = points[inside] - D[inside][:, None] * normal
+    assert np.abs(np.linalg.norm(moved - centre, axis=1) - radius).max() < 2e-7
+    assert D.max() == pytest.approx(depth, abs=5e-6)
+    # along the axis through the press (the membrane points at the ball's angle): the cap
+    angles = np.arctan2(points[..., 1], points[..., 2])
+    line = inside & (np.abs(angles - alpha) < 2e-3)
+    x = points[line][:, 0] - centre[0]
+    arc = (angles[line] - alpha) * np.hypot(membrane[1], membrane[2])   # <= 0.1 mm off the line: in rho
+    assert line.sum() > 10 and np.abs(x).max() > 1.2e-3
+    cap = np.sqrt(radius**2 - x**2 - arc**2) - (radius - depth)
+    assert np.abs(D[line] - cap).max() < 2e-6

@@ -16,7 +16,7 @@ from touchroller_perception.height import (
     refine_circle,
 )
 
-from .conftest import BALL, PIXEL, cap_slopes, press_image, shade
+from .conftest import BALL, PIXEL, SHAPE, cap_slopes, press_image, shade
 
 CONFIG = PressCalibrationConfig(model=PhotometricConfig(colour_degree=3, position_degree=1, smoothing=0.7,
                                                         lookup_cells=(4, 3)), far_fraction=0.05)
@@ -123,3 +123,39 @@ def test_far_field_targets_teach_a_halo_to_read_flat():
             values.append(np.hypot(gx, gy)[zone])
         halo_slope[fraction] = float(np.median(np.concatenate(values)))
     assert halo_slope[0.05] < 0.85 * halo_slope[PressCalibrationConfig().far_fraction]
+
+
+def test_a_rollers_curvature_along_v_is_in_the_targets():
+    """Presses into a membrane curved along v (a roller): the indentation's slope along v is the sphere's
+    plus the tube's. Calibrated with the membrane's radius, the model reads a held-out press's slopes
+    at their size; calibrated as if flat, it reads gy too gentle by about r / (R + r)."""
+    rng = np.random.default_rng(11)
+    tube = 6e-3
+    presses = []
+    for _ in range(11):
+        cu, cv, contact = rng.uniform(45, 115), rng.uniform(40, 80), rng.uniform(16, 22)
+        gx, gy, _z = cap_slopes(SHAPE, cu, cv, contact)
+        vv, uu = np.mgrid[0:SHAPE[0], 0:SHAPE[1]]
+        dy = (vv - cv) * PIXEL
+        # where the membrane wraps the ball, the tube recedes from it along v (the far field is undeformed)
+        gy = gy - np.where(np.hypot(uu - cu, vv - cv) < contact, dy / np.sqrt(tube**2 - dy**2), 0.0)
+        img = np.clip(np.rint(shade(gx, gy) + rng.normal(0, 0.8, SHAPE + (3,))), 0, 255).astype(np.uint8)
+        presses.append((img, cu, cv, contact, gx, gy))
+    reference = np.clip(np.rint(shade(np.zeros(SHAPE), np.zeros(SHAPE))), 0, 255).astype(np.uint8)
+    gains = {}
+    for radius in (tube, np.inf):
+        items = [BallPress(img, cu, cv, c, (PIXEL, PIXEL), str(k), membrane_radius=radius)
+                 for k, (img, cu, cv, c, *_) in enumerate(presses[:9])]
+        model = calibrate_photometric(items, reference, BALL, CONFIG).model
+        read, true = [], []
+        for img, cu, cv, contact, _gx, gy in presses[9:]:
+            vv, uu = np.mgrid[0:SHAPE[0], 0:SHAPE[1]]
+            inside = np.hypot(uu - cu, vv - cv) < contact - 3
+            read.append(model.slopes(img, reference)[1][inside])
+            true.append(gy[inside])
+        a, b = np.concatenate(read), np.concatenate(true)
+        gains[radius] = float(a @ b / (b @ b))
+    assert abs(gains[tube] - 1.0) < 0.04
+    assert gains[np.inf] < 0.85
+    with pytest.raises(CalibrationError, match="membrane radius"):
+        BallPress(presses[0][0], 1.0, 1.0, 5.0, (PIXEL, PIXEL), "x", membrane_radius=0.0)
