@@ -131,6 +131,18 @@ def _view_png(value: np.ndarray, weight: np.ndarray, mapped_weight: float) -> tu
     return png_grey_alpha(grey, alpha), (low, high), grey.shape[0]
 
 
+def _read_rows_down(view: LayerView, box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(value, weight) of a view over `box` as image rows (row 0 the top), read a tile's rows at a time
+    (never three whole layers in memory at once)."""
+    r0, r1, c0, c1 = box
+    value, weight = np.empty((2, r1 - r0, c1 - c0), np.float32)
+    for a1 in range(r1, r0, -view.tile):
+        a0 = max(a1 - view.tile, r0)
+        v, w = view.read(a0, a1, c0, c1)
+        value[r1 - a1:r1 - a0], weight[r1 - a1:r1 - a0] = v[::-1], w[::-1]
+    return value, weight
+
+
 class _Background:
     """`function(*args)` run by a thread of its own; `result()` waits for it (and raises what it raised)."""
 
@@ -187,9 +199,8 @@ def write_world_map(png: str | Path, source: WorldMapImage | LayerView, frame_id
             if level == 0:
                 # the full resolution is the view: read here, its PNG made by a second thread (zlib and
                 # numpy's big loops let go of the GIL) while this one writes the GeoTIFF
-                r0, r1, c0, c1 = box
-                value, weight = view.read(r0, r1, c0, c1)
-                view_png = _Background(_view_png, value[::-1], weight[::-1], view.mapped_weight)
+                value, weight = _read_rows_down(view, box)
+                view_png = _Background(_view_png, value, weight, view.mapped_weight)
             tif = write_geotiff(tif_path, view, "intensity", frame_id, keep_level=None if level == 0 else level,
                                 into=tif_file)
             if view_png is None:
