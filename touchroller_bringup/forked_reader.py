@@ -60,9 +60,11 @@ class _Ring:
 
 
 def read_forked(produce: Callable[[], Iterator[Item]], shape: tuple[int, ...], dtype: Any = np.float32,
-                slots: int = 64, batch: int = 8) -> Iterator[Item]:
+                slots: int = 64, batch: int = 8, meanwhile: Callable[[], None] | None = None) -> Iterator[Item]:
     """The items of `produce()`, run in a forked child (see the module docstring). Arrays must be of
-    `shape` and `dtype`; `slots` of them may be on their way at once; items cross `batch` at a time."""
+    `shape` and `dtype`; `slots` of them may be on their way at once; items cross `batch` at a time.
+    `meanwhile()` is run by the parent once the child is forked, before it waits for the first items
+    (work the parent needs later, done while the child starts: opening the bag takes it a while)."""
     if slots < 1 or batch < 1 or batch > slots:
         raise ValueError(f"need 1 <= batch <= slots, got batch {batch}, slots {slots}")
     ring = _Ring(shape, dtype, slots)
@@ -87,6 +89,8 @@ def read_forked(produce: Callable[[], Iterator[Item]], shape: tuple[int, ...], d
     os.set_blocking(wake_w, False)
     done = False
     try:
+        if meanwhile is not None:
+            meanwhile()
         with os.fdopen(data_r, "rb", buffering=1 << 16) as stream:
             yield from _consume(ring, stream, wake_w)
         done = True

@@ -123,6 +123,51 @@ def png_grey_alpha(grey: np.ndarray, alpha: np.ndarray) -> bytes:
             + chunk(b"IEND", b""))
 
 
+def _view_png(value: np.ndarray, weight: np.ndarray, mapped_weight: float) -> tuple[bytes, tuple[float, float], int]:
+    """(map.png's bytes, its stretch, its rows) of a view level's value and weight (image rows, row 0 the top)."""
+    low, high = stretch_of(value, weight > mapped_weight)
+    grey = to_grey(value, low, high, flip=False)
+    alpha = to_alpha(weight, mapped_weight, flip=False)
+    return png_grey_alpha(grey, alpha), (low, high), grey.shape[0]
+
+
+def _read_rows_down(view: LayerView, box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(value, weight) of a view over `box` as image rows (row 0 the top), read a tile's rows at a time
+    (never three whole layers in memory at once)."""
+    r0, r1, c0, c1 = box
+    value, weight = np.empty((2, r1 - r0, c1 - c0), np.float32)
+    for a1 in range(r1, r0, -view.tile):
+        a0 = max(a1 - view.tile, r0)
+        v, w = view.read(a0, a1, c0, c1)
+        value[r1 - a1:r1 - a0], weight[r1 - a1:r1 - a0] = v[::-1], w[::-1]
+    return value, weight
+
+
+class _Background:
+    """`function(*args)` run by a thread of its own; `result()` waits for it (and raises what it raised)."""
+
+    def __init__(self, function: Any, *args: Any) -> None:
+        import threading
+
+        self._result: Any = None
+        self._error: BaseException | None = None
+
+        def run() -> None:
+            try:
+                self._result = function(*args)
+            except BaseException as exc:  # noqa: BLE001 - raised again by result(), in the caller's thread
+                self._error = exc
+
+        self._thread = threading.Thread(target=run, name="map-png", daemon=True)
+        self._thread.start()
+
+    def result(self) -> Any:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+
 def write_png_grey_alpha(path: Path, grey: np.ndarray, alpha: np.ndarray) -> None:
     data = png_grey_alpha(np.asarray(grey, np.uint8), np.asarray(alpha, np.uint8))
     _replace(path, lambda temporary: Path(temporary).write_bytes(data))
@@ -150,15 +195,21 @@ def write_world_map(png: str | Path, source: WorldMapImage | LayerView, frame_id
         png.parent.mkdir(parents=True, exist_ok=True)
         # all three to temporaries, renamed over the old ones only once all three are written
         with atomic_path(tif_path) as tif_file, atomic_path(png) as png_file, atomic_path(yaml_path) as yaml_file:
-            tif = write_geotiff(tif_path, view, "intensity", frame_id, keep_level=level, into=tif_file)
-            assert tif.kept is not None
-            value, weight = tif.kept
-            mapped = weight > view.mapped_weight
-            low, high = stretch_of(value, mapped)
-            grey = to_grey(value, low, high, flip=False)
-            alpha = to_alpha(weight, view.mapped_weight, flip=False)
+            view_png = None
+            if level == 0:
+                # the full resolution is the view: read here, its PNG made by a second thread (zlib and
+                # numpy's big loops let go of the GIL) while this one writes the GeoTIFF
+                value, weight = _read_rows_down(view, box)
+                view_png = _Background(_view_png, value, weight, view.mapped_weight)
+            tif = write_geotiff(tif_path, view, "intensity", frame_id, keep_level=None if level == 0 else level,
+                                into=tif_file)
+            if view_png is None:
+                assert tif.kept is not None
+                data, (low, high), rows = _view_png(*tif.kept, view.mapped_weight)
+            else:
+                data, (low, high), rows = view_png.result()
             view_res = tif.resolution * 2 ** level
-            origin = (tif.top_left[0], tif.top_left[1] - grey.shape[0] * view_res, 0.0)
+            origin = (tif.top_left[0], tif.top_left[1] - rows * view_res, 0.0)
             meta = MapYaml(png.name, view_res, origin, frame_id, latency=latency,
                            view={"downscale": 2 ** level, "stretch": [low, high],
                                  "grey": "255 (value - low) / (high - low), clipped; geotiff: the map's grey levels"},
@@ -166,7 +217,7 @@ def write_world_map(png: str | Path, source: WorldMapImage | LayerView, frame_id
                                     "size": [tif.shape[1], tif.shape[0]],
                                     "origin": [float(tif.origin[0]), float(tif.origin[1]), 0.0],
                                     "levels": tif.levels, "bigtiff": tif.bigtiff})
-            Path(png_file).write_bytes(png_grey_alpha(grey, alpha))
+            Path(png_file).write_bytes(data)
             Path(yaml_file).write_text(yaml.safe_dump(meta.as_dict(), sort_keys=False), encoding="utf-8")
     except StorageFull as exc:
         raise UserError(f"cannot write the map to {png}: {exc}") from None

@@ -258,11 +258,24 @@ class TileStore:
         h, w = data.shape
         if not h or not w:
             return 0.0
-        spans = list(self._spans(r0, r0 + h, c0, c0 + w))
+        spans = self.windows(r0, r0 + h, c0, c0 + w)
         if not reserved:
             self.reserve([(name, s[0], s[1]) for s in spans])
+        return self.add_windows(name, data, spans, track_max)
+
+    def windows(self, r0: int, r1: int, c0: int, c1: int) -> list[tuple[int, int, slice, slice, slice, slice]]:
+        """The tiles rows [r0, r1) x columns [c0, c1) fall in, each as (ix, iy, rows in the tile, columns in
+        the tile, rows in the window, columns in the window): for `add_windows`, computed once for the
+        layers a window adds to."""
+        if r1 <= r0 or c1 <= c0:
+            return []
+        return list(self._spans(r0, r1, c0, c1))
+
+    def add_windows(self, name: str, data: np.ndarray, windows: list[tuple[int, int, slice, slice, slice, slice]],
+                    track_max: bool = False) -> float:
+        """`add` of `data` over `windows` (`windows()` of its rows and columns; the room reserved)."""
         largest = 0.0
-        for ix, iy, tr, tc, wr, wc in spans:
+        for ix, iy, tr, tc, wr, wc in windows:
             tile = self.get(name, ix, iy, create=True, write=True)
             assert tile is not None
             view = tile[tr, tc]

@@ -140,16 +140,17 @@ class WorldCanvas:
             return
         a0, a1, b0, b1 = box
         ro, co = self.offset
-        spans = self.store.spans(a0 + ro, a1 + ro, b0 + co, b1 + co)
+        store = self.store
+        windows = store.windows(a0 + ro, a1 + ro, b0 + co, b1 + co)   # the tiles, once for every layer
         names = [name for name, plane in planes.items() if plane is not None]
-        self.store.reserve([(name, ix, iy) for name in names for ix, iy in spans])   # all or nothing
+        store.reserve([(name, w[0], w[1]) for name in names for w in windows])   # all or nothing
         if self._saved is not None:
-            self._save_for_prior(spans)
+            self._save_for_prior([(w[0], w[1]) for w in windows])
         for name in names:
             plane = planes[name]
             assert plane is not None
-            largest = self.store.add(name, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], a0 + ro, b0 + co,
-                                     track_max=name == "weight", reserved=True)
+            largest = store.add_windows(name, plane[a0 - r0:a1 - r0, b0 - c0:b1 - c0], windows,
+                                        track_max=name == "weight")
             if largest > self.weight_max:
                 self.weight_max = largest
         self._mark(a0 + ro, a1 + ro, b0 + co, b1 + co)

@@ -1155,7 +1155,7 @@ class WorldMapper:
         centre = _median(values)
         spread = 1.4826 * _median(np.abs(values - centre))
         # a registration is good to about 0.05 map pixel: the least spread a median can have
-        floor = 0.05 * res / (2 * float(np.median(speed[ok])))
+        floor = 0.05 * res / (2 * _median(speed[ok]))
         this.evidence_given = True
         self._estimator.add_opposite_passes(centre, max(spread / math.sqrt(len(values)), floor))
         self._use_estimate()

@@ -163,3 +163,38 @@ def test_every_mcap_chunk_we_write_carries_its_crc(tmp_path):
     crcs = mcap_chunk_crcs(bag / "scan.mcap")
     assert len(crcs) >= 3 and all(crcs)
     assert len([r for r in read_images(bag)]) == 8
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_tf_topics_come_from_the_metadata_as_rosbags_lists_them_without_opening_the_bag(tmp_path, rng, storage,
+                                                                                      monkeypatch):
+    """`tf_topics` reads metadata.yaml (a few milliseconds) instead of opening the bag with rosbags (tens):
+    the same topics as rosbags' reader lists, for a folder or its data file; only a bag whose metadata is
+    not plainly readable is opened (and its errors are open_bag's)."""
+    import touchroller_bringup.bags as bags
+    from touchroller_bringup.bags import ImageRecord, open_bag, tf_topics, write_scan
+
+    images_only = tmp_path / "images"
+    write_scan(images_only, [r for r in scan_records(rng) if isinstance(r, ImageRecord)], storage=storage)
+    write_scan(tmp_path / "scan", scan_records(rng), storage=storage)
+    expected = {}
+    for bag in (images_only, tmp_path / "scan"):
+        reader = open_bag(bag)
+        expected[bag] = tuple(sorted(c.topic for c in reader.connections if c.topic in ("/tf", "/tf_static")))
+        reader.close()
+    assert expected == {images_only: (), tmp_path / "scan": ("/tf", "/tf_static")}
+
+    def no_open(path):
+        raise AssertionError("opened with rosbags")
+
+    monkeypatch.setattr(bags, "open_bag", no_open)
+    for bag, topics in expected.items():
+        assert tf_topics(bag) == topics
+        (data_file,) = [p for p in bag.iterdir() if p.suffix in (".db3", ".mcap")]
+        assert tf_topics(data_file) == topics
+    monkeypatch.undo()
+    with pytest.raises(UserError, match="no such bag"):
+        tf_topics(tmp_path / "nope")
+    (tmp_path / "scan" / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 99}\n")
+    with pytest.raises(UserError, match="cannot open bag"):
+        tf_topics(tmp_path / "scan")

@@ -151,3 +151,28 @@ def _zombie(pid):
             return stream.read().rsplit(")", 1)[1].split()[0] == "Z"
     except OSError:
         return True
+
+
+def test_the_parent_does_its_meanwhile_work_after_forking_and_before_the_first_items():
+    """`meanwhile` runs in the parent once (the child already forked: what it imports is not the child's),
+    and the items come as without it."""
+    import sys
+
+    calls = []
+
+    def produce():
+        yield (os.getpid(), "_meanwhile_probe" in sys.modules), None
+        yield from _items(20)
+
+    def meanwhile():
+        calls.append(os.getpid())
+        sys.modules["_meanwhile_probe"] = sys   # something the parent makes that a child forked before lacks
+
+    try:
+        got = list(read_forked(produce, SHAPE, slots=4, batch=3, meanwhile=meanwhile))
+    finally:
+        sys.modules.pop("_meanwhile_probe", None)
+    (child, child_saw), _ = got[0]
+    assert calls == [os.getpid()] and child != os.getpid() and not child_saw
+    assert [p[0] for p, _ in got[1:]] == list(range(20))
+    assert all(a is None if k % 3 == 0 else (a == k).all() for k, (_, a) in enumerate(got[1:]))

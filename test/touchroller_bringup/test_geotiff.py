@@ -236,3 +236,32 @@ def test_bigtiff_when_asked_or_large_and_the_same_image_either_way(tmp_path):
         assert len(b.series[0].levels) == len(a.series[0].levels) == 2
         np.testing.assert_array_equal(a.series[0].asarray(), b.series[0].asarray())
         assert b.pages[0].geotiff_tags["ModelTiepoint"] == a.pages[0].geotiff_tags["ModelTiepoint"]
+
+
+def test_map_png_made_beside_the_geotiff_is_the_full_resolution_view_and_its_errors_surface(tmp_path, monkeypatch):
+    """At full resolution map.png is made by a second thread while map.tif is written: the same picture as
+    the GeoTIFF's full resolution (stretched), and an error there is the command's one line, nothing written."""
+    import touchroller_bringup.map_files as map_files
+    from touchroller_bringup.errors import UserError
+
+    canvas = _canvas(seed=11, rows=500, cols=700)
+    png, yaml_path = write_world_map(tmp_path / "map.png", canvas.view(1.0), "base")
+    meta = yaml.safe_load(yaml_path.read_text())
+    assert meta["view"]["downscale"] == 1
+    from PIL import Image
+
+    with Image.open(png) as image:
+        picture = np.asarray(image.convert("LA"))
+    full = tifffile.imread(tmp_path / "map.tif", level=0)
+    np.testing.assert_array_equal(picture[..., 1], full[..., 1])
+    low, high = meta["view"]["stretch"]
+    expected = np.clip(np.floor((full[..., 0].astype(np.float64) - low) * 255.0 / (high - low) + 0.5), 0, 255)
+    assert np.abs(picture[..., 0].astype(np.float64) - expected)[full[..., 1] == 255].max() <= 1.0
+
+    def full_disk(grey, alpha):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(map_files, "png_grey_alpha", full_disk)
+    with pytest.raises(UserError, match="No space left on device"):
+        write_world_map(tmp_path / "other" / "map.png", canvas.view(1.0), "base")
+    assert not list((tmp_path / "other").glob("map.*"))

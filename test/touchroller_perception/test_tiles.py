@@ -136,3 +136,24 @@ def test_reduce2_pads_an_odd_side_with_nothing_and_levels_halve_until_one_tile()
     assert mean.tolist() == [[2, 5]] and w.tolist() == [[0.5, 0.25]]
     assert levels_for((512, 512), 512) == 1 and levels_for((513, 100), 512) == 2
     assert levels_for((10_000, 10_000), 512) == 6   # 10000, 5000, 2500, 1250, 625, 313
+
+
+def test_adding_over_windows_found_once_is_adding_layer_by_layer():
+    """`windows` + `add_windows` (the tiles a window falls in found once for every layer it adds to) sum
+    what `add` sums, across tile borders and negative cells, and track the largest sum alike."""
+    rng = np.random.default_rng(3)
+    one, many = TileStore(TileConfig(tile=T)), TileStore(TileConfig(tile=T))
+    for store in (one, many):
+        store.add_layer("a")
+        store.add_layer("b")
+    for r0, c0, h, w in [(-5, -7, 40, 70), (10, 30, 5, 5), (-40, 60, 33, 9)]:
+        a, b = rng.uniform(0, 1, (2, h, w)).astype(np.float32)
+        largest = one.add("a", a, r0, c0, track_max=True), one.add("b", b, r0, c0)
+        windows = many.windows(r0, r0 + h, c0, c0 + w)
+        many.reserve([(name, ix, iy) for name in "ab" for ix, iy, *_ in windows])
+        assert (many.add_windows("a", a, windows, track_max=True), many.add_windows("b", b, windows)) == largest
+        assert {(ix, iy) for ix, iy, *_ in windows} == set(one.spans(r0, r0 + h, c0, c0 + w))
+    for name in "ab":
+        assert many.tiles(name) == one.tiles(name)
+        np.testing.assert_array_equal(many.read(name, -50, 60, -10, 90), one.read(name, -50, 60, -10, 90))
+    assert many.windows(3, 3, 0, 10) == []

@@ -205,8 +205,8 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     first_stamp: list = [None]
     with _set_up_objects_frozen():
         # bands with their relief go through a thread (the forked reader passes bands alone)
-        read = _read_ahead(records(), batch=8) if mapper.height_source is not None else _reader(records,
-                                                                                                 mapper.band_shape)
+        read = _read_ahead(records(), batch=8) if mapper.height_source is not None else _reader(
+            records, mapper.band_shape, meanwhile=_import_writers)
         for item, band in read:
             if band is None:
                 record, transform = item
@@ -378,14 +378,26 @@ def _set_up_objects_frozen() -> Iterator[None]:
         gc.unfreeze()
 
 
-def _reader(records: Callable[[], Iterator[T]], band_shape: tuple[int, int]) -> Iterator[T]:
+def _reader(records: Callable[[], Iterator[T]], band_shape: tuple[int, int],
+            meanwhile: Callable[[], None] | None = None) -> Iterator[T]:
     """`records()` run by a second process where the system can fork (its own GIL: reading and mapping
-    really overlap, see `touchroller_bringup.forked_reader`), else by a second thread."""
+    really overlap, see `touchroller_bringup.forked_reader`), else by a second thread. `meanwhile()`: run
+    once the reader has started, while it opens the bag (by the forked reader's parent; before the thread)."""
     from touchroller_bringup.forked_reader import fork_available, read_forked
 
     if fork_available():
-        return read_forked(records, band_shape)  # type: ignore[arg-type]
+        return read_forked(records, band_shape, meanwhile=meanwhile)  # type: ignore[arg-type]
+    if meanwhile is not None:
+        meanwhile()
     return _read_ahead(records(), batch=8)
+
+
+def _import_writers() -> None:
+    """Import what writing the map's files needs (tifffile: tens of milliseconds, numpy.ma with it): done
+    while the reader opens the bag, when the command would otherwise wait for its first frames."""
+    import tifffile  # noqa: F401
+
+    import touchroller_bringup.geotiff  # noqa: F401
 
 
 def _read_ahead(records: Iterator[T], depth: int = 8, batch: int = 1) -> Iterator[T]:
