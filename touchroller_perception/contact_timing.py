@@ -153,6 +153,34 @@ class ContactTimer:
             heights[index] = np.asarray(found, np.float64).reshape(len(index), len(self._lags))
         return heights
 
+    def _levels(self, heights: FloatArray) -> tuple[FloatArray, float, float] | None:
+        """Per frame, the band's RMS difference from the mean of the frames surely in the air (`heights`: the
+        arm over the pressed height at each lag), and its median level in the air and pressed; None with
+        fewer than 3 frames of either or when pressing does not change the image beyond its noise."""
+        c = self.config
+        known = np.isfinite(heights).all(axis=1)
+        air = known & (heights.min(axis=1, initial=np.inf) > c.lifted)
+        pressed = known & (np.abs(heights).max(axis=1, initial=0.0) < c.pressed)
+        if air.sum() < 3 or pressed.sum() < 3:
+            return None
+        summaries = self._summary_arr[self._start:self._end]
+        reference = summaries[air].mean(axis=0)
+        signal = np.sqrt(((summaries - reference) ** 2).mean(axis=(1, 2)))
+        low, high = median(signal[air]), median(signal[pressed])
+        noise = 1.4826 * median(np.abs(signal[air] - low))
+        if not high - low > max(6.0 * noise, 1e-3):
+            return None
+        return signal, low, high
+
+    def shows_pressing(self, poses: PoseLookup, height: float, latest_ns: int) -> bool:
+        """Whether the image confirms that the roller is pressed with the arm at `height`: the frames taken
+        with the arm there (at every lag) differ from those taken with it surely in the air, beyond the
+        noise, as pressing changes the band on any surface, smooth or not. An arm moving in the air at
+        that height (a lead-in above the surface) leaves the band as it is in the air: not confirmed."""
+        if len(self) < 6:
+            return False
+        return self._levels(self._arm_heights(poses, latest_ns, final=False) - height) is not None
+
     def update(self, poses: PoseLookup, pressed_height: float | None, latest_ns: int,
                final: bool = False) -> list[ContactEvent]:
         """The events found since the last call (also added to `events`): flips of the image's state with
@@ -164,21 +192,13 @@ class ContactTimer:
             return []
         stamps = self._stamp_arr[self._start:self._end]
         heights = self._arm_heights(poses, latest_ns, final) - pressed_height
-        known = np.isfinite(heights).all(axis=1)
-        air = known & (heights.min(axis=1, initial=np.inf) > c.lifted)
-        pressed = known & (np.abs(heights).max(axis=1, initial=0.0) < c.pressed)
-        if air.sum() < 3 or pressed.sum() < 3:
-            return []
+        levels = self._levels(heights)
+        if levels is None:
+            return []   # too few frames surely in the air or pressed, or pressing changes nothing visible
+        signal, low, high = levels
         with np.errstate(invalid="ignore"):   # NaN: lags TF does not cover (the recording's ends)
             up = (heights > c.lifted).any(axis=1)
             down = (np.abs(heights) < c.pressed).any(axis=1)
-        summaries = self._summary_arr[self._start:self._end]
-        reference = summaries[air].mean(axis=0)
-        signal = np.sqrt(((summaries - reference) ** 2).mean(axis=(1, 2)))
-        low, high = median(signal[air]), median(signal[pressed])
-        noise = 1.4826 * median(np.abs(signal[air] - low))
-        if not high - low > max(6.0 * noise, 1e-3):
-            return []   # pressing does not change the image beyond its noise: nothing to read
         state = (signal - low) / (high - low) > c.level
         n, k = len(stamps), c.steady_frames
         horizon = latest_ns - self.max_latency_ns - 500_000_000

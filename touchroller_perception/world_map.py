@@ -10,7 +10,10 @@ mosaic in the world frame (`map` frame of nav2: x right, y up) at `config.resolu
 * which frames are mapped: those with the roller pressed. The pressed height is learnt from the frames
   whose image moves with the arm (the strip stitcher's registration agrees with the arm's motion along
   the roll): frames within `contact_tolerance` of it are in contact; an arm moving above the surface
-  (approach, between passes) is not, whatever the image shows;
+  (approach, between passes) is not, whatever the image shows. Where the surface has too little texture
+  to register, the lowest height the arm moved along at is taken once the band's shading confirms it
+  (frames there differ from frames in the air, as pressing changes the band on any surface:
+  `contact_timing.ContactTimer.shows_pressing`), or once frames can wait no longer;
 * the camera's latency (exposure to stamp): `config.latency` if told, else estimated from the data
   (`touchroller_perception.latency`: the image-registered roll against the arm's around starts and stops
   and over whole passes, opposite passes registered against each other, and when the image shows the
@@ -528,7 +531,7 @@ class WorldMapper:
     def _take_band(self, band: np.ndarray, stamp_ns: int, height: HeightBand | None = None) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
         self.stats.frames += 1
-        if self._contacts is not None:
+        if self._contacts is not None and (self._estimator is not None or self._pressed_height is None):
             self._contacts.push(int(stamp_ns), band)
         if self._previous_prior_pose is not None:
             seen = self._previous_prior_pose[0]
@@ -813,7 +816,9 @@ class WorldMapper:
         self._weights = (across[:, None] * ends[None, :]).astype(np.float32)
         latency = LatencyConfig(max_latency=self.config.max_latency, max_sigma=self.config.latency_max_sigma)
         self._estimator = LatencyEstimator(self.m_per_row, latency) if self.latency_ns is None else None
-        self._contacts = ContactTimer(self.config.max_latency) if self._estimator is not None else None
+        # the band's shading when pressed: touchdowns and lift-offs for the latency, and with the latency
+        # told too, the pressed height TF shows confirmed without texture (`_pressed_from_tf`)
+        self._contacts = ContactTimer(self.config.max_latency)
 
     # -- the queue -----------------------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
@@ -925,10 +930,13 @@ class WorldMapper:
             return
         plateau = _median(z[near])
         confirmed = any(abs(h - plateau) <= self.config.contact_tolerance for h in self._agree_heights)
-        if confirmed or forced:
+        shaded = (not confirmed and self._contacts is not None
+                  and self._contacts.shows_pressing(self.poses, plateau, self._latest_stamp))
+        if confirmed or shaded or forced:
             self._pressed_height = plateau
             self.stats.pressed_height = plateau
-            self.stats.pressed_from = "tf, confirmed by the image" if confirmed else "tf"
+            self.stats.pressed_from = ("tf, confirmed by the image" if confirmed else
+                                       "tf, confirmed by the pressed band's shading" if shaded else "tf")
 
     def _find_events(self, final: bool) -> None:
         """Learn the pressed height, find starts and stops of the roll, and (re)estimate the latency."""

@@ -49,3 +49,25 @@ def test_the_recorded_result_reads_back_and_renders_the_same():
     text = to_markdown(result)
     assert f"| {result.seeds[0]}-{result.seeds[-1]} | {result.summary.cracks_in_scope} |" in text
     assert "End to end" in text
+
+
+def test_the_live_latency_rows_say_whether_the_latency_was_estimated_or_known():
+    """Both live rows: the scored scan's (the latency estimated: frames wait for the estimate) and the one with
+    the latency known; a recording made before the known row existed renders it as not run."""
+    import dataclasses
+
+    from bench.inspection import end_to_end_markdown, load
+    from bench.inspection_scan import Latency
+    from touchroller_driver.paths import checkout_dir
+
+    e2e = load(checkout_dir() / "bench" / "results" / "inspection.json").end_to_end
+    assert e2e is not None
+    known = dataclasses.replace(e2e, latency=[Latency("crack", 5.0, 0.9, True)],
+                                latency_known=[Latency("dent", 0.8, 0.2, False)],
+                                latency_known_command="touchroller scan map.latency_estimate:=False")
+    text = end_to_end_markdown(known)
+    assert "| estimated | crack | 5.00 | 0.90 | the finished map (after the roll) |" in text
+    assert "| known | dent | 0.80 | 0.20 | the live inspection |" in text
+    assert "`touchroller scan map.latency_estimate:=False`" in text
+    old = end_to_end_markdown(dataclasses.replace(e2e, latency_known=[], latency_known_command=""))
+    assert "`not run`" in old and "| known |" not in old

@@ -566,3 +566,65 @@ def test_a_map_without_height_does_not_import_scipy():
             "print(sorted(m for m in sys.modules if m == 'scipy' or m.startswith('touchroller_perception.height')))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "[]", done.stdout
+
+
+def _pushed_live(events, sensor, latency: float, **config):
+    """Simulated events pushed frame by frame into a mapper told the latency: per frame, its stamp, the arm's
+    height at its exposure and the mapped-frame count right after it was pushed; and the mapper."""
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    lookup = buffer_lookup(buffer, "base", "touchroller_cylinder")
+    mapper = WorldMapper(sensor.camera, lookup, WorldMapConfig(latency=latency, bounds=(0.40, -0.07, 0.47, 0.03),
+                                                               **config))
+    stamps, mapped = [], []
+    for event in events:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+        else:
+            mapper.push(event[2], event[1])
+            stamps.append(event[1])
+            mapped.append(mapper.stats.mapped)
+    heights = lookup(np.array(stamps, np.int64) - round(latency * 1e9))[:, 2, 3]
+    return np.array(stamps), heights, np.array(mapped), mapper
+
+
+@pytest.mark.parametrize("variant", ["panel", "glass"])
+def test_with_the_latency_told_a_smooth_surface_is_mapped_while_the_roller_rolls(variant):
+    """A smooth panel (and glass): too little texture for the image to agree with the arm, so the pressed
+    height TF shows waited to be confirmed by `hold_frames` (600) frames or the scan's end, and a live map
+    placed nothing while the roller rolled. The band's shading when pressed confirms it: frames are placed
+    within a second of touchdown, before the pass ends, and each frame after that as it comes."""
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface", variant=variant), seed=0)
+    area = (0.42, -0.045, 0.03, 0.04)   # one 3 cm pass
+    plan = plan_raster(DEFAULT_START_POSE, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
+                       clearance=0.002, approach_speed=0.005)
+    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.035))
+    stamps, heights, mapped, mapper = _pushed_live(events, sensor, 0.035)
+    pressed = np.flatnonzero(heights <= np.nanmin(heights) + 1e-4)
+    touchdown, liftoff = int(pressed[0]), int(pressed[-1])
+    assert len(stamps) < mapper.config.hold_frames   # nothing forced by the queue's length
+    assert mapper.stats.pressed_from == "tf, confirmed by the pressed band's shading"
+    first = int(np.argmax(mapped > 0))
+    assert mapped[first] > 0 and touchdown < first <= touchdown + 30, (touchdown, first, liftoff)
+    # from then on every frame is placed as it comes: none of the pass's frames waits for its end
+    assert mapped[liftoff] >= 0.9 * (liftoff - touchdown), (mapped[liftoff], liftoff - touchdown)
+    behind = (np.arange(len(mapped)) - first + 1 - (mapped - mapped[first]))[first:liftoff]   # frames held
+    assert behind.max() - behind.min() <= 3
+    mapper.finalise()
+    assert mapper.stats.passes == 1 and mapper.coverage((area[0] + 0.005, area[1], area[0] + area[2] - 0.005,
+                                                         area[1] + area[3])) >= 98.0
+
+
+def test_an_arm_moving_in_the_air_is_not_confirmed_pressed_by_the_bands_shading():
+    """The same pass 2 mm above the panel (a lead-in, a wrong start pose): the lowest height the arm moved
+    at is a plateau, but the band looks as in the air there, so nothing confirms it; frames wait for the
+    queue's length or the end, as before."""
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface", variant="panel"), seed=0)
+    area = (0.42, -0.045, 0.03, 0.04)
+    above = np.array(DEFAULT_START_POSE, np.float64)
+    above[2] += 0.002
+    plan = plan_raster(above, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=0.0, clearance=0.002,
+                       approach_speed=0.005)
+    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.0))
+    _, _, mapped, mapper = _pushed_live(events, sensor, 0.0)
+    assert (mapped == 0).all() and mapper._pressed_height is None
