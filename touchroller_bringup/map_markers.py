@@ -42,9 +42,10 @@ def marker_id(tile: MapTile) -> int:
 
 
 def texture_png(tile: MapTile) -> bytes:
-    """The tile's image as PNG: grey in all three colour channels and the alpha (0 outside the map)."""
+    """The tile's image as PNG: grey in all three colour channels and the alpha (0 outside the map); zlib
+    level 1 (a tile of mapped texture compresses about as well at 1 as at 3, in half the time)."""
     bgra = cv2.merge([tile.grey, tile.grey, tile.grey, tile.alpha])
-    ok, data = cv2.imencode(".png", bgra, [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    ok, data = cv2.imencode(".png", bgra, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise ValueError("PNG encoding of a map tile failed")
     return data.tobytes()
