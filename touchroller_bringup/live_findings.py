@@ -11,6 +11,14 @@ that nothing matched is gone (its markers deleted). Ground mapped again by a lat
 again only when the map is finished (`whole`). The map's height layer is inspected when it has one,
 else its intensity (`scan_findings.height_layer`).
 
+From a world map's tiles (`update_tiles`, what the perception node uses): the node hands over the store
+tiles bands touched (`note`), and only those are read to find the newly mapped cells (each tile's
+mapped cells at the last inspection kept as bits); the region is read from the tiles as one window
+(`touchroller_perception.map_windows.MapWindows`), never the whole map at full resolution. A finished map
+(`whole`) is inspected whole when its extent has at most `WHOLE_CELLS` cells, else window by window
+(`WINDOW_CELLS` square, each grown over the findings of the windows before that reach into it, so a crack
+across a window's edge is measured whole): memory for a window, however large the map.
+
 `markers(...)`: per finding, a LINE_STRIP along a crack's trunk (and one per branch) or a CYLINDER disc of
 the dent's or bump's diameter at half depth, and a TEXT_VIEW_FACING label (id, kind, length, width, depth);
 marker ids are `MARKERS_PER_FINDING` x finding id + k, namespace "findings": a finding updated later replaces
@@ -29,6 +37,8 @@ from scipy.spatial import cKDTree
 from touchroller_bringup.scan_findings import height_layer
 from touchroller_perception.inspection import Finding, InspectionConfig, inspect_region
 
+WHOLE_CELLS = 3000 * 3000    # a finished map up to this many cells is inspected as one window
+WINDOW_CELLS = 2048          # else in windows of this many cells square (plus the margin around each)
 MARKERS_PER_FINDING = 8       # geometry (k = 0), label (1), branches (2..7)
 NAMESPACE = "findings"
 COLOURS = {"crack": (1.0, 0.1, 0.1), "dent": (1.0, 0.6, 0.0), "bump": (0.1, 0.8, 0.1)}   # RGB
@@ -98,6 +108,9 @@ class LiveFindings:
     _next_id: int = 1
     _next_s: float = -math.inf    # when the next inspection is due (on the period's grid)
     inspections: int = 0
+    _pending: set[tuple[int, int]] = field(default_factory=set)        # tiles touched since the last look
+    _tiles_seen: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)   # their mapped cells, bits
+    _extent: tuple[int, int, int, int] | None = None                  # of the mapped cells seen (absolute)
 
     def reset(self) -> list[int]:
         """Forget everything (a new map): the ids to delete."""
@@ -105,12 +118,103 @@ class LiveFindings:
         self.findings.clear()
         self._seen = None
         self._next_s = -math.inf
+        self._pending, self._tiles_seen, self._extent = set(), {}, None
         return gone
 
     def inspection_config(self) -> InspectionConfig:
         """The detector's configuration with the declared blur (`findings.blur`): what the scan's own
         inspection of the finished map uses too."""
         return replace(self.inspection, blur_fwhm_m=self.config.blur_m)
+
+    def note(self, touched: set[tuple[int, int]]) -> None:
+        """The store tiles bands changed (`WorldMapper.touched_tiles()`): looked at by the next `update_tiles`."""
+        self._pending |= touched
+
+    def update_tiles(self, source: Any, now_s: float, force: bool = False,
+                     whole: bool = False) -> FindingsUpdate | None:
+        """`update` from a world map's tiles (`source`: a `MapWindows`): the cells mapped since the last
+        inspection found in the tiles `note`d since, the region read as one window; `whole`: every cell,
+        window by window when the map is large (see the module docstring)."""
+        if not self.config.enabled or not (force or self.due(now_s)):
+            return None
+        res, (ax, ay), t = source.resolution, source.anchor, source.tile
+        pending, self._pending = self._pending, set()
+        new: tuple[int, int, int, int] | None = None
+        for ix, iy in sorted(pending):
+            mapped = source.mapped_tile(ix, iy)
+            if mapped is None:
+                continue
+            seen = self._tiles_seen.get((ix, iy))
+            fresh = mapped if seen is None else mapped & ~np.unpackbits(seen, count=mapped.size).reshape(
+                mapped.shape).view(bool)
+            self._tiles_seen[(ix, iy)] = np.packbits(mapped)
+            self._extent = _union(self._extent, _cells(mapped, iy * t, ix * t))
+            new = _union(new, _cells(fresh, iy * t, ix * t))
+        if whole:
+            return self.inspect_whole(source, now_s)[0]
+        if new is None:
+            return None
+        self._schedule(now_s)
+        r0, r1, c0, c1 = new
+        reach = self.config.reach_m
+        region = (ax + c0 * res - reach, ay + r0 * res - reach, ax + c1 * res + reach, ay + r1 * res + reach)
+        update, _ = self._inspect_window(source, self._whole(region), self.config.margin_m,
+                                         source.fixed or self._extent)
+        return update
+
+    def _inspect_window(self, source: Any, region: tuple[float, float, float, float], margin: float,
+                        extent: tuple[int, int, int, int] | None) -> tuple[FindingsUpdate, Any]:
+        """Inspect `region` (world) with `margin` around it, read as one window clipped to `extent`."""
+        res, (ax, ay) = source.resolution, source.anchor
+        box = (math.floor((region[1] - margin - ay) / res), math.ceil((region[3] + margin - ay) / res),
+               math.floor((region[0] - margin - ax) / res), math.ceil((region[2] + margin - ax) / res))
+        if extent is not None:
+            box = (max(box[0], extent[0]), min(box[1], extent[1]), max(box[2], extent[2]), min(box[3], extent[3]))
+        if box[1] <= box[0] or box[3] <= box[2]:   # nothing of the map there
+            self.inspections += 1
+            return FindingsUpdate(*self._merge([], region), region, source.layer), None
+        values, origin = source.window(box)
+        result = inspect_region(values, res, origin, region, margin, config=self.inspection_config(),
+                                intensity=source.layer == "intensity")
+        self.inspections += 1
+        return FindingsUpdate(*self._merge(result.findings, region), region, source.layer), result
+
+    def inspect_whole(self, source: Any, now_s: float,
+                      margin: float | None = None) -> tuple[FindingsUpdate | None, list[Any]]:
+        """Every mapped cell of `source` (a `MapWindows`) inspected: (the update, each window's
+        `InspectionResult`). `margin`: around each window (default `config.margin_m`)."""
+        extent = source.extent()
+        if extent is None:
+            return None, []
+        self._schedule(now_s)
+        res, (ax, ay) = source.resolution, source.anchor
+        margin = self.config.margin_m if margin is None else margin
+        r0, r1, c0, c1 = extent
+        if (r1 - r0) * (c1 - c0) <= WHOLE_CELLS:
+            cores = [extent]
+        else:
+            w = WINDOW_CELLS
+            cores = [(a, min(a + w, r1), b, min(b + w, c1)) for a in range(r0, r1, w) for b in range(c0, c1, w)]
+        reach = self.config.reach_m if len(cores) == 1 else 0.0
+        removed: list[int] = []
+        results = []
+        update = None
+        for a0, a1, b0, b1 in cores:
+            region = (ax + b0 * res - reach, ay + a0 * res - reach, ax + b1 * res + reach, ay + a1 * res + reach)
+            update, result = self._inspect_window(source, self._whole(region), margin, extent)
+            removed += [i for i in update.removed if i not in removed]
+            if result is not None:
+                results.append(result)
+        assert update is not None
+        region = (ax + c0 * res, ay + r0 * res, ax + c1 * res, ay + r1 * res)
+        kept = sorted(self.findings.values(), key=lambda f: f.id)
+        return FindingsUpdate(kept, [i for i in removed if i not in self.findings], region, source.layer), results
+
+    def _schedule(self, now_s: float) -> None:
+        """An inspection ran at `now_s`: the next one a period after this one's due time (its grid: no
+        drift), or a period after now when far behind."""
+        period = self.config.period_s
+        self._next_s = self._next_s + period if abs(now_s - self._next_s) < period else now_s + period
 
     def due(self, now_s: float) -> bool:
         # a tenth of a period early is on time: the map timer that calls this has the same period, and its
@@ -129,9 +233,7 @@ class LiveFindings:
         new = mapped if whole else mapped & ~self._previous(mapped.shape, origin, resolution)
         if not new.any():
             return None
-        # the next one a period after this one's due time (its grid: no drift), or after now when far behind
-        period = self.config.period_s
-        self._next_s = self._next_s + period if abs(now_s - self._next_s) < period else now_s + period
+        self._schedule(now_s)
         self._seen = _Grid(mapped.copy(), origin, resolution)
         rows = mapped.shape[0]
         rr, cc = np.nonzero(new)
@@ -206,6 +308,23 @@ class LiveFindings:
             if distance <= self.config.match_m and distance < best_distance:
                 best, best_distance = i, distance
         return best
+
+
+def _cells(mask: np.ndarray, r0: int, c0: int) -> tuple[int, int, int, int] | None:
+    """(row0, row1, column0, column1) around the True cells of `mask` (its cell (0, 0) at (r0, c0))."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
+        return None
+    return r0 + int(rows[0]), r0 + int(rows[-1]) + 1, c0 + int(cols[0]), c0 + int(cols[-1]) + 1
+
+
+_Box = tuple[int, int, int, int]
+
+
+def _union(a: _Box | None, b: _Box | None) -> _Box | None:
+    if a is None or b is None:
+        return a if b is None else b
+    return min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3])
 
 
 def _points(finding: Finding) -> np.ndarray:

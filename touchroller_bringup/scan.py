@@ -766,9 +766,10 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
 
     found = inspected = None
     if world_image is not None and scan_findings.enabled(graph.arguments):
-        # the inspection reads the whole map at full resolution (the files are written from the tiles)
-        inspected = scan_findings.with_height(world.map_image(), world)
-        found = scan_findings.inspect_map(inspected, perception.live_findings.inspection_config())
+        # the inspection reads the map from its tiles, window by window when it is large; its picture is
+        # drawn on the map at the level map.png has
+        found = scan_findings.inspect_world(world, perception.live_findings.config.blur_m)
+        inspected = small_image
 
     attempt("contacts", out_dir / "contacts.csv",
             lambda: _write_contacts(out_dir / "contacts.csv", contacts, getattr(perception, "camera", None),

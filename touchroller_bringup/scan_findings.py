@@ -3,7 +3,9 @@ made and writes `DIR/findings.csv` and `DIR/findings.png` with it; a simulated s
 defects (`surface.defects`) also writes their truth, `DIR/truth_findings.csv`, in the same format and frame.
 
 Which layer: the world map's height (metres, `height_layer`) when the map has one, else its intensity
-(grey levels: shapes and places, no depth).
+(grey levels: shapes and places, no depth). `inspect_world` reads the map from its tiles
+(`touchroller_perception.map_windows`): whole up to `live_findings.WHOLE_CELLS` cells, else window by
+window, so memory stays that of a window however large the map (a square metre at 0.1 mm is 10^8 cells).
 """
 from __future__ import annotations
 
@@ -84,8 +86,43 @@ def inspect_map(image: Any, config: InspectionConfig | None = None) -> ScanFindi
     return ScanFindings(result.findings, "intensity", result)
 
 
+def inspect_world(world: Any, blur_m: float = 0.0) -> ScanFindings:
+    """Inspect a `WorldMapper`'s finished map from its tiles: as `inspect_map(with_height(world.map_image(),
+    world))` for a map of up to `live_findings.WHOLE_CELLS` cells (the same findings), window by window
+    beyond (`LiveFindings.inspect_whole`: each window with three background scales of context, a finding
+    across a window's edge measured whole by the next). The result's diagnostics: the one window's, or
+    the windows' counts summed and their thresholds' largest. `blur_m`: the map's declared blur
+    (`findings.blur`), as the live findings have it."""
+    from touchroller_bringup.live_findings import LiveFindings, LiveFindingsConfig
+    from touchroller_perception.inspection import InspectionConfig
+    from touchroller_perception.map_windows import MapWindows
+
+    source = MapWindows(world)
+    margin = 3 * InspectionConfig().background_scale_m
+    live = LiveFindings(LiveFindingsConfig(period_s=0.0, reach_m=0.0, margin_m=margin, blur_m=blur_m))
+    update, results = live.inspect_whole(source, 0.0)
+    if update is None or not results:
+        empty = inspect(np.full((0, 0), np.nan, np.float32), world.config.resolution, (0.0, 0.0))
+        return ScanFindings([], source.layer, empty)
+    return ScanFindings(update.findings, source.layer, InspectionResult(update.findings, _merged(results)))
+
+
+def _merged(results: list[InspectionResult]) -> Any:
+    if len(results) == 1:
+        return results[0].diagnostics
+    from dataclasses import fields, replace
+
+    first = results[0].diagnostics
+    values = {}
+    for f in fields(first):
+        items = [getattr(r.diagnostics, f.name) for r in results]
+        values[f.name] = sum(items) if isinstance(items[0], int) else max(items)
+    return replace(first, **values)
+
+
 def write_findings(out_dir: Path, image: Any, found: ScanFindings) -> dict[str, Path]:
-    """`findings.csv` and `findings.png` (the map with the findings drawn and numbered)."""
+    """`findings.csv` and `findings.png` (the map with the findings drawn and numbered; `image` any
+    `WorldMapImage` of it, e.g. a pyramid level's `WorldMapper.level_image`)."""
     from touchroller_bringup.findings_files import write_findings_csv, write_findings_png
 
     write_findings_csv(out_dir / "findings.csv", found.findings)

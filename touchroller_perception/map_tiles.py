@@ -122,7 +122,30 @@ def choose_level(rows: int, cols: int, max_pixels: int) -> int:
     return level
 
 
-def _grid_offset(origin: float, resolution: float) -> tuple[int, float]:
+def fitting_level(box: tuple[int, int, int, int], max_pixels: int) -> int:
+    """The lowest pyramid level k at which the map's extent `box` (row0, row1, column0, column1 of level-0
+    cells) is a view of at most `max_pixels` pixels: its level-k cells (blocks aligned to the grid of
+    `box`) plus one of alignment each way, as `map_view` counts them, so the level image needs no further
+    level of its own."""
+    r0, r1, c0, c1 = box
+    level = 0
+    while level < 30:
+        f = 2 ** level
+        rows, cols = -(-r1 // f) - r0 // f, -(-c1 // f) - c0 // f
+        if (rows + 1) * (cols + 1) <= max_pixels:
+            break
+        level += 1
+    return level
+
+
+def surface_z(mapper: WorldMapper) -> float:
+    """The height of the surface the roller pressed on in the map's frame (the pressed height of its axis
+    less the radius; 0 until it is known): where the views are drawn."""
+    pressed = mapper.stats.pressed_height
+    return pressed - mapper.camera.radius if pressed is not None and math.isfinite(pressed) else 0.0
+
+
+def grid_offset(origin: float, resolution: float) -> tuple[int, float]:
     """(world grid index of the map's first cell, what its corner lies off the grid: |offset| <= res / 2)."""
     index = round(origin / resolution)
     return index, origin - index * resolution
@@ -139,8 +162,8 @@ def view_at(raster: MapRaster, level: int) -> MapView:
     """The map downsampled by 2**level, blocks aligned to the world grid (mean of mapped cells)."""
     factor = 2 ** level
     res = raster.resolution
-    gx, dx = _grid_offset(raster.origin[0], res)
-    gy, dy = _grid_offset(raster.origin[1], res)
+    gx, dx = grid_offset(raster.origin[0], res)
+    gy, dy = grid_offset(raster.origin[1], res)
     rows, cols = raster.grey.shape
     # rows growing with y from here on (row 0 the lowest y)
     grey = np.flipud(raster.grey)
@@ -170,8 +193,8 @@ def view_at(raster: MapRaster, level: int) -> MapView:
                    raster.z)
 
 
-def tiles_of(view: MapView, tile_px: int) -> list[MapTile]:
-    """Every tile of the view that holds a mapped cell."""
+def tiles_of(view: MapView, tile_px: int, only: set[tuple[int, int]] | None = None) -> list[MapTile]:
+    """Every tile of the view that holds a mapped cell (`only`: of those (column, row))."""
     out = []
     grey = np.flipud(view.grey)     # rows growing with y
     alpha = np.flipud(view.alpha)
@@ -182,6 +205,8 @@ def tiles_of(view: MapView, tile_px: int) -> list[MapTile]:
     dy = view.origin[1] - ly0 * view.resolution
     for ty in range(ly0 // tile_px, -(-(ly0 + rows) // tile_px)):
         for tx in range(lx0 // tile_px, -(-(lx0 + cols) // tile_px)):
+            if only is not None and (tx, ty) not in only:
+                continue
             # the tile's level cells [tx * T, (tx + 1) * T) in view coordinates, clipped to the view
             c0, r0 = tx * tile_px - lx0, ty * tile_px - ly0
             a0, a1 = max(r0, 0), min(r0 + tile_px, rows)
@@ -201,7 +226,7 @@ def tiles_of(view: MapView, tile_px: int) -> list[MapTile]:
     return out
 
 
-def _digest(tile: MapTile) -> bytes:
+def digest(tile: MapTile) -> bytes:
     h = hashlib.blake2b(digest_size=16)
     h.update(tile.grey.tobytes())
     h.update(tile.alpha.tobytes())
@@ -232,9 +257,9 @@ class TileTracker:
         self._level = view.level
         changed = []
         for tile in tiles:
-            digest = _digest(tile)
-            if self._sent.get(tile.key) != digest:
-                self._sent[tile.key] = digest
+            code = digest(tile)
+            if self._sent.get(tile.key) != code:
+                self._sent[tile.key] = code
                 changed.append(tile)
         return view, TileUpdate(tuple(changed), view.level, replaced)
 
@@ -247,12 +272,11 @@ def world_map_raster(mapper: WorldMapper, max_pixels: int | None = None) -> MapR
     """The adapter between the world map and its views, at the height of the surface the roller pressed
     on (the pressed height of its axis less the radius; 0 until it is known). The map is read from its
     tile store (`WorldMapper.level_image`): at the coarsest pyramid level whose view fits `max_pixels`
-    (`choose_level` on the mapped extent; None: full resolution), rendered a tile at a time, so building
+    (`fitting_level` on the mapped extent; None: full resolution), rendered a tile at a time, so building
     a view costs memory for the view alone however large the map grows. Empty while nothing is mapped."""
-    pressed = mapper.stats.pressed_height
-    z = pressed - mapper.camera.radius if pressed is not None and math.isfinite(pressed) else 0.0
+    z = surface_z(mapper)
     box = mapper.level_extent(0)
-    level = 0 if box is None or max_pixels is None else choose_level(box[1] - box[0], box[3] - box[2], max_pixels)
+    level = 0 if box is None or max_pixels is None else fitting_level(box, max_pixels)
     image = mapper.level_image(level)
     if image is None:
         empty = np.zeros((0, 0), np.uint8)

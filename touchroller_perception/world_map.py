@@ -279,6 +279,7 @@ class _PassRecord:
     trusted: bool = False   # its offsets agreed: the correction was applied
     ended: bool = False
     evidence_given: bool = False   # its opposite-passes evidence was added (once)
+    _velocity: tuple[int, np.ndarray | None] | None = field(default=None, repr=False, compare=False)
 
     def add(self, exposure_ns: int, pose: np.ndarray, latency_ns: int) -> None:
         point = (exposure_ns, float(pose[0, 3]), float(pose[1, 3]))
@@ -297,12 +298,17 @@ class _PassRecord:
 
     def velocity(self) -> np.ndarray | None:
         """Its velocity in the world plane while it rolled, m/s: the median over its frames that moved
-        (a pause within the pass does not slow it down); None for a pass that did not move."""
+        (a pause within the pass does not slow it down); None for a pass that did not move. Kept until the
+        pass adds a frame (the pass before is asked at every frame of the next: recomputing it over all
+        its frames each time made a frame's cost grow with the length of the passes)."""
+        if self._velocity is not None and self._velocity[0] == len(self.steps):
+            known = self._velocity[1]
+            return None if known is None else known.copy()
         steps = np.array(self.steps).reshape(-1, 2)
         moving = steps[np.hypot(steps[:, 0], steps[:, 1]) > 1e-3]
-        if len(moving) < 3:
-            return None
-        return np.array([_median(moving[:, 0]), _median(moving[:, 1])])
+        velocity = None if len(moving) < 3 else np.array([_median(moving[:, 0]), _median(moving[:, 1])])
+        self._velocity = (len(self.steps), velocity)
+        return None if velocity is None else velocity.copy()
 
     def direction(self) -> np.ndarray | None:
         v = self.velocity()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from touchroller_bringup.live_findings import MARKERS_PER_FINDING, LiveFindings, LiveFindingsConfig, label, markers
-from touchroller_perception.inspection import Finding
+from touchroller_perception.inspection import Finding, InspectionConfig
 
 RES = 1e-4
 ORIGIN = (0.40, -0.02)
@@ -158,3 +158,112 @@ def test_markers_draw_each_finding_in_the_map_frame_with_stable_ids_and_delete_t
     assert label(crack) == "#3 crack 12.0 x 0.25 mm, 60 um deep"
     gone = [m for m in array.markers if MARKERS_PER_FINDING * 7 <= m.id < MARKERS_PER_FINDING * 8]
     assert len(gone) == MARKERS_PER_FINDING and all(m.action == Marker.DELETE for m in gone)
+
+
+def _world_of(h, tile=128):
+    """A world map over the panel's cells (the map's own grid) with a height layer as the world height keeps
+    it (a weighted sum beside its weights, read as their ratio) and nothing mapped yet."""
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.tiles import TileConfig as StoreConfig
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+    camera = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
+    rows, cols = h.shape
+    bounds = (ORIGIN[0], ORIGIN[1], ORIGIN[0] + (cols - 0.1) * RES, ORIGIN[1] + (rows - 0.1) * RES)
+    world = WorldMapper(camera, lambda stamps: np.zeros((len(stamps), 4, 4)),
+                        WorldMapConfig(resolution=RES, bounds=bounds, tiles=StoreConfig(tile=tile)))
+    assert world.canvas.shape == h.shape and world.canvas.origin == pytest.approx(ORIGIN, abs=1e-9)
+    world.canvas.add_layer("h_sum")
+    world.canvas.add_layer("h_w")
+    view = world.canvas.ratio_view("h_sum", "h_w", weight="h_w", min_denominator=0.5)
+    world.height_view = lambda: view
+
+    def roll(c0, c1):   # columns [c0, c1) mapped (rows grow with y in the canvas)
+        part = np.ascontiguousarray(h[::-1, c0:c1])
+        ones = np.ones_like(part)
+        world.canvas.add([128 * ones, ones, ones], c0, 0)
+        world.canvas.add_named({"h_sum": part, "h_w": ones}, c0, 0)
+    return world, roll
+
+
+def _same(a, b):
+    assert [(f.id, f.kind) for f in a] == [(f.id, f.kind) for f in b]
+    for f, g in zip(a, b, strict=True):
+        assert (f.x, f.y) == pytest.approx((g.x, g.y), abs=1e-6) and f.length_m == pytest.approx(g.length_m, rel=1e-3)
+
+
+def test_from_the_tiles_the_findings_are_those_of_the_map_image_without_reading_the_whole_map(monkeypatch):
+    """The live findings read from a world map's tiles (what the perception node does): the new cells found in
+    the tiles touched, the region read as one window, never `map_image`; the same findings, ids and
+    removals as inspecting the map image."""
+    from touchroller_perception.map_windows import MapWindows
+    from touchroller_perception.world_map import WorldMapper
+
+    h = panel()
+    cols = h.shape[1]
+    world, roll = _world_of(h)
+
+    def whole_map(*args, **kwargs):
+        raise AssertionError("the live findings read the whole map")
+
+    monkeypatch.setattr(WorldMapper, "map_image", whole_map)
+    windows: list = []
+    source = MapWindows(world)
+    read = source.window
+    monkeypatch.setattr(source, "window", lambda box: windows.append(box) or read(box))
+    config = LiveFindingsConfig(period_s=1.0, reach_m=5e-3, margin_m=7.5e-3)
+    tiles, images = LiveFindings(config), LiveFindings(config)
+    left = np.zeros(h.shape, bool)
+    left[:, : cols * 2 // 3] = True
+    roll(0, cols * 2 // 3)
+    tiles.note(world.touched_tiles())
+    first = tiles.update_tiles(source, now_s=10.0)
+    assert first is not None and first.layer == "height"
+    _same(first.findings, images.update(image(h, left), now_s=10.0).findings)
+    assert {f.kind for f in first.findings} == {"crack", "dent"}
+    assert tiles.update_tiles(source, now_s=20.0) is None   # nothing new mapped
+    roll(cols * 2 // 3, cols)
+    tiles.note(world.touched_tiles())
+    second = tiles.update_tiles(source, now_s=20.0)
+    expected = images.update(image(h, np.ones(h.shape, bool)), now_s=20.0)
+    _same(second.findings, expected.findings)
+    assert second.removed == expected.removed == [] and {f.kind for f in second.findings} == {"crack", "dent", "bump"}
+    # the first window: the first two thirds with the reach and margin beyond them, not the whole canvas
+    assert windows[0][2] == 0 and windows[0][3] == cols * 2 // 3 + 125
+    finished = tiles.update_tiles(source, now_s=30.0, force=True, whole=True)
+    _same(finished.findings, images.update(image(h, np.ones(h.shape, bool)), 30.0, force=True, whole=True).findings)
+
+
+def test_a_large_finished_map_is_inspected_window_by_window_and_a_crack_across_windows_is_measured_whole(
+        monkeypatch):
+    """Past `WHOLE_CELLS` the finished map is inspected in windows (here 128 cells square over a 400 x 600
+    map): each window read alone (memory for a window and the findings reaching into it), the crack that
+    crosses four of them one finding, as long as inspecting the whole map at once measures it."""
+    from touchroller_bringup import live_findings
+    from touchroller_bringup.scan_findings import inspect_map, inspect_world
+    from touchroller_perception.map_windows import MapWindows
+
+    h = panel()
+    world, roll = _world_of(h)
+    roll(0, h.shape[1])
+    whole = inspect_map(image(h, np.ones(h.shape, bool)))
+    assert inspect_world(world).findings == whole.findings   # a map within WHOLE_CELLS: as one window
+    # the declared blur (findings.blur) reaches the scan's final inspection as it reaches the live one's
+    blurred = inspect_map(image(h, np.ones(h.shape, bool)), InspectionConfig(blur_fwhm_m=4e-4))
+    assert blurred.findings != whole.findings
+    assert inspect_world(world, blur_m=4e-4).findings == blurred.findings
+    monkeypatch.setattr(live_findings, "WHOLE_CELLS", 10_000)
+    monkeypatch.setattr(live_findings, "WINDOW_CELLS", 128)
+    sizes: list = []
+    read = MapWindows.window
+    monkeypatch.setattr(MapWindows, "window", lambda self, box: sizes.append((box[1] - box[0]) * (box[3] - box[2]))
+                        or read(self, box))
+    found = inspect_world(world)
+    # 4 x 5 windows, each its 128 cells and the margin around (larger where a finding reaching into it is
+    # measured again whole)
+    assert len(sizes) == 20 and max(sizes) < h.size and float(np.median(sizes)) < h.size / 4
+    assert sorted(f.kind for f in found.findings) == ["bump", "crack", "dent"]
+    crack = next(f for f in found.findings if f.kind == "crack")
+    expected = next(f for f in whole.findings if f.kind == "crack")
+    assert crack.length_m == pytest.approx(expected.length_m, rel=0.05)
+    assert found.result.diagnostics.valid_pixels > 0

@@ -628,3 +628,29 @@ def test_an_arm_moving_in_the_air_is_not_confirmed_pressed_by_the_bands_shading(
     events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.0))
     _, _, mapped, mapper = _pushed_live(events, sensor, 0.0)
     assert (mapped == 0).all() and mapper._pressed_height is None
+
+
+def test_a_pass_velocity_is_kept_until_the_pass_adds_a_frame(monkeypatch):
+    """The pass before is asked for its velocity at every frame of the next pass (registration's prediction):
+    it is computed once per frame the pass added, not again over all of its frames at each call (which made
+    a frame's cost grow with the passes' length), and stays the median of its moving steps."""
+    from touchroller_perception import world_map
+
+    record = world_map._PassRecord()
+    pose = np.eye(4)
+    for k in range(50):
+        pose[0, 3] = 0.4 + 0.002 * k
+        record.add(1_000_000_000 + 100_000_000 * k, pose.copy(), 0)
+    calls = []
+    median = world_map._median
+    monkeypatch.setattr(world_map, "_median", lambda values: calls.append(len(values)) or median(values))
+    first = record.velocity()
+    assert first == pytest.approx([0.02, 0.0]) and len(calls) == 2
+    for _ in range(100):
+        assert record.velocity() == pytest.approx(first)
+    assert len(calls) == 2
+    pose[0, 3] += 0.01   # a faster step: the pass goes on, its velocity is computed again
+    record.add(1_000_000_000 + 100_000_000 * 50, pose.copy(), 0)
+    assert record.velocity() == pytest.approx([0.02, 0.0]) and len(calls) == 4
+    record.velocity()[0] = 99.0   # callers get their own copy
+    assert record.velocity() == pytest.approx([0.02, 0.0])

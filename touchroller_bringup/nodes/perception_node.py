@@ -92,12 +92,12 @@ from touchroller_bringup.ros_params import (
     frame_id_problem,
 )
 from touchroller_bringup.ros_services import create_trigger_service
-from touchroller_bringup.scan_findings import with_height
 from touchroller_bringup.tf import TransformListener, TransformPublisher, camera_in_cylinder
 from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
-from touchroller_perception.map_tiles import TileConfig, choose_level, world_map_raster
+from touchroller_perception.map_tiles import TileConfig
+from touchroller_perception.map_windows import MapWindows
 from touchroller_perception.stitching import Stitcher, StitcherConfig
 from touchroller_perception.transforms import TransformBuffer, TransformError
 from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
@@ -716,19 +716,12 @@ class PerceptionNode(Node):
             return None
         return HeightSource(model, reference, self._height_config())
 
-    def _publish_height(self, stamp_ns: int) -> None:
+    def _publish_height(self, height: np.ndarray, stamp_ns: int) -> None:
         """The world height map on map_height: 32FC1 metres (REP 118), row 0 the top as the map, NaN unmapped,
-        at the level of detail of the map view (`map.view_max_pixels`)."""
-        assert self.world is not None
-        box = self.world.level_extent(0)
-        if box is None:
+        at the level of detail of the map view (`map.view_max_pixels`; kept by the view's `LiveMapView`)."""
+        if height.size == 0:
             return
-        # the level the map view has (within map.view_max_pixels), read from the tiles
-        layer = self.world.height_level(choose_level(box[1] - box[0], box[3] - box[2],
-                                                     self.map_views.config.max_pixels))
-        if layer is None or layer.height.size == 0:
-            return
-        values = np.ascontiguousarray(layer.height[::-1], np.float32)
+        values = np.ascontiguousarray(height, np.float32)
         msg = Image()
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
         msg.header.frame_id = self.world_frame
@@ -741,33 +734,34 @@ class PerceptionNode(Node):
 
     def publish_map(self, all_findings: bool = False) -> np.ndarray | None:
         """Publish the map if it changed since the last publication; returns what was published (a
-        world map: its view within `map.view_max_pixels`). A world map's newly mapped region is inspected
-        (`findings.period` apart; `all_findings`: now)."""
-        world = inspected = None
+        world map: its view within `map.view_max_pixels`). A world map's views are updated from the tiles
+        frames touched since the last publication (`LiveMapView`), and its newly mapped region is
+        inspected (`findings.period` apart; `all_findings`: now), read from the tiles."""
+        world = live = None
+        inspect = False
         with self._map_lock:
             if (self.stitcher is None and self.world is None) or not self._map_dirty:
                 return None
+            now = self.get_clock().now().nanoseconds
             try:
                 if self.world is not None:
-                    world = world_map_raster(self.world, self.map_views.config.max_pixels)
-                    if all_findings or self.live_findings.due(self.get_clock().now().nanoseconds * 1e-9):
-                        # the inspection reads the map at full resolution (a copy, inspected outside the lock)
-                        image = self.world.map_image()
-                        inspected = with_height(image, self.world) if image.grey.size else None
+                    world = self.world
+                    touched = world.touched_tiles()
+                    self.live_findings.note(touched)
+                    live = self.map_views.publish(world, touched, self.world_frame, now)
+                    if live is not None and live.height is not None:
+                        self._publish_height(live.height, now)
+                    inspect = all_findings or self.live_findings.due(now * 1e-9)
                 else:
                     tactile_map = self.stitcher.map_image()
             except Exception as exc:  # noqa: BLE001
                 self.get_logger().warning(f"map not available: {exc}", throttle_duration_sec=10.0)
                 return None
             self._map_dirty = False
-            now = self.get_clock().now().nanoseconds
-            if world is not None:   # nothing mapped yet: None (a world map waits for the roller to roll)
-                view = self.map_views.publish(world, self.world_frame, now)
-                self._publish_height(now)
         if world is not None:
-            if inspected is not None:   # a copy of the map: inspected outside the lock
-                self._publish_findings(inspected, now, all_findings)
-            return None if view is None else view.grey
+            if inspect:   # read from the tiles a window at a time (each read under the lock), inspected outside it
+                self._publish_findings(MapWindows(world, self._map_lock), now, all_findings)
+            return None if live is None else live.view.grey
         from touchroller_bringup.image_conversion import array_to_image
 
         if tactile_map.size == 0:
@@ -778,10 +772,10 @@ class PerceptionNode(Node):
         self.map_pub.publish(array_to_image(tactile_map, now, frame_id=frame_id))
         return tactile_map
 
-    def _publish_findings(self, image: Any, now_ns: int, force: bool) -> None:
+    def _publish_findings(self, source: MapWindows, now_ns: int, force: bool) -> None:
         """Inspect the newly mapped region and publish every finding so far (and the DELETEs of those gone)."""
         try:
-            update = self.live_findings.update(image, now_ns * 1e-9, force=force, whole=force)
+            update = self.live_findings.update_tiles(source, now_ns * 1e-9, force=force, whole=force)
         except (ValueError, MemoryError) as exc:
             self.get_logger().warning(f"findings not updated: {exc}", throttle_duration_sec=10.0)
             return

@@ -596,8 +596,7 @@ def test_the_world_height_map_is_published_latched_as_32fc1_metres(ros_context, 
     from sensor_msgs.msg import Image
 
     from touchroller_bringup.nodes.perception_node import PerceptionNode
-    from touchroller_perception.world_height import HeightMapLayer
-    from touchroller_perception.world_map import WorldMapImage
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper
 
     overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
     node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
@@ -616,15 +615,18 @@ def test_the_world_height_map_is_published_latched_as_32fc1_metres(ros_context, 
         assert not refused.successful
         assert node.set_parameters([Parameter("map.height.axis_sigma", value=0.0)])[0].successful
         assert node._height_config().axis_sigma == 0.0
-        height = np.full((3, 4), np.nan, np.float32)
-        height[0, :2] = (1e-5, 2e-5)          # rows grow with y: row 0 is the bottom
-        grey = np.zeros((3, 4), np.uint8)
-        world = SimpleNamespace(level_extent=lambda level: (0, 3, 0, 4),
-                                level_image=lambda level: WorldMapImage(grey, grey, 1e-4, (0.4, -0.1)),
-                                height_level=lambda level: HeightMapLayer(height, (0.4, -0.1), 1e-4),
-                                map_image=lambda: WorldMapImage(grey, grey, 1e-4, (0.4, -0.1)),   # live findings
-                                height_layer=lambda: HeightMapLayer(height, (0.4, -0.1), 1e-4),
-                                stats=SimpleNamespace(pressed_height=None), camera=SimpleNamespace(radius=0.01))
+        # a world map of 3 x 4 cells, all mapped, with a height layer (the world height's is a ratio of two
+        # layers of the canvas, as this one) known at two cells of its bottom row (rows grow with y)
+        world = WorldMapper(CAMERA, lambda stamps: np.zeros((len(stamps), 4, 4)),
+                            WorldMapConfig(resolution=1e-4, bounds=(0.40002, -0.09998, 0.40038, -0.09972)))
+        assert world.canvas.shape == (3, 4)
+        ones = np.ones((3, 4), np.float32)
+        world.canvas.add([100 * ones, ones, ones], 0, 0)
+        world.canvas.add_layer("h_sum")
+        world.canvas.add_layer("h_w")
+        world.canvas.add_named({"h_sum": np.float32([[1e-5, 2e-5]]), "h_w": np.ones((1, 2), np.float32)}, 0, 0)
+        height_view = world.canvas.ratio_view("h_sum", "h_w", weight="h_w", min_denominator=0.5)
+        world.height_view = lambda: height_view
         node.world, node._map_dirty = world, True
         node.publish_map()
         maps: list = []
