@@ -48,7 +48,7 @@ def no_contact_reference(sensor: SimulatedSensor, frames: int = 5) -> np.ndarray
     return np.median(stack, axis=0).astype(np.uint8)
 
 
-def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 16,
+def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 24,
                     config: PressCalibrationConfig | None = None, ball_radius: float | None = None,
                     press_depth: float | None = None, band_depth: float | None = None) -> SimPhotometric:
     """Calibrate the photometric model of a simulated sensor from `presses` ball presses (the

@@ -63,7 +63,7 @@ def test_without_a_photometric_model_there_is_no_height():
 def test_the_model_reads_the_contact_bands_slopes_off_the_contact_line():
     # the presses land over the rows the world height integrates, not only near the contact line: a slope of the
     # pressed band a few millimetres off that line (where the tube's curvature makes it steep) reads its size
-    # (pressed only within 0.04 rad of the line, this read 0.93 of the renderer's slopes)
+    # (pressed within 0.04 rad of the line only, as the ball_presses scene does: 0.92 of the renderer's slopes)
     sensor = sim.SimulatedSensor(sim.load_scene("inspection_panel"), seed=0)
     photometric = sim_photometric(sensor)
     layers = sensor.render_layers(sim.RollerState(travel=0.05, depth=5e-4))
