@@ -314,7 +314,7 @@ def test_with_a_photometric_model_the_height_map_lies_beside_the_map_in_place(sc
     from touchroller_driver.sim.photometric import sim_photometric
 
     sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=1)
-    photometric = sim_photometric(sensor, presses=6)
+    photometric = sim_photometric(sensor)   # its presses spread over the band: 6 leave most of it unlearnt
     model, reference = tmp_path / "photometric.npz", tmp_path / "reference.png"
     photometric.calibration.model.save(model)
     cv2.imwrite(str(reference), photometric.reference)
@@ -331,7 +331,7 @@ def test_with_a_photometric_model_the_height_map_lies_beside_the_map_in_place(sc
     # in place against the true relief (rows growing with y for the truth)
     truth, _ = sensor.world_truth(surface_frame(sensor.scene), (x0, y_top - grey.shape[0] * 1e-4), grey.shape, 1e-4)
     mine, true = height[::-1][known[::-1]], truth[known[::-1]]
-    assert np.corrcoef(mine, true)[0, 1] > 0.4   # one pass, 6 presses, its ends included (misplaced: ~0)
+    assert np.corrcoef(mine, true)[0, 1] > 0.4   # one pass, its ends included (misplaced: ~0)
     # the arguments go together
     assert main(["map", str(scan_bag), "--out", str(tmp_path / "m2.png"), "--photometric", str(model)]) == 2
     assert "go together" in capsys.readouterr().err

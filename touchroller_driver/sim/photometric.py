@@ -9,6 +9,7 @@ hold for one camera and one light set only, and a scene may change either.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +26,7 @@ from touchroller_perception.height import (
     calibrate_photometric,
     pixel_size_at,
 )
+from touchroller_perception.world_height import WorldHeightConfig
 
 #: the calibration a world height map gets: the product's map model (`MAP_PHOTOMETRIC`: the image smoothed by
 #: 1 px before the colour features, not the default 2; a map cell averages some twenty frames)
@@ -46,16 +48,25 @@ def no_contact_reference(sensor: SimulatedSensor, frames: int = 5) -> np.ndarray
     return np.median(stack, axis=0).astype(np.uint8)
 
 
-def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 16,
+def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 24,
                     config: PressCalibrationConfig | None = None, ball_radius: float | None = None,
-                    press_depth: float | None = None) -> SimPhotometric:
+                    press_depth: float | None = None, band_depth: float | None = None) -> SimPhotometric:
     """Calibrate the photometric model of a simulated sensor from `presses` ball presses (the
-    `ball_presses` scene with its scene's camera and sensor), and render its reference."""
+    `ball_presses` scene with its scene's camera and sensor), and render its reference.
+
+    The presses land at random over the rows a press of `band_depth` reaches (default: the rows a world
+    height map integrates, `WorldHeightConfig.band_depth`) and along the axis: the model learns how a slope
+    looks where it was pressed, and its position terms do not extrapolate (pressed only near the contact
+    line, the slopes of a scan's contact band away from that line read too gentle)."""
     scene = sensor.scene
     if presses < 4:
         raise ValueError(f"a photometric calibration needs at least 4 presses, got {presses}")
+    depth = WorldHeightConfig().band_depth if band_depth is None else float(band_depth)
+    radius = float(sensor.camera.radius)
+    if not (math.isfinite(depth) and 0 < depth < radius):
+        raise ValueError(f"band_depth must be in (0, the roller's radius {radius} m), got {depth}")
     overrides: dict[str, Any] = {"camera": dict(scene.data["camera"]), "sensor": dict(scene.data["sensor"]),
-                                 "motion.presses": presses}
+                                 "motion.presses": presses, "motion.alpha_span": math.acos(1.0 - depth / radius)}
     if ball_radius is not None:
         overrides["motion.ball_radius"] = ball_radius
     if press_depth is not None:

@@ -58,3 +58,26 @@ def test_without_a_photometric_model_there_is_no_height():
     mapper = WorldMapper(sensor.camera, lambda stamps: np.full((len(stamps), 4, 4), np.nan), WorldMapConfig())
     assert mapper.height_band(np.zeros((480, 640, 3), np.uint8)) is None and mapper.height_layer() is None
     assert set(mapper.canvas.store.layers) == {"band", "flat", "weight"}   # no height layers
+
+
+def test_the_model_reads_the_contact_bands_slopes_off_the_contact_line():
+    # the presses land over the rows the world height integrates, not only near the contact line: a slope of the
+    # pressed band a few millimetres off that line (where the tube's curvature makes it steep) reads its size
+    # (pressed within 0.04 rad of the line only, as the ball_presses scene does: 0.92 of the renderer's slopes)
+    sensor = sim.SimulatedSensor(sim.load_scene("inspection_panel"), seed=0)
+    photometric = sim_photometric(sensor)
+    layers = sensor.render_layers(sim.RollerState(travel=0.05, depth=5e-4))
+    indentation = layers["indentation"]
+    gy_true = cv2.Sobel(indentation, cv2.CV_32F, 0, 1, ksize=3) * sensor._sobel_kv   # the renderer's own slopes
+    _, gy = photometric.calibration.model.slopes(layers["image"], photometric.reference)
+    inside = cv2.erode((indentation > 1e-5).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    steep = inside & (np.abs(gy_true) > 0.1)
+    assert steep.sum() > 10000
+    gain = float((gy[steep] * gy_true[steep]).sum() / (gy_true[steep] ** 2).sum())
+    assert 0.945 < gain < 1.05
+
+
+def test_the_presses_band_depth_is_checked():
+    sensor = sim.SimulatedSensor(sim.load_scene("inspection_panel"), seed=0)
+    with pytest.raises(ValueError, match="band_depth"):
+        sim_photometric(sensor, band_depth=float("nan"))
