@@ -420,7 +420,7 @@ def test_sigma_propagates_the_intrinsics_covariance_including_distortion():
     with_k1 = cal.calibrate_extrinsics(images, prior, intrinsics_covariance=k1_only)
     k1, *rest = prior.distortion
     moved = cal.calibrate_extrinsics(images, prior.replace(distortion=(k1 + step, *rest)))
-    intrinsic_part = math.sqrt(with_k1.d_sigma**2 - with_k1.d_press_sigma**2)
+    intrinsic_part = math.sqrt(with_k1.d_sigma**2 - with_k1.d_press_sigma**2 - with_k1.d_model_sigma**2)
     assert abs(moved.d - with_k1.d) > 3 * with_k1.d_press_sigma
     assert intrinsic_part == pytest.approx(abs(moved.d - with_k1.d), rel=0.2)
 
@@ -435,7 +435,7 @@ def test_press_sigma_is_the_jackknife_over_presses():
     ds = np.array([v.d for v in result.views])
     assert result.theta_press_sigma == pytest.approx(thetas.std(ddof=1) / math.sqrt(thetas.size), rel=1e-9)
     assert result.d_press_sigma == pytest.approx(ds.std(ddof=1) / math.sqrt(ds.size), rel=1e-9)
-    assert result.theta_sigma == pytest.approx(result.theta_press_sigma)
+    assert result.theta_sigma == pytest.approx(math.hypot(result.theta_press_sigma, result.theta_model_sigma))
 
 
 # --------------------------------------------------------------------------- views judged against the set (#26)
