@@ -264,7 +264,9 @@ class ExtrinsicsResult:
         n = self.neglected
         return (f"extrinsics from {len(self.views)}/{self.image_count} images: "
                 f"theta = {math.degrees(self.theta):.4f}° ± {math.degrees(self.theta_sigma):.4f}°, "
-                f"d = {self.d * 1e3:.4f} ± {self.d_sigma * 1e3:.4f} mm (one sigma), RMS {self.rms:.3f} px "
+                f"d = {self.d * 1e3:.4f} ± {self.d_sigma * 1e3:.4f} mm (one sigma, with a model error every press "
+                f"shares of {math.degrees(self.theta_model_sigma):.4f}° and {self.d_model_sigma * 1e3:.4f} mm), "
+                f"RMS {self.rms:.3f} px "
                 f"(full pose {n.full_rms_px:.3f} px); neglected: beta {n.beta_deg:.3f}°, "
                 f"gamma {n.gamma_deg:.3f}°, tx {n.tx_mm:.3f} mm, ty {n.ty_mm:.3f} mm; "
                 f"two-parameter model differs from the full pose by {n.model_error_centre_mm:.3f} mm "
