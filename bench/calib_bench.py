@@ -90,6 +90,9 @@ class SeedRun:
     extrinsics_rms_px: float
     seconds: float
     rejected: int
+    #: CPU seconds of the same solve (this process, all its threads): what the solve costs, which the
+    #: wall-clock seconds show only on an idle machine
+    cpu_seconds: float = math.nan
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +106,8 @@ class FullCalibration:
     solve_s_median: float
     solve_s_max: float
     within_goals: int
+    solve_cpu_s_median: float = math.nan
+    solve_cpu_s_max: float = math.nan
 
 
 @dataclasses.dataclass(frozen=True)
@@ -223,17 +228,25 @@ class _Calibrated:
 def full_calibration(seed: int, views: int, presses: int, sensor_overrides: dict[str, Any]) -> _Calibrated:
     images, truth = chessboard_views(seed, views, sensor_overrides)
     reference, pressed, _ = hemisphere_presses(seed, presses, sensor_overrides)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     intrinsics = cal.calibrate_intrinsics(images)
     extrinsics = cal.calibrate_extrinsics(pressed, intrinsics.camera.replace(theta=0.0, d=0.0), reference=reference,
                                           intrinsics_covariance=intrinsics.covariance)
-    seconds = time.perf_counter() - start
+    seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu
     run = SeedRun(seed=seed, theta_err_deg=math.degrees(extrinsics.theta - truth.theta),
                   paper_plain_mean_theta_err_deg=math.degrees(extrinsics.theta_plain_mean - truth.theta),
                   d_err_mm=1e3 * (extrinsics.d - truth.d), fx_err_px=intrinsics.camera.fx - truth.fx,
                   intrinsics_rms_px=intrinsics.rms, extrinsics_rms_px=extrinsics.rms, seconds=seconds,
+                  cpu_seconds=cpu_seconds,
                   rejected=len(intrinsics.rejected) + len(extrinsics.rejected))
     return _Calibrated(run, extrinsics.camera, truth, extrinsics.neglected)
+
+
+def solve_met(full: FullCalibration, goals: Goals) -> bool:
+    """The whole solve's goal, judged on its CPU time (every seed): on a machine other jobs share, the
+    wall-clock time is the solve's and theirs. A result without CPU times is judged on the wall clock."""
+    worst = full.solve_cpu_s_max if math.isfinite(full.solve_cpu_s_max) else full.solve_s_max
+    return worst < goals.solve_s
 
 
 def summarise(runs: list[SeedRun], goals: Goals) -> FullCalibration:
@@ -244,6 +257,8 @@ def summarise(runs: list[SeedRun], goals: Goals) -> FullCalibration:
         extrinsics_rms_px=Stats.of([r.extrinsics_rms_px for r in runs]),
         solve_s_median=float(np.median([r.seconds for r in runs])),
         solve_s_max=float(np.max([r.seconds for r in runs])),
+        solve_cpu_s_median=float(np.median([r.cpu_seconds for r in runs])),
+        solve_cpu_s_max=float(np.max([r.cpu_seconds for r in runs])),
         within_goals=sum(abs(r.theta_err_deg) <= goals.theta_deg and abs(r.d_err_mm) <= goals.d_mm for r in runs))
 
 
@@ -333,8 +348,9 @@ def markdown(result: CalibBenchResult) -> str:
         f"| reprojection RMS ≤ {g.rms_px} px (intrinsics / extrinsics) | {full.intrinsics_rms_px.rms:.3f} / "
         f"{full.extrinsics_rms_px.rms:.3f} px | {full.intrinsics_rms_px.max:.3f} / {full.extrinsics_rms_px.max:.3f} px "
         f"| {_met(worst_rms <= g.rms_px)} |",
-        f"| whole solve < {g.solve_s} s | median {full.solve_s_median:.2f} s | {full.solve_s_max:.2f} s "
-        f"| {_met(full.solve_s_max < g.solve_s)} |",
+        f"| whole solve < {g.solve_s} s (CPU time) | median {full.solve_cpu_s_median:.2f} s "
+        f"(wall {full.solve_s_median:.2f} s) | {full.solve_cpu_s_max:.2f} s (wall {full.solve_s_max:.2f} s) "
+        f"| {_met(solve_met(full, g))} |",
         "",
         f"Seeds with both theta and d within the goals: {full.within_goals} of {result.seeds}. "
         f"The paper's plain mean of theta (no row balance) is off by {full.paper_plain_mean_theta_err_deg.rms:.3f}° "
@@ -342,13 +358,13 @@ def markdown(result: CalibBenchResult) -> str:
         "picture exactly like theta does (e / 50.5 mm rad), which no pose solve can separate; the row balance "
         "measures the shift from the two rows' imprint strengths.", "",
         "| seed | theta err (°) | plain-mean theta err (°) | d err (mm) | fx err (px) | RMS intr / extr (px) "
-        "| solve (s) |",
+        "| solve CPU / wall (s) |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in full.runs:
         lines.append(f"| {r.seed} | {r.theta_err_deg:+.4f} | {r.paper_plain_mean_theta_err_deg:+.4f} | "
                      f"{r.d_err_mm:+.4f} | {r.fx_err_px:+.3f} | {r.intrinsics_rms_px:.3f} / "
-                     f"{r.extrinsics_rms_px:.3f} | {r.seconds:.2f} |")
+                     f"{r.extrinsics_rms_px:.3f} | {r.cpu_seconds:.2f} / {r.seconds:.2f} |")
     lines += ["", "## A. Intrinsics against the number of chessboard views", "",
               "| views (distortion model) | fx err RMS / max (px) | cx err RMS / max (px) | cy err RMS / max (px) "
               "| reprojection RMS (px) | solve median (s) |", "|---|---|---|---|---|---|"]

@@ -560,7 +560,8 @@ def markdown(result: CrosscheckResult) -> list[str]:
     lines += ["", "The calibration YAML's `calibration.sigma.*`: for the intrinsics, the fit's covariance clustered "
               "by view plus the difference to the next larger distortion model's fit (for a term the model may "
               "have left out); for theta and d, the jackknife over presses plus the intrinsics' covariance "
-              "propagated through the pose solves (docs/calibration.md, Uncertainty). A right sigma has the true "
+              "propagated through the pose solves and the model error every press shares (the centres' shadow pull, "
+              "the rows' two strength measures; docs/calibration.md, Uncertainty). A right sigma has the true "
               "error within 2 sigma in ~95 % of trials and a median |error| / sigma of ~0.67.", "",
               "| renderer | parameter | trials | within 2 sigma | median abs(error) / sigma |", "|---|---|---|---|---|"]
     for r in result.sigmas:

@@ -238,21 +238,45 @@ def trial(renderer: str, azimuth: float, seed: int, presses: crosscheck.Presses,
                  *sigmas_no_dark)
 
 
-def run(quick: bool = False, progress: Callable[[str], None] = lambda _: None) -> LightingResult:
-    """Quick: 2 seeds and 10 chessboard views; full: 10 seeds and 20 views."""
-    stamp = provenance("calib_lighting", quick)
+def _intrinsics_job(board: str, seed: int, views: int) -> cal.IntrinsicsResult:
+    return cal.calibrate_intrinsics(crosscheck.BOARDS[board](seed, views).images)
+
+
+def _trial_job(renderer: str, azimuth: float, seed: int, intrinsics: cal.IntrinsicsResult) -> Trial:
+    return trial(renderer, azimuth, seed, PRESSES[renderer](seed, azimuth), intrinsics)
+
+
+def run(quick: bool = False, progress: Callable[[str], None] = lambda _: None, jobs: int = 1) -> LightingResult:
+    """Quick: 2 seeds and 10 chessboard views; full: 10 seeds and 20 views. `jobs` worker processes
+    (each trial is seeded on its own, so the result does not depend on them)."""
+    stamp = provenance("calib_lighting", quick, *(["--jobs", str(jobs)] if jobs > 1 else []))
     seeds = 2 if quick else 10
     views = 10 if quick else 20
-    intrinsics = {(board, seed): cal.calibrate_intrinsics(crosscheck.BOARDS[board](seed, views).images)
-                  for board in sorted(set(BOARD_RENDERER.values())) for seed in range(seeds)}
-    trials = []
-    for renderer in RENDERERS:
-        for azimuth in AZIMUTHS:
-            for seed in range(seeds):
-                presses = PRESSES[renderer](seed, azimuth)
-                trials.append(trial(renderer, azimuth, seed, presses, intrinsics[BOARD_RENDERER[renderer], seed]))
-                progress(f"{renderer} {azimuth:g}° seed {seed}: theta {trials[-1].theta_err_deg:+.3f}° "
-                         f"(without the lights-off frame {trials[-1].theta_err_no_dark_deg:+.3f}°)")
+    boards = [(board, seed) for board in sorted(set(BOARD_RENDERER.values())) for seed in range(seeds)]
+    cases = [(renderer, azimuth, seed) for renderer in RENDERERS for azimuth in AZIMUTHS for seed in range(seeds)]
+
+    def report(t: Trial) -> None:
+        progress(f"{t.renderer} {t.azimuth_deg:g}° seed {t.seed}: theta {t.theta_err_deg:+.3f}° "
+                 f"(without the lights-off frame {t.theta_err_no_dark_deg:+.3f}°)")
+
+    if jobs <= 1:
+        intrinsics = {key: _intrinsics_job(*key, views) for key in boards}
+        trials = []
+        for renderer, azimuth, seed in cases:
+            trials.append(_trial_job(renderer, azimuth, seed, intrinsics[BOARD_RENDERER[renderer], seed]))
+            report(trials[-1])
+        return LightingResult(stamp, quick, seeds, views, tuple(trials))
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        solved = {key: pool.submit(_intrinsics_job, *key, views) for key in boards}
+        intrinsics = {key: future.result() for key, future in solved.items()}
+        futures = [pool.submit(_trial_job, renderer, azimuth, seed, intrinsics[BOARD_RENDERER[renderer], seed])
+                   for renderer, azimuth, seed in cases]
+        trials = []
+        for future in futures:
+            trials.append(future.result())
+            report(trials[-1])
     return LightingResult(stamp, quick, seeds, views, tuple(trials))
 
 
@@ -311,8 +335,11 @@ def load(path: Path) -> LightingResult:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 seeds and 10 chessboard views (indicative only)")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (the result does not depend on them)")
     args = parser.parse_args()
-    result = run(quick=args.quick, progress=lambda line: print(line, file=sys.stderr, flush=True))
+    if args.jobs < 1:
+        parser.error(f"--jobs must be at least 1, got {args.jobs}")
+    result = run(quick=args.quick, progress=lambda line: print(line, file=sys.stderr, flush=True), jobs=args.jobs)
     out = results_path("calib_lighting", args.quick)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, to_markdown(result))

@@ -384,6 +384,7 @@ def _undistort(xd: FloatArray, yd: FloatArray, dist: tuple[float, ...]):
     return xn, yn, converged
 
 
+@functools.lru_cache(maxsize=256)
 def _fold_radius2(k1: float, k2: float, p1: float, p2: float, k3: float) -> float:
     """Smallest s = r^2 > 0 where d/dr [r (1 + k1 r^2 + k2 r^4 + k3 r^6)] = 0, i.e. the radial fold.
 

@@ -71,6 +71,8 @@ class ViewPose:
     full_rms: float         # px
     rvec: tuple[float, float, float]
     row_strengths: tuple[float, float] = (math.nan, math.nan)   # summed imprint strength of the -y, +y rows
+    #: the rows' strengths by the detector's other measure (`ImprintDetection.other_strengths`), NaN without one
+    other_row_strengths: tuple[float, float] = (math.nan, math.nan)
     row_asymmetry: float = math.nan     # (S+ - S-) / median over the views of (S+ + S-); 0 when centred
     frame_shift_y: float = math.nan     # m, the frame's shift along y implied by the row balance
 
@@ -241,6 +243,11 @@ class ExtrinsicsResult:
     neglected: NeglectedTerms
     theta_press_sigma: float = math.nan   # rad, the presses' share of theta_sigma (jackknife over presses)
     d_press_sigma: float = math.nan       # m
+    #: rad, m: the model error's share of the sigmas, which every press shares: the pull a shadow leaves on
+    #: the imprint centres (`imprints.shadow_pull`, moved through the pose solves) and, for theta with the row
+    #: balance, how far the rows' other strength measure moves it (`_strength_model_error`)
+    theta_model_sigma: float = 0.0
+    d_model_sigma: float = 0.0
     #: the optional terms and the held-out evidence for each (row balance, view rejection)
     choices: tuple[TermChoice, ...] = ()
     #: "terms chosen by held-out prediction", or the paper's plain method when that left too few views
@@ -257,7 +264,9 @@ class ExtrinsicsResult:
         n = self.neglected
         return (f"extrinsics from {len(self.views)}/{self.image_count} images: "
                 f"theta = {math.degrees(self.theta):.4f}° ± {math.degrees(self.theta_sigma):.4f}°, "
-                f"d = {self.d * 1e3:.4f} ± {self.d_sigma * 1e3:.4f} mm (one sigma), RMS {self.rms:.3f} px "
+                f"d = {self.d * 1e3:.4f} ± {self.d_sigma * 1e3:.4f} mm (one sigma, with a model error every press "
+                f"shares of {math.degrees(self.theta_model_sigma):.4f}° and {self.d_model_sigma * 1e3:.4f} mm), "
+                f"RMS {self.rms:.3f} px "
                 f"(full pose {n.full_rms_px:.3f} px); neglected: beta {n.beta_deg:.3f}°, "
                 f"gamma {n.gamma_deg:.3f}°, tx {n.tx_mm:.3f} mm, ty {n.ty_mm:.3f} mm; "
                 f"two-parameter model differs from the full pose by {n.model_error_centre_mm:.3f} mm "
@@ -274,6 +283,7 @@ class ExtrinsicsResult:
             "theta_std_deg": math.degrees(self.theta_std), "theta_sigma_deg": math.degrees(self.theta_sigma),
             "theta_plain_mean_deg": math.degrees(self.theta_plain_mean),
             "d_m": self.d, "d_mm": self.d * 1e3, "d_std_mm": self.d_std * 1e3, "d_sigma_mm": self.d_sigma * 1e3,
+            "theta_model_sigma_deg": math.degrees(self.theta_model_sigma), "d_model_sigma_mm": self.d_model_sigma * 1e3,
             "rms_px": self.rms, "views_used": len(self.views), "images": self.image_count,
             "row_balance": dataclasses.asdict(self.row_balance),
             "method": self.method, "choices": [dataclasses.asdict(c) | {"line": c.line()} for c in self.choices],
@@ -310,7 +320,7 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
         raise CalibrationError(f"the intrinsics are for {camera.width}x{camera.height} images, the presses are "
                                f"{width}x{height}: calibrate the intrinsics on this camera first")
     frame.reference_points(camera.radius)       # fails early if the frame does not fit the roller
-    solved, points, rejected, total = _solve_views(images, camera, config, reference, dark)
+    solved, points, pulls, rejected, total = _solve_views(images, camera, config, reference, dark)
     solved = _with_row_asymmetry(solved)
     held_out = _HeldOut(camera, frame, points, config.solve_placement)
     views, balance, choices, fit, rejected = _choose_terms(solved, config, held_out, rejected)
@@ -334,7 +344,10 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
     ds = np.array([v.d for v in views])
     theta, d = float(thetas.mean()), float(ds.mean())
     theta_se, d_se = _standard_errors(views, thetas, ds, fit if balance.applied else None)
-    gradient = _intrinsics_gradient(camera, frame, views, points, config.solve_placement)
+    gradient, pull_shift = _pose_sensitivities(camera, frame, views, points, pulls, config.solve_placement)
+    theta_strength = _strength_model_error(views) if balance.applied else 0.0
+    theta_model = math.hypot(float(pull_shift[0]), theta_strength)
+    d_model = abs(float(pull_shift[1]))
     covariance = intrinsics_covariance if intrinsics_covariance is not None else \
         intrinsics_covariance_from_sigma(intrinsics_sigma)
     theta_intr, d_intr = _intrinsics_effect(gradient, covariance)
@@ -346,11 +359,13 @@ def calibrate_extrinsics(images: Iterable[np.ndarray], camera: CameraModel,
     result = ExtrinsicsResult(
         camera=result_camera, theta=theta, d=d,
         theta_std=float(thetas.std(ddof=ddof)), d_std=float(ds.std(ddof=ddof)),
-        theta_sigma=math.hypot(theta_se, theta_intr), d_sigma=math.hypot(d_se, d_intr),
+        theta_sigma=math.sqrt(theta_se**2 + theta_intr**2 + theta_model**2),
+        d_sigma=math.sqrt(d_se**2 + d_intr**2 + d_model**2),
         theta_plain_mean=float(np.mean([v.theta for v in views])), row_balance=balance,
         views=views, rejected=rejected, image_count=total,
         neglected=_neglected_terms(result_camera, views, shifts),
         theta_press_sigma=theta_se, d_press_sigma=d_se, intrinsics_gradient=gradient,
+        theta_model_sigma=theta_model, d_model_sigma=d_model,
         choices=choices, method=method, warnings=tuple(warnings))
     check_plausible(result, camera, config.plausibility)
     return result
@@ -457,13 +472,16 @@ def _refit_balance(views: Sequence[ViewPose], fit: _BalanceFit) -> _BalanceFit:
 
 def _solve_views(images: Sequence[np.ndarray], camera: CameraModel, config: ExtrinsicsConfig,
                  reference: np.ndarray | None,
-                 dark: np.ndarray | None = None) -> tuple[list[ViewPose], dict[int, FloatArray], dict[int, str], int]:
+                 dark: np.ndarray | None = None
+                 ) -> tuple[list[ViewPose], dict[int, FloatArray], dict[int, FloatArray], dict[int, str], int]:
     """Per image: imprints, the pose solve and the rows' strengths; (views, imprint centres by
-    image index, rejected, number of press images)."""
+    image index, the centres' shadow pulls by image index (`imprints.shadow_pull`; only for the
+    images whose detector measured them), rejected, number of press images)."""
     frame = config.frame
     rejected: dict[int, str] = {}
     views: list[ViewPose] = []
     points: dict[int, FloatArray] = {}
+    pulls: dict[int, FloatArray] = {}
     empty = 0
     for index, image in enumerate(images):
         detection = find_imprints(image, frame, config.detector, reference, dark)
@@ -483,13 +501,18 @@ def _solve_views(images: Sequence[np.ndarray], camera: CameraModel, config: Extr
             continue
         strengths = _per_membrane_area(detection.strengths, camera.replace(theta=view.theta, d=view.d),
                                        frame.reference_points(camera.radius, view.shift_x, 0.0, view.yaw))
-        views.append(dataclasses.replace(view, row_strengths=_row_strengths(strengths, frame)))
+        other = _per_membrane_area(detection.other_strengths, camera.replace(theta=view.theta, d=view.d),
+                                   frame.reference_points(camera.radius, view.shift_x, 0.0, view.yaw))
+        views.append(dataclasses.replace(view, row_strengths=_row_strengths(strengths, frame),
+                                         other_row_strengths=_row_strengths(other, frame)))
         points[index] = detection.centres
+        if detection.pull is not None:
+            pulls[index] = detection.pull
     total = len(images) - empty
     if total == 0:
         raise CalibrationError(f"no imprints found in any of the {len(images)} hemisphere-frame images")
     require_views(len(views), config.min_views, total, rejected, "hemisphere-frame")
-    return views, points, rejected, total
+    return views, points, pulls, rejected, total
 
 
 def _drop_outliers(views: list[ViewPose], fit: _BalanceFit | None, config: ExtrinsicsConfig,
@@ -507,6 +530,24 @@ def _drop_outliers(views: list[ViewPose], fit: _BalanceFit | None, config: Extri
         if not ok:
             rejected[view.index] = f"outlier: theta {math.degrees(view.theta):.3f}°, d {view.d * 1e3:.3f} mm {why}"
     return [v for v, ok in zip(views, keep, strict=True) if ok], rejected
+
+
+def _strength_model_error(views: Sequence[ViewPose]) -> float:
+    """How far the row balance's theta moves (rad) when the rows' strengths are measured the
+    detector's other way (`ViewPose.other_row_strengths`): the line theta_i = theta + s a_i refitted
+    on the same views with the other asymmetry. Both measures follow the press depth and both are
+    light-independent in principle (energy relative to the light of a lights-off frame, and the
+    imprints' extent); where a low light or shadows make them disagree, the zero of the row
+    asymmetry is uncertain by as much, for every press alike. 0 when there is no other measure."""
+    other = [dataclasses.replace(v, row_strengths=v.other_row_strengths) for v in views]
+    if len(views) < 3 or not np.all(np.isfinite([s for v in other for s in v.row_strengths])):
+        return 0.0
+    raw = np.array([v.theta for v in views])
+    a = np.array([v.row_asymmetry for v in views])
+    b = np.array([v.row_asymmetry for v in _with_row_asymmetry(other)])
+    if np.ptp(a) <= 0 or np.ptp(b) <= 0 or not np.all(np.isfinite(b)):
+        return 0.0
+    return abs(float(np.polyfit(a, raw, 1)[1]) - float(np.polyfit(b, raw, 1)[1]))
 
 
 def _standard_errors(views: Sequence[ViewPose], thetas: FloatArray, ds: FloatArray,
@@ -540,23 +581,30 @@ def _standard_errors(views: Sequence[ViewPose], thetas: FloatArray, ds: FloatArr
 _INTRINSIC_STEPS = (0.1, 0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-4, 1e-4, 1e-3)
 
 
-def _intrinsics_gradient(camera: CameraModel, frame: HemisphereFrame, views: Sequence[ViewPose],
-                         points: Mapping[int, FloatArray], solve_placement: bool) -> FloatArray:
-    """d(mean theta, mean d) / d(intrinsic), (9, 2) over `uncertainty.INTRINSIC_NAMES`. Each view's
+def _pose_sensitivities(camera: CameraModel, frame: HemisphereFrame, views: Sequence[ViewPose],
+                        points: Mapping[int, FloatArray], pulls: Mapping[int, FloatArray],
+                        solve_placement: bool) -> tuple[FloatArray, FloatArray]:
+    """(d(mean theta, mean d) / d(intrinsic), (9, 2) over `uncertainty.INTRINSIC_NAMES`; how far the
+    mean theta and d move, (2,), when each view's imprint centres move by its `pulls`). Each view's
     pose sensitivity comes from its least-squares solve linearised at the solution (Gauss-Newton:
-    d(pose) = -(J^T J)^-1 J^T d(residual)), with each intrinsic parameter moved in turn."""
+    d(pose) = -(J^T J)^-1 J^T d(residual)), with each intrinsic parameter moved in turn; moving the
+    imprint centres by p moves the residual by -p. Views without a pull count as moving by 0."""
     gradient = np.zeros((len(INTRINSIC_NAMES), 2))
+    pull_shift = np.zeros(2)
     for view in views:
         pose = np.array([view.theta, view.d, view.shift_x, view.yaw][:4 if solve_placement else 2])
         residual = _pose_residual(camera, frame, points[view.index], solve_placement)
         jacobian = _numeric_jacobian(residual, pose, np.array([1e-5, 1e-6, 1e-6, 1e-5])[:pose.size])
         normal = np.linalg.pinv(jacobian.T @ jacobian) @ jacobian.T
         base = residual(pose)
+        pull = pulls.get(view.index)
+        if pull is not None and np.all(np.isfinite(pull)):
+            pull_shift += (normal @ np.asarray(pull, dtype=np.float64).ravel())[:2] / len(views)
         for k, (name, step) in enumerate(zip(INTRINSIC_NAMES, _INTRINSIC_STEPS, strict=True)):
             moved = _pose_residual(_moved_intrinsic(camera, name, step), frame, points[view.index],
                                    solve_placement)(pose)
             gradient[k] += -(normal @ (moved - base))[:2] / len(views) / step
-    return gradient
+    return gradient, pull_shift
 
 
 def intrinsics_covariance_from_sigma(sigma: Mapping[str, float] | None) -> FloatArray:

@@ -140,6 +140,12 @@ class ImprintDetection:
     found: int                       # blobs found
     reason: str | None
     strengths: FloatArray | None = None   # each imprint's summed change (`ImprintDetectorConfig.strength`), frame order
+    #: (rows*columns, 2) px, frame order: how far a squared weighting moves each shading-symmetric centre from the
+    #: magnitude-weighted one, the size of the pull a shadow leaves (`shadow_pull`); None for "centroid"
+    pull: FloatArray | None = None
+    #: each imprint's extent (`_window_sizes`), frame order, when `strengths` are the energy relative to the light
+    #: of a lights-off frame: the other measure of the rows' depths, whose disagreement is model error
+    other_strengths: FloatArray | None = None
 
 
 def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDetectorConfig = ImprintDetectorConfig(),
@@ -177,19 +183,25 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
     if order is None:
         return ImprintDetection(None, elongation, found, reason)
     radius = float(np.median([b.radius for b in blobs]))
+    pull = None
     if config.centre == "shading":
         centres = np.array([_shading_symmetric_centre(signed, b.centroid, config.window_scale * radius)
                             for b in blobs])
+        pull = shadow_pull(signed, centres, config.window_scale * radius)
     measure = config.strength if config.strength != "auto" else ("relative" if dark is not None else "size")
+    other = None
     if measure == "relative":
         strengths = _window_strengths(_relative_energy(signed, _light(background, dark)), centres,
                                       config.strength_window_scale * radius, clip=False)
+        if dark is not None:
+            other = _window_sizes(_relative_energy(signed, None), centres, config.size_window_scale * radius)
     elif measure == "size":
         strengths = _window_sizes(_relative_energy(signed, None), centres, config.size_window_scale * radius)
     else:
         magnitude = cv2.GaussianBlur(np.abs(signed).sum(axis=2), (0, 0), 1.0)
         strengths = _window_strengths(magnitude, centres, config.strength_window_scale * radius)
-    return ImprintDetection(centres[order], elongation, found, None, strengths[order])
+    return ImprintDetection(centres[order], elongation, found, None, strengths[order],
+                            None if pull is None else pull[order], None if other is None else other[order])
 
 
 def _blobs(mask: NDArray[np.bool_], weight: NDArray[np.float32], config: ImprintDetectorConfig) -> list[_Blob]:
@@ -234,7 +246,7 @@ def _measure_blob(label: int, labels: np.ndarray, stats: np.ndarray, weight: np.
 
 
 def _shading_symmetric_centre(signed: NDArray[np.float32], start: tuple[float, float], radius: float,
-                              knot: float = 0.75, iterations: int = 12) -> tuple[float, float]:
+                              knot: float = 0.75, iterations: int = 12, power: float = 1.0) -> tuple[float, float]:
     """The centre of an imprint lit from one side, from its signed change (H, W, channels).
 
     A light from one side brightens the imprint's slope that faces it and darkens the other, and
@@ -250,7 +262,8 @@ def _shading_symmetric_centre(signed: NDArray[np.float32], start: tuple[float, f
     where a low light grazes the imprint's steep rim, the slope facing away falls into shadow and
     the remainder there is no longer a clean dipole; a squared weight lets those few pixels pull
     the centre towards the light (0.14 px on the simulator lit from one side at 25 degrees, half
-    that with the magnitude). Keeps `start` where the window leaves the image or the fit
+    that with the magnitude). `power`: the weight is the remainder's magnitude to this power
+    (`shadow_pull` compares 1 and 2). Keeps `start` where the window leaves the image or the fit
     degenerates.
     """
     height, width = signed.shape[:2]
@@ -273,7 +286,7 @@ def _shading_symmetric_centre(signed: NDArray[np.float32], start: tuple[float, f
         coefficients = _least_squares(design, patch.astype(np.float64))
         remainder = patch - cv2.gemm(hats, coefficients[:knots.size], 1.0, None, 0.0)
         edge = np.clip((radius - rho) / (0.4 * radius), 0.0, 1.0)
-        weights = np.abs(remainder).sum(axis=1) * edge * edge * (3.0 - 2.0 * edge)
+        weights = np.abs(remainder).sum(axis=1) ** power * edge * edge * (3.0 - 2.0 * edge)
         total = float(weights.sum())
         if not total > 0:
             return float(start[0]), float(start[1])
@@ -284,6 +297,24 @@ def _shading_symmetric_centre(signed: NDArray[np.float32], start: tuple[float, f
     if not (np.all(np.isfinite(centre)) and np.hypot(*(centre - np.asarray(start))) <= 0.5 * radius):
         return float(start[0]), float(start[1])
     return float(centre[0]), float(centre[1])
+
+
+def shadow_pull(signed: NDArray[np.float32], centres: FloatArray, radius: float) -> FloatArray:
+    """An estimate of how far a shadow still pulls each shading-symmetric centre towards the light:
+    the centre refined with the remainder's squared magnitude as weight, less the centre with its
+    magnitude (`_shading_symmetric_centre`), (n, 2) px.
+
+    Where the dipole form holds (no slope in shadow), the remainder is point-symmetric about the
+    true centre under any weighting, both centres are right and the difference is noise. Where a low
+    light leaves the slope facing away in shadow, the few pixels that break the dipole pull each
+    centre towards the light, the squared weight about twice as far as the magnitude (the pull grows
+    with the weight's power); the difference is then about the magnitude-weighted centre's own pull.
+    It is no correction (how far the pull is linear in the power is not known), it is the size of an
+    error the presses share, which no spread over presses shows: `extrinsics` adds it to theta's and
+    d's sigma as model error."""
+    squared = np.array([_shading_symmetric_centre(signed, (float(u), float(v)), radius, power=2.0)
+                        for u, v in np.asarray(centres, dtype=np.float64)])
+    return squared - np.asarray(centres, dtype=np.float64)
 
 
 def _least_squares(design: FloatArray, values: FloatArray) -> FloatArray:

@@ -80,10 +80,17 @@ def view_clustered_covariance(object_points: np.ndarray, image_points: Sequence[
     # each view's score J_v^T r_v, its residual first scaled by (I - H_v)^-1/2, H_v = J_v S^-1 J_v^T
     # the view's leverage on the intrinsics: a fit pulls towards every view, so a view's residual
     # is smaller than its error, by just that much for independent noise (bias-reduced, CR2)
+    # H_v = (W_v M)(W_v M)^T with S^-1 = M M^T has rank <= the intrinsics' count: its eigenvectors
+    # and eigenvalues are the thin SVD's of W_v M (rows x 9), not those of the rows x rows H_v
+    # (an eigendecomposition of 98 x 98 per view cost most of the whole covariance)
+    try:
+        root = np.linalg.cholesky(inverse)
+    except np.linalg.LinAlgError:
+        return np.full((len(INTRINSIC_NAMES), len(INTRINSIC_NAMES)), math.nan)
     scores = np.zeros((views, n_intrinsic))
     for v, (within, residual) in enumerate(zip(profiled, residuals, strict=True)):
-        values, vectors = np.linalg.eigh(within @ inverse @ within.T)
-        shrink = 1.0 / np.sqrt(np.clip(1.0 - values, 1e-6, None)) - 1.0
+        vectors, singular, _ = np.linalg.svd(within @ root, full_matrices=False)
+        shrink = 1.0 / np.sqrt(np.clip(1.0 - singular**2, 1e-6, None)) - 1.0
         scaled = residual + vectors @ (shrink * (vectors.T @ residual))
         scores[v] = within.T @ scaled
     clustered = inverse @ (scores.T @ scores) @ inverse

@@ -1,6 +1,7 @@
 """Calibration library: intrinsics, theta/d from the hemisphere frame, and degenerate input."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -420,7 +421,7 @@ def test_sigma_propagates_the_intrinsics_covariance_including_distortion():
     with_k1 = cal.calibrate_extrinsics(images, prior, intrinsics_covariance=k1_only)
     k1, *rest = prior.distortion
     moved = cal.calibrate_extrinsics(images, prior.replace(distortion=(k1 + step, *rest)))
-    intrinsic_part = math.sqrt(with_k1.d_sigma**2 - with_k1.d_press_sigma**2)
+    intrinsic_part = math.sqrt(with_k1.d_sigma**2 - with_k1.d_press_sigma**2 - with_k1.d_model_sigma**2)
     assert abs(moved.d - with_k1.d) > 3 * with_k1.d_press_sigma
     assert intrinsic_part == pytest.approx(abs(moved.d - with_k1.d), rel=0.2)
 
@@ -435,7 +436,7 @@ def test_press_sigma_is_the_jackknife_over_presses():
     ds = np.array([v.d for v in result.views])
     assert result.theta_press_sigma == pytest.approx(thetas.std(ddof=1) / math.sqrt(thetas.size), rel=1e-9)
     assert result.d_press_sigma == pytest.approx(ds.std(ddof=1) / math.sqrt(ds.size), rel=1e-9)
-    assert result.theta_sigma == pytest.approx(result.theta_press_sigma)
+    assert result.theta_sigma == pytest.approx(math.hypot(result.theta_press_sigma, result.theta_model_sigma))
 
 
 # --------------------------------------------------------------------------- views judged against the set (#26)
@@ -505,3 +506,31 @@ def test_intrinsics_for_another_image_size_are_refused():
     images = [render_hemispheres(TRUE_CAMERA, FRAME, seed=s) for s in range(3)]
     with pytest.raises(cal.CalibrationError, match="intrinsics are for 320x240 images, the presses are 640x480"):
         cal.calibrate_extrinsics(images, TRUE_CAMERA.replace(theta=0.0, d=0.0, width=320, height=240))
+
+
+# --------------------------------------------------------------------------- model error in the sigma (#26)
+def _view(index: int, theta: float, rows: tuple[float, float], other: tuple[float, float]):
+    from touchroller_perception.calibration.extrinsics import ViewPose
+
+    return ViewPose(index=index, theta=theta, d=1.5e-3, rms=0.05, shift_x=0.0, yaw=0.0, full_theta=theta, beta=0.0,
+                    gamma=0.0, t=(0.0, 0.0, 1.5e-3), full_rms=0.05, rvec=(0.0, 0.0, 0.0), row_strengths=rows,
+                    other_row_strengths=other)
+
+
+def test_strength_model_error_is_how_far_the_other_measure_moves_the_balanced_theta():
+    """Five presses whose theta follows the row asymmetry; the other strength measure reads every
+    press's asymmetry 0.1 higher (a row that measures larger in every press by one measure only): its
+    balance line meets a = 0 elsewhere, by slope x 0.1, and that is the model error. Measures that
+    agree give 0, and so does a set without the other measure."""
+    from touchroller_perception.calibration.extrinsics import _strength_model_error, _with_row_asymmetry
+
+    asymmetry = np.array([-0.3, -0.1, 0.0, 0.2, 0.4])
+    slope, theta0 = math.radians(1.0), math.radians(2.0)
+    views = _with_row_asymmetry([_view(i, theta0 - slope * a, (1.0 - a / 2, 1.0 + a / 2),
+                                       (1.0 - (a + 0.1) / 2, 1.0 + (a + 0.1) / 2))
+                                 for i, a in enumerate(asymmetry)])
+    assert _strength_model_error(views) == pytest.approx(slope * 0.1, rel=1e-6)
+    agreeing = [dataclasses.replace(v, other_row_strengths=v.row_strengths) for v in views]
+    assert _strength_model_error(agreeing) == pytest.approx(0.0, abs=1e-12)
+    without = [dataclasses.replace(v, other_row_strengths=(math.nan, math.nan)) for v in views]
+    assert _strength_model_error(without) == 0.0

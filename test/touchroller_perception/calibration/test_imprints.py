@@ -71,6 +71,27 @@ def test_shading_centre_with_light_from_the_side_and_noise():
     assert np.abs((found.centres - centres).mean(axis=0)).max() < 0.06
 
 
+@pytest.mark.parametrize("azimuth", [0.0, 90.0])
+def test_shadow_pull_measures_what_a_low_light_leaves_in_the_shading_centre(azimuth):
+    """Under a light high enough that no slope falls into shadow (60 deg, slopes up to 0.8) the
+    shading centre is right and the pull (`shadow_pull`, the model error the extrinsics' sigma
+    carries) is noise; under a light at 15 deg the slopes facing away are in shadow, the centre is
+    pulled towards the light by ~0.3 px, and the pull says so, towards the light and of that size."""
+    towards = np.array([math.cos(math.radians(azimuth)), math.sin(math.radians(azimuth))])
+    centres = GRID + np.array([0.3, 0.6])
+    image, reference = lit_membrane(centres, elevation_deg=60.0, azimuth_deg=azimuth)
+    high = cal.find_imprints(image, FRAME, reference=reference)
+    assert high.pull is not None and np.abs(high.pull.mean(axis=0)).max() < 0.03
+    image, reference = lit_membrane(centres, elevation_deg=15.0, azimuth_deg=azimuth)
+    low = cal.find_imprints(image, FRAME, reference=reference)
+    assert low.pull is not None
+    error = float((low.centres - centres).mean(axis=0) @ towards)
+    pull = float(low.pull.mean(axis=0) @ towards)
+    assert error > 0.15 and 0.3 * error < pull < 1.5 * error
+    centroid = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(centre="centroid"), reference=reference)
+    assert centroid.pull is None
+
+
 def test_relative_strength_takes_the_light_falloff_out():
     """Equal dents, the light 20 % stronger per 100 px along v: absolute strengths read the brighter
     row as deeper pressed, relative ones do not."""
