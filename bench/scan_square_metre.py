@@ -238,6 +238,7 @@ def live_case(side: float, speed: float, work: Path, progress: bool) -> tuple[Li
             os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
             result = run_scan(ScanOptions(
                 out_dir=out, record=True, storage="mcap", compress=True, progress=None,
+                reference_timeout_s=600.0,   # the camera node makes the surface first: passes over 1 m²
                 arguments={"scene": str(scene_path), "area": ",".join(f"{v:g}" for v in area),
                            "sweep_speed": f"{speed:g}", "inspect": "false"},
                 overrides={"arm.reach": 1.8, "sim.rate": 20.0, "sweep.approach_speed": 0.05,
