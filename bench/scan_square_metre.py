@@ -125,6 +125,7 @@ class ScanSquareMetreResult:
     offline_rss_ratio: float         # the largest side's `touchroller map` peak RSS over the smallest's
     live_rss_ratio: float
     loadavg_after: str
+    note: str = ""                   # how the run deviated from the command (an adopted case)
     goal_rss_mb: float = GOAL_RSS_MB
     goal_rss_ratio: float = GOAL_RSS_RATIO
     goal_fps: float = GOAL_FPS
@@ -290,20 +291,36 @@ def offline_map(recording: Path, out: Path, frames: int) -> OfflineResult:
                          frames / wall if wall > 0 else float("nan"), lines[-1][:300] if lines else "")
 
 
-def run_case(side: float, speed: float, progress: bool) -> CaseResult:
-    """One side: the live scan in a new process, then `touchroller map` on its recording; deleted after."""
-    work = Path(tempfile.mkdtemp(prefix=f"square_metre_{side:g}_"))
+def _wait_for(case_json: Path, pid: int | None, timeout_s: float = 4 * 3600.0) -> None:
+    """An adopted case: wait until its process has written `case_json` (or has gone without it)."""
+    deadline = time.monotonic() + timeout_s
+    while not case_json.exists():
+        if pid is not None and not Path(f"/proc/{pid}").exists() and not case_json.exists():
+            raise SystemExit(f"scan_square_metre: the adopted case process {pid} ended without {case_json}")
+        if time.monotonic() > deadline:
+            raise SystemExit(f"scan_square_metre: no {case_json} after {timeout_s:.0f} s")
+        time.sleep(5.0)
+
+
+def run_case(side: float, speed: float, progress: bool, adopt: tuple[Path, int | None] | None = None) -> CaseResult:
+    """One side: the live scan in a new process, then `touchroller map` on its recording; deleted after.
+    `adopt` (work folder, pid): the live scan of a `--case` process already running there (started by an
+    earlier invocation of this bench whose parent was stopped): wait for it instead of starting one."""
+    work = adopt[0] if adopt is not None else Path(tempfile.mkdtemp(prefix=f"square_metre_{side:g}_"))
     try:
         free = shutil.disk_usage(work).free / 2**30
         need = MIN_FREE_GB * side * side
-        if free < need:
+        if adopt is None and free < need:
             raise SystemExit(f"scan_square_metre: {free:.0f} GB free at {work}, {need:.0f} GB needed for {side:g} m")
         case_json = work / "live.json"
-        child = subprocess.run([sys.executable, "-m", "bench.scan_square_metre", "--case", f"{side:g}",
-                                "--speed", f"{speed:g}", "--work", str(work), *(["--progress"] if progress else [])],
-                               cwd=ROOT, check=False)
-        if child.returncode != 0 or not case_json.exists():
-            raise SystemExit(f"scan_square_metre: the {side:g} m scan failed (exit {child.returncode})")
+        if adopt is not None:
+            _wait_for(case_json, adopt[1])
+        else:
+            child = subprocess.run([sys.executable, "-m", "bench.scan_square_metre", "--case", f"{side:g}",
+                                    "--speed", f"{speed:g}", "--work", str(work),
+                                    *(["--progress"] if progress else [])], cwd=ROOT, check=False)
+            if child.returncode != 0 or not case_json.exists():
+                raise SystemExit(f"scan_square_metre: the {side:g} m scan failed (exit {child.returncode})")
         payload = json.loads(case_json.read_text())
         from bench._common import from_json
 
@@ -322,16 +339,26 @@ def run_case(side: float, speed: float, progress: bool) -> CaseResult:
 
 
 def run(quick: bool = False, sides: tuple[float, ...] | None = None, speed: float = SPEED,
-        progress: bool = False) -> ScanSquareMetreResult:
+        progress: bool = False, adopt: dict[float, tuple[Path, int | None]] | None = None) -> ScanSquareMetreResult:
     sides = sides or (QUICK_SIDES if quick else FULL_SIDES)
     default = QUICK_SIDES if quick else FULL_SIDES
     extra = [*([] if sides == default else ["--sides", ",".join(f"{s:g}" for s in sides)]),
              *([] if speed == SPEED else ["--speed", f"{speed:g}"])]
     stamp = provenance("scan_square_metre", quick, *extra)
-    cases = [run_case(side, speed, progress) for side in sides]
+    adopt = adopt or {}
+    unknown = set(adopt) - set(sides)
+    if unknown:
+        raise SystemExit(f"scan_square_metre: --adopt names sides not run: {sorted(unknown)}")
+    # the sides to scan first, while the adopted ones' processes go on
+    order = [s for s in sides if s not in adopt] + [s for s in sides if s in adopt]
+    done = {side: run_case(side, speed, progress, adopt.get(side)) for side in order}
+    cases = [done[side] for side in sides]
+    note = "; ".join(f"the {side:g} m case's live scan was a `--case` process started by an earlier invocation of "
+                     "this command (its parent stopped so that the other sides could run beside it)"
+                     for side in sides if side in adopt)
     big, small = max(cases, key=lambda c: c.side_m), min(cases, key=lambda c: c.side_m)
     return ScanSquareMetreResult(stamp, quick, speed, cases, big.offline.peak_rss_mb / small.offline.peak_rss_mb,
-                                 big.live.peak_rss_mb / small.live.peak_rss_mb, loadavg())
+                                 big.live.peak_rss_mb / small.live.peak_rss_mb, loadavg(), note=note)
 
 
 def load(path: Path) -> ScanSquareMetreResult:
@@ -362,6 +389,7 @@ def goals(r: ScanSquareMetreResult) -> list[tuple[str, bool, str]]:
 def to_markdown(r: ScanSquareMetreResult) -> str:
     verdict = {True: "met", False: "NOT met"}
     lines = [provenance_markdown(r.provenance) + "  ", f"Load average at the end: {r.loadavg_after}.", "",
+             *([f"Note: {r.note}.", ""] if r.note else []),
              f"A raster at {r.speed * 1e3:g} mm/s over the simulator's painted panel (0.1 mm cells, made tile by tile, "
              "planted defects), live through `touchroller scan`'s graph in one process with the recording on, then "
              "`touchroller map` on the recording in its own process. Source: the simulator only.", ""]
@@ -410,6 +438,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--speed", type=float, default=SPEED, help="m/s along a pass")
     parser.add_argument("--progress", action="store_true", help="progress lines")
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--adopt", action="append", default=[], metavar="SIDE=WORK[:PID]",
+                        help="take side SIDE's live scan from a --case process already running in WORK (pid PID) "
+                             "instead of starting one (a run whose parent was stopped); the other sides run first")
     parser.add_argument("--case", type=float, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--work", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -420,7 +451,17 @@ def main(argv: list[str] | None = None) -> int:
     sides = tuple(float(v) for v in args.sides.split(",")) if args.sides else None
     if sides is not None and not all(math.isfinite(s) and s > 0 for s in sides):
         parser.error("--sides: positive numbers, m")
-    result = run(args.quick, sides, args.speed, args.progress)
+    adopt: dict[float, tuple[Path, int | None]] = {}
+    for item in args.adopt:
+        side, _, where = item.partition("=")
+        folder, _, pid = where.partition(":")
+        try:
+            adopt[float(side)] = (Path(folder), int(pid) if pid else None)
+        except ValueError:
+            parser.error(f"--adopt {item!r}: SIDE=WORK[:PID]")
+        if not Path(folder).is_dir():
+            parser.error(f"--adopt {item!r}: no folder {folder}")
+    result = run(args.quick, sides, args.speed, args.progress, adopt)
     path = write(result, args.out)
     print(path.read_text())
     return 0
