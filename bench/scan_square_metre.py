@@ -387,10 +387,10 @@ def goals(r: ScanSquareMetreResult) -> list[tuple[str, bool, str]]:
 
 
 def scanning_peak_mb(live: LiveResult) -> float:
-    """The highest sampled RSS while the perception node was still taking frames (before its last frame: the
-    end of the scan, where the map is finished and its files written, excluded); NaN without samples."""
+    """The highest sampled RSS before the perception node had taken 99 % of its frames (the end of the scan,
+    where the map is finished and its files written, excluded); NaN without samples."""
     last = max((frames for _, frames, _, _ in live.rss_samples), default=0)
-    during = [rss for _, frames, rss, _ in live.rss_samples if frames < last]
+    during = [rss for _, frames, rss, _ in live.rss_samples if frames < 0.99 * last]
     return max(during) if during else float("nan")
 
 
@@ -418,8 +418,9 @@ def to_markdown(r: ScanSquareMetreResult) -> str:
                      f"{lv.publish_cpu_ms_max:.0f} | {lv.recording_mb:.0f} | {of.peak_rss_mb:.0f} | {of.wall_s:.0f} | "
                      f"{of.cpu_s:.0f} | {of.frames_per_s:.0f} |")
     lines += ["", f"`touchroller map` peak RSS, largest side over smallest: x{r.offline_rss_ratio:.2f}; the live scan "
-              f"process's: x{r.live_rss_ratio:.2f}. The live scan process's highest RSS sampled (every 2 s) while "
-              "frames were still being taken, before the end of the scan finishes the map and writes its files: "
+              f"process's: x{r.live_rss_ratio:.2f}. The live scan process's highest RSS sampled (every 2 s) before "
+              "99 % "
+              "of the frames were taken (the end of the scan, which finishes the map and writes its files, left out): "
               + ", ".join(f"{c.side_m:g} m {scanning_peak_mb(c.live):.0f} MB" for c in r.cases) + ".", ""]
     for c in r.cases:
         lines.append(f"- {c.side_m:g} m: live {c.live.frames_published} frames published, {c.live.frames_dropped} "
