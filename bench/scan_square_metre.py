@@ -386,11 +386,11 @@ def goals(r: ScanSquareMetreResult) -> list[tuple[str, bool, str]]:
     ]
 
 
-def scanning_peak_mb(live: LiveResult) -> float:
-    """The highest sampled RSS before the perception node had taken 99 % of its frames (the end of the scan,
-    where the map is finished and its files written, excluded); NaN without samples."""
-    last = max((frames for _, frames, _, _ in live.rss_samples), default=0)
-    during = [rss for _, frames, rss, _ in live.rss_samples if frames < 0.99 * last]
+def scanning_peak_mb(live: LiveResult, end_s: float = 60.0) -> float:
+    """The highest sampled RSS before the last `end_s` seconds of the scan (its end, where the map is finished
+    and its files written, left out); NaN without samples."""
+    last = max((elapsed for elapsed, _, _, _ in live.rss_samples), default=0.0)
+    during = [rss for elapsed, _, rss, _ in live.rss_samples if elapsed < last - end_s]
     return max(during) if during else float("nan")
 
 
@@ -419,8 +419,7 @@ def to_markdown(r: ScanSquareMetreResult) -> str:
                      f"{of.cpu_s:.0f} | {of.frames_per_s:.0f} |")
     lines += ["", f"`touchroller map` peak RSS, largest side over smallest: x{r.offline_rss_ratio:.2f}; the live scan "
               f"process's: x{r.live_rss_ratio:.2f}. The live scan process's highest RSS sampled (every 2 s) before "
-              "99 % "
-              "of the frames were taken (the end of the scan, which finishes the map and writes its files, left out): "
+              "the last 60 s of the scan (its end, which finishes the map and writes its files, left out): "
               + ", ".join(f"{c.side_m:g} m {scanning_peak_mb(c.live):.0f} MB" for c in r.cases) + ".", ""]
     for c in r.cases:
         lines.append(f"- {c.side_m:g} m: live {c.live.frames_published} frames published, {c.live.frames_dropped} "
