@@ -12,7 +12,8 @@ Issue 25's measures, at 0.1 mm per pixel:
   the figures are taken on is shared: its wall time includes waits for the other jobs).
 
 The frames are synthesised straight into the mapper API (`WorldMapper.push_band` with a pose lookup), not
-rendered by the simulator, whose surfaces are allocated whole (a 1 m² scene does not fit): each band is
+rendered by the simulator (the mapper alone, no renderer and no graph; `bench/scan_square_metre.py` scans a
+simulated square metre through the whole graph and `touchroller map`): each band is
 the bench's own procedural texture (band-limited noise, periodic over 0.2 m, sampled at the world points
 of the band's pixels as the mapper's geometry defines them) at a boustrophedon raster's pose (20 mm/s at
 30 frames/s, pressed; lifted by 3 mm between passes, over a fifth of the 1 s move each way); the latency

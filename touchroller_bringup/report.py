@@ -85,11 +85,17 @@ SECTIONS: tuple[Section, ...] = (
             "MCAP chunks) and each way alone: bytes per frame and per square metre mapped, the time to compress a "
             "frame, `touchroller map` as a new process on each, and whether its map is the raw recording's."),
     Section("map_scale", "Square metres: the tiled world map's memory, pyramid and windows", "map_scale",
-            "Frames synthesised straight into the mapper API (the bench's own texture and raster poses, not the "
-            "simulator, whose surfaces are allocated whole): 1 m x 1 m and 0.5 m x 0.5 m rasters at 0.1 mm per "
+            "Frames synthesised straight into the mapper API (the bench's own texture and raster poses, no "
+            "simulator: the mapper alone): 1 m x 1 m and 0.5 m x 0.5 m rasters at 0.1 mm per "
             "pixel, each in its own process: peak resident memory mapping and writing the files, the time to write "
             "the pyramid (map.tif with its overviews, map.png + map.yaml), and random 512 x 512 windows of every "
             "level read back."),
+    Section("scan_square_metre", "A simulated square metre, live and offline", "scan_square_metre",
+            "The simulator's painted panel with planted defects, made tile by tile, 1 m x 1 m and 0.5 m x 0.5 m at "
+            "0.1 mm per cell: a raster (22 and 11 passes) scanned live by `touchroller scan`'s graph in one process "
+            "with the compressed recording on (the process's peak memory, the map update per frame), then "
+            "`touchroller map` on the recording as its own process (peak memory, frames per second as a whole "
+            "command). Simulator only."),
     Section("inspection", "Inspection: cracks, dents and bumps in a height map", "inspection",
             "The detector (`touchroller_perception.inspection`) on synthetic height maps from a generator of the "
             "bench's own (no sensor and no simulator in the loop): five backgrounds with planted cracks, dents and "
@@ -350,6 +356,17 @@ def _scale_goal(start: str) -> Measure:
     def measure(r: Any) -> tuple[str, bool | None]:   # bench.map_scale.MapScaleResult
         _, figure, met = next(row for row in load_bench_script("map_scale").goals(r) if row[0] == start)
         return figure, met
+    return measure
+
+
+def _square_metre_goal(start: str) -> Measure:
+    """One of `bench.scan_square_metre.goals` (the goal whose text starts with `start`), on the simulator."""
+    def measure(r: Any) -> tuple[str, bool | None]:   # bench.scan_square_metre.ScanSquareMetreResult
+        _, met, figure = next(row for row in load_bench_script("scan_square_metre").goals(r)
+                              if row[0].startswith(start))
+        if r.quick:
+            return f"{figure} (simulator; quick run, not judged)", None
+        return f"{figure} (simulator)", met
     return measure
 
 
@@ -695,6 +712,16 @@ GOALS: tuple[Goal, ...] = (
          _scale_goal("pyramid write")),
     Goal(25, "World map: any 512 x 512 window of any level of map.tif read back <= 10 ms (CPU)", "map_scale",
          _scale_goal("window read")),
+    Goal(25, "Simulated 1 m² panel scan: `touchroller map` on its recording, peak RSS <= 1 GB", "scan_square_metre",
+         _square_metre_goal("`touchroller map` peak RSS <=")),
+    Goal(25, "Simulated 1 m² panel scan: `touchroller map` peak RSS within 15 % of the 0.25 m² scan's",
+         "scan_square_metre", _square_metre_goal("`touchroller map` peak RSS within")),
+    Goal(25, "Simulated 1 m² panel scan: `touchroller map` >= 500 frames/s as a whole command", "scan_square_metre",
+         _square_metre_goal("`touchroller map` >=")),
+    Goal(25, "Simulated 1 m² panel scan live: perception RSS <= 1 GB (the scan process's peak, all nodes)",
+         "scan_square_metre", _square_metre_goal("live graph's")),
+    Goal(25, "Simulated 1 m² panel scan live: map update <= 2 ms per frame (median, CPU)", "scan_square_metre",
+         _square_metre_goal("map update")),
     Goal(22, "World map, 4 motion profiles x latencies 0-120 ms x 2 raster yaws, not told the latency: latency "
              "within 3 ms of the truth on every cell (second generator)", "world_map_grid", _grid_goal("latency")),
     Goal(22, "World map grid: SSIM in place >= 0.90 on every cell (second generator)", "world_map_grid",

@@ -108,6 +108,21 @@ class DefectPlan:
         for blob in self.blobs:
             _blob(height, blob, x0, y0, resolution)
 
+    def extents(self, resolution: float) -> list[tuple[float, float, float, float]]:
+        """(x_min, y_min, x_max, y_max) in S of each defect's reach on a grid of cells of `resolution` m: a
+        cell wholly outside all of them is not changed by `render`."""
+        boxes = []
+        for crack in self.cracks:
+            for line, width in zip(crack.lines, crack.widths, strict=True):
+                reach = _groove_reach(width, resolution) + resolution
+                boxes.append((float(line[:, 0].min()) - reach, float(line[:, 1].min()) - reach,
+                              float(line[:, 0].max()) + reach, float(line[:, 1].max()) + reach))
+        for blob in self.blobs:
+            radius = blob.diameter_m / 2 + resolution
+            boxes.append((blob.centre[0] - radius, blob.centre[1] - radius, blob.centre[0] + radius,
+                          blob.centre[1] + radius))
+        return boxes
+
     def truth(self, world_from_surface: Transform | None = None) -> list[Finding]:
         """The planted defects as findings (ids from 1: cracks, then dents and bumps), in S or, given
         T_world_S, in the world frame."""
@@ -155,7 +170,7 @@ def _groove(carve: np.ndarray, line: np.ndarray, depths: np.ndarray, width: floa
     sigma = width / _FWHM
     wide = math.sqrt(sigma**2 + resolution**2 / 12.0)      # a cell's box, in quadrature
     scale = sigma / wide                                  # the cross-section's area kept
-    reach = 3.5 * wide + resolution
+    reach = _groove_reach(width, resolution)
     rows, cols = carve.shape
     c0 = max(0, math.floor((line[:, 0].min() - reach - x0) / resolution))
     c1 = min(cols, math.ceil((line[:, 0].max() + reach - x0) / resolution))
@@ -171,6 +186,11 @@ def _groove(carve: np.ndarray, line: np.ndarray, depths: np.ndarray, width: floa
     values[near] = depths[index[near]] * scale * np.exp(-0.5 * (distance[near] / wide) ** 2)
     window = carve[r0:r1, c0:c1]
     np.maximum(window, values.reshape(window.shape), out=window)
+
+
+def _groove_reach(width: float, resolution: float) -> float:
+    """How far from its centreline a groove of `width` changes cells of `resolution` (m)."""
+    return 3.5 * math.sqrt((width / _FWHM) ** 2 + resolution**2 / 12.0) + resolution
 
 
 def _blob(height: np.ndarray, blob: PlantedBlob, x0: float, y0: float, resolution: float) -> None:

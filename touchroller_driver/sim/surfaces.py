@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from touchroller_driver.sim.defects import surface_defects
-from touchroller_driver.sim.lazy_surfaces import LAZY_KINDS, lazy_surface
+from touchroller_driver.sim.lazy_surfaces import LAZY_KINDS, PEEL_SCALES, lazy_surface
 from touchroller_driver.sim.tiled_surface import TiledSurface
 
 FABRIC_PATTERNS = ("plain_weave", "twill", "knit")
@@ -152,7 +152,7 @@ def _panel(spec: dict[str, Any], rows: int, cols: int, resolution: float, rng: n
     """Heights (m, rows x cols) of a smooth painted panel or of glass, and their description."""
     peel = float(spec.get("peel", 2e-7 if glass else 2e-6))
     heights = np.zeros((rows, cols))
-    for scale, weight in ((2e-3, 0.5), (6e-3, 1.0), (15e-3, 0.7)):
+    for scale, weight in PEEL_SCALES:
         heights += weight * _smooth_noise(rows, cols, scale / resolution, rng)
     rms = float(np.sqrt(np.mean(heights ** 2)))
     heights *= peel / rms if rms > 0 else 0.0

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from touchroller_driver.sim import RollerState, SimulatedSensor, load_scene
+from touchroller_driver.sim.defects import surface_defects
 from touchroller_driver.sim.surfaces import Surface, make_surface
 from touchroller_driver.sim.tiled_surface import TileCacheConfig, TiledSurface, cubic_window
 
@@ -60,11 +61,68 @@ def test_lazy_tiles_equal_the_eager_surface_and_its_low_pass(kind):
         assert np.ptp(eager.height) > 0.5 * RELIEF   # the comparison is not of two flat planes
 
 
-def test_a_lazy_scene_renders_the_frames_the_eager_one_does():
+DEFECTS = {"seed": 2, "cracks": 2, "dents": 1, "bumps": 1, "crack_width": [1.5e-4, 4e-4],
+           "crack_depth": [3e-5, 1e-4], "crack_length": [4e-3, 8e-3], "blob_diameter": [1.5e-3, 3e-3],
+           "blob_depth": [3e-5, 1e-4], "clearance": 1e-3}
+
+
+@given(kind=st.sampled_from(["panel", "glass", "grain", "stripes", "flat"]), seed=st.integers(0, 2**16),
+       defects=st.integers(-1, 50), cracks=st.integers(0, 4), dents=st.integers(0, 4),
+       rows=st.integers(40, 160), cols=st.integers(40, 160), tile=st.integers(8, 70),
+       windows=st.lists(st.tuples(st.integers(-10, 170), st.integers(-10, 170), st.integers(1, 90),
+                                  st.integers(1, 90)), min_size=1, max_size=4))
+@settings(max_examples=25, deadline=None)
+def test_lazy_surfaces_with_planted_defects_equal_the_eager_ones(kind, seed, defects, cracks, dents, rows, cols,
+                                                                  tile, windows):
+    """Any lazy kind (the smooth panel and glass among them), with or without `surface.defects`, at any
+    size and tile: every window and the low-passed surface are the eager grid's, and `max_height` bounds
+    it (equal but where the background's highest lies under a defect)."""
+    res = 2e-4
+    spec = {"kind": kind, "width": cols * res, "length": rows * res, "resolution": res, "relief": RELIEF,
+            "cracks": cracks, "dents": dents, "x_offset": 1e-3, "y_offset": -2e-3}
+    if defects >= 0:
+        spec["defects"] = {**DEFECTS, "seed": defects}
+    eager = make_surface(spec, np.random.default_rng(seed))
+    lazy = make_surface({**spec, "lazy": True, "tile_cells": tile, "max_tiles": 4}, np.random.default_rng(seed))
+    assert isinstance(eager, Surface) and isinstance(lazy, TiledSurface) and lazy.tiles_made == 0
+    assert lazy.description == eager.description and lazy.shape == eager.height.shape
+    tol = 1e-6 * max(float(np.abs(eager.height).max()), 1e-9)
+    whole = np.zeros((rows + 300, cols + 300), np.float32)   # 0 outside the grid
+    whole[20:20 + rows, 20:20 + cols] = eager.height
+    for r0, c0, h, w in windows:
+        np.testing.assert_allclose(lazy.window(r0, r0 + h, c0, c0 + w),
+                                   whole[r0 + 20:r0 + h + 20, c0 + 20:c0 + w + 20], atol=tol)
+    assert lazy.peak_tiles <= 4
+    np.testing.assert_allclose(lazy.lowpassed(1.5e-4).height, eager.lowpassed(1.5e-4).height, atol=tol)
+    deepest = max([float(np.max(d)) for c in surface_defects(spec).cracks for d in c.depths] +
+                  [abs(b.depth_m) for b in surface_defects(spec).blobs] + [0.0])
+    assert eager.max_height - tol <= lazy.max_height <= eager.max_height + deepest + tol
+    if defects < 0:
+        assert lazy.max_height == pytest.approx(eager.max_height, abs=tol)
+
+
+def test_a_lazy_panel_is_its_eager_grid_and_keeps_its_planted_defects():
+    spec = {"kind": "panel", **SPEC, "cracks": 2, "dents": 3, "defects": {**DEFECTS, "seed": 7}}
+    eager = make_surface(spec, np.random.default_rng(1))
+    lazy = make_surface({**spec, "lazy": True, "tile_cells": 64, "max_tiles": 6}, np.random.default_rng(1))
+    assert isinstance(lazy, TiledSurface) and "planted 2 crack(s), 2 dent(s)/bump(s)" in lazy.description
+    np.testing.assert_allclose(lazy.height, eager.height, atol=1e-6 * float(np.abs(eager.height).max()))
+    # the defects are there: deeper than the panel's own relief (2 um of peel and its shallow grooves)
+    assert float(lazy.height.min()) < -2e-5 and lazy.max_height == pytest.approx(eager.max_height, rel=1e-6)
+    # a lazy grain plants them as well (they were left out once)
+    plain = make_surface({"kind": "grain", **SPEC, "lazy": True}, np.random.default_rng(0))
+    grain = make_surface({"kind": "grain", **SPEC, "lazy": True, "defects": DEFECTS}, np.random.default_rng(0))
+    assert float(np.abs(grain.height - plain.height).max()) > 2e-5
+
+
+@pytest.mark.parametrize("variant", [None, "panel"])
+def test_a_lazy_scene_renders_the_frames_the_eager_one_does(variant):
     overrides = {"surface.width": 0.08, "surface.length": 0.06, "effects": []}
-    eager = SimulatedSensor(load_scene("large_surface", **overrides), seed=3)
-    lazy = SimulatedSensor(load_scene("large_surface", **overrides, **{"surface.lazy": True,
-                                                                        "surface.tile_cells": 128}), seed=3)
+    if variant == "panel":
+        overrides["surface.defects"] = {**DEFECTS, "area": [-0.03, 0.005, 0.03, 0.055], "cracks": 4, "dents": 2}
+    eager = SimulatedSensor(load_scene("large_surface", variant, **overrides), seed=3)
+    lazy = SimulatedSensor(load_scene("large_surface", variant, **overrides, **{"surface.lazy": True,
+                                                                                 "surface.tile_cells": 128}), seed=3)
     assert isinstance(lazy.surface, TiledSurface) and isinstance(eager.surface, Surface)
     for travel in (0.01, 0.03, 0.05):
         state = RollerState(travel=travel, depth=5e-4)
