@@ -226,15 +226,26 @@ def _score(name: str, height: np.ndarray, truth: np.ndarray, passes: int, frames
                         int(planted.sum()), scale, corr, frames, seconds)
 
 
+def _second_presses(quick: bool) -> int:
+    """The second generator's calibration presses: they cover the whole band, as many as a full set."""
+    return 16 if quick else 32
+
+
 def run(quick: bool = False) -> HeightMapResult:
+    import inspect
+
+    from touchroller_driver.sim.photometric import sim_photometric
+
     stamp = provenance("height_map", quick)
-    presses = 8 if quick else 16
+    # the simulator's model from as many presses as `touchroller scan --height` makes it from (the default):
+    # how the presses land moves the map's smooth error along the axis (see docs/height.md)
+    presses = 8 if quick else int(inspect.signature(sim_photometric).parameters["presses"].default)
     scores, fit = [], math.nan
     for variant in ((None,) if quick else (None, "panel")):
         score, error = score_surface(variant, presses)
         scores.append(score)
         fit = error if variant is None else fit
-    second, second_fit = second_generator(2 * presses)   # its presses cover the whole band: twice as many
+    second, second_fit = second_generator(_second_presses(quick))
     scores.append(second)
     return HeightMapResult(stamp, quick, presses, fit, scores, second_fit)
 
@@ -261,8 +272,9 @@ def to_markdown(r: HeightMapResult) -> str:
              f"2-pass raster (4 x 9 cm, 20 mm/s, 0.5 mm pressed) of `large_surface`, photometric model from "
              f"{r.presses} simulated ball presses of the same sensor (in-sample fit {r.normal_error_deg:.2f} deg); "
              "the height map against the true relief in place, on the cells 1 mm inside the mapped area; "
-             f"the second generator (shares nothing with the simulator) calibrated on {2 * r.presses} of its own ball "
-             f"caps over the band (in-sample fit {r.second_normal_error_deg:.2f} deg), its raster mapped by "
+             "the second generator (shares nothing with the simulator) calibrated on "
+             f"{_second_presses(r.quick)} of its own ball caps over the band (in-sample fit "
+             f"{r.second_normal_error_deg:.2f} deg), its raster mapped by "
              "`touchroller map`.", "",
              "| surface | true relief RMS, um | error RMS (one best plane removed), um | correlation | cells | "
              "fine relief cells | fine relief read / true | fine relief correlation | passes | frames | s |",
