@@ -23,7 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
-from bench._common import Provenance, load_json, loadavg, provenance, provenance_markdown, results_path, to_json
+from bench._common import (
+    Provenance,
+    load_json,
+    loadavg,
+    provenance,
+    provenance_markdown,
+    results_path,
+    write_results,
+)
 
 AREA = (0.40, -0.08, 0.16, 0.16)     # x, y, length, width (m) of the raster on the large scene
 QUICK_AREA = (0.42, -0.045, 0.03, 0.09)
@@ -225,9 +233,7 @@ def to_markdown(r: ScanSoakResult) -> str:
 
 def write(result: ScanSoakResult, out: Path | None = None) -> Path:
     path = out or results_path("scan_soak", result.quick)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.with_suffix(".json").write_text(to_json(result, indent=2))
-    path.write_text("# Scan soak: the scan graph in one process (`bench/scan_soak.py`)\n\n" + to_markdown(result))
+    write_results(path, "Scan soak: the scan graph in one process (`bench/scan_soak.py`)", result, to_markdown)
     return path
 
 

@@ -50,7 +50,17 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from bench._common import ROOT, Provenance, load_json, loadavg, provenance, provenance_markdown, results_path, to_json
+from bench._common import (
+    ROOT,
+    Provenance,
+    load_json,
+    loadavg,
+    provenance,
+    provenance_markdown,
+    results_path,
+    to_json,
+    write_results,
+)
 from touchroller_perception.files import atomic_write_text
 
 SPEED = 0.05              # m/s along a pass
@@ -434,10 +444,8 @@ def to_markdown(r: ScanSquareMetreResult) -> str:
 
 def write(result: ScanSquareMetreResult, out: Path | None = None) -> Path:
     path = out or results_path("scan_square_metre", result.quick)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path.with_suffix(".json"), to_json(result, indent=2))
-    atomic_write_text(path, "# A simulated square metre, live and offline (`bench/scan_square_metre.py`)\n\n"
-                      + to_markdown(result))
+    write_results(path, "A simulated square metre, live and offline (`bench/scan_square_metre.py`)", result,
+                  to_markdown)
     return path
 
 
