@@ -71,6 +71,7 @@ class Shell:
 
     def __init__(self, ws: Path, command: str, env: dict[str, str]) -> None:
         self.lines: list[str] = []
+        self.terminated = False
         self.process = subprocess.Popen(["bash", "-c", f"source install/setup.bash && exec {command}"], cwd=ws,
                                         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                         start_new_session=True)
@@ -96,10 +97,20 @@ class Shell:
             time.sleep(0.1)
         return len(re.findall(pattern, self.output, re.MULTILINE)) >= count
 
-    def ctrl_c(self, timeout: float = 30.0) -> int:
-        """SIGINT to the process group, as Ctrl-C in a terminal; the exit code."""
+    def ctrl_c(self, timeout: float = 30.0, terminate_after: float | None = None) -> int:
+        """SIGINT to the process group, as Ctrl-C in a terminal; the exit code.
+
+        With `terminate_after`, a process still running that long after the SIGINT gets SIGTERM, as a user
+        presses Ctrl-C again or closes the terminal; `terminated` says whether it was needed."""
         os.killpg(self.process.pid, signal.SIGINT)
+        self.terminated = False
         try:
+            if terminate_after is not None:
+                try:
+                    self.process.wait(terminate_after)
+                except subprocess.TimeoutExpired:
+                    self.terminated = True
+                    os.killpg(self.process.pid, signal.SIGTERM)
             code = self.process.wait(timeout)
         except subprocess.TimeoutExpired:
             os.killpg(self.process.pid, signal.SIGKILL)
@@ -120,6 +131,7 @@ class Run:
     call: str      # `ros2 service call` output
     echo: str      # `ros2 topic echo` output
     echo_code: int
+    echo_terminated: bool   # the upstream echo needed SIGTERM after the Ctrl-C
     launch: str    # `ros2 launch` output
     launch_code: int
 
@@ -142,7 +154,10 @@ def quick_start(request: pytest.FixtureRequest, workspace: Path, ros_tools: Path
             call = Shell(workspace, f"ros2 service call {start} std_srvs/srv/Trigger", env)
             assert call.process.wait(60) == 0, call.output
             echo.wait_for(r"^point:", count=3, timeout=60)
-            echo_code = echo.ctrl_c()
+            # upstream `ros2 topic echo` (not ours) now and then hangs in its own shutdown after Ctrl-C; what
+            # this checks is that our graph's topics reach a user, so the echo gets a SIGTERM fallback (the
+            # launch below does not: our nodes must end on the Ctrl-C itself)
+            echo_code = echo.ctrl_c(terminate_after=15)
             launch_code = launch.ctrl_c()   # mid-sweep, as a user stops a roll
         finally:
             for shell in (echo, call, launch):
@@ -150,7 +165,7 @@ def quick_start(request: pytest.FixtureRequest, workspace: Path, ros_tools: Path
                     shell.kill()
             # the echo started the ros2 daemon of this domain, as it does for a user: stop it
             subprocess.run(["ros2", "daemon", "stop"], env=env, capture_output=True, timeout=30)
-    yield Run(ns, call.output, echo.output, echo_code, launch.output, launch_code)
+    yield Run(ns, call.output, echo.output, echo_code, echo.terminated, launch.output, launch_code)
 
 
 @pytest.mark.timeout(300)
@@ -161,7 +176,9 @@ def test_launch_start_call_and_contacts_as_the_readme_shows(quick_start: Run) ->
     assert f"frame_id: {names.frame_prefix(run.namespace)}{names.CYLINDER_FRAME}" in run.echo
     # ros2cli's exit codes for Ctrl-C: SIGINT when it sees KeyboardInterrupt, SIGTERM when rclpy's own handler
     # shut the context down first (ExternalShutdownException); which one depends on where the signal lands
-    assert run.echo_code in (signal.SIGINT, signal.SIGTERM) and "Traceback" not in run.echo
+    echo_codes = {signal.SIGINT, signal.SIGTERM} | ({-signal.SIGTERM} if run.echo_terminated else set())
+    assert run.echo_code in echo_codes, (run.echo_code, run.echo[-2000:])
+    assert run.echo_terminated or "Traceback" not in run.echo, run.echo[-2000:]
     assert f"[{run.namespace}.sweep]: start: sweep started" in run.launch   # the node logs in its namespace
 
 
