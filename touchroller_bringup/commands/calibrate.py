@@ -18,12 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from touchroller_bringup.camera_info_files import DEFAULT_CAMERA_NAME
+from touchroller_bringup.commands.inputs import read_image, read_input_images
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 from touchroller_bringup.outputs import Output, check_outputs
 from touchroller_perception.files import atomic_write
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -116,34 +115,8 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 def load_images(path: Path, topic: str) -> tuple[list[Any], bool]:
     """The images of a bag, a folder or a file; and whether it was a bag."""
-    import cv2
-
-    if not path.exists():
-        raise UserError(f"no such input: {path}")
-    if path.is_dir() and not (path / "metadata.yaml").exists():
-        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if not files:
-            raise UserError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}) and no rosbag2 metadata.yaml")
-        return [_read_image(f, cv2) for f in files], False
-    if path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES:
-        return [_read_image(path, cv2)], False
-    from touchroller_bringup.bags import read_images
-
-    images = [record.image for record in read_images(path, topic)]
-    if not images:
-        raise UserError(f"bag {path} has no images on {topic}")
-    return images, True
-
-
-def _read_image(path: Path, cv2, label: str = "") -> Any:
-    # checked first: OpenCV prints a WARN line of its own for a file it cannot open
-    name = f"{label} {path}" if label else str(path)
-    if not path.is_file():
-        raise UserError(f"cannot read image {name}: " + ("no such file" if not path.exists() else "not a file"))
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise UserError(f"cannot read image {name}: not an image OpenCV can decode")
-    return image
+    found = read_input_images(path, topic)
+    return [item.image for item in found.images], found.from_recording
 
 
 def _load_camera(path: Path | None):
@@ -243,7 +216,7 @@ def run_extrinsics(args: argparse.Namespace) -> int:
     if args.reference is not None:
         import cv2
 
-        reference = _read_image(args.reference, cv2, "--reference")
+        reference = read_image(args.reference, cv2, "--reference")
     else:
         count = (5 if is_bag else 0) if args.reference_frames is None else args.reference_frames
         if count < 0 or count >= len(images):
@@ -255,7 +228,7 @@ def run_extrinsics(args: argparse.Namespace) -> int:
     if args.dark is not None:
         import cv2
 
-        dark = _read_image(args.dark, cv2, "--dark")
+        dark = read_image(args.dark, cv2, "--dark")
     if reference is None:
         print("note: no no-contact reference (--reference or --reference-frames): the imprint background is "
               "estimated per image, which is less precise and can mistake specks for imprints")

@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from touchroller_bringup.commands.calibrate import IMAGE_SUFFIXES, _load_camera, _read_image
+from touchroller_bringup.commands.calibrate import _load_camera
+from touchroller_bringup.commands.inputs import read_image, read_input_images
 from touchroller_bringup.errors import UserError
 from touchroller_bringup.names import IMAGE_TOPIC
 
@@ -73,24 +74,10 @@ def _pixel_arguments(parser: argparse.ArgumentParser) -> None:
 
 def named_images(path: Path, topic: str) -> list[tuple[str, str, np.ndarray]]:
     """(label key, output stem, image) of an image folder, image file or recording."""
-    import cv2
-
-    if not path.exists():
-        raise UserError(f"no such input: {path}")
-    if path.is_dir() and not (path / "metadata.yaml").exists():
-        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if not files:
-            raise UserError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}) and no rosbag2 metadata.yaml")
-        return [(f.name, f.stem, _colour(_read_image(f, cv2), f)) for f in files]
-    if path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES:
-        return [(path.name, path.stem, _colour(_read_image(path, cv2), path))]
-    from touchroller_bringup.bags import read_images
-
-    out = [(str(i), str(r.stamp_ns), _colour(np.asarray(r.image), path))
-           for i, r in enumerate(read_images(path, topic))]
-    if not out:
-        raise UserError(f"recording {path} has no images on {topic}")
-    return out
+    found = read_input_images(path, topic)
+    return [(item.key, item.stem, _colour(np.asarray(item.image),
+                                          path if found.from_recording or path.is_file() else path / item.key))
+            for item in found.images]
 
 
 def _colour(image: np.ndarray, where: Path) -> np.ndarray:
@@ -105,7 +92,7 @@ def _reference(path: Path) -> np.ndarray:
 
     if not path.is_file():
         raise UserError(f"no such reference image: {path}")
-    return _colour(_read_image(path, cv2), path)
+    return _colour(read_image(path, cv2), path)
 
 
 def read_labels(path: Path) -> list[tuple[str, float, float, float]]:
