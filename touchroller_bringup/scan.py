@@ -122,6 +122,17 @@ class ScanResult:
     def ok(self) -> bool:
         return self.outcome == "done"
 
+    @property
+    def images_not_recorded(self) -> int:
+        """Camera frames published but not in the recording (raw or PNG); 0 without a recording. A recorder
+        that falls behind a reliable keep-last publisher (a starved machine) loses frames: the scan says so."""
+        if not self.recorded:
+            return 0
+        image_topics = {f"/{names.IMAGE}", f"/{names.IMAGE}/compressed"}
+        images = sum(count for topic, count in self.recorded.items()
+                     if any(topic.endswith(suffix) for suffix in image_topics))
+        return max(0, self.frames_published - images)
+
 
 @dataclass
 class _Collected:

@@ -102,6 +102,9 @@ def test_short_simulated_scan_writes_map_contacts_and_report(isolated_ros, tmp_p
     assert 0 < len(recorded) <= published
     assert all(r.image.shape == (480, 640, 3) for r in recorded)
     assert f"/touchroller/image_raw {len(recorded)}" in report
+    # frames the recorder did not get (it joins the stream when its subscription matches) are said, not hidden
+    missed = published - len(recorded)
+    assert (f"the recording misses {missed} of the {published} frames" in report) == (missed > 0)
 
 
 def in_place_ssim(map_yaml: Path, scene: str) -> tuple[float, float]:

@@ -102,3 +102,16 @@ def test_an_unreadable_findings_file_is_one_line_in_the_report(tmp_path):
     assert findings is None and problem.startswith("findings.csv could not be read:") and "\n" not in problem
     result = ScanResult(tmp_path, "done", "ok", 1.0, 1, 1, 0, 0, 0, None, {}, findings_problem=problem)
     assert f"## Findings\n\n- {problem}" in report_markdown(result, build_graph("scan", {}, []))
+
+
+def test_frames_the_recording_misses_are_said_in_the_report():
+    recorded = {"/touchroller/image_raw/compressed": 90, "/touchroller/image_raw": 4, "/touchroller/contacts": 7}
+    result = ScanResult(Path("."), "done", "ok", 1.0, 100, 100, 0, 0, 0, None, {}, recorded=recorded)
+    assert result.images_not_recorded == 6   # raw and PNG images both count; contacts do not
+    report = report_markdown(result, build_graph("scan", {}, []))
+    assert "the recording misses 6 of the 100 frames published" in report
+    whole = ScanResult(Path("."), "done", "ok", 1.0, 94, 94, 0, 0, 0, None, {}, recorded=recorded)
+    assert whole.images_not_recorded == 0 and "recording misses" not in report_markdown(whole,
+                                                                                        build_graph("scan", {}, []))
+    unrecorded = ScanResult(Path("."), "done", "ok", 1.0, 100, 100, 0, 0, 0, None, {})
+    assert unrecorded.images_not_recorded == 0
