@@ -368,6 +368,22 @@ def test_speed_beyond_the_arm_limit_is_refused_before_motion(isolated_ros, tmp_p
 
 
 @pytest.mark.ros
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("argument, words", [
+    ("map.resolution:=1e-6", ("perception: map.resolution 1e-06 m/px", "at least")),
+    ("map.bounds:=[-100,-100,100,100]", ("perception", "map bounds", "max_pixels")),
+])
+def test_a_map_the_perception_node_cannot_make_is_refused_before_the_arm_moves(isolated_ros, tmp_path, capsys,
+                                                                              argument, words):
+    """#29.5: `map.bounds` of 200 m ended "done" with "map: none published"; `map.resolution:=1e-6` rolled the
+    whole sweep, then a MemoryError traceback in the scan's executor thread, a hang, and an empty folder."""
+    assert main(["scan", argument, "--quiet", "--out", str(tmp_path / "x")]) == 2
+    err = error_text(capsys.readouterr().err)
+    assert all(w in err for w in words) and "\n" not in err and "Traceback" not in err, err
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.ros
 def test_missing_node_is_one_clear_line(isolated_ros, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(graph, "PERCEPTION", ("perception_node", "perception",
                                               "touchroller_perception.not_landed_yet:PerceptionNode"))

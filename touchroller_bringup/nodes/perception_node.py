@@ -100,7 +100,13 @@ from touchroller_perception.map_tiles import TileConfig
 from touchroller_perception.map_windows import MapWindows
 from touchroller_perception.stitching import Stitcher, StitcherConfig
 from touchroller_perception.transforms import TransformBuffer, TransformError
-from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
+from touchroller_perception.world_map import (
+    WorldMapConfig,
+    WorldMapper,
+    buffer_lookup,
+    check_band_fits,
+    latency_summary,
+)
 
 
 def image_qos() -> QoSProfile:
@@ -348,6 +354,15 @@ class PerceptionNode(Node):
                     make(changes)
                 except (TypeError, ValueError) as exc:
                     return SetParametersResult(successful=False, reason=str(exc))
+        band = {p.name: p.value for p in parameters if p.name in ("map.world", "map.resolution", "map.band_rows")}
+        if band:   # a world map whose every band would be refused (too many map pixels) maps nothing
+            values = {name: self.get_parameter(name).value for name in ("map.world", "map.resolution", "map.band_rows")}
+            values.update(band)
+            if values["map.world"]:
+                try:
+                    check_band_fits(self.camera, int(values["map.band_rows"]), float(values["map.resolution"]))
+                except ValueError as exc:
+                    return SetParametersResult(successful=False, reason=f"map.resolution {exc}")
         for p in parameters:
             problem = frame_id_problem(p.name, p.value) if p.name in ("contacts.frame_id", "world_frame") else ""
             if p.name == "map.save_path" and str(p.value) and os.path.exists(str(p.value)) \

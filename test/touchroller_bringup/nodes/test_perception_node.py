@@ -579,6 +579,33 @@ def test_start_up_values_it_cannot_use_stop_the_node_in_one_line(ros_context, na
         PerceptionNode(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
 
 
+@pytest.mark.parametrize("overrides", [{"map.resolution": 1e-6}, {"map.resolution": "1e-6"},
+                                       {"map.resolution": 8e-6, "map.band_rows": 200}])
+def test_a_resolution_no_band_fits_at_stops_the_node_at_start_up_and_is_refused_on_set(ros_context, overrides):
+    """#29.5: `touchroller scan map.resolution:=1e-6` started, rolled the whole sweep with every frame's band
+    refused by the world map (4.4e8 map pixels a band), then died in finish_map with a MemoryError traceback
+    in the scan's executor thread and hung, leaving an empty output folder. Refused at start-up now, in one
+    line, as a change at run time is."""
+    from touchroller_bringup.errors import UserError
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+
+    with pytest.raises(UserError, match=r"map.resolution .* at least .* m/px") as refused:
+        PerceptionNode(context=ros_context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+    assert "\n" not in str(refused.value)
+    node = PerceptionNode(context=ros_context)   # the default resolution maps
+    try:
+        result = node.set_parameters_atomically([Parameter(k, value=float(v) if k == "map.resolution" else v)
+                                                 for k, v in overrides.items()])
+        assert not result.successful and "map.resolution" in result.reason and "\n" not in result.reason
+        assert node.get_parameter("map.resolution").value == 1e-4
+        assert node.set_parameters_atomically([Parameter("map.resolution", value=2e-5)]).successful   # fits
+        # without a world map the resolution is not used: not refused
+        assert node.set_parameters_atomically([Parameter("map.world", value=False),
+                                               Parameter("map.resolution", value=1e-6)]).successful
+    finally:
+        node.destroy_node()
+
+
 def test_a_resolution_given_as_text_is_the_number(ros_context):
     from touchroller_bringup.nodes.perception_node import PerceptionNode
 
