@@ -478,6 +478,31 @@ def test_one_frame_the_map_cannot_take_is_skipped_counted_and_warned_and_the_map
     assert node.map_errors == 1
 
 
+def test_a_map_that_cannot_be_finished_is_an_error_and_the_node_goes_on(mapping, spin_until):
+    """#29.5: the world map's MemoryError in finish_map (map.resolution:=1e-6) left the image callback and
+    ended `touchroller scan`'s executor thread: the scan hung. Now the map's failure is counted and said, and
+    frames and contacts keep flowing."""
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.ros_diagnostics import ERROR
+
+    node, executor, image_pub, texture = mapping
+    for k in range(4):
+        send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, k), 1_000_000 * (k + 1)))
+    assert node.stitcher is not None
+
+    def finalise_failing():
+        raise MemoryError("one band needs 4.41e+08 pixels")
+
+    node.stitcher.finalise = finalise_failing
+    node._finish_after_ns = 0   # the roll ended: the next frame finishes the map (on the executor)
+    send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, 4), 5_000_000))
+    status = node._diagnostic_status()
+    assert status.level == ERROR and "could not be finished" in status.message and "4.41e+08" in status.message
+    assert node.map_errors == 1
+    send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, 5), 6_000_000))   # goes on
+    node.finish_map()   # the scan's own call, from its thread: no exception either
+
+
 def test_a_map_stage_that_fails_every_frame_is_an_error_and_recovers_with_the_next_reference(
         mapping, spin_until, monkeypatch):
     """Frames of another size after a recapture: the strip map cannot take them (the camera model is
