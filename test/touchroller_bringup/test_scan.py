@@ -221,6 +221,34 @@ def test_a_recording_that_fails_mid_scan_stops_the_arm_and_still_writes_map_cont
 
 
 @pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_a_callback_that_raises_mid_scan_stops_the_arm_instead_of_ending_the_executor(isolated_ros, tmp_path, capsys,
+                                                                                    monkeypatch):
+    """#29: an exception out of a node's callback (the world map's MemoryError in finish_map) ended the scan's
+    executor thread: no callback ran again, the arm went on and the scan hung. Now it is a fault: the arm
+    stops, what there is is written, and one line says why."""
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+
+    publish, taken = PerceptionNode._publish_contacts, {"n": 0}
+
+    def failing_mid_roll(self, msg, contacts):
+        taken["n"] += 1
+        if taken["n"] == 30:   # about a second into a 5 s roll
+            raise RuntimeError("a callback that raises")
+        publish(self, msg, contacts)
+
+    monkeypatch.setattr(PerceptionNode, "_publish_contacts", failing_mid_roll)
+    out = tmp_path / "scan"
+    assert main(["scan", "sweep_length:=0.1", "sweep_speed:=0.02", "--quiet", "--out", str(out)]) == 2
+    err = error_text(capsys.readouterr().err)
+    assert len(err.splitlines()) == 1 and "RuntimeError: a callback that raises" in err, err
+    assert "fault" in err and str(out) in err
+    assert (out / "report.md").is_file() and (out / "contacts.csv").is_file()
+    # the arm stopped at the failure: the roll's 10 cm were not all rolled
+    assert "sweep complete" not in (out / "report.md").read_text()
+
+
+@pytest.mark.ros
 @pytest.mark.timeout(300)
 @pytest.mark.slow
 def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_remaps(isolated_ros, tmp_path, capsys):
