@@ -152,10 +152,16 @@ class RecordingFailed(UserError):
     """The recorder stopped writing (e.g. a full disk): the scan stops the arm and writes what it has."""
 
 
-def _checker(stop: Any, recorder: Any = None) -> Callable[[], None]:
+class NodeFailed(UserError):
+    """A node's callback raised on the scan's executor: a fault, the scan stops the arm and writes what it has."""
+
+
+def _checker(stop: Any, recorder: Any = None, failures: Sequence[str] = ()) -> Callable[[], None]:
     def check() -> None:
         if stop is not None and stop.requested.is_set():
             raise Interrupted(f"interrupted by {stop.name}")
+        if failures:
+            raise NodeFailed(f"a node failed: {failures[0]}")
         if recorder is not None and recorder.failed.is_set():
             raise RecordingFailed(f"recording {recorder.path} failed: {recorder._writer.error}")
     return check
@@ -263,10 +269,12 @@ def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiT
         sweep, camera, perception = _make_nodes(graph, classes, context, options, nodes)
         out_dir.mkdir(parents=True, exist_ok=True)   # only now: a scan that cannot start leaves no folder
         recorder = _make_recorder(out_dir, options, context, nodes, graph.namespace) if options.record else None
-        check = _checker(stop, recorder)
+        failures: list[str] = []   # callbacks that raised on the executor (`_spin`)
+        check = _checker(stop, recorder, failures)
         for node in nodes:
             executor.add_node(node)
-        spinner = threading.Thread(target=_spin, args=(executor, stop_spinning), name="scan-executor", daemon=True)
+        spinner = threading.Thread(target=_spin, args=(executor, stop_spinning, failures),
+                                   name="scan-executor", daemon=True)
         spinner.start()
         say(f"scan: graph up ({', '.join(n.get_name() for n in (sweep, camera, perception))}); "
             f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
@@ -285,9 +293,10 @@ def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiT
             _call_start(start_client, sweep, check)
             # the perception node starts a new map when the roll starts (it follows /touchroller/sweep_progress)
             outcome, message = _follow_sweep(sweep, collected, say, check)
-        except (Interrupted, RecordingFailed) as exc:
+        except (Interrupted, RecordingFailed, NodeFailed) as exc:
             _stop_arm(sweep)   # the arm first
-            outcome = "interrupted" if isinstance(exc, Interrupted) else "recording failed"
+            outcome = ("interrupted" if isinstance(exc, Interrupted) else "fault" if isinstance(exc, NodeFailed)
+                       else "recording failed")
             message = str(exc)
             say(f"scan: {message}: arm stopped; writing what there is")
         duration = time.monotonic() - started
@@ -337,9 +346,19 @@ def _restore_environment(saved: Mapping[str, str | None]) -> None:
             os.environ[name] = value
 
 
-def _spin(executor: Any, stop: threading.Event) -> None:
+def _spin(executor: Any, stop: threading.Event, failures: list[str] | None = None) -> None:
+    """Spin until `stop`. A callback that raises must not end this thread (no callback of the graph would
+    run again while the arm goes on): its error goes to `failures`, which the scan's checks turn into a
+    fault that stops the arm."""
     while not stop.is_set():
-        executor.spin_once(timeout_sec=0.05)
+        try:
+            executor.spin_once(timeout_sec=0.05)
+        except Exception as exc:  # noqa: BLE001 - whatever a callback raised, the executor goes on
+            if failures is None:
+                raise
+            if len(failures) < 10:
+                failures.append(f"{type(exc).__name__}: {' '.join(str(exc).split())}")
+            time.sleep(0.05)   # an error that repeats does not make this a busy loop
 
 
 def _drain(executor: Any, timeout: float = 2.0) -> None:

@@ -92,6 +92,33 @@ _DELTA_MAD_PX = 1.0             # a pass's offsets agree (median absolute deviat
 PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
 
 
+def least_band_cells(camera: CameraModel, band_rows: int, resolution: float) -> float | None:
+    """The fewest map cells one band of `camera`'s frames (`band_rows` rows) spans on a map of `resolution`
+    m/px: the band's own area, which its footprint holds at any orientation. None when the camera model
+    gives no band (it does not see the contact line: the map says so when it starts)."""
+    from touchroller_perception.stitching import BandSampler
+
+    try:
+        sampler = BandSampler((camera.height, camera.width), int(band_rows), camera, None, False)
+    except ValueError:
+        return None
+    if sampler.mm_per_px is None or sampler.mm_per_px_cols is None:
+        return None
+    along = (sampler.rows - 1) * sampler.mm_per_px * 1e-3
+    across = (sampler.cols - 1) * sampler.mm_per_px_cols * 1e-3
+    return along * across / resolution ** 2
+
+
+def check_band_fits(camera: CameraModel, band_rows: int, resolution: float) -> None:
+    """ValueError (one line) when no band of `camera`'s frames can be placed on a map of `resolution` m/px
+    (each would span more than the most map cells a band may, so every frame would be refused)."""
+    cells = least_band_cells(camera, band_rows, resolution)
+    if cells is not None and cells > _MAX_BAND_PIXELS:
+        coarsest_refused = resolution * math.sqrt(cells / _MAX_BAND_PIXELS)
+        raise ValueError(f"{resolution:g} m/px puts one band of the sensor on {cells:.3g} map pixels, more than a "
+                         f"band may span ({_MAX_BAND_PIXELS:.3g}): use at least {coarsest_refused:.2g} m/px")
+
+
 class BufferPoses:
     """A PoseLookup over a `touchroller_perception.transforms.TransformBuffer` (unknown frames: NaN), which
     also answers `covers(stamp)`: whether the pose at a stamp is known, without interpolating it (the

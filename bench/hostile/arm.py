@@ -139,11 +139,12 @@ def _refused_at_start_up(argument: str, *words: str) -> Callable[[Path], str | N
     return check
 
 
-def _scan_refused(area: str, *words: str) -> Callable[[Path], str | None]:
+def _scan_refused(argument: str, *words: str) -> Callable[[Path], str | None]:
+    """`touchroller scan ARGUMENT` is refused: exit 2, one line holding `words`, no output folder left."""
     def check(scratch: Path) -> str | None:
         out = scratch / "out"
         with _domain() as env:
-            done = _run([str(BIN / "touchroller"), "scan", f"area:={area}", "--quiet", "--out", str(out)], env)
+            done = _run([str(BIN / "touchroller"), "scan", argument, "--quiet", "--out", str(out)], env)
         return _one_line(done, *words) or (f"left {out} behind" if out.exists() else None)
     return check
 
@@ -270,7 +271,7 @@ def probes() -> list[Probe]:
         Probe("sweep_node NaN sweep.direction", "arm", "exit 2, one line at start-up",
               _refused_at_start_up("sweep.direction:=[.nan,0.0,0.0]", "sweep.direction", "finite")),
         Probe("touchroller scan area:=0.40,-0.03,0.04,3000", "arm", "exit 2, one line, no output folder left",
-              _scan_refused("0.40,-0.03,0.04,3000", "reach")),
+              _scan_refused("area:=0.40,-0.03,0.04,3000", "reach")),
         Probe("ros2 param set sweep.area 5 km", "arm", "refused at once (within 0.5 s): beyond the reach",
               _huge_area_at_set_time),
         Probe("~/start whose planning outlasts the service's wait", "arm",

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from bench._common import ROOT
 from bench.hostile import _kit as kit
+from bench.hostile.arm import _scan_refused
 from bench.hostile.probe import Probe
 
 
@@ -89,6 +90,10 @@ def probes() -> list[Probe]:
           _start("perception_node", "-p", "contacts.frame_id:=''", words=("contacts.frame_id",))),
         P("map.resolution:=1e-6 on the scan's command line", "parameters", "taken as the number 1e-6",
           _resolution_as_text),
+        P("touchroller scan map.resolution:=1e-6 (no band fits on the map)", "parameters",
+          "exit 2, one line naming map.resolution and the finest that fits, no output folder left (it rolled the "
+          "whole sweep, then a traceback and a hang)", _scan_refused("map.resolution:=1e-6", "map.resolution",
+                                                                     "at least")),
         P("calibration target bogus", "parameters", stop,
           _start("calibration_node", "-p", "target:=bogus", words=("target must be one of",))),
         P("calibration board.square NaN", "parameters", stop,

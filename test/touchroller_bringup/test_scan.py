@@ -224,6 +224,34 @@ def test_a_recording_that_fails_mid_scan_stops_the_arm_and_still_writes_map_cont
 
 
 @pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_a_callback_that_raises_mid_scan_stops_the_arm_instead_of_ending_the_executor(isolated_ros, tmp_path, capsys,
+                                                                                    monkeypatch):
+    """#29: an exception out of a node's callback (the world map's MemoryError in finish_map) ended the scan's
+    executor thread: no callback ran again, the arm went on and the scan hung. Now it is a fault: the arm
+    stops, what there is is written, and one line says why."""
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+
+    publish, taken = PerceptionNode._publish_contacts, {"n": 0}
+
+    def failing_mid_roll(self, msg, contacts):
+        taken["n"] += 1
+        if taken["n"] == 30:   # about a second into a 5 s roll
+            raise RuntimeError("a callback that raises")
+        publish(self, msg, contacts)
+
+    monkeypatch.setattr(PerceptionNode, "_publish_contacts", failing_mid_roll)
+    out = tmp_path / "scan"
+    assert main(["scan", "sweep_length:=0.1", "sweep_speed:=0.02", "--quiet", "--out", str(out)]) == 2
+    err = error_text(capsys.readouterr().err)
+    assert len(err.splitlines()) == 1 and "RuntimeError: a callback that raises" in err, err
+    assert "fault" in err and str(out) in err
+    assert (out / "report.md").is_file() and (out / "contacts.csv").is_file()
+    # the arm stopped at the failure: the roll's 10 cm were not all rolled
+    assert "sweep complete" not in (out / "report.md").read_text()
+
+
+@pytest.mark.ros
 @pytest.mark.timeout(300)
 @pytest.mark.slow
 def test_a_raster_scan_maps_its_passes_into_one_world_map_that_the_recording_remaps(isolated_ros, tmp_path, capsys):
@@ -368,6 +396,22 @@ def test_speed_beyond_the_arm_limit_is_refused_before_motion(isolated_ros, tmp_p
     err = error_text(capsys.readouterr().err)
     assert "speed 0.5" in err and "\n" not in err
     assert not (tmp_path / "x").exists()   # a refusal leaves no (empty) output folder
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("argument, words", [
+    ("map.resolution:=1e-6", ("perception: map.resolution 1e-06 m/px", "at least")),
+    ("map.bounds:=[-100,-100,100,100]", ("perception", "map bounds", "max_pixels")),
+])
+def test_a_map_the_perception_node_cannot_make_is_refused_before_the_arm_moves(isolated_ros, tmp_path, capsys,
+                                                                              argument, words):
+    """#29.5: `map.bounds` of 200 m ended "done" with "map: none published"; `map.resolution:=1e-6` rolled the
+    whole sweep, then a MemoryError traceback in the scan's executor thread, a hang, and an empty folder."""
+    assert main(["scan", argument, "--quiet", "--out", str(tmp_path / "x")]) == 2
+    err = error_text(capsys.readouterr().err)
+    assert all(w in err for w in words) and "\n" not in err and "Traceback" not in err, err
+    assert not (tmp_path / "x").exists()
 
 
 @pytest.mark.ros

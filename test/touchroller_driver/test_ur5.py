@@ -538,6 +538,32 @@ def test_the_real_receive_interface_answers_from_the_child_and_a_hung_child_is_a
     arm.disconnect()
 
 
+@pytest.mark.timeout(60)
+def test_a_reset_after_the_ur_rtde_process_was_given_up_reconnects(fake_rtde_server, monkeypatch):
+    """`Arm.abort` (a stop or a shutdown the arm thread did not answer) gives the ur_rtde process up; the
+    robot itself may be fine. `reset_fault` must then reconnect (a new process), not fail on the old one's
+    interfaces: reading their stop bits raises RtdeGone, which the reset passes over."""
+    from touchroller_driver.ur_rtde_process import RtdeChild, RtdeGone
+
+    host, _ = fake_rtde_server
+    child = RtdeChild(host, call_timeout=0.5)
+    receive = child.open("receive", -1.0)
+    arm = ur5.UR5Arm(host)
+    arm._child, arm._receive, arm._control = child, receive, receive   # connected (control: any proxy will do)
+    arm.abort()
+    with pytest.raises(RtdeGone):
+        receive.isConnected()
+    opened = []
+
+    def reconnect() -> None:   # what connect does with a healthy robot: new interfaces, in a new process
+        arm.disconnect()
+        opened.append(True)
+
+    monkeypatch.setattr(arm, "connect", reconnect)
+    arm.reset_fault()
+    assert opened == [True] and arm.fault() is None and arm._child is None
+
+
 def test_the_isolated_connect_reports_the_control_interfaces_own_error(fake_rtde_server):
     """The fake controller has no script interface: the real RTDEControlInterface fails in the child, and
     its message comes back as one line (the receive interface before it connected, in the child too)."""

@@ -654,3 +654,35 @@ def test_a_pass_velocity_is_kept_until_the_pass_adds_a_frame(monkeypatch):
     assert record.velocity() == pytest.approx([0.02, 0.0]) and len(calls) == 4
     record.velocity()[0] = 99.0   # callers get their own copy
     assert record.velocity() == pytest.approx([0.02, 0.0])
+
+
+@given(yaw=st.floats(0.0, 2 * math.pi), resolution=st.floats(2e-5, 1e-3), band_rows=st.integers(8, 200))
+@settings(max_examples=40, deadline=None)
+def test_least_band_cells_is_never_more_than_a_placed_bands_footprint(yaw, resolution, band_rows):
+    """check_band_fits refuses a resolution only when no band could be placed: its count is a lower bound of
+    the cells a band's footprint spans at any yaw on the map (what `_locate` checks against the limit)."""
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.stitching import StitcherConfig
+    from touchroller_perception.world_map import least_band_cells
+
+    camera = CameraModel()
+    mapper = WorldMapper(camera, buffer_lookup(TransformBuffer(), "base", "touchroller_cylinder"),
+                         WorldMapConfig(resolution=resolution), StitcherConfig(band_rows=band_rows))
+    mapper.source_rows((camera.height, camera.width))
+    mapper._setup()
+    pose = np.eye(4)
+    pose[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    pose[:3, 3] = (0.4, -0.03, 0.25)
+    c0, r0, c1, r1 = mapper._footprint(mapper._affine(pose))
+    least = least_band_cells(camera, band_rows, resolution)
+    assert least is not None and 0 < least <= (c1 - c0) * (r1 - r0)
+
+
+def test_check_band_fits_refuses_only_a_resolution_no_band_fits_at():
+    from touchroller_perception.geometry import CameraModel
+    from touchroller_perception.world_map import check_band_fits
+
+    check_band_fits(CameraModel(), 70, 1e-4)   # the default: fits
+    with pytest.raises(ValueError, match=r"1e-06 m/px .* 4.41e\+08 map pixels.* use at least 5.2e-06 m/px"):
+        check_band_fits(CameraModel(), 70, 1e-6)
+    check_band_fits(CameraModel(), 70, 5.3e-6)   # just coarser than the line says: fits

@@ -100,7 +100,13 @@ from touchroller_perception.map_tiles import TileConfig
 from touchroller_perception.map_windows import MapWindows
 from touchroller_perception.stitching import Stitcher, StitcherConfig
 from touchroller_perception.transforms import TransformBuffer, TransformError
-from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup, latency_summary
+from touchroller_perception.world_map import (
+    WorldMapConfig,
+    WorldMapper,
+    buffer_lookup,
+    check_band_fits,
+    latency_summary,
+)
 
 
 def image_qos() -> QoSProfile:
@@ -252,6 +258,7 @@ class PerceptionNode(Node):
         self.map_errors = 0           # frames the map stage failed on (skipped; the map goes on)
         self._map_error = ""          # the latest map failure
         self._map_failing = 0         # frames in a row the map stage failed on (0 once one is mapped)
+        self._finish_error = ""       # why the last map could not be finished ("" once a new map starts)
         self._last_bad: dict[str, float] = {}   # malformed / refused / map -> monotonic time of the latest
         self.dropped = 0              # sequence gaps: stale frames skipped while busy, plus any lost
         self.lost_in_transport: int | None = None   # DDS message_lost total; None if the RMW lacks it
@@ -348,6 +355,15 @@ class PerceptionNode(Node):
                     make(changes)
                 except (TypeError, ValueError) as exc:
                     return SetParametersResult(successful=False, reason=str(exc))
+        band = {p.name: p.value for p in parameters if p.name in ("map.world", "map.resolution", "map.band_rows")}
+        if band:   # a world map whose every band would be refused (too many map pixels) maps nothing
+            values = {name: self.get_parameter(name).value for name in ("map.world", "map.resolution", "map.band_rows")}
+            values.update(band)
+            if values["map.world"]:
+                try:
+                    check_band_fits(self.camera, int(values["map.band_rows"]), float(values["map.resolution"]))
+                except ValueError as exc:
+                    return SetParametersResult(successful=False, reason=f"map.resolution {exc}")
         for p in parameters:
             problem = frame_id_problem(p.name, p.value) if p.name in ("contacts.frame_id", "world_frame") else ""
             if p.name == "map.save_path" and str(p.value) and os.path.exists(str(p.value)) \
@@ -627,6 +643,7 @@ class PerceptionNode(Node):
         with self._map_lock:
             self.stitcher = self.world = None
             self._map_dirty = False
+            self._finish_error = ""
             self._finish_after_ns = None
             self.map_views.reset()
             gone = self.live_findings.reset()
@@ -640,11 +657,18 @@ class PerceptionNode(Node):
         with self._map_lock:
             if self.stitcher is None and self.world is None:
                 return
-            if self.world is not None:
-                self.world.finalise()
-                self._log_world_stats()
-            else:
-                self.stitcher.finalise()
+            try:
+                if self.world is not None:
+                    self.world.finalise()
+                    self._log_world_stats()
+                else:
+                    self.stitcher.finalise()
+            except Exception as exc:  # noqa: BLE001 - the map is optional; the node (and its executor) goes on
+                self.map_errors += 1
+                self._map_error = self._finish_error = f"{type(exc).__name__}: {exc}"
+                self._last_bad["map"] = time.monotonic()
+                self.get_logger().error(f"the tactile map could not be finished: {self._map_error}")
+                return
             self._map_dirty = True
         tactile_map = self.publish_map(all_findings=True)
         path = str(self.get_parameter("map.save_path").value)
@@ -824,6 +848,8 @@ class PerceptionNode(Node):
         if self._last_refused:
             return Status(ERROR, f"frames do not match the reference: {self._last_refused}; "
                                  "call ~/recapture_reference", values)
+        if self._finish_error:
+            return Status(ERROR, f"the tactile map could not be finished: {self._finish_error}", values)
         if self._map_failing >= MAP_FAILING_FRAMES:
             return Status(ERROR, f"tactile map failing on every frame ({self._map_failing} in a row): "
                                  f"{self._map_error}", values)

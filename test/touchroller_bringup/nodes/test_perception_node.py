@@ -478,6 +478,31 @@ def test_one_frame_the_map_cannot_take_is_skipped_counted_and_warned_and_the_map
     assert node.map_errors == 1
 
 
+def test_a_map_that_cannot_be_finished_is_an_error_and_the_node_goes_on(mapping, spin_until):
+    """#29.5: the world map's MemoryError in finish_map (map.resolution:=1e-6) left the image callback and
+    ended `touchroller scan`'s executor thread: the scan hung. Now the map's failure is counted and said, and
+    frames and contacts keep flowing."""
+    from touchroller_bringup.image_conversion import array_to_image
+    from touchroller_bringup.ros_diagnostics import ERROR
+
+    node, executor, image_pub, texture = mapping
+    for k in range(4):
+        send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, k), 1_000_000 * (k + 1)))
+    assert node.stitcher is not None
+
+    def finalise_failing():
+        raise MemoryError("one band needs 4.41e+08 pixels")
+
+    node.stitcher.finalise = finalise_failing
+    node._finish_after_ns = 0   # the roll ended: the next frame finishes the map (on the executor)
+    send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, 4), 5_000_000))
+    status = node._diagnostic_status()
+    assert status.level == ERROR and "could not be finished" in status.message and "4.41e+08" in status.message
+    assert node.map_errors == 1
+    send(executor, spin_until, node, image_pub, array_to_image(_surface(texture, 5), 6_000_000))   # goes on
+    node.finish_map()   # the scan's own call, from its thread: no exception either
+
+
 def test_a_map_stage_that_fails_every_frame_is_an_error_and_recovers_with_the_next_reference(
         mapping, spin_until, monkeypatch):
     """Frames of another size after a recapture: the strip map cannot take them (the camera model is
@@ -577,6 +602,33 @@ def test_start_up_values_it_cannot_use_stop_the_node_in_one_line(ros_context, na
 
     with pytest.raises(UserError, match=message):
         PerceptionNode(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
+
+
+@pytest.mark.parametrize("overrides", [{"map.resolution": 1e-6}, {"map.resolution": "1e-6"},
+                                       {"map.resolution": 8e-6, "map.band_rows": 200}])
+def test_a_resolution_no_band_fits_at_stops_the_node_at_start_up_and_is_refused_on_set(ros_context, overrides):
+    """#29.5: `touchroller scan map.resolution:=1e-6` started, rolled the whole sweep with every frame's band
+    refused by the world map (4.4e8 map pixels a band), then died in finish_map with a MemoryError traceback
+    in the scan's executor thread and hung, leaving an empty output folder. Refused at start-up now, in one
+    line, as a change at run time is."""
+    from touchroller_bringup.errors import UserError
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+
+    with pytest.raises(UserError, match=r"map.resolution .* at least .* m/px") as refused:
+        PerceptionNode(context=ros_context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+    assert "\n" not in str(refused.value)
+    node = PerceptionNode(context=ros_context)   # the default resolution maps
+    try:
+        result = node.set_parameters_atomically([Parameter(k, value=float(v) if k == "map.resolution" else v)
+                                                 for k, v in overrides.items()])
+        assert not result.successful and "map.resolution" in result.reason and "\n" not in result.reason
+        assert node.get_parameter("map.resolution").value == 1e-4
+        assert node.set_parameters_atomically([Parameter("map.resolution", value=2e-5)]).successful   # fits
+        # without a world map the resolution is not used: not refused
+        assert node.set_parameters_atomically([Parameter("map.world", value=False),
+                                               Parameter("map.resolution", value=1e-6)]).successful
+    finally:
+        node.destroy_node()
 
 
 def test_a_resolution_given_as_text_is_the_number(ros_context):
