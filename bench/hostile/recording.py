@@ -94,21 +94,28 @@ def _camera_streams(bag: Path, env: dict[str, str]) -> bool:
 
 def _one_kill(bag: Path, storage: str, env: dict[str, str]) -> float | str:
     import sys
+    import threading
 
     recorder = subprocess.Popen([sys.executable, "-m", "touchroller_bringup.cli", "record", "--out", str(bag),
                                  "--storage", storage, "--topics", "/touchroller/image_raw"], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    # recording for a while (the images arrive once the recorder has found the camera's publisher)
-    if not kit.wait_for(lambda: any(bag.glob("*.db3")) or any(bag.glob("*.mcap")) or recorder.poll() is not None,
-                        60):
+    log: list[str] = []
+    reader = threading.Thread(target=lambda: log.extend(recorder.stderr), daemon=True)   # type: ignore[arg-type]
+    reader.start()
+    # recording for a while, counted from its subscription to the images (the recorder logs it once it has
+    # found the camera's publisher; discovery on a machine this busy can take longer than the window)
+    if not kit.wait_for(lambda: any("recording /touchroller/image_raw" in line for line in log)
+                        or recorder.poll() is not None, 60):
         recorder.kill()
-        return "the recorder never created its storage"
+        return "the recorder never subscribed to the images"
     time.sleep(3.0 + random.uniform(0.0, 2.0))
     if recorder.poll() is not None:
-        return f"the recorder exited {recorder.returncode}: {recorder.stderr.read().strip()[-200:]}"
+        reader.join(5)
+        return f"the recorder exited {recorder.returncode}: {''.join(log).strip()[-200:]}"
     killed_at = time.time()
     recorder.kill()
-    recorder.communicate(timeout=30)
+    recorder.wait(timeout=30)
+    reader.join(5)
     kept = _kept_until(bag)
     if kept is None:
         return "nothing recovered"
