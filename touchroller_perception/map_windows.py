@@ -7,6 +7,14 @@ height layer (metres) where the map has one (`layer` "height"), else the map's g
 rounds them ("intensity"). The window's cells are the mapped ones of the intensity, as `map_image`'s
 alpha has them. Memory is the window's, never the whole map at full resolution, however large it grows.
 
+The height is read live, during a pass too (`world_height`): where a finished pass has a height, the
+finished passes' (levelled); where only the pass being rolled has one, that pass's own sums, not yet
+levelled (its plane holds the press depth and the surface's tilt, which the inspection's local surface
+takes out), moved by the median of its difference with the finished passes where both cover the window
+(at least `min_overlap` cells), so no step of the press depth lies along the seam. So the findings of a
+pass come while it is rolled, from its height, not from its grey levels; the finished map (the pass
+levelled) is inspected again whole.
+
 `lock`: held around each read (the perception node maps frames into the same store from another thread).
 """
 from __future__ import annotations
@@ -17,6 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from touchroller_perception.tiles import to_grey
+from touchroller_perception.world_height import DONE, DONE_W, PASS, PASS_W
 
 if TYPE_CHECKING:
     from touchroller_perception.world_map import WorldMapper
@@ -36,8 +45,22 @@ class MapWindows:
             self.resolution: float = float(view.resolution)
             self.anchor: tuple[float, float] = (float(view.origin[0]), float(view.origin[1]))
             self.mapped_weight: float = view.mapped_weight
-            self.layer = "height" if world.height_view() is not None else "intensity"
+            source = world.height_source
+            self.min_height_weight: float = source.config.min_weight if source is not None else 0.0
+            self.min_overlap: int = source.config.min_overlap if source is not None else 0
             self.fixed: Box | None = view.extent() if world.canvas.fixed else None
+
+    @property
+    def layer(self) -> str:
+        """"height" once a finished pass or the pass being rolled has a height, else "intensity"."""
+        with self.lock:
+            return self._layer()
+
+    def _layer(self) -> str:
+        world = self.world
+        if world.height_source is None:
+            return "intensity"
+        return "height" if world.height_view() is not None or world.canvas.store.tiles(PASS_W) else "intensity"
 
     def mapped_tile(self, ix: int, iy: int) -> np.ndarray | None:
         """The mapped cells (bool, rows growing with y) of store tile (ix, iy); None: no such tile."""
@@ -61,14 +84,30 @@ class MapWindows:
         with self.lock:
             value, weight = self.world.view().read(r0, r1, c0, c1)
             mapped = weight > self.mapped_weight
-            if self.layer == "height":
-                height_view = self.world.height_view()
-                assert height_view is not None
-                value, known = height_view.read(r0, r1, c0, c1)
-                mapped &= known > height_view.mapped_weight
-                values = np.where(mapped, value, np.float32(np.nan)).astype(np.float32, copy=False)
+            if self._layer() == "height":
+                height = self._height(r0, r1, c0, c1)
+                values = np.where(mapped, height, np.float32(np.nan)).astype(np.float32, copy=False)
             else:
                 grey = to_grey(value, flip=False)   # the grey levels map_image has
                 values = np.where(mapped, grey.astype(np.float32), np.float32(np.nan))
         res = self.resolution
         return np.ascontiguousarray(values[::-1]), (self.anchor[0] + c0 * res, self.anchor[1] + r0 * res)
+
+    def _height(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """float32 metres over the box (rows growing with y), NaN where no pass has a height: the finished
+        passes' where they have one, else the pass being rolled moved onto them (the module docstring)."""
+        store, least = self.world.canvas.store, np.float32(self.min_height_weight)
+        done, done_w = store.read(DONE, r0, r1, c0, c1), store.read(DONE_W, r0, r1, c0, c1)
+        theirs = done_w >= least
+        out = np.full(done.shape, np.nan, np.float32)
+        np.divide(done, done_w, out=out, where=theirs)
+        rolled_w = store.read(PASS_W, r0, r1, c0, c1)
+        mine = rolled_w >= least
+        only = mine & ~theirs
+        if only.any():
+            rolled = np.divide(store.read(PASS, r0, r1, c0, c1), rolled_w, out=np.zeros_like(rolled_w), where=mine)
+            both = mine & theirs
+            offset = (float(np.median(out[both] - rolled[both])) if int(np.count_nonzero(both)) >= self.min_overlap
+                      else 0.0)
+            out[only] = rolled[only] + np.float32(offset)
+        return out

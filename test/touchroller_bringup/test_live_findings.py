@@ -161,10 +161,15 @@ def test_markers_draw_each_finding_in_the_map_frame_with_stable_ids_and_delete_t
 
 
 def _world_of(h, tile=128):
-    """A world map over the panel's cells (the map's own grid) with a height layer as the world height keeps
-    it (a weighted sum beside its weights, read as their ratio) and nothing mapped yet."""
+    """A world map over the panel's cells (the map's own grid) with the world height's layers
+    (`world_height.HeightLayer`) and nothing mapped yet. `roll(c0, c1)` maps columns [c0, c1) into the pass
+    being rolled (its height as the pass's weighted sums, `offset` m added: the pass's press depth, which its
+    end levels away); `end_pass()` ends the pass (levelled and added to the finished passes)."""
+    from types import SimpleNamespace
+
     from touchroller_perception.geometry import CameraModel
     from touchroller_perception.tiles import TileConfig as StoreConfig
+    from touchroller_perception.world_height import PASS, PASS_W, HeightLayer, WorldHeightConfig
     from touchroller_perception.world_map import WorldMapConfig, WorldMapper
 
     camera = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
@@ -173,16 +178,21 @@ def _world_of(h, tile=128):
     world = WorldMapper(camera, lambda stamps: np.zeros((len(stamps), 4, 4)),
                         WorldMapConfig(resolution=RES, bounds=bounds, tiles=StoreConfig(tile=tile)))
     assert world.canvas.shape == h.shape and world.canvas.origin == pytest.approx(ORIGIN, abs=1e-9)
-    world.canvas.add_layer("h_sum")
-    world.canvas.add_layer("h_w")
-    view = world.canvas.ratio_view("h_sum", "h_w", weight="h_w", min_denominator=0.5)
-    world.height_view = lambda: view
+    config = WorldHeightConfig(min_weight=0.5)
+    world.height_source = SimpleNamespace(config=config)     # what the map's readers look at: its config
+    world._height_layer = HeightLayer(config)
+    HeightLayer.add_layers(world.canvas)
 
-    def roll(c0, c1):   # columns [c0, c1) mapped (rows grow with y in the canvas)
-        part = np.ascontiguousarray(h[::-1, c0:c1])
+    def roll(c0, c1, r0=0, r1=None, offset=0.0):   # rows grow with y in the canvas
+        part = np.ascontiguousarray(h[::-1][r0:r1, c0:c1]) + np.float32(offset)
         ones = np.ones_like(part)
-        world.canvas.add([128 * ones, ones, ones], c0, 0)
-        world.canvas.add_named({"h_sum": part, "h_w": ones}, c0, 0)
+        world.canvas.add([128 * ones, ones, ones], c0, r0)
+        world.canvas.add_named({PASS: part, PASS_W: ones}, c0, r0)
+
+    def end_pass():
+        world._height_layer.end_pass(world.canvas)
+
+    roll.end_pass = end_pass
     return world, roll
 
 
