@@ -13,7 +13,8 @@ else its intensity (`scan_findings.height_layer`).
 
 From a world map's tiles (`update_tiles`, what the perception node uses): the node hands over the store
 tiles bands touched (`note`), and only those are read to find the newly mapped cells (each tile's
-mapped cells at the last inspection kept as bits); the region is read from the tiles as one window
+mapped cells at the last inspection kept as bits; all of them again once frames placed provisionally, while
+the latency was being estimated, are placed for good); the region is read from the tiles as one window
 (`touchroller_perception.map_windows.MapWindows`), never the whole map at full resolution. A finished map
 (`whole`) is inspected whole when its extent has at most `WHOLE_CELLS` cells, else window by window
 (`WINDOW_CELLS` square, each grown over the findings of the windows before that reach into it, so a crack
@@ -111,6 +112,7 @@ class LiveFindings:
     _pending: set[tuple[int, int]] = field(default_factory=set)        # tiles touched since the last look
     _tiles_seen: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)   # their mapped cells, bits
     _extent: tuple[int, int, int, int] | None = None                  # of the mapped cells seen (absolute)
+    _replacements: int = 0            # the source's `replacements` at the last look
 
     def reset(self) -> list[int]:
         """Forget everything (a new map): the ids to delete."""
@@ -119,6 +121,7 @@ class LiveFindings:
         self._seen = None
         self._next_s = -math.inf
         self._pending, self._tiles_seen, self._extent = set(), {}, None
+        self._replacements = 0
         return gone
 
     def inspection_config(self) -> InspectionConfig:
@@ -138,6 +141,12 @@ class LiveFindings:
         if not self.config.enabled or not (force or self.due(now_s)):
             return None
         res, (ax, ay), t = source.resolution, source.anchor, source.tile
+        replacements = int(getattr(source, "replacements", 0))
+        if replacements != self._replacements:
+            # frames placed provisionally (the latency not known yet) are placed for good: every cell of the
+            # tiles touched counts as new, and their findings are measured again where the frames now lie
+            self._replacements = replacements
+            self._tiles_seen.clear()
         pending, self._pending = self._pending, set()
         new: tuple[int, int, int, int] | None = None
         for ix, iy in sorted(pending):

@@ -15,6 +15,11 @@ takes out), moved by the median of its difference with the finished passes where
 pass come while it is rolled, from its height, not from its grey levels; the finished map (the pass
 levelled) is inspected again whole.
 
+Frames placed provisionally (`WorldMapConfig.provisional`: waiting for the latency estimate, placed with the
+fallback latency on layers of their own) are read with the map's, their sums added to its own (intensity)
+and to the pass being rolled (height); `replacements` counts the times they were emptied, their frames
+placed for good (a reader then looks again at what it saw of them).
+
 `lock`: held around each read (the perception node maps frames into the same store from another thread).
 """
 from __future__ import annotations
@@ -25,10 +30,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from touchroller_perception.tiles import to_grey
+from touchroller_perception.world_canvas import _value
 from touchroller_perception.world_height import DONE, DONE_W, PASS, PASS_W
+from touchroller_perception.world_map import PROVISIONAL_LAYERS
 
 if TYPE_CHECKING:
     from touchroller_perception.world_map import WorldMapper
+
+LIVE_BAND, LIVE_FLAT, LIVE_WEIGHT, LIVE_HEIGHT, LIVE_HEIGHT_W = PROVISIONAL_LAYERS
 
 Box = tuple[int, int, int, int]   # (row0, row1, column0, column1) of the store's absolute cells, rows growing with y
 
@@ -60,16 +69,45 @@ class MapWindows:
         world = self.world
         if world.height_source is None:
             return "intensity"
-        return "height" if world.height_view() is not None or world.canvas.store.tiles(PASS_W) else "intensity"
+        store = world.canvas.store
+        rolling = bool(store.tiles(PASS_W)) or (world.config.provisional and bool(store.tiles(LIVE_HEIGHT_W)))
+        return "height" if world.height_view() is not None or rolling else "intensity"
+
+    @property
+    def replacements(self) -> int:
+        """How many times the world's provisional frames were placed for good (`WorldMapper.replacements`)."""
+        return int(getattr(self.world, "replacements", 0))
 
     def mapped_tile(self, ix: int, iy: int) -> np.ndarray | None:
         """The mapped cells (bool, rows growing with y) of store tile (ix, iy); None: no such tile."""
         with self.lock:
-            if not self.world.canvas.store.has("weight", ix, iy):
+            store = self.world.canvas.store
+            if not store.has("weight", ix, iy) and not self._provisional_in(ix, ix + 1, iy, iy + 1):
                 return None
             t = self.tile
-            _, weight = self.world.view().read(iy * t, (iy + 1) * t, ix * t, (ix + 1) * t)
+            _, weight = self._intensity(iy * t, (iy + 1) * t, ix * t, (ix + 1) * t)
         return weight > self.mapped_weight
+
+    def _provisional_in(self, ix0: int, ix1: int, iy0: int, iy1: int) -> bool:
+        """Whether tiles [ix0, ix1) x [iy0, iy1) hold a provisionally placed frame."""
+        if not self.world.config.provisional:
+            return False
+        store = self.world.canvas.store
+        return any(store.has(LIVE_WEIGHT, ix, iy) for ix in range(ix0, ix1) for iy in range(iy0, iy1))
+
+    def _provisional_box(self, r0: int, r1: int, c0: int, c1: int) -> bool:
+        t = self.tile
+        return self._provisional_in(c0 // t, (c1 - 1) // t + 1, r0 // t, (r1 - 1) // t + 1)
+
+    def _intensity(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """(grey value, weight) over the box: the map's, with the provisional frames' sums added."""
+        view = self.world.view()
+        if not self._provisional_box(r0, r1, c0, c1):
+            return view.read(r0, r1, c0, c1)
+        store = self.world.canvas.store
+        band, flat, weight = (store.read(name, r0, r1, c0, c1) + store.read(live, r0, r1, c0, c1)
+                              for name, live in (("band", LIVE_BAND), ("flat", LIVE_FLAT), ("weight", LIVE_WEIGHT)))
+        return _value(band, flat, weight, float(getattr(view, "level", 1.0)))
 
     def extent(self) -> Box | None:
         """The cells a file of the map holds (a fixed map's bounds, else around what was mapped): read over
@@ -82,7 +120,7 @@ class MapWindows:
         of the window's lower-left corner) over `box`."""
         r0, r1, c0, c1 = box
         with self.lock:
-            value, weight = self.world.view().read(r0, r1, c0, c1)
+            value, weight = self._intensity(r0, r1, c0, c1)
             mapped = weight > self.mapped_weight
             if self._layer() == "height":
                 height = self._height(r0, r1, c0, c1)
@@ -101,11 +139,14 @@ class MapWindows:
         theirs = done_w >= least
         out = np.full(done.shape, np.nan, np.float32)
         np.divide(done, done_w, out=out, where=theirs)
-        rolled_w = store.read(PASS_W, r0, r1, c0, c1)
+        rolled_w, rolled_sum = store.read(PASS_W, r0, r1, c0, c1), store.read(PASS, r0, r1, c0, c1)
+        if self._provisional_box(r0, r1, c0, c1):   # the frames placed provisionally: the pass's too
+            rolled_w += store.read(LIVE_HEIGHT_W, r0, r1, c0, c1)
+            rolled_sum += store.read(LIVE_HEIGHT, r0, r1, c0, c1)
         mine = rolled_w >= least
         only = mine & ~theirs
         if only.any():
-            rolled = np.divide(store.read(PASS, r0, r1, c0, c1), rolled_w, out=np.zeros_like(rolled_w), where=mine)
+            rolled = np.divide(rolled_sum, rolled_w, out=np.zeros_like(rolled_w), where=mine)
             both = mine & theirs
             offset = (float(np.median(out[both] - rolled[both])) if int(np.count_nonzero(both)) >= self.min_overlap
                       else 0.0)

@@ -160,7 +160,7 @@ def test_markers_draw_each_finding_in_the_map_frame_with_stable_ids_and_delete_t
     assert len(gone) == MARKERS_PER_FINDING and all(m.action == Marker.DELETE for m in gone)
 
 
-def _world_of(h, tile=128):
+def _world_of(h, tile=128, provisional=False):
     """A world map over the panel's cells (the map's own grid) with the world height's layers
     (`world_height.HeightLayer`) and nothing mapped yet. `roll(c0, c1)` maps columns [c0, c1) into the pass
     being rolled (its height as the pass's weighted sums, `offset` m added: the pass's press depth, which its
@@ -176,7 +176,8 @@ def _world_of(h, tile=128):
     rows, cols = h.shape
     bounds = (ORIGIN[0], ORIGIN[1], ORIGIN[0] + (cols - 0.1) * RES, ORIGIN[1] + (rows - 0.1) * RES)
     world = WorldMapper(camera, lambda stamps: np.zeros((len(stamps), 4, 4)),
-                        WorldMapConfig(resolution=RES, bounds=bounds, tiles=StoreConfig(tile=tile)))
+                        WorldMapConfig(resolution=RES, bounds=bounds, tiles=StoreConfig(tile=tile),
+                                       provisional=provisional))
     assert world.canvas.shape == h.shape and world.canvas.origin == pytest.approx(ORIGIN, abs=1e-9)
     config = WorldHeightConfig(min_weight=0.5)
     world.height_source = SimpleNamespace(config=config)     # what the map's readers look at: its config
@@ -277,3 +278,33 @@ def test_a_large_finished_map_is_inspected_window_by_window_and_a_crack_across_w
     expected = next(f for f in whole.findings if f.kind == "crack")
     assert crack.length_m == pytest.approx(expected.length_m, rel=0.05)
     assert found.result.diagnostics.valid_pixels > 0
+
+
+def test_frames_placed_for_good_after_a_provisional_placement_are_inspected_again_where_they_lie():
+    """Frames waiting for the latency estimate are placed provisionally (0.4 mm along the roll off, the
+    fallback latency's error) and inspected there; when they are placed for good, what the live findings saw
+    of them is looked at again, so the dent far from the few cells that are new lies where it is, not where
+    the provisional placement put it, before the map is finished."""
+    from touchroller_perception.map_windows import MapWindows
+    from touchroller_perception.world_map import PROVISIONAL_LAYERS
+
+    h = panel()
+    rows, cols = h.shape
+    world, roll = _world_of(h, provisional=True)
+    live_band, live_flat, live_weight, live_height, live_height_w = PROVISIONAL_LAYERS
+    part = np.ascontiguousarray(h[::-1, : cols - 4])
+    ones = np.ones_like(part)
+    world.canvas.add_named({live_band: 128 * ones, live_flat: ones, live_weight: ones, live_height: part,
+                            live_height_w: ones}, 4, 0)
+    world._provisional_frames = 1
+    live = LiveFindings(LiveFindingsConfig(period_s=1.0, reach_m=5e-3, margin_m=7.5e-3))
+    live.note(world.touched_tiles())
+    first = live.update_tiles(MapWindows(world), now_s=10.0)
+    dent = next(f for f in first.findings if f.kind == "dent")
+    assert dent.x == pytest.approx(0.4154, abs=1e-4)      # where the provisional placement put it
+    world._clear_provisional()                            # the estimate came: placed for good
+    roll(0, cols)
+    live.note(world.touched_tiles())
+    second = live.update_tiles(MapWindows(world), now_s=20.0)
+    moved = next(f for f in second.findings if f.kind == "dent")
+    assert moved.id == dent.id and moved.x == pytest.approx(0.415, abs=1e-4)

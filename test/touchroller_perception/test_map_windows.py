@@ -91,3 +91,61 @@ def test_the_pass_being_rolled_is_moved_onto_the_finished_passes_no_step_along_t
     assert kinds(found) == kinds(inspect(h[::-1].copy(), RES, ORIGIN).findings) == ["bump", "crack", "dent"]
     crack = next(f for f in found if f.kind == "crack")
     assert crack.length_m == pytest.approx(0.024 * math.hypot(1, 0.05), rel=0.1)
+
+
+def _one_pass(provisional: bool):
+    """A 3 cm pass over the grained surface filmed 35 ms late and mapped with the latency estimated (frames
+    wait for the estimate), pushed frame by frame: per frame, the frames placed for good and the cells a live
+    reader (`MapWindows`) sees mapped; and the mapper, not finalised."""
+    sim = pytest.importorskip("touchroller_driver.sim")
+    from touchroller_driver.arm import (
+        DEFAULT_MOUNT_RPY,
+        DEFAULT_MOUNT_XYZ,
+        DEFAULT_START_POSE,
+        mount_transform,
+        plan_raster,
+    )
+    from touchroller_driver.sim.sweep import simulate_sweep
+    from touchroller_perception.transforms import TransformBuffer
+    from touchroller_perception.world_map import buffer_lookup
+
+    mount = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
+    plan = plan_raster(DEFAULT_START_POSE, area=(0.42, -0.045, 0.03, 0.04), mount=mount, speed=0.02, accel=0.1,
+                       depth=5e-4, clearance=0.002, approach_speed=0.005)
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, mount, static=True)
+    world = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                        WorldMapConfig(bounds=(0.40, -0.07, 0.47, 0.03), provisional=provisional))
+    seen = []
+    for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=0.035):
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+            continue
+        world.push(event[2], event[1])
+        source = MapWindows(world)
+        tiles = world.canvas.store.tiles("weight") | (world.canvas.store.tiles("live_weight") if provisional
+                                                        else set())
+        cells = sum(int(np.count_nonzero(source.mapped_tile(ix, iy))) for ix, iy in tiles)
+        seen.append((world.stats.mapped, cells))
+    return world, seen
+
+
+def test_frames_waiting_for_the_latency_estimate_are_read_provisionally_and_never_reach_the_map():
+    """With the latency being estimated, frames wait for the estimate (a pass's end here); placed meanwhile
+    with the fallback latency on layers of their own, a live reader sees them, and once the estimate comes
+    they are placed for good and the provisional layers emptied: the map is the one made without them."""
+    live, seen = _one_pass(provisional=True)
+    plain, seen_plain = _one_pass(provisional=False)
+    waited = [cells for mapped, cells in seen if mapped == 0 and cells > 0]
+    assert len(waited) >= 20                               # read live while nothing was placed for good
+    assert not any(cells for mapped, cells in seen_plain if mapped == 0)   # without: nothing to read
+    assert [mapped for mapped, _ in seen] == [mapped for mapped, _ in seen_plain]
+    for world in (live, plain):
+        world.finalise()
+    assert live.replacements >= 1 and live._provisional_frames == 0
+    assert not any(live.canvas.store.tiles(name) for name in ("live_band", "live_flat", "live_weight"))
+    assert live.stats.latency_estimated and live.stats.mapped == plain.stats.mapped > 0
+    box = live.canvas.used()
+    for name in ("band", "flat", "weight"):                # the map: to the bit, the one made without them
+        assert np.array_equal(live.canvas.read(name, box), plain.canvas.read(name, box))

@@ -393,7 +393,9 @@ class PerceptionNode(Node):
         return WorldMapConfig(resolution=float(values["map.resolution"]),
                               bounds=None if not any(bounds) else (bounds[0], bounds[1], bounds[2], bounds[3]),
                               latency=None if values["map.latency_estimate"] else 0.0,
-                              register=bool(values["map.register"]))
+                              register=bool(values["map.register"]),
+                              # live: frames waiting for the latency estimate are read provisionally
+                              provisional=True)
 
     def _height_config(self, overrides: dict[str, Any] | None = None) -> Any:
         from touchroller_perception.world_height import WorldHeightConfig
