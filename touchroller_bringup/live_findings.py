@@ -50,7 +50,7 @@ class LiveFindingsConfig:
     """When and where the live detector looks. Lengths in metres of the map's frame."""
 
     enabled: bool = True
-    period_s: float = 1.0       # at most one inspection per this much time (the node's clock); 0: every map update
+    period_s: float = 0.5       # at most one inspection per this much time (the node's clock); 0: every map update
     reach_m: float = 5e-3       # the newly mapped region is grown by this before it is inspected
     margin_m: float = 7.5e-3    # context around it for the local surface (inspect_region's margin)
     match_m: float = 1e-3       # a finding this close to an earlier one of the same kind keeps its id
@@ -70,8 +70,9 @@ class LiveFindingsConfig:
 LIVE_FINDINGS_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "findings.enabled": ("enabled", "Inspect the world map as it grows and publish `findings` (MarkerArray in "
                          "world_frame)", None, None),
-    "findings.period": ("period_s", "Inspect the newly mapped region at most once per this many seconds (0: at "
-                        "every map publication)", 0.0, 3600.0),
+    "findings.period": ("period_s", "Inspect the newly mapped region at most once per this many seconds (on a "
+                        "timer of its own when shorter than the map's publication period; 0: at every map "
+                        "publication)", 0.0, 3600.0),
     "findings.reach": ("reach_m", "Grow the newly mapped region by this before inspecting it, m (a defect across "
                        "its edge is measured whole)", 0.0, 0.1),
     "findings.margin": ("margin_m", "Context inspected around that region for the local surface, m", 0.0, 0.1),
