@@ -24,16 +24,18 @@ press-lift-shift GelSight.
 
 `python -m bench.inspection [--quick]` -> bench/results/inspection.md + .json + inspection_sensitivity.png
 (quick/ with --quick); `touchroller report` calls `run(quick)` and `to_markdown(result)`.
-`python -m bench.inspection --live-latency` runs only the live findings' scan with the latency known and
-prints its rows (nothing written).
+`python -m bench.inspection --live-latency` runs only the live findings' scans (the scored scan with the latency
+estimated, the default, and with it known) and writes their rows into the recorded run (bench/results/
+inspection.json + .md, the rest of it as recorded), with their own provenance.
 """
 from __future__ import annotations
 
 import argparse
 import math
 import os
+import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -152,9 +154,13 @@ class EndToEnd:
     latency: list[Latency]                  # live findings after the frames, on the scored scan
     square_metre: SquareMetre
     # live findings with the camera's latency known (as after calibrating it): not estimated, so frames
-    # wait for nothing but the pressed height (`live_latency_known`)
+    # wait for nothing but the pressed height (`live_latency_scan(known=True)`)
     latency_known: list[Latency] = field(default_factory=list)
     latency_known_command: str = ""
+    # when both live rows were measured again by `--live-latency` (its own scans): how, and the estimated
+    # case's command (else `latency` is the scored scan's own)
+    live_provenance: Provenance | None = None
+    latency_command: str = ""
 
 
 @dataclass(frozen=True)
@@ -363,13 +369,14 @@ def scored(scanned: inspection_scan.Scanned, found: list[Finding] | None = None,
                      summarise(cracks, blobs, [], false_cracks, mapped), scanned.seconds)
 
 
-def live_latency_known(blur_mm: float) -> tuple[list[Latency], str]:
-    """The scored scan again (height, the blur declared) with the latency known (`KNOWN_LATENCY`): how soon
-    live findings follow the frames when the world map places frames as they come."""
+def live_latency_scan(blur_mm: float, known: bool) -> tuple[list[Latency], str]:
+    """The scored scan again (height, the blur declared): how soon live findings follow the frames, with the
+    latency estimated (the default: frames wait for the estimate) or known (`KNOWN_LATENCY`: the world map
+    places frames as they come)."""
     from touchroller_bringup.findings_files import read_findings_csv, read_height_tif
 
-    scanned = inspection_scan.run_scan(E2E_ARGUMENTS, height=True,
-                                       overrides={"findings.blur": round(blur_mm * 1e-3, 6), **KNOWN_LATENCY})
+    overrides: dict[str, object] = {"findings.blur": round(blur_mm * 1e-3, 6), **(KNOWN_LATENCY if known else {})}
+    scanned = inspection_scan.run_scan(E2E_ARGUMENTS, height=True, overrides=overrides)
     values, res, origin = read_height_tif(scanned.out / "height.tif")
     extent = (origin[0], origin[1], origin[0] + values.shape[1] * res, origin[1] + values.shape[0] * res)
     truth = read_findings_csv(scanned.out / "truth_findings.csv")
@@ -393,7 +400,7 @@ def end_to_end(megapixels_per_s: float) -> EndToEnd:
     values, res, origin = read_height_tif(target.out / "height.tif")
     undeclared = scored(target, inspect(values, res, origin, config=InspectionConfig()).findings)
     extent = (origin[0], origin[1], origin[0] + values.shape[1] * res, origin[1] + values.shape[0] * res)
-    known, known_command = live_latency_known(blur_mm)
+    known, known_command = live_latency_scan(blur_mm, known=True)
     return EndToEnd(intensity, reference.command, reference_spread, blur_mm, height, undeclared,
                     inspection_scan.line_spread(target.out / "height.tif", truth),
                     inspection_scan.live_latency(target.watch, truth, extent),
@@ -512,12 +519,19 @@ def end_to_end_markdown(e: EndToEnd) -> str:
                   f"{x.area_ratio:.2f} |" for x in spread]
     lines += ["", f"Declared blur: {e.blur_mm:.3f} mm FWHM (median of the reference's cracks).", "",
               "Live findings (`findings`, MarkerArray): from the arrival of the tool pose of the last frame whose "
-              "mapped band reached a planted defect to the arrival of the first `findings` message with a marker on "
-              "it (wall clock; simulated time from the message's stamp). On the scored scan the world map "
-              "estimates the camera's latency: frames wait for the estimate, which needs a pass's end, so findings "
-              "come with the finished map. With the latency known (calibrated: "
-              f"`{e.latency_known_command or 'not run'}`) frames are placed as they come.", "",
-              "| latency | defect | wall s | simulated s | first shown by |", "|---|---|---|---|---|"]
+              "mapped band reached a planted defect to the arrival of the first `findings` message with a marker of "
+              "its kind on it (wall clock; simulated time from the message's stamp; negative: shown before the band "
+              "had left it). With the latency estimated (the default: "
+              f"`{e.latency_command or e.height.command}`) the world map holds frames until the estimate, which "
+              "needs a pass's end; meanwhile the perception node places them provisionally with the configured "
+              "latency, for the live findings only (`WorldMapConfig.provisional`). With the latency known "
+              "(calibrated: "
+              f"`{e.latency_known_command or 'not run'}`) frames are placed as they come, and the pass being "
+              "rolled is inspected on its own height.", ""]
+    if e.live_provenance is not None:
+        lines += ["Live rows measured again by `--live-latency` (their own scans):  ",
+                  e.live_provenance.markdown(), ""]
+    lines += ["| latency | defect | wall s | simulated s | first shown by |", "|---|---|---|---|---|"]
     lines += [f"| {label} | {x.kind} | {_f(x.wall_s, 2)} | {_f(x.sim_s, 2)} | "
               f"{'the finished map (after the roll)' if x.final else 'the live inspection'} |"
               for label, rows in (("estimated", e.latency), ("known", e.latency_known)) for x in rows]
@@ -580,26 +594,31 @@ def load(path: Path) -> InspectionBenchResult:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 seeds, 1 map per sensitivity cell, one timing run")
-    parser.add_argument("--live-latency", action="store_true", help="only the live findings' latency with the "
-                        "latency known (the recorded blur declared): printed, nothing written")
+    parser.add_argument("--live-latency", action="store_true", help="only the live findings' latency, estimated "
+                        "and known (the recorded blur declared), written into the recorded run")
     args = parser.parse_args(argv)
-    if args.live_latency:
-        recorded = results_path("inspection", False, ".json")
-        e2e = load(recorded).end_to_end if recorded.exists() else None
-        rows, command = live_latency_known(e2e.blur_mm if e2e is not None else 0.0)
-        print(f"`{command}`\n\n| defect | wall s | simulated s | first shown by |\n|---|---|---|---|")
-        for x in rows:
-            print(f"| {x.kind} | {_f(x.wall_s, 2)} | {_f(x.sim_s, 2)} | "
-                  f"{'the finished map (after the roll)' if x.final else 'the live inspection'} |")
-        return 0
-    result = run(args.quick)
     md, js = results_path("inspection", args.quick), results_path("inspection", args.quick, ".json")
-    md.parent.mkdir(parents=True, exist_ok=True)
-    figures(result, md.parent)
+    if args.live_latency:
+        recorded = load(js) if js.exists() else None
+        if recorded is None or recorded.end_to_end is None:
+            print(f"error: --live-latency updates a recorded run with its end-to-end part; {js} has none "
+                  "(run the bench first)", file=sys.stderr)
+            return 2
+        stamp = provenance("inspection", args.quick, "--live-latency")
+        e = recorded.end_to_end
+        estimated, estimated_command = live_latency_scan(e.blur_mm, known=False)
+        known, known_command = live_latency_scan(e.blur_mm, known=True)
+        result = replace(recorded, end_to_end=replace(e, latency=estimated, latency_command=estimated_command,
+                                                      latency_known=known, latency_known_command=known_command,
+                                                      live_provenance=stamp))
+    else:
+        result = run(args.quick)
+        md.parent.mkdir(parents=True, exist_ok=True)
+        figures(result, md.parent)
     atomic_write_text(md, "# Inspection: synthetic height maps and end to end\n\n" + to_markdown(result) +
                       "\n\n![crack recall by width and depth](inspection_sensitivity.png)\n")
     atomic_write_text(js, to_json(result, indent=1) + "\n")
-    print(to_markdown(result))
+    print(end_to_end_markdown(result.end_to_end) if args.live_latency and result.end_to_end else to_markdown(result))
     return 0
 
 

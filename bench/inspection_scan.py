@@ -12,7 +12,8 @@ and the time to inspect a square metre. Helpers of `bench.inspection`, not a ben
   cross-section the height map reads. What a user does with a reference sample of known scratches.
 * `live_latency(watch, truth, map extent)`: per planted defect, from the arrival of the tool pose of the
   last frame whose mapped band still reached it to the arrival of the first `findings` message with a marker
-  on it (wall clock; and simulated time, from the markers' stamps).
+  of its kind on it (a crack's line along it, a dent's or bump's disc at it; wall clock; and simulated time,
+  from the markers' stamps).
 * `square_metre(...)`: the arm's plan over 1 m x 1 m with the sweep defaults (config/scan.yaml, the
   planner's pass width and overlap), plus mapping CPU per frame (`touchroller map` of the scan's recording)
   and inspection CPU per megapixel, against the paper's press-lift-shift GelSight figure.
@@ -44,11 +45,12 @@ PAPER_PRESSES, PAPER_S, PAPER_AREA_M2 = 49, 196.0, 0.08 * 0.11
 @dataclass
 class Watch:
     """Arrivals (time.monotonic) of `tcp_pose` (stamp ns, x, y, z) and `findings` (arrival, the markers'
-    stamp ns, each ADDed geometry marker's points) in `namespace`, from a node in an rclpy context of its own."""
+    stamp ns, each ADDed geometry marker's (kind, points): the kind from its finding's label) in `namespace`,
+    from a node in an rclpy context of its own."""
 
     namespace: str = "touchroller"
     poses: list[tuple[float, int, float, float, float]] = field(default_factory=list)
-    findings: list[tuple[float, int, list[np.ndarray]]] = field(default_factory=list)
+    findings: list[tuple[float, int, list[tuple[str, np.ndarray]]]] = field(default_factory=list)
     _stop: threading.Event = field(default_factory=threading.Event)
     _thread: threading.Thread | None = None
 
@@ -85,14 +87,18 @@ class Watch:
         def on_findings(msg: Any) -> None:
             now = time.monotonic()
             shapes, stamp = [], 0
+            # "#3 crack 12.1 x 0.21 mm, ..." (live_findings.label): the kind of finding id // 8's markers
+            kinds = {m.id // 8: m.text.split()[1] for m in msg.markers
+                     if m.action == Marker.ADD and m.id % 8 == 1 and len(m.text.split()) > 1}
             for m in msg.markers:
                 stamp = max(stamp, m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)
                 if m.action != Marker.ADD or m.id % 8 == 1:       # DELETEs and the labels
                     continue
+                kind = kinds.get(m.id // 8, "")
                 if m.type == Marker.LINE_STRIP:
-                    shapes.append(np.array([[q.x, q.y] for q in m.points], np.float64).reshape(-1, 2))
+                    shapes.append((kind, np.array([[q.x, q.y] for q in m.points], np.float64).reshape(-1, 2)))
                 else:
-                    shapes.append(np.array([[m.pose.position.x, m.pose.position.y]]))
+                    shapes.append((kind, np.array([[m.pose.position.x, m.pose.position.y]])))
             self.findings.append((now, stamp, shapes))
 
         node.create_subscription(PoseStamped, f"/{self.namespace}/tcp_pose", on_pose, 100)
@@ -263,7 +269,7 @@ def live_latency(watch: Watch, truth: Sequence[Finding], extent: tuple[float, fl
         tolerance = max(1e-3, t.width_m)
         shown = None
         for arrival, stamp, shapes in watch.findings:
-            if any(float(np.median(tree.query(s)[0])) <= tolerance for s in shapes if len(s)):
+            if any(float(np.median(tree.query(s)[0])) <= tolerance for kind, s in shapes if kind == t.kind and len(s)):
                 shown = (arrival, stamp)
                 break
         if shown is None:

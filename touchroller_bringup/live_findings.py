@@ -13,7 +13,8 @@ else its intensity (`scan_findings.height_layer`).
 
 From a world map's tiles (`update_tiles`, what the perception node uses): the node hands over the store
 tiles bands touched (`note`), and only those are read to find the newly mapped cells (each tile's
-mapped cells at the last inspection kept as bits); the region is read from the tiles as one window
+mapped cells at the last inspection kept as bits; all of them again once frames placed provisionally, while
+the latency was being estimated, are placed for good); the region is read from the tiles as one window
 (`touchroller_perception.map_windows.MapWindows`), never the whole map at full resolution. A finished map
 (`whole`) is inspected whole when its extent has at most `WHOLE_CELLS` cells, else window by window
 (`WINDOW_CELLS` square, each grown over the findings of the windows before that reach into it, so a crack
@@ -49,7 +50,7 @@ class LiveFindingsConfig:
     """When and where the live detector looks. Lengths in metres of the map's frame."""
 
     enabled: bool = True
-    period_s: float = 1.0       # at most one inspection per this much time (the node's clock); 0: every map update
+    period_s: float = 0.5       # at most one inspection per this much time (the node's clock); 0: every map update
     reach_m: float = 5e-3       # the newly mapped region is grown by this before it is inspected
     margin_m: float = 7.5e-3    # context around it for the local surface (inspect_region's margin)
     match_m: float = 1e-3       # a finding this close to an earlier one of the same kind keeps its id
@@ -69,8 +70,9 @@ class LiveFindingsConfig:
 LIVE_FINDINGS_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "findings.enabled": ("enabled", "Inspect the world map as it grows and publish `findings` (MarkerArray in "
                          "world_frame)", None, None),
-    "findings.period": ("period_s", "Inspect the newly mapped region at most once per this many seconds (0: at "
-                        "every map publication)", 0.0, 3600.0),
+    "findings.period": ("period_s", "Inspect the newly mapped region at most once per this many seconds (on a "
+                        "timer of its own when shorter than the map's publication period; 0: at every map "
+                        "publication)", 0.0, 3600.0),
     "findings.reach": ("reach_m", "Grow the newly mapped region by this before inspecting it, m (a defect across "
                        "its edge is measured whole)", 0.0, 0.1),
     "findings.margin": ("margin_m", "Context inspected around that region for the local surface, m", 0.0, 0.1),
@@ -111,6 +113,7 @@ class LiveFindings:
     _pending: set[tuple[int, int]] = field(default_factory=set)        # tiles touched since the last look
     _tiles_seen: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)   # their mapped cells, bits
     _extent: tuple[int, int, int, int] | None = None                  # of the mapped cells seen (absolute)
+    _replacements: int = 0            # the source's `replacements` at the last look
 
     def reset(self) -> list[int]:
         """Forget everything (a new map): the ids to delete."""
@@ -119,6 +122,7 @@ class LiveFindings:
         self._seen = None
         self._next_s = -math.inf
         self._pending, self._tiles_seen, self._extent = set(), {}, None
+        self._replacements = 0
         return gone
 
     def inspection_config(self) -> InspectionConfig:
@@ -138,6 +142,12 @@ class LiveFindings:
         if not self.config.enabled or not (force or self.due(now_s)):
             return None
         res, (ax, ay), t = source.resolution, source.anchor, source.tile
+        replacements = int(getattr(source, "replacements", 0))
+        if replacements != self._replacements:
+            # frames placed provisionally (the latency not known yet) are placed for good: every cell of the
+            # tiles touched counts as new, and their findings are measured again where the frames now lie
+            self._replacements = replacements
+            self._tiles_seen.clear()
         pending, self._pending = self._pending, set()
         new: tuple[int, int, int, int] | None = None
         for ix, iy in sorted(pending):

@@ -166,6 +166,10 @@ class TileStore:
         out, self._touched = self._touched, set()
         return out
 
+    def note_touched(self, tiles: set[tuple[int, int]]) -> None:
+        """Count tiles (ix, iy) as written to (a layer dropped over them): the next `touched` has them."""
+        self._touched |= tiles
+
     @property
     def folder(self) -> Path:
         """The spill folder: a temporary folder in `config.folder` (or the system's), made when first needed."""

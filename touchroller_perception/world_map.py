@@ -79,6 +79,9 @@ def _height_module() -> Any:
 
     return world_height
 _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this many, older ones in 16 bits
+#: the canvas's layers of the frames placed provisionally (`WorldMapConfig.provisional`): band, flat field and
+#: weight sums as the map's own, and the relief's weighted sum and weights as the pass's (`world_height`)
+PROVISIONAL_LAYERS = ("live_band", "live_flat", "live_weight", "live_height", "live_height_w")
 _EVENT_CHECK_NS = 250_000_000   # how often (stamp time) the pressed height, starts and stops are looked for
 _PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in this many is registered
 _RESUME_NS = 300_000_000       # pressed again this soon after a pass ended: the same pass (not a new one)
@@ -172,6 +175,10 @@ class WorldMapConfig:
       16 bits: 90 KB each for 640-pixel-wide bands); the latency may need a whole pass's end to be found.
     wait_frames: frames kept until the poses reach their stamp; beyond this many the oldest is taken
       with what is known (poses that stopped coming).
+    provisional: while frames wait for the latency estimate (the pressed height known), place them with
+      `latency_fallback` on layers of their own (`PROVISIONAL_LAYERS`), for live readers (the live
+      findings) only; emptied as soon as frames are placed for good, so the map and its files never hold
+      them. Costs a second placement of each frame that waited (a live node's choice, not a recording's).
     """
 
     resolution: float = 1e-4
@@ -189,6 +196,7 @@ class WorldMapConfig:
     hold_frames: int = 600
     wait_frames: int = 30
     tiles: TileConfig = TileConfig()
+    provisional: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.resolution) and 1e-6 <= self.resolution <= 0.01):
@@ -288,6 +296,7 @@ class _Frame:
     pose: np.ndarray | None = None        # T_world_cylinder at stamp - pose_latency, once known
     pose_latency: int | None = None
     height: HeightBand | None = None      # its relief on the band (a height map's frames)
+    provisional: bool = False             # on the provisional layers (`WorldMapConfig.provisional`)
 
 
 @dataclass
@@ -401,6 +410,11 @@ class WorldMapper:
         self.canvas = WorldCanvas(config.resolution, config.bounds, config.tiles)
         if self._height_layer is not None:
             self._height_layer.add_layers(self.canvas)
+        if config.provisional:
+            for name in PROVISIONAL_LAYERS:
+                self.canvas.add_layer(name, np.float32)
+        self._provisional_frames = 0   # frames on the provisional layers now
+        self.replacements = 0          # times the provisional layers were emptied (their frames placed for good)
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
         # frames whose stamp the poses do not reach yet
@@ -656,6 +670,8 @@ class WorldMapper:
         while self._inbox:
             self._take_band(*self._inbox.popleft())
         self._drain(final=True)
+        if self._provisional_frames:   # (all were placed by the drain: none stays provisional)
+            self._clear_provisional()
         self._flush_pass_buffer()
         if self._height_layer is not None:   # the pass under way is levelled with what it has (it may go on)
             self._end_height_pass()
@@ -873,8 +889,11 @@ class WorldMapper:
             ready = self._ready(frame)
             if (ready is None and not final and len(self._pending) <= self.config.hold_frames
                     and not self._never_posed(frame)):
+                self._place_provisionally()
                 return
             self._pending.popleft()
+            if self._provisional_frames:   # placing for good: nothing provisional beside it
+                self._clear_provisional()
             if self._pressed_height is None:   # held too long and nothing rolled yet: a lead-in, not mapped
                 self.stats.not_in_contact += 1
                 continue
@@ -883,6 +902,45 @@ class WorldMapper:
                 self.stats.no_pose += 1
                 continue
             self._take(frame, pose)
+
+    def _place_provisionally(self) -> None:
+        """The waiting frames not yet on the provisional layers, with the fallback latency, while it is the
+        latency alone they wait for (`WorldMapConfig.provisional`); no registration, no pass records."""
+        if not self.config.provisional or self._pressed_height is None or self._latency() is not None:
+            return
+        latency = round(self.config.latency_fallback * 1e9)
+        waiting = [f for f in self._pending if not f.provisional]
+        if not waiting:
+            return
+        poses = self.poses(np.array([f.stamp_ns - latency for f in waiting], np.int64))
+        for frame, pose in zip(waiting, poses, strict=True):
+            if not np.isfinite(pose).all():
+                break   # its pose has not come yet: it and those after it next time
+            frame.provisional = True
+            if float(pose[2, 3]) > self._pressed_height + self.config.contact_tolerance:
+                continue
+            placement = self._locate(pose, np.zeros(2))
+            planes = self._planes(frame, placement)
+            live = dict(zip(PROVISIONAL_LAYERS, (planes["band"], planes["flat"], planes["weight"],
+                                                 planes.get("height_pass"), planes.get("height_pass_w")),
+                            strict=True))
+            try:
+                self.canvas.add_named(live, placement.c0, placement.r0)
+            except StorageFull:
+                continue
+            self._provisional_frames += 1
+
+    def _clear_provisional(self) -> None:
+        """Empty the provisional layers (their frames are being placed for good); their tiles count as touched."""
+        store = self.canvas.store
+        tiles: set[tuple[int, int]] = set()
+        for name in PROVISIONAL_LAYERS:
+            tiles |= store.tiles(name)
+            store.drop_layer(name)
+            store.add_layer(name, np.float32)
+        store.note_touched(tiles)
+        self._provisional_frames = 0
+        self.replacements += 1
 
     def _never_posed(self, frame: _Frame) -> bool:
         """Everything but the frame's pose is known and a later frame has its pose: TF began after this
@@ -1335,6 +1393,21 @@ class WorldMapper:
 
     def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
         placement = self._locate(pose, delta)
+        planes = self._planes(frame, placement)
+        try:   # one call: the band and its height land together or not at all
+            self.canvas.add_named(planes, placement.c0, placement.r0)
+        except StorageFull as exc:   # the map keeps what it has; the caller sees the count and the reason
+            self.stats.left_out_storage_full += 1
+            self.stats.storage_warning = str(exc)
+            return
+        self._placements.append(placement)
+        self.stats.mapped += 1
+        if frame.field is not None:
+            self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
+            self._level_field = frame.field
+
+    def _planes(self, frame: _Frame, placement: _Placement) -> dict[str, np.ndarray | None]:
+        """The frame's planes on the map grid at `placement`, by canvas layer name (its height's too)."""
         planes: dict[str, np.ndarray | None]
         if placement.axes is not None and frame.field is not None:
             planes = dict(zip(LAYERS, self._blend_stack(frame, placement), strict=True))
@@ -1349,17 +1422,7 @@ class WorldMapper:
             weighted, weights = self._height_layer.planes(self._weights, frame.height)
             planes.update(self._height_layer.pass_planes(self._on_map(placement, weighted),
                                                          self._on_map(placement, weights)))
-        try:   # one call: the band and its height land together or not at all
-            self.canvas.add_named(planes, placement.c0, placement.r0)
-        except StorageFull as exc:   # the map keeps what it has; the caller sees the count and the reason
-            self.stats.left_out_storage_full += 1
-            self.stats.storage_warning = str(exc)
-            return
-        self._placements.append(placement)
-        self.stats.mapped += 1
-        if frame.field is not None:
-            self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
-            self._level_field = frame.field
+        return planes
 
     def _search(self, frame: _Frame, pose: np.ndarray) -> tuple[int, int, float, tuple[int, int], float]:
         """(columns, rows) registration searches, the frame's speed (m/s), where the search is centred

@@ -160,29 +160,40 @@ def test_markers_draw_each_finding_in_the_map_frame_with_stable_ids_and_delete_t
     assert len(gone) == MARKERS_PER_FINDING and all(m.action == Marker.DELETE for m in gone)
 
 
-def _world_of(h, tile=128):
-    """A world map over the panel's cells (the map's own grid) with a height layer as the world height keeps
-    it (a weighted sum beside its weights, read as their ratio) and nothing mapped yet."""
+def _world_of(h, tile=128, provisional=False):
+    """A world map over the panel's cells (the map's own grid) with the world height's layers
+    (`world_height.HeightLayer`) and nothing mapped yet. `roll(c0, c1)` maps columns [c0, c1) into the pass
+    being rolled (its height as the pass's weighted sums, `offset` m added: the pass's press depth, which its
+    end levels away); `end_pass()` ends the pass (levelled and added to the finished passes)."""
+    from types import SimpleNamespace
+
     from touchroller_perception.geometry import CameraModel
     from touchroller_perception.tiles import TileConfig as StoreConfig
+    from touchroller_perception.world_height import PASS, PASS_W, HeightLayer, WorldHeightConfig
     from touchroller_perception.world_map import WorldMapConfig, WorldMapper
 
     camera = CameraModel(fx=200.0, fy=200.0, cx=159.5, cy=119.5, width=320, height=240)
     rows, cols = h.shape
     bounds = (ORIGIN[0], ORIGIN[1], ORIGIN[0] + (cols - 0.1) * RES, ORIGIN[1] + (rows - 0.1) * RES)
     world = WorldMapper(camera, lambda stamps: np.zeros((len(stamps), 4, 4)),
-                        WorldMapConfig(resolution=RES, bounds=bounds, tiles=StoreConfig(tile=tile)))
+                        WorldMapConfig(resolution=RES, bounds=bounds, tiles=StoreConfig(tile=tile),
+                                       provisional=provisional))
     assert world.canvas.shape == h.shape and world.canvas.origin == pytest.approx(ORIGIN, abs=1e-9)
-    world.canvas.add_layer("h_sum")
-    world.canvas.add_layer("h_w")
-    view = world.canvas.ratio_view("h_sum", "h_w", weight="h_w", min_denominator=0.5)
-    world.height_view = lambda: view
+    config = WorldHeightConfig(min_weight=0.5)
+    world.height_source = SimpleNamespace(config=config)     # what the map's readers look at: its config
+    world._height_layer = HeightLayer(config)
+    HeightLayer.add_layers(world.canvas)
 
-    def roll(c0, c1):   # columns [c0, c1) mapped (rows grow with y in the canvas)
-        part = np.ascontiguousarray(h[::-1, c0:c1])
+    def roll(c0, c1, r0=0, r1=None, offset=0.0):   # rows grow with y in the canvas
+        part = np.ascontiguousarray(h[::-1][r0:r1, c0:c1]) + np.float32(offset)
         ones = np.ones_like(part)
-        world.canvas.add([128 * ones, ones, ones], c0, 0)
-        world.canvas.add_named({"h_sum": part, "h_w": ones}, c0, 0)
+        world.canvas.add([128 * ones, ones, ones], c0, r0)
+        world.canvas.add_named({PASS: part, PASS_W: ones}, c0, r0)
+
+    def end_pass():
+        world._height_layer.end_pass(world.canvas)
+
+    roll.end_pass = end_pass
     return world, roll
 
 
@@ -267,3 +278,33 @@ def test_a_large_finished_map_is_inspected_window_by_window_and_a_crack_across_w
     expected = next(f for f in whole.findings if f.kind == "crack")
     assert crack.length_m == pytest.approx(expected.length_m, rel=0.05)
     assert found.result.diagnostics.valid_pixels > 0
+
+
+def test_frames_placed_for_good_after_a_provisional_placement_are_inspected_again_where_they_lie():
+    """Frames waiting for the latency estimate are placed provisionally (0.4 mm along the roll off, the
+    fallback latency's error) and inspected there; when they are placed for good, what the live findings saw
+    of them is looked at again, so the dent far from the few cells that are new lies where it is, not where
+    the provisional placement put it, before the map is finished."""
+    from touchroller_perception.map_windows import MapWindows
+    from touchroller_perception.world_map import PROVISIONAL_LAYERS
+
+    h = panel()
+    rows, cols = h.shape
+    world, roll = _world_of(h, provisional=True)
+    live_band, live_flat, live_weight, live_height, live_height_w = PROVISIONAL_LAYERS
+    part = np.ascontiguousarray(h[::-1, : cols - 4])
+    ones = np.ones_like(part)
+    world.canvas.add_named({live_band: 128 * ones, live_flat: ones, live_weight: ones, live_height: part,
+                            live_height_w: ones}, 4, 0)
+    world._provisional_frames = 1
+    live = LiveFindings(LiveFindingsConfig(period_s=1.0, reach_m=5e-3, margin_m=7.5e-3))
+    live.note(world.touched_tiles())
+    first = live.update_tiles(MapWindows(world), now_s=10.0)
+    dent = next(f for f in first.findings if f.kind == "dent")
+    assert dent.x == pytest.approx(0.4154, abs=1e-4)      # where the provisional placement put it
+    world._clear_provisional()                            # the estimate came: placed for good
+    roll(0, cols)
+    live.note(world.touched_tiles())
+    second = live.update_tiles(MapWindows(world), now_s=20.0)
+    moved = next(f for f in second.findings if f.kind == "dent")
+    assert moved.id == dent.id and moved.x == pytest.approx(0.415, abs=1e-4)

@@ -28,7 +28,8 @@ Topics are relative to the node's namespace (`touchroller` by default; names in
   grey plus alpha, and a nav2 map.yaml beside it);
 * publishes on `findings` (visualization_msgs/MarkerArray, transient local, in `world_frame`) the defects
   found in the world map as it grows (`touchroller_bringup.live_findings`, `findings.*` parameters): the
-  newly mapped region inspected at most once per `findings.period`, the whole map when it is finished;
+  newly mapped region inspected at most once per `findings.period` (on a timer of its own when that is
+  shorter than the map's publication period), the whole map when it is finished;
 * `~/recapture_reference` (std_srvs/Trigger) re-captures the no-contact reference from the next
   `reference.frames` frames (and starts a new map);
 * `/diagnostics`: frame rate, processing time, contacts/s, malformed frames, and frames missed: all
@@ -245,6 +246,8 @@ class PerceptionNode(Node):
         self.live_findings = LiveFindings(self._findings_config())   # `findings`: markers of the defects found
         self.findings_pub = self.create_publisher(MarkerArray, names.FINDINGS, MAP_QOS)
         self.findings_published = 0
+        self._findings_timer: Any = None
+        self._views_touched: set[tuple[int, int]] = set()   # tiles a findings tick took before the views saw them
 
         self.frames = RateMeter()
         self.contact_rate = RateMeter()
@@ -284,6 +287,7 @@ class PerceptionNode(Node):
         self.image_sub = self._subscribe_images(on_image)
         self._create_recapture_interface()
         self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+        self._set_findings_timer()
         self.tf = TransformPublisher(self)
         self._publish_camera_frame()
         self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name())
@@ -388,12 +392,14 @@ class PerceptionNode(Node):
             self.frame_id = self._contacts_frame_id()
         if "map.publish_rate" in changed:
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+            self._set_findings_timer()
         if changed & set(VIEW_PARAMETERS):
             with self._map_lock:
                 self.map_views.configure(self._view_config())
                 self._map_dirty = True
         if changed & set(LIVE_FINDINGS_PARAMETERS):
             self.live_findings.config = self._findings_config()
+            self._set_findings_timer()
 
     def _findings_config(self, overrides: dict[str, Any] | None = None) -> LiveFindingsConfig:
         values = {name: self.get_parameter(name).value for name in LIVE_FINDINGS_PARAMETERS}
@@ -409,7 +415,9 @@ class PerceptionNode(Node):
         return WorldMapConfig(resolution=float(values["map.resolution"]),
                               bounds=None if not any(bounds) else (bounds[0], bounds[1], bounds[2], bounds[3]),
                               latency=None if values["map.latency_estimate"] else 0.0,
-                              register=bool(values["map.register"]))
+                              register=bool(values["map.register"]),
+                              # live: frames waiting for the latency estimate are read provisionally
+                              provisional=True)
 
     def _height_config(self, overrides: dict[str, Any] | None = None) -> Any:
         from touchroller_perception.world_height import WorldHeightConfig
@@ -571,6 +579,30 @@ class PerceptionNode(Node):
         if rate_hz > 0:
             self._map_timer = self.create_timer(1.0 / rate_hz, self.publish_map)
 
+    def _set_findings_timer(self) -> None:
+        """The live findings at `findings.period` on a timer of their own when that is shorter than the map's
+        publication period (else at the map's publications, as many as are due)."""
+        if self._findings_timer is not None:
+            self.destroy_timer(self._findings_timer)
+            self._findings_timer = None
+        config = self.live_findings.config
+        rate = float(self.get_parameter("map.publish_rate").value)
+        if config.enabled and rate > 0 and 0 < config.period_s < 1.0 / rate:
+            self._findings_timer = self.create_timer(config.period_s, self.publish_findings)
+
+    def publish_findings(self) -> None:
+        """Between the map's publications: inspect what frames mapped since the last inspection when due
+        (the tiles they touched are kept for the views' next publication)."""
+        with self._map_lock:
+            world = self.world
+            now = self.get_clock().now().nanoseconds
+            if world is None or not self.live_findings.due(now * 1e-9):
+                return
+            touched = world.touched_tiles()
+            self.live_findings.note(touched)
+            self._views_touched |= touched
+        self._publish_findings(MapWindows(world, self._map_lock), now, False)
+
     def _push_map(self, image: np.ndarray, msg: Image) -> None:
         if self._map_timer is None:
             return
@@ -646,6 +678,7 @@ class PerceptionNode(Node):
             self._finish_error = ""
             self._finish_after_ns = None
             self.map_views.reset()
+            self._views_touched = set()
             gone = self.live_findings.reset()
         if gone:   # the previous map's findings: their markers go with it
             self.findings_pub.publish(markers([], gone, self.world_frame, self.get_clock().now().to_msg(), 0.0,
@@ -772,6 +805,8 @@ class PerceptionNode(Node):
                     world = self.world
                     touched = world.touched_tiles()
                     self.live_findings.note(touched)
+                    touched |= self._views_touched
+                    self._views_touched = set()
                     live = self.map_views.publish(world, touched, self.world_frame, now)
                     if live is not None and live.height is not None:
                         self._publish_height(live.height, now)

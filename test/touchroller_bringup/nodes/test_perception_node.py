@@ -697,3 +697,41 @@ def test_the_world_height_map_is_published_latched_as_32fc1_metres(ros_context, 
         executor.shutdown()
         node.destroy_node()
         helper.destroy_node()
+
+
+def test_live_findings_have_a_timer_of_their_own_and_the_views_keep_the_tiles_it_took(ros_context):
+    """findings.period (0.5 s) shorter than the map's publication period (1 s): the findings are inspected on
+    a timer of their own, so a region mapped just after an inspection waits half a second, not a second; the
+    tiles frames touched that such an inspection took still reach the map's views at their next publication."""
+    import math as _math
+
+    from touchroller_bringup.nodes.perception_node import PerceptionNode
+    from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+    overrides = [Parameter(name, value=value) for name, value in CAMERA.to_params().items()]
+    node = PerceptionNode(context=ros_context, parameter_overrides=overrides)
+    try:
+        assert node._findings_timer is not None and node._findings_timer.timer_period_ns == 500_000_000
+        assert node.set_parameters([Parameter("findings.period", value=1.0)])[0].successful
+        assert node._findings_timer is None            # as long as the map's: at its publications
+        assert node.set_parameters([Parameter("findings.period", value=0.25)])[0].successful
+        assert node._findings_timer.timer_period_ns == 250_000_000
+        world = WorldMapper(CAMERA, lambda stamps: np.zeros((len(stamps), 4, 4)),
+                            WorldMapConfig(resolution=1e-4, bounds=(0.40002, -0.09998, 0.40158, -0.09922)))
+        ones = np.ones((8, 8), np.float32)
+        world.canvas.add([100 * ones, ones, ones], 0, 0)
+        given: list = []
+        publish = node.map_views.publish
+        node.map_views.publish = lambda w, touched, *args: given.append(set(touched)) or publish(w, touched, *args)
+        node.world, node._map_dirty = world, True
+        node.publish_map()
+        world.canvas.add([120 * ones, ones, ones], 8, 0)      # frames land after that publication
+        node.live_findings._next_s = -_math.inf               # an inspection due
+        node.publish_findings()
+        assert node.live_findings.inspections == 2            # the findings tick looked at them
+        node._map_dirty = True
+        node.publish_map()
+        assert given[0] and given[1] == given[0]              # and the views still got their tiles
+    finally:
+        node.world = None
+        node.destroy_node()
