@@ -18,6 +18,8 @@ targets, compiled lookup, exact Poisson integration). The measurements are this 
   is, per held-out press, the 128 x 128 px window nearest the image centre that lies beyond 3 contact
   radii of the ball, its slopes made a
   height as a frame of its own is (`slopes_to_height`, the estimator's levelling): RMS about 0;
+  where it comes from (`no_contact_views`): the same beyond 4.5 contact radii, and the frames whose colour
+  drifted against the reference by more than 2 % in a channel apart from the others;
 * speed: CPU time (one thread) of slopes + integration per 640x480 frame and per roller band (the
   rows `contact_band` gives for the default camera, 0.5 mm deep), best of several;
 * what accuracy costs in time: lookup resolution, position cells, position term, smoothing, exact
