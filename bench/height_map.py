@@ -16,8 +16,9 @@ calibrated as a user would: a 4 mm ball cap pressed 0.6 mm at random places over
 from (along the axis nearly across the image, around it over the rows the mapper places: the model learns
 how a slope looks where it is, and cannot extrapolate where no press was), rendered by the generator, each
 press labelled by `find_press` (no truth), the pixel size and the roller's radius from
-config/touchroller.yaml's camera model, the features smoothed as a world map's calibration has
-them (`touchroller_perception.height.MAP_PHOTOMETRIC`); its raster is mapped by `touchroller map
+config/touchroller.yaml's camera model, calibrated as a world map's calibration is
+(`touchroller_perception.height.MAP_CALIBRATION`: the features smoothed by 1 px, the position degree chosen
+on held-out presses); its raster is mapped by `touchroller map
 --photometric --reference` as a whole command, and height.tif is scored against the generator's surface (low-passed
 as its gel is) in place.
 """
@@ -44,6 +45,9 @@ GOAL_CORRELATION = 0.95
 # nearly across the image (+-32 mm at the contact line), around it so that the 2.2 mm contacts cover the rows
 # the world mapper places (+-3.5 mm)
 PRESS_ALONG, PRESS_ACROSS = 0.029, 1.5e-3
+# the grained surface's map again with other calibrations (presses, seed): other places of the same count, and
+# other counts: the figure must not rest on one lucky draw of the presses
+DRAWS = ((24, 1), (24, 2), (24, 3), (16, 0), (48, 0))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +66,17 @@ class SurfaceScore:
 
 
 @dataclasses.dataclass(frozen=True)
+class PressDraw:
+    """The grained surface's map with the calibration of another press count or other press places."""
+
+    presses: int
+    seed: int
+    position_degree: int      # the degree the calibration chose on its held-out presses
+    rms_um: float
+    correlation: float
+
+
+@dataclasses.dataclass(frozen=True)
 class HeightMapResult:
     provenance: Provenance
     quick: bool
@@ -69,6 +84,9 @@ class HeightMapResult:
     normal_error_deg: float   # the calibration's in-sample fit
     surfaces: list[SurfaceScore]
     second_normal_error_deg: float = math.nan   # the second generator's calibration, in-sample
+    position_degree: int = -1                   # the simulator's calibration's chosen position degree
+    second_position_degree: int = -1            # the second generator's
+    draws: list[PressDraw] = dataclasses.field(default_factory=list)
 
 
 def _detrended(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -78,7 +96,11 @@ def _detrended(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.nda
     return out
 
 
-def score_surface(variant: str | None, presses: int) -> tuple[SurfaceScore, float]:
+def score_surface(variant: str | None, presses: int,
+                  draws: tuple[tuple[int, int], ...] = ()) -> tuple[SurfaceScore, float, int, list[PressDraw]]:
+    """The surface's map with the default calibration (seed 0, `presses`): its score, the calibration's
+    in-sample fit and chosen position degree; and the same raster mapped with the calibrations of `draws`
+    ((presses, seed) each: other press counts and other places of the presses)."""
     from touchroller_driver.arm import (
         DEFAULT_MOUNT_RPY,
         DEFAULT_MOUNT_XYZ,
@@ -88,41 +110,56 @@ def score_surface(variant: str | None, presses: int) -> tuple[SurfaceScore, floa
     )
     from touchroller_driver.sim import SimulatedSensor, load_scene
     from touchroller_driver.sim.camera import surface_frame
-    from touchroller_driver.sim.photometric import sim_photometric
+    from touchroller_driver.sim.photometric import SimPhotometric, sim_photometric
     from touchroller_driver.sim.sweep import simulate_sweep
     from touchroller_perception.transforms import TransformBuffer
     from touchroller_perception.world_height import HeightSource
     from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
 
     sensor = SimulatedSensor(load_scene("large_surface", variant=variant), seed=0)
-    photometric = sim_photometric(sensor, presses=presses)
     mount = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
     area = [0.42, -0.045, 0.04, 0.09]
     plan = plan_raster(np.array(DEFAULT_START_POSE), area=area, mount=mount, speed=0.02, accel=0.1, depth=5e-4,
                        clearance=0.002, approach_speed=0.005)
     events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=0.03))
     bounds = (area[0] - 0.01, area[1] - 0.04, area[0] + area[2] + 0.01, area[1] + area[3] + 0.04)
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, mount, static=True)
-    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                         WorldMapConfig(bounds=bounds, latency=0.03),
-                         height=HeightSource(photometric.calibration.model, photometric.reference))
-    begin = time.process_time()
-    for event in events:
-        if event[0] == "tf":
-            buffer.set_transform("base", "tool0", event[1], event[2])
-        else:
-            mapper.push(event[2], event[1])
-    mapper.finalise()
-    cpu = time.process_time() - begin
-    layer = mapper.height_layer(crop=False)
-    if layer is None:
-        raise RuntimeError("no height was mapped")
-    height = layer.height
-    truth, _ = sensor.world_truth(surface_frame(sensor.scene), layer.origin, height.shape, layer.resolution)
     name = "grain" if variant is None else variant
-    return (_score(name, height, truth, mapper.stats.passes, mapper.stats.mapped, cpu),
-            float(photometric.calibration.normal_error_deg))
+    truths: dict[tuple[object, ...], np.ndarray] = {}
+
+    def mapped(photometric: SimPhotometric) -> SurfaceScore:
+        buffer = TransformBuffer(cache_ns=None)
+        buffer.set_transform("tool0", "touchroller_cylinder", 0, mount, static=True)
+        mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                             WorldMapConfig(bounds=bounds, latency=0.03),
+                             height=HeightSource(photometric.calibration.model, photometric.reference))
+        begin = time.process_time()
+        for event in events:
+            if event[0] == "tf":
+                buffer.set_transform("base", "tool0", event[1], event[2])
+            else:
+                mapper.push(event[2], event[1])
+        mapper.finalise()
+        cpu = time.process_time() - begin
+        layer = mapper.height_layer(crop=False)
+        if layer is None:
+            raise RuntimeError("no height was mapped")
+        height = layer.height
+        key = (layer.origin, height.shape, layer.resolution)
+        if key not in truths:
+            truths[key], _ = sensor.world_truth(surface_frame(sensor.scene), layer.origin, height.shape,
+                                                layer.resolution)
+        return _score(name, height, truths[key], mapper.stats.passes, mapper.stats.mapped, cpu)
+
+    photometric = sim_photometric(sensor, presses=presses)
+    score = mapped(photometric)
+    others = []
+    for count, seed in draws:
+        other = sim_photometric(sensor, seed=seed, presses=count)
+        result = mapped(other)
+        others.append(PressDraw(count, seed, other.calibration.model.config.position_degree, result.rms_um,
+                                result.correlation))
+    chosen = photometric.calibration.model.config.position_degree
+    return score, float(photometric.calibration.normal_error_deg), chosen, others
 
 
 def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, float]:
@@ -132,9 +169,8 @@ def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, flo
     from bench.raster_generator.surfaces import Surface
     from touchroller_bringup.commands import read_calibration
     from touchroller_perception.height import (
-        MAP_PHOTOMETRIC,
+        MAP_CALIBRATION,
         BallPress,
-        PressCalibrationConfig,
         calibrate_photometric,
         find_press,
         pixel_size_at,
@@ -158,11 +194,11 @@ def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, flo
         image = renderer.frame([(np.array([0.5, 0.0]) - along * axis - across * roll, roll, 0.0)])
         u, v, r = find_press(image, reference)
         items.append(BallPress(image, u, v, r, pixel_size_at(model_camera, u, v), str(k), float(model_camera.radius)))
-    calibration = calibrate_photometric(items, reference, radius, PressCalibrationConfig(model=MAP_PHOTOMETRIC))
+    calibration = calibrate_photometric(items, reference, radius, MAP_CALIBRATION)
     return calibration.model, reference, float(calibration.normal_error_deg)
 
 
-def second_generator(presses: int) -> tuple[SurfaceScore, float]:
+def second_generator(presses: int) -> tuple[SurfaceScore, float, int]:
     """The second generator's grained raster mapped by `touchroller map` with its own calibration."""
     import shutil
     import tempfile
@@ -197,7 +233,7 @@ def second_generator(presses: int) -> tuple[SurfaceScore, float]:
         score = _score("grained (second generator)", height, true_height, 2, truth.frames, seconds)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return score, fit
+    return score, fit, int(model.config.position_degree)   # type: ignore[attr-defined]
 
 
 def _score(name: str, height: np.ndarray, truth: np.ndarray, passes: int, frames: int, seconds: float) -> SurfaceScore:
@@ -240,14 +276,15 @@ def run(quick: bool = False) -> HeightMapResult:
     # the simulator's model from as many presses as `touchroller scan --height` makes it from (the default):
     # how the presses land moves the map's smooth error along the axis (see docs/height.md)
     presses = 8 if quick else int(inspect.signature(sim_photometric).parameters["presses"].default)
-    scores, fit = [], math.nan
+    scores, fit, degree, draws = [], math.nan, -1, []
     for variant in ((None,) if quick else (None, "panel")):
-        score, error = score_surface(variant, presses)
+        score, error, chosen, others = score_surface(variant, presses, DRAWS if variant is None and not quick else ())
         scores.append(score)
-        fit = error if variant is None else fit
-    second, second_fit = second_generator(_second_presses(quick))
+        if variant is None:
+            fit, degree, draws = error, chosen, others
+    second, second_fit, second_degree = second_generator(_second_presses(quick))
     scores.append(second)
-    return HeightMapResult(stamp, quick, presses, fit, scores, second_fit)
+    return HeightMapResult(stamp, quick, presses, fit, scores, second_fit, degree, second_degree, draws)
 
 
 def goals(r: HeightMapResult) -> list[tuple[str, str, bool | None]]:
@@ -270,11 +307,12 @@ def goals(r: HeightMapResult) -> list[tuple[str, str, bool | None]]:
 def to_markdown(r: HeightMapResult) -> str:
     lines = [provenance_markdown(r.provenance), "",
              f"2-pass raster (4 x 9 cm, 20 mm/s, 0.5 mm pressed) of `large_surface`, photometric model from "
-             f"{r.presses} simulated ball presses of the same sensor (in-sample fit {r.normal_error_deg:.2f} deg); "
+             f"{r.presses} simulated ball presses of the same sensor, placed evenly over the band (in-sample fit "
+             f"{r.normal_error_deg:.2f} deg, position degree {r.position_degree} chosen on held-out presses); "
              "the height map against the true relief in place, on the cells 1 mm inside the mapped area; "
              "the second generator (shares nothing with the simulator) calibrated on "
              f"{_second_presses(r.quick)} of its own ball caps over the band (in-sample fit "
-             f"{r.second_normal_error_deg:.2f} deg), its raster mapped by "
+             f"{r.second_normal_error_deg:.2f} deg, position degree {r.second_position_degree}), its raster mapped by "
              "`touchroller map`.", "",
              "| surface | true relief RMS, um | error RMS (one best plane removed), um | correlation | cells | "
              "fine relief cells | fine relief read / true | fine relief correlation | passes | frames | s |",
@@ -283,6 +321,17 @@ def to_markdown(r: HeightMapResult) -> str:
         lines.append(f"| {s.surface} | {s.relief_rms_um:.1f} | {s.rms_um:.1f} | {s.correlation:.3f} | {s.cells} | "
                      f"{s.fine_cells} | {s.fine_scale:.2f} | {s.fine_correlation:.3f} | {s.passes} | "
                      f"{s.frames_mapped} | {s.map_cpu_s:.1f} |")
+    if r.draws:
+        worst = max(r.draws, key=lambda d: d.rms_um)
+        lines += ["", "The grained surface's map with other calibrations (other press places and counts; the "
+                  "position degree each chose on its held-out presses):", "",
+                  "| presses | seed | position degree | error RMS, um | correlation |", "|---|---|---|---|---|",
+                  f"| {r.presses} | 0 (the figure above) | {r.position_degree} | {grain_rms(r):.1f} | "
+                  f"{grain_corr(r):.3f} |"]
+        lines += [f"| {d.presses} | {d.seed} | {d.position_degree} | {d.rms_um:.1f} | {d.correlation:.3f} |"
+                  for d in r.draws]
+        lines += ["", f"Worst of these: {worst.rms_um:.1f} um, correlation "
+                  f"{min(d.correlation for d in r.draws):.3f} (lowest)."]
     lines += ["", "Fine relief: where the true relief departs from its own 2 mm Gaussian by more than 3 um (the "
               "planted cracks, dents, grooves and pits, and the grain's finer part), the map's departure from its "
               "own 2 mm Gaussian against the truth's: how much of a feature's depth the map reads, and how well "
@@ -292,10 +341,19 @@ def to_markdown(r: HeightMapResult) -> str:
     return "\n".join(lines) + "\n"
 
 
+def grain_rms(r: HeightMapResult) -> float:
+    return next((s.rms_um for s in r.surfaces if s.surface == "grain"), math.nan)
+
+
+def grain_corr(r: HeightMapResult) -> float:
+    return next((s.correlation for s in r.surfaces if s.surface == "grain"), math.nan)
+
+
 def load(path: Path) -> HeightMapResult:
     raw = json.loads(Path(path).read_text())
     raw["provenance"] = Provenance(**raw["provenance"])
     raw["surfaces"] = [SurfaceScore(**s) for s in raw["surfaces"]]
+    raw["draws"] = [PressDraw(**d) for d in raw.get("draws", [])]
     return HeightMapResult(**raw)
 
 

@@ -18,6 +18,8 @@ targets, compiled lookup, exact Poisson integration). The measurements are this 
   is, per held-out press, the 128 x 128 px window nearest the image centre that lies beyond 3 contact
   radii of the ball, its slopes made a
   height as a frame of its own is (`slopes_to_height`, the estimator's levelling): RMS about 0;
+  where it comes from (`no_contact_views`): the same beyond 4.5 contact radii, and the frames whose colour
+  drifted against the reference by more than 2 % in a channel apart from the others;
 * speed: CPU time (one thread) of slopes + integration per 640x480 frame and per roller band (the
   rows `contact_band` gives for the default camera, 0.5 mm deep), best of several;
 * what accuracy costs in time: lookup resolution, position cells, position term, smoothing, exact
@@ -60,6 +62,7 @@ from touchroller_perception.height import (
     slopes_to_height,
     sphere_slopes,
 )
+from touchroller_perception.height.photometric import frame_gain
 
 BALL = 2.0e-3
 BAND_DEPTH = 5.0e-4     # the roller's band: rows a 0.5 mm press reaches (the scenes' press depth)
@@ -70,6 +73,10 @@ STILL_CHANGE = 0.03
 # PressCalibrationConfig.far_fraction for the trade-off row: chosen on the even presses alone (0 mod 4 calibrate,
 # 2 mod 4 measured), where 0.01 -> 0.05 took the no-contact window 8.2 -> 3.5 um and the sphere-fit RMS 21.8 -> 18.2
 FAR_DENSE = 0.05
+# the no-contact diagnosis (`no_contact_views`): a window further from the press (taxim's GelSight changes colour
+# up to ~4.5 contact radii from a press), and frames whose light drifted against the reference by more than this
+FAR_WINDOW = 4.5
+DRIFT = 0.02
 BASELINE = {"angle_deg": 6.2, "rms_um": 25.0, "radius_mm": 1.89, "depth_ratio": 0.96, "ms": 40.0}
 GOALS = {"angle_deg": 4.0, "rms_um": 15.0, "radius_rel": 0.03, "depth_lo": 0.9, "depth_hi": 1.1, "flat_um": 5.0,
          "frame_ms": 10.0, "band_ms": 2.0}
@@ -88,6 +95,8 @@ class PressMeasure:
     flat_um: float              # RMS of a no-contact window (nan when none fits)
     circle: tuple[float, float, float]
     label: tuple[float, float, float]
+    flat_far_um: float = math.nan   # the same window beyond FAR_WINDOW contact radii (nan when none fits)
+    drift: float = math.nan         # the frame's largest per-channel colour drift against the reference, |gain - 1|
 
 
 @dataclasses.dataclass(frozen=True)
@@ -176,9 +185,10 @@ def geometric_cap(a_px: float, pixel: float, radius: float = BALL) -> float:
     return radius - math.sqrt(max(radius * radius - a * a, 0.0))
 
 
-def flat_window(shape: tuple[int, int], cu: float, cv: float, r: float, size: int = 128) -> tuple[slice, slice] | None:
-    """The size x size window (on a 16-px grid) nearest the image centre whose every pixel is beyond 3 r of
-    the contact (the sensor's field, not the gel's border in the corners)."""
+def flat_window(shape: tuple[int, int], cu: float, cv: float, r: float, size: int = 128,
+                factor: float = 3.0) -> tuple[slice, slice] | None:
+    """The size x size window (on a 16-px grid) nearest the image centre whose every pixel is beyond `factor`
+    r of the contact (the sensor's field, not the gel's border in the corners)."""
     h, w = shape
     best, best_d = None, math.inf
     for v0 in range(0, h - size + 1, 16):
@@ -187,7 +197,7 @@ def flat_window(shape: tuple[int, int], cu: float, cv: float, r: float, size: in
             dv = max(v0 - cv, 0.0, cv - (v0 + size))
             d = math.hypot(du, dv)
             centre = math.hypot(u0 + size / 2 - w / 2, v0 + size / 2 - h / 2)
-            if d >= 3 * r and centre < best_d:
+            if d >= factor * r and centre < best_d:
                 best, best_d = (slice(v0, v0 + size), slice(u0, u0 + size)), centre
     return best
 
@@ -207,13 +217,28 @@ def measure_press(index: int, est: HeightEstimator, image: np.ndarray, reference
     rms_fixed, _, _ = sphere_fit(z, cu, cv, r, pixel, fixed_radius=BALL)
     depth = rim_depth(z, circle.u, circle.v, circle.radius_px)
     window = flat_window(image.shape[:2], circle.u, circle.v, circle.radius_px)
-    flat = math.nan
-    if window is not None:
-        wz = slopes_to_height(gx[window], gy[window], pixel, est.config)   # as a frame of its own
-        flat = float(np.sqrt(np.mean(wz**2)))
+    flats = []
+    for win in (window, flat_window(image.shape[:2], circle.u, circle.v, circle.radius_px, factor=FAR_WINDOW)):
+        wz = slopes_to_height(gx[win], gy[win], pixel, est.config) if win is not None else None   # a frame of its own
+        flats.append(float(np.sqrt(np.mean(wz**2))) if wz is not None else math.nan)
+    drift = float(np.max(np.abs(frame_gain(image, reference) - 1.0)))
     return PressMeasure(index, angles[0], angles[1], rms * 1e6, radius * 1e3, rms_fixed * 1e6,
                         depth / geometric_cap(circle.radius_px, pixel), depth / geometric_cap(r, pixel),
-                        flat * 1e6, (circle.u, circle.v, circle.radius_px), (cu, cv, r))
+                        flats[0] * 1e6, (circle.u, circle.v, circle.radius_px), (cu, cv, r), flats[1] * 1e6, drift)
+
+
+def no_contact_views(measures: Sequence[PressMeasure]) -> dict[str, tuple[float, int]]:
+    """Where the no-contact windows' height comes from: (median window RMS um, windows) beyond 3 and beyond
+    FAR_WINDOW contact radii, and beyond 3 radii in the frames whose colour drifted against the reference by
+    more than DRIFT in a channel and in the others."""
+    def median(values: list[float]) -> tuple[float, int]:
+        kept = [v for v in values if math.isfinite(v)]
+        return (float(np.median(kept)) if kept else math.nan, len(kept))
+
+    return {"beyond 3 radii": median([m.flat_um for m in measures]),
+            f"beyond {FAR_WINDOW:g} radii": median([m.flat_far_um for m in measures]),
+            f"frames drifted > {DRIFT:.0%}": median([m.flat_um for m in measures if m.drift > DRIFT]),
+            f"frames drifted <= {DRIFT:.0%}": median([m.flat_um for m in measures if m.drift <= DRIFT])}
 
 
 def summarise(measures: Sequence[PressMeasure]) -> Summary:
@@ -439,6 +464,11 @@ def to_markdown(r: HeightRealResult) -> str:
               "- circularity of the fitted R (the model is trained assuming a radius; even presses calibrate, odd "
               "measured): " + ", ".join(f"assumed {k} mm -> fitted {v:.3f} mm" for k, v in r.circularity.items())
               + f"; assumed 2.0 mm -> fitted {g.radius_mm:.3f} mm (the k-fold above)"]
+    if any(math.isfinite(m.drift) for m in r.per_press):
+        lines += ["- where the no-contact windows' height comes from (median window RMS, windows): "
+                  + ", ".join(f"{k}: {v:.2f} um ({n})" for k, (v, n) in no_contact_views(r.per_press).items())
+                  + " (a frame's drift: its largest per-channel colour change against the reference, which the "
+                  "frame gain divides out over the whole frame)"]
     if r.mini is not None:
         m = r.mini
         lines += [f"- `gelsight_mini` (development set, ball radius unknown, calibrated assuming 2.0 mm, 3-fold): "

@@ -38,3 +38,16 @@ def test_flat_window_is_beyond_three_radii():
                   for _ in corners)
     assert nearest >= 120.0
     assert hr.flat_window((200, 200), 100.0, 100.0, 60.0) is None
+
+
+def test_a_further_window_and_the_no_contact_views():
+    near, far = hr.flat_window((480, 640), 320.0, 100.0, 40.0), hr.flat_window((480, 640), 320.0, 100.0, 40.0,
+                                                                              factor=4.5)
+    assert near is not None and far is not None and far[0].start >= 100 + 4.5 * 40 > near[0].start
+
+    def measure(flat, far_flat, drift):
+        return hr.PressMeasure(0, 1.0, 1.0, 1.0, 2.0, 1.0, 1.0, 1.0, flat, (0, 0, 1), (0, 0, 1), far_flat, drift)
+
+    views = hr.no_contact_views([measure(10.0, 3.0, 0.05), measure(2.0, math.nan, 0.0), measure(4.0, 1.0, 0.01)])
+    assert views["beyond 3 radii"] == (4.0, 3) and views["beyond 4.5 radii"] == (2.0, 2)
+    assert views["frames drifted > 2%"] == (10.0, 1) and views["frames drifted <= 2%"] == (3.0, 2)

@@ -17,9 +17,9 @@ import numpy as np
 
 from touchroller_driver.sim.render import RollerState, SimulatedSensor
 from touchroller_driver.sim.scenarios import NO_CONTACT_DEPTH
-from touchroller_driver.sim.scene import load_scene
+from touchroller_driver.sim.scene import Scene, load_scene
 from touchroller_perception.height import (
-    MAP_PHOTOMETRIC,
+    MAP_CALIBRATION,
     BallPress,
     PhotometricCalibration,
     PressCalibrationConfig,
@@ -27,10 +27,6 @@ from touchroller_perception.height import (
     pixel_size_at,
 )
 from touchroller_perception.world_height import WorldHeightConfig
-
-#: the calibration a world height map gets: the product's map model (`MAP_PHOTOMETRIC`: the image smoothed by
-#: 1 px before the colour features, not the default 2; a map cell averages some twenty frames)
-MAP_CALIBRATION = PressCalibrationConfig(model=MAP_PHOTOMETRIC)
 
 
 @dataclass(frozen=True)
@@ -48,30 +44,62 @@ def no_contact_reference(sensor: SimulatedSensor, frames: int = 5) -> np.ndarray
     return np.median(stack, axis=0).astype(np.uint8)
 
 
-def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 24,
-                    config: PressCalibrationConfig | None = None, ball_radius: float | None = None,
-                    press_depth: float | None = None, band_depth: float | None = None) -> SimPhotometric:
-    """Calibrate the photometric model of a simulated sensor from `presses` ball presses (the
-    `ball_presses` scene with its scene's camera and sensor), and render its reference.
+def in_view_span(sensor: SimulatedSensor, alpha_span: float = 0.0, samples: int = 401) -> float:
+    """The part of the roller's length the camera sees over the rows within `alpha_span` (rad) of the contact
+    line, as the `ball_presses` scene's `x_span` (a fraction of the length, centred): presses beyond it are
+    out of view and lost."""
+    cam = sensor.camera
+    half = 0.5 * float(cam.length)
+    xs = np.linspace(-half, half, samples)
+    seen = np.ones(samples, bool)
+    for alpha in np.linspace(-alpha_span, alpha_span, 5):
+        for k, x in enumerate(xs):
+            uv, ok = cam.project(sensor.membrane_point(float(x), float(alpha)))
+            seen[k] &= (bool(ok) and bool(np.isfinite(uv).all()) and 0.0 <= float(uv[0]) < cam.width
+                        and 0.0 <= float(uv[1]) < cam.height)
+    inside = xs[seen]
+    if inside.size == 0:
+        raise ValueError("the camera does not see the roller's contact band")
+    return float(min(-inside.min(), inside.max(), half) / half)
 
-    The presses land at random over the rows a press of `band_depth` reaches (default: the rows a world
-    height map integrates, `WorldHeightConfig.band_depth`) and along the axis: the model learns how a slope
-    looks where it was pressed, and its position terms do not extrapolate (pressed only near the contact
-    line, the slopes of a scan's contact band away from that line read too gentle)."""
-    scene = sensor.scene
+
+def ball_press_scene(sensor: SimulatedSensor, presses: int = 24, ball_radius: float | None = None,
+                     press_depth: float | None = None, band_depth: float | None = None,
+                     placement: str = "stratified") -> Scene:
+    """The `ball_presses` scene with `sensor`'s camera and sensor: `presses` presses over the rows a press of
+    `band_depth` reaches (default: the rows a world height map integrates, `WorldHeightConfig.band_depth`)
+    and along the part of the axis the camera sees (`in_view_span`), placed `placement` (`stratified`:
+    evenly over that band whatever the draw; `random`: independent uniform places)."""
     if presses < 4:
         raise ValueError(f"a photometric calibration needs at least 4 presses, got {presses}")
     depth = WorldHeightConfig().band_depth if band_depth is None else float(band_depth)
     radius = float(sensor.camera.radius)
     if not (math.isfinite(depth) and 0 < depth < radius):
         raise ValueError(f"band_depth must be in (0, the roller's radius {radius} m), got {depth}")
+    alpha_span = math.acos(1.0 - depth / radius)
+    scene = sensor.scene
     overrides: dict[str, Any] = {"camera": dict(scene.data["camera"]), "sensor": dict(scene.data["sensor"]),
-                                 "motion.presses": presses, "motion.alpha_span": math.acos(1.0 - depth / radius)}
+                                 "motion.presses": presses, "motion.alpha_span": alpha_span,
+                                 "motion.placement": placement, "motion.x_span": in_view_span(sensor, alpha_span)}
     if ball_radius is not None:
         overrides["motion.ball_radius"] = ball_radius
     if press_depth is not None:
         overrides["motion.press_depth"] = press_depth
-    balls = load_scene("ball_presses", **overrides)
+    return load_scene("ball_presses", **overrides)
+
+
+def sim_photometric(sensor: SimulatedSensor, seed: int = 0, presses: int = 24,
+                    config: PressCalibrationConfig | None = None, ball_radius: float | None = None,
+                    press_depth: float | None = None, band_depth: float | None = None,
+                    placement: str = "stratified") -> SimPhotometric:
+    """Calibrate the photometric model of a simulated sensor from `presses` ball presses (`ball_press_scene`:
+    the `ball_presses` scene with its scene's camera and sensor), and render its reference.
+
+    The presses land evenly over the rows a press of `band_depth` reaches and along the axis: the model
+    learns how a slope looks where it was pressed, and its position terms do not extrapolate (pressed only
+    near the contact line, the slopes of a scan's contact band away from that line read too gentle). The
+    default calibration (`MAP_CALIBRATION`) chooses the model's position degree on held-out presses."""
+    balls = ball_press_scene(sensor, presses, ball_radius, press_depth, band_depth, placement)
     press_sensor = SimulatedSensor(balls, seed=seed + 1)
     camera = press_sensor.camera
     refs: list[np.ndarray] = []

@@ -254,9 +254,16 @@ def _ball_presses(scene: Scene, sensor: SimulatedSensor) -> Iterator[Step]:
     for _ in range(int(m.get("reference_frames", 5))):
         yield Step(k / scene.fps, _idle(k / scene.fps), {"contacts": [], "phase": "reference"})
         k += 1
-    for _ in range(int(m.get("presses", 20))):
-        x = float(rng.uniform(-x_span, x_span))
-        alpha = float(rng.uniform(-alpha_span, alpha_span))
+    count = int(m.get("presses", 20))
+    placement = str(m.get("placement", "random"))
+    if placement == "random":
+        places = [(float(rng.uniform(-x_span, x_span)), float(rng.uniform(-alpha_span, alpha_span)))
+                  for _ in range(count)]
+    elif placement == "stratified":
+        places = stratified_places(count, x_span, alpha_span, alpha_span * float(cam.radius), rng)
+    else:
+        raise ValueError(f"ball_presses: placement must be random or stratified, got {placement!r}")
+    for x, alpha in places:
         depth = press + float(rng.uniform(-jitter, jitter))
         membrane = sensor.membrane_point(x, alpha)
         dist = float(np.hypot(membrane[1], membrane[2])) + radius - depth
@@ -276,6 +283,26 @@ def _ball_presses(scene: Scene, sensor: SimulatedSensor) -> Iterator[Step]:
         for _ in range(gap):
             yield Step(k / scene.fps, _idle(k / scene.fps), {"contacts": [], "phase": "gap"})
             k += 1
+
+
+def stratified_places(count: int, x_span: float, alpha_span: float, across: float,
+                      rng: np.random.Generator) -> list[tuple[float, float]]:
+    """`count` (x, alpha) press places spread evenly over x in [-x_span, x_span] and alpha in
+    [-alpha_span, alpha_span] (`across`: that half span in metres on the membrane): rows across the band,
+    as many as keep the cells about square, each row's presses in equal strata along x, each place uniform
+    within its cell. Every part of the band gets its share of
+    presses whatever the draw, where independent uniform places leave holes and clumps."""
+    if count < 1:
+        return []
+    rows = int(np.clip(round(math.sqrt(count * across / max(x_span, 1e-12))), 1, count))
+    per_row = [count // rows + (1 if j < count % rows else 0) for j in range(rows)]
+    places = []
+    for j, n in enumerate(per_row):
+        for i in range(n):
+            fx = (i + float(rng.uniform(0.0, 1.0))) / n
+            fa = (j + float(rng.uniform(0.0, 1.0))) / rows
+            places.append(((2.0 * fx - 1.0) * x_span, (2.0 * fa - 1.0) * alpha_span))
+    return places
 
 
 # --------------------------------------------------------------------------- chessboard

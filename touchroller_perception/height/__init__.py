@@ -25,7 +25,9 @@ from touchroller_perception.height.photometric import (
     fit_model,
 )
 from touchroller_perception.height.presses import (
+    MAP_CALIBRATION,
     BallPress,
+    DegreeScore,
     FittedCircle,
     PhotometricCalibration,
     PressCalibrationConfig,
@@ -39,9 +41,9 @@ from touchroller_perception.height.presses import (
 )
 
 __all__ = [
-    "MAP_PHOTOMETRIC", "BallPress", "ContactBand", "FittedCircle", "HeightConfig", "HeightEstimator",
-    "PhotometricCalibration", "PhotometricConfig", "PhotometricModel", "PressCalibrationConfig", "PressFit",
-    "SlopeLookup", "band_height", "calibrate_photometric", "change_magnitude", "colour_features", "contact_band",
-    "divergence", "find_press", "fit_model", "forward_differences", "integrate", "normal_angles_deg",
-    "pixel_size_at", "poisson_solve", "refine_circle", "slopes_to_height", "sphere_slopes",
+    "MAP_CALIBRATION", "MAP_PHOTOMETRIC", "BallPress", "ContactBand", "DegreeScore", "FittedCircle",
+    "HeightConfig", "HeightEstimator", "PhotometricCalibration", "PhotometricConfig", "PhotometricModel",
+    "PressCalibrationConfig", "PressFit", "SlopeLookup", "band_height", "calibrate_photometric", "change_magnitude",
+    "colour_features", "contact_band", "divergence", "find_press", "fit_model", "forward_differences", "integrate",
+    "normal_angles_deg", "pixel_size_at", "poisson_solve", "refine_circle", "slopes_to_height", "sphere_slopes",
 ]

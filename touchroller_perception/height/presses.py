@@ -23,13 +23,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
 from touchroller_perception.calibration.common import CalibrationError
 from touchroller_perception.height.photometric import (
+    MAP_PHOTOMETRIC,
     PhotometricConfig,
     PhotometricModel,
     colour_features,
@@ -70,6 +71,10 @@ class PressCalibrationConfig:
     far_factor: float = 2.2              # far field: beyond this many contact radii ...
     far_fraction: float = 0.01           # ... this fraction of its pixels, slope 0 (0.05: see docs/height.md)
     seed: int = 0
+    # candidate position degrees, the one whose slopes hold their gain best on held-out presses is used
+    # (`choose_position_degree`); empty: the model's own `position_degree`
+    position_degrees: tuple[int, ...] = ()
+    selection_folds: int = 4             # presses split this many ways (press i in fold i mod folds) to choose
 
     def __post_init__(self) -> None:
         if not (0.0 < self.search[0] < 1.0 < self.search[1] <= 2.0):
@@ -80,6 +85,16 @@ class PressCalibrationConfig:
             raise ValueError(f"far_factor must be > 1, got {self.far_factor}")
         if not 0 < self.max_slope_angle_deg < 90:
             raise ValueError("max_slope_angle_deg must be in (0, 90)")
+        if not all(0 <= int(d) <= 6 for d in self.position_degrees):
+            raise ValueError(f"position_degrees must be 0..6 each, got {self.position_degrees}")
+        if not 2 <= self.selection_folds <= 20:
+            raise ValueError(f"selection_folds must be 2..20, got {self.selection_folds}")
+
+
+#: a world height map's calibration: the map's model (`MAP_PHOTOMETRIC`), its position degree chosen from 0..3
+#: by held-out presses (`choose_position_degree`): the map integrates slopes across its band, and a gain that
+#: wanders along the roller's axis is a relief that is not there
+MAP_CALIBRATION = PressCalibrationConfig(model=MAP_PHOTOMETRIC, position_degrees=(0, 1, 2, 3))
 
 
 @dataclass(frozen=True)
@@ -108,10 +123,20 @@ class PressFit:
 
 
 @dataclass(frozen=True)
+class DegreeScore:
+    """How a candidate position degree holds the slopes' gain on held-out presses (`choose_position_degree`)."""
+
+    degree: int
+    gain_deviation: float     # RMS over held-out presses and both slopes of (read / true gain - 1)
+    normal_error_deg: float   # median over held-out presses of each press's median normal-angle error
+
+
+@dataclass(frozen=True)
 class PhotometricCalibration:
     model: PhotometricModel
     presses: tuple[PressFit, ...]
     ball_radius: float
+    degree_scores: tuple[DegreeScore, ...] = ()   # the candidates weighed (empty: none were)
 
     @property
     def normal_error_deg(self) -> float:
@@ -125,7 +150,14 @@ class PhotometricCalibration:
         return (f"photometric calibration: {len(self.presses)} presses, ball radius {self.ball_radius * 1e3:.3f} mm, "
                 f"{len(self.model.coefficients)} terms; normal-angle residual median {self.normal_error_deg:.2f} deg "
                 f"(in-sample); {refined} circles refined from the images (centre moved {np.median(shifts):.1f} px, "
-                f"radius {np.median(dr):+.1f} px, medians)")
+                f"radius {np.median(dr):+.1f} px, medians)" + self._degree_summary())
+
+    def _degree_summary(self) -> str:
+        if not self.degree_scores:
+            return ""
+        weighed = ", ".join(f"{s.degree}: {100 * s.gain_deviation:.2f} %" for s in self.degree_scores)
+        return (f"; position degree {self.model.config.position_degree} (held-out slope gain deviation by degree: "
+                f"{weighed})")
 
 
 def change_magnitude(image: np.ndarray, reference: np.ndarray, sigma: float = 1.5) -> np.ndarray:
@@ -292,12 +324,58 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
     vs = np.concatenate([p[2] for p in parts])
     targets = np.concatenate([p[3] for p in parts])
     pixel = float(np.median([np.mean(p.pixel_size) for p in presses]))
+    model_config = config.model
+    scores: tuple[DegreeScore, ...] = ()
+    if config.position_degrees:
+        scores = choose_position_degree(parts, config, w, h)
+        best = min(scores, key=lambda sc: (sc.gain_deviation, sc.degree))
+        model_config = replace(config.model, position_degree=best.degree)
     try:
-        model = fit_model(config.model, feats, us, vs, targets, w, h, pixel_size=pixel, ball_radius=ball_radius)
+        model = fit_model(model_config, feats, us, vs, targets, w, h, pixel_size=pixel, ball_radius=ball_radius)
     except ValueError as exc:
         raise CalibrationError(str(exc)) from None
     fits = tuple(press_fit(model, p, c, reference, ball_radius, config) for p, c in zip(presses, circles, strict=True))
-    return PhotometricCalibration(model, fits, float(ball_radius))
+    return PhotometricCalibration(model, fits, float(ball_radius), scores)
+
+
+def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                           config: PressCalibrationConfig, width: int, height: int) -> tuple[DegreeScore, ...]:
+    """Each candidate of `config.position_degrees` weighed on held-out presses: the presses (their samples,
+    `press_samples`) split `selection_folds` ways, each part's presses read by a model fitted on the others.
+    The score is how far a held-out press's slopes read from their true size (per press and slope, the
+    least-squares gain of read on true over its contact): a height map integrates slopes across its band,
+    so a gain that wanders from place to place is a relief that is not there, while the normal-angle
+    residual (also reported) is led by a ball's steep slopes. Position terms of a high degree fit the
+    presses' own patches and wander between them; how high the presses' coverage carries is what this finds."""
+    n = len(parts)
+    folds = min(config.selection_folds, n)
+    if n < 4:
+        raise CalibrationError(f"choosing the position degree needs at least 4 presses, got {n}")
+    scores = []
+    for degree in dict.fromkeys(int(d) for d in config.position_degrees):
+        model_config = replace(config.model, position_degree=degree)
+        gains, angles = [], []
+        for k in range(folds):
+            train = [parts[i] for i in range(n) if i % folds != k]
+            try:
+                model = fit_model(model_config, np.concatenate([p[0] for p in train]),
+                                  np.concatenate([p[1] for p in train]), np.concatenate([p[2] for p in train]),
+                                  np.concatenate([p[3] for p in train]), width, height)
+            except ValueError as exc:
+                raise CalibrationError(str(exc)) from None
+            for i in range(k, n, folds):
+                feats, us, vs, targets = parts[i]
+                contact = np.abs(targets).sum(axis=1) > 0     # the far field's targets are 0
+                if contact.sum() < 10:
+                    continue
+                read = model.slopes_at(feats[contact], us[contact], vs[contact])
+                true = targets[contact]
+                for j in range(2):
+                    gains.append(float(read[:, j] @ true[:, j]) / max(float(true[:, j] @ true[:, j]), 1e-12))
+                angles.append(float(np.median(normal_angles_deg(read[:, 0], read[:, 1], true[:, 0], true[:, 1]))))
+        deviation = float(np.sqrt(np.mean((np.array(gains) - 1.0) ** 2))) if gains else math.inf
+        scores.append(DegreeScore(degree, deviation, float(np.median(angles)) if angles else math.nan))
+    return tuple(scores)
 
 
 def press_fit(model: PhotometricModel, press: BallPress, circle: FittedCircle, reference: np.ndarray,

@@ -81,3 +81,33 @@ def test_the_presses_band_depth_is_checked():
     sensor = sim.SimulatedSensor(sim.load_scene("inspection_panel"), seed=0)
     with pytest.raises(ValueError, match="band_depth"):
         sim_photometric(sensor, band_depth=float("nan"))
+
+
+def test_every_press_lands_in_view_and_the_position_degree_is_chosen(grained):
+    # the presses are spread over the part of the roller the camera sees (the scene's 0.8 of its length
+    # reaches beyond the image's ends, and a press there is lost), and the map's calibration weighs the
+    # position degree on held-out presses
+    _, photometric = grained
+    calibration = photometric.calibration
+    assert len(calibration.presses) == 6
+    assert {s.degree for s in calibration.degree_scores} == {0, 1, 2, 3}
+    chosen = min(calibration.degree_scores, key=lambda s: (s.gain_deviation, s.degree)).degree
+    assert calibration.model.config.position_degree == chosen
+
+
+def test_the_calibration_presses_land_in_view_over_the_band():
+    # the scene's own 0.8 of the roller's length reaches beyond the image's ends: there a press is lost (a third
+    # of them, before); the presses now spread over what the camera sees, evenly across the band's rows
+    from touchroller_driver.sim.photometric import ball_press_scene
+
+    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
+    scene = ball_press_scene(sensor, presses=24)
+    cam = sensor.camera
+    contacts = [f.truth["contacts"][0] for f in sim.SimulatedSensor(scene, seed=1).frames()
+                if f.truth["phase"] == "press"]
+    pixels = np.array([c["pixel"] for c in contacts])
+    assert len(pixels) == 24
+    assert ((pixels[:, 0] >= 0) & (pixels[:, 0] < cam.width) & (pixels[:, 1] >= 0) & (pixels[:, 1] < cam.height)).all()
+    alphas = np.array([c["alpha"] for c in contacts])
+    span = float(scene.motion["alpha_span"])
+    assert np.histogram(alphas, bins=3, range=(-span, span))[0].min() == 8

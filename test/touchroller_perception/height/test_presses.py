@@ -2,6 +2,8 @@
 labels, slopes recovered on held-out presses, refusals in one line."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -159,3 +161,44 @@ def test_a_rollers_curvature_along_v_is_in_the_targets():
     assert gains[np.inf] < 0.85
     with pytest.raises(CalibrationError, match="membrane radius"):
         BallPress(presses[0][0], 1.0, 1.0, 5.0, (PIXEL, PIXEL), "x", membrane_radius=0.0)
+
+
+def test_the_position_degree_is_chosen_by_held_out_presses(synthetic_presses):
+    # the renderer's uneven light is a gain the colour ratios divide out: position terms have nothing to learn,
+    # and a cubic one, fitted on ten presses, reads held-out presses with a wandering gain; the choice weighs each
+    # candidate on presses it was not fitted on and takes the steadiest
+    from touchroller_perception.height import DegreeScore
+
+    reference, presses = synthetic_presses
+    items = _presses(presses[:10])
+    config = dataclasses.replace(CONFIG, position_degrees=(3, 1, 0), selection_folds=5)
+    result = calibrate_photometric(items, reference, BALL, config)
+    scores = {s.degree: s for s in result.degree_scores}
+    assert set(scores) == {0, 1, 3} and all(isinstance(s, DegreeScore) for s in scores.values())
+    assert scores[3].gain_deviation > 1.5 * min(scores[0].gain_deviation, scores[1].gain_deviation)
+    assert result.model.config.position_degree == min(scores.values(), key=lambda s: s.gain_deviation).degree != 3
+    assert "position degree" in result.summary()
+    # the chosen model reads the presses it never saw at their size; the cubic one less so
+    cubic = calibrate_photometric(items, reference, BALL, dataclasses.replace(
+        CONFIG, model=dataclasses.replace(CONFIG.model, position_degree=3)))
+
+    def gain_error(model):
+        errors = []
+        for img, cu, cv, contact, gx, gy, _z in presses[10:]:
+            vv, uu = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+            inside = np.hypot(uu - cu, vv - cv) < contact - 2
+            px, py = model.slopes(img, reference)
+            errors += [abs(float(px[inside] @ gx[inside] / (gx[inside] @ gx[inside])) - 1),
+                       abs(float(py[inside] @ gy[inside] / (gy[inside] @ gy[inside])) - 1)]
+        return max(errors)
+
+    assert gain_error(result.model) < gain_error(cubic.model)
+
+
+def test_position_degree_choice_needs_presses_and_valid_candidates(synthetic_presses):
+    reference, presses = synthetic_presses
+    with pytest.raises(ValueError, match="position_degrees"):
+        PressCalibrationConfig(position_degrees=(7,))
+    with pytest.raises(CalibrationError, match="at least 4 presses"):
+        calibrate_photometric(_presses(presses[:3]), reference, BALL,
+                              dataclasses.replace(CONFIG, position_degrees=(0, 1)))
