@@ -10,7 +10,7 @@ balance of `extrinsics`). Two things a roller's lighting does to imprints are ha
   from a low light steeper than the light's elevation gets none of it (its shading stops at a
   floor), which breaks that symmetry and still pulls the centre towards the light:
   `_censored_centre` fits the imprint's pattern with the pixels at the floor censored, not
-  symmetrised;
+  symmetrised (`censored_centres`);
 * the light falls off across the membrane, so an absolute strength reads the brighter row as the
   deeper one: strengths are taken relative to the light (`_relative_energy`): the no-contact
   reference's brightness, or, given a frame with the lights off, the reference minus it (`_light`);
@@ -145,8 +145,9 @@ class ImprintDetection:
     found: int                       # blobs found
     reason: str | None
     strengths: FloatArray | None = None   # each imprint's summed change (`ImprintDetectorConfig.strength`), frame order
-    #: (rows*columns, 2) px, frame order: how far a squared weighting moves each shading-symmetric centre from the
-    #: magnitude-weighted one, the size of the pull a shadow leaves (`shadow_pull`); None for "centroid"
+    #: (rows*columns, 2) px, frame order: the size of the pull a shadow may still leave on each centre (for
+    #: "shading", how far the centre moves when less of the imprint counts as shadow, `censored_centres`; for
+    #: "symmetric", how far a squared weighting moves it, `shadow_pull`); None for "centroid"
     pull: FloatArray | None = None
     #: each imprint's extent (`_window_sizes`), frame order, when `strengths` are the energy relative to the light
     #: of a lights-off frame: the other measure of the rows' depths, whose disagreement is model error
@@ -162,7 +163,8 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
     magnitude summed over the channels, binarised at a noise-adapted threshold, opened, closed and
     filled; the strongest `frame.count` blobs are the imprints. Each blob's change-weighted
     centroid starts its centre, which `_shading_symmetric_centre` then refines (unless
-    `config.centre` is "centroid") and `_censored_centre` after it ("shading"). Strengths are summed over equal discs (`_window_strengths`).
+    `config.centre` is "centroid") and `censored_centres` after it ("shading"). Strengths are
+    summed over equal discs (`_window_strengths`).
     `dark`: a no-contact frame with the sensor's lights off; "relative" strengths are then taken
     relative to the light alone (reference - dark), see `_light`.
     """
@@ -192,10 +194,10 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
     if config.centre in ("shading", "symmetric"):
         centres = np.array([_shading_symmetric_centre(signed, b.centroid, config.window_scale * radius)
                             for b in blobs])
-        pull = shadow_pull(signed, centres, config.window_scale * radius)
-        if config.centre == "shading":
-            centres = np.array([_censored_centre(signed, (float(u), float(v)), config.window_scale * radius)
-                                for u, v in centres])
+        if config.centre == "symmetric":
+            pull = shadow_pull(signed, centres, config.window_scale * radius)
+        else:
+            centres, pull = censored_centres(signed, centres, config.window_scale * radius)
     measure = config.strength if config.strength != "auto" else ("relative" if dark is not None else "size")
     other = None
     if measure == "relative":
@@ -307,9 +309,32 @@ def _shading_symmetric_centre(signed: NDArray[np.float32], start: tuple[float, f
     return float(centre[0]), float(centre[1])
 
 
+#: `_censored_centre`'s floor: the pixels within this fraction of the window's range above its lowest value
+#: count as shadow. Blur spreads a shadow's edge over a pixel or two, which a floor at 0.1 leaves in (0.04 px of
+#: pull on a blurred imprint lit at 15 degrees); well past a third, slopes that get light are treated as shadow.
+SHADOW_FLOOR = 0.3
+#: the floor `censored_centres` compares with, for the size of the pull that is left
+SHADOW_FLOOR_LOW = 0.15
+
+
+def censored_centres(signed: NDArray[np.float32], centres: FloatArray, radius: float) -> tuple[FloatArray, FloatArray]:
+    """The imprints' shadow-censored centres (`_censored_centre` at `SHADOW_FLOOR`) from their
+    shading-symmetric ones, (n, 2) px, and the size of the pull a shadow may still leave on them,
+    (n, 2) px: how far each centre moves when only the pixels within `SHADOW_FLOOR_LOW` count as
+    shadow. A shadow's blurred edge left uncensored pulls the centre towards the light, and the less
+    is censored the further; where no slope is in shadow the two agree within noise. Like
+    `shadow_pull`, it is no correction but the size of an error the presses share: `extrinsics` adds
+    it to theta's and d's sigma as model error."""
+    censored = np.array([_censored_centre(signed, (float(u), float(v)), radius)
+                         for u, v in np.asarray(centres, dtype=np.float64)])
+    less = np.array([_censored_centre(signed, (float(u), float(v)), radius, floor_fraction=SHADOW_FLOOR_LOW)
+                     for u, v in censored])
+    return censored, less - censored
+
+
 def _censored_centre(signed: NDArray[np.float32], start: tuple[float, float], radius: float,
-                     knot: float = 0.75, floor_fraction: float = 0.1, iterations: int = 6,
-                     step: float = 0.05) -> tuple[float, float]:
+                     knot: float = 0.75, floor_fraction: float = SHADOW_FLOOR, iterations: int = 8,
+                     tolerance: float = 3e-3, step: float = 0.05) -> tuple[float, float]:
     """The centre of an imprint lit from one side, where the light leaves part of it in shadow.
 
     Under a directional light, an imprint's change about its true centre is an isotropic part
@@ -325,9 +350,12 @@ def _censored_centre(signed: NDArray[np.float32], start: tuple[float, float], ra
     treating each pixel near the window's lowest value (within `floor_fraction` of the window's
     range, per channel) as censored: it counts only where the model would be brighter than what it
     saw (a floor says "no brighter than this", not "this"). Leaving out pixels that were not in
-    shadow costs a little precision, never a bias. The profiles enter linearly (solved at each c);
-    c by Gauss-Newton with a numerical Jacobian of `step` px, at most `iterations` steps of at most
-    0.5 px, from `start` (the shading-symmetric centre). Keeps `start` where the window leaves the
+    shadow costs a little precision; leaving in a shadow's blurred edge leaves some pull
+    (`SHADOW_FLOOR`). The profiles enter linearly (solved at each c); c by Gauss-Newton with a
+    numerical Jacobian of `step` px (of the whole projection: with the profiles held, a shift of c is
+    nearly a dipole the profiles absorb, and the information is in how they refit), at most
+    `iterations` steps of at most 0.5 px, from `start` (the shading-symmetric centre), until a step is
+    under `tolerance` px. Keeps `start` where the window leaves the
     image or the fit runs further than half the window."""
     height, width = signed.shape[:2]
     reach = int(math.ceil(radius)) + 2
@@ -335,12 +363,14 @@ def _censored_centre(signed: NDArray[np.float32], start: tuple[float, float], ra
     if not (reach <= u0 < width - reach and reach <= v0 < height - reach):
         return float(start[0]), float(start[1])
     vs, us = np.mgrid[v0 - reach:v0 + reach + 1, u0 - reach:u0 + reach + 1]
-    us_f, vs_f = us.ravel().astype(np.float64), vs.ravel().astype(np.float64)
-    patch = signed[v0 - reach:v0 + reach + 1, u0 - reach:u0 + reach + 1].reshape(-1, signed.shape[2])
+    near = np.hypot(us - start[0], vs - start[1]).ravel() <= radius + 1.0    # the disc the steps can reach
+    us_f, vs_f = us.ravel()[near].astype(np.float64), vs.ravel()[near].astype(np.float64)
+    patch = signed[v0 - reach:v0 + reach + 1, u0 - reach:u0 + reach + 1].reshape(-1, signed.shape[2])[near]
     patch = patch.astype(np.float64)
     ordered = np.sort(patch, axis=0)
     low, high = ordered[2], ordered[-3]          # the third lowest and highest: one hot pixel does not set them
     floor = np.any(patch <= low + floor_fraction * (high - low), axis=1)
+    lit = (~floor).astype(np.float64)
     knots = np.arange(0.0, radius + knot, knot)
 
     def fit(c: FloatArray, use: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -355,9 +385,9 @@ def _censored_centre(signed: NDArray[np.float32], start: tuple[float, float], ra
         return fitted, ((patch - fitted) * root).ravel()
 
     centre = np.array(start, dtype=np.float64)
-    lit = (~floor).astype(np.float64)
     for _ in range(iterations):
         fitted, _ = fit(centre, lit)
+        # a pixel at the floor counts only where the model of the lit pixels would be brighter than what it saw
         use = (~floor | np.any(fitted > patch, axis=1)).astype(np.float64)
         _, residual = fit(centre, use)
         jacobian = np.stack([(fit(centre + delta, use)[1] - residual) / step
@@ -370,7 +400,7 @@ def _censored_centre(signed: NDArray[np.float32], start: tuple[float, float], ra
         if norm > 0.5:
             moved *= 0.5 / norm
         centre = centre + moved
-        if norm < 2e-3:
+        if norm < tolerance:
             break
     if not (np.all(np.isfinite(centre)) and np.hypot(*(centre - np.asarray(start))) <= 0.5 * radius):
         return float(start[0]), float(start[1])
