@@ -136,6 +136,10 @@ SECTIONS: tuple[Section, ...] = (
             "renderers, the presses lit by one LED from each of 4 azimuths, and the issue's case of a centred frame "
             "under a low LED: theta and d against the truth (with the lights-off frame, and without it), refusals, "
             "the terms held-out prediction chose and their margins, and whether the sigmas cover the truth."),
+    Section("calib_centres", "Imprint centres under light from one side", "calib_centres",
+            "The lighting bench's hemisphere presses on both renderers, lit by one LED from each of 4 azimuths: how "
+            "far each imprint-centre estimator's mean error lies towards the light and across it (a pull every press "
+            "shares, which the pose solve turns into theta or a shift)."),
     Section("coverage", "Coverage: a flat sensor by press–lift–shift against one roll", "coverage",
             "Presses and seconds to cover 8 x 11 cm with a flat 1.6 x 1.2 cm sensor, timed from the arm's speed and "
             "acceleration limits, against one roll (the paper: 49 presses, 196 s vs 10 s)."),
@@ -553,6 +557,13 @@ def _lighting_sigmas(r: Any, no_dark: bool = False) -> tuple[str, bool]:   # ben
             f">= {100 * low:.0f} % for this many)"), share >= low
 
 
+def _centre_pull(r: Any, renderers: tuple[str, ...]) -> tuple[str, bool]:   # bench.calib_centres.CentresResult
+    parts = [f"{name}: worst {r.worst(name):.3f} px (symmetric {r.worst(name, 'symmetric'):.3f}, centroid "
+             f"{r.worst(name, 'centroid'):.3f})" for name in renderers if name in r.renderers()]
+    met = all(name in r.renderers() and r.worst(name) <= 0.1 for name in renderers)
+    return "; ".join(parts) + f" ({r.seeds} seeds x {r.presses} presses per side)", met
+
+
 def _calib_rays(r: Any) -> tuple[str, bool]:   # bench.calib_bench.CalibBenchResult
     check, goal = r.crosscheck, 0.5
     parts, met = [], True
@@ -827,6 +838,11 @@ GOALS: tuple[Goal, ...] = (
          "calib_lighting", _lighting_sigmas),
     Goal(26, "... and the sigmas given without a lights-off frame: true error within 2 sigma in about 95 %",
          "calib_lighting", lambda r: _lighting_sigmas(r, no_dark=True)),
+    Goal(26, "Imprint centres that do not move with the light's direction: the shading centre's mean pull within "
+             "0.1 px on both renderers lit from each of 4 sides", "calib_centres",
+         lambda r: _centre_pull(r, ("simulator", "second renderer"))),
+    Goal(26, "... and on the second renderer's centred frame under an LED at 15 deg", "calib_centres",
+         lambda r: _centre_pull(r, ("second renderer, frame centred, LED at 15°",))),
     Goal(7, "DDS image -> contact p50 <= 5 ms and p99 <= 15 ms at 30 Hz (shared-memory transport)", "dds",
          _dds_latency, script="dds_latency"),
     Goal(7, "DDS: no drops at 60 Hz (shared-memory transport)", "dds", _dds_drops, script="dds_latency"),

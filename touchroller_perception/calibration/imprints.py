@@ -6,7 +6,11 @@ balance of `extrinsics`). Two things a roller's lighting does to imprints are ha
 
 * light from one side makes an imprint bright on one slope and dark on the other, which pulls a
   change-weighted centroid away from the light: `_shading_symmetric_centre` measures the centre
-  from the part of the pattern that is symmetric under any directional light;
+  from the part of the pattern that is symmetric under any directional light; a slope facing away
+  from a low light steeper than the light's elevation gets none of it (its shading stops at a
+  floor), which breaks that symmetry and still pulls the centre towards the light:
+  `_censored_centre` fits the imprint's pattern with the pixels at the floor censored, not
+  symmetrised (`censored_centres`);
 * the light falls off across the membrane, so an absolute strength reads the brighter row as the
   deeper one: strengths are taken relative to the light (`_relative_energy`): the no-contact
   reference's brightness, or, given a frame with the lights off, the reference minus it (`_light`);
@@ -24,8 +28,9 @@ from numpy.typing import NDArray
 
 from touchroller_perception.calibration.common import CalibrationError, FloatArray
 
-#: `ImprintDetectorConfig.centre`: "shading" corrects the centroid for one-sided light, "centroid" keeps it
-CENTRE_ESTIMATORS = ("shading", "centroid")
+#: `ImprintDetectorConfig.centre`: "shading" corrects the centroid for one-sided light and for the slopes it
+#: leaves in shadow, "symmetric" for the light only (`_shading_symmetric_centre`, no shadow), "centroid" keeps it
+CENTRE_ESTIMATORS = ("shading", "symmetric", "centroid")
 #: `ImprintDetectorConfig.strength`: "auto" ("relative" given a lights-off frame, else "size"), "relative" to
 #: the light (energy), "size" (the imprint's extent, which no light level changes), or "absolute" grey levels
 STRENGTH_MEASURES = ("auto", "relative", "size", "absolute")
@@ -140,8 +145,9 @@ class ImprintDetection:
     found: int                       # blobs found
     reason: str | None
     strengths: FloatArray | None = None   # each imprint's summed change (`ImprintDetectorConfig.strength`), frame order
-    #: (rows*columns, 2) px, frame order: how far a squared weighting moves each shading-symmetric centre from the
-    #: magnitude-weighted one, the size of the pull a shadow leaves (`shadow_pull`); None for "centroid"
+    #: (rows*columns, 2) px, frame order: the size of the pull a shadow may still leave on each centre (for
+    #: "shading", how far the centre moves when less of the imprint counts as shadow, `censored_centres`; for
+    #: "symmetric", how far a squared weighting moves it, `shadow_pull`); None for "centroid"
     pull: FloatArray | None = None
     #: each imprint's extent (`_window_sizes`), frame order, when `strengths` are the energy relative to the light
     #: of a lights-off frame: the other measure of the rows' depths, whose disagreement is model error
@@ -157,7 +163,8 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
     magnitude summed over the channels, binarised at a noise-adapted threshold, opened, closed and
     filled; the strongest `frame.count` blobs are the imprints. Each blob's change-weighted
     centroid starts its centre, which `_shading_symmetric_centre` then refines (unless
-    `config.centre` is "centroid"). Strengths are summed over equal discs (`_window_strengths`).
+    `config.centre` is "centroid") and `censored_centres` after it ("shading"). Strengths are
+    summed over equal discs (`_window_strengths`).
     `dark`: a no-contact frame with the sensor's lights off; "relative" strengths are then taken
     relative to the light alone (reference - dark), see `_light`.
     """
@@ -184,10 +191,13 @@ def find_imprints(image: np.ndarray, frame: HemisphereFrame, config: ImprintDete
         return ImprintDetection(None, elongation, found, reason)
     radius = float(np.median([b.radius for b in blobs]))
     pull = None
-    if config.centre == "shading":
+    if config.centre in ("shading", "symmetric"):
         centres = np.array([_shading_symmetric_centre(signed, b.centroid, config.window_scale * radius)
                             for b in blobs])
-        pull = shadow_pull(signed, centres, config.window_scale * radius)
+        if config.centre == "symmetric":
+            pull = shadow_pull(signed, centres, config.window_scale * radius)
+        else:
+            centres, pull = censored_centres(signed, centres, config.window_scale * radius)
     measure = config.strength if config.strength != "auto" else ("relative" if dark is not None else "size")
     other = None
     if measure == "relative":
@@ -293,6 +303,104 @@ def _shading_symmetric_centre(signed: NDArray[np.float32], start: tuple[float, f
         moved = np.array([(weights * du).sum(), (weights * dv).sum()]) / total
         centre = centre + moved
         if float(np.abs(moved).max()) < 5e-3:
+            break
+    if not (np.all(np.isfinite(centre)) and np.hypot(*(centre - np.asarray(start))) <= 0.5 * radius):
+        return float(start[0]), float(start[1])
+    return float(centre[0]), float(centre[1])
+
+
+#: `_censored_centre`'s floor: the pixels within this fraction of the window's range above its lowest value
+#: count as shadow. Blur spreads a shadow's edge over a pixel or two, which a floor at 0.1 leaves in (0.04 px of
+#: pull on a blurred imprint lit at 15 degrees); well past a third, slopes that get light are treated as shadow.
+SHADOW_FLOOR = 0.3
+#: the floor `censored_centres` compares with, for the size of the pull that is left
+SHADOW_FLOOR_LOW = 0.15
+
+
+def censored_centres(signed: NDArray[np.float32], centres: FloatArray, radius: float) -> tuple[FloatArray, FloatArray]:
+    """The imprints' shadow-censored centres (`_censored_centre` at `SHADOW_FLOOR`) from their
+    shading-symmetric ones, (n, 2) px, and the size of the pull a shadow may still leave on them,
+    (n, 2) px: how far each centre moves when only the pixels within `SHADOW_FLOOR_LOW` count as
+    shadow. A shadow's blurred edge left uncensored pulls the centre towards the light, and the less
+    is censored the further; where no slope is in shadow the two agree within noise. Like
+    `shadow_pull`, it is no correction but the size of an error the presses share: `extrinsics` adds
+    it to theta's and d's sigma as model error."""
+    censored = np.array([_censored_centre(signed, (float(u), float(v)), radius)
+                         for u, v in np.asarray(centres, dtype=np.float64)])
+    less = np.array([_censored_centre(signed, (float(u), float(v)), radius, floor_fraction=SHADOW_FLOOR_LOW)
+                     for u, v in censored])
+    return censored, less - censored
+
+
+def _censored_centre(signed: NDArray[np.float32], start: tuple[float, float], radius: float,
+                     knot: float = 0.75, floor_fraction: float = SHADOW_FLOOR, iterations: int = 8,
+                     tolerance: float = 3e-3, step: float = 0.05) -> tuple[float, float]:
+    """The centre of an imprint lit from one side, where the light leaves part of it in shadow.
+
+    Under a directional light, an imprint's change about its true centre is an isotropic part
+    E(rho) plus a dipole O(rho) cos(phi - light) (`_shading_symmetric_centre`) only while every
+    slope gets some light: a slope facing away from the light and steeper than the light's
+    elevation gets none (Lambert's n.L clamps at 0), its change stops at a floor, and the pattern
+    there is no longer a dipole. Any weighted centroid of it is then pulled towards the light
+    (weighting by the magnitude left 0.1-0.15 px on a sphere cap lit at 25 degrees), and leaving
+    those pixels out symmetrically does not help: on a pixel grid the mirror of a pixel is no pixel,
+    and a hole cut at pixel scale is never point-symmetric. A fit is not a centroid, it needs no
+    symmetry: choose c so that E(rho) + the dipole's two radial profiles (free piecewise-linear
+    functions, knots every `knot` px, as in `_shading_symmetric_centre`) fit the change best,
+    treating each pixel near the window's lowest value (within `floor_fraction` of the window's
+    range, per channel) as censored: it counts only where the model would be brighter than what it
+    saw (a floor says "no brighter than this", not "this"). Leaving out pixels that were not in
+    shadow costs a little precision; leaving in a shadow's blurred edge leaves some pull
+    (`SHADOW_FLOOR`). The profiles enter linearly (solved at each c); c by Gauss-Newton with a
+    numerical Jacobian of `step` px (of the whole projection: with the profiles held, a shift of c is
+    nearly a dipole the profiles absorb, and the information is in how they refit), at most
+    `iterations` steps of at most 0.5 px, from `start` (the shading-symmetric centre), until a step is
+    under `tolerance` px. Keeps `start` where the window leaves the
+    image or the fit runs further than half the window."""
+    height, width = signed.shape[:2]
+    reach = int(math.ceil(radius)) + 2
+    u0, v0 = int(round(start[0])), int(round(start[1]))
+    if not (reach <= u0 < width - reach and reach <= v0 < height - reach):
+        return float(start[0]), float(start[1])
+    vs, us = np.mgrid[v0 - reach:v0 + reach + 1, u0 - reach:u0 + reach + 1]
+    near = np.hypot(us - start[0], vs - start[1]).ravel() <= radius + 1.0    # the disc the steps can reach
+    us_f, vs_f = us.ravel()[near].astype(np.float64), vs.ravel()[near].astype(np.float64)
+    patch = signed[v0 - reach:v0 + reach + 1, u0 - reach:u0 + reach + 1].reshape(-1, signed.shape[2])[near]
+    patch = patch.astype(np.float64)
+    ordered = np.sort(patch, axis=0)
+    low, high = ordered[2], ordered[-3]          # the third lowest and highest: one hot pixel does not set them
+    floor = np.any(patch <= low + floor_fraction * (high - low), axis=1)
+    lit = (~floor).astype(np.float64)
+    knots = np.arange(0.0, radius + knot, knot)
+
+    def fit(c: FloatArray, use: FloatArray) -> tuple[FloatArray, FloatArray]:
+        du, dv = us_f - c[0], vs_f - c[1]
+        rho = np.hypot(du, dv)
+        edge = np.clip((radius - rho) / (0.4 * radius), 0.0, 1.0)
+        root = np.sqrt(edge * edge * (3.0 - 2.0 * edge) * use)[:, None]
+        hats = np.clip(1.0 - np.abs(rho[:, None] - knots[None, :]) / knot, 0.0, None)
+        safe = np.maximum(rho, 1e-9)[:, None]
+        design = np.hstack([hats, hats * (du[:, None] / safe), hats * (dv[:, None] / safe)])
+        fitted = cv2.gemm(design, _least_squares(design * root, patch * root), 1.0, None, 0.0)
+        return fitted, ((patch - fitted) * root).ravel()
+
+    centre = np.array(start, dtype=np.float64)
+    for _ in range(iterations):
+        fitted, _ = fit(centre, lit)
+        # a pixel at the floor counts only where the model of the lit pixels would be brighter than what it saw
+        use = (~floor | np.any(fitted > patch, axis=1)).astype(np.float64)
+        _, residual = fit(centre, use)
+        jacobian = np.stack([(fit(centre + delta, use)[1] - residual) / step
+                             for delta in (np.array([step, 0.0]), np.array([0.0, step]))], axis=1)
+        gram = jacobian.T @ jacobian
+        if not (np.all(np.isfinite(gram)) and np.linalg.det(gram) > 0):
+            return float(start[0]), float(start[1])
+        moved = -np.linalg.solve(gram, jacobian.T @ residual)
+        norm = float(np.hypot(*moved))
+        if norm > 0.5:
+            moved *= 0.5 / norm
+        centre = centre + moved
+        if norm < tolerance:
             break
     if not (np.all(np.isfinite(centre)) and np.hypot(*(centre - np.asarray(start))) <= 0.5 * radius):
         return float(start[0]), float(start[1])

@@ -73,21 +73,28 @@ def test_shading_centre_with_light_from_the_side_and_noise():
 
 @pytest.mark.parametrize("azimuth", [0.0, 90.0])
 def test_shadow_pull_measures_what_a_low_light_leaves_in_the_shading_centre(azimuth):
-    """Under a light high enough that no slope falls into shadow (60 deg, slopes up to 0.8) the
-    shading centre is right and the pull (`shadow_pull`, the model error the extrinsics' sigma
-    carries) is noise; under a light at 15 deg the slopes facing away are in shadow, the centre is
-    pulled towards the light by ~0.3 px, and the pull says so, towards the light and of that size."""
+    """Under a light high enough that no slope falls into shadow (60 deg, slopes up to 0.8) both
+    centres are right and the pull (the model error the extrinsics' sigma carries) is noise. Under a
+    light at 15 deg the slopes facing away are in shadow: the shading-symmetric centre ("symmetric")
+    is pulled towards the light by ~0.3 px and its pull (`shadow_pull`) says so, towards the light and
+    of that size; the shadow-censored one ("shading", the default) is not, and its pull is smaller."""
     towards = np.array([math.cos(math.radians(azimuth)), math.sin(math.radians(azimuth))])
     centres = GRID + np.array([0.3, 0.6])
     image, reference = lit_membrane(centres, elevation_deg=60.0, azimuth_deg=azimuth)
-    high = cal.find_imprints(image, FRAME, reference=reference)
-    assert high.pull is not None and np.abs(high.pull.mean(axis=0)).max() < 0.03
+    for centre in ("shading", "symmetric"):
+        high = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(centre=centre), reference=reference)
+        assert high.pull is not None and np.abs(high.pull.mean(axis=0)).max() < 0.03
+        assert np.abs((high.centres - centres).mean(axis=0)).max() < 0.03
     image, reference = lit_membrane(centres, elevation_deg=15.0, azimuth_deg=azimuth)
-    low = cal.find_imprints(image, FRAME, reference=reference)
-    assert low.pull is not None
-    error = float((low.centres - centres).mean(axis=0) @ towards)
-    pull = float(low.pull.mean(axis=0) @ towards)
+    symmetric = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(centre="symmetric"), reference=reference)
+    assert symmetric.pull is not None
+    error = float((symmetric.centres - centres).mean(axis=0) @ towards)
+    pull = float(symmetric.pull.mean(axis=0) @ towards)
     assert error > 0.15 and 0.3 * error < pull < 1.5 * error
+    shading = cal.find_imprints(image, FRAME, reference=reference)
+    assert shading.pull is not None
+    assert np.abs((shading.centres - centres).mean(axis=0)).max() < 0.06
+    assert np.abs(shading.pull.mean(axis=0)).max() < 0.5 * pull
     centroid = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(centre="centroid"), reference=reference)
     assert centroid.pull is None
 
