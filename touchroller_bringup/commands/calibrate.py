@@ -84,10 +84,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     extr.add_argument("--max-view-rms", type=float, default=math.inf,
                       help="an optional hard limit on a view's RMS (px); by default views are judged against "
                            "each other (median + 4 robust standard deviations), not by a fixed number of pixels")
-    extr.add_argument("--imprint-centre", choices=("shading", "symmetric", "centroid"), default="shading",
-                      help="shading (default): centres corrected for light from one side and for the slopes it "
-                           "leaves in shadow; symmetric: corrected for the light only; centroid: the "
-                           "change-weighted centroid")
+    extr.add_argument("--imprint-centre", choices=("symmetric", "shading", "centroid"), default="symmetric",
+                      help="symmetric (default): centres corrected for light from one side; shading: also for the "
+                           "slopes a low light leaves in shadow; centroid: the change-weighted centroid")
     extr.add_argument("--imprint-strength", choices=("auto", "relative", "size", "absolute"), default="auto",
                       help="what the row balance compares between the rows: auto (default): relative with "
                            "--dark, else size; relative: energy relative to the light; size: the imprints' extent, "

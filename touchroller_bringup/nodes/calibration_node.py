@@ -95,8 +95,8 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
     "photometric.ball_radius": (0.002, "Radius of the ball pressed for ~/solve_photometric, m", 1e-4, 0.05),
     "photometric.output_path": ("touchroller_photometric.npz", "Photometric model written by ~/solve_photometric",
                                 None, None),
-    "imprints.centre": ("shading", "Imprint centres: shading (corrected for light from one side and the "
-                        "slopes it leaves in shadow), symmetric (for the light only) or centroid",
+    "imprints.centre": ("symmetric", "Imprint centres: symmetric (corrected for light from one side), shading "
+                        "(also for the slopes a low light leaves in shadow) or centroid",
                         None, None),
     "imprints.strength": ("auto", "Imprint strengths for the row balance: auto (relative given a dark capture, "
                                   "else size), relative (energy relative to the light), size (extent, which no "

@@ -28,9 +28,9 @@ from numpy.typing import NDArray
 
 from touchroller_perception.calibration.common import CalibrationError, FloatArray
 
-#: `ImprintDetectorConfig.centre`: "shading" corrects the centroid for one-sided light and for the slopes it
-#: leaves in shadow, "symmetric" for the light only (`_shading_symmetric_centre`, no shadow), "centroid" keeps it
-CENTRE_ESTIMATORS = ("shading", "symmetric", "centroid")
+#: `ImprintDetectorConfig.centre`: "symmetric" (the default) corrects the centroid for one-sided light
+#: (`_shading_symmetric_centre`), "shading" also for the slopes a low light leaves in shadow, "centroid" keeps it
+CENTRE_ESTIMATORS = ("symmetric", "shading", "centroid")
 #: `ImprintDetectorConfig.strength`: "auto" ("relative" given a lights-off frame, else "size"), "relative" to
 #: the light (energy), "size" (the imprint's extent, which no light level changes), or "absolute" grey levels
 STRENGTH_MEASURES = ("auto", "relative", "size", "absolute")
@@ -120,7 +120,7 @@ class ImprintDetectorConfig:
     max_area: float = 8000.0
     max_elongation: float = 1.8
     min_spread: float = 0.08
-    centre: str = "shading"
+    centre: str = "symmetric"
     strength: str = "auto"
     window_scale: float = 2.5
     strength_window_scale: float = 4.0

@@ -77,7 +77,7 @@ def test_shadow_pull_measures_what_a_low_light_leaves_in_the_shading_centre(azim
     centres are right and the pull (the model error the extrinsics' sigma carries) is noise. Under a
     light at 15 deg the slopes facing away are in shadow: the shading-symmetric centre ("symmetric")
     is pulled towards the light by ~0.3 px and its pull (`shadow_pull`) says so, towards the light and
-    of that size; the shadow-censored one ("shading", the default) is not, and its pull is smaller."""
+    of that size; the shadow-censored one ("shading") is not, and its pull is smaller."""
     towards = np.array([math.cos(math.radians(azimuth)), math.sin(math.radians(azimuth))])
     centres = GRID + np.array([0.3, 0.6])
     image, reference = lit_membrane(centres, elevation_deg=60.0, azimuth_deg=azimuth)
@@ -91,7 +91,7 @@ def test_shadow_pull_measures_what_a_low_light_leaves_in_the_shading_centre(azim
     error = float((symmetric.centres - centres).mean(axis=0) @ towards)
     pull = float(symmetric.pull.mean(axis=0) @ towards)
     assert error > 0.15 and 0.3 * error < pull < 1.5 * error
-    shading = cal.find_imprints(image, FRAME, reference=reference)
+    shading = cal.find_imprints(image, FRAME, cal.ImprintDetectorConfig(centre="shading"), reference=reference)
     assert shading.pull is not None
     assert np.abs((shading.centres - centres).mean(axis=0)).max() < 0.06
     assert np.abs(shading.pull.mean(axis=0)).max() < 0.5 * pull
