@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from typing import Any
 
 import cv2
 import numpy as np
@@ -27,6 +28,13 @@ try:   # the same inflate, faster (optional)
     from isal import isal_zlib as _inflate
 except ImportError:   # pragma: no cover - isal is pinned in requirements.txt; a ROS install may lack it
     _inflate = zlib  # type: ignore[misc]
+_INFLATE_ERROR: Any = _inflate.error
+_ERRORS: tuple[type[BaseException], ...] = (zlib.error, _INFLATE_ERROR)
+
+
+def _view(data: Any) -> memoryview:
+    """The bytes of `data` (bytes, memoryview or a uint8 array) without a copy."""
+    return memoryview(data).cast("B")
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHUNK = struct.Struct(">I4s")
@@ -35,9 +43,10 @@ _CRC = struct.Struct(">I")
 _CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}   # PNG colour type -> samples per pixel
 
 
-def png_size(data: bytes | memoryview | np.ndarray) -> tuple[int, int] | None:
-    """(height, width) a PNG declares in its header; None if `data` does not start as a PNG."""
-    raw = memoryview(data).cast("B")
+def png_size(data: Any) -> tuple[int, int] | None:
+    """(height, width) a PNG declares in its header (`data`: bytes, memoryview or a uint8 array); None if
+    `data` does not start as a PNG."""
+    raw = _view(data)
     if len(raw) < 8 + 8 + _IHDR.size or bytes(raw[:8]) != _SIGNATURE or bytes(raw[12:16]) != b"IHDR":
         return None
     width, height = _IHDR.unpack_from(raw, 16)[:2]
@@ -48,10 +57,10 @@ def _chunk(kind: bytes, body: bytes | memoryview) -> bytes:
     return _CHUNK.pack(len(body), kind) + bytes(body) + struct.pack(">I", zlib.crc32(body, zlib.crc32(kind)))
 
 
-def decode_rows(data: bytes | memoryview | np.ndarray, end: int) -> np.ndarray | None:
+def decode_rows(data: Any, end: int) -> np.ndarray | None:
     """Rows [0, end) of the PNG `data` as `cv2.imdecode(data, IMREAD_UNCHANGED)[:end]` gives them (the
     same values); None when only a whole decode will do (see the module docstring)."""
-    raw = memoryview(data).cast("B")
+    raw = _view(data)
     size = png_size(raw)
     if size is None or not 0 < end < size[0]:
         return None
@@ -79,7 +88,7 @@ def decode_rows(data: bytes | memoryview | np.ndarray, end: int) -> np.ndarray |
         return None
     try:
         rows = _inflate.decompressobj().decompress(b"".join(idat), end * row_bytes)
-    except (zlib.error, _inflate.error):
+    except _ERRORS:
         return None
     if len(rows) < end * row_bytes:
         return None
