@@ -311,7 +311,7 @@ def _map_world_ratio(r: dict) -> tuple[str, bool | None]:
     """Issue 22's 1.5x on bench.world_map's 3-pass raster, as bench.map_speed times it (recorded before it: none)."""
     w = r.get("world")
     if w is None:
-        return "not in this recorded result (bench.map_speed predates it)", None
+        return "not measured by this run (results recorded before it have none)", None
     return (f"{w['read_ratio']:.2f}x ({w['frames']} frames, best of {w['repeats']} new processes; CPU "
             f"{w['cpu_ratio']:.2f}x){_map_speed_quick_note(r)}"), _map_speed_verdict(r, w["read_ratio"] <= 1.5)
 
@@ -320,7 +320,7 @@ def _map_compressed(r: dict) -> tuple[str, bool | None]:
     """`touchroller map` on a compressed recording of a few thousand frames (issue 25 judges the 1 m² scan)."""
     c = r.get("compressed")
     if c is None:
-        return "not in this recorded result (bench.map_speed predates it)", None
+        return "not measured by this run (quick runs, and results recorded before it, have none)", None
     return (f"{c['default_fps']:.0f} frames/s ({c['frames']} frames; --workers 1 {c['workers_1_fps']:.0f}, 2 "
             f"{c['workers_2_fps']:.0f}; judged on the 1 m² scan){_map_speed_quick_note(r)}"), None
 
