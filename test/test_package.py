@@ -98,6 +98,8 @@ ROSDEP_KEYS = {
     "rtde_control": None, "rtde_receive": None, "dashboard_client": None,
     # tifffile (height and GeoTIFF maps) has no rosdep key either: pip install tifffile
     "tifffile": None,
+    # isal (a faster inflate for compressed recordings) is optional, without a rosdep key: pip install isal
+    "isal": None,
 }
 OWN = {"touchroller_bringup", "touchroller_perception", "touchroller_driver"}
 
@@ -131,4 +133,5 @@ def test_package_xml_names_what_rosdep_must_install_for_every_runtime_import():
     assert missing == []
     assert "pip install ur_rtde" in (ROOT / "package.xml").read_text()
     assert "pip install tifffile" in (ROOT / "package.xml").read_text()
+    assert "pip install isal" in (ROOT / "package.xml").read_text()
     assert "pip install ur_rtde" in (ROOT / "docs" / "ur5.md").read_text()

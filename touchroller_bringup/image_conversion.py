@@ -71,6 +71,11 @@ def compressed_to_array(msg: Any) -> np.ndarray:
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise ImageFormatError(f"compressed image ({msg.format!r}, {data.size} bytes) does not decode")
+    return decoded_to_array(image)
+
+
+def decoded_to_array(image: np.ndarray) -> np.ndarray:
+    """`cv2.imdecode(..., IMREAD_UNCHANGED)`'s image as `compressed_to_array` gives it: BGR (or mono)."""
     if image.ndim == 3 and image.shape[2] == 4:
         image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
     return image

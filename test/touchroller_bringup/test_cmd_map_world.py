@@ -108,6 +108,22 @@ def test_the_reader_process_and_the_reader_thread_make_the_same_map(scan_bag, tm
     assert printed[0].split(" -> ")[0] == printed[1].split(" -> ")[0]   # the same frames
 
 
+@pytest.mark.slow
+def test_a_compressed_recording_maps_as_the_raw_one_whatever_the_decoding_workers(scan_bag, tmp_path, capsys):
+    # PNG frames in zstd MCAP: decoded up to the band's last row, by a pool of processes or by the reader
+    from touchroller_bringup.bag_compression import compress_recording
+
+    compress_recording(scan_bag, tmp_path / "small")
+    maps = {}
+    for name, bag, extra in (("raw", scan_bag, []), ("one", tmp_path / "small", ["--workers", "1"]),
+                             ("three", tmp_path / "small", ["--workers", "3"])):
+        assert main(["map", str(bag), "--out", str(tmp_path / name / "map.png"), *extra]) == 0
+        maps[name] = [(tmp_path / name / f).read_bytes() for f in ("map.png", "map.tif", "map.yaml")]
+    assert maps["one"] == maps["raw"] and maps["three"] == maps["raw"]
+    assert main(["map", str(scan_bag), "--out", str(tmp_path / "x.png"), "--workers", "0"]) == 2
+    assert "--workers must be in [1, 64]" in capsys.readouterr().err
+
+
 def test_frames_of_another_size_than_the_camera_model_are_one_line(tmp_path, capsys):
     """The reader (another process) finds it; the command says it as any other bad input."""
     def records():

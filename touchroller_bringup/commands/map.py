@@ -72,6 +72,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "map, docs/height.md) with this PHOTOMETRIC.npz of 'touchroller calibrate photometric'")
     parser.add_argument("--reference", type=Path, help="world map with --photometric: a no-contact image of the sensor")
     parser.add_argument("--strip", action="store_true", help="the strip map even when the bag has TF")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="world map: processes decoding a compressed recording's frames (default: one per "
+                             "processor but the one mapping; 1: decoded by the process reading the bag)")
     parser.set_defaults(func=run)
 
 
@@ -91,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
                         f"{METRIC_RANGE[1]:g}], got {args.metric}")
     if not 8 <= args.band_rows <= 4096:
         raise UserError(f"--band-rows must be in [8, 4096], got {args.band_rows}")
+    if args.workers is not None and not 1 <= args.workers <= 64:
+        raise UserError(f"--workers must be in [1, 64], got {args.workers}")
     if not 1 <= args.search <= 4096:
         raise UserError(f"--search must be in [1, 4096] pixels, got {args.search}")
     camera = _load_camera(args.params)
@@ -158,7 +163,13 @@ def _check_world_arguments(args: argparse.Namespace, out: Path, camera) -> None:
 
 
 def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
-    from touchroller_bringup.bags import ImageRecord, read_images_and_tf
+    from touchroller_bringup.bags import (
+        CompressedRecord,
+        ImageRecord,
+        TransformRecord,
+        decode_compressed,
+        read_images_and_tf,
+    )
     from touchroller_bringup.map_files import write_height_tif, write_world_map
     from touchroller_perception.stitching import StitcherConfig
     from touchroller_perception.tiles import TileConfig
@@ -182,24 +193,39 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     if height_rows is not None:
         rows = (min(rows[0], height_rows[0]), max(rows[1], height_rows[1]))
 
+    def cut(record: ImageRecord | CompressedRecord) -> tuple[int, Any]:
+        # (stamp, band) of a frame (decoded first when compressed: only the rows up to the band's end)
+        if isinstance(record, CompressedRecord):
+            try:
+                record = decode_compressed(record, rows)
+            except ValueError as exc:   # ImageFormatError too
+                raise UserError(f"bag {args.bag}: malformed message: {exc}") from None
+        height, width = record.frame_shape
+        if (camera.width, camera.height) != (width, height):
+            raise UserError(f"the camera model is for {camera.width}x{camera.height} images but the bag "
+                            f"has {width}x{height}")
+        band = mapper.band(record.image, record.row0, height)
+        relief = mapper.height_band(record.image, record.row0, height)
+        return record.stamp_ns, (band if relief is None else (band, relief))
+
     def records() -> Iterator[tuple[object, Any]]:
         # The reader reads the bag (only the band's rows where it can) and cuts the bands: (stamp, band)
-        # for a frame, ((record, transform), None) for a transform.
-        for record in read_images_and_tf(args.bag, args.topic, rows=rows):
+        # for a frame, ((record, transform), None) for a transform. Compressed frames are decoded and cut
+        # by a pool of processes (`decode_pool`), in order: one per processor but the mapping's.
+        from touchroller_bringup.decode_pool import ordered, pool_workers
+
+        stream = read_images_and_tf(args.bag, args.topic, rows=rows, decode=False)
+        for record in ordered(stream, cut, _compressed, args.workers or max(1, pool_workers() - 1)):
             if isinstance(record, ImageRecord):
-                height, width = record.frame_shape
-                if (camera.width, camera.height) != (width, height):
-                    raise UserError(f"the camera model is for {camera.width}x{camera.height} images but the bag "
-                                    f"has {width}x{height}")
-                band = mapper.band(record.image, record.row0, height)
-                relief = mapper.height_band(record.image, record.row0, height)
-                yield record.stamp_ns, (band if relief is None else (band, relief))
-            else:
+                yield cut(record)
+            elif isinstance(record, TransformRecord):
                 try:
                     transform = Transform(record.translation, record.rotation)
                 except ValueError:   # a malformed transform: skipped, as a TF listener would
                     continue
                 yield (record, transform), None
+            else:   # a compressed frame, decoded and cut
+                yield record
 
     frames = 0
     first_stamp: list = [None]
@@ -269,6 +295,12 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     if stats.latency_warning:
         print(f"WARN: {stats.latency_warning}; give --latency SECONDS if it is known", file=sys.stderr)
     return 0
+
+
+def _compressed(record: object) -> bool:
+    from touchroller_bringup.bags import CompressedRecord
+
+    return isinstance(record, CompressedRecord)
 
 
 def _height_source(args: argparse.Namespace) -> Any:

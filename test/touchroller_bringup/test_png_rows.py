@@ -1,0 +1,66 @@
+"""`png_rows.decode_rows`: the first rows of a PNG, exactly as a whole decode gives them."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from touchroller_bringup.bag_compression import png_of
+from touchroller_bringup.png_rows import decode_rows, png_size
+
+
+def _png(image: np.ndarray, **params: int) -> np.ndarray:
+    ok, data = cv2.imencode(".png", image, [k for kv in params.items() for k in (getattr(cv2, kv[0]), kv[1])])
+    assert ok
+    return data
+
+
+@settings(max_examples=40, deadline=None)
+@given(rows=st.integers(2, 60), cols=st.integers(1, 50), kind=st.sampled_from(["bgr8", "mono8", "mono16", "bgra8"]),
+       level=st.sampled_from([0, 1, 6, 9]), smooth=st.booleans(), seed=st.integers(0, 2**16), data=st.data())
+def test_the_rows_are_those_of_a_whole_decode(rows, cols, kind, level, smooth, seed, data):
+    rng = np.random.default_rng(seed)
+    shape = {"bgr8": (rows, cols, 3), "mono8": (rows, cols), "mono16": (rows, cols), "bgra8": (rows, cols, 4)}[kind]
+    dtype = np.uint16 if kind == "mono16" else np.uint8
+    image = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
+    if smooth:   # every PNG filter gets chosen somewhere (a noisy frame takes one or two)
+        image = cv2.GaussianBlur(image, (5, 5), 2.0)
+    png = _png(image, IMWRITE_PNG_COMPRESSION=level)
+    end = data.draw(st.integers(1, rows - 1))
+    whole = cv2.imdecode(png, cv2.IMREAD_UNCHANGED)
+    got = decode_rows(png, end)
+    assert got is not None and got.dtype == whole.dtype and np.array_equal(got, whole[:end])
+    assert png_size(png) == (rows, cols)
+
+
+def test_the_recorders_pngs_decode_by_rows():
+    image = np.random.default_rng(1).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    _fmt, data = png_of(image)
+    assert np.array_equal(decode_rows(data, 20), image[:20])
+
+
+@pytest.mark.parametrize("case", ["end at the height", "end 0", "not a png", "truncated", "damaged", "interlaced"])
+def test_what_only_a_whole_decode_can_read_is_none(case):
+    image = np.random.default_rng(2).integers(0, 256, (30, 20, 3), dtype=np.uint8)
+    png = _png(image).tobytes()
+    end = 10
+    if case == "end at the height":
+        end = 30
+    elif case == "end 0":
+        end = 0
+    elif case == "not a png":
+        png = b"\xff\xd8" + png[2:]
+    elif case == "truncated":
+        png = png[:len(png) // 3]
+    elif case == "damaged":   # a flipped bit in the first rows' data: its chunk's CRC says so
+        damaged = bytearray(png)
+        damaged[60] ^= 1
+        png = bytes(damaged)
+        assert cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED) is None
+    else:   # the header says Adam7: rows are spread over the whole stream
+        header = bytearray(png)
+        header[28] = 1
+        png = bytes(header)
+    assert decode_rows(png, end) is None

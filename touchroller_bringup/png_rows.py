@@ -1,0 +1,100 @@
+"""The first rows of a PNG, decoded without the rest: what `touchroller map` needs of a compressed frame.
+
+A compressed recording holds each frame as a lossless PNG (`bag_compression`). The map uses one band of
+rows around the contact line; decoding a VGA frame whole spends most of its time inflating the deflate
+stream, a byte at a time, rows the map never reads. PNG rows can only be unfiltered in order (a row's
+filter refers to the row above it), so rows [0, end) must all be inflated and unfiltered, but nothing
+after `end`: `decode_rows(data, end)` inflates just the bytes of those rows (zlib, stopping at their
+length) and hands them to OpenCV's PNG decoder as a PNG `end` rows tall (the chunks before the image
+data kept; the rows stored uncompressed), so the unfiltering is libpng's own and the rows are exactly
+those of a whole decode. Every chunk read is checked against its CRC as a whole decode checks it. An
+interlaced PNG (Adam7 spreads every row over the whole stream), a malformed
+one, or `end` at or past the image's height: None, and the caller decodes the whole image.
+
+Inflating is the cost: with `isal` installed (Intel's ISA-L, `pip install isal`; pinned in
+requirements.txt) it inflates two to three times as fast as zlib, with the same bytes out; without it,
+zlib.
+"""
+from __future__ import annotations
+
+import struct
+import zlib
+from typing import Any
+
+import cv2
+import numpy as np
+
+try:   # the same inflate, faster (optional)
+    from isal import isal_zlib as _inflate
+except ImportError:   # pragma: no cover - isal is pinned in requirements.txt; a ROS install may lack it
+    _inflate = zlib  # type: ignore[misc]
+_INFLATE_ERROR: Any = _inflate.error
+_ERRORS: tuple[type[BaseException], ...] = (zlib.error, _INFLATE_ERROR)
+
+
+def _view(data: Any) -> memoryview:
+    """The bytes of `data` (bytes, memoryview or a uint8 array) without a copy."""
+    return memoryview(data).cast("B")
+
+_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_CHUNK = struct.Struct(">I4s")
+_IHDR = struct.Struct(">IIBBBBB")
+_CRC = struct.Struct(">I")
+_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}   # PNG colour type -> samples per pixel
+
+
+def png_size(data: Any) -> tuple[int, int] | None:
+    """(height, width) a PNG declares in its header (`data`: bytes, memoryview or a uint8 array); None if
+    `data` does not start as a PNG."""
+    raw = _view(data)
+    if len(raw) < 8 + 8 + _IHDR.size or bytes(raw[:8]) != _SIGNATURE or bytes(raw[12:16]) != b"IHDR":
+        return None
+    width, height = _IHDR.unpack_from(raw, 16)[:2]
+    return int(height), int(width)
+
+
+def _chunk(kind: bytes, body: bytes | memoryview) -> bytes:
+    return _CHUNK.pack(len(body), kind) + bytes(body) + struct.pack(">I", zlib.crc32(body, zlib.crc32(kind)))
+
+
+def decode_rows(data: Any, end: int) -> np.ndarray | None:
+    """Rows [0, end) of the PNG `data` as `cv2.imdecode(data, IMREAD_UNCHANGED)[:end]` gives them (the
+    same values); None when only a whole decode will do (see the module docstring)."""
+    raw = _view(data)
+    size = png_size(raw)
+    if size is None or not 0 < end < size[0]:
+        return None
+    width, _height, depth, colour, method, filtering, interlace = _IHDR.unpack_from(raw, 16)
+    if interlace != 0 or method != 0 or filtering != 0 or colour not in _CHANNELS or depth not in (1, 2, 4, 8, 16):
+        return None
+    row_bytes = (width * depth * _CHANNELS[colour] + 7) // 8 + 1   # a filter byte, then the samples
+    before: list[bytes] = []   # the chunks between the header and the image data (a palette, ...)
+    idat: list[memoryview] = []
+    pos = 8 + 8 + _IHDR.size + 4
+    while pos + 8 <= len(raw):
+        length, kind = _CHUNK.unpack_from(raw, pos)
+        body = raw[pos + 8:pos + 8 + length]
+        if len(body) < length or pos + 12 + length > len(raw) \
+                or _inflate.crc32(body, _inflate.crc32(kind)) != _CRC.unpack_from(raw, pos + 8 + length)[0]:
+            return None   # truncated or damaged: the whole decode says so
+        if kind == b"IDAT":
+            idat.append(body)
+        elif idat or kind == b"IEND":
+            break   # the image data ended: nothing after it is needed
+        else:
+            before.append(bytes(raw[pos:pos + 12 + length]))
+        pos += 12 + length
+    if not idat:
+        return None
+    try:
+        rows = _inflate.decompressobj().decompress(b"".join(idat), end * row_bytes)
+    except _ERRORS:
+        return None
+    if len(rows) < end * row_bytes:
+        return None
+    header = _chunk(b"IHDR", _IHDR.pack(width, end, depth, colour, 0, 0, 0))
+    png = b"".join((_SIGNATURE, header, *before, _chunk(b"IDAT", zlib.compress(rows, 0)), _chunk(b"IEND", b"")))
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None or image.shape[0] != end:
+        return None
+    return image
