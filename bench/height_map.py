@@ -101,6 +101,7 @@ def score_surface(variant: str | None, presses: int,
     """The surface's map with the default calibration (seed 0, `presses`): its score, the calibration's
     in-sample fit and chosen position degree; and the same raster mapped with the calibrations of `draws`
     ((presses, seed) each: other press counts and other places of the presses)."""
+    from bench.world_map import map_events
     from touchroller_driver.arm import (
         DEFAULT_MOUNT_RPY,
         DEFAULT_MOUNT_XYZ,
@@ -132,14 +133,7 @@ def score_surface(variant: str | None, presses: int,
         mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
                              WorldMapConfig(bounds=bounds, latency=0.03),
                              height=HeightSource(photometric.calibration.model, photometric.reference))
-        begin = time.process_time()
-        for event in events:
-            if event[0] == "tf":
-                buffer.set_transform("base", "tool0", event[1], event[2])
-            else:
-                mapper.push(event[2], event[1])
-        mapper.finalise()
-        cpu = time.process_time() - begin
+        cpu = map_events(mapper, buffer, events)
         layer = mapper.height_layer(crop=False)
         if layer is None:
             raise RuntimeError("no height was mapped")

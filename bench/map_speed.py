@@ -137,23 +137,15 @@ def _cached_env(out_dir: Path) -> dict[str, str]:
 def make_world_bag(path: Path, area: list[float], compressed: bool = False) -> tuple[int, float]:
     """A raster over `large_surface` as `touchroller scan --record` holds it (bench.world_map's recording for
     area [0.42, -0.07, 0.12, 0.14]); `compressed`: rewritten as `touchroller record` compresses (PNG, zstd MCAP)."""
-    from bench.world_map import _setup
+    from bench.world_map import _setup, raster_records
     from touchroller_bringup.bag_compression import compress_recording
-    from touchroller_bringup.bags import ImageRecord, TransformRecord, write_scan
-    from touchroller_driver.sim.sweep import simulate_sweep
+    from touchroller_bringup.bags import write_scan
 
     sensor, mount, plan = _setup(area)
 
-    def records():
-        yield TransformRecord("tool0", "touchroller_cylinder", 0, mount.translation, mount.rotation, True)
-        for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=0.03):
-            if event[0] == "tf":
-                yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
-            else:
-                yield ImageRecord(event[1], event[2])
 
     raw = path.with_name(path.name + "_raw") if compressed else path
-    count = write_scan(raw, records())
+    count = write_scan(raw, raster_records(sensor, plan, mount))
     if compressed:
         compress_recording(raw, path)
         shutil.rmtree(raw)

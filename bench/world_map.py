@@ -190,6 +190,33 @@ def _setup(area: list[float]):
     return sensor, mount, plan
 
 
+def raster_records(sensor, plan, mount, latency_s: float = 0.03):
+    """A simulated raster as a recording's records: the mount on /tf_static, the arm's poses on /tf and the
+    frames, filmed `latency_s` late (what `write_scan` takes)."""
+    from touchroller_bringup.bags import ImageRecord, TransformRecord
+    from touchroller_driver.sim.sweep import simulate_sweep
+
+    yield TransformRecord("tool0", "touchroller_cylinder", 0, mount.translation, mount.rotation, True)
+    for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=latency_s):
+        if event[0] == "tf":
+            yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
+        else:
+            yield ImageRecord(event[1], event[2])
+
+
+def map_events(mapper, buffer, events) -> float:
+    """Simulated sweep events (`simulate_sweep`'s) through a world mapper whose poses come from `buffer`,
+    finalised; the CPU seconds it took."""
+    begin = time.process_time()
+    for event in events:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+        else:
+            mapper.push(event[2], event[1])
+    mapper.finalise()
+    return time.process_time() - begin
+
+
 def map_scan(area: list[float], latency: float, pictures: list[MapPicture] | None = None) -> ScanScores:
     """One raster filmed `latency` late, mapped three ways; the scores of each (`pictures`: the default
     mapper's map and the truth appended, for the report's figure)."""
@@ -398,14 +425,7 @@ def grid_cell(profile: str, latency: float, yaw_deg: float, surface: str = "grai
         buffer = TransformBuffer(cache_ns=None)
         buffer.set_transform("tool0", "touchroller_cylinder", 0, mount, static=True)
         mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"), config)
-        begin = time.process_time()
-        for event in events:
-            if event[0] == "tf":
-                buffer.set_transform("base", "tool0", event[1], event[2])
-            else:
-                mapper.push(event[2], event[1])
-        mapper.finalise()
-        return mapper, time.process_time() - begin
+        return mapper, map_events(mapper, buffer, events)
 
     mapper, cpu = mapped(WorldMapConfig(bounds=bounds))
     _, told_cpu = mapped(WorldMapConfig(bounds=bounds, latency=latency))
@@ -526,22 +546,12 @@ def _grid_markdown(cells: list[GridCell]) -> list[str]:
 # ------------------------------------------------------------------------------------------------ speed
 def make_bag(path: Path, length: float) -> tuple[int, float]:
     """A 3-pass recording (the raster 14 cm wide) with /tf and /tf_static, as `touchroller scan --record` holds it."""
-    from touchroller_bringup.bags import ImageRecord, TransformRecord, write_scan
-    from touchroller_driver.sim.sweep import simulate_sweep
+    from touchroller_bringup.bags import write_scan
 
     area = [0.42, -0.07, length, 0.14]
     sensor, mount, plan = _setup(area)
     assert len(plan.rolls) == 3
-
-    def records():
-        yield TransformRecord("tool0", "touchroller_cylinder", 0, mount.translation, mount.rotation, True)
-        for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=0.03):
-            if event[0] == "tf":
-                yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
-            else:
-                yield ImageRecord(event[1], event[2])
-
-    count = write_scan(path, records())
+    count = write_scan(path, raster_records(sensor, plan, mount))
     return count, sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 1e6
 
 
