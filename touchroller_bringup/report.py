@@ -860,8 +860,9 @@ GOALS: tuple[Goal, ...] = (
          "calib_lighting", _lighting_sigmas),
     Goal(26, "... and the sigmas given without a lights-off frame: true error within 2 sigma in about 95 %",
          "calib_lighting", lambda r: _lighting_sigmas(r, no_dark=True)),
-    Goal(26, "Imprint centres that do not move with the light's direction: the shading centre's mean pull within "
-             "0.1 px on both renderers lit from each of 4 sides", "calib_centres",
+    Goal(26, "Imprint centres that do not move with the light's direction: the `shading` centre's mean pull within "
+             "0.1 px on both renderers lit from each of 4 sides (the default is `symmetric`, shown beside it: "
+             "docs/calibration.md says why)", "calib_centres",
          lambda r: _centre_pull(r, ("simulator", "second renderer"))),
     Goal(26, "... and on the second renderer's centred frame under an LED at 15 deg", "calib_centres",
          lambda r: _centre_pull(r, ("second renderer, frame centred, LED at 15°",))),
