@@ -47,7 +47,9 @@ def test_the_live_latency_runs_from_the_last_frame_reaching_a_defect_to_the_firs
     # the band reaches 3 mm either side of the contact line: the map spans the roll and 3 mm more each way
     extent = (0.397, -0.01, 0.433, 0.01)
     shown_at = 6.2                                                         # wall, and stamp 5.5 s
-    watch.findings = [(shown_at, 55 * 10**8, [np.array([[0.410, 0.0]])])]
+    # each shape with the kind its label names: a crack's marker on the dent does not show the dent
+    watch.findings = [(shown_at - 1.0, 45 * 10**8, [("crack", np.array([[0.409, 0.0], [0.411, 0.0]]))]),
+                      (shown_at, 55 * 10**8, [("dent", np.array([[0.410, 0.0]]))])]
     latency = live_latency(watch, [_dent(0.410), _dent(0.420)], extent)
     # the band's trailing edge leaves x = 0.4105 when the contact line is at 0.4135: 4.5 s into the roll
     assert latency[0].wall_s == pytest.approx(shown_at - 5.5, abs=0.11)
