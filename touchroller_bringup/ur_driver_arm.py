@@ -46,7 +46,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -181,8 +181,8 @@ def declare_ur_driver_parameters(node: Node) -> None:
     from touchroller_bringup.ros_params import declare
 
     defaults = URDriverConfig()
-    for name, (field, description, lo, hi) in UR_DRIVER_PARAMETERS.items():
-        declare(node, name, getattr(defaults, field), description, min=lo, max=hi, read_only=True)
+    for name, (attribute, description, lo, hi) in UR_DRIVER_PARAMETERS.items():
+        declare(node, name, getattr(defaults, attribute), description, min=lo, max=hi, read_only=True)
 
 
 def ur_driver_config(node: Node) -> URDriverConfig:
@@ -246,6 +246,7 @@ class _Move:
     sent: float                  # monotonic time the program was published
     programs_started: int        # the External Control program's starts seen when it was sent
     path: np.ndarray | None = None   # a path's waypoints (N, 6): progress is along them
+    sent_ns: int = field(default_factory=time.time_ns)   # wall time sent: the publisher's stamps are wall time
 
 
 class URDriverArm:
@@ -598,10 +599,16 @@ class URDriverArm:
                            "cause (the controller allows an unlock 5 s after the stop), then reset")
 
     # subscription callbacks (executor thread)
-    def _on_program_running(self, message: Any) -> None:
+    def _on_program_running(self, message: Any, info: Any) -> None:
         with self._lock:
             if message.data and not self._program_running:   # None: nothing published yet, i.e. false
-                self._program_starts += 1
+                # The first message may be the latched state, published before our move and delivered
+                # late by discovery: that is not a start during the move. A false -> true change is.
+                move = self._move
+                latched_before_move = (self._program_running is None and move is not None
+                                       and int(info["source_timestamp"]) < move.sent_ns)
+                if not latched_before_move:
+                    self._program_starts += 1
             self._program_running = bool(message.data)
 
     def _on_safety_mode(self, message: Any) -> None:

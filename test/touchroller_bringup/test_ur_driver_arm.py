@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 pytest.importorskip("rclpy")
 pytest.importorskip("ur_dashboard_msgs.msg")
+from std_msgs.msg import Bool  # noqa: E402
 
 from touchroller_bringup.ur_driver_arm import (  # noqa: E402
     UR_DRIVER_PARAMETERS,
@@ -340,6 +341,40 @@ def test_a_movel_the_robot_does_not_run_is_a_fault(ros_context):
         arm.move_linear(REST + np.array([0.01, 0, 0, 0, 0, 0]), 0.01, 0.1)
         assert wait_for(lambda: arm.fault() is not None)
         assert "did not start the movel" in arm.fault()
+    finally:
+        arm.disconnect()
+        fake.close()
+
+
+def test_the_latched_program_state_delivered_after_a_move_was_sent_is_not_a_start(ros_context):
+    """Discovery can deliver the driver's latched robot_program_running after our first movel is sent: a
+    state published before the move is not the program starting during it (the stamp tells them apart)."""
+    fake = FakeURDriver(ros_context, REST, program_running=False, execute=False)   # nothing latched yet
+    arm = URDriverArm(URDriverConfig(start_timeout=30.0, connect_timeout=10.0, driver_timeout=1.0),
+                      context=ros_context)
+    try:
+        arm.connect()
+        arm.move_linear(REST + np.array([0.01, 0, 0, 0, 0, 0]), 0.01, 0.1)
+        sent_ns = arm._move.sent_ns   # noqa: SLF001 - the stamp the callback compares with
+        arm._on_program_running(Bool(data=True), {"source_timestamp": sent_ns - 10**8})   # noqa: SLF001
+        assert arm.fault() is None and arm.program_running is True
+        arm._on_program_running(Bool(data=False), {"source_timestamp": sent_ns + 10**6})   # noqa: SLF001
+        arm._on_program_running(Bool(data=True), {"source_timestamp": sent_ns + 2 * 10**6})   # noqa: SLF001
+        assert "started during the move" in (arm.fault() or "")
+    finally:
+        arm.disconnect()
+        fake.close()
+
+
+def test_a_first_program_start_published_after_the_move_was_sent_is_a_fault(ros_context):
+    fake = FakeURDriver(ros_context, REST, program_running=False, execute=False)
+    arm = URDriverArm(URDriverConfig(start_timeout=30.0, connect_timeout=10.0, driver_timeout=1.0),
+                      context=ros_context)
+    try:
+        arm.connect()
+        arm.move_linear(REST + np.array([0.01, 0, 0, 0, 0, 0]), 0.01, 0.1)
+        arm._on_program_running(Bool(data=True), {"source_timestamp": time.time_ns()})   # noqa: SLF001
+        assert "started during the move" in (arm.fault() or "")
     finally:
         arm.disconnect()
         fake.close()
