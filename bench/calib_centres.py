@@ -25,10 +25,10 @@ import numpy as np
 
 from bench import calib_crosscheck as crosscheck
 from bench import calib_lighting as lighting
-from bench._common import Provenance, provenance, provenance_markdown, results_path, to_json
+from bench._common import Provenance, provenance, provenance_markdown, results_path, write_results
 from touchroller_perception import calibration as cal
-from touchroller_perception.files import atomic_write_text
 
+TITLE = "Imprint centres under light from one side"
 ESTIMATORS = ("centroid", "symmetric", "shading")
 #: the centre's mean pull (px), any direction, on every renderer and light side
 GOAL_PX = 0.1
@@ -133,15 +133,20 @@ def load(path: Path) -> CentresResult:
                          int(data["presses"]), tuple(Cell(**c) for c in data["cells"]))
 
 
+def write(result: CentresResult, out: Path | None = None) -> Path:
+    """The recorded run, as the other benches write theirs: `out` (default
+    bench/results[/quick]/calib_centres.md) under `# TITLE`, and the JSON beside it that `load` reads."""
+    path = out or results_path("calib_centres", result.quick)
+    write_results(path, TITLE, result, to_markdown)
+    return path
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1 seed of 3 presses (indicative only)")
     args = parser.parse_args()
     result = run(quick=args.quick, progress=lambda line: print(line, file=sys.stderr, flush=True))
-    out = results_path("calib_centres", args.quick)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, to_markdown(result))
-    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
+    write(result)
     print(to_markdown(result))
     return 0
 

@@ -39,10 +39,10 @@ import numpy as np
 
 from bench import calib_crosscheck as crosscheck
 from bench import second_renderer as second
-from bench._common import Provenance, provenance, provenance_markdown, results_path, to_json
+from bench._common import Provenance, provenance, provenance_markdown, results_path, write_results
 from touchroller_perception import calibration as cal
-from touchroller_perception.files import atomic_write_text
 
+TITLE = "Calibration under light from one side"
 AZIMUTHS = (0.0, 90.0, 180.0, 270.0)
 SIMULATOR, SECOND, CENTRED = "simulator", "second renderer", "second renderer, frame centred, LED at 15°"
 RENDERERS = (SIMULATOR, SECOND, CENTRED)
@@ -332,6 +332,14 @@ def load(path: Path) -> LightingResult:
                           int(data["views"]), trials)
 
 
+def write(result: LightingResult, out: Path | None = None) -> Path:
+    """The recorded run, as the other benches write theirs: `out` (default
+    bench/results[/quick]/calib_lighting.md) under `# TITLE`, and the JSON beside it that `load` reads."""
+    path = out or results_path("calib_lighting", result.quick)
+    write_results(path, TITLE, result, to_markdown)
+    return path
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 seeds and 10 chessboard views (indicative only)")
@@ -340,10 +348,7 @@ def main() -> int:
     if args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
     result = run(quick=args.quick, progress=lambda line: print(line, file=sys.stderr, flush=True), jobs=args.jobs)
-    out = results_path("calib_lighting", args.quick)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, to_markdown(result))
-    atomic_write_text(out.with_suffix(".json"), to_json(result, indent=1))
+    write(result)
     print(to_markdown(result))
     return 0
 

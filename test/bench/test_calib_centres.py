@@ -36,3 +36,10 @@ def test_the_goal_rows_fail_when_a_centre_moves_with_the_light():
     assert len(goals) == 2
     assert all(g.measure(_result(0.02))[1] for g in goals)
     assert not any(g.measure(_result(0.12))[1] for g in goals)
+
+
+def test_the_recorded_run_has_its_title_and_the_json_the_report_reads(tmp_path):
+    result = _result(0.02)
+    out = centres.write(result, tmp_path / "calib_centres.md")
+    assert out.read_text().startswith(f"# {centres.TITLE}\n\n{centres.to_markdown(result)}")
+    assert centres.load(out.with_suffix(".json")) == result
