@@ -23,10 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench import calib_crosscheck as crosscheck
 from bench import calib_lighting as lighting
 from bench._common import Provenance, provenance, provenance_markdown, results_path, write_results
-from touchroller_perception import calibration as cal
+from bench.calib_crosscheck import centre_errors
 
 TITLE = "Imprint centres under light from one side"
 ESTIMATORS = ("centroid", "symmetric", "shading")
@@ -76,16 +75,6 @@ def cell(renderer: str, azimuth: float, centre: str, errors: np.ndarray) -> Cell
     mean = errors.mean(axis=0)
     spread = float(np.sqrt(((errors - mean) ** 2).sum(axis=1).mean()))
     return Cell(renderer, azimuth, centre, len(errors), float(mean @ towards), float(mean @ across), spread)
-
-
-def centre_errors(presses: crosscheck.Presses, centre: str) -> np.ndarray:
-    detector = cal.ImprintDetectorConfig(centre=centre)
-    errors = []
-    for image, truth in zip(presses.images, presses.centres_px, strict=True):
-        found = cal.find_imprints(image, cal.HemisphereFrame(), detector, reference=presses.reference)
-        if found.centres is not None:
-            errors.append(found.centres - truth)
-    return np.concatenate(errors) if errors else np.zeros((0, 2))
 
 
 def run(quick: bool = False, progress: Callable[[str], None] = lambda _: None) -> CentresResult:

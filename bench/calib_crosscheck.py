@@ -253,7 +253,7 @@ def method_rows(data: dict[str, list[Presses]]) -> list[MethodRow]:
     """Table G from the rendered presses of each imprint model (one list of seeds each)."""
     rows = []
     for model, sets in data.items():
-        bias = {centre: np.mean(np.concatenate([e for p in sets for e in _centre_errors(p, centre)]), axis=0)
+        bias = {centre: np.mean(np.concatenate([centre_errors(p, centre) for p in sets]), axis=0)
                 for centre in {m[1] for m in METHODS}}
         for label, centre, strength, balance, lights_off in METHODS:
             config = cal.ExtrinsicsConfig(detector=cal.ImprintDetectorConfig(centre=centre, strength=strength),
@@ -270,14 +270,16 @@ def method_rows(data: dict[str, list[Presses]]) -> list[MethodRow]:
     return rows
 
 
-def _centre_errors(presses: Presses, centre: str) -> list[np.ndarray]:
+def centre_errors(presses: Presses, centre: str) -> np.ndarray:
+    """(n, 2) found - true imprint centres (px) with the `centre` estimator, over the presses whose frame
+    was found (none: (0, 2))."""
     detector = cal.ImprintDetectorConfig(centre=centre)
     errors = []
     for image, truth in zip(presses.images, presses.centres_px, strict=True):
         found = cal.find_imprints(image, cal.HemisphereFrame(), detector, reference=presses.reference)
         if found.centres is not None:
             errors.append(found.centres - truth)
-    return errors
+    return np.concatenate(errors) if errors else np.zeros((0, 2))
 
 
 # --------------------------------------------------------------------------- H: rays

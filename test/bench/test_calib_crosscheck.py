@@ -116,6 +116,15 @@ def test_renderer_truth_is_the_true_camera():
     assert presses.camera == second.TRUE_CAMERA and len(presses.truth[0].centres_px) == 10
 
 
+def test_centre_errors_are_each_found_imprint_against_its_truth_and_skip_presses_without_a_frame():
+    presses = check.second_presses(seed=0, presses=2)
+    blank = check.Presses(presses.reference, [*presses.images, presses.reference],
+                          [*presses.centres_px, presses.centres_px[0]], presses.camera)
+    errors = check.centre_errors(blank, "shading")
+    assert errors.shape == (20, 2) and float(np.abs(errors).max()) < 0.5
+    none = check.Presses(presses.reference, [presses.reference], [presses.centres_px[0]], presses.camera)
+    assert check.centre_errors(none, "shading").shape == (0, 2)
+
 def test_corner_noise_is_not_inflated_by_a_few_misdetected_corners():
     rng = np.random.default_rng(0)
     errors = rng.normal(0.0, 0.02, (2000, 2))
