@@ -32,6 +32,8 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
+from touchroller_bringup.forked_reader import _die_with_parent, _end_child, _picklable, fork_available
+
 T = TypeVar("T")
 R = TypeVar("R")
 MAX_WORKERS = 8
@@ -80,8 +82,6 @@ class WorkerProcessError(RuntimeError):
 
 def pool_available() -> bool:
     """Whether `ordered` may use worker processes: Linux's fork (see `forked_reader.fork_available`)."""
-    from touchroller_bringup.forked_reader import fork_available
-
     return fork_available()
 
 
@@ -117,8 +117,6 @@ class _Worker:
             code = 1
             try:
                 signal.signal(signal.SIGINT, signal.SIG_IGN)
-                from touchroller_bringup.forked_reader import _die_with_parent
-
                 _die_with_parent(owner)
                 for other in everyone:   # only its own ends stay open: a pipe ends when its worker does
                     for fd in ((other.task_w, other.done_r) if other is self else
@@ -202,15 +200,7 @@ class _Worker:
         if self.stream is not None:
             self.stream.close()
         if self.pid:
-            if not wait:
-                try:
-                    os.kill(self.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-            try:
-                os.waitpid(self.pid, 0)
-            except ChildProcessError:
-                pass
+            _end_child(self.pid, wait)
         self.memory.close()
 
 
@@ -233,14 +223,6 @@ def _read_exactly(stream: Any, size: int) -> bytes | None:
 
 def _died() -> WorkerProcessError:
     return WorkerProcessError("a decoding worker process ended unexpectedly (killed, or out of memory)")
-
-
-def _picklable(exc: BaseException) -> BaseException:
-    try:
-        pickle.loads(pickle.dumps(exc))
-        return exc
-    except Exception:  # noqa: BLE001 - an exception that does not survive pickling: its type and text
-        return RuntimeError(f"{type(exc).__name__}: {exc}")
 
 
 def ordered(items: Iterable[T], work: Callable[[T], R], wanted: Callable[[T], bool], workers: int,

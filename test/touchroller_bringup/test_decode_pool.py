@@ -69,6 +69,21 @@ def test_an_error_in_the_work_is_raised_at_its_place_after_the_items_before_it()
     assert [s for s in seen if isinstance(s, int)] == list(range(7))
 
 
+def test_an_error_that_does_not_pickle_is_raised_at_its_place_as_its_type_and_text():
+    class Unpicklable(Exception):   # a local class: pickle cannot find it by name in the worker's reply
+        pass
+
+    def work(frame):
+        if frame[0, 0] == 4:
+            raise Unpicklable("frame 4 is odd")
+        return int(frame[0, 0])
+
+    seen = []
+    with pytest.raises(RuntimeError, match="^Unpicklable: frame 4 is odd$"):
+        for item in ordered(_stream(20), work, _frame, 2):
+            seen.append(item)
+    assert [s for s in seen if isinstance(s, int)] == list(range(4))
+
 def _children() -> set[int]:
     with open(f"/proc/{os.getpid()}/task/{os.getpid()}/children") as stream:
         return {int(pid) for pid in stream.read().split()}
