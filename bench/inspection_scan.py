@@ -21,7 +21,6 @@ and the time to inspect a square metre. Helpers of `bench.inspection`, not a ben
 from __future__ import annotations
 
 import math
-import os
 import tempfile
 import threading
 import time
@@ -35,6 +34,7 @@ import yaml
 from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 
+from bench._scan_graph import own_domain
 from touchroller_perception.inspection import Finding
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -131,33 +131,22 @@ def command_line(arguments: Mapping[str, str], height: bool, overrides: Mapping[
 def run_scan(arguments: Mapping[str, str], height: bool = False, overrides: Mapping[str, Any] | None = None,
              record: bool = False) -> Scanned:
     """One simulated scan in a domain of its own (another graph would stop it), watched."""
-    from touchroller_bringup.ros_domains import reserve_domain_id
     from touchroller_bringup.scan import ScanOptions
     from touchroller_bringup.scan import run_scan as scan
 
     overrides = dict(overrides or {})
     out = Path(tempfile.mkdtemp(prefix="inspection_scan_"))
-    saved = {name: os.environ.get(name) for name in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
     watch = Watch()
-    try:
-        with reserve_domain_id() as lease:
-            os.environ["ROS_DOMAIN_ID"] = str(lease.domain_id)
-            os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-            watch.start()
-            started = time.monotonic()
-            try:
-                result = scan(ScanOptions(out_dir=out, arguments=dict(arguments), overrides=overrides, progress=None,
-                                          height=height, record=record, compress=False))
-            finally:
-                seconds = time.monotonic() - started
-                time.sleep(0.5)       # the last findings message on its way
-                watch.stop()
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
+    with own_domain():
+        watch.start()
+        started = time.monotonic()
+        try:
+            result = scan(ScanOptions(out_dir=out, arguments=dict(arguments), overrides=overrides, progress=None,
+                                      height=height, record=record, compress=False))
+        finally:
+            seconds = time.monotonic() - started
+            time.sleep(0.5)       # the last findings message on its way
+            watch.stop()
     if not result.ok:
         raise RuntimeError(f"the scan {command_line(arguments, height, overrides)} ended {result.outcome}: "
                            f"{result.message}")

@@ -12,7 +12,6 @@ takes tracemalloc snapshots after warm-up and at the end and lists where Python 
 from __future__ import annotations
 
 import argparse
-import gc
 import os
 import sys
 import tempfile
@@ -32,6 +31,7 @@ from bench._common import (
     results_path,
     write_results,
 )
+from bench._scan_graph import map_tiles_mb, own_domain, perception_node, status_mb
 
 AREA = (0.40, -0.08, 0.16, 0.16)     # x, y, length, width (m) of the raster on the large scene
 QUICK_AREA = (0.42, -0.045, 0.03, 0.09)
@@ -78,29 +78,6 @@ class ScanSoakResult:
         return self.steady <= self.goal_steady
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/status") as stream:
-        for line in stream:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
-def _perception() -> object | None:
-    from touchroller_bringup.nodes.perception_node import PerceptionNode
-
-    return next((o for o in gc.get_objects() if isinstance(o, PerceptionNode)), None)
-
-
-def _canvas_mb(perception: object | None) -> float:
-    """The world map's own memory: the bytes of its tiles in memory (the layers' and the copies a pass
-    registers against; the tile store's cache bounds them, the rest is on disk)."""
-    world = getattr(perception, "world", None)
-    canvas = getattr(world, "canvas", None)
-    store = getattr(canvas, "store", None)
-    return store.resident_bytes / 2**20 if store is not None else 0.0
-
-
 def _malloc_trim() -> None:
     import ctypes
 
@@ -112,7 +89,6 @@ def _malloc_trim() -> None:
 
 def measure(area: tuple[float, float, float, float], speed: float, every: float, quick: bool,
             trace: bool = False, trim: bool = False, overrides: dict | None = None) -> ScanSoakResult:
-    from touchroller_bringup.ros_domains import reserve_domain_id
     from touchroller_bringup.scan import ScanOptions, run_scan
 
     stamp = provenance("scan_soak", quick, *([] if area == (QUICK_AREA if quick else AREA) else
@@ -129,11 +105,11 @@ def measure(area: tuple[float, float, float, float], speed: float, every: float,
     def sample() -> None:
         perception = None
         while not done.wait(every):
-            perception = perception or _perception()
+            perception = perception or perception_node()
             frames = int(getattr(perception, "received", 0)) if perception is not None else 0
             if trim:   # free heap pages back to the system first: what stays is held, not fragmentation
                 _malloc_trim()
-            samples.append(Sample(time.monotonic() - started, frames, _rss_mb(), _canvas_mb(perception)))
+            samples.append(Sample(time.monotonic() - started, frames, status_mb(), map_tiles_mb(perception)))
             if trace and not snapshots and frames >= warmup_frames:
                 import tracemalloc
 
@@ -146,12 +122,8 @@ def measure(area: tuple[float, float, float, float], speed: float, every: float,
     sampler = threading.Thread(target=sample, name="scan-soak-sampler", daemon=True)
     sampler.start()
     out = Path(tempfile.mkdtemp(prefix="scan_soak_"))
-    saved = {name: os.environ.get(name) for name in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
     try:
-        # a ROS domain no other process here uses: another graph in the namespace would stop the scan
-        with reserve_domain_id() as lease:
-            os.environ["ROS_DOMAIN_ID"] = str(lease.domain_id)
-            os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        with own_domain():
             result = run_scan(ScanOptions(out_dir=out, arguments={"scene": "large_surface",
                                                                   "area": ",".join(map(str, area)),
                                                                   "sweep_speed": str(speed)},
@@ -159,11 +131,6 @@ def measure(area: tuple[float, float, float, float], speed: float, every: float,
     finally:
         done.set()
         sampler.join()
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
     top: list[str] = []
     if trace and snapshots:
         import tracemalloc

@@ -61,6 +61,7 @@ from bench._common import (
     to_json,
     write_results,
 )
+from bench._scan_graph import map_tiles_mb, own_domain, perception_node, status_mb
 from touchroller_perception.files import atomic_write_text
 
 SPEED = 0.05              # m/s along a pass
@@ -164,24 +165,13 @@ def scene_data(side: float) -> tuple[dict, tuple[float, float, float, float]]:
 
 
 # ------------------------------------------------------------------------------------------------ live
-def _status_mb(field: str) -> float:
-    with open("/proc/self/status") as stream:
-        for line in stream:
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def _du_mb(path: Path) -> float:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2**20 if path.exists() else 0.0
 
 
 def live_case(side: float, speed: float, work: Path, progress: bool) -> tuple[LiveResult, tuple[int, int], str]:
     """The scan in this process (call in a fresh process: its peak RSS is the scan's)."""
-    import gc
-
     from touchroller_bringup.nodes.perception_node import PerceptionNode
-    from touchroller_bringup.ros_domains import reserve_domain_id
     from touchroller_bringup.scan import ScanOptions, run_scan
     from touchroller_driver.sim.defects import surface_defects
     from touchroller_driver.sim.tiled_surface import TiledSurface
@@ -230,11 +220,9 @@ def live_case(side: float, speed: float, work: Path, progress: bool) -> tuple[Li
     def sample() -> None:
         perception = None
         while not done.wait(2.0):
-            perception = perception or next((o for o in gc.get_objects() if isinstance(o, PerceptionNode)), None)
+            perception = perception or perception_node()
             frames = int(getattr(perception, "received", 0)) if perception is not None else 0
-            store = getattr(getattr(getattr(perception, "world", None), "canvas", None), "store", None)
-            tiles_mb = store.resident_bytes / 2**20 if store is not None else 0.0
-            samples.append((time.monotonic() - started, frames, _status_mb("VmRSS"), tiles_mb))
+            samples.append((time.monotonic() - started, frames, status_mb("VmRSS"), map_tiles_mb(perception)))
             if progress and len(samples) % 15 == 0:
                 print(f"  {samples[-1][0]:.0f} s: {frames} frames, RSS {samples[-1][2]:.0f} MB", flush=True)
 
@@ -244,9 +232,7 @@ def live_case(side: float, speed: float, work: Path, progress: bool) -> tuple[Li
     cpu0 = time.process_time()
     wall0 = time.monotonic()
     try:
-        with reserve_domain_id() as lease:
-            os.environ["ROS_DOMAIN_ID"] = str(lease.domain_id)
-            os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        with own_domain():
             result = run_scan(ScanOptions(
                 out_dir=out, record=True, storage="mcap", compress=True, progress=None,
                 reference_timeout_s=600.0,   # the camera node makes the surface first: passes over 1 m²
@@ -275,7 +261,7 @@ def live_case(side: float, speed: float, work: Path, progress: bool) -> tuple[Li
         result.outcome, result.message, wall, cpu, result.frames_published, result.frames_processed,
         result.frames_dropped, int(sum(n for topic, n in result.recorded.items() if "image_raw" in topic)),
         tuple(result.map_shape or ()), 100.0 * fraction if fraction is not None else float("nan"),
-        int(getattr(coverage, "passes_mapped", 0) or 0), _status_mb("VmHWM"), tuple(samples), len(pushes),
+        int(getattr(coverage, "passes_mapped", 0) or 0), status_mb("VmHWM"), tuple(samples), len(pushes),
         stat(push_cpu, 50), stat(push_cpu, 95), stat(push_wall, 50), stat(push_wall, 95), len(publishes),
         stat(pub, 50), float(pub.max()) if pub.size else float("nan"),
         raw.tiles_made if raw is not None else 0, raw.peak_tiles if raw is not None else 0,
