@@ -122,20 +122,12 @@ def load(path: Path) -> CentresResult:
                          int(data["presses"]), tuple(Cell(**c) for c in data["cells"]))
 
 
-def write(result: CentresResult, out: Path | None = None) -> Path:
-    """The recorded run, as the other benches write theirs: `out` (default
-    bench/results[/quick]/calib_centres.md) under `# TITLE`, and the JSON beside it that `load` reads."""
-    path = out or results_path("calib_centres", result.quick)
-    write_results(path, TITLE, result, to_markdown)
-    return path
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1 seed of 3 presses (indicative only)")
     args = parser.parse_args()
     result = run(quick=args.quick, progress=lambda line: print(line, file=sys.stderr, flush=True))
-    write(result)
+    write_results(results_path("calib_centres", args.quick), TITLE, result, to_markdown)
     print(to_markdown(result))
     return 0
 

@@ -332,14 +332,6 @@ def load(path: Path) -> LightingResult:
                           int(data["views"]), trials)
 
 
-def write(result: LightingResult, out: Path | None = None) -> Path:
-    """The recorded run, as the other benches write theirs: `out` (default
-    bench/results[/quick]/calib_lighting.md) under `# TITLE`, and the JSON beside it that `load` reads."""
-    path = out or results_path("calib_lighting", result.quick)
-    write_results(path, TITLE, result, to_markdown)
-    return path
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 seeds and 10 chessboard views (indicative only)")
@@ -348,7 +340,7 @@ def main() -> int:
     if args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
     result = run(quick=args.quick, progress=lambda line: print(line, file=sys.stderr, flush=True), jobs=args.jobs)
-    write(result)
+    write_results(results_path("calib_lighting", args.quick), TITLE, result, to_markdown)
     print(to_markdown(result))
     return 0
 

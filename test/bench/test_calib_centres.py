@@ -38,8 +38,12 @@ def test_the_goal_rows_fail_when_a_centre_moves_with_the_light():
     assert not any(g.measure(_result(0.12))[1] for g in goals)
 
 
-def test_the_recorded_run_has_its_title_and_the_json_the_report_reads(tmp_path):
+def test_the_recorded_run_has_its_title_and_the_json_the_report_reads(tmp_path, monkeypatch, capsys):
     result = _result(0.02)
-    out = centres.write(result, tmp_path / "calib_centres.md")
-    assert out.read_text().startswith(f"# {centres.TITLE}\n\n{centres.to_markdown(result)}")
+    monkeypatch.setattr(centres, "run", lambda quick, progress: result)
+    monkeypatch.setattr(centres, "results_path", lambda name, quick: tmp_path / f"{name}.md")
+    monkeypatch.setattr("sys.argv", ["calib_centres", "--quick"])
+    assert centres.main() == 0
+    out = tmp_path / "calib_centres.md"
+    assert out.read_text() == f"# Imprint centres under light from one side\n\n{centres.to_markdown(result)}"
     assert centres.load(out.with_suffix(".json")) == result

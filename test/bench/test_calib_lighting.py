@@ -36,10 +36,14 @@ def test_the_result_round_trips_through_its_json(tmp_path):
     assert "| simulator | 90° | 0.020 |" in text and "row balance: kept, held-out margin" in text
 
 
-def test_the_recorded_run_has_its_title_and_the_json_the_report_reads(tmp_path):
+def test_the_recorded_run_has_its_title_and_the_json_the_report_reads(tmp_path, monkeypatch, capsys):
     result = _result([_trial(r, a, 0, 0.02) for r in lighting.RENDERERS for a in lighting.AZIMUTHS])
-    out = lighting.write(result, tmp_path / "calib_lighting.md")
-    assert out.read_text().startswith(f"# {lighting.TITLE}\n\n{lighting.to_markdown(result)}")
+    monkeypatch.setattr(lighting, "run", lambda quick, progress, jobs: result)
+    monkeypatch.setattr(lighting, "results_path", lambda name, quick: tmp_path / f"{name}.md")
+    monkeypatch.setattr("sys.argv", ["calib_lighting", "--quick"])
+    assert lighting.main() == 0
+    out = tmp_path / "calib_lighting.md"
+    assert out.read_text() == f"# Calibration under light from one side\n\n{lighting.to_markdown(result)}"
     assert lighting.load(out.with_suffix(".json")) == result
 
 def test_the_goal_rows_fail_on_a_seed_off_or_a_refusal_the_plain_method_would_not_make():
