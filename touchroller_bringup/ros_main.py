@@ -7,7 +7,9 @@ wherever the main thread is, which left a traceback ("process has died") or a no
 through its cleanup (a sweep worker's arm stop). Here SIGINT and SIGTERM only ask to stop (`StopSignals`,
 installed before the node's module is imported): the node is built to the end, spinning ends between
 callbacks, the node's own stop path runs first (the sweep node stops the arm), then the node is
-destroyed and the context shut down, and the process exits 0. Further signals during that cleanup
+destroyed and the context shut down, and the process exits 0. A stop signal while the node's modules
+load (seconds on a loaded machine) ends the process there, exit 0: nothing is built yet that a stop must
+wait for, so it does not wait for the imports to finish either. Further signals during that cleanup
 change nothing however many arrive (a user's second Ctrl-C under launch is the third and fourth
 signal); a process that must go at once is ended with SIGKILL (launch escalates to it by itself).
 
@@ -23,11 +25,17 @@ import re
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class StartUpInterrupted(BaseException):
+    """A stop signal while a node's modules loaded (see `StopSignals.interrupting`). A BaseException, as
+    KeyboardInterrupt is: the modules' own `except Exception` must not swallow it."""
 
 
 class StopSignals:
@@ -41,6 +49,7 @@ class StopSignals:
         self.count = 0
         self.last_signal: int | None = None
         self._previous: dict[int, Any] = {}
+        self._interrupting = False
 
     @classmethod
     def install(cls, signals: Sequence[int] = STOP_SIGNALS) -> StopSignals:
@@ -68,10 +77,27 @@ class StopSignals:
     def name(self) -> str:
         return signal.Signals(self.last_signal).name if self.last_signal is not None else "a stop request"
 
+    @contextmanager
+    def interrupting(self) -> Iterator[None]:
+        """Within it, a stop signal also raises StartUpInterrupted in the main thread, where it is (for the
+        imports of a node's modules: nothing is built yet that must be stopped in order); a stop requested
+        before raises at once. Only the first signal raises: one that comes while that is handled only
+        asks to stop."""
+        if self.requested.is_set():
+            raise StartUpInterrupted(self.name)
+        self._interrupting = True
+        try:
+            yield
+        finally:
+            self._interrupting = False
+
     def _on_signal(self, signum: int, _frame: Any) -> None:
         self.count += 1
         self.last_signal = signum
         self.requested.set()
+        if self._interrupting:
+            self._interrupting = False
+            raise StartUpInterrupted(self.name)
 
 
 def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) -> None:
@@ -219,8 +245,13 @@ def stop_node(node: Any) -> None:
 
 def _entry(module: str) -> Callable[[], None]:
     def main() -> None:
-        StopSignals.install()   # before the node's module (rclpy, OpenCV, ...) loads: seconds on a slow machine
-        importlib.import_module(module).main()
+        stop = StopSignals.install()   # before the node's module (rclpy, OpenCV, ...) loads: seconds on a slow machine
+        try:
+            with stop.interrupting():   # a Ctrl-C meanwhile ends the process now, not once they have loaded
+                node_module = importlib.import_module(module)
+        except StartUpInterrupted:
+            return   # exit 0, as a stop of a running node: nothing was built
+        node_module.main()
 
     main.__name__ = main.__qualname__ = module.rsplit(".", 1)[-1]
     main.module = module  # type: ignore[attr-defined]

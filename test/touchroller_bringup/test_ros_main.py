@@ -211,6 +211,44 @@ def test_ctrl_c_at_any_moment_of_a_real_node_start_is_clean(ros_context, tmp_pat
         assert done.returncode == 0 and "Traceback" not in output, (delay, output)
 
 
+#: the sweep node's console script, its import of sweep_action (half-way through its module) held until the test
+#: writes a line: a slow import that lasts as long as the test wants; at exit, whether the node's module loaded
+HELD_IMPORT = """
+import atexit, sys
+
+class Hold:
+    def find_spec(self, name, path=None, target=None):
+        if name == "touchroller_bringup.sweep_action":
+            print("importing", flush=True)
+            sys.stdin.readline()
+        return None
+
+sys.meta_path.insert(0, Hold())
+atexit.register(lambda: print("loaded" if "touchroller_bringup.nodes.sweep_node" in sys.modules else "not loaded"))
+from touchroller_bringup import ros_main
+ros_main.sweep_node()
+"""
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_signal_while_the_node_module_loads_ends_it_there(ros_context, tmp_path, signum):
+    """#29: a Ctrl-C while the sweep node's modules loaded ended the process only once they had all loaded
+    (2.24 s under load). The import is held here until after the signal: the process ends in it, exit 0,
+    no traceback, the node's module never loaded (it did, then exited, before the fix)."""
+    process = subprocess.Popen([sys.executable, "-c", HELD_IMPORT], cwd=tmp_path, stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        assert process.stdout.readline().strip() == "importing"
+        process.send_signal(signum)
+        out, err = process.communicate("go\n", timeout=60)   # the import may go on: it did, before the fix
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 0 and "Traceback" not in err, err
+    assert out.split() == ["not", "loaded"], out + err
+
 def test_the_console_scripts_install_the_handlers_before_loading_the_node():
     """setup.py points every node's console script at ros_main, whose handlers are up before the
     node's module (rclpy, OpenCV) is imported."""
