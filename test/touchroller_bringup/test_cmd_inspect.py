@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import csv
+import importlib.util
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +15,12 @@ from touchroller_bringup.findings_files import HEADER, read_findings_csv, read_h
 from touchroller_bringup.map_files import write_world_map
 from touchroller_perception.inspection import Finding, parse_wkt
 from touchroller_perception.world_map import WorldMapImage
+
+_spec = importlib.util.spec_from_file_location(
+    "sim_scans", Path(__file__).parents[1] / "touchroller_driver" / "sim" / "sim_scans.py")
+assert _spec is not None and _spec.loader is not None
+sim_scans = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(sim_scans)
 
 RES = 1e-4
 ORIGIN = (0.40, -0.02)
@@ -144,32 +152,12 @@ def test_findings_csv_round_trip_and_failed_write_keeps_the_old_file(tmp_path):
 
 @pytest.mark.slow
 def test_a_recording_is_mapped_first_then_inspected(tmp_path, capsys):
-    sim = pytest.importorskip("touchroller_driver.sim")
-    from touchroller_bringup.bags import ImageRecord, TransformRecord, write_scan
-    from touchroller_driver.arm import (
-        DEFAULT_MOUNT_RPY,
-        DEFAULT_MOUNT_XYZ,
-        DEFAULT_START_POSE,
-        mount_transform,
-        plan_raster,
-    )
-    from touchroller_driver.sim.sweep import simulate_sweep
+    from touchroller_bringup.bags import write_scan
 
-    mount = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=1)
-    plan = plan_raster(DEFAULT_START_POSE, area=[0.45, -0.02, 0.015, 0.04], mount=mount, speed=0.02, accel=0.1,
-                       depth=5e-4, clearance=0.002, approach_speed=0.005)
-
-    def records():
-        yield TransformRecord("tool0", "touchroller_cylinder", 0, mount.translation, mount.rotation, True)
-        for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=0.02):
-            if event[0] == "tf":
-                yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
-            else:
-                yield ImageRecord(event[1], event[2])
-
+    sensor = sim_scans.large_surface(seed=1)
+    plan = sim_scans.raster([0.45, -0.02, 0.015, 0.04])
     bag = tmp_path / "bag"
-    write_scan(bag, records())
+    write_scan(bag, sim_scans.bag_records(sim_scans.sweep(sensor, plan, 0.02)))
     out = tmp_path / "out"
     assert main(["inspect", str(bag), "--out", str(out)]) == 0
     printed = capsys.readouterr().out

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import gc
+import importlib.util
 from pathlib import Path
 
 import cv2
@@ -14,39 +15,24 @@ from touchroller_bringup.cli import main
 from touchroller_bringup.map_files import read_world_map, write_world_map
 from touchroller_perception.world_map import WorldMapImage
 
-sim = pytest.importorskip("touchroller_driver.sim")
+pytest.importorskip("touchroller_driver.sim")
 
-from touchroller_driver.arm import (  # noqa: E402
-    DEFAULT_MOUNT_RPY,
-    DEFAULT_MOUNT_XYZ,
-    DEFAULT_START_POSE,
-    mount_transform,
-    plan_raster,
-)
-from touchroller_driver.sim.sweep import simulate_sweep  # noqa: E402
-
-MOUNT = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+_spec = importlib.util.spec_from_file_location(
+    "sim_scans", Path(__file__).parents[1] / "touchroller_driver" / "sim" / "sim_scans.py")
+assert _spec is not None and _spec.loader is not None
+sim_scans = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(sim_scans)
+MOUNT = sim_scans.MOUNT
 LATENCY = 0.03
 
 
 @pytest.fixture(scope="module")
 def scan_bag(tmp_path_factory):
     """A one-pass scan (3 cm at 20 mm/s) filmed 30 ms late, recorded with /tf and /tf_static."""
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=1)
-    plan = plan_raster(DEFAULT_START_POSE, area=[0.45, -0.02, 0.03, 0.04], mount=MOUNT, speed=0.02, accel=0.1,
-                       depth=5e-4, clearance=0.002, approach_speed=0.005)
-    start = np.array(plan.segments[0].target)
-
-    def records():
-        yield TransformRecord("tool0", "touchroller_cylinder", 0, MOUNT.translation, MOUNT.rotation, True)
-        for event in simulate_sweep(sensor, plan, start, MOUNT, latency_s=LATENCY):
-            if event[0] == "tf":
-                yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
-            else:
-                yield ImageRecord(event[1], event[2])
-
+    sensor = sim_scans.large_surface(seed=1)
+    plan = sim_scans.raster([0.45, -0.02, 0.03, 0.04])
     path = tmp_path_factory.mktemp("scan") / "bag"
-    assert write_scan(path, records()) > 100
+    assert write_scan(path, sim_scans.bag_records(sim_scans.sweep(sensor, plan, LATENCY))) > 100
     return path
 
 
@@ -252,16 +238,7 @@ BLEND_AREA = (0.42, -0.045, 0.05, 0.09)   # 5 x 9 cm: two passes
 
 
 def _record(path, sensor, plan, latency, **options):
-    def records():
-        yield TransformRecord("tool0", "touchroller_cylinder", 0, MOUNT.translation, MOUNT.rotation, True)
-        for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=latency,
-                                    **options):
-            if event[0] == "tf":
-                yield TransformRecord("base", "tool0", event[1], event[2].translation, event[2].rotation, False)
-            else:
-                yield ImageRecord(event[1], event[2])
-
-    assert write_scan(path, records()) > 100
+    assert write_scan(path, sim_scans.bag_records(sim_scans.sweep(sensor, plan, latency, **options))) > 100
     return path
 
 
@@ -286,9 +263,8 @@ def _in_place_ssim(sensor, yaml_path, area) -> tuple[float, float]:
 def test_a_blended_raster_with_an_untold_latency_is_placed_in_place(tmp_path, capsys):
     """Touchdown and lift-off at speed (no start or stop in contact), 35 ms late, the mapper not told:
     the opposite passes give the latency, and the map lies where the surface is."""
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
-    plan = plan_raster(DEFAULT_START_POSE, area=BLEND_AREA, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
-                       clearance=0.002, profile="blend")
+    sensor = sim_scans.large_surface(seed=0)
+    plan = sim_scans.raster(BLEND_AREA, approach_speed=None, profile="blend")
     bag = _record(tmp_path / "bag", sensor, plan, 0.035, jitter=0.01)
     out = tmp_path / "map.png"
     assert main(["map", str(bag), "--out", str(out)]) == 0
@@ -311,9 +287,8 @@ def test_a_blended_raster_with_an_untold_latency_is_placed_in_place(tmp_path, ca
 def test_one_pass_at_constant_speed_warns_and_keeps_the_configured_latency(tmp_path, capsys):
     """Nothing in one pass rolled at constant speed, touching down and lifting off at speed, pins the
     latency down: the map says so and uses the configured one, never a guess as an estimate."""
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=2)
-    plan = plan_raster(DEFAULT_START_POSE, area=[0.45, -0.02, 0.04, 0.04], mount=MOUNT, speed=0.02, accel=0.1,
-                       depth=5e-4, clearance=0.002, profile="constant")
+    sensor = sim_scans.large_surface(seed=2)
+    plan = sim_scans.raster([0.45, -0.02, 0.04, 0.04], approach_speed=None, profile="constant")
     bag = _record(tmp_path / "bag", sensor, plan, 0.05)
     out = tmp_path / "map.png"
     assert main(["map", str(bag), "--out", str(out)]) == 0
@@ -329,7 +304,7 @@ def test_with_a_photometric_model_the_height_map_lies_beside_the_map_in_place(sc
     from touchroller_driver.sim.camera import surface_frame
     from touchroller_driver.sim.photometric import sim_photometric
 
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=1)
+    sensor = sim_scans.large_surface(seed=1)
     photometric = sim_photometric(sensor)   # its presses spread over the band: 6 leave most of it unlearnt
     model, reference = tmp_path / "photometric.npz", tmp_path / "reference.png"
     photometric.calibration.model.save(model)

@@ -2,7 +2,9 @@
 yet levelled, moved onto the finished passes) and after it."""
 from __future__ import annotations
 
+import importlib.util
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,6 +16,12 @@ from touchroller_perception.map_windows import MapWindows
 from touchroller_perception.tiles import TileConfig
 from touchroller_perception.world_height import PASS, PASS_W, HeightLayer, WorldHeightConfig
 from touchroller_perception.world_map import WorldMapConfig, WorldMapper
+
+_spec = importlib.util.spec_from_file_location(
+    "sim_scans", Path(__file__).parents[1] / "touchroller_driver" / "sim" / "sim_scans.py")
+assert _spec is not None and _spec.loader is not None
+sim_scans = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(sim_scans)
 
 RES = 1e-4
 ORIGIN = (0.40, -0.02)
@@ -97,32 +105,14 @@ def _one_pass(provisional: bool):
     """A 3 cm pass over the grained surface filmed 35 ms late and mapped with the latency estimated (frames
     wait for the estimate), pushed frame by frame: per frame, the frames placed for good and the cells a live
     reader (`MapWindows`) sees mapped; and the mapper, not finalised."""
-    sim = pytest.importorskip("touchroller_driver.sim")
-    from touchroller_driver.arm import (
-        DEFAULT_MOUNT_RPY,
-        DEFAULT_MOUNT_XYZ,
-        DEFAULT_START_POSE,
-        mount_transform,
-        plan_raster,
-    )
-    from touchroller_driver.sim.sweep import simulate_sweep
-    from touchroller_perception.transforms import TransformBuffer
-    from touchroller_perception.world_map import buffer_lookup
-
-    mount = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
-    plan = plan_raster(DEFAULT_START_POSE, area=(0.42, -0.045, 0.03, 0.04), mount=mount, speed=0.02, accel=0.1,
-                       depth=5e-4, clearance=0.002, approach_speed=0.005)
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, mount, static=True)
-    world = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                        WorldMapConfig(bounds=(0.40, -0.07, 0.47, 0.03), provisional=provisional))
+    sensor = sim_scans.large_surface(seed=0)
+    plan = sim_scans.raster((0.42, -0.045, 0.03, 0.04))
+    world, buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(bounds=(0.40, -0.07, 0.47, 0.03),
+                                                                         provisional=provisional))
     seen = []
-    for event in simulate_sweep(sensor, plan, np.array(plan.segments[0].target), mount, latency_s=0.035):
-        if event[0] == "tf":
-            buffer.set_transform("base", "tool0", event[1], event[2])
+    for event in sim_scans.sweep(sensor, plan, latency_s=0.035):
+        if not sim_scans.feed(world, buffer, event):
             continue
-        world.push(event[2], event[1])
         source = MapWindows(world)
         tiles = world.canvas.store.tiles("weight") | (world.canvas.store.tiles("live_weight") if provisional
                                                         else set())

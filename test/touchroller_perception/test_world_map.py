@@ -1,7 +1,9 @@
 """The world map on simulated raster scans: placed by TF, latency found from the data, passes registered."""
 from __future__ import annotations
 
+import importlib.util
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,40 +13,33 @@ from hypothesis import strategies as st
 from touchroller_perception.transforms import TransformBuffer
 from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
 
-sim = pytest.importorskip("touchroller_driver.sim")
+pytest.importorskip("touchroller_driver.sim")
 
-from touchroller_driver.arm import (  # noqa: E402
-    DEFAULT_MOUNT_RPY,
-    DEFAULT_MOUNT_XYZ,
-    DEFAULT_START_POSE,
-    mount_transform,
-    plan_raster,
-    simulated_arm_origin,
-)
+from touchroller_driver.arm import DEFAULT_START_POSE, simulated_arm_origin  # noqa: E402
 from touchroller_driver.sim.camera import surface_frame  # noqa: E402
-from touchroller_driver.sim.sweep import simulate_sweep  # noqa: E402
 from touchroller_perception.metrics import ssim  # noqa: E402
 
-MOUNT = mount_transform(DEFAULT_MOUNT_XYZ, DEFAULT_MOUNT_RPY)
+_spec = importlib.util.spec_from_file_location(
+    "sim_scans", Path(__file__).parents[1] / "touchroller_driver" / "sim" / "sim_scans.py")
+assert _spec is not None and _spec.loader is not None
+sim_scans = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(sim_scans)
 AREA = (0.42, -0.045, 0.05, 0.09)   # 5 cm x 9 cm: two passes
 
 
 @pytest.fixture(scope="module")
 def sensor():
-    return sim.SimulatedSensor(sim.load_scene("large_surface"), seed=0)
+    return sim_scans.large_surface(seed=0)
 
 
 @pytest.fixture(scope="module")
 def scans(sensor):
     """Frames and TF of the same raster filmed with a camera latency of 0 and 40 ms."""
-    plan = plan_raster(DEFAULT_START_POSE, area=AREA, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
-                       clearance=0.002, approach_speed=0.005)
+    plan = sim_scans.raster(AREA)
     rest, _ = simulated_arm_origin(DEFAULT_START_POSE, 0.002)
-    # start above the first pass: a short approach
-    start = np.array(plan.segments[0].target)
     out = {}
-    for latency in (0.0, 0.04):
-        out[latency] = list(simulate_sweep(sensor, plan, start, MOUNT, latency_s=latency))
+    for latency in (0.0, 0.04):   # from above the first pass: a short approach
+        out[latency] = list(sim_scans.sweep(sensor, plan, latency))
     assert len(plan.rolls) == 2
     return plan, rest, out
 
@@ -52,17 +47,11 @@ def scans(sensor):
 def run(events, sensor, area=AREA, **config):
     """The world map of simulated events (TF and images in time order); `area` (x, y, width, height) bounds
     the map 1 cm beyond it, None leaves the map unbounded."""
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
     if area is not None:
         config["bounds"] = (area[0] - 0.01, area[1] - 0.01, area[0] + area[2] + 0.01, area[1] + area[3] + 0.01)
-    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                         WorldMapConfig(**config))
+    mapper, buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(**config))
     for event in events:
-        if event[0] == "tf":
-            buffer.set_transform("base", "tool0", event[1], event[2])
-        else:
-            mapper.push(event[2], event[1])
+        sim_scans.feed(mapper, buffer, event)
     mapper.finalise()
     return mapper
 
@@ -122,11 +111,8 @@ def test_a_frame_exposed_before_tf_began_holds_no_one_back(scans, sensor):
     _, _, events = scans
     first_image = next(e[1] for e in events[0.04] if e[0] != "tf")
     late = [e for e in events[0.04] if e[0] != "tf" or e[1] >= first_image]
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
     bounds = (AREA[0] - 0.01, AREA[1] - 0.01, AREA[0] + AREA[2] + 0.01, AREA[1] + AREA[3] + 0.01)
-    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                         WorldMapConfig(bounds=bounds))
+    mapper, buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(bounds=bounds))
     images = sum(1 for e in late if e[0] != "tf")
     pushed, mapped_halfway = 0, None
     for event in late:
@@ -203,16 +189,10 @@ def test_a_growing_map_keeps_a_bounded_number_of_tiles_in_memory_and_maps_the_sa
     maps = {}
     for name, tiles in (("small", TileConfig(tile=64, cache_bytes=12 * 64 * 64 * 4)),
                         ("whole", TileConfig(tile=4096, cache_bytes=2 ** 30))):
-        buffer = TransformBuffer(cache_ns=None)
-        buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
-        mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                             WorldMapConfig(latency=0.0, tiles=tiles))
+        mapper, buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(latency=0.0, tiles=tiles))
         most = 0
         for event in events[0.04]:
-            if event[0] == "tf":
-                buffer.set_transform("base", "tool0", event[1], event[2])
-            else:
-                mapper.push(event[2], event[1])
+            if sim_scans.feed(mapper, buffer, event):
                 most = max(most, mapper.canvas.store.resident())
         mapper.finalise()
         maps[name] = mapper, most
@@ -235,10 +215,7 @@ def test_when_the_disk_would_fill_frames_needing_new_tiles_are_left_out_and_the_
     from touchroller_perception.tiles import TileConfig
 
     _, _, events = scans
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
-    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                         WorldMapConfig(latency=0.0, tiles=TileConfig(tile=64)))
+    mapper, buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(latency=0.0, tiles=TileConfig(tile=64)))
     tiles_then = None
     for event in events[0.0]:
         if event[0] == "tf":
@@ -461,10 +438,9 @@ def test_a_smooth_surface_is_mapped_wherever_the_roller_was_pressed(variant):
     for the image to agree with the arm on most frames, so the pressed height comes from TF and every
     pressed frame is mapped. `hold_frames` 60: frames wait about as long, against the scan's length, as a
     24 cm raster's wait at the default (where the mapper mapped 2 of 4 passes, 41 % of the raster)."""
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface", variant=variant), seed=0)
-    plan = plan_raster(DEFAULT_START_POSE, area=AREA, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
-                       clearance=0.002, approach_speed=0.005)
-    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.04))
+    sensor = sim_scans.large_surface(seed=0, variant=variant)
+    plan = sim_scans.raster(AREA)
+    events = list(sim_scans.sweep(sensor, plan, 0.04))
     mapper = run(events, sensor, hold_frames=60)
     assert mapper.stats.passes == 2
     assert mapper.coverage((AREA[0], AREA[1], AREA[0] + AREA[2], AREA[1] + AREA[3])) >= 98.0
@@ -486,10 +462,9 @@ def test_a_plain_surface_maps_without_lines_along_the_passes():
     edges, fixed offsets from a pass's centre) beyond 0.25 of the map's standard deviation. A fine
     static feature of the gel smoothed out of the flat field drew 4-grey-level lines 7.9 mm off every
     pass's centre."""
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface", **{"surface.kind": "flat"}), seed=0)
-    plan = plan_raster(DEFAULT_START_POSE, area=AREA, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
-                       clearance=0.002, approach_speed=0.005)
-    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.0))
+    sensor = sim_scans.large_surface(seed=0, **{"surface.kind": "flat"})
+    plan = sim_scans.raster(AREA)
+    events = list(sim_scans.sweep(sensor, plan, 0.0))
     mapper = run(events, sensor, latency=0.0)
     grey, weight = mapper.canvas.value(mapper._level)
     (c0, r0), (c1, r1) = (np.round(mapper.canvas.to_grid(np.array(p)) + 0.5).astype(int)
@@ -512,11 +487,10 @@ def test_property_any_motion_maps_in_place_or_warns(sensor, profile, latency, ji
     told the latency: where the evidence pins it down the estimate is within 3 ms and the map covers
     the raster; where it does not, the configured latency (0) is used and said."""
     area = (0.42, -0.045, 0.03, 0.09)
-    plan = plan_raster(DEFAULT_START_POSE, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
-                       clearance=0.002, approach_speed=0.005, profile=profile)
+    plan = sim_scans.raster(area, profile=profile)
     options = {"jitter": jitter} if profile != "ramp" else {}
-    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=latency,
-                                 tf_hz=tf_hz, tf_jitter_s=0.0005 if tf_hz else 0.0, seed=seed, **options))
+    events = list(sim_scans.sweep(sensor, plan, latency, tf_hz=tf_hz, tf_jitter_s=0.0005 if tf_hz else 0.0,
+                                  seed=seed, **options))
     mapper = run(events, sensor, area)
     estimate = mapper.stats.latency
     assert estimate is not None
@@ -537,13 +511,12 @@ def test_a_raster_turned_off_the_world_axes_at_speed_finds_the_latency_from_its_
     from scipy.spatial.transform import Rotation
 
     yaw = math.radians(35.0)
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface", **{"world.surface_yaw": yaw}), seed=0)
+    sensor = sim_scans.large_surface(seed=0, **{"world.surface_yaw": yaw})
     turned = Rotation.from_euler("z", yaw) * Rotation.from_rotvec(DEFAULT_START_POSE[3:])
     start = (*DEFAULT_START_POSE[:3], *turned.as_rotvec())
     area = (0.40, -0.03, 0.045, 0.09)
-    plan = plan_raster(start, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4, clearance=0.002,
-                       approach_speed=0.005, direction=(math.cos(yaw), math.sin(yaw), 0.0), profile="constant")
-    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.04))
+    plan = sim_scans.raster(area, start, direction=(math.cos(yaw), math.sin(yaw), 0.0), profile="constant")
+    events = list(sim_scans.sweep(sensor, plan, 0.04))
     mapper = run(events, sensor, area=None)
     estimate = mapper.stats.latency
     assert estimate is not None and estimate.observable, mapper.stats.latency_warning
@@ -571,17 +544,12 @@ def test_a_map_without_height_does_not_import_scipy():
 def _pushed_live(events, sensor, latency: float, **config):
     """Simulated events pushed frame by frame into a mapper told the latency: per frame, its stamp, the arm's
     height at its exposure and the mapped-frame count right after it was pushed; and the mapper."""
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    mapper, buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(
+        latency=latency, bounds=(0.40, -0.07, 0.47, 0.03), **config))
     lookup = buffer_lookup(buffer, "base", "touchroller_cylinder")
-    mapper = WorldMapper(sensor.camera, lookup, WorldMapConfig(latency=latency, bounds=(0.40, -0.07, 0.47, 0.03),
-                                                               **config))
     stamps, mapped = [], []
     for event in events:
-        if event[0] == "tf":
-            buffer.set_transform("base", "tool0", event[1], event[2])
-        else:
-            mapper.push(event[2], event[1])
+        if sim_scans.feed(mapper, buffer, event):
             stamps.append(event[1])
             mapped.append(mapper.stats.mapped)
     heights = lookup(np.array(stamps, np.int64) - round(latency * 1e9))[:, 2, 3]
@@ -594,11 +562,10 @@ def test_with_the_latency_told_a_smooth_surface_is_mapped_while_the_roller_rolls
     height TF shows waited to be confirmed by `hold_frames` (600) frames or the scan's end, and a live map
     placed nothing while the roller rolled. The band's shading when pressed confirms it: frames are placed
     within a second of touchdown, before the pass ends, and each frame after that as it comes."""
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface", variant=variant), seed=0)
+    sensor = sim_scans.large_surface(seed=0, variant=variant)
     area = (0.42, -0.045, 0.03, 0.04)   # one 3 cm pass
-    plan = plan_raster(DEFAULT_START_POSE, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=5e-4,
-                       clearance=0.002, approach_speed=0.005)
-    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.035))
+    plan = sim_scans.raster(area)
+    events = list(sim_scans.sweep(sensor, plan, 0.035))
     stamps, heights, mapped, mapper = _pushed_live(events, sensor, 0.035)
     pressed = np.flatnonzero(heights <= np.nanmin(heights) + 1e-4)
     touchdown, liftoff = int(pressed[0]), int(pressed[-1])
@@ -619,13 +586,12 @@ def test_an_arm_moving_in_the_air_is_not_confirmed_pressed_by_the_bands_shading(
     """The same pass 2 mm above the panel (a lead-in, a wrong start pose): the lowest height the arm moved
     at is a plateau, but the band looks as in the air there, so nothing confirms it; frames wait for the
     queue's length or the end, as before."""
-    sensor = sim.SimulatedSensor(sim.load_scene("large_surface", variant="panel"), seed=0)
+    sensor = sim_scans.large_surface(seed=0, variant="panel")
     area = (0.42, -0.045, 0.03, 0.04)
     above = np.array(DEFAULT_START_POSE, np.float64)
     above[2] += 0.002
-    plan = plan_raster(above, area=area, mount=MOUNT, speed=0.02, accel=0.1, depth=0.0, clearance=0.002,
-                       approach_speed=0.005)
-    events = list(simulate_sweep(sensor, plan, np.array(plan.segments[0].target), MOUNT, latency_s=0.0))
+    plan = sim_scans.raster(area, above, depth=0.0)
+    events = list(sim_scans.sweep(sensor, plan, 0.0))
     _, _, mapped, mapper = _pushed_live(events, sensor, 0.0)
     assert (mapped == 0).all() and mapper._pressed_height is None
 
