@@ -294,7 +294,7 @@ def contact_errors(cameras: dict[str, CameraModel], variant: str, seed: int, rep
 
 def run(quick: bool = False) -> CalibBenchResult:
     goals = Goals()
-    seeds = list(range(3 if quick else 10))
+    seeds = list(range(2 if quick else 10))
     stamp = provenance("calib_bench", quick)
     by_views = intrinsics_vs_views(seeds, [5, 10, 20] if quick else [5, 10, 20, 40])
     by_presses = extrinsics_vs_presses(seeds, [2, 5, 10] if quick else [2, 3, 5, 10, 20])
@@ -308,7 +308,7 @@ def run(quick: bool = False) -> CalibBenchResult:
     contacts = contact_errors(cameras, "exact", 0, repeats, EXACT)
     robustness, flawed_camera = [], truth
     for name, overrides in SENSOR_FLAWS.items():
-        flawed = [full_calibration(s, 20, 10, overrides) for s in seeds[:3 if quick else 5]]
+        flawed = [full_calibration(s, 20, 10, overrides) for s in seeds[:2 if quick else 5]]
         runs = [f.run for f in flawed]
         robustness.append(RobustnessRow(name, Stats.of([r.theta_err_deg for r in runs]),
                                         Stats.of([r.paper_plain_mean_theta_err_deg for r in runs]),
@@ -496,7 +496,7 @@ def load(path: Path) -> CalibBenchResult:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="3 seeds and fewer image counts")
+    parser.add_argument("--quick", action="store_true", help="2 seeds and fewer image counts")
     args = parser.parse_args()
     result = run(quick=args.quick)
     out = results_path("calib_bench", args.quick)
