@@ -39,8 +39,8 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -391,8 +391,8 @@ def to_markdown(result: MapScaleResult) -> str:
     lines += ["", f"Peak RSS of the largest raster over the smallest's: {result.rss_ratio:.2f} "
                   f"(goal <= {result.goal_rss_ratio:.2f}). Load average at the end: {result.loadavg_after}."]
     if result.updates:
-        lines += ["", "The map update per frame (`WorldMapper.push_band`, CPU time of the calling thread) with the live "
-                      "node's settings (latency estimated, provisional placing), the band synthesised outside the "
+        lines += ["", "The map update per frame (`WorldMapper.push_band`, CPU time of the calling thread) with the "
+                      "live node's settings (latency estimated, provisional placing), the band synthesised outside the "
                       f"timing (goal <= {result.goal_update_ms:g} ms, median, on each surface):", "",
                   "| surface | raster | frames (mapped) | registered against earlier passes (found an offset) "
                   "| update CPU median / p95 / mean (ms) | tiles spilled / read back |",
