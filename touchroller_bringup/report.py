@@ -88,8 +88,9 @@ SECTIONS: tuple[Section, ...] = (
             "Frames synthesised straight into the mapper API (the bench's own texture and raster poses, no "
             "simulator: the mapper alone): 1 m x 1 m and 0.5 m x 0.5 m rasters at 0.1 mm per "
             "pixel, each in its own process: peak resident memory mapping and writing the files, the time to write "
-            "the pyramid (map.tif with its overviews, map.png + map.yaml), and random 512 x 512 windows of every "
-            "level read back."),
+            "the pyramid (map.tif with its overviews, map.png + map.yaml), random 512 x 512 windows of every "
+            "level read back, and the map update per frame on a 1 m raster with the live settings over a textured "
+            "and a featureless surface."),
     Section("scan_square_metre", "A simulated square metre, live and offline", "scan_square_metre",
             "The simulator's painted panel with planted defects, made tile by tile, 1 m x 1 m and 0.5 m x 0.5 m at "
             "0.1 mm per cell: a raster (22 and 11 passes) scanned live by `touchroller scan`'s graph in one process "
@@ -755,6 +756,9 @@ GOALS: tuple[Goal, ...] = (
          _scale_goal("pyramid write")),
     Goal(25, "World map: any 512 x 512 window of any level of map.tif read back <= 10 ms (CPU)", "map_scale",
          _scale_goal("window read")),
+    Goal(25, "World map update <= 2 ms per frame (median, CPU) on a 1 m raster at 50 mm/s with the live settings, "
+             "textured and featureless surfaces (frames synthesised into the mapper API)", "map_scale",
+         _scale_goal("map update")),
     Goal(25, "Simulated 1 m² panel scan: `touchroller map` on its recording, peak RSS <= 1 GB", "scan_square_metre",
          _square_metre_goal("`touchroller map` peak RSS <=")),
     Goal(25, "Simulated 1 m² panel scan: `touchroller map` peak RSS within 15 % of the 0.25 m² scan's",

@@ -84,6 +84,7 @@ _HELD_FULL = 32   # frames waiting to be placed are kept as float32 up to this m
 PROVISIONAL_LAYERS = ("live_band", "live_flat", "live_weight", "live_height", "live_height_w")
 _EVENT_CHECK_NS = 250_000_000   # how often (stamp time) the pressed height, starts and stops are looked for
 _PASS_REGISTER_EVERY = 12       # after a pass's first ten offsets, one frame in this many is registered
+_PASS_FAILED_RUN = 10           # ... and after this many registrations in a row found none
 _RESUME_NS = 300_000_000       # pressed again this soon after a pass ended: the same pass (not a new one)
 _PLACING_STEP_S = 5e-4          # frames are placed with the latency estimate on this grid, s
 _MIN_SCORE = 0.5                # a registration's NCC peak below this is not trusted (too little texture)
@@ -463,6 +464,7 @@ class WorldMapper:
         self._delta_offsets = 0   # how many of the pass's offsets `_pass_delta` is the median of
         self._pass_buffer: list[tuple[_Frame, np.ndarray]] = []
         self._pass_frames = 0
+        self._pass_failed = 0   # registrations in a row this pass that found no offset
 
     # -- public --------------------------------------------------------------------------------------
     def push(self, image: np.ndarray, stamp_ns: int) -> None:
@@ -1194,10 +1196,14 @@ class WorldMapper:
             self._place(frame, pose, np.zeros(2))
             return
         # register the first frames of the pass, then one in _PASS_REGISTER_EVERY (the correction is one
-        # shift per pass, the median of its frames' offsets)
+        # shift per pass, the median of its frames' offsets); after _PASS_FAILED_RUN registrations in a row
+        # found nothing (no texture, no overlap with the earlier passes) one in _PASS_REGISTER_EVERY too, until
+        # one finds an offset: a registration costs several times the frame's placing
         self._pass_frames += 1
-        if len(self._pass_offsets) < 10 or self._pass_frames % _PASS_REGISTER_EVERY == 0:
+        first = len(self._pass_offsets) < 10 and self._pass_failed < _PASS_FAILED_RUN
+        if first or self._pass_frames % _PASS_REGISTER_EVERY == 0:
             offset = self._register(frame, pose)
+            self._pass_failed = self._pass_failed + 1 if offset is None else 0
             if offset is not None:
                 self._pass_offsets.append(offset[:3])
                 self._pass_log[-1].offsets.append((offset[0], offset[1], offset[3], offset[4]))
@@ -1214,6 +1220,7 @@ class WorldMapper:
         self._pass_offsets, self._pass_buffer, self._pass_delta = [], [], np.zeros(2)
         self._delta_offsets = 0
         self._pass_frames = 0
+        self._pass_failed = 0
         if self.stats.passes > 1 and self.config.register:
             # the map as it is now, kept copy-on-write as the pass's bands change its tiles
             self._prior = _Prior(self.canvas, self._level)

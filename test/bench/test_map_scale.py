@@ -63,10 +63,56 @@ def test_the_goal_rows_judge_the_largest_raster_and_a_quick_run_is_not_judged():
     stamp = Provenance("cmd", "machine", "now", "0.00 0.00 0.00")
     good = bench.MapScaleResult(stamp, False, [_case(bench, 1.0, 600.0), _case(bench, 0.5, 560.0)], 600 / 560,
                                 "0.00")
-    assert [met for _, _, met in bench.goals(good)] == [True, True, True, True]
+    assert [met for _, _, met in bench.goals(good)] == [True, True, True, True, None]   # no update measured
     bad = dataclasses.replace(good, cases=[_case(bench, 1.0, 1500.0, write_s=12.0, window=20.0),
                                            _case(bench, 0.5, 560.0)], rss_ratio=1500 / 560)
-    assert [met for _, _, met in bench.goals(bad)] == [False, False, False, False]
+    assert [met for _, _, met in bench.goals(bad)] == [False, False, False, False, None]
     assert all(met is None for _, _, met in bench.goals(dataclasses.replace(bad, quick=True)))
     text = bench.to_markdown(good)
     assert "| 1 m x 1 m | 22 |" in text and "1.07" in text
+
+
+def _update(bench, surface, median):
+    return bench.UpdateResult(surface, 1.0, 22, 0.05, 13830, 13200, 300, 200 if surface == "textured" else 0,
+                              median, 3 * median, 1.5 * median, 1500, 200)
+
+
+def test_the_update_goal_judges_the_slower_surface_and_says_when_it_was_not_measured():
+    bench = load_bench_script("map_scale")
+    from bench._common import Provenance
+
+    stamp = Provenance("cmd", "machine", "now", "0.00 0.00 0.00")
+    cases = [_case(bench, 1.0, 600.0), _case(bench, 0.5, 560.0)]
+    result = bench.MapScaleResult(stamp, False, cases, 600 / 560, "0.00",
+                                  updates=[_update(bench, "textured", 0.5), _update(bench, "featureless", 1.9)])
+    name, figure, met = bench.goals(result)[-1]
+    assert name == "map update" and met is True and figure.startswith("1.90 ms CPU median, featureless")
+    slow = dataclasses.replace(result, updates=[_update(bench, "textured", 0.5), _update(bench, "featureless", 3.4)])
+    assert bench.goals(slow)[-1][2] is False
+    assert bench.goals(dataclasses.replace(slow, quick=True))[-1][2] is None
+    # a result recorded before the update was measured: said, not judged
+    assert bench.goals(dataclasses.replace(result, updates=[]))[-1][1:] == ("not measured by this run", None)
+    assert "| featureless | 22 passes of 1 m at 50 mm/s | 13830 (13200) | 300 (0) | 1.90 / 5.70 / 2.85 |" \
+        in bench.to_markdown(result)
+
+
+def test_a_recorded_result_reads_back_with_its_update_figures(tmp_path):
+    bench = load_bench_script("map_scale")
+    from bench._common import Provenance, to_json
+
+    stamp = Provenance("cmd", "machine", "now", "0.00 0.00 0.00")
+    result = bench.MapScaleResult(stamp, False, [_case(bench, 1.0, 600.0)], 1.0, "0.00",
+                                  updates=[_update(bench, "featureless", 0.6)])
+    path = tmp_path / "map_scale.json"
+    path.write_text(to_json(result))
+    assert bench.load(path) == result
+
+
+def test_the_update_timing_maps_a_featureless_surface_without_finding_offsets():
+    """`run_update` on the featureless surface: every pressed frame mapped, registrations attempted and none
+    finding an offset (nothing to match): the case it times is the one it says."""
+    bench = load_bench_script("map_scale")
+    update = bench.run_update("featureless", passes=2, side=0.2)
+    assert update.passes == 2 and update.mapped > 0.8 * update.frames
+    assert update.registrations > 0 and update.registered == 0
+    assert update.cpu_ms_median > 0

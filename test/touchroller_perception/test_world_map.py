@@ -652,3 +652,69 @@ def test_check_band_fits_refuses_only_a_resolution_no_band_fits_at():
     with pytest.raises(ValueError, match=r"1e-06 m/px .* 4.41e\+08 map pixels.* use at least 5.2e-06 m/px"):
         check_band_fits(CameraModel(), 70, 1e-6)
     check_band_fits(CameraModel(), 70, 5.3e-6)   # just coarser than the line says: fits
+
+
+def _featureless_raster(passes: int = 2, length: float = 0.3, speed: float = 0.05):
+    """Poses of a boustrophedon raster along world x (passes 45 mm apart, lifted 3 mm over the 1 s move
+    between them) and a featureless band at every frame: grey 130 and a grey level of sensor noise, as on a
+    smooth painted panel where registration finds nothing to match."""
+    pass_s, move_s, period = length / speed, 1.0, length / speed + 1.0
+
+    def poses(stamps):
+        t = np.asarray(stamps, np.float64) * 1e-9
+        k = np.clip(np.floor(t / period), 0, passes - 1)
+        into = t - k * period
+        rolling = into <= pass_s
+        along = np.clip(into, 0, pass_s) * speed
+        frac = np.clip((into - pass_s) / move_s, 0, 1)
+        out = np.zeros((len(t), 4, 4))
+        out[:, 0, 1] = out[:, 1, 0] = 1.0
+        out[:, 2, 2], out[:, 3, 3] = -1.0, 1.0
+        out[:, 0, 3] = np.where(k % 2 == 0, along, length - along)
+        out[:, 1, 3] = 0.032 + (k + np.where(rolling, 0.0, frac)) * 0.045
+        out[:, 2, 3] = 0.1 + np.where(rolling, 0.0, 0.003 * np.clip(np.minimum(frac, 1 - frac) * 5, 0, 1))
+        return out
+
+    stamps = np.arange(0, passes * period - move_s, 1 / 30.0)
+    return poses, [int(round(t * 1e9)) for t in stamps]
+
+
+def _map_featureless(monkeypatch, failed_run: int | None = None):
+    from touchroller_perception import world_map
+    from touchroller_perception.geometry import CameraModel
+
+    if failed_run is not None:
+        monkeypatch.setattr(world_map, "_PASS_FAILED_RUN", failed_run)
+    registered = []
+    register = WorldMapper._register
+    monkeypatch.setattr(WorldMapper, "_register", lambda self, frame, pose: registered.append(
+        self.stats.passes) or register(self, frame, pose))
+    poses, stamps = _featureless_raster()
+    camera = CameraModel()
+    mapper = WorldMapper(camera, poses, WorldMapConfig(latency=0.0))
+    mapper.source_rows((camera.height, camera.width))
+    rng = np.random.default_rng(3)
+    for stamp in stamps:
+        mapper.push_band(np.float32(130.0) + rng.normal(0, 1, mapper.band_shape).astype(np.float32), stamp)
+    mapper.finalise()
+    grey, weight = mapper.canvas.value(mapper._level)
+    mapper.close()
+    return mapper, registered, grey, weight
+
+
+def test_a_pass_with_nothing_to_register_on_registers_one_frame_in_twelve_and_maps_the_same(monkeypatch):
+    """A featureless surface: no registration of the second pass finds an offset. After ten in a row failed
+    the pass registers one frame in `_PASS_REGISTER_EVERY` (as after ten offsets found), not every frame (each
+    costs several times the frame's placing); nothing was found either way, so the map is the same."""
+    from touchroller_perception import world_map
+
+    mapper, registered, grey, weight = _map_featureless(monkeypatch)
+    assert mapper.stats.passes == 2 and all(d == (0.0, 0.0) for d in mapper.stats.pass_corrections_px)
+    frames = mapper._pass_log[1].frames
+    assert registered.count(2) <= world_map._PASS_FAILED_RUN + frames / world_map._PASS_REGISTER_EVERY + 1
+    assert registered.count(2) < 0.2 * frames
+    # registering every frame (no give-up): more work, the same map
+    every, registered_every, grey_every, weight_every = _map_featureless(monkeypatch, failed_run=10 ** 9)
+    assert registered_every.count(2) > 0.8 * frames
+    np.testing.assert_array_equal(grey, grey_every)
+    np.testing.assert_array_equal(weight, weight_every)
