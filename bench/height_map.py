@@ -11,14 +11,16 @@ model calibrated and measured).
 
 The same on a source that shares nothing with the simulator: the second raster generator
 (bench/raster_generator: its own contact model, LEDs with a specular highlight, flat field and sensor
-noise, its own grained surface with planted grooves and pits, its own rosbag2 recording). Its sensor is
+noise, each pixel the mean shading over its footprint, its own grained surface with planted grooves and
+pits, its own rosbag2 recording). Its sensor is
 calibrated as a user would: a 4 mm ball cap pressed 0.6 mm at random places over the band the map is made
 from (along the axis nearly across the image, around it over the rows the mapper places: the model learns
 how a slope looks where it is, and cannot extrapolate where no press was), rendered by the generator, each
 press labelled by `find_press` (no truth), the pixel size and the roller's radius from
 config/touchroller.yaml's camera model, calibrated as a world map's calibration is
 (`touchroller_perception.height.MAP_CALIBRATION`: the features smoothed by 1 px, the position degree chosen
-on held-out presses); its raster is mapped by `touchroller map
+on held-out presses; the map reads its frames with `WorldHeightConfig`'s defaults); its raster is mapped by
+`touchroller map
 --photometric --reference` as a whole command, and height.tif is scored against the generator's surface (low-passed
 as its gel is) in place.
 """
@@ -51,6 +53,24 @@ DRAWS = ((24, 1), (24, 2), (24, 3), (16, 0), (48, 0))
 
 
 @dataclasses.dataclass(frozen=True)
+class WavelengthGain:
+    """The map against the true relief over one band of wavelengths (on the largest fully mapped rectangle,
+    Hann-windowed): how much of the relief's amplitude there the map reads (the cross-spectrum over the
+    truth's power), how well it follows (coherence), and the band's share of the relief's power."""
+
+    shortest_mm: float
+    longest_mm: float
+    gain: float
+    coherence: float
+    relief_share: float
+
+
+#: the wavelength bands of `wavelength_gains`, mm
+WAVELENGTH_BANDS = ((0.2, 0.3), (0.3, 0.4), (0.4, 0.5), (0.5, 0.6), (0.6, 0.8), (0.8, 1.0), (1.0, 1.6), (1.6, 3.2),
+                    (3.2, 6.4))
+
+
+@dataclasses.dataclass(frozen=True)
 class SurfaceScore:
     surface: str
     relief_rms_um: float      # the true relief on the scored cells, its best plane removed
@@ -63,6 +83,7 @@ class SurfaceScore:
     fine_correlation: float
     frames_mapped: int        # mapped (simulator) or filmed (second generator)
     map_cpu_s: float          # mapping CPU s (simulator) or `touchroller map`'s wall s (second generator)
+    wavelengths: list[WavelengthGain] = dataclasses.field(default_factory=list)   # the map by wavelength band
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,7 +163,7 @@ def score_surface(variant: str | None, presses: int,
         if key not in truths:
             truths[key], _ = sensor.world_truth(surface_frame(sensor.scene), layer.origin, height.shape,
                                                 layer.resolution)
-        return _score(name, height, truths[key], mapper.stats.passes, mapper.stats.mapped, cpu)
+        return _score(name, height, truths[key], mapper.stats.passes, mapper.stats.mapped, cpu, layer.resolution)
 
     photometric = sim_photometric(sensor, presses=presses)
     score = mapped(photometric)
@@ -224,13 +245,47 @@ def second_generator(presses: int) -> tuple[SurfaceScore, float, int]:
         grid = np.stack(np.meshgrid(xs, ys), axis=-1)
         sigma = look.gel_blur_px * camera.radius / camera.fx / resolution   # the gel's low pass, as the generator's
         true_height = cv2.GaussianBlur(truth.surface.sample(grid).astype(np.float64), (0, 0), sigma)
-        score = _score("grained (second generator)", height, true_height, 2, truth.frames, seconds)
+        score = _score("grained (second generator)", height, true_height, 2, truth.frames, seconds, resolution)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return score, fit, int(model.config.position_degree)   # type: ignore[attr-defined]
 
 
-def _score(name: str, height: np.ndarray, truth: np.ndarray, passes: int, frames: int, seconds: float) -> SurfaceScore:
+def wavelength_gains(height: np.ndarray, truth: np.ndarray, resolution: float) -> list[WavelengthGain]:
+    """The map's gain and coherence against the truth by wavelength band (`WAVELENGTH_BANDS`, mm), on the
+    rectangle of the rows mapped nearly as widely as the widest and the columns mapped throughout on them (20
+    cells in from its edges), Hann-windowed."""
+    known = np.isfinite(height)
+    share = known.mean(axis=1)
+    rows = np.flatnonzero(share >= 0.9 * share.max()) if share.max() > 0 else np.zeros(0, int)
+    if len(rows) < 80:
+        return []
+    r0, r1 = int(rows.min()) + 20, int(rows.max()) - 20
+    cols = np.flatnonzero(known[r0:r1].all(axis=0))
+    if len(cols) < 80 or r1 - r0 < 40:
+        return []
+    c0, c1 = int(cols.min()) + 20, int(cols.max()) - 20
+    mine = np.nan_to_num(height[r0:r1, c0:c1].astype(np.float64), nan=float(np.nanmean(height[r0:r1, c0:c1])))
+    true = truth[r0:r1, c0:c1].astype(np.float64)
+    window = np.outer(np.hanning(r1 - r0), np.hanning(c1 - c0))
+    a = np.fft.rfft2((mine - mine.mean()) * window)
+    b = np.fft.rfft2((true - true.mean()) * window)
+    f = np.hypot(np.fft.fftfreq(r1 - r0)[:, None], np.fft.rfftfreq(c1 - c0)[None, :])
+    cross, power, mine_power = (a * b.conj()), np.abs(b) ** 2, np.abs(a) ** 2
+    total = float(power[f > 0].sum())
+    out = []
+    for short, long in WAVELENGTH_BANDS:
+        band = (f > resolution * 1e3 / long) & (f <= resolution * 1e3 / short)   # cycles per cell
+        p = float(power[band].sum())
+        c = complex(cross[band].sum())
+        out.append(WavelengthGain(short, long, c.real / p if p else math.nan,
+                                  abs(c) / math.sqrt(p * float(mine_power[band].sum())) if p else math.nan,
+                                  p / total if total else math.nan))
+    return out
+
+
+def _score(name: str, height: np.ndarray, truth: np.ndarray, passes: int, frames: int, seconds: float,
+           resolution: float) -> SurfaceScore:
     known = np.isfinite(height)
     inside = cv2.erode(known.astype(np.uint8), np.ones((21, 21), np.uint8)) > 0   # 1 mm in from its edge
     rows, cols = np.nonzero(inside)
@@ -253,7 +308,7 @@ def _score(name: str, height: np.ndarray, truth: np.ndarray, passes: int, frames
     corr = float(np.corrcoef(a, b)[0, 1]) if planted.sum() > 10 else math.nan
     return SurfaceScore(name, float(relief.std() * 1e6), float(np.sqrt(np.mean(error**2)) * 1e6),
                         float(np.corrcoef(_detrended(mine, rows, cols), relief)[0, 1]), int(inside.sum()), passes,
-                        int(planted.sum()), scale, corr, frames, seconds)
+                        int(planted.sum()), scale, corr, frames, seconds, wavelength_gains(height, truth, resolution))
 
 
 def _second_presses(quick: bool) -> int:
@@ -326,6 +381,18 @@ def to_markdown(r: HeightMapResult) -> str:
                   for d in r.draws]
         lines += ["", f"Worst of these: {worst.rms_um:.1f} um, correlation "
                   f"{min(d.correlation for d in r.draws):.3f} (lowest)."]
+    banded = [x for x in r.surfaces if x.wavelengths and x.surface != "panel"]
+    if banded:
+        lines += ["", "The maps against their true relief by wavelength (on the largest rectangle mapped throughout): "
+                  "each band's share of the relief's power, how much of its amplitude the map reads there (gain) and "
+                  "how well it follows (coherence):", "",
+                  "| wavelength, mm | " + " | ".join(f"{x.surface}: relief power share | gain | coherence"
+                                                     for x in banded) + " |",
+                  "|---|" + "---|---|---|" * len(banded)]
+        for k, w in enumerate(banded[0].wavelengths):
+            cells = " | ".join(f"{x.wavelengths[k].relief_share:.2f} | {x.wavelengths[k].gain:.2f} | "
+                               f"{x.wavelengths[k].coherence:.2f}" for x in banded)
+            lines.append(f"| {w.shortest_mm:.2g}-{w.longest_mm:.2g} | {cells} |")
     lines += ["", "Fine relief: where the true relief departs from its own 2 mm Gaussian by more than 3 um (the "
               "planted cracks, dents, grooves and pits, and the grain's finer part), the map's departure from its "
               "own 2 mm Gaussian against the truth's: how much of a feature's depth the map reads, and how well "
@@ -346,7 +413,8 @@ def grain_corr(r: HeightMapResult) -> float:
 def load(path: Path) -> HeightMapResult:
     raw = json.loads(Path(path).read_text())
     raw["provenance"] = Provenance(**raw["provenance"])
-    raw["surfaces"] = [SurfaceScore(**s) for s in raw["surfaces"]]
+    raw["surfaces"] = [SurfaceScore(**{**s, "wavelengths": [WavelengthGain(**w) for w in s.get("wavelengths", [])]})
+                       for s in raw["surfaces"]]
     raw["draws"] = [PressDraw(**d) for d in raw.get("draws", [])]
     return HeightMapResult(**raw)
 

@@ -24,6 +24,7 @@ where nothing was mapped. No rclpy here.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -57,6 +58,14 @@ class WorldHeightConfig:
       (px) comes from each column's own slopes across the band, summed from the undeformed rows on
       either side (their closure removed), not from integrating along the axis: a slope bias along a
       640-pixel band integrates to tens of micrometres, across the band it cannot. 0: the 2-D solution.
+    smoothing: the image's smoothing (Gaussian sigma, px) before the colour features when a frame's slopes are
+      read; None: the photometric model's own (what it was calibrated with). The calibration's smoothing
+      denoises its fit, where a ball's slopes change slowly; the map averages some twenty frames per cell, so it
+      can read with less and keep more of the relief a few pixels across (a Gaussian of 1 px keeps 0.29 of a
+      4-pixel wavelength's depth, one of 0.5 px 0.73) for more noise per frame.
+    follow_arm: each frame's relief is raised by the roller's height above its pressed height (the arm's pose,
+      given to `HeightLayer.planes`): a press that deepens or eases along a pass (the roller touching down or
+      lifting off at speed) is not read as relief. False: the press depth is taken as constant along a pass.
     """
 
     band_depth: float = 1.2e-3
@@ -65,6 +74,8 @@ class WorldHeightConfig:
     min_weight: float = 0.05
     min_overlap: int = 400
     axis_sigma: float = 20.0
+    smoothing: float | None = 0.5
+    follow_arm: bool = True
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.band_depth) and 0 < self.band_depth < 0.01):
@@ -79,6 +90,8 @@ class WorldHeightConfig:
             raise ValueError(f"axis_sigma must be in [0, 200] px, got {self.axis_sigma}")
         if self.min_overlap < 10:
             raise ValueError(f"min_overlap must be >= 10 cells, got {self.min_overlap}")
+        if self.smoothing is not None and not (math.isfinite(self.smoothing) and 0 <= self.smoothing <= 20):
+            raise ValueError(f"smoothing must be in [0, 20] px or None (the model's own), got {self.smoothing}")
 
 
 @dataclass(frozen=True)
@@ -127,6 +140,8 @@ class BandHeights:
         self.rows = (min(band.rows[0], s0), max(band.rows[1], s1))   # the sampler's rows inside, always
         self.src_offset = s0 - self.rows[0]
         self.pixel_size = band.pixel_size
+        if config.smoothing is not None:   # read with another smoothing than the model was calibrated with
+            model = dataclasses.replace(model, config=dataclasses.replace(model.config, smoothing=config.smoothing))
         self.lookup: SlopeLookup = model.compile(reference)
         self.maps = (sampler.maps[0], sampler.maps[1] + np.float32(self.src_offset))
         n = self.rows[1] - self.rows[0]
@@ -213,10 +228,15 @@ class HeightLayer:
         for name in HEIGHT_LAYERS:
             canvas.add_layer(name, np.float32)
 
-    def planes(self, weights: np.ndarray, band: HeightBand) -> tuple[np.ndarray, np.ndarray]:
-        """(w relief, w) in band coordinates for the pass layers: weight zero where not in contact."""
+    def planes(self, weights: np.ndarray, band: HeightBand, lift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(w relief, w) in band coordinates for the pass layers: weight zero where not in contact. `lift`: the
+        roller's height above its pressed height when the frame was taken (m, the arm's pose), added to the
+        relief with `follow_arm` (the frame was pressed that much less deep)."""
         w = np.where(band.contact, weights, np.float32(0.0))
-        return cv2.multiply(band.relief.astype(np.float32, copy=False), w), w
+        relief = band.relief.astype(np.float32, copy=False)
+        if self.config.follow_arm and lift and math.isfinite(lift):
+            relief = relief + np.float32(lift)
+        return cv2.multiply(relief, w), w
 
     @staticmethod
     def pass_planes(weighted: np.ndarray | None, weights: np.ndarray | None) -> dict[str, np.ndarray | None]:

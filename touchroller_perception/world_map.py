@@ -922,7 +922,7 @@ class WorldMapper:
             if float(pose[2, 3]) > self._pressed_height + self.config.contact_tolerance:
                 continue
             placement = self._locate(pose, np.zeros(2))
-            planes = self._planes(frame, placement)
+            planes = self._planes(frame, placement, float(pose[2, 3]) - self._pressed_height)
             live = dict(zip(PROVISIONAL_LAYERS, (planes["band"], planes["flat"], planes["weight"],
                                                  planes.get("height_pass"), planes.get("height_pass_w")),
                             strict=True))
@@ -1400,7 +1400,8 @@ class WorldMapper:
 
     def _place(self, frame: _Frame, pose: np.ndarray, delta: np.ndarray) -> None:
         placement = self._locate(pose, delta)
-        planes = self._planes(frame, placement)
+        lift = 0.0 if self._pressed_height is None else float(pose[2, 3]) - self._pressed_height
+        planes = self._planes(frame, placement, lift)
         try:   # one call: the band and its height land together or not at all
             self.canvas.add_named(planes, placement.c0, placement.r0)
         except StorageFull as exc:   # the map keeps what it has; the caller sees the count and the reason
@@ -1413,8 +1414,9 @@ class WorldMapper:
             self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
             self._level_field = frame.field
 
-    def _planes(self, frame: _Frame, placement: _Placement) -> dict[str, np.ndarray | None]:
-        """The frame's planes on the map grid at `placement`, by canvas layer name (its height's too)."""
+    def _planes(self, frame: _Frame, placement: _Placement, lift: float = 0.0) -> dict[str, np.ndarray | None]:
+        """The frame's planes on the map grid at `placement`, by canvas layer name (its height's too; `lift`: the
+        roller's height above its pressed height, m, for the height's `follow_arm`)."""
         planes: dict[str, np.ndarray | None]
         if placement.axes is not None and frame.field is not None:
             planes = dict(zip(LAYERS, self._blend_stack(frame, placement), strict=True))
@@ -1426,7 +1428,7 @@ class WorldMapper:
                       "weight": self._on_map(placement, self._weights, "w")}
         if frame.height is not None and self._height_layer is not None:
             assert self._weights is not None
-            weighted, weights = self._height_layer.planes(self._weights, frame.height)
+            weighted, weights = self._height_layer.planes(self._weights, frame.height, lift)
             planes.update(self._height_layer.pass_planes(self._on_map(placement, weighted),
                                                          self._on_map(placement, weights)))
         return planes

@@ -186,3 +186,37 @@ def test_any_raster_plan_moves_continuously_and_presses_every_pass(profile: str,
     for k, p in enumerate(trajectory.passes):
         assert p.contact_end_s - p.contact_start_s >= 0.9 * length / (speed * (1 + 4 * jitter))
         assert (p.u_start, p.u_end) == ((0.0, length) if k % 2 == 0 else (length, 0.0))
+
+
+def _fine_relief_shading(pixel_samples: int) -> np.ndarray:
+    """The irradiance (summed over the colours) along the contact line of the roller pressed on a 3 um
+    cosine of 0.4 mm wavelength (about 4 pixels there) running along the roller's axis, no noise nor
+    flat field, high-passed."""
+    from bench.raster_generator.render import BandRenderer
+    from bench.raster_generator.surfaces import Surface
+
+    resolution = 2.5e-5
+    y = (np.arange(int(0.08 / resolution)) + 0.5) * resolution
+    height = np.repeat((3e-6 * np.cos(2 * np.pi * y / 0.4e-3))[:, None], int(0.02 / resolution), axis=1)
+    surface = Surface("grained", height.astype(np.float32), resolution, (0.49, -0.04, 0.0), 0.0, ())
+    look = Look(electrons_per_level=1e9, read_noise=0.0, row_noise=0.0, specks=0, vignetting=0.0, axial_falloff=0.0,
+                exposure_samples=1, pixel_samples=pixel_samples)
+    renderer = BandRenderer(Camera(), surface, look, depth=5e-4, window=20)
+    # the roller's axis at (0.5, 0) along base y, rolling along base x: as `frame` places it
+    xy = np.stack([np.float32(0.5) + renderer.y_roll, renderer.x_axial], axis=-1)
+    lit = renderer._shade(renderer.membrane(-surface.sample(xy))).sum(axis=-1)
+    line = lit[lit.shape[0] // 2, 170:470].astype(np.float64)
+    return line - np.convolve(line, np.ones(9) / 9, mode="same")
+
+
+def test_a_pixel_shows_the_mean_shading_of_its_footprint_not_slopes_two_pixels_wide() -> None:
+    """Relief a few pixels across keeps the shading contrast its pixels' footprints see (converged: 3
+    shading points per pixel against 9); slopes taken between pixel centres (1 point) lose about a third
+    of it at a 4-pixel wavelength."""
+    reference = _fine_relief_shading(9)[10:-10]
+    default = _fine_relief_shading(Look().pixel_samples)[10:-10]
+    centres = _fine_relief_shading(1)[10:-10]
+    assert reference.std() > 0.5                               # the cosine is seen (grey levels of contrast)
+    assert default.std() / reference.std() == pytest.approx(1.0, abs=0.05)
+    assert float(np.corrcoef(default, reference)[0, 1]) > 0.98
+    assert centres.std() / reference.std() < 0.85

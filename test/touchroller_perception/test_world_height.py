@@ -71,7 +71,8 @@ def test_a_held_band_keeps_its_relief_to_half_a_micrometre():
 
 
 @pytest.mark.parametrize("field, value", [("band_depth", 0.0), ("outer_fraction", 0.5), ("min_indentation", -1.0),
-                                          ("min_weight", 0.0), ("min_overlap", 1), ("axis_sigma", -1.0)])
+                                          ("min_weight", 0.0), ("min_overlap", 1), ("axis_sigma", -1.0),
+                                          ("smoothing", -0.5), ("smoothing", float("nan"))])
 def test_config_is_checked(field, value):
     with pytest.raises(ValueError):
         WorldHeightConfig(**{field: value})
@@ -171,3 +172,32 @@ def test_the_finished_passes_get_tiles_only_where_a_pass_reached():
     assert len(reached) < 7 * 7 / 2
     value = layer.value(canvas)
     assert np.isfinite(value[np.arange(200), np.arange(200)]).all() and np.isnan(value[0, 100])
+
+
+@pytest.mark.parametrize("follow_arm", [True, False])
+def test_a_press_that_eases_along_a_pass_is_not_read_as_relief_when_the_arm_is_followed(follow_arm):
+    """A pass whose roller lifts by up to 0.15 mm towards its end (touching down and lifting off at speed): each
+    frame is pressed that much less, so its band reads the relief less that much; given the arm's lift the
+    pass gives back the relief, taken as a constant press depth it bends by what its plane cannot take out."""
+    canvas = WorldCanvas(1e-4, (0.0, 0.0, 0.03, 0.012), TileConfig(tile=512))
+    layer = HeightLayer(WorldHeightConfig(follow_arm=follow_arm))
+    layer.add_layers(canvas)
+    rng = np.random.default_rng(1)
+    relief = rng.normal(0, 10e-6, (120, 300)).astype(np.float32)
+    weights = np.ones((120, 20), np.float32)
+    for c0 in range(0, 281, 4):                       # a band 20 cells along the pass, every 4 cells
+        lift = 1.5e-4 * max(0.0, (c0 - 200) / 80) ** 2
+        band = HeightBand(relief[:, c0:c0 + 20] - np.float32(lift), np.ones((120, 20), bool))
+        weighted, w = layer.planes(weights, band, lift)
+        canvas.add_named(layer.pass_planes(weighted, w), c0, 0)
+    layer.end_pass(canvas)
+    value = layer.value(canvas)
+    error = (value - relief)[:, 10:-10]
+    rows, cols = np.mgrid[0:error.shape[0], 0:error.shape[1]]
+    A = np.c_[np.ones(error.size), rows.ravel(), cols.ravel()]
+    coef, *_ = np.linalg.lstsq(A, error.ravel(), rcond=None)
+    rms = float(np.sqrt(np.mean((error.ravel() - A @ coef) ** 2)))
+    if follow_arm:
+        assert rms < 1e-6
+    else:
+        assert rms > 20e-6

@@ -198,6 +198,11 @@ HEIGHT_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "map.height.axis_sigma": ("axis_sigma", "Height map: along the axis, variation slower than a Gaussian of this "
                               "sigma (px) comes from each column's slopes across the band (0: the 2-D solution)",
                               0.0, 200.0),
+    "map.height.smoothing": ("smoothing", "Height map: the image's smoothing (Gaussian sigma, px) before the colour "
+                             "features when a frame's slopes are read (the calibration may have used more)", 0.0, 20.0),
+    "map.height.follow_arm": ("follow_arm", "Height map: raise each frame's relief by the roller's height above its "
+                              "pressed height (the arm's pose); false: the press depth is taken as constant along a "
+                              "pass", None, None),
 }
 
 # parameter name -> (TileConfig field, description, min, max): the world map's live views

@@ -1,0 +1,43 @@
+"""bench/height_map.py: the map's gain against the truth by wavelength."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from bench.height_map import WAVELENGTH_BANDS, wavelength_gains
+
+
+def _relief(shape: tuple[int, int] = (300, 260)) -> np.ndarray:
+    rng = np.random.default_rng(4)
+    return cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 0.7) * 1e-5
+
+
+def test_a_map_equal_to_the_truth_reads_every_band_whole() -> None:
+    truth = _relief()
+    bands = wavelength_gains(truth.copy(), truth, 1e-4)
+    assert len(bands) == len(WAVELENGTH_BANDS)
+    assert sum(b.relief_share for b in bands) <= 1.0 + 1e-9
+    for b in bands:
+        assert b.gain == pytest.approx(1.0, abs=1e-9) and b.coherence == pytest.approx(1.0, abs=1e-9)
+
+
+def test_a_blurred_map_reads_short_wavelengths_as_a_gaussian_keeps_them() -> None:
+    truth = _relief()
+    sigma = 1.0
+    mine = cv2.GaussianBlur(truth, (0, 0), sigma)
+    mine[:5] = np.nan                                   # unmapped rows are left out, not read as relief
+    bands = wavelength_gains(mine, truth, 1e-4)
+    for b in bands:
+        wavelength = 0.5 * (b.shortest_mm + b.longest_mm) / 0.1   # cells, the band's middle
+        kept = math.exp(-0.5 * (2 * math.pi * sigma / wavelength) ** 2)
+        assert b.gain == pytest.approx(kept, abs=0.12), b
+        assert b.coherence > 0.8
+    assert bands[0].gain < 0.2 < 0.9 < bands[-1].gain
+
+
+def test_too_little_mapped_gives_no_bands() -> None:
+    truth = _relief((60, 60))
+    assert wavelength_gains(truth, truth, 1e-4) == []
