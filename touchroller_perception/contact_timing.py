@@ -33,6 +33,42 @@ FloatArray = NDArray[np.float64]
 PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
 CONTACT_TIMING = "contact_timing"
 _DESCRIPTOR = (16, 8)   # (columns, rows) a band is reduced to: the shading change spans the band
+SUMMARY_SHAPE = (_DESCRIPTOR[1], _DESCRIPTOR[0])   # (rows, columns) of a `band_summary`
+_CROPS: dict[tuple[int, ...], tuple[slice, slice] | None] = {}   # per band shape: the block summarised
+
+
+def band_summary(band: np.ndarray) -> np.ndarray | None:
+    """What `ContactTimer` keeps of a frame's band (grey or colour, any dtype): its centre, cropped to whole
+    blocks, area-averaged to 8 x 16 (float32); None for a band smaller than that. Depends on the band alone."""
+    crop = _crop(band)
+    if crop is None:
+        return None
+    out = np.empty(SUMMARY_SHAPE, np.float32)
+    _summarise(crop, out)
+    return out
+
+
+def _crop(band: np.ndarray) -> np.ndarray | None:
+    grey = band if band.ndim == 2 else cv2.cvtColor(band, cv2.COLOR_BGR2GRAY)
+    shape = grey.shape
+    if shape not in _CROPS:
+        # whole blocks (the fast area average): the band's centre cropped to multiples of the summary
+        rows, cols = shape[0] // _DESCRIPTOR[1] * _DESCRIPTOR[1], shape[1] // _DESCRIPTOR[0] * _DESCRIPTOR[0]
+        r0, c0 = (shape[0] - rows) // 2, (shape[1] - cols) // 2
+        _CROPS[shape] = (slice(r0, r0 + rows), slice(c0, c0 + cols)) if rows and cols else None
+    crop = _CROPS[shape]
+    if crop is None:
+        return None
+    block = grey[crop]
+    return block if block.dtype == np.float32 or block.dtype == np.uint8 else block.astype(np.float32)
+
+
+def _summarise(block: np.ndarray, out: np.ndarray) -> None:
+    """The area average of `block` into `out` (8 x 16 float32)."""
+    if block.dtype == np.float32:
+        cv2.resize(block, _DESCRIPTOR, dst=out, interpolation=cv2.INTER_AREA)
+    else:
+        out[...] = cv2.resize(block, _DESCRIPTOR, interpolation=cv2.INTER_AREA)
 
 
 @dataclass(frozen=True)
@@ -108,7 +144,6 @@ class ContactTimer:
         self._start = self._end = 0
         self._done_until = -1   # events up to this stamp were read
         self.events: list[ContactEvent] = []
-        self._crops: dict[tuple[int, ...], tuple[slice, ...]] = {}   # per band shape: the summary's block
         # (start, frames in the air, their mean summary, each frame's difference from it): kept while the
         # frames in the air stay the same (while pressed): only the new frames' differences are computed
         self._signal_cache: tuple[int, NDArray[np.bool_], np.ndarray, np.ndarray] | None = None
@@ -116,24 +151,20 @@ class ContactTimer:
     def __len__(self) -> int:
         return self._end - self._start
 
-    def push(self, stamp_ns: int, band: np.ndarray) -> None:
-        """One frame's band (grey or colour, any dtype)."""
+    def push(self, stamp_ns: int, band: np.ndarray | None = None, summary: np.ndarray | None = None) -> None:
+        """One frame's band (grey or colour, any dtype), or its `band_summary` made already (e.g. by the
+        process that cut the band: it depends on the band alone)."""
         end = self._end
         if end > self._start and stamp_ns <= self._stamp_arr[end - 1]:
             return   # out of order: the state sequence needs stamps in order
-        grey = band if band.ndim == 2 else cv2.cvtColor(band, cv2.COLOR_BGR2GRAY)
-        crop = self._crops.get(grey.shape)
-        if crop is None:
-            # whole blocks (the fast area average): the band's centre cropped to multiples of the summary
-            rows = grey.shape[0] // _DESCRIPTOR[1] * _DESCRIPTOR[1]
-            cols = grey.shape[1] // _DESCRIPTOR[0] * _DESCRIPTOR[0]
-            r0, c0 = (grey.shape[0] - rows) // 2, (grey.shape[1] - cols) // 2
-            crop = self._crops[grey.shape] = (slice(r0, r0 + rows), slice(c0, c0 + cols)) if rows and cols else ()
-        if not crop:
-            return
-        block = grey[crop]
-        if block.dtype != np.float32 and block.dtype != np.uint8:
-            block = block.astype(np.float32)
+        if summary is None:
+            if band is None:
+                raise ValueError("push needs a band or its summary")
+            crop = _crop(band)
+            if crop is None:
+                return
+        elif summary.shape != SUMMARY_SHAPE:
+            raise ValueError(f"a band summary is {SUMMARY_SHAPE[0]}x{SUMMARY_SHAPE[1]}, got {summary.shape}")
         if end == len(self._stamp_arr):   # full: move the newest `capacity` to the front
             keep = slice(end - self.config.capacity, end)
             for array in (self._stamp_arr, self._summary_arr, self._height_arr):
@@ -142,11 +173,10 @@ class ContactTimer:
             self._start, self._end = 0, self.config.capacity
             self._signal_cache = None
             end = self._end
-        summary = self._summary_arr[end]
-        if block.dtype == np.float32:   # straight into its row of the summaries
-            cv2.resize(block, _DESCRIPTOR, dst=summary, interpolation=cv2.INTER_AREA)
+        if summary is None:
+            _summarise(crop, self._summary_arr[end])   # straight into its row of the summaries
         else:
-            summary[...] = cv2.resize(block, _DESCRIPTOR, interpolation=cv2.INTER_AREA)
+            self._summary_arr[end] = summary
         self._stamp_arr[end] = stamp_ns
         self._height_arr[end] = np.nan
         self._end = end + 1

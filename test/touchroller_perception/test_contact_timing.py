@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from touchroller_perception.contact_timing import (
     ContactTimer,
     ContactTimingConfig,
+    band_summary,
     latency_from_contacts,
 )
 
@@ -143,6 +144,13 @@ def test_the_summaries_and_levels_kept_as_frames_come_are_those_computed_afresh(
     for k, (_, band) in enumerate(frames):
         block = (band if k % 3 else np.clip(band, 0, 255).astype(np.uint8))[3:67, 2:642]
         assert np.array_equal(kept[k], cv2.resize(block, (16, 8), interpolation=cv2.INTER_AREA).astype(np.float32))
+    summarised = ContactTimer(0.2)   # the same frames' summaries made beforehand (by the band's reader)
+    for k, (stamp, band) in enumerate(frames):
+        summarised.push(stamp, summary=band_summary(band if k % 3 else np.clip(band, 0, 255).astype(np.uint8)))
+    assert np.array_equal(summarised._summary_arr[:len(frames)], kept)
+    with pytest.raises(ValueError):
+        summarised.push(frames[-1][0] + 1, summary=np.zeros((4, 4), np.float32))
+    assert band_summary(np.zeros((4, 640), np.float32)) is None
     colour = ContactTimer(0.2)
     colour.push(frames[0][0], cv2.cvtColor(np.clip(frames[0][1], 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR))
     assert np.array_equal(colour._summary_arr[0], kept[0])
