@@ -157,6 +157,7 @@ class ContactTimer:
         end = self._end
         if end > self._start and stamp_ns <= self._stamp_arr[end - 1]:
             return   # out of order: the state sequence needs stamps in order
+        crop = None
         if summary is None:
             if band is None:
                 raise ValueError("push needs a band or its summary")
@@ -173,7 +174,7 @@ class ContactTimer:
             self._start, self._end = 0, self.config.capacity
             self._signal_cache = None
             end = self._end
-        if summary is None:
+        if crop is not None:
             _summarise(crop, self._summary_arr[end])   # straight into its row of the summaries
         else:
             self._summary_arr[end] = summary
