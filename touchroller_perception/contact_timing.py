@@ -33,6 +33,42 @@ FloatArray = NDArray[np.float64]
 PoseLookup = Callable[[NDArray[np.int64]], FloatArray]
 CONTACT_TIMING = "contact_timing"
 _DESCRIPTOR = (16, 8)   # (columns, rows) a band is reduced to: the shading change spans the band
+SUMMARY_SHAPE = (_DESCRIPTOR[1], _DESCRIPTOR[0])   # (rows, columns) of a `band_summary`
+_CROPS: dict[tuple[int, ...], tuple[slice, slice] | None] = {}   # per band shape: the block summarised
+
+
+def band_summary(band: np.ndarray) -> np.ndarray | None:
+    """What `ContactTimer` keeps of a frame's band (grey or colour, any dtype): its centre, cropped to whole
+    blocks, area-averaged to 8 x 16 (float32); None for a band smaller than that. Depends on the band alone."""
+    crop = _crop(band)
+    if crop is None:
+        return None
+    out = np.empty(SUMMARY_SHAPE, np.float32)
+    _summarise(crop, out)
+    return out
+
+
+def _crop(band: np.ndarray) -> np.ndarray | None:
+    grey = band if band.ndim == 2 else cv2.cvtColor(band, cv2.COLOR_BGR2GRAY)
+    shape = grey.shape
+    if shape not in _CROPS:
+        # whole blocks (the fast area average): the band's centre cropped to multiples of the summary
+        rows, cols = shape[0] // _DESCRIPTOR[1] * _DESCRIPTOR[1], shape[1] // _DESCRIPTOR[0] * _DESCRIPTOR[0]
+        r0, c0 = (shape[0] - rows) // 2, (shape[1] - cols) // 2
+        _CROPS[shape] = (slice(r0, r0 + rows), slice(c0, c0 + cols)) if rows and cols else None
+    crop = _CROPS[shape]
+    if crop is None:
+        return None
+    block = grey[crop]
+    return block if block.dtype == np.float32 or block.dtype == np.uint8 else block.astype(np.float32)
+
+
+def _summarise(block: np.ndarray, out: np.ndarray) -> None:
+    """The area average of `block` into `out` (8 x 16 float32)."""
+    if block.dtype == np.float32:
+        cv2.resize(block, _DESCRIPTOR, dst=out, interpolation=cv2.INTER_AREA)
+    else:
+        out[...] = cv2.resize(block, _DESCRIPTOR, interpolation=cv2.INTER_AREA)
 
 
 @dataclass(frozen=True)
@@ -108,33 +144,43 @@ class ContactTimer:
         self._start = self._end = 0
         self._done_until = -1   # events up to this stamp were read
         self.events: list[ContactEvent] = []
+        # (start, frames in the air, their mean summary, each frame's difference from it): kept while the
+        # frames in the air stay the same (while pressed): only the new frames' differences are computed
+        self._signal_cache: tuple[int, NDArray[np.bool_], np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return self._end - self._start
 
-    def push(self, stamp_ns: int, band: np.ndarray) -> None:
-        """One frame's band (grey or colour, any dtype)."""
-        if len(self) and stamp_ns <= self._stamp_arr[self._end - 1]:
+    def push(self, stamp_ns: int, band: np.ndarray | None = None, summary: np.ndarray | None = None) -> None:
+        """One frame's band (grey or colour, any dtype), or its `band_summary` made already (e.g. by the
+        process that cut the band: it depends on the band alone)."""
+        end = self._end
+        if end > self._start and stamp_ns <= self._stamp_arr[end - 1]:
             return   # out of order: the state sequence needs stamps in order
-        grey = band if band.ndim == 2 else cv2.cvtColor(band, cv2.COLOR_BGR2GRAY)
-        # whole blocks (the fast area average): the band's centre cropped to multiples of the summary
-        rows, cols = grey.shape[0] // _DESCRIPTOR[1] * _DESCRIPTOR[1], grey.shape[1] // _DESCRIPTOR[0] * _DESCRIPTOR[0]
-        if rows == 0 or cols == 0:
-            return
-        r0, c0 = (grey.shape[0] - rows) // 2, (grey.shape[1] - cols) // 2
-        block = grey[r0:r0 + rows, c0:c0 + cols]
-        if block.dtype not in (np.uint8, np.float32):
-            block = block.astype(np.float32)
-        if self._end == len(self._stamp_arr):   # full: move the newest `capacity` to the front
-            keep = slice(self._end - self.config.capacity, self._end)
+        crop = None
+        if summary is None:
+            if band is None:
+                raise ValueError("push needs a band or its summary")
+            crop = _crop(band)
+            if crop is None:
+                return
+        elif summary.shape != SUMMARY_SHAPE:
+            raise ValueError(f"a band summary is {SUMMARY_SHAPE[0]}x{SUMMARY_SHAPE[1]}, got {summary.shape}")
+        if end == len(self._stamp_arr):   # full: move the newest `capacity` to the front
+            keep = slice(end - self.config.capacity, end)
             for array in (self._stamp_arr, self._summary_arr, self._height_arr):
                 array[:self.config.capacity] = array[keep]
             self._height_arr[self.config.capacity:] = np.nan
             self._start, self._end = 0, self.config.capacity
-        self._summary_arr[self._end] = cv2.resize(block, _DESCRIPTOR, interpolation=cv2.INTER_AREA)
-        self._stamp_arr[self._end] = int(stamp_ns)
-        self._height_arr[self._end] = np.nan
-        self._end += 1
+            self._signal_cache = None
+            end = self._end
+        if crop is not None:
+            _summarise(crop, self._summary_arr[end])   # straight into its row of the summaries
+        else:
+            self._summary_arr[end] = summary
+        self._stamp_arr[end] = stamp_ns
+        self._height_arr[end] = np.nan
+        self._end = end + 1
         if self._end - self._start > self.config.capacity:
             self._start += 1
 
@@ -163,14 +209,31 @@ class ContactTimer:
         pressed = known & (np.abs(heights).max(axis=1, initial=0.0) < c.pressed)
         if air.sum() < 3 or pressed.sum() < 3:
             return None
-        summaries = self._summary_arr[self._start:self._end]
-        reference = summaries[air].mean(axis=0)
-        signal = np.sqrt(((summaries - reference) ** 2).mean(axis=(1, 2)))
+        signal = self._signal(air)
         low, high = median(signal[air]), median(signal[pressed])
         noise = 1.4826 * median(np.abs(signal[air] - low))
         if not high - low > max(6.0 * noise, 1e-3):
             return None
         return signal, low, high
+
+    def _signal(self, air: NDArray[np.bool_]) -> np.ndarray:
+        """Each frame's RMS difference from the mean summary of the frames in the air (`air`). While those
+        frames are the same ones as at the last call (the roller pressed) the mean is too, and only the
+        frames added since are computed: the same numbers, at a cost that does not grow with the frames kept."""
+        summaries = self._summary_arr[self._start:self._end]
+        cached = self._signal_cache
+        if cached is not None and cached[0] == self._start and len(cached[1]) <= len(air):
+            start, was_air, reference, signal = cached
+            done = len(was_air)
+            if np.array_equal(was_air, air[:done]) and not air[done:].any():
+                if done < len(air):
+                    signal = np.concatenate([signal, np.sqrt(((summaries[done:] - reference) ** 2).mean(axis=(1, 2)))])
+                self._signal_cache = (start, air.copy(), reference, signal)
+                return signal
+        reference = summaries[air].mean(axis=0)
+        signal = np.sqrt(((summaries - reference) ** 2).mean(axis=(1, 2)))
+        self._signal_cache = (self._start, air.copy(), reference, signal)
+        return signal
 
     def shows_pressing(self, poses: PoseLookup, height: float, latest_ns: int) -> bool:
         """Whether the image confirms that the roller is pressed with the arm at `height`: the frames taken

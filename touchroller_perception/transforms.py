@@ -69,6 +69,37 @@ def quaternion_to_matrix(q: ArrayLike) -> FloatArray:
     return m
 
 
+def _quaternion_products_to_matrix() -> tuple[FloatArray, FloatArray]:
+    """(C, b): a rotation matrix's 9 entries (row-major) as `products @ C + b`, where `products` holds the 16
+    products q_a q_b of a quaternion (x, y, z, w) with itself (a * 4 + b). Each entry is two products scaled
+    by +-2 (exact) plus 1 on the diagonal, so this gives `quaternion_to_matrix`'s numbers bit for bit."""
+    x, y, z, w = range(4)
+    terms = [[(-2, y, y), (-2, z, z)], [(2, x, y), (-2, z, w)], [(2, x, z), (2, y, w)],
+             [(2, x, y), (2, z, w)], [(-2, x, x), (-2, z, z)], [(2, y, z), (-2, x, w)],
+             [(2, x, z), (-2, y, w)], [(2, y, z), (2, x, w)], [(-2, x, x), (-2, y, y)]]
+    c = np.zeros((16, 9))
+    for k, entry in enumerate(terms):
+        for coefficient, a, b in entry:
+            c[a * 4 + b, k] = coefficient
+    return c, np.array([1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0])
+
+
+_PRODUCTS_TO_MATRIX, _MATRIX_DIAGONAL = _quaternion_products_to_matrix()
+
+
+def transforms_to_matrices(translations: FloatArray, rotations: FloatArray) -> FloatArray:
+    """(N, 4, 4) homogeneous matrices of N translations (N, 3) and unit quaternions (N, 4): the rotations as
+    `quaternion_to_matrix` gives them, in a few numpy calls (one matrix product) instead of a score: the
+    mapper's lookups of a few stamps at a time pay per call, not per number."""
+    n = len(rotations)
+    m = np.empty((n, 4, 4))
+    products = (rotations[:, :, None] * rotations[:, None, :]).reshape(n, 16)
+    m[:, :3, :3] = (products @ _PRODUCTS_TO_MATRIX + _MATRIX_DIAGONAL).reshape(n, 3, 3)
+    m[:, :3, 3] = translations
+    m[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return m
+
+
 def matrix_to_quaternion(m: ArrayLike) -> FloatArray:
     """Unit quaternion of a 3x3 rotation matrix (Shepperd's method: stable for every rotation)."""
     m = np.asarray(m, np.float64)
@@ -485,11 +516,7 @@ class TransformBuffer:
                 one = edge.at_one(int(stamps[0]), child, missing)[None]
                 out = one if out is None else np.matmul(one, out)
                 continue
-            t, q = edge.at(stamps, child, missing)
-            m = np.zeros((len(stamps), 4, 4))
-            m[:, :3, :3] = quaternion_to_matrix(q)
-            m[:, :3, 3] = t
-            m[:, 3, 3] = 1.0
+            m = transforms_to_matrices(*edge.at(stamps, child, missing))
             out = m if out is None else np.matmul(m, out)
         return np.eye(4) if out is None else out
 

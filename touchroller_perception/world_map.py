@@ -49,7 +49,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from touchroller_perception.contact_timing import ContactTimer
+from touchroller_perception.contact_timing import ContactTimer, band_summary
 from touchroller_perception.fast_stats import median as _median
 from touchroller_perception.fast_stats import percentile as _percentile
 from touchroller_perception.geometry import CameraModel
@@ -419,7 +419,7 @@ class WorldMapper:
         self.stats = MapStats(latency_s=config.latency)
         self.latency_ns: int | None = None if config.latency is None else round(config.latency * 1e9)
         # frames whose stamp the poses do not reach yet
-        self._inbox: deque[tuple[np.ndarray, int, HeightBand | None]] = deque()
+        self._inbox: deque[tuple[np.ndarray, int, HeightBand | None, np.ndarray | None]] = deque()
         self._pending: deque[_Frame] = deque()
         self._pressed_height: float | None = None
         self._tf_heights: deque[tuple[int, float, float, float]] = deque(maxlen=3000)   # (stamp, x, y, z)
@@ -559,17 +559,25 @@ class WorldMapper:
             raise ValueError("the band's size is known once a frame's size is (source_rows or band)")
         return sampler.rows, sampler.cols
 
-    def push_band(self, band: np.ndarray, stamp_ns: int, height: HeightBand | None = None) -> None:
-        """`push` for a band cut with `band()` (and its relief, `height_band()`, for a height map)."""
+    def push_band(self, band: np.ndarray, stamp_ns: int, height: HeightBand | None = None,
+                  summary: np.ndarray | None = None) -> None:
+        """`push` for a band cut with `band()` (and its relief, `height_band()`, for a height map; and its
+        `contact_summary()` when the process that cut it made that too)."""
         if self._weights is None:
             self._setup()
-        self._inbox.append((band, int(stamp_ns), height))
+        self._inbox.append((band, int(stamp_ns), height, summary))
         while self._inbox:
-            band, stamp_ns, height = self._inbox[0]
+            band, stamp_ns, height, summary = self._inbox[0]
             if len(self._inbox) <= self.config.wait_frames and not self._pose_known(stamp_ns):
                 return   # its pose has not arrived yet
             self._inbox.popleft()
-            self._take_band(band, stamp_ns, height)
+            self._take_band(band, stamp_ns, height, summary)
+
+    @staticmethod
+    def contact_summary(band: np.ndarray) -> np.ndarray | None:
+        """What the mapper's contact timing keeps of a band (`contact_timing.band_summary`): it depends on the
+        band alone, so the process cutting the bands may make it and pass it to `push_band`."""
+        return band_summary(band)
 
     def _pose_known(self, stamp_ns: int) -> bool:
         covers = getattr(self.poses, "covers", None)   # a BufferPoses answers without interpolating
@@ -577,11 +585,12 @@ class WorldMapper:
             return bool(covers(stamp_ns))
         return bool(np.isfinite(self.poses(np.array([stamp_ns], np.int64))).all())
 
-    def _take_band(self, band: np.ndarray, stamp_ns: int, height: HeightBand | None = None) -> None:
+    def _take_band(self, band: np.ndarray, stamp_ns: int, height: HeightBand | None = None,
+                   summary: np.ndarray | None = None) -> None:
         prior, pose, pose_latency = self._arm_prior(int(stamp_ns))
         self.stats.frames += 1
         if self._contacts is not None and (self._estimator is not None or self._pressed_height is None):
-            self._contacts.push(int(stamp_ns), band)
+            self._contacts.push(int(stamp_ns), band, summary)
         if self._previous_prior_pose is not None:
             seen = self._previous_prior_pose[0]
             self._tf_heights.append((int(stamp_ns), float(seen[0, 3]), float(seen[1, 3]), float(seen[2, 3])))

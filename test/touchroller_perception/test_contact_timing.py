@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from touchroller_perception.contact_timing import (
     ContactTimer,
     ContactTimingConfig,
+    band_summary,
     latency_from_contacts,
 )
 
@@ -123,6 +124,43 @@ def test_the_events_are_found_as_the_frames_come_and_each_once():
     seen += timer.update(poses, PRESSED, frames[-1][0], final=True)
     assert len(seen) == 6 and seen == timer.events
     assert len({e.after_ns for e in seen}) == 6
+
+
+def test_the_summaries_and_levels_kept_as_frames_come_are_those_computed_afresh():
+    # the band summaries (written straight into their row) are the area averages of the band's centre, for
+    # float, 8-bit and colour bands; the levels found update after update (only new frames' differences
+    # computed while the frames in the air stay the same) are the ones a single look at all frames gives
+    import cv2
+
+    times, heights = heights_of(3, 0.01)
+    poses = lookup(times, heights)
+    frames = film(times, heights, 0.05, shape=(70, 644))
+    timer = ContactTimer(0.2)
+    for k, (stamp, band) in enumerate(frames):
+        timer.push(stamp, band if k % 3 else np.clip(band, 0, 255).astype(np.uint8))
+        if k % 7 == 0:
+            timer.update(poses, PRESSED, stamp)
+    kept = timer._summary_arr[timer._start:timer._end]
+    for k, (_, band) in enumerate(frames):
+        block = (band if k % 3 else np.clip(band, 0, 255).astype(np.uint8))[3:67, 2:642]
+        assert np.array_equal(kept[k], cv2.resize(block, (16, 8), interpolation=cv2.INTER_AREA).astype(np.float32))
+    summarised = ContactTimer(0.2)   # the same frames' summaries made beforehand (by the band's reader)
+    for k, (stamp, band) in enumerate(frames):
+        summarised.push(stamp, summary=band_summary(band if k % 3 else np.clip(band, 0, 255).astype(np.uint8)))
+    assert np.array_equal(summarised._summary_arr[:len(frames)], kept)
+    with pytest.raises(ValueError):
+        summarised.push(frames[-1][0] + 1, summary=np.zeros((4, 4), np.float32))
+    assert band_summary(np.zeros((4, 640), np.float32)) is None
+    colour = ContactTimer(0.2)
+    colour.push(frames[0][0], cv2.cvtColor(np.clip(frames[0][1], 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR))
+    assert np.array_equal(colour._summary_arr[0], kept[0])
+    latest = frames[-1][0]
+    heights_now = timer._arm_heights(poses, latest, final=True) - PRESSED
+    incremental = timer._levels(heights_now)
+    timer._signal_cache = None
+    fresh = timer._levels(heights_now)
+    assert incremental is not None and fresh is not None
+    assert np.array_equal(incremental[0], fresh[0]) and incremental[1:] == fresh[1:]
 
 
 def test_config_is_checked():

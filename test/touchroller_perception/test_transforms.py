@@ -15,6 +15,8 @@ from touchroller_perception.transforms import (
     Transform,
     TransformBuffer,
     interpolate,
+    quaternion_to_matrix,
+    transforms_to_matrices,
 )
 
 angles = st.floats(-math.pi, math.pi, allow_nan=False)
@@ -91,6 +93,30 @@ def test_lookup_many_equals_one_by_one():
     many = buffer.lookup_many("table", "sensor", stamps)
     for stamp, matrix in zip(stamps, many, strict=True):
         assert np.allclose(matrix, buffer.lookup("table", "sensor", int(stamp)).matrix(), atol=1e-12)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(quaternions, min_size=1, max_size=40), st.integers(0, 2 ** 32 - 1))
+def test_matrices_in_one_product_are_quaternion_to_matrix_bit_for_bit(qs, seed):
+    q = np.asarray(qs, np.float64)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    t = np.random.default_rng(seed).normal(size=(len(q), 3))
+    m = transforms_to_matrices(t, q)
+    assert np.array_equal(m[:, :3, :3], quaternion_to_matrix(q))
+    assert np.array_equal(m[:, :3, 3], t)
+    assert np.array_equal(m[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (len(q), 1)))
+
+
+def test_lookup_many_of_a_moving_edge_is_its_interpolation_bit_for_bit_and_nan_outside():
+    buffer = make_tree()
+    stamps = np.array([-5, 0, 1, 99_999_999, 512_345_678, 1_000_000_000, 2_000_000_000], np.int64)
+    many = buffer.lookup_many("base", "tool0", stamps, missing=True)
+    inside = (stamps >= 0) & (stamps <= 1_000_000_000)
+    assert np.isnan(many[~inside, :3]).all() and np.isfinite(many[inside]).all()
+    t, q = buffer._edges["tool0"].at(stamps[inside], "tool0")
+    expected = np.tile(np.eye(4), (int(inside.sum()), 1, 1))
+    expected[:, :3, :3], expected[:, :3, 3] = quaternion_to_matrix(q), t
+    assert np.array_equal(many[inside], expected)
 
 
 def test_no_extrapolation_and_no_unknown_frames():

@@ -259,6 +259,27 @@ def test_the_map_does_not_depend_on_whether_a_frame_or_its_pose_arrives_first(sc
     assert in_place_ssim(behind, sensor) >= 0.90
 
 
+def test_bands_pushed_with_their_contact_summaries_map_as_the_frames_alone(scans, sensor):
+    """`touchroller map` has its reader make each band's contact summary (`contact_summary`: the band alone
+    decides it) and pushes it with the band: the map, the latency and the stats are those of the frames alone."""
+    _, _, events = scans
+    alone = run(events[0.04], sensor)
+    buffer = TransformBuffer(cache_ns=None)
+    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
+    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
+                         WorldMapConfig(bounds=alone.config.bounds))
+    for event in events[0.04]:
+        if event[0] == "tf":
+            buffer.set_transform("base", "tool0", event[1], event[2])
+        else:
+            band = mapper.band(event[2])
+            summary = np.frombuffer(WorldMapper.contact_summary(band).tobytes(), np.float32).reshape(8, 16)
+            mapper.push_band(band, event[1], summary=summary)
+    mapper.finalise()
+    assert mapper.stats == alone.stats
+    np.testing.assert_array_equal(mapper.map_image().grey, alone.map_image().grey)
+
+
 def _naive_sums(patches, shape_hint=(4000, 4000)):
     """The sums of (plane, column, row) patches on an unbounded grid: (sums, lowest column, lowest row)."""
     c_lo = min(c for _, c, _ in patches)

@@ -163,6 +163,8 @@ def _check_world_arguments(args: argparse.Namespace, out: Path, camera) -> None:
 
 
 def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
+    import numpy as np
+
     from touchroller_bringup.bags import (
         CompressedRecord,
         ImageRecord,
@@ -171,6 +173,7 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
         read_images_and_tf,
     )
     from touchroller_bringup.map_files import write_height_tif, write_world_map
+    from touchroller_perception.contact_timing import SUMMARY_SHAPE
     from touchroller_perception.stitching import StitcherConfig
     from touchroller_perception.tiles import TileConfig
     from touchroller_perception.transforms import Transform, TransformBuffer
@@ -193,8 +196,10 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     if height_rows is not None:
         rows = (min(rows[0], height_rows[0]), max(rows[1], height_rows[1]))
 
-    def cut(record: ImageRecord | CompressedRecord) -> tuple[int, Any]:
-        # (stamp, band) of a frame (decoded first when compressed: only the rows up to the band's end)
+    def cut(record: ImageRecord | CompressedRecord) -> tuple[tuple[int, bytes | None], Any]:
+        # ((stamp, the band's contact summary), band) of a frame (decoded first when compressed: only the
+        # rows up to the band's end). The summary depends on the band alone: made here, by the reader (or
+        # a decoding worker), not by the mapping process, as float32 bytes (a few hundred: cheap to pickle)
         if isinstance(record, CompressedRecord):
             try:
                 record = decode_compressed(record, rows)
@@ -206,12 +211,14 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                             f"has {width}x{height}")
         band = mapper.band(record.image, record.row0, height)
         relief = mapper.height_band(record.image, record.row0, height)
-        return record.stamp_ns, (band if relief is None else (band, relief))
+        summary = mapper.contact_summary(band)
+        return (record.stamp_ns, None if summary is None else summary.tobytes()), (
+            band if relief is None else (band, relief))
 
     def records() -> Iterator[tuple[object, Any]]:
-        # The reader reads the bag (only the band's rows where it can) and cuts the bands: (stamp, band)
-        # for a frame, ((record, transform), None) for a transform. Compressed frames are decoded and cut
-        # by a pool of processes (`decode_pool`), in order: one per processor but the mapping's.
+        # The reader reads the bag (only the band's rows where it can) and cuts the bands: ((stamp,
+        # summary), band) for a frame, ((record, transform), None) for a transform. Compressed frames are
+        # decoded and cut by a pool of processes (`decode_pool`), in order: one per processor but the mapping's.
         from touchroller_bringup.decode_pool import ordered, pool_workers
 
         stream = read_images_and_tf(args.bag, args.topic, rows=rows, decode=False)
@@ -242,13 +249,15 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
                 except ValueError:   # a malformed transform (a frame its own parent, an empty name): skipped
                     continue
             else:
+                stamp, summary = item
                 if first_stamp[0] is None:
-                    first_stamp[0] = item
+                    first_stamp[0] = stamp
+                contact = None if summary is None else np.frombuffer(summary, np.float32).reshape(SUMMARY_SHAPE)
                 try:
                     if isinstance(band, tuple):
-                        mapper.push_band(band[0], item, band[1])
+                        mapper.push_band(band[0], stamp, band[1], contact)
                     else:
-                        mapper.push_band(band, item)
+                        mapper.push_band(band, stamp, summary=contact)
                 except MemoryError as exc:   # one band would span too many cells at this resolution
                     raise _too_fine(args, exc) from None
                 frames += 1
