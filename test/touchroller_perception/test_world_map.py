@@ -264,10 +264,7 @@ def test_bands_pushed_with_their_contact_summaries_map_as_the_frames_alone(scans
     decides it) and pushes it with the band: the map, the latency and the stats are those of the frames alone."""
     _, _, events = scans
     alone = run(events[0.04], sensor)
-    buffer = TransformBuffer(cache_ns=None)
-    buffer.set_transform("tool0", "touchroller_cylinder", 0, MOUNT, static=True)
-    mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
-                         WorldMapConfig(bounds=alone.config.bounds))
+    mapper, buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(bounds=alone.config.bounds))
     for event in events[0.04]:
         if event[0] == "tf":
             buffer.set_transform("base", "tool0", event[1], event[2])
