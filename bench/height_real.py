@@ -3,7 +3,10 @@
 The `gelsight` set (48 presses of a 2.0 mm ball, 0.0295 mm per pixel, hand-labelled circles) is split
 6-fold by index (press i in fold i mod 6): each fold's presses are measured with a model calibrated on
 the other 40 (`touchroller_perception.height`: circles refined from the images, sphere slopes as
-targets, compiled lookup, exact Poisson integration). The measurements are this bench's own:
+targets, compiled lookup, exact Poisson integration), against the reference that calibration chose
+(`PressCalibrationConfig.reference = "auto"`: one built from its presses' far fields when they match it
+better than the given no-contact frame; the trade-off table keeps a row with the frame as given). The
+measurements are this bench's own:
 
 * normal-angle error: the model's normals against the 2.0 mm sphere's, inside the contact circle
   (less 2 px), with the circle the calibration's edge fit finds in the held-out image, and with the
