@@ -307,6 +307,8 @@ def reference_text(cal: PhotometricCalibration) -> str:
     c = cal.reference_choice
     if c is None:
         return "given"
+    if c.coverage < 1.0:
+        return f"given (the presses leave {100 * (1 - c.coverage):.0f} % of the image near all but a few of them)"
     if not math.isfinite(c.given_change):
         return c.source
     return f"{c.source} ({100 * c.given_change:.2f} % / {100 * c.presses_change:.2f} %)"
@@ -534,6 +536,7 @@ def load(path: Path) -> HeightRealResult:
                              for m in raw["per_press"])
     raw["tradeoffs"] = tuple(TradeoffRow(**t) for t in raw["tradeoffs"])
     raw["band_rows"] = tuple(raw["band_rows"])
+    raw["reference_choices"] = tuple(raw.get("reference_choices", ()))
     return HeightRealResult(**raw)
 
 

@@ -167,7 +167,12 @@ class PhotometricCalibration:
 
     def _reference_summary(self) -> str:
         choice = self.reference_choice
-        if choice is None or choice.source == "given" and not math.isfinite(choice.given_change):
+        if choice is None:
+            return ""
+        if choice.coverage < 1.0:
+            return (f"; reference as given (the presses leave {100 * (1 - choice.coverage):.0f} % of the image "
+                    "near all but a few of them: too few far fields there to build one)")
+        if choice.source == "given" and not math.isfinite(choice.given_change):
             return ""
         made = "built from the presses' far fields" if choice.source == "presses" else "as given"
         text = f"; reference: {made}"

@@ -5,14 +5,21 @@ taken before (or after) the presses holds the light of that moment: on a real se
 and the gel settles between that frame and the presses, and what changed reads as slopes everywhere.
 The presses themselves show the undeformed membrane in the light they are taken in, away from their
 contact: `far_field_reference` is, per pixel, the median over the frames that lie beyond `factor`
-contact radii of their press there (each pixel is far from most presses when the presses move about),
-and the given reference where fewer than `min_frames` frames do. The median of many frames also has
-less noise than one frame.
+contact radii of their press there (each pixel is far from most presses when the presses move about).
+Where fewer than `min_frames` frames are far (presses that keep to one place), it is the given reference
+times the light's change since it, carried in smoothly from the pixels around (the per-channel ratio of
+built to given, a Gaussian-weighted mean of width `fill_sigma` px): the given reference alone there would
+leave a step in the light at the edge, and a part of the frame read against another light than the
+rest. The median of many frames also has less noise than one frame.
 
 `reference_change` measures how well a reference matches a set of frames where they are undeformed
 (the median over the frames of each one's RMS relative colour change beyond `factor` contact radii),
 which needs no truth: `choose_reference` keeps the candidate that matches best, each frame weighed
-against a reference built without it.
+against a reference built without it, provided the presses move about: every pixel must lie beyond
+`factor` contact radii of at least `min_frames` of them. Presses that keep to one place leave no frame
+whose far field is far from every press's influence (a press changes the colour well beyond its
+contact): their median holds the presses' own halo, and the far-field measure, taken in the same
+halo, cannot see it.
 """
 from __future__ import annotations
 
@@ -20,6 +27,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from touchroller_perception.calibration.common import CalibrationError
@@ -38,9 +46,11 @@ def far_masks(shape: tuple[int, int], circles: Sequence[Circle], factor: float) 
 
 
 def far_field_reference(images: Sequence[np.ndarray], circles: Sequence[Circle], fallback: np.ndarray,
-                        factor: float = 3.0, min_frames: int = 3, rows_per_chunk: int = 32) -> np.ndarray:
+                        factor: float = 3.0, min_frames: int = 3, rows_per_chunk: int = 32,
+                        fill_sigma: float = 128.0) -> np.ndarray:
     """H x W x 3 float32: per pixel, the median of the frames beyond `factor` contact radii of their circle
-    there; `fallback` (the given no-contact reference) where fewer than `min_frames` frames are."""
+    there; where fewer than `min_frames` frames are, `fallback` (the given no-contact reference) times the
+    smooth ratio of built to given around (`fill_light`)."""
     fallback = np.asarray(fallback)
     if fallback.ndim != 3 or fallback.shape[2] != 3:
         raise CalibrationError(f"the reference must be a colour image (H x W x 3), got shape {fallback.shape}")
@@ -65,7 +75,31 @@ def far_field_reference(images: Sequence[np.ndarray], circles: Sequence[Circle],
         enough = count >= min_frames
         if enough.any():
             out[v0:v1][enough] = np.nanmedian(stack[:, enough], axis=0)
+    covered = masks.sum(axis=0) >= min_frames
+    if covered.any() and not covered.all():
+        fill_light(out, np.asarray(fallback, np.float32), covered, fill_sigma)
     return out
+
+
+def fill_light(built: np.ndarray, given: np.ndarray, covered: np.ndarray, sigma: float, step: int = 8) -> None:
+    """In place: the pixels of `built` not `covered` become `given` times the ratio built / given carried in
+    from the covered pixels (a normalised Gaussian of `sigma` px, on a 1-in-`step` grid; the covered pixels'
+    median ratio where none is near)."""
+    h, w = covered.shape
+    safe = np.maximum(given, 1.0)
+    ratio = np.where(covered[..., None], built / safe, 0.0).astype(np.float32)
+    weight = covered.astype(np.float32)
+    size = (max(1, w // step), max(1, h // step))
+    small_r = cv2.resize(ratio, size, interpolation=cv2.INTER_AREA)
+    small_w = cv2.resize(weight, size, interpolation=cv2.INTER_AREA)
+    s = max(sigma / step, 0.5)
+    blur_r = cv2.GaussianBlur(small_r, (0, 0), s, borderType=cv2.BORDER_REPLICATE)
+    blur_w = cv2.GaussianBlur(small_w, (0, 0), s, borderType=cv2.BORDER_REPLICATE)
+    median = np.median((built / safe)[covered], axis=0).astype(np.float32)
+    near = blur_w > 1e-3
+    light = np.where(near[..., None], blur_r / np.maximum(blur_w, 1e-3)[..., None], median)
+    light = cv2.resize(light.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    built[~covered] = given[~covered] * light[~covered]
 
 
 def reference_change(images: Sequence[np.ndarray], circles: Sequence[Circle], references: Sequence[np.ndarray],
@@ -91,7 +125,8 @@ class ReferenceChoice:
     source: str                 # "given" or "presses"
     reference: np.ndarray       # H x W x 3 (float32 when built from the presses)
     given_change: float         # median RMS relative colour change of the far fields against the given reference
-    presses_change: float       # ... against one built from the other presses (leave one out); inf: not built
+    presses_change: float       # ... against one built from the other presses (leave one out); nan: not weighed
+    coverage: float = 1.0       # fraction of the pixels beyond `factor` radii of at least `min_frames` presses
 
 
 def choose_reference(images: Sequence[np.ndarray], circles: Sequence[Circle], given: np.ndarray, source: str,
@@ -99,7 +134,8 @@ def choose_reference(images: Sequence[np.ndarray], circles: Sequence[Circle], gi
     """The reference a calibration uses: `source` "given" keeps the given one, "presses" builds it from the
     presses' far fields (`far_field_reference`), "auto" builds it and keeps it if the presses' far fields
     match it better than the given one (`reference_change`; each press against a reference built from the
-    presses of the other `folds` - 1 parts, press k in part k mod folds, so no press matches itself)."""
+    presses of the other `folds` - 1 parts, press k in part k mod folds, so no press matches itself), if every
+    pixel lies beyond `factor` contact radii of at least `min_frames` presses (else the given one)."""
     if source not in ("given", "presses", "auto"):
         raise ValueError(f"reference source must be 'given', 'presses' or 'auto', got {source!r}")
     given = np.asarray(given)
@@ -108,6 +144,9 @@ def choose_reference(images: Sequence[np.ndarray], circles: Sequence[Circle], gi
     built = far_field_reference(images, circles, given, factor, min_frames)
     if source == "presses":
         return ReferenceChoice("presses", built, math.nan, math.nan)
+    coverage = float(np.mean(far_masks(given.shape[:2], circles, factor).sum(axis=0) >= min_frames))
+    if coverage < 1.0:          # the presses keep to a part of the image: see the module's docstring
+        return ReferenceChoice("given", given, math.nan, math.nan, coverage)
     n = len(images)
     folds = max(2, min(folds, n))
     held: list[np.ndarray] = [given] * n
