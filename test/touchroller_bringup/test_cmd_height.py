@@ -120,3 +120,27 @@ def test_height_of_a_recording_names_files_by_stamp(pressed, bag_factory, tmp_pa
     assert main(["height", str(bag), "--photometric", str(out), "--reference", str(root / "ref.png"),
                  "--pixel-size", "1.3e-4", "--out", str(tmp_path / "h")]) == 0
     assert sorted(p.name for p in (tmp_path / "h").glob("*.tiff")) == ["1000.tiff", "1001.tiff"]
+
+
+def test_calibrate_builds_the_reference_from_the_presses(pressed, capsys, tmp_path):
+    """A no-contact image taken in another light (10 % darker) is refused by --reference-from auto for one
+    built from the presses' far fields, which is written for `touchroller height`."""
+    root = pressed
+    ref = cv2.imread(str(root / "ref.png"))
+    dark = tmp_path / "dark.png"
+    cv2.imwrite(str(dark), np.rint(ref * 0.9).astype(np.uint8))
+    base = ["calibrate", "photometric", str(root / "presses"), "--labels", str(root / "labels.csv"), "--reference",
+            str(dark), "--ball-radius", "0.004", "--params", str(root / "cal.yaml"), "--out", str(tmp_path / "p.npz")]
+    assert main(base + ["--reference-from", "auto"]) == 2
+    err = capsys.readouterr().err
+    assert "needs --reference-out" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "p.npz").exists()
+    built = tmp_path / "built.png"
+    assert main(base + ["--reference-from", "auto", "--reference-out", str(built)]) == 0
+    assert "built from the presses' far fields" in capsys.readouterr().out
+    written = cv2.imread(str(built))
+    assert written.shape == ref.shape
+    away = np.median(np.abs(written.astype(float) - ref)), np.median(np.abs(ref * 0.9 - ref))
+    assert away[0] < 0.3 * away[1]
+    assert main(["height", str(root / "presses"), "--photometric", str(tmp_path / "p.npz"), "--reference", str(built),
+                 "--params", str(root / "cal.yaml"), "--out", str(tmp_path / "h")]) == 0

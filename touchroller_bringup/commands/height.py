@@ -61,6 +61,14 @@ def register_calibration(steps: argparse._SubParsersAction) -> None:
     parser.add_argument("--ball-radius", type=float, required=True, help="the ball's radius, m")
     _pixel_arguments(parser)
     parser.add_argument("--no-refine", action="store_true", help="use the labelled circles as they are")
+    parser.add_argument("--reference-from", choices=("given", "presses", "auto"), default="given",
+                        help="the reference the model reads colour changes against: the given no-contact image, one "
+                             "built from the presses' far fields (per pixel the median of the presses beyond 3 label "
+                             "radii), or the one of the two the presses' far fields match better (default: "
+                             "%(default)s); give the one used (--reference-out) to `touchroller height`")
+    parser.add_argument("--reference-out", type=Path,
+                        help="PNG to write the reference the model was calibrated against (needed with "
+                             "--reference-from presses or auto)")
     parser.add_argument("--out", type=Path, required=True, help="PHOTOMETRIC.npz to write")
     parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic in a recording (default: %(default)s)")
     parser.set_defaults(func=run_calibrate)
@@ -132,6 +140,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     _positive(args.ball_radius, "--ball-radius")
     _positive(args.pixel_size, "--pixel-size")
+    if args.reference_from != "given" and args.reference_out is None:
+        raise UserError(f"--reference-from {args.reference_from} needs --reference-out (the reference to give "
+                        "`touchroller height`)")
     camera = _load_camera(args.params) if args.params is not None else None
     labels = read_labels(args.labels)
     reference = _reference(args.reference)
@@ -146,7 +157,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise UserError(f"{args.labels}: {name}: {exc}") from None
         presses.append(ht.BallPress(images[name], u, v, r, size, name,
                                     math.inf if camera is None else float(camera.radius)))
-    config = ht.PressCalibrationConfig(refine=not args.no_refine)
+    config = ht.PressCalibrationConfig(refine=not args.no_refine, reference=args.reference_from)
     try:
         result = ht.calibrate_photometric(presses, reference, args.ball_radius, config)
     except CalibrationError as exc:
@@ -155,16 +166,32 @@ def run_calibrate(args: argparse.Namespace) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(args.out, "wb") as stream:
             result.model.save_to(stream)
+        if args.reference_out is not None:
+            _write_reference(args.reference_out, reference if result.reference is None else result.reference)
     except OSError as exc:
-        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+        raise UserError(f"cannot write {exc.filename or args.out}: {exc.strerror}") from None
     print(result.summary())
     for fit in result.presses:
         c = fit.circle
         print(f"  {fit.name}: normal residual median {fit.normal_error_deg:.2f} deg "
               f"(p90 {fit.normal_error_p90_deg:.2f}); circle ({c.u:.1f}, {c.v:.1f}) r {c.radius_px:.1f} px"
               + ("" if c.refined else " (label kept)"))
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out}" + (f" and {args.reference_out}" if args.reference_out is not None else ""))
     return 0
+
+
+def _write_reference(path: Path, reference: np.ndarray) -> None:
+    """The reference as an 8-bit PNG (the channel order the images were read in), written whole or not at all."""
+    import cv2
+
+    from touchroller_perception.files import atomic_write
+
+    ok, data = cv2.imencode(".png", np.clip(np.rint(reference), 0, 255).astype(np.uint8))
+    if not ok:
+        raise OSError(0, "PNG encoding failed", str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "wb") as stream:
+        stream.write(data.tobytes())
 
 
 def run_height(args: argparse.Namespace) -> int:

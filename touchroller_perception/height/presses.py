@@ -36,6 +36,7 @@ from touchroller_perception.height.photometric import (
     colour_features,
     fit_model,
 )
+from touchroller_perception.height.reference import ReferenceChoice, choose_reference
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,11 @@ class PressCalibrationConfig:
     # (`choose_position_degree`); empty: the model's own `position_degree`
     position_degrees: tuple[int, ...] = ()
     selection_folds: int = 4             # presses split this many ways (press i in fold i mod folds) to choose
+    # the reference the model reads colour changes against (`reference.choose_reference`): "given" the no-contact
+    # frame given, "presses" one built from the presses' far fields (beyond `reference_factor` label radii),
+    # "auto" the one of the two the presses' far fields match better
+    reference: str = "given"
+    reference_factor: float = 3.0
 
     def __post_init__(self) -> None:
         if not (0.0 < self.search[0] < 1.0 < self.search[1] <= 2.0):
@@ -89,6 +95,10 @@ class PressCalibrationConfig:
             raise ValueError(f"position_degrees must be 0..6 each, got {self.position_degrees}")
         if not 2 <= self.selection_folds <= 20:
             raise ValueError(f"selection_folds must be 2..20, got {self.selection_folds}")
+        if self.reference not in ("given", "presses", "auto"):
+            raise ValueError(f"reference must be 'given', 'presses' or 'auto', got {self.reference!r}")
+        if not (math.isfinite(self.reference_factor) and self.reference_factor > 1.0):
+            raise ValueError(f"reference_factor must be > 1, got {self.reference_factor}")
 
 
 #: a world height map's calibration: the map's model (`MAP_PHOTOMETRIC`), its position degree chosen from 0..3
@@ -137,6 +147,9 @@ class PhotometricCalibration:
     presses: tuple[PressFit, ...]
     ball_radius: float
     degree_scores: tuple[DegreeScore, ...] = ()   # the candidates weighed (empty: none were)
+    # the reference the model was calibrated against (give this one to `HeightEstimator`), and how it was chosen
+    reference: np.ndarray | None = None
+    reference_choice: ReferenceChoice | None = None
 
     @property
     def normal_error_deg(self) -> float:
@@ -150,7 +163,23 @@ class PhotometricCalibration:
         return (f"photometric calibration: {len(self.presses)} presses, ball radius {self.ball_radius * 1e3:.3f} mm, "
                 f"{len(self.model.coefficients)} terms; normal-angle residual median {self.normal_error_deg:.2f} deg "
                 f"(in-sample); {refined} circles refined from the images (centre moved {np.median(shifts):.1f} px, "
-                f"radius {np.median(dr):+.1f} px, medians)" + self._degree_summary())
+                f"radius {np.median(dr):+.1f} px, medians)" + self._degree_summary() + self._reference_summary())
+
+    def _reference_summary(self) -> str:
+        choice = self.reference_choice
+        if choice is None:
+            return ""
+        if choice.coverage < 1.0:
+            return (f"; reference as given (the presses leave {100 * (1 - choice.coverage):.0f} % of the image "
+                    "near all but a few of them: too few far fields there to build one)")
+        if choice.source == "given" and not math.isfinite(choice.given_change):
+            return ""
+        made = "built from the presses' far fields" if choice.source == "presses" else "as given"
+        text = f"; reference: {made}"
+        if math.isfinite(choice.given_change):
+            text += (f" (far-field colour change {100 * choice.given_change:.2f} % against the given one, "
+                     f"{100 * choice.presses_change:.2f} % against one from the other presses)")
+        return text
 
     def _degree_summary(self) -> str:
         if not self.degree_scores:
@@ -310,6 +339,9 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
                                    f"reference {reference.shape}")
         if not all(math.isfinite(s) and s > 0 for s in press.pixel_size):
             raise CalibrationError(f"press {press.name or '?'}: pixel size must be positive, got {press.pixel_size}")
+    choice = choose_reference([p.image for p in presses], [(p.u, p.v, p.radius_px) for p in presses], reference,
+                              config.reference, config.reference_factor)
+    reference = choice.reference
     circles = [refine_circle(change_magnitude(p.image, reference), p.u, p.v, p.radius_px, config) for p in presses]
     for press, circle in zip(presses, circles, strict=True):
         contact = circle.radius_px * max(press.pixel_size)
@@ -335,7 +367,7 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
     except ValueError as exc:
         raise CalibrationError(str(exc)) from None
     fits = tuple(press_fit(model, p, c, reference, ball_radius, config) for p, c in zip(presses, circles, strict=True))
-    return PhotometricCalibration(model, fits, float(ball_radius), scores)
+    return PhotometricCalibration(model, fits, float(ball_radius), scores, reference, choice)
 
 
 def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
