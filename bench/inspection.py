@@ -26,7 +26,9 @@ press-lift-shift GelSight.
 (quick/ with --quick); `touchroller report` calls `run(quick)` and `to_markdown(result)`.
 `python -m bench.inspection --live-latency` runs only the live findings' scans (the scored scan with the latency
 estimated, the default, and with it known) and writes their rows into the recorded run (bench/results/
-inspection.json + .md, the rest of it as recorded), with their own provenance.
+inspection.json + .md, the rest of it as recorded), with their own provenance. `--speed` measures the
+detector's speed again alone (seconds; CPU time still grows on a crowded machine) and writes it, with the square
+metre's inspection time that follows from it, into the recorded run, with its own provenance.
 """
 from __future__ import annotations
 
@@ -182,6 +184,8 @@ class InspectionBenchResult:
     smallest_depth_um: dict[str, float | None]   # per width: the smallest depth found >= 90 % of the time
     speed: Speed
     end_to_end: EndToEnd | None = None
+    # when the detector's speed was measured again by `--speed` (alone, on a quieter machine): how
+    speed_provenance: Provenance | None = None
 
 
 def _tolerance(width: float) -> float:
@@ -475,6 +479,9 @@ def to_markdown(r: InspectionBenchResult) -> str:
     sp = r.speed
     lines += ["", f"Speed: {sp.megapixels_per_s:.1f} megapixels of map per second on one core (CPU time, best of "
               f"{sp.repeats}, a {sp.megapixels:.1f} MP map with defects; OpenCV on one thread)."]
+    if r.speed_provenance is not None:
+        lines += ["", "Speed measured again by `--speed` (alone; the square metre's inspection time follows it):  ",
+                  provenance_markdown(r.speed_provenance)]
     if r.end_to_end is not None:
         lines += ["", end_to_end_markdown(r.end_to_end)]
     return "\n".join(lines)
@@ -591,14 +598,37 @@ def load(path: Path) -> InspectionBenchResult:
     return result
 
 
+def remeasure_speed(recorded: InspectionBenchResult, quick: bool) -> InspectionBenchResult:
+    """The recorded run with the detector's speed measured again (the plan's tiles and repeats), and the square
+    metre's inspection time and total following it."""
+    plan = QUICK if quick else FULL
+    speed = measure_speed(tuple(plan["speed_tiles"]), int(plan["speed_repeats"]), recorded.config)
+    stamp = provenance("inspection", quick, "--speed")
+    e = recorded.end_to_end
+    if e is not None:
+        q = e.square_metre
+        inspect_s = q.megapixels / speed.megapixels_per_s
+        e = replace(e, square_metre=replace(q, inspect_cpu_s=inspect_s,
+                                            total_s=q.total_s - q.inspect_cpu_s + inspect_s))
+    return replace(recorded, speed=speed, end_to_end=e, speed_provenance=stamp)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1 seed, 1 map per sensitivity cell, one timing run")
+    parser.add_argument("--speed", action="store_true", help="only the detector's speed (seconds: for a quieter "
+                        "moment than the whole run had), written into the recorded run")
     parser.add_argument("--live-latency", action="store_true", help="only the live findings' latency, estimated "
                         "and known (the recorded blur declared), written into the recorded run")
     args = parser.parse_args(argv)
     md, js = results_path("inspection", args.quick), results_path("inspection", args.quick, ".json")
-    if args.live_latency:
+    if args.speed:
+        recorded = load(js) if js.exists() else None
+        if recorded is None:
+            print(f"error: --speed updates a recorded run; {js} has none (run the bench first)", file=sys.stderr)
+            return 2
+        result = remeasure_speed(recorded, args.quick)
+    elif args.live_latency:
         recorded = load(js) if js.exists() else None
         if recorded is None or recorded.end_to_end is None:
             print(f"error: --live-latency updates a recorded run with its end-to-end part; {js} has none "

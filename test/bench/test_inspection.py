@@ -71,3 +71,25 @@ def test_the_live_latency_rows_say_whether_the_latency_was_estimated_or_known():
     assert "`touchroller scan map.latency_estimate:=False`" in text
     old = end_to_end_markdown(dataclasses.replace(e2e, latency_known=[], latency_known_command=""))
     assert "`not run`" in old and "| known |" not in old
+
+
+def test_speed_measured_again_replaces_the_speed_and_the_square_metres_inspection_time(monkeypatch, tmp_path):
+    """`--speed`: the recorded run keeps everything but the detector's speed, which comes with its own provenance,
+    and the square metre's inspection time and total follow the new speed."""
+    import bench.inspection as bench_inspection
+    from bench._common import ROOT, load_json, to_json
+
+    recorded = bench_inspection.load(ROOT / "bench" / "results" / "inspection.json")
+    new = bench_inspection.Speed(9.6, 0.5, 19.2, 3)
+    monkeypatch.setattr(bench_inspection, "measure_speed", lambda tiles, repeats, config: new)
+    again = bench_inspection.remeasure_speed(recorded, quick=False)
+    assert again.speed == new and again.speed_provenance is not None
+    assert again.cracks == recorded.cracks and again.summary == recorded.summary
+    if recorded.end_to_end is not None:
+        old, q = recorded.end_to_end.square_metre, again.end_to_end.square_metre
+        assert q.inspect_cpu_s == pytest.approx(q.megapixels / 19.2)
+        assert q.total_s == pytest.approx(old.total_s - old.inspect_cpu_s + q.inspect_cpu_s)
+        assert again.end_to_end.latency == recorded.end_to_end.latency
+    assert "measured again by `--speed`" in bench_inspection.to_markdown(again)
+    (tmp_path / "inspection.json").write_text(to_json(again))
+    assert load_json(bench_inspection.InspectionBenchResult, tmp_path / "inspection.json") == again
