@@ -64,3 +64,11 @@ def test_what_only_a_whole_decode_can_read_is_none(case):
         header[28] = 1
         png = bytes(header)
     assert decode_rows(png, end) is None
+
+
+def test_rows_past_one_stored_block_decode_whole():
+    # the rows handed to the PNG decoder span several deflate stored blocks (65535 bytes each)
+    image = np.random.default_rng(3).integers(0, 256, (120, 640, 3), dtype=np.uint8)
+    _fmt, data = png_of(image)
+    for end in (34, 35, 100, 119):   # 34 rows: 65314 bytes (one block); 35: 67235 (two)
+        assert np.array_equal(decode_rows(data, end), image[:end])
