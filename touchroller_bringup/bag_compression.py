@@ -23,13 +23,18 @@ from touchroller_bringup.image_conversion import encoding_for
 #: nothing to find, so Huffman coding alone writes smaller PNGs than level 1 or 3, in less time, and they
 #: decode faster (bench/recording_size.py)
 PNG_LEVEL = 1
+#: PNG row filter: Sub (each byte less the one to its left) refers to no other row, so a reader needing a
+#: band of rows unfilters only those (`png_rows.decode_rows`); libpng's adaptive choice takes Average on
+#: camera frames, which chains every row to the one above, for a file a few per cent smaller
+PNG_FILTER = cv2.IMWRITE_PNG_FILTER_SUB
 
 
 def png_of(image: np.ndarray, level: int = PNG_LEVEL) -> tuple[str, bytes]:
     """(image_transport's format string, PNG bytes) of an image as `image_to_array` gives it."""
     encoding = encoding_for(image)
     ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, int(level),
-                                            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY])
+                                            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+                                            cv2.IMWRITE_PNG_FILTER, PNG_FILTER])
     if not ok:
         raise ValueError(f"PNG encoding of a {encoding} image failed")
     return f"{encoding}; png compressed {encoding}", data.tobytes()

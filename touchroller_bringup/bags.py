@@ -77,9 +77,9 @@ def decode_compressed(record: CompressedRecord, rows: tuple[int, int] | None = N
             first, end = max(0, min(rows[0], size[0])), max(0, min(rows[1], size[0]))
             if end <= first:
                 raise ValueError(f"rows {rows} are outside the {size[0]}-row image")
-            image = decode_rows(record.data, end)
+            image = decode_rows(record.data, end, first)
             if image is not None:
-                return ImageRecord(record.stamp_ns, decoded_to_array(image[first:]), first, size[0])
+                return ImageRecord(record.stamp_ns, decoded_to_array(image), first, size[0])
     data = np.frombuffer(record.data, np.uint8)
     return ImageRecord(record.stamp_ns, compressed_to_array(_Compressed(record.format, data)))
 

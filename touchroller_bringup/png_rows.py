@@ -2,14 +2,16 @@
 
 A compressed recording holds each frame as a lossless PNG (`bag_compression`). The map uses one band of
 rows around the contact line; decoding a VGA frame whole spends most of its time inflating the deflate
-stream, a byte at a time, rows the map never reads. PNG rows can only be unfiltered in order (a row's
-filter refers to the row above it), so rows [0, end) must all be inflated and unfiltered, but nothing
-after `end`: `decode_rows(data, end)` inflates just the bytes of those rows (zlib, stopping at their
-length) and hands them to OpenCV's PNG decoder as a PNG `end` rows tall (the chunks before the image
-data kept; the rows stored uncompressed), so the unfiltering is libpng's own and the rows are exactly
-those of a whole decode. Every chunk read is checked against its CRC as a whole decode checks it. An
-interlaced PNG (Adam7 spreads every row over the whole stream), a malformed
-one, or `end` at or past the image's height: None, and the caller decodes the whole image.
+stream, a byte at a time, rows the map never reads. The deflate stream can only be inflated in order, so
+`decode_rows(data, end, first)` inflates the bytes of rows [0, end) (zlib, stopping at their length) and
+nothing after. Unfiltering is in order too where a row's filter refers to the row above (Up, Average,
+Paeth), but a row filtered None or Sub stands alone: the rows are unfiltered from the last such row at
+or before `first` (row 0 if none; the recorder writes every row Sub, so a band starts at its own first
+row). Those rows go to OpenCV's PNG decoder as a PNG of their own (the chunks before the image data kept;
+the rows stored uncompressed), so the unfiltering is libpng's own and the rows are exactly those of a
+whole decode. Every chunk read is checked against its CRC as a whole decode checks it. An interlaced PNG
+(Adam7 spreads every row over the whole stream), a malformed one, or `end` at or past the image's
+height: None, and the caller decodes the whole image.
 
 Inflating is the cost: with `isal` installed (Intel's ISA-L, `pip install isal`; pinned in
 requirements.txt) it inflates two to three times as fast as zlib, with the same bytes out; without it,
@@ -57,12 +59,32 @@ def _chunk(kind: bytes, body: bytes | memoryview) -> bytes:
     return _CHUNK.pack(len(body), kind) + bytes(body) + struct.pack(">I", zlib.crc32(body, zlib.crc32(kind)))
 
 
-def decode_rows(data: Any, end: int) -> np.ndarray | None:
-    """Rows [0, end) of the PNG `data` as `cv2.imdecode(data, IMREAD_UNCHANGED)[:end]` gives them (the
-    same values); None when only a whole decode will do (see the module docstring)."""
+_STORED = 65535   # the most bytes a deflate stored block holds
+_STORED_HEADER = struct.Struct("<BHH")   # final-block flag and type 00, length, its one's complement
+
+
+def _stored_idat(rows: memoryview) -> list[bytes | memoryview]:
+    """An IDAT chunk holding `rows` as a zlib stream of stored (uncompressed) blocks, as pieces to join:
+    `zlib.compress(rows, 0)` in its chunk, without copying the rows twice (their checksums by `_inflate`,
+    ISA-L's when installed)."""
+    pieces: list[bytes | memoryview] = [b"\x78\x01"]   # zlib header: deflate, 32 KiB window, no dictionary
+    for start in range(0, max(len(rows), 1), _STORED):
+        block = rows[start:start + _STORED]
+        final = int(start + _STORED >= len(rows))
+        pieces += [_STORED_HEADER.pack(final, len(block), len(block) ^ 0xFFFF), block]
+    pieces.append(struct.pack(">I", _inflate.adler32(rows) & 0xFFFFFFFF))
+    crc = _inflate.crc32(b"IDAT")
+    for piece in pieces:
+        crc = _inflate.crc32(piece, crc)
+    return [_CHUNK.pack(sum(len(piece) for piece in pieces), b"IDAT"), *pieces, _CRC.pack(crc & 0xFFFFFFFF)]
+
+
+def decode_rows(data: Any, end: int, first: int = 0) -> np.ndarray | None:
+    """Rows [first, end) of the PNG `data` as `cv2.imdecode(data, IMREAD_UNCHANGED)[first:end]` gives them
+    (the same values); None when only a whole decode will do (see the module docstring)."""
     raw = _view(data)
     size = png_size(raw)
-    if size is None or not 0 < end < size[0]:
+    if size is None or not 0 < end < size[0] or not 0 <= first < end:
         return None
     width, _height, depth, colour, method, filtering, interlace = _IHDR.unpack_from(raw, 16)
     if interlace != 0 or method != 0 or filtering != 0 or colour not in _CHANNELS or depth not in (1, 2, 4, 8, 16):
@@ -92,9 +114,17 @@ def decode_rows(data: Any, end: int) -> np.ndarray | None:
         return None
     if len(rows) < end * row_bytes:
         return None
-    header = _chunk(b"IHDR", _IHDR.pack(width, end, depth, colour, 0, 0, 0))
-    png = b"".join((_SIGNATURE, header, *before, _chunk(b"IDAT", zlib.compress(rows, 0)), _chunk(b"IEND", b"")))
+    filters = np.frombuffer(rows, np.uint8, end * row_bytes)[::row_bytes]
+    if filters.max() > 4:
+        return None   # not a PNG filter: the whole decode fails
+    # unfiltered from the last row at or before `first` that stands alone (filter None or Sub: it does not
+    # refer to the row above), as the first row of a PNG of its own; row 0 always stands alone
+    alone = np.flatnonzero(filters[1:first + 1] <= 1)
+    start = int(alone[-1]) + 1 if alone.size else 0
+    header = _chunk(b"IHDR", _IHDR.pack(width, end - start, depth, colour, 0, 0, 0))
+    png = b"".join((_SIGNATURE, header, *before,
+                    *_stored_idat(memoryview(rows)[start * row_bytes:end * row_bytes]), _chunk(b"IEND", b"")))
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None or image.shape[0] != end:
+    if image is None or image.shape[0] != end - start:
         return None
-    return image
+    return image[first - start:]

@@ -70,7 +70,10 @@ def test_a_compressed_recording_reads_back_the_same_frames_and_is_smaller(tmp_pa
     def size(folder):
         return sum(p.stat().st_size for p in folder.iterdir() if p.suffix in (".db3", ".mcap"))
 
-    assert size(tmp_path / "small") < 0.8 * size(tmp_path / "raw")
+    print("RATIO", size(tmp_path / "small") / size(tmp_path / "raw"))
+    # Sub-filtered rows (bag_compression.PNG_FILTER) cost these small smooth grey-in-colour frames more than
+    # camera frames: 0.89 of the raw size in sqlite3, 0.66 in zstd MCAP
+    assert size(tmp_path / "small") < 0.9 * size(tmp_path / "raw")
     if storage == "mcap":   # chunks compressed with zstd, each with its CRC
         from touchroller_bringup.bags import mcap_chunk_crcs
 
@@ -171,3 +174,25 @@ def test_a_writer_behind_writes_frames_raw_and_the_recording_reads_every_frame_i
     again = list(read_images(tmp_path / "bag"))
     assert [r.stamp_ns for r in again] == [1_000 + k for k in range(10)]
     assert all(np.array_equal(r.image, f) for r, f in zip(again, frames, strict=True))
+
+
+def test_the_recorders_png_rows_are_filtered_sub():
+    # every row refers to no other row: a reader needing a band of rows unfilters only those (png_rows)
+    import zlib
+
+    from touchroller_bringup.bag_compression import png_of
+
+    frame = textured(1, shape=(40, 64, 3))[0]
+    _fmt, data = png_of(frame)
+    body = data[8 + 25:]   # past the signature and IHDR: the IDAT chunks (no other chunk before them)
+    idat = b"".join(body[pos + 8:pos + 8 + int.from_bytes(body[pos:pos + 4], "big")]
+                    for pos in _chunk_starts(body) if body[pos + 4:pos + 8] == b"IDAT")
+    rows = zlib.decompress(idat)
+    assert set(rows[::64 * 3 + 1]) == {1}
+
+
+def _chunk_starts(body):
+    pos = 0
+    while pos + 8 <= len(body):
+        yield pos
+        pos += 12 + int.from_bytes(body[pos:pos + 4], "big")

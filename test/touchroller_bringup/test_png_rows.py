@@ -19,19 +19,24 @@ def _png(image: np.ndarray, **params: int) -> np.ndarray:
 
 @settings(max_examples=40, deadline=None)
 @given(rows=st.integers(2, 60), cols=st.integers(1, 50), kind=st.sampled_from(["bgr8", "mono8", "mono16", "bgra8"]),
-       level=st.sampled_from([0, 1, 6, 9]), smooth=st.booleans(), seed=st.integers(0, 2**16), data=st.data())
-def test_the_rows_are_those_of_a_whole_decode(rows, cols, kind, level, smooth, seed, data):
+       level=st.sampled_from([0, 1, 6, 9]), smooth=st.booleans(), seed=st.integers(0, 2**16),
+       filtering=st.sampled_from(["adaptive", "IMWRITE_PNG_FILTER_SUB", "IMWRITE_PNG_FILTER_AVG"]), data=st.data())
+def test_the_rows_are_those_of_a_whole_decode(rows, cols, kind, level, smooth, seed, filtering, data):
     rng = np.random.default_rng(seed)
     shape = {"bgr8": (rows, cols, 3), "mono8": (rows, cols), "mono16": (rows, cols), "bgra8": (rows, cols, 4)}[kind]
     dtype = np.uint16 if kind == "mono16" else np.uint8
     image = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
     if smooth:   # every PNG filter gets chosen somewhere (a noisy frame takes one or two)
         image = cv2.GaussianBlur(image, (5, 5), 2.0)
-    png = _png(image, IMWRITE_PNG_COMPRESSION=level)
+    extra = {} if filtering == "adaptive" else {"IMWRITE_PNG_FILTER": getattr(cv2, filtering)}
+    png = _png(image, IMWRITE_PNG_COMPRESSION=level, **extra)
     end = data.draw(st.integers(1, rows - 1))
+    first = data.draw(st.integers(0, end - 1))
     whole = cv2.imdecode(png, cv2.IMREAD_UNCHANGED)
     got = decode_rows(png, end)
     assert got is not None and got.dtype == whole.dtype and np.array_equal(got, whole[:end])
+    band = decode_rows(png, end, first)
+    assert band is not None and np.array_equal(band, whole[first:end])
     assert png_size(png) == (rows, cols)
 
 
@@ -64,3 +69,24 @@ def test_what_only_a_whole_decode_can_read_is_none(case):
         header[28] = 1
         png = bytes(header)
     assert decode_rows(png, end) is None
+
+
+def test_rows_past_one_stored_block_decode_whole():
+    # the rows handed to the PNG decoder span several deflate stored blocks (65535 bytes each)
+    image = np.random.default_rng(3).integers(0, 256, (120, 640, 3), dtype=np.uint8)
+    _fmt, data = png_of(image)
+    for end in (34, 35, 100, 119):   # 34 rows: 65314 bytes (one block); 35: 67235 (two)
+        assert np.array_equal(decode_rows(data, end), image[:end])
+
+
+def test_a_band_of_rows_decodes_from_the_last_row_that_stands_alone():
+    # rows filtered Sub (as the recorder writes them) or None refer to no row above: a band is unfiltered
+    # from its own first row on; a mix of filters from the last such row before it
+    rng = np.random.default_rng(4)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (80, 96, 3), dtype=np.uint8), (5, 5), 2.0)
+    _fmt, data = png_of(image)
+    assert np.array_equal(decode_rows(data, 50, 30), image[30:50])
+    for name in ("IMWRITE_PNG_FILTER_UP", "IMWRITE_PNG_FILTER_PAETH"):
+        png = _png(image, IMWRITE_PNG_FILTER=getattr(cv2, name))
+        assert np.array_equal(decode_rows(png, 50, 30), image[30:50])
+        assert np.array_equal(decode_rows(png, 50, 49), image[49:50])
