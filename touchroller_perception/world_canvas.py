@@ -340,7 +340,8 @@ class IntensityView:
 class _Placement:
     """Where a band landed on the map: for an axis-aligned roller (`axes` not None: transpose, flip rows,
     flip columns) the oriented band at (c0, r0) blended by the 2x2 bilinear `kernel`; else the affine
-    `matrix` (band -> patch) of a (w, h) patch at (c0, r0)."""
+    `matrix` (band -> patch) of a (w, h) patch at (c0, r0). An axis-aligned placement may hold its `matrix` and
+    `size` too (the same cells as the blend's), for what is interpolated rather than blended."""
 
     c0: int
     r0: int

@@ -1399,9 +1399,13 @@ class WorldMapper:
                 self._prior = self._prior.moved(*shift)
         aligned = _axis_aligned(matrix, self._weights.shape)
         if aligned is not None:
-            # an axis-aligned roller at the band's own scale: turn the band, then one bilinear 2x2 blend
+            # an axis-aligned roller at the band's own scale: turn the band, then one bilinear 2x2 blend (the
+            # affine kept for the height's interpolated relief: the same cells, (h + 1) x (w + 1) oriented)
             axes, c0, r0, kernel = aligned
-            return _Placement(c0, r0, axes, kernel=kernel)
+            rows, cols = self._weights.shape[::-1] if axes[0] else self._weights.shape
+            local = matrix.copy()
+            local[:, 2] -= (c0, r0)
+            return _Placement(c0, r0, axes, kernel=kernel, matrix=local, size=(cols + 1, rows + 1))
         c0, r0, c1, r1 = self._footprint(matrix)
         local = matrix.copy()
         local[:, 2] -= (c0, r0)
@@ -1437,9 +1441,17 @@ class WorldMapper:
                       "weight": self._on_map(placement, self._weights, "w")}
         if frame.height is not None and self._height_layer is not None:
             assert self._weights is not None
-            weighted, weights = self._height_layer.planes(self._weights, frame.height, lift)
-            planes.update(self._height_layer.pass_planes(self._on_map(placement, weighted),
-                                                         self._on_map(placement, weights)))
+            layer = self._height_layer
+            weighted, weights = layer.planes(self._weights, frame.height, lift)
+            interpolation = _height_module().RESAMPLING[layer.config.resampling]
+            if interpolation is None:   # "linear": the weighted relief splatted as the intensity is
+                planes.update(layer.pass_planes(self._on_map(placement, weighted), self._on_map(placement, weights)))
+            else:   # the relief interpolated onto the cells, times the weights placed there
+                assert placement.matrix is not None
+                on_map = self._on_map(placement, weights)
+                relief = cv2.warpAffine(layer.relief(frame.height, lift), placement.matrix, placement.size,
+                                        flags=interpolation, borderMode=cv2.BORDER_REPLICATE)
+                planes.update(layer.pass_planes(cv2.multiply(relief, on_map), on_map))
         return planes
 
     def _search(self, frame: _Frame, pose: np.ndarray) -> tuple[int, int, float, tuple[int, int], float]:

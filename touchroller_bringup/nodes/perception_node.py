@@ -203,6 +203,9 @@ HEIGHT_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "map.height.follow_arm": ("follow_arm", "Height map: raise each frame's relief by the roller's height above its "
                               "pressed height (the arm's pose); false: the press depth is taken as constant along a "
                               "pass", None, None),
+    "map.height.resampling": ("resampling", "Height map: how a frame's relief goes onto the map grid: lanczos4 or "
+                              "cubic (interpolated, times the weights placed bilinearly), linear (the weighted relief "
+                              "splatted bilinearly as the intensity is: loses a fine relief's depth)", None, None),
 }
 
 # parameter name -> (TileConfig field, description, min, max): the world map's live views
