@@ -30,6 +30,7 @@ from touchroller_perception.files import atomic_path
 from touchroller_perception.tiles import LayerView, StorageFull, to_alpha, to_grey
 from touchroller_perception.world_map import WorldMapImage
 
+TIFF_TILE = 512   # map.tif's tile side
 VIEW_MAX_PIXELS = 16_000_000   # map.png (nav2 map_server's view) is downscaled until it has at most this many
 STRETCH_PERCENTILES = (0.5, 99.5)   # map.png's grey spans these percentiles of the mapped cells' values
 
@@ -131,16 +132,42 @@ def _view_png(value: np.ndarray, weight: np.ndarray, mapped_weight: float) -> tu
     return png_grey_alpha(grey, alpha), (low, high), grey.shape[0]
 
 
-def _read_rows_down(view: LayerView, box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """(value, weight) of a view over `box` as image rows (row 0 the top), read a tile's rows at a time
-    (never three whole layers in memory at once)."""
-    r0, r1, c0, c1 = box
-    value, weight = np.empty((2, r1 - r0, c1 - c0), np.float32)
-    for a1 in range(r1, r0, -view.tile):
-        a0 = max(a1 - view.tile, r0)
-        v, w = view.read(a0, a1, c0, c1)
-        value[r1 - a1:r1 - a0], weight[r1 - a1:r1 - a0] = v[::-1], w[::-1]
-    return value, weight
+class _HeldView:
+    """A view's (value, weight) over `box`, read once a tile's rows at a time (never three whole layers in
+    memory at once) and held as a `tiles.LayerView` of the same cells: the GeoTIFF writer reads its tiles
+    from here while map.png is made from the same arrays, so the map's tiles (and the flat field's
+    division) are read once for both files. Held over the whole file tiles the GeoTIFF's full resolution
+    reads (`tile`-sized, from the box's top-left corner: its right and bottom ones reach past the box),
+    so its tiles, padding included, are what the view itself gives."""
+
+    def __init__(self, view: LayerView, box: tuple[int, int, int, int], tile: int) -> None:
+        r0, r1, c0, c1 = box
+        self.box, self.tile, self.mapped_weight = box, view.tile, view.mapped_weight
+        self.resolution, self.origin = view.resolution, view.origin
+        self.cover = (r1 - -(-(r1 - r0) // tile) * tile, r1, c0, c0 + -(-(c1 - c0) // tile) * tile)
+        q0, q1, p0, p1 = self.cover
+        self.value, self.weight = np.empty((2, q1 - q0, p1 - p0), np.float32)
+        t = view.tile
+        for a0 in [q0, *range((q0 // t + 1) * t, q1, t)]:   # along the map's own tile rows
+            a1 = min((a0 // t + 1) * t, q1)
+            self.value[a0 - q0:a1 - q0], self.weight[a0 - q0:a1 - q0] = view.read(a0, a1, p0, p1)
+
+    def rows_down(self) -> tuple[np.ndarray, np.ndarray]:
+        """(value, weight) over the box as image rows (row 0 the top): views, not copies."""
+        r0, r1, c0, c1 = self.box
+        q0, _, p0, _ = self.cover
+        inside = slice(r1 - q0 - 1, r0 - q0 - 1 if r0 > q0 else None, -1), slice(c0 - p0, c1 - p0)
+        return self.value[inside], self.weight[inside]
+
+    def extent(self) -> tuple[int, int, int, int]:
+        return self.box
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        q0, q1, p0, p1 = self.cover
+        if q0 <= r0 and r1 <= q1 and p0 <= c0 and c1 <= p1:   # what the GeoTIFF writer reads
+            return (self.value[r0 - q0:r1 - q0, c0 - p0:c1 - p0].copy(),
+                    self.weight[r0 - q0:r1 - q0, c0 - p0:c1 - p0].copy())
+        raise ValueError(f"rows {r0}..{r1}, columns {c0}..{c1} lie outside the held cells {self.cover}")
 
 
 class _Background:
@@ -197,12 +224,14 @@ def write_world_map(png: str | Path, source: WorldMapImage | LayerView, frame_id
         with atomic_path(tif_path) as tif_file, atomic_path(png) as png_file, atomic_path(yaml_path) as yaml_file:
             view_png = None
             if level == 0:
-                # the full resolution is the view: read here, its PNG made by a second thread (zlib and
-                # numpy's big loops let go of the GIL) while this one writes the GeoTIFF
-                value, weight = _read_rows_down(view, box)
-                view_png = _Background(_view_png, value, weight, view.mapped_weight)
-            tif = write_geotiff(tif_path, view, "intensity", frame_id, keep_level=None if level == 0 else level,
-                                into=tif_file)
+                # the full resolution is the view: read once here, its PNG made by a second thread (zlib
+                # and numpy's big loops let go of the GIL) while this one writes the GeoTIFF from the same
+                # arrays
+                held = _HeldView(view, box, TIFF_TILE)
+                view_png = _Background(_view_png, *held.rows_down(), view.mapped_weight)
+                view = held
+            tif = write_geotiff(tif_path, view, "intensity", frame_id, tile=TIFF_TILE,
+                                keep_level=None if level == 0 else level, into=tif_file)
             if view_png is None:
                 assert tif.kept is not None
                 data, (low, high), rows = _view_png(*tif.kept, view.mapped_weight)

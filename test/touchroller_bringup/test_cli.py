@@ -112,3 +112,21 @@ def test_a_sqlite_error_is_one_sentence(monkeypatch, capsys):
     assert cli.main(["reindex", "bag"]) == 1
     err = capsys.readouterr().err.strip()
     assert "OperationalError" not in err and "free some space" in err, err
+
+
+def test_only_the_console_script_leaves_its_objects_out_of_the_last_garbage_collection(monkeypatch, capsys):
+    """`main()` as the console script calls it (no arguments: the process exits next) freezes what is alive,
+    so the interpreter's collection at exit does not walk it; a caller passing its arguments goes on
+    running and keeps its garbage collector as it was."""
+    import gc
+
+    assert gc.get_freeze_count() == 0
+    try:
+        assert cli.main(["bench", "--list"]) == 0
+        assert gc.get_freeze_count() == 0
+        monkeypatch.setattr(sys, "argv", ["touchroller", "bench", "--list"])
+        assert cli.main() == 0
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+    assert "geometry_stability" in capsys.readouterr().out

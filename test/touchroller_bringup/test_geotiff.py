@@ -265,3 +265,31 @@ def test_map_png_made_beside_the_geotiff_is_the_full_resolution_view_and_its_err
     with pytest.raises(UserError, match="No space left on device"):
         write_world_map(tmp_path / "other" / "map.png", canvas.view(1.0), "base")
     assert not list((tmp_path / "other").glob("map.*"))
+
+
+def test_at_full_resolution_the_maps_tiles_are_read_once_for_both_files_and_the_tif_is_unchanged(tmp_path):
+    """map.tif and map.png are made from one read of the map's cells (the flat field's division done once):
+    map.tif byte for byte the file `write_geotiff` streams from the map itself (its edge tiles' padding too),
+    map.png the stretched full resolution."""
+    from touchroller_bringup.map_files import TIFF_TILE
+
+    canvas = _canvas(seed=5, rows=700, cols=1100)
+    view = canvas.view(1.0)
+    cells = []
+
+    class Counting:
+        tile, resolution, origin, mapped_weight = view.tile, view.resolution, view.origin, view.mapped_weight
+
+        def extent(self):
+            return view.extent()
+
+        def read(self, r0, r1, c0, c1):
+            cells.append((r1 - r0) * (c1 - c0))
+            return view.read(r0, r1, c0, c1)
+
+    write_world_map(tmp_path / "map.png", Counting(), "base")
+    r0, r1, c0, c1 = view.extent()
+    covered = math.ceil((r1 - r0) / TIFF_TILE) * math.ceil((c1 - c0) / TIFF_TILE) * TIFF_TILE ** 2
+    assert sum(cells) <= covered   # each cell of the GeoTIFF's full-resolution tiles read once
+    write_geotiff(tmp_path / "direct.tif", view, "intensity", "base", tile=TIFF_TILE)
+    assert (tmp_path / "map.tif").read_bytes() == (tmp_path / "direct.tif").read_bytes()
