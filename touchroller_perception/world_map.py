@@ -304,14 +304,16 @@ class _Frame:
 class _PassRecord:
     """What a pass did, for the latency from opposite passes and the map's final placement: the exposure
     times and positions of its first and last pressed frames, the latencies its frames were placed with,
-    its registration offsets (dx, dy map px, the frame's latency ns, its speed m/s) and its correction."""
+    its registration offsets (dx, dy map px, the frame's latency ns, its speed m/s, its x, y m), its speed
+    its track (x, y m midway between two frames, the velocity between them m/s) and its correction."""
 
     first: tuple[int, float, float] | None = None
     last: tuple[int, float, float] | None = None
     latency_sum: float = 0.0
     frames: int = 0
-    offsets: list[tuple[float, float, float, float]] = field(default_factory=list)
+    offsets: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
     steps: list[tuple[float, float]] = field(default_factory=list)   # velocity between its frames, m/s
+    track: list[tuple[float, float, float, float]] = field(default_factory=list)   # (x, y, vx, vy) between frames
     delta: tuple[float, float] = (0.0, 0.0)
     trusted: bool = False   # its offsets agreed: the correction was applied
     ended: bool = False
@@ -324,7 +326,9 @@ class _PassRecord:
             self.first = point
         elif self.last is not None and point[0] > self.last[0]:
             seconds = (point[0] - self.last[0]) * 1e-9
-            self.steps.append(((point[1] - self.last[1]) / seconds, (point[2] - self.last[2]) / seconds))
+            step = ((point[1] - self.last[1]) / seconds, (point[2] - self.last[2]) / seconds)
+            self.steps.append(step)
+            self.track.append((0.5 * (point[1] + self.last[1]), 0.5 * (point[2] + self.last[2]), *step))
         self.last = point
         self.latency_sum += latency_ns * 1e-9
         self.frames += 1
@@ -332,6 +336,18 @@ class _PassRecord:
     def latency(self) -> float:
         """The mean latency its frames were placed with, s."""
         return self.latency_sum / max(self.frames, 1)
+
+    def speed_at(self, points: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Its speed (m/s) where its track passed each of `points` (N, 2: x, y m) along the direction `u`,
+        interpolated between its frames; NaN outside the stretch it rolled."""
+        track = np.array(self.track, np.float64).reshape(-1, 4)
+        speed = np.hypot(track[:, 2], track[:, 3])
+        moving = speed > 1e-3
+        if moving.sum() < 2:
+            return np.full(len(points), np.nan)
+        along, speed = track[moving, :2] @ u, speed[moving]
+        order = np.argsort(along)
+        return np.interp(np.asarray(points, np.float64) @ u, along[order], speed[order], left=np.nan, right=np.nan)
 
     def velocity(self) -> np.ndarray | None:
         """Its velocity in the world plane while it rolled, m/s: the median over its frames that moved
@@ -1215,7 +1231,8 @@ class WorldMapper:
             self._pass_failed = self._pass_failed + 1 if offset is None else 0
             if offset is not None:
                 self._pass_offsets.append(offset[:3])
-                self._pass_log[-1].offsets.append((offset[0], offset[1], offset[3], offset[4]))
+                self._pass_log[-1].offsets.append((offset[0], offset[1], offset[3], offset[4],
+                                                   float(pose[0, 3]), float(pose[1, 3])))
         if len(self._pass_offsets) < 10 and len(self._pass_buffer) < 45:
             self._pass_buffer.append((frame, pose))
             return
@@ -1250,9 +1267,13 @@ class WorldMapper:
     def _opposite_passes(self) -> None:   # once per pass (a pass resumed, or finalised and going on)
         """The latency the pass that ended and the one before it say, when they were rolled in opposite
         directions and this one was registered against the earlier ones (`latency` module docstring).
-        Pass k placed at latency L_k lands (L - L_k) v u_k off; registered against pass k - 1 (placed at
+        Pass k placed at latency L_k lands (L - L_k) v_k u_k off; registered against pass k - 1 (placed at
         L_{k-1}, moved by delta_{k-1}), its offset o along u_k = -u_{k-1} is
-        delta_{k-1}.u - (L - L_{k-1}) v - (L - L_k) v, so L = (L_{k-1} + L_k) / 2 + (delta_{k-1} - o).u / 2v."""
+        delta_{k-1}.u - (L - L_{k-1}) v_{k-1} - (L - L_k) v_k, so
+        L = (L_{k-1} v_{k-1} + L_k v_k + (delta_{k-1} - o).u) / (v_{k-1} + v_k), v_{k-1} the earlier pass's
+        speed where it rolled over the same ground: a speed that varies along the passes (a blend, an arm's
+        ripple) differs between them there, and taking this pass's speed for both biased L by
+        L (v_{k-1} - v_k) / 2 v."""
         if self._estimator is None or len(self._pass_log) < 2 or self._pass_log[-1].evidence_given:
             return
         this, before = self._pass_log[-1], self._pass_log[-2]
@@ -1260,19 +1281,28 @@ class WorldMapper:
         if u is None or u_before is None or float(u @ u_before) > -0.9 or len(this.offsets) < 5 or not this.trusted:
             return
         res = self.config.resolution
-        offsets = np.array(this.offsets)   # (dx, dy, latency ns, speed m/s)
-        speed = offsets[:, 3]
-        ok = speed > 1e-3
+        offsets = np.array(this.offsets)   # (dx, dy, latency ns, speed m/s, x, y m)
+        speed = offsets[:, 3]   # this frame's, from the arm's poses around it
+        speed_before = before.speed_at(offsets[:, 4:6], u)   # the earlier pass's over the same ground
+        ok = (speed > 1e-3) & (speed_before > 1e-3)   # NaN (beyond where the earlier pass rolled) is not
         if ok.sum() < 5:
             return
         along = (np.asarray(before.delta) - offsets[ok, :2]) @ u * res      # m
-        values = 0.5 * (before.latency() + offsets[ok, 2] * 1e-9) + along / (2 * speed[ok])
+        v0, v1 = speed_before[ok], speed[ok]
+        values = (before.latency() * v0 + offsets[ok, 2] * 1e-9 * v1 + along) / (v0 + v1)
         centre = _median(values)
         spread = 1.4826 * _median(np.abs(values - centre))
         # a registration is good to about 0.05 map pixel: the least spread a median can have
-        floor = 0.05 * res / (2 * _median(speed[ok]))
+        floor = 0.05 * res / _median(v0 + v1)
+        # neighbouring frames' values are not independent (they share the speed profile and the map they
+        # matched): the spread of their median inflated by their lag-1 correlation, as a window's fit is
+        residuals = values - centre
+        rho = 0.0
+        if len(residuals) > 4 and float(residuals @ residuals) > 0:
+            rho = min(max(float(residuals[1:] @ residuals[:-1]) / float(residuals @ residuals), 0.0), 0.95)
+        sigma = spread / math.sqrt(len(values)) * math.sqrt((1 + rho) / (1 - rho))
         this.evidence_given = True
-        self._estimator.add_opposite_passes(centre, max(spread / math.sqrt(len(values)), floor))
+        self._estimator.add_opposite_passes(centre, max(sigma, floor))
         self._use_estimate()
 
     def _update_delta(self) -> None:
