@@ -337,17 +337,18 @@ class _PassRecord:
         """The mean latency its frames were placed with, s."""
         return self.latency_sum / max(self.frames, 1)
 
-    def speed_at(self, points: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Its speed (m/s) where its track passed each of `points` (N, 2: x, y m) along the direction `u`,
-        interpolated between its frames; NaN outside the stretch it rolled."""
+    def speed_at(self, at: np.ndarray, u: np.ndarray, lag: float = 0.0) -> np.ndarray:
+        """Its speed (m/s) where its track passed each of the places `at` (m along the direction `u`),
+        interpolated between its frames, its track taken `lag` s earlier than the latency it was placed
+        with put it (where it truly was, when the latency is `lag` more); NaN outside the stretch it rolled."""
         track = np.array(self.track, np.float64).reshape(-1, 4)
         speed = np.hypot(track[:, 2], track[:, 3])
         moving = speed > 1e-3
         if moving.sum() < 2:
-            return np.full(len(points), np.nan)
-        along, speed = track[moving, :2] @ u, speed[moving]
+            return np.full(len(at), np.nan)
+        along = track[moving, :2] @ u - lag * (track[moving, 2:] @ u)
         order = np.argsort(along)
-        return np.interp(np.asarray(points, np.float64) @ u, along[order], speed[order], left=np.nan, right=np.nan)
+        return np.interp(np.asarray(at, np.float64), along[order], speed[moving][order], left=np.nan, right=np.nan)
 
     def velocity(self) -> np.ndarray | None:
         """Its velocity in the world plane while it rolled, m/s: the median over its frames that moved
@@ -1283,13 +1284,28 @@ class WorldMapper:
         res = self.config.resolution
         offsets = np.array(this.offsets)   # (dx, dy, latency ns, speed m/s, x, y m)
         speed = offsets[:, 3]   # this frame's, from the arm's poses around it
-        speed_before = before.speed_at(offsets[:, 4:6], u)   # the earlier pass's over the same ground
-        ok = (speed > 1e-3) & (speed_before > 1e-3)   # NaN (beyond where the earlier pass rolled) is not
+        ok = speed > 1e-3
         if ok.sum() < 5:
             return
         along = (np.asarray(before.delta) - offsets[ok, :2]) @ u * res      # m
-        v0, v1 = speed_before[ok], speed[ok]
-        values = (before.latency() * v0 + offsets[ok, 2] * 1e-9 * v1 + along) / (v0 + v1)
+        v1, placed, before_latency = speed[ok], offsets[ok, 2] * 1e-9, before.latency()
+        here = offsets[ok, 4:6] @ u   # where this frame's pose (at the latency it was placed with) lies along u
+        # the earlier pass's speed over the same ground: both passes' poses were looked up at the latencies
+        # they were placed with, (L - L_p) v off where the arm truly was, so the ground is matched with the
+        # estimate itself (from both passes' speeds taken alike, then again with the one found)
+        latency = None
+        for _ in range(3):
+            if latency is None:
+                v0 = v1
+            else:
+                v0 = before.speed_at(here - (latency - placed) * v1, u, latency - before_latency)
+                v0 = np.where(np.isfinite(v0), v0, v1)   # beyond where the earlier pass rolled: this one's
+            good = v0 > 1e-3
+            if good.sum() < 5:
+                return
+            values = (before_latency * v0[good] + placed[good] * v1[good] + along[good]) / (v0[good] + v1[good])
+            latency = _median(values)
+        v0, v1 = v0[good], v1[good]
         centre = _median(values)
         spread = 1.4826 * _median(np.abs(values - centre))
         # a registration is good to about 0.05 map pixel: the least spread a median can have
