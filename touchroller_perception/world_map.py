@@ -304,7 +304,7 @@ class _Frame:
 class _PassRecord:
     """What a pass did, for the latency from opposite passes and the map's final placement: the exposure
     times and positions of its first and last pressed frames, the latencies its frames were placed with,
-    its registration offsets (dx, dy map px, the frame's latency ns, its speed m/s, its x, y m), its speed
+    its registration offsets (dx, dy map px, the frame's latency ns, its speed m/s, its x, y m),
     its track (x, y m midway between two frames, the velocity between them m/s) and its correction."""
 
     first: tuple[int, float, float] | None = None
@@ -312,7 +312,6 @@ class _PassRecord:
     latency_sum: float = 0.0
     frames: int = 0
     offsets: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
-    steps: list[tuple[float, float]] = field(default_factory=list)   # velocity between its frames, m/s
     track: list[tuple[float, float, float, float]] = field(default_factory=list)   # (x, y, vx, vy) between frames
     delta: tuple[float, float] = (0.0, 0.0)
     trusted: bool = False   # its offsets agreed: the correction was applied
@@ -326,9 +325,8 @@ class _PassRecord:
             self.first = point
         elif self.last is not None and point[0] > self.last[0]:
             seconds = (point[0] - self.last[0]) * 1e-9
-            step = ((point[1] - self.last[1]) / seconds, (point[2] - self.last[2]) / seconds)
-            self.steps.append(step)
-            self.track.append((0.5 * (point[1] + self.last[1]), 0.5 * (point[2] + self.last[2]), *step))
+            self.track.append((0.5 * (point[1] + self.last[1]), 0.5 * (point[2] + self.last[2]),
+                               (point[1] - self.last[1]) / seconds, (point[2] - self.last[2]) / seconds))
         self.last = point
         self.latency_sum += latency_ns * 1e-9
         self.frames += 1
@@ -355,13 +353,13 @@ class _PassRecord:
         (a pause within the pass does not slow it down); None for a pass that did not move. Kept until the
         pass adds a frame (the pass before is asked at every frame of the next: recomputing it over all
         its frames each time made a frame's cost grow with the length of the passes)."""
-        if self._velocity is not None and self._velocity[0] == len(self.steps):
+        if self._velocity is not None and self._velocity[0] == len(self.track):
             known = self._velocity[1]
             return None if known is None else known.copy()
-        steps = np.array(self.steps).reshape(-1, 2)
+        steps = np.array(self.track).reshape(-1, 4)[:, 2:]
         moving = steps[np.hypot(steps[:, 0], steps[:, 1]) > 1e-3]
         velocity = None if len(moving) < 3 else np.array([_median(moving[:, 0]), _median(moving[:, 1])])
-        self._velocity = (len(self.steps), velocity)
+        self._velocity = (len(self.track), velocity)
         return None if velocity is None else velocity.copy()
 
     def direction(self) -> np.ndarray | None:
