@@ -8,8 +8,12 @@ the roll. Three kinds of evidence measure L, each with a standard deviation, com
   only the right one does (c and s fitted per window, s for a scale error of the calibration).
 * `pass_roll`: the same model over a whole pass's steady rolling (the frames outside the start/stop
   windows): it sees any variation of the speed (jitter, a blend), and says nothing at constant speed.
-* `opposite_passes`: passes rolled in opposite directions over the same ground are placed 2 v (L - L0)
-  apart along the roll; the registered offset of one against the other measures L directly.
+* `opposite_passes`: passes rolled in opposite directions over the same ground are placed
+  (v + v') (L - L0) apart along the roll, v and v' their speeds there; the registered offset of one
+  against the other measures L directly (each frame's value from both passes' speeds over its ground,
+  where the arm was at the latency found: a speed that varies along the passes differs between them
+  there; their median's sigma is inflated by
+  the values' correlation along the pass, as a window's is).
 * `contact_timing`: when the image shows the roller touching down and lifting off against when TF shows
   the arm's height crossing the touching height (`touchroller_perception.contact_timing`); it needs no
   texture, so it is what a smooth panel or glass has.

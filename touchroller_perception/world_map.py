@@ -304,14 +304,15 @@ class _Frame:
 class _PassRecord:
     """What a pass did, for the latency from opposite passes and the map's final placement: the exposure
     times and positions of its first and last pressed frames, the latencies its frames were placed with,
-    its registration offsets (dx, dy map px, the frame's latency ns, its speed m/s) and its correction."""
+    its registration offsets (dx, dy map px, the frame's latency ns, its speed m/s, its x, y m),
+    its track (x, y m midway between two frames, the velocity between them m/s) and its correction."""
 
     first: tuple[int, float, float] | None = None
     last: tuple[int, float, float] | None = None
     latency_sum: float = 0.0
     frames: int = 0
-    offsets: list[tuple[float, float, float, float]] = field(default_factory=list)
-    steps: list[tuple[float, float]] = field(default_factory=list)   # velocity between its frames, m/s
+    offsets: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
+    track: list[tuple[float, float, float, float]] = field(default_factory=list)   # (x, y, vx, vy) between frames
     delta: tuple[float, float] = (0.0, 0.0)
     trusted: bool = False   # its offsets agreed: the correction was applied
     ended: bool = False
@@ -324,7 +325,8 @@ class _PassRecord:
             self.first = point
         elif self.last is not None and point[0] > self.last[0]:
             seconds = (point[0] - self.last[0]) * 1e-9
-            self.steps.append(((point[1] - self.last[1]) / seconds, (point[2] - self.last[2]) / seconds))
+            self.track.append((0.5 * (point[1] + self.last[1]), 0.5 * (point[2] + self.last[2]),
+                               (point[1] - self.last[1]) / seconds, (point[2] - self.last[2]) / seconds))
         self.last = point
         self.latency_sum += latency_ns * 1e-9
         self.frames += 1
@@ -333,18 +335,31 @@ class _PassRecord:
         """The mean latency its frames were placed with, s."""
         return self.latency_sum / max(self.frames, 1)
 
+    def speed_at(self, at: np.ndarray, u: np.ndarray, lag: float = 0.0) -> np.ndarray:
+        """Its speed (m/s) where its track passed each of the places `at` (m along the direction `u`),
+        interpolated between its frames, its track taken `lag` s earlier than the latency it was placed
+        with put it (where it truly was, when the latency is `lag` more); NaN outside the stretch it rolled."""
+        track = np.array(self.track, np.float64).reshape(-1, 4)
+        speed = np.hypot(track[:, 2], track[:, 3])
+        moving = speed > 1e-3
+        if moving.sum() < 2:
+            return np.full(len(at), np.nan)
+        along = track[moving, :2] @ u - lag * (track[moving, 2:] @ u)
+        order = np.argsort(along)
+        return np.interp(np.asarray(at, np.float64), along[order], speed[moving][order], left=np.nan, right=np.nan)
+
     def velocity(self) -> np.ndarray | None:
         """Its velocity in the world plane while it rolled, m/s: the median over its frames that moved
         (a pause within the pass does not slow it down); None for a pass that did not move. Kept until the
         pass adds a frame (the pass before is asked at every frame of the next: recomputing it over all
         its frames each time made a frame's cost grow with the length of the passes)."""
-        if self._velocity is not None and self._velocity[0] == len(self.steps):
+        if self._velocity is not None and self._velocity[0] == len(self.track):
             known = self._velocity[1]
             return None if known is None else known.copy()
-        steps = np.array(self.steps).reshape(-1, 2)
+        steps = np.array(self.track).reshape(-1, 4)[:, 2:]
         moving = steps[np.hypot(steps[:, 0], steps[:, 1]) > 1e-3]
         velocity = None if len(moving) < 3 else np.array([_median(moving[:, 0]), _median(moving[:, 1])])
-        self._velocity = (len(self.steps), velocity)
+        self._velocity = (len(self.track), velocity)
         return None if velocity is None else velocity.copy()
 
     def direction(self) -> np.ndarray | None:
@@ -1215,7 +1230,8 @@ class WorldMapper:
             self._pass_failed = self._pass_failed + 1 if offset is None else 0
             if offset is not None:
                 self._pass_offsets.append(offset[:3])
-                self._pass_log[-1].offsets.append((offset[0], offset[1], offset[3], offset[4]))
+                self._pass_log[-1].offsets.append((offset[0], offset[1], offset[3], offset[4],
+                                                   float(pose[0, 3]), float(pose[1, 3])))
         if len(self._pass_offsets) < 10 and len(self._pass_buffer) < 45:
             self._pass_buffer.append((frame, pose))
             return
@@ -1250,9 +1266,13 @@ class WorldMapper:
     def _opposite_passes(self) -> None:   # once per pass (a pass resumed, or finalised and going on)
         """The latency the pass that ended and the one before it say, when they were rolled in opposite
         directions and this one was registered against the earlier ones (`latency` module docstring).
-        Pass k placed at latency L_k lands (L - L_k) v u_k off; registered against pass k - 1 (placed at
+        Pass k placed at latency L_k lands (L - L_k) v_k u_k off; registered against pass k - 1 (placed at
         L_{k-1}, moved by delta_{k-1}), its offset o along u_k = -u_{k-1} is
-        delta_{k-1}.u - (L - L_{k-1}) v - (L - L_k) v, so L = (L_{k-1} + L_k) / 2 + (delta_{k-1} - o).u / 2v."""
+        delta_{k-1}.u - (L - L_{k-1}) v_{k-1} - (L - L_k) v_k, so
+        L = (L_{k-1} v_{k-1} + L_k v_k + (delta_{k-1} - o).u) / (v_{k-1} + v_k), v_{k-1} the earlier pass's
+        speed where it rolled over the same ground: a speed that varies along the passes (a blend, an arm's
+        ripple) differs between them there, and taking this pass's speed for both biased L by
+        L (v_{k-1} - v_k) / 2 v."""
         if self._estimator is None or len(self._pass_log) < 2 or self._pass_log[-1].evidence_given:
             return
         this, before = self._pass_log[-1], self._pass_log[-2]
@@ -1260,19 +1280,43 @@ class WorldMapper:
         if u is None or u_before is None or float(u @ u_before) > -0.9 or len(this.offsets) < 5 or not this.trusted:
             return
         res = self.config.resolution
-        offsets = np.array(this.offsets)   # (dx, dy, latency ns, speed m/s)
-        speed = offsets[:, 3]
+        offsets = np.array(this.offsets)   # (dx, dy, latency ns, speed m/s, x, y m)
+        speed = offsets[:, 3]   # this frame's, from the arm's poses around it
         ok = speed > 1e-3
         if ok.sum() < 5:
             return
         along = (np.asarray(before.delta) - offsets[ok, :2]) @ u * res      # m
-        values = 0.5 * (before.latency() + offsets[ok, 2] * 1e-9) + along / (2 * speed[ok])
+        v1, placed, before_latency = speed[ok], offsets[ok, 2] * 1e-9, before.latency()
+        here = offsets[ok, 4:6] @ u   # where this frame's pose (at the latency it was placed with) lies along u
+        # the earlier pass's speed over the same ground: both passes' poses were looked up at the latencies
+        # they were placed with, (L - L_p) v off where the arm truly was, so the ground is matched with the
+        # estimate itself (from both passes' speeds taken alike, then again with the one found)
+        latency = None
+        for _ in range(3):
+            if latency is None:
+                v0 = v1
+            else:
+                v0 = before.speed_at(here - (latency - placed) * v1, u, latency - before_latency)
+                v0 = np.where(np.isfinite(v0), v0, v1)   # beyond where the earlier pass rolled: this one's
+            good = v0 > 1e-3
+            if good.sum() < 5:
+                return
+            values = (before_latency * v0[good] + placed[good] * v1[good] + along[good]) / (v0[good] + v1[good])
+            latency = _median(values)
+        v0, v1 = v0[good], v1[good]
         centre = _median(values)
         spread = 1.4826 * _median(np.abs(values - centre))
         # a registration is good to about 0.05 map pixel: the least spread a median can have
-        floor = 0.05 * res / (2 * _median(speed[ok]))
+        floor = 0.05 * res / _median(v0 + v1)
+        # neighbouring frames' values are not independent (they share the speed profile and the map they
+        # matched): the spread of their median inflated by their lag-1 correlation, as a window's fit is
+        residuals = values - centre
+        rho = 0.0
+        if len(residuals) > 4 and float(residuals @ residuals) > 0:
+            rho = min(max(float(residuals[1:] @ residuals[:-1]) / float(residuals @ residuals), 0.0), 0.95)
+        sigma = spread / math.sqrt(len(values)) * math.sqrt((1 + rho) / (1 - rho))
         this.evidence_given = True
-        self._estimator.add_opposite_passes(centre, max(spread / math.sqrt(len(values)), floor))
+        self._estimator.add_opposite_passes(centre, max(sigma, floor))
         self._use_estimate()
 
     def _update_delta(self) -> None:

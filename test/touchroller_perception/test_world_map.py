@@ -521,6 +521,26 @@ def test_property_any_motion_maps_in_place_or_warns(sensor, profile, latency, ji
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("latency", [0.05, 0.12])
+def test_opposite_passes_with_speed_jitter_take_each_pass_speed_where_they_overlap(sensor, latency):
+    """The property test's example (blend, 5 % speed jitter, seed 2): the opposite passes are placed
+    (L - L_k) v_k apart each, v_k each pass's own speed over the same ground, which the jitter makes differ
+    by a few per cent; and the ground they share is where the arm was at the true latency, not at the one
+    they were placed with (v L, 2.4 mm at 120 ms). Taking the later pass's speed for both put the
+    opposite-passes item at 51.4 ms (sigma 0.3 ms) for 50 ms, and at 127.3 ms (sigma 0.5 ms, the map's
+    estimate, observable) for 120 ms."""
+    area = (0.42, -0.045, 0.03, 0.09)
+    plan = sim_scans.raster(area, profile="blend")
+    events = list(sim_scans.sweep(sensor, plan, latency, seed=2, jitter=0.05))
+    mapper = run(events, sensor, area)
+    estimate = mapper.stats.latency
+    assert estimate is not None and estimate.observable, mapper.stats.latency_warning
+    (pair,) = [e for e in estimate.evidence if e.kind == "opposite_passes"]
+    assert abs(pair.value - latency) <= max(3 * pair.sigma, 5e-4), pair
+    assert mapper.stats.latency_s == pytest.approx(latency, abs=0.003)
+
+
+@pytest.mark.slow
 def test_a_raster_turned_off_the_world_axes_at_speed_finds_the_latency_from_its_opposite_passes():
     """Passes rolled at 35 deg to `base` x, touching down and lifting off at speed (no start or stop in
     contact, constant speed): only the opposite passes say the latency. Their overlap on the map is a
