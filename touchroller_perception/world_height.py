@@ -244,8 +244,13 @@ class HeightLayer:
         """(w relief, w) in band coordinates for the pass layers: weight zero where not in contact. `lift`: the
         roller's height above its pressed height when the frame was taken (m, the arm's pose), added to the
         relief with `follow_arm` (the frame was pressed that much less deep)."""
-        w = np.where(band.contact, weights, np.float32(0.0))
+        w = self.contact_weights(weights, band)
         return cv2.multiply(self.relief(band, lift), w), w
+
+    @staticmethod
+    def contact_weights(weights: np.ndarray, band: HeightBand) -> np.ndarray:
+        """The band's weights where it is in contact, zero elsewhere (the `w` of `planes`)."""
+        return np.where(band.contact, weights, np.float32(0.0))
 
     def relief(self, band: HeightBand, lift: float = 0.0) -> np.ndarray:
         """The band's relief (float32 m) with the roller's `lift` added under `follow_arm` (see `planes`)."""

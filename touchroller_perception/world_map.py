@@ -1304,7 +1304,8 @@ class WorldMapper:
             values = (before_latency * v0[good] + placed[good] * v1[good] + along[good]) / (v0[good] + v1[good])
             latency = _median(values)
         v0, v1 = v0[good], v1[good]
-        centre = _median(values)
+        assert latency is not None   # set by every pass of the loop above: the median of these values
+        centre = latency
         spread = 1.4826 * _median(np.abs(values - centre))
         # a registration is good to about 0.05 map pixel: the least spread a median can have
         floor = 0.05 * res / _median(v0 + v1)
@@ -1486,13 +1487,13 @@ class WorldMapper:
         if frame.height is not None and self._height_layer is not None:
             assert self._weights is not None
             layer = self._height_layer
-            weighted, weights = layer.planes(self._weights, frame.height, lift)
             interpolation = _height_module().RESAMPLING[layer.config.resampling]
             if interpolation is None:   # "linear": the weighted relief splatted as the intensity is
+                weighted, weights = layer.planes(self._weights, frame.height, lift)
                 planes.update(layer.pass_planes(self._on_map(placement, weighted), self._on_map(placement, weights)))
             else:   # the relief interpolated onto the cells, times the weights placed there
                 assert placement.matrix is not None
-                on_map = self._on_map(placement, weights)
+                on_map = self._on_map(placement, layer.contact_weights(self._weights, frame.height))
                 relief = cv2.warpAffine(layer.relief(frame.height, lift), placement.matrix, placement.size,
                                         flags=interpolation, borderMode=cv2.BORDER_REPLICATE)
                 planes.update(layer.pass_planes(cv2.multiply(relief, on_map), on_map))
