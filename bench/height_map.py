@@ -33,6 +33,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,6 +51,8 @@ PRESS_ALONG, PRESS_ACROSS = 0.029, 1.5e-3
 # the grained surface's map again with other calibrations (presses, seed): other places of the same count, and
 # other counts: the figure must not rest on one lucky draw of the presses
 DRAWS = ((24, 1), (24, 2), (24, 3), (16, 0), (48, 0))
+# the second generator's calibration ball: radius, cap height above the base, its height field's resolution (m)
+CALIBRATION_BALL = (4e-3, 8e-4, 5e-5)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,11 +180,34 @@ def score_surface(variant: str | None, presses: int,
     return score, float(photometric.calibration.normal_error_deg), chosen, others
 
 
+def second_raster_spec() -> object:
+    """The second generator's raster this bench maps (a `RasterSpec`; its seed is also its sensor's)."""
+    from bench.raster_generator import MotionConfig, RasterSpec
+
+    return RasterSpec(surface="grained", corner=(0.42, -0.045), length=0.04, width=0.09, passes=2, latency=0.03,
+                      tf_rate=125.0, motion=dataclasses.replace(MotionConfig(), profile="blend"), seed=0)
+
+
+def _calibration_renderer(camera: object, look: object) -> object:
+    """The second generator's raster's own sensor (`raster_generator.sensor`: the same flat field, dust specks
+    and lifted-roller frame as the raster's frames) pressing the calibration ball, the roller held 0.2 mm above
+    the base (a 0.8 mm cap: 0.6 mm pressed). A no-contact reference is of the sensor that scans (docs/height.md):
+    one of another sensor (its dust elsewhere) reads every speck of either as a slope that stays put in the image,
+    a streak along the passes in the map."""
+    from bench.raster_generator import sensor
+    from bench.raster_generator.surfaces import Surface
+
+    radius, cap, resolution = CALIBRATION_BALL
+    n = int(12e-3 / resolution)
+    yy, xx = (np.mgrid[0:n, 0:n] + 0.5) * resolution - 6e-3
+    height = np.maximum(np.sqrt(np.maximum(radius**2 - xx**2 - yy**2, 0.0)) - (radius - cap), 0.0)
+    surface = Surface("grained", height.astype(np.float32), resolution, (0.5 - 6e-3, -6e-3, 0.0), 0.0, ())
+    return sensor(second_raster_spec(), camera, look, surface, depth=-2e-4)   # type: ignore[arg-type]
+
+
 def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, float]:
     """(photometric model, reference, in-sample fit deg) of the second generator's sensor, from ball caps."""
     from bench.raster_generator import Look, load_camera
-    from bench.raster_generator.render import BandRenderer
-    from bench.raster_generator.surfaces import Surface
     from touchroller_bringup.commands import read_calibration
     from touchroller_perception.height import (
         MAP_CALIBRATION,
@@ -193,12 +219,8 @@ def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, flo
 
     camera, look = load_camera(str(PARAMS)), dataclasses.replace(Look(), exposure_samples=1)
     model_camera = read_calibration(PARAMS)
-    radius, cap, resolution = 4e-3, 8e-4, 5e-5   # the roller held 0.2 mm above the base: 0.6 mm pressed
-    n = int(12e-3 / resolution)
-    yy, xx = (np.mgrid[0:n, 0:n] + 0.5) * resolution - 6e-3
-    height = np.maximum(np.sqrt(np.maximum(radius**2 - xx**2 - yy**2, 0.0)) - (radius - cap), 0.0)
-    surface = Surface("grained", height.astype(np.float32), resolution, (0.5 - 6e-3, -6e-3, 0.0), 0.0, ())
-    renderer = BandRenderer(camera, surface, look, depth=-2e-4, seed=3)
+    radius = CALIBRATION_BALL[0]
+    renderer: Any = _calibration_renderer(camera, look)
     rng = np.random.default_rng(5)
     roll, axis = np.array([1.0, 0.0]), np.array([0.0, 1.0])
     reference = np.median(np.stack([renderer.frame([(np.array([0.3, 0.3]), roll, 5e-3)]) for _ in range(5)]),
@@ -218,7 +240,7 @@ def second_generator(presses: int) -> tuple[SurfaceScore, float, int]:
     import shutil
     import tempfile
 
-    from bench.raster_generator import Look, MotionConfig, RasterSpec, generate, load_camera
+    from bench.raster_generator import Look, generate, load_camera
     from touchroller_bringup.cli import main as cli
     from touchroller_bringup.map_files import read_height_tif
 
@@ -228,9 +250,7 @@ def second_generator(presses: int) -> tuple[SurfaceScore, float, int]:
     try:
         model.save(tmp / "photometric.npz")   # type: ignore[attr-defined]
         cv2.imwrite(str(tmp / "reference.png"), reference)
-        spec = RasterSpec(surface="grained", corner=(0.42, -0.045), length=0.04, width=0.09, passes=2, latency=0.03,
-                          tf_rate=125.0, motion=dataclasses.replace(MotionConfig(), profile="blend"), seed=0)
-        truth = generate(spec, tmp / "raster", camera=camera, look=look)
+        truth = generate(second_raster_spec(), tmp / "raster", camera=camera, look=look)   # type: ignore[arg-type]
         begin = time.perf_counter()
         code = cli(["map", str(tmp / "raster" / "bag"), "--out", str(tmp / "map.png"), "--latency", "0.03",
                     "--photometric", str(tmp / "photometric.npz"), "--reference", str(tmp / "reference.png")])

@@ -16,11 +16,11 @@ films rasters its own way and imports nothing of `touchroller_driver.sim`:
 `python -m bench.raster_generator OUT [--profile blend] [--latency 0.035] ...` films one raster.
 Only evaluation code uses this package (the product never does), hence it lives in `bench/`.
 """
-from bench.raster_generator.generate import generate
+from bench.raster_generator.generate import generate, sensor
 from bench.raster_generator.motion import PROFILES, MotionConfig
 from bench.raster_generator.render import Camera, Look, load_camera
 from bench.raster_generator.surfaces import KINDS
 from bench.raster_generator.truth import RasterSpec, RasterTruth, load_truth
 
 __all__ = ["KINDS", "PROFILES", "Camera", "Look", "MotionConfig", "RasterSpec", "RasterTruth", "generate",
-           "load_camera", "load_truth"]
+           "load_camera", "load_truth", "sensor"]

@@ -120,6 +120,17 @@ def _records(spec: RasterSpec, camera: Camera, renderer: BandRenderer, trajector
 DEFAULT_CAMERA, DEFAULT_LOOK = Camera(), Look()
 
 
+def sensor(spec: RasterSpec, camera: Camera = DEFAULT_CAMERA, look: Look = DEFAULT_LOOK,
+           surface: Surface | None = None, depth: float | None = None) -> BandRenderer:
+    """The camera of the roller that films `spec`: its flat field (vignetting, the LEDs' fall-off, the dust
+    specks on the gel) and its lifted-roller frame are seeded by `spec.seed`, so this is one sensor. Pressed on
+    `surface` (the raster's own by default) at `depth` (the raster's by default): what a calibration of the
+    raster's sensor films (its ball presses and its no-contact reference), as a user calibrates the very sensor
+    that scans."""
+    return BandRenderer(camera, raster_surface(spec) if surface is None else surface, look,
+                        depth=spec.motion.depth if depth is None else depth, seed=spec.seed)
+
+
 def generate(spec: RasterSpec, folder: str | Path, camera: Camera = DEFAULT_CAMERA, look: Look = DEFAULT_LOOK
              ) -> RasterTruth:
     """Film `spec` into `folder` (bag/, truth.json, surface.npy); the folder's bag must not exist yet."""
@@ -128,7 +139,7 @@ def generate(spec: RasterSpec, folder: str | Path, camera: Camera = DEFAULT_CAME
     folder = Path(folder)
     surface = raster_surface(spec)
     trajectory = plan(spec.length, pass_spacing(spec.width, spec.passes), spec.motion)
-    renderer = BandRenderer(camera, surface, look, depth=spec.motion.depth, seed=spec.seed)
+    renderer = sensor(spec, camera, look, surface)
     rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 2207]))
     frames = 0
 

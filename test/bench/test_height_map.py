@@ -41,3 +41,22 @@ def test_a_blurred_map_reads_short_wavelengths_as_a_gaussian_keeps_them() -> Non
 def test_too_little_mapped_gives_no_bands() -> None:
     truth = _relief((60, 60))
     assert wavelength_gains(truth, truth, 1e-4) == []
+
+
+def test_the_second_generators_calibration_films_the_rasters_own_sensor() -> None:
+    """The reference and the ball presses come from the sensor that films the raster: the same flat field (its
+    dust specks) and lifted-roller frame; another sensor's dust reads as slopes that stay put in the image."""
+    import dataclasses
+
+    from bench.height_map import PARAMS, _calibration_renderer, second_raster_spec
+    from bench.raster_generator import Look, load_camera, sensor
+    from bench.raster_generator.render import BandRenderer
+
+    camera, look = load_camera(str(PARAMS)), dataclasses.replace(Look(), exposure_samples=1, pixel_samples=1)
+    calibration = _calibration_renderer(camera, look)
+    raster = sensor(second_raster_spec(), camera, look, calibration.surface)   # type: ignore[attr-defined]
+    np.testing.assert_array_equal(calibration.flat, raster.flat)               # type: ignore[attr-defined]
+    # the lifted roller's frame, its noise included (pressed at another depth: a rounding apart)
+    assert np.abs(calibration.static.astype(int) - raster.static).max() <= 1   # type: ignore[attr-defined]
+    other = BandRenderer(camera, calibration.surface, look, seed=3)            # type: ignore[attr-defined]
+    assert np.abs(other.flat - raster.flat).max() > 0.1                        # another sensor: other specks
