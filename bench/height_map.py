@@ -307,7 +307,10 @@ def wavelength_gains(height: np.ndarray, truth: np.ndarray, resolution: float) -
 def _score(name: str, height: np.ndarray, truth: np.ndarray, passes: int, frames: int, seconds: float,
            resolution: float) -> SurfaceScore:
     known = np.isfinite(height)
-    inside = cv2.erode(known.astype(np.uint8), np.ones((21, 21), np.uint8)) > 0   # 1 mm in from its edge
+    # 1 mm in from the mapped area's edge, also where it reaches the raster's edge (height.tif spans the mapped
+    # cells alone: beyond the raster nothing is mapped, not everything)
+    inside = cv2.erode(known.astype(np.uint8), np.ones((21, 21), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                       borderValue=0) > 0
     rows, cols = np.nonzero(inside)
     mine, true = height[inside].astype(np.float64), truth[inside].astype(np.float64)
     error = _detrended(mine - true, rows, cols)

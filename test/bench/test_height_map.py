@@ -60,3 +60,20 @@ def test_the_second_generators_calibration_films_the_rasters_own_sensor() -> Non
     assert np.abs(calibration.static.astype(int) - raster.static).max() <= 1   # type: ignore[attr-defined]
     other = BandRenderer(camera, calibration.surface, look, seed=3)            # type: ignore[attr-defined]
     assert np.abs(other.flat - raster.flat).max() > 0.1                        # another sensor: other specks
+
+
+def test_a_map_is_scored_1_mm_inside_its_mapped_area_also_where_that_reaches_the_rasters_edge() -> None:
+    """height.tif spans the mapped cells alone: the cells within 1 mm of its edge are as far out as those
+    within 1 mm of a NaN, and are left out alike (a map cropped to its cells scores as the same map padded)."""
+    from bench.height_map import _score
+
+    truth = _relief((200, 180))
+    rng = np.random.default_rng(1)
+    mine = truth + 2e-6 * rng.standard_normal(truth.shape)
+    mine[:, -20:] += 3e-5                       # the map's last 2 mm along one edge read badly (a pass's end)
+    padded_map = np.pad(mine, 30, constant_values=np.nan)
+    padded_truth = np.pad(truth, 30)
+    cropped = _score("cropped", mine, truth, 1, 1, 0.0, 1e-4)
+    padded = _score("padded", padded_map, padded_truth, 1, 1, 0.0, 1e-4)
+    assert cropped.cells == padded.cells == (200 - 20) * (180 - 20)
+    assert cropped.rms_um == pytest.approx(padded.rms_um, rel=1e-6)
