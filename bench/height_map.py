@@ -12,17 +12,16 @@ model calibrated and measured).
 The same on a source that shares nothing with the simulator: the second raster generator
 (bench/raster_generator: its own contact model, LEDs with a specular highlight, flat field and sensor
 noise, each pixel the mean shading over its footprint, its own grained surface with planted grooves and
-pits, its own rosbag2 recording). Its sensor is
-calibrated as a user would: a 4 mm ball cap pressed 0.6 mm at random places over the band the map is made
-from (along the axis nearly across the image, around it over the rows the mapper places: the model learns
-how a slope looks where it is, and cannot extrapolate where no press was), rendered by the generator, each
-press labelled by `find_press` (no truth), the pixel size and the roller's radius from
-config/touchroller.yaml's camera model, calibrated as a world map's calibration is
-(`touchroller_perception.height.MAP_CALIBRATION`: the features smoothed by 1 px, the position degree chosen
-on held-out presses; the map reads its frames with `WorldHeightConfig`'s defaults); its raster is mapped by
-`touchroller map
---photometric --reference` as a whole command, and height.tif is scored against the generator's surface (low-passed
-as its gel is) in place.
+pits, its own rosbag2 recording). Its sensor (the raster's own camera: the same flat field, dust specks and
+lifted-roller frame, `raster_generator.sensor`) is calibrated as a user would: a 4 mm ball cap pressed 0.6 mm
+at random places over the band the map is made from (along the axis nearly across the image, around it over
+the rows the mapper places: the model learns how a slope looks where it is, and cannot extrapolate where no
+press was), rendered by the generator, each press labelled by `find_press` (no truth), the pixel size and the
+roller's radius from config/touchroller.yaml's camera model, calibrated as a world map's calibration is
+(`touchroller_perception.height.MAP_CALIBRATION`: the features smoothed by 1 px, the position degree chosen on
+held-out presses; the map reads its frames with `WorldHeightConfig`'s defaults); its raster is mapped by
+`touchroller map --photometric --reference` as a whole command, and height.tif is scored against the
+generator's surface (low-passed as its gel is) in place, on the cells 1 mm inside height.tif's mapped area.
 """
 from __future__ import annotations
 
