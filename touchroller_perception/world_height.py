@@ -13,6 +13,8 @@ Per frame (`BandHeights`, stateless once built, so a node may cut it in another 
    sqrt(r^2 - y^2) - d; the unknown d (and a tilt of the surface) goes with the pass's best plane (below).
    Band pixels indented less than `min_indentation` are not in contact (a valley the membrane did not
    reach): no height there.
+4. the band rows' static error (the press shape as the model reads it: each row's relief against the frame's
+   mean, averaged over the frames placed, `HeightLayer.observe`) is taken out once `row_frames` frames are in.
 
 Per pass (`HeightLayer`, on two pairs of named float32 layers of the mapper's tiled canvas: the pass being
 rolled, and what earlier passes left): the pass's frames are accumulated as weighted sums (the intensity's
@@ -69,6 +71,15 @@ class WorldHeightConfig:
     follow_arm: each frame's relief is raised by the roller's height above its pressed height (the arm's pose,
       given to `HeightLayer.planes`): a press that deepens or eases along a pass (the roller touching down or
       lifting off at speed) is not read as relief. False: the press depth is taken as constant along a pass.
+    row_frames: the band's rows' static error is taken out of each frame's relief once this many frames have been
+      averaged (0: never). Every frame presses the same membrane shape, so what its relief reads per band row
+      (the row's mean over its contact against the frame's mean), averaged over the frames mapped, is the
+      model's error of that shape (the pressed cylinder read a few per cent too shallow or deep by a slope gain
+      that is not quite 1, a tilt across the rows from a slope bias), not the surface, which moves under the
+      band. Inside a pass each cell is crossed by all of the band's rows and the error averages to a constant
+      the pass's plane takes; where the band does not cross a cell whole (a pass's ends, the cells only its
+      leading or trailing rows reach) it stays, unless it is taken out. The frames before it is known are
+      placed as read.
     resampling: how a frame's relief is put on the map grid (`RESAMPLING`). "cubic" / "lanczos4": the relief is
       interpolated onto the map's cells (OpenCV's bicubic, a = -0.75, or its 8x8 Lanczos) and multiplied there by
       the weights placed bilinearly (weights stay non-negative and do not blur the relief); "linear": the product
@@ -86,6 +97,7 @@ class WorldHeightConfig:
     smoothing: float | None = 0.5
     follow_arm: bool = True
     resampling: str = "lanczos4"
+    row_frames: int = 30
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.band_depth) and 0 < self.band_depth < 0.01):
@@ -100,6 +112,8 @@ class WorldHeightConfig:
             raise ValueError(f"axis_sigma must be in [0, 200] px, got {self.axis_sigma}")
         if self.min_overlap < 10:
             raise ValueError(f"min_overlap must be >= 10 cells, got {self.min_overlap}")
+        if not (isinstance(self.row_frames, int) and 0 <= self.row_frames <= 1_000_000):
+            raise ValueError(f"row_frames must be an int in [0, 1000000] (0: off), got {self.row_frames!r}")
         if self.resampling not in RESAMPLING:
             raise ValueError(f"resampling must be one of {', '.join(RESAMPLING)}, got {self.resampling!r}")
         if self.smoothing is not None and not (math.isfinite(self.smoothing) and 0 <= self.smoothing <= 20):
@@ -234,6 +248,43 @@ class HeightLayer:
         self.passes = 0
         self.levelled: list[tuple[float, float, float]] = []   # per pass: plane removed at the pass's centre
         # (m), offset against the earlier passes (m), overlap cells
+        # the band rows' relief against their frame's mean, summed over the frames observed, and how many
+        self._row_sum: np.ndarray | None = None
+        self._row_count: np.ndarray | None = None
+        self.row_frames = 0
+        self._row_error: np.ndarray | None = None   # (rows, 1) float32, once `row_frames` frames are in
+
+    def observe(self, band: HeightBand) -> None:
+        """Add a placed frame's relief per band row (each row's mean over its contact, against the frame's mean
+        over its rows in contact over at least half the band) to the rows' static error (`row_frames`)."""
+        if self.config.row_frames <= 0:
+            return
+        contact = band.contact
+        rows, cols = contact.shape
+        counts = np.count_nonzero(contact, axis=1)
+        held = counts >= 0.5 * cols
+        if int(np.count_nonzero(held)) < max(3, rows // 2):   # barely pressed (touching down, lifting off)
+            return
+        sums = np.where(contact, band.relief, np.float32(0.0)).sum(axis=1, dtype=np.float64)
+        means = sums[held] / counts[held]
+        if not np.isfinite(means).all():
+            return
+        if self._row_sum is None or self._row_sum.shape != (rows,):
+            self._row_sum, self._row_count, self.row_frames = np.zeros(rows), np.zeros(rows), 0
+        assert self._row_count is not None
+        self._row_sum[held] += means - float(means.mean())
+        self._row_count[held] += 1
+        self.row_frames += 1
+        if self.row_frames >= self.config.row_frames:
+            seen = self._row_count > 0
+            error = np.zeros(rows)
+            error[seen] = self._row_sum[seen] / self._row_count[seen]
+            error[seen] -= float(np.average(error[seen], weights=self._row_count[seen]))
+            self._row_error = error.astype(np.float32)[:, None]
+
+    def row_error(self) -> np.ndarray | None:
+        """The band rows' static error (float32 m, (rows, 1)), None until `row_frames` frames were observed."""
+        return self._row_error
 
     @staticmethod
     def add_layers(canvas: Any) -> None:
@@ -253,8 +304,11 @@ class HeightLayer:
         return np.where(band.contact, weights, np.float32(0.0))
 
     def relief(self, band: HeightBand, lift: float = 0.0) -> np.ndarray:
-        """The band's relief (float32 m) with the roller's `lift` added under `follow_arm` (see `planes`)."""
+        """The band's relief (float32 m), the rows' static error taken out once known (`row_error`), with the
+        roller's `lift` added under `follow_arm` (see `planes`)."""
         relief = band.relief.astype(np.float32, copy=False)
+        if self._row_error is not None and self._row_error.shape[0] == relief.shape[0]:
+            relief = relief - self._row_error
         if self.config.follow_arm and lift and math.isfinite(lift):
             relief = relief + np.float32(lift)
         return relief

@@ -1468,6 +1468,8 @@ class WorldMapper:
             return
         self._placements.append(placement)
         self.stats.mapped += 1
+        if frame.height is not None and self._height_layer is not None:   # after its planes: not read against itself
+            self._height_layer.observe(frame.height)
         if frame.field is not None:
             self._level = float(frame.field.mean()) if frame.field is not self._level_field else self._level
             self._level_field = frame.field

@@ -72,7 +72,7 @@ def test_a_held_band_keeps_its_relief_to_half_a_micrometre():
 
 @pytest.mark.parametrize("field, value", [("band_depth", 0.0), ("outer_fraction", 0.5), ("min_indentation", -1.0),
                                           ("min_weight", 0.0), ("min_overlap", 1), ("axis_sigma", -1.0),
-                                          ("smoothing", -0.5), ("smoothing", float("nan"))])
+                                          ("row_frames", -1), ("smoothing", -0.5), ("smoothing", float("nan"))])
 def test_config_is_checked(field, value):
     with pytest.raises(ValueError):
         WorldHeightConfig(**{field: value})
@@ -282,3 +282,50 @@ def test_a_fine_relief_placed_at_another_scale_than_the_bands_keeps_its_depth():
 def test_resampling_is_one_of_the_known_ways():
     with pytest.raises(ValueError, match="resampling"):
         WorldHeightConfig(resampling="nearest")
+
+
+def _pressed_bands(count: int, rows: int = 70, cols: int = 200, seed: int = 0):
+    """(static row error (rows, 1), bands): each band a fresh relief (the surface moving under the band) plus the
+    same error per band row (a press shape read slightly wrong: a bowl and a tilt across the rows), all in contact."""
+    rng = np.random.default_rng(seed)
+    y = np.linspace(-1.0, 1.0, rows)[:, None]
+    error = (5e-6 * y ** 2 + 3e-6 * y).astype(np.float32)
+    bands = [HeightBand((error + 480e-6 + 1e-5 * rng.standard_normal((rows, cols))).astype(np.float32),
+                        np.ones((rows, cols), bool)) for _ in range(count)]
+    return error, bands
+
+
+def _row_error_left(layer: HeightLayer, band: HeightBand, error: np.ndarray) -> float:
+    """RMS over the rows of what the layer's relief still holds of the rows' static error, m."""
+    read = layer.relief(band).mean(axis=1, keepdims=True) - band.relief.mean(axis=1, keepdims=True) + error
+    return float(np.sqrt(np.mean((read - read.mean()) ** 2)))
+
+
+def test_the_band_rows_static_error_is_learnt_from_the_frames_and_taken_out_of_later_ones():
+    error, bands = _pressed_bands(31)
+    layer = HeightLayer(WorldHeightConfig(row_frames=30))
+    for band in bands[:29]:
+        layer.observe(band)
+    assert layer.row_error() is None                       # not yet: the frames placed as read
+    assert _row_error_left(layer, bands[-1], error) == pytest.approx(float(np.std(error)), rel=1e-3)
+    layer.observe(bands[29])
+    assert layer.row_error() is not None
+    assert _row_error_left(layer, bands[-1], error) < 0.1 * float(np.std(error))
+    # a relief constant over the rows (the surface, not the press) is left as it was
+    flat = HeightBand(np.full_like(bands[0].relief, 1e-5), bands[0].contact)
+    assert float(np.ptp(layer.relief(flat) + layer.row_error())) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_frames_barely_in_contact_teach_nothing_and_row_frames_0_leaves_the_relief_as_read():
+    error, bands = _pressed_bands(40)
+    layer = HeightLayer(WorldHeightConfig(row_frames=30))
+    for band in bands:
+        contact = np.zeros_like(band.contact)
+        contact[:20] = True                                # lifting off: a few rows pressed
+        layer.observe(HeightBand(band.relief, contact))
+    assert layer.row_error() is None and layer.row_frames == 0
+    off = HeightLayer(WorldHeightConfig(row_frames=0))
+    for band in bands:
+        off.observe(band)
+    assert off.row_error() is None
+    np.testing.assert_array_equal(off.relief(bands[0]), bands[0].relief)
