@@ -73,6 +73,20 @@ WAVELENGTH_BANDS = ((0.2, 0.3), (0.3, 0.4), (0.4, 0.5), (0.5, 0.6), (0.6, 0.8), 
 
 
 @dataclasses.dataclass(frozen=True)
+class CutoffCorrelation:
+    """The map against the true relief with both low-passed alike (wavelengths longer than `longer_than_mm`
+    kept): their correlation and their difference's RMS."""
+
+    longer_than_mm: float
+    correlation: float
+    rms_um: float
+
+
+#: the low-pass cut-offs of `cutoff_correlations`, mm
+CUTOFFS_MM = (0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.6, 3.2)
+
+
+@dataclasses.dataclass(frozen=True)
 class SurfaceScore:
     surface: str
     relief_rms_um: float      # the true relief on the scored cells, its best plane removed
@@ -86,6 +100,7 @@ class SurfaceScore:
     frames_mapped: int        # mapped (simulator) or filmed (second generator)
     map_cpu_s: float          # mapping CPU s (simulator) or `touchroller map`'s wall s (second generator)
     wavelengths: list[WavelengthGain] = dataclasses.field(default_factory=list)   # the map by wavelength band
+    cutoffs: list[CutoffCorrelation] = dataclasses.field(default_factory=list)    # low-passed alike, by cut-off
 
 
 @dataclasses.dataclass(frozen=True)
@@ -270,19 +285,20 @@ def second_generator(presses: int) -> tuple[SurfaceScore, float, int]:
     return score, fit, int(model.config.position_degree)   # type: ignore[attr-defined]
 
 
-def wavelength_gains(height: np.ndarray, truth: np.ndarray, resolution: float) -> list[WavelengthGain]:
-    """The map's gain and coherence against the truth by wavelength band (`WAVELENGTH_BANDS`, mm), on the
-    rectangle of the rows mapped nearly as widely as the widest and the columns mapped throughout on them (20
-    cells in from its edges), Hann-windowed."""
+def _spectra(height: np.ndarray, truth: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]] | None:
+    """(map's, truth's rfft2, frequency in cycles per cell, the rectangle's shape) on the rectangle of the rows
+    mapped nearly as widely as the widest and the columns mapped throughout on them (20 cells in from its edges),
+    each less its mean and Hann-windowed; None when too little is mapped."""
     known = np.isfinite(height)
     share = known.mean(axis=1)
     rows = np.flatnonzero(share >= 0.9 * share.max()) if share.max() > 0 else np.zeros(0, int)
     if len(rows) < 80:
-        return []
+        return None
     r0, r1 = int(rows.min()) + 20, int(rows.max()) - 20
     cols = np.flatnonzero(known[r0:r1].all(axis=0))
     if len(cols) < 80 or r1 - r0 < 40:
-        return []
+        return None
     c0, c1 = int(cols.min()) + 20, int(cols.max()) - 20
     mine = np.nan_to_num(height[r0:r1, c0:c1].astype(np.float64), nan=float(np.nanmean(height[r0:r1, c0:c1])))
     true = truth[r0:r1, c0:c1].astype(np.float64)
@@ -290,6 +306,16 @@ def wavelength_gains(height: np.ndarray, truth: np.ndarray, resolution: float) -
     a = np.fft.rfft2((mine - mine.mean()) * window)
     b = np.fft.rfft2((true - true.mean()) * window)
     f = np.hypot(np.fft.fftfreq(r1 - r0)[:, None], np.fft.rfftfreq(c1 - c0)[None, :])
+    return a, b, f, (r1 - r0, c1 - c0)
+
+
+def wavelength_gains(height: np.ndarray, truth: np.ndarray, resolution: float) -> list[WavelengthGain]:
+    """The map's gain and coherence against the truth by wavelength band (`WAVELENGTH_BANDS`, mm), on the
+    rectangle `_spectra` takes, Hann-windowed."""
+    spectra = _spectra(height, truth)
+    if spectra is None:
+        return []
+    a, b, f, _ = spectra
     cross, power, mine_power = (a * b.conj()), np.abs(b) ** 2, np.abs(a) ** 2
     total = float(power[f > 0].sum())
     out = []
@@ -300,6 +326,27 @@ def wavelength_gains(height: np.ndarray, truth: np.ndarray, resolution: float) -
         out.append(WavelengthGain(short, long, c.real / p if p else math.nan,
                                   abs(c) / math.sqrt(p * float(mine_power[band].sum())) if p else math.nan,
                                   p / total if total else math.nan))
+    return out
+
+
+def cutoff_correlations(height: np.ndarray, truth: np.ndarray, resolution: float) -> list[CutoffCorrelation]:
+    """The map's correlation with the truth (and their difference's RMS) with both low-passed alike: only the
+    wavelengths longer than each of `CUTOFFS_MM` kept (an ideal low pass), on the rectangle `_spectra` takes
+    (Hann-windowed; the RMS divided by the window's): where the correlation is lost, at the short wavelengths or
+    the long."""
+    spectra = _spectra(height, truth)
+    if spectra is None:
+        return []
+    a, b, f, shape = spectra
+    # the window's RMS: the difference's RMS read back in the relief's units
+    scale = 1e6 / math.sqrt(float(np.mean(np.outer(np.hanning(shape[0]), np.hanning(shape[1])) ** 2)))
+    out = []
+    for cut in CUTOFFS_MM:
+        keep = f <= resolution * 1e3 / cut   # cycles per cell
+        x = np.fft.irfft2(a * keep, s=shape)
+        y = np.fft.irfft2(b * keep, s=shape)
+        out.append(CutoffCorrelation(cut, float(np.corrcoef(x.ravel(), y.ravel())[0, 1]),
+                                     float(np.sqrt(np.mean((x - y) ** 2)) * scale)))
     return out
 
 
@@ -330,7 +377,8 @@ def _score(name: str, height: np.ndarray, truth: np.ndarray, passes: int, frames
     corr = float(np.corrcoef(a, b)[0, 1]) if planted.sum() > 10 else math.nan
     return SurfaceScore(name, float(relief.std() * 1e6), float(np.sqrt(np.mean(error**2)) * 1e6),
                         float(np.corrcoef(_detrended(mine, rows, cols), relief)[0, 1]), int(inside.sum()), passes,
-                        int(planted.sum()), scale, corr, frames, seconds, wavelength_gains(height, truth, resolution))
+                        int(planted.sum()), scale, corr, frames, seconds, wavelength_gains(height, truth, resolution),
+                        cutoff_correlations(height, truth, resolution))
 
 
 def _second_presses(quick: bool) -> int:
@@ -415,6 +463,16 @@ def to_markdown(r: HeightMapResult) -> str:
             cells = " | ".join(f"{x.wavelengths[k].relief_share:.2f} | {x.wavelengths[k].gain:.2f} | "
                                f"{x.wavelengths[k].coherence:.2f}" for x in banded)
             lines.append(f"| {w.shortest_mm:.2g}-{w.longest_mm:.2g} | {cells} |")
+    cut = [x for x in r.surfaces if x.cutoffs and x.surface != "panel"]
+    if cut:
+        lines += ["", "The maps against their true relief with both low-passed alike (only the wavelengths longer than "
+                  "the cut-off kept; the same rectangle): the correlation and the difference's RMS, um. Where it rises "
+                  "as the cut-off lengthens, the short wavelengths lose it; where it falls, the long ones:", "",
+                  "| longer than, mm | " + " | ".join(f"{x.surface}: correlation | RMS, um" for x in cut) + " |",
+                  "|---|" + "---|---|" * len(cut)]
+        for k, c in enumerate(cut[0].cutoffs):
+            cells = " | ".join(f"{x.cutoffs[k].correlation:.3f} | {x.cutoffs[k].rms_um:.1f}" for x in cut)
+            lines.append(f"| {c.longer_than_mm:g} | {cells} |")
     lines += ["", "Fine relief: where the true relief departs from its own 2 mm Gaussian by more than 3 um (the "
               "planted cracks, dents, grooves and pits, and the grain's finer part), the map's departure from its "
               "own 2 mm Gaussian against the truth's: how much of a feature's depth the map reads, and how well "
@@ -435,7 +493,8 @@ def grain_corr(r: HeightMapResult) -> float:
 def load(path: Path) -> HeightMapResult:
     raw = json.loads(Path(path).read_text())
     raw["provenance"] = Provenance(**raw["provenance"])
-    raw["surfaces"] = [SurfaceScore(**{**s, "wavelengths": [WavelengthGain(**w) for w in s.get("wavelengths", [])]})
+    raw["surfaces"] = [SurfaceScore(**{**s, "wavelengths": [WavelengthGain(**w) for w in s.get("wavelengths", [])],
+                                       "cutoffs": [CutoffCorrelation(**c) for c in s.get("cutoffs", [])]})
                        for s in raw["surfaces"]]
     raw["draws"] = [PressDraw(**d) for d in raw.get("draws", [])]
     return HeightMapResult(**raw)

@@ -77,3 +77,20 @@ def test_a_map_is_scored_1_mm_inside_its_mapped_area_also_where_that_reaches_the
     padded = _score("padded", padded_map, padded_truth, 1, 1, 0.0, 1e-4)
     assert cropped.cells == padded.cells == (200 - 20) * (180 - 20)
     assert cropped.rms_um == pytest.approx(padded.rms_um, rel=1e-6)
+
+
+def test_the_correlation_by_low_pass_cut_off_tells_where_it_is_lost() -> None:
+    from bench.height_map import CUTOFFS_MM, cutoff_correlations
+
+    long = cv2.GaussianBlur(np.random.default_rng(3).standard_normal((300, 260)), (0, 0), 6.0)
+    truth = _relief() + 2e-4 * long   # relief at every wavelength, short and long
+    same = cutoff_correlations(truth.copy(), truth, 1e-4)
+    assert [c.longer_than_mm for c in same] == list(CUTOFFS_MM)
+    assert all(c.correlation == pytest.approx(1.0, abs=1e-9) and c.rms_um == pytest.approx(0.0, abs=1e-9)
+               for c in same)
+    # white noise at the cell scale: lost at the short wavelengths, regained as the cut-off lengthens
+    noisy = truth + 1e-5 * np.random.default_rng(2).standard_normal(truth.shape)
+    cuts = cutoff_correlations(noisy, truth, 1e-4)
+    assert cuts[0].correlation < 0.9 < cuts[-1].correlation
+    assert all(b.correlation >= a.correlation - 1e-3 for a, b in zip(cuts, cuts[1:], strict=False))
+    assert cutoff_correlations(truth[:60, :60], truth[:60, :60], 1e-4) == []
