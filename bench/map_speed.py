@@ -368,7 +368,7 @@ def world_markdown(r: dict[str, Any]) -> list[str]:
                   f"{'byte-identical' if c['identical_maps'] else '**not identical**'} whatever the workers.", "",
                   "| decoding | wall s | frames/s | CPU s |", "|---|---|---|---|",
                   *(f"| {label} | {c[f'{k}_s']:.2f} | {c[f'{k}_fps']:.0f} | {c[f'{k}_cpu_s']:.2f} |"
-                    for label, k in (("default (one worker per processor but the mapping's)", "default"),
+                    for label, k in (("default (one worker per processor)", "default"),
                                      ("`--workers 1` (the reader decodes)", "workers_1"),
                                      ("`--workers 2`", "workers_2"))), "",
                   f"- >= {r['goal_compressed_fps']:g} frames/s as a whole command: {c['default_fps']:.0f} frames/s "
