@@ -16,8 +16,8 @@ bench.world_map times (/tf, /tf_static, sqlite3, 820 frames), against reading th
 
 A compressed recording (issue 25: >= 500 frames/s as a whole command, judged by bench.scan_square_metre
 on a 1 m² scan): the same command on a 4-pass raster (about two thousand frames) recorded as `touchroller
-record` compresses (PNG CompressedImage, zstd MCAP), with the default decoding workers and with
-`--workers 1` and `2`.
+record` compresses (PNG CompressedImage in MCAP, chunks of other messages zstd), with the default decoding
+workers and with `--workers 1` and `2`.
 
 `python -m bench.map_speed [--quick] [--frames N] [--repeats N]` -> bench/results/map_speed.md + .json.
 The report generator (`touchroller report`) calls `run(quick)` and `to_markdown(result)`; quick mode times
@@ -141,7 +141,7 @@ def _cached_env(out_dir: Path) -> dict[str, str]:
 
 def make_world_bag(path: Path, area: list[float], compressed: bool = False) -> tuple[int, float]:
     """A raster over `large_surface` as `touchroller scan --record` holds it (bench.world_map's recording for
-    area [0.42, -0.07, 0.12, 0.14]); `compressed`: rewritten as `touchroller record` compresses (PNG, zstd MCAP)."""
+    area [0.42, -0.07, 0.12, 0.14]); `compressed`: rewritten as `touchroller record` compresses (PNG in MCAP)."""
     from bench.world_map import _setup, raster_records
     from touchroller_bringup.bag_compression import compress_recording
     from touchroller_bringup.bags import write_scan
@@ -362,13 +362,13 @@ def world_markdown(r: dict[str, Any]) -> list[str]:
     if "compressed" in r:
         c = r["compressed"]
         lines += ["", "### A compressed recording (issue 25)", "",
-                  f"The same command on a raster recorded compressed (PNG CompressedImage, zstd MCAP; "
+                  f"The same command on a raster recorded compressed (PNG CompressedImage in MCAP; "
                   f"{c['frames']} frames, {c['bag_mb']:.0f} MB), best of {c['repeats']} new processes, on "
                   f"{c['processors']} processors. The map files are "
                   f"{'byte-identical' if c['identical_maps'] else '**not identical**'} whatever the workers.", "",
                   "| decoding | wall s | frames/s | CPU s |", "|---|---|---|---|",
                   *(f"| {label} | {c[f'{k}_s']:.2f} | {c[f'{k}_fps']:.0f} | {c[f'{k}_cpu_s']:.2f} |"
-                    for label, k in (("default (one worker per processor but the mapping's)", "default"),
+                    for label, k in (("default (one worker per processor)", "default"),
                                      ("`--workers 1` (the reader decodes)", "workers_1"),
                                      ("`--workers 2`", "workers_2"))), "",
                   f"- >= {r['goal_compressed_fps']:g} frames/s as a whole command: {c['default_fps']:.0f} frames/s "

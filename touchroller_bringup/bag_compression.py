@@ -1,7 +1,8 @@
 """Lossless compressed recordings: a camera's sensor_msgs/Image stored as sensor_msgs/CompressedImage PNG
 on `<topic>/compressed` (image_transport's name and `format` string, "bgr8; png compressed bgr8"), as
-`image_transport republish` or rosbag2 with the compressed transport would store it; MCAP chunks are
-also compressed with zstd (`bags.bag_writer(compress=True)`).
+`image_transport republish` or rosbag2 with the compressed transport would store it; MCAP chunks of the
+other messages are also compressed with zstd (`bags.bag_writer(compress=True)`: a chunk mostly of PNG frames,
+which zstd would not shrink, is stored as it is).
 
 The PNG holds the pixels exactly (8- and 16-bit, colour or mono), so every reader of the recording
 (`bags.read_images`, `read_images_and_tf`: `touchroller map`, `contacts`, `calibrate`) gets the frames the
@@ -58,9 +59,9 @@ def compressed_message(raw: bytes | memoryview, store: Any, level: int = PNG_LEV
 def compress_recording(source: str | Path, target: str | Path, storage: str = "mcap", distro: str = "auto",
                        level: int = PNG_LEVEL, png: bool = True, zstd: bool = True) -> int:
     """Rewrite a recording as `touchroller record` writes it compressed: every sensor_msgs/Image topic as
-    CompressedImage PNG on `<topic>/compressed` (`png`), the rest as they are, MCAP chunks zstd (`zstd`); the
-    receive times and offered QoS kept. Returns the number of messages written; the target is written whole
-    or not at all (a failure removes it)."""
+    CompressedImage PNG on `<topic>/compressed` (`png`), the rest as they are, MCAP chunks zstd (`zstd`; but
+    those mostly of PNG frames, `bags.bag_writer`); the receive times and offered QoS kept. Returns the number
+    of messages written; the target is written whole or not at all (a failure removes it)."""
     import shutil
 
     from touchroller_bringup.bags import IMAGE_TYPE, bag_writer, open_bag, typestore

@@ -38,6 +38,10 @@ IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 COMPRESSED_SUFFIX = "/compressed"   # image_transport's compressed topic beside a raw image topic
 MCAP_ZSTD_LEVEL = 1                 # zstd level of compressed MCAP chunks (bench/recording_size.py)
+#: message types whose data is compressed already (sensor_msgs/CompressedImage: PNG or JPEG): an MCAP chunk
+#: mostly of them is stored without chunk compression, which would save well under 1 % of a PNG camera
+#: frame and cost every reader a decompression of the whole chunk (`bag_writer`)
+PRECOMPRESSED_TYPES = frozenset({COMPRESSED_TYPE})
 Storage = Literal["sqlite3", "mcap"]
 
 
@@ -102,7 +106,9 @@ def typestore():
 def bag_writer(path: str | Path, storage: Storage = "sqlite3", distro: str = "auto", compress: bool = False):
     """A rosbags Writer (not yet opened) for a new rosbag2 folder that `distro`'s rosbag2 reads
     (`touchroller_bringup.bag_format`); with MCAP every chunk carries its CRC-32, and `compress` compresses
-    each chunk with zstd (rosbag2's MCAP chunk compression; sqlite3 has none: `compress` leaves it as is)."""
+    each chunk with zstd (rosbag2's MCAP chunk compression; sqlite3 has none: `compress` leaves it as is),
+    except a chunk whose bytes are mostly messages of `PRECOMPRESSED_TYPES` (PNG frames), stored as it is:
+    MCAP names each chunk's compression, so every MCAP reader reads both kinds."""
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 
     from touchroller_bringup import bag_format
@@ -138,11 +144,24 @@ def _writer_class():
             if self.compression == "zstd":   # level 1: camera frames' noise compresses little better at 3, 9x slower
                 compress = self.compressor
                 self.compressor = lambda data: compress(data, level=MCAP_ZSTD_LEVEL)
+            self.precompressed = 0   # bytes of the pending chunk's messages on already compressed topics
+
+        def write(self, connection, timestamp, data) -> None:  # type: ignore[no-untyped-def]
+            if connection.msgtype in PRECOMPRESSED_TYPES:
+                self.precompressed += len(data)
+            super().write(connection, timestamp, data)   # closes the chunk once it is full
 
         def close_chunk(self) -> None:
             crc = crc32(self.chunk.bio.getbuffer())
             start = self.bio.tell()
-            super().close_chunk()
+            chosen = self.compression, self.compressor
+            if 2 * self.precompressed > self.chunk.bio.tell():   # mostly PNG or JPEG: stored as it is
+                self.compression, self.compressor = "", bytes
+            self.precompressed = 0
+            try:
+                super().close_chunk()
+            finally:
+                self.compression, self.compressor = chosen
             end = self.bio.tell()
             self.bio.seek(start + self.CRC_OFFSET)
             self.bio.write(struct.pack("<I", crc))

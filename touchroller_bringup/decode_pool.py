@@ -26,13 +26,12 @@ from __future__ import annotations
 import mmap
 import os
 import pickle
-import signal
 import struct
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
-from touchroller_bringup.forked_reader import _die_with_parent, _end_child, _picklable, fork_available
+from touchroller_bringup.forked import end_child, fork_available, fork_child, picklable
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -81,7 +80,7 @@ class WorkerProcessError(RuntimeError):
 
 
 def pool_available() -> bool:
-    """Whether `ordered` may use worker processes: Linux's fork (see `forked_reader.fork_available`)."""
+    """Whether `ordered` may use worker processes: Linux's fork (see `forked.fork_available`)."""
     return fork_available()
 
 
@@ -111,23 +110,11 @@ class _Worker:
         start = (2 * slot + int(result)) * self.slot_bytes
         return start, start + self.slot_bytes
 
-    def start(self, work: Callable[[Any], Any], owner: int, everyone: list[_Worker]) -> None:
-        self.pid = os.fork()
-        if self.pid == 0:   # the worker: work, then leave without the caller's clean-up
-            code = 1
-            try:
-                signal.signal(signal.SIGINT, signal.SIG_IGN)
-                _die_with_parent(owner)
-                for other in everyone:   # only its own ends stay open: a pipe ends when its worker does
-                    for fd in ((other.task_w, other.done_r) if other is self else
-                               (other.task_r, other.task_w, other.done_r, other.done_w)):
-                        _close(fd)
-                self._serve(work)
-                code = 0
-            except BaseException:  # noqa: BLE001 - the caller has gone; it sees the pipe end
-                pass
-            finally:
-                os._exit(code)
+    def start(self, work: Callable[[Any], Any], everyone: list[_Worker]) -> None:
+        # only its own ends stay open in the worker: a pipe ends when its worker does
+        others = [fd for other in everyone for fd in ((other.task_w, other.done_r) if other is self else
+                                                      (other.task_r, other.task_w, other.done_r, other.done_w))]
+        self.pid = fork_child(lambda: self._serve(work), close=others, interrupt=False)
         os.close(self.task_r)
         os.close(self.done_w)
         self.stream = os.fdopen(self.done_r, "rb", buffering=1 << 16)
@@ -148,7 +135,7 @@ class _Worker:
                                                                       lengths, copy=False)), None)
                 parts = _parts(result)
             except Exception as exc:  # noqa: BLE001 - raised again by the caller, at this item's place
-                parts = _parts((None, _picklable(exc)))
+                parts = _parts((None, picklable(exc)))
             start, end = self.area(slot, True)
             if sum(part.nbytes for part in parts) <= end - start:
                 _put(self.memory, start, parts)
@@ -200,7 +187,7 @@ class _Worker:
         if self.stream is not None:
             self.stream.close()
         if self.pid:
-            _end_child(self.pid, wait)
+            end_child(self.pid, wait)
         self.memory.close()
 
 
@@ -247,7 +234,7 @@ def ordered(items: Iterable[T], work: Callable[[T], R], wanted: Callable[[T], bo
                 if not pool:
                     pool = [_Worker(slots, slot_bytes) for _ in range(workers)]
                     for worker in pool:
-                        worker.start(work, os.getpid(), pool)
+                        worker.start(work, pool)
                 worker = pool[turn % workers]
                 while worker.waiting >= slots:   # its slots are all taken: wait
                     yield _take(queue)

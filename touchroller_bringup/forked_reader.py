@@ -13,20 +13,23 @@ dtype: a band) is written into one slot of a ring of shared memory and copied ou
 pixels are never copied through the kernel. The parent counts the slots it has freed in the shared
 memory and wakes the child through a second pipe once half the ring is free. An exception in `produce` is
 raised in the parent after the items before it; a consumer that stops early ends the child.
-POSIX only (`fork_available`); the caller keeps a thread for other systems.
+POSIX only (`fork_available`); the caller keeps a thread for other systems. The child is started, tied to
+the parent and ended by `touchroller_bringup.forked`.
 """
 from __future__ import annotations
 
 import mmap
 import os
 import pickle
-import signal
 import struct
-import sys
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
+
+from touchroller_bringup.forked import end_child, fork_available, fork_child, picklable
+
+__all__ = ["ReaderProcessError", "fork_available", "read_forked"]
 
 Item = tuple[Any, "np.ndarray | None"]
 _HEADER = struct.Struct("<Q")   # the byte length of the pickled batch that follows
@@ -34,12 +37,6 @@ _HEADER = struct.Struct("<Q")   # the byte length of the pickled batch that foll
 
 class ReaderProcessError(RuntimeError):
     """The reader process ended without saying why (killed, or out of memory)."""
-
-
-def fork_available() -> bool:
-    """Whether `read_forked` may be used: Linux (macOS's system libraries are not safe to use after a
-    fork of a process that loaded them; Windows has no fork)."""
-    return sys.platform.startswith("linux") and hasattr(os, "fork")
 
 
 class _Ring:
@@ -70,20 +67,7 @@ def read_forked(produce: Callable[[], Iterator[Item]], shape: tuple[int, ...], d
     ring = _Ring(shape, dtype, slots)
     data_r, data_w = os.pipe()
     wake_r, wake_w = os.pipe()
-    parent = os.getpid()
-    pid = os.fork()
-    if pid == 0:   # the child: produce, then leave without running the parent's clean-up or flushing its buffers
-        code = 1
-        try:
-            _die_with_parent(parent)
-            os.close(data_r)
-            os.close(wake_w)
-            _produce(produce, ring, data_w, wake_r, batch)
-            code = 0
-        except BaseException:  # noqa: BLE001 - the parent has gone (a broken pipe) or was told the error
-            pass
-        finally:
-            os._exit(code)
+    pid = fork_child(lambda: _produce(produce, ring, data_w, wake_r, batch), close=(data_r, wake_w))
     os.close(data_w)
     os.close(wake_r)
     os.set_blocking(wake_w, False)
@@ -96,27 +80,7 @@ def read_forked(produce: Callable[[], Iterator[Item]], shape: tuple[int, ...], d
         done = True
     finally:
         os.close(wake_w)
-        _end_child(pid, wait=done)
-
-
-_PR_SET_PDEATHSIG = 1   # linux/prctl.h
-
-
-def _die_with_parent(parent: int) -> None:
-    """The child ends when the parent does, however it ends (SIGKILL too): the kernel sends it SIGKILL
-    when the parent thread exits (prctl PR_SET_PDEATHSIG); a parent already gone before that was set
-    is seen by the parent pid. SIGTERM and SIGHUP get their default action (the parent's handlers raise)."""
-    import ctypes
-
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.signal(signal.SIGHUP, signal.SIG_DFL)
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    except (OSError, AttributeError):   # no prctl: the broken pipe still ends the child once it writes
-        pass
-    if os.getppid() != parent:
-        os._exit(1)
+        end_child(pid, wait=done)
 
 
 def _produce(produce: Callable[[], Iterator[Item]], ring: _Ring, data_w: int, wake_r: int, batch: int) -> None:
@@ -154,18 +118,10 @@ def _produce(produce: Callable[[], Iterator[Item]], ring: _Ring, data_w: int, wa
         send(True)
     except Exception as exc:  # noqa: BLE001 - raised again in the parent, after the items before it
         try:
-            send(True, _picklable(exc))
+            send(True, picklable(exc))
         except Exception:  # noqa: BLE001 - the items themselves do not pickle: the error alone
             chunk.clear()
-            send(True, _picklable(exc))
-
-
-def _picklable(exc: BaseException) -> BaseException:
-    try:
-        pickle.loads(pickle.dumps(exc))
-        return exc
-    except Exception:  # noqa: BLE001 - an exception that does not survive pickling: its type and text
-        return RuntimeError(f"{type(exc).__name__}: {exc}")
+            send(True, picklable(exc))
 
 
 def _consume(ring: _Ring, stream: Any, wake_w: int) -> Iterator[Item]:
@@ -197,16 +153,3 @@ def _consume(ring: _Ring, stream: Any, wake_w: int) -> Iterator[Item]:
             raise error
         if end:
             return
-
-
-def _end_child(pid: int, wait: bool) -> None:
-    """Reap the child; one that is still producing (the consumer stopped early) is ended first."""
-    if not wait and os.waitpid(pid, os.WNOHANG) == (0, 0):
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-    try:
-        os.waitpid(pid, 0)
-    except ChildProcessError:
-        pass

@@ -30,6 +30,11 @@ from touchroller_perception.files import atomic_path
 from touchroller_perception.tiles import LayerView, StorageFull, to_alpha, to_grey
 from touchroller_perception.world_map import WorldMapImage
 
+try:   # the same deflate format, faster (optional; pinned in requirements.txt)
+    from isal import isal_zlib as _deflate
+except ImportError:   # pragma: no cover - a ROS install may lack it
+    _deflate = zlib  # type: ignore[misc]
+
 TIFF_TILE = 512   # map.tif's tile side
 VIEW_MAX_PIXELS = 16_000_000   # map.png (nav2 map_server's view) is downscaled until it has at most this many
 STRETCH_PERCENTILES = (0.5, 99.5)   # map.png's grey spans these percentiles of the mapped cells' values
@@ -107,8 +112,9 @@ def _replace(path: Path, write: Any) -> None:
 
 def png_grey_alpha(grey: np.ndarray, alpha: np.ndarray) -> bytes:
     """An 8-bit grey-plus-alpha PNG (colour type 4) of two (rows, columns) uint8 images: every row unfiltered,
-    zlib level 1. These maps are noise-like: filtering and harder compression save 10-20 % of the bytes
-    for twice the time (and PIL's import); any PNG reader reads it."""
+    deflate level 1 (ISA-L's when `isal` is installed: three times as fast as zlib's for a few per cent more
+    bytes; the same pixels either way). These maps are noise-like: filtering and harder compression save
+    10-20 % of the bytes for twice the time (and PIL's import); any PNG reader reads it."""
     if grey.shape != alpha.shape or grey.ndim != 2 or grey.size == 0:
         raise ValueError(f"grey and alpha must be the same non-empty 2-D shape, got {grey.shape} and {alpha.shape}")
     rows, cols = grey.shape
@@ -120,7 +126,7 @@ def png_grey_alpha(grey: np.ndarray, alpha: np.ndarray) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
     header = struct.pack(">IIBBBBB", cols, rows, 8, 4, 0, 0, 0)   # 8 bits, grey + alpha, deflate, no interlace
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw.tobytes(), 1))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", _deflate.compress(raw, 1))
             + chunk(b"IEND", b""))
 
 

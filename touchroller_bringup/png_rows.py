@@ -9,9 +9,12 @@ Paeth), but a row filtered None or Sub stands alone: the rows are unfiltered fro
 or before `first` (row 0 if none; the recorder writes every row Sub, so a band starts at its own first
 row). Those rows go to OpenCV's PNG decoder as a PNG of their own (the chunks before the image data kept;
 the rows stored uncompressed), so the unfiltering is libpng's own and the rows are exactly those of a
-whole decode. Every chunk read is checked against its CRC as a whole decode checks it. An interlaced PNG
-(Adam7 spreads every row over the whole stream), a malformed one, or `end` at or past the image's
-height: None, and the caller decodes the whole image.
+whole decode; 8-bit grey or colour rows filtered only None or Sub (what the recorder writes), with no
+chunk before the image data that a decoder would apply (transparency, a palette), are unfiltered here
+instead (a running sum along each row, modulo 256: the same bytes, without a second decode). Every
+chunk read is checked against its CRC as a whole decode checks it. An interlaced PNG (Adam7 spreads
+every row over the whole stream), a malformed one, or `end` at or past the image's height: None, and the
+caller decodes the whole image.
 
 Inflating is the cost: with `isal` installed (Intel's ISA-L, `pip install isal`; pinned in
 requirements.txt) it inflates two to three times as fast as zlib, with the same bytes out; without it,
@@ -79,6 +82,26 @@ def _stored_idat(rows: memoryview) -> list[bytes | memoryview]:
     return [_CHUNK.pack(sum(len(piece) for piece in pieces), b"IDAT"), *pieces, _CRC.pack(crc & 0xFFFFFFFF)]
 
 
+def _unfilter_alone(rows: bytes, first: int, end: int, width: int, channels: int,
+                    filters: np.ndarray) -> np.ndarray:
+    """Rows [first, end) of inflated 8-bit grey or RGB PNG rows each filtered None or Sub, unfiltered here
+    (Sub: each byte plus the unfiltered one a pixel to its left, modulo 256: a running sum along the row),
+    as OpenCV's decoder gives them (BGR, or 2-D grey)."""
+    count = end - first
+    row_bytes = width * channels + 1
+    block = np.frombuffer(rows, np.uint8, count * row_bytes, first * row_bytes).reshape(count, row_bytes)
+    pixels = block[:, 1:].reshape(count, width, channels)
+    if channels == 3:
+        pixels = pixels[..., ::-1]   # RGB in the file, BGR as OpenCV gives it
+    if filters.min() == 1:   # every row Sub (as the recorder writes them)
+        image = np.cumsum(pixels, axis=1, dtype=np.uint8)
+    else:
+        image = pixels.copy()
+        sub = filters == 1
+        image[sub] = np.cumsum(pixels[sub], axis=1, dtype=np.uint8)
+    return image if channels == 3 else image[..., 0]
+
+
 def decode_rows(data: Any, end: int, first: int = 0) -> np.ndarray | None:
     """Rows [first, end) of the PNG `data` as `cv2.imdecode(data, IMREAD_UNCHANGED)[first:end]` gives them
     (the same values); None when only a whole decode will do (see the module docstring)."""
@@ -117,6 +140,8 @@ def decode_rows(data: Any, end: int, first: int = 0) -> np.ndarray | None:
     filters = np.frombuffer(rows, np.uint8, end * row_bytes)[::row_bytes]
     if filters.max() > 4:
         return None   # not a PNG filter: the whole decode fails
+    if depth == 8 and colour in (0, 2) and not before and filters[first:end].max() <= 1:
+        return _unfilter_alone(rows, first, end, width, _CHANNELS[colour], filters[first:end])
     # unfiltered from the last row at or before `first` that stands alone (filter None or Sub: it does not
     # refer to the row above), as the first row of a PNG of its own; row 0 always stands alone
     alone = np.flatnonzero(filters[1:first + 1] <= 1)

@@ -278,10 +278,20 @@ class WorldCanvas:
 
 
 def _value(band: np.ndarray, flat: np.ndarray, weight: np.ndarray, level: float,
-           min_weight: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+           min_weight: float = 1e-3, in_place: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(grey, weight): level * band / flat where the weight and the flat field are known, else 0.
+    `in_place`: written over `band` and `weight` (the caller's own copies: two fewer arrays to allocate
+    and fill for the same values)."""
     known = (weight > min_weight) & (flat > 1e-6)
-    grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
-    return grey, np.where(known, weight, np.float32(0.0))
+    if not in_place:
+        grey = np.divide(band * np.float32(level), flat, out=np.zeros_like(band), where=known)
+        return grey, np.where(known, weight, np.float32(0.0))
+    unknown = ~known
+    np.multiply(band, np.float32(level), out=band)
+    np.divide(band, flat, out=band, where=known)
+    np.copyto(band, np.float32(0.0), where=unknown)
+    np.copyto(weight, np.float32(0.0), where=unknown)
+    return band, weight
 
 
 class RatioView:
@@ -322,8 +332,8 @@ class IntensityView:
 
     def read(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
         store = self.canvas.store
-        band, flat, weight = (store.read(name, r0, r1, c0, c1) for name in LAYERS)
-        return _value(band, flat, weight, self.level)
+        band, flat, weight = (store.read(name, r0, r1, c0, c1) for name in LAYERS)   # copies: ours to overwrite
+        return _value(band, flat, weight, self.level, in_place=True)
 
     def extent(self) -> tuple[int, int, int, int] | None:
         """The absolute cells a file of the map holds: a fixed map's bounds, else around what was mapped."""

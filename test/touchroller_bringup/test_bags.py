@@ -198,3 +198,49 @@ def test_tf_topics_come_from_the_metadata_as_rosbags_lists_them_without_opening_
     (tmp_path / "scan" / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 99}\n")
     with pytest.raises(UserError, match="cannot open bag"):
         tf_topics(tmp_path / "scan")
+
+
+def _chunk_compressions(path) -> list[str]:
+    """The compression each chunk of an MCAP file names, in file order."""
+    import struct
+
+    data = path.read_bytes()
+    names, at = [], 8
+    while at + 9 <= len(data) - 8:
+        opcode, length = data[at], struct.unpack_from("<Q", data, at + 1)[0]
+        if opcode == 0x06:   # chunk: start, end, uncompressed size (8 each), CRC (4), then the compression's name
+            size = struct.unpack_from("<I", data, at + 9 + 28)[0]
+            names.append(data[at + 9 + 32:at + 9 + 32 + size].decode())
+        at += 9 + length
+    return names
+
+
+def test_mcap_chunks_of_png_frames_are_stored_as_they_are_and_the_rest_compressed(tmp_path):
+    """zstd saves well under 1 % of a PNG camera frame and costs every reader a decompression: a chunk mostly
+    of CompressedImage messages is stored as is; a chunk of other messages still gets zstd. Read back the same."""
+    from touchroller_bringup.bag_compression import compressed_message
+    from touchroller_bringup.bags import COMPRESSED_TYPE, bag_writer, open_bag
+
+    store = typestore()
+    rng = np.random.default_rng(3)
+    raw = tmp_path / "raw"
+    write_images(raw, [(i, rng.integers(0, 256, (480, 640, 3), np.uint8)) for i in range(4)])
+    reader = open_bag(raw)
+    pngs = [compressed_message(data, store) for _, _, data in reader.messages()]
+    reader.close()
+    text = [(b"touchroller " * 8000)[:90_000] for _ in range(30)]   # 2.7 MB of compressible messages
+    bag = tmp_path / "mixed"
+    writer = bag_writer(bag, "mcap", compress=True)
+    with writer:
+        images = writer.add_connection("/touchroller/image_raw/compressed", COMPRESSED_TYPE, typestore=store)
+        other = writer.add_connection("/notes", "std_msgs/msg/String", typestore=store)
+        for i, png in enumerate(pngs):
+            writer.write(images, i, png)
+        for i, note in enumerate(text):
+            writer.write(other, 10 + i, note)
+    names = _chunk_compressions(bag / "mixed.mcap")
+    assert "" in names and "zstd" in names
+    assert names[0] == "" and names[-1] == "zstd"   # the frames come first, the notes last
+    reader = open_bag(bag)
+    assert [bytes(data) for _, _, data in reader.messages()] == [*pngs, *text]
+    reader.close()

@@ -110,6 +110,27 @@ def test_a_compressed_recording_maps_as_the_raw_one_whatever_the_decoding_worker
     assert "--workers must be in [1, 64]" in capsys.readouterr().err
 
 
+def test_a_compressed_recording_is_decoded_by_one_worker_per_processor_by_default(scan_bag, tmp_path, monkeypatch):
+    """Decoding is the heaviest stage: on two processors two workers share it (the reader and the mapping
+    take less than a processor between them), not the reader alone."""
+    from touchroller_bringup import decode_pool, forked_reader
+    from touchroller_bringup.bag_compression import compress_recording
+
+    compress_recording(scan_bag, tmp_path / "small")
+    asked: list[int] = []
+    ordered = decode_pool.ordered
+
+    def spy(items, work, wanted, workers, *args, **kwargs):  # type: ignore[no-untyped-def]
+        asked.append(workers)
+        return ordered(items, work, wanted, 1)   # decoded here: the map is the same
+
+    monkeypatch.setattr(forked_reader, "fork_available", lambda: False)   # the reader in this process
+    monkeypatch.setattr(decode_pool, "pool_workers", lambda limit=decode_pool.MAX_WORKERS: 2)
+    monkeypatch.setattr(decode_pool, "ordered", spy)
+    assert main(["map", str(tmp_path / "small"), "--out", str(tmp_path / "map.png")]) == 0
+    assert asked == [2]
+
+
 def test_frames_of_another_size_than_the_camera_model_are_one_line(tmp_path, capsys):
     """The reader (another process) finds it; the command says it as any other bad input."""
     def records():

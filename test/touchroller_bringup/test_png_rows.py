@@ -20,7 +20,8 @@ def _png(image: np.ndarray, **params: int) -> np.ndarray:
 @settings(max_examples=40, deadline=None)
 @given(rows=st.integers(2, 60), cols=st.integers(1, 50), kind=st.sampled_from(["bgr8", "mono8", "mono16", "bgra8"]),
        level=st.sampled_from([0, 1, 6, 9]), smooth=st.booleans(), seed=st.integers(0, 2**16),
-       filtering=st.sampled_from(["adaptive", "IMWRITE_PNG_FILTER_SUB", "IMWRITE_PNG_FILTER_AVG"]), data=st.data())
+       filtering=st.sampled_from(["adaptive", "IMWRITE_PNG_FILTER_SUB", "IMWRITE_PNG_FILTER_AVG",
+                                   "IMWRITE_PNG_FILTER_NONE"]), data=st.data())
 def test_the_rows_are_those_of_a_whole_decode(rows, cols, kind, level, smooth, seed, filtering, data):
     rng = np.random.default_rng(seed)
     shape = {"bgr8": (rows, cols, 3), "mono8": (rows, cols), "mono16": (rows, cols), "bgra8": (rows, cols, 4)}[kind]
@@ -44,6 +45,39 @@ def test_the_recorders_pngs_decode_by_rows():
     image = np.random.default_rng(1).integers(0, 256, (48, 64, 3), dtype=np.uint8)
     _fmt, data = png_of(image)
     assert np.array_equal(decode_rows(data, 20), image[:20])
+
+
+@pytest.mark.parametrize("shape", [(40, 50, 3), (40, 50)])
+def test_rows_that_stand_alone_are_unfiltered_without_a_second_png_decode(monkeypatch, shape):
+    """The recorder's rows (8-bit, every one Sub): unfiltered by a running sum, not by building a PNG of the
+    rows for OpenCV to decode again; the same values, a band starting anywhere."""
+    import touchroller_bringup.png_rows as png_rows
+
+    image = np.random.default_rng(5).integers(0, 256, shape, dtype=np.uint8)
+    _fmt, data = png_of(image)
+    monkeypatch.setattr(png_rows.cv2, "imdecode", lambda *a: pytest.fail("decoded a second PNG"))
+    for first, end in ((0, 39), (17, 18), (12, 33)):
+        band = decode_rows(data, end, first)
+        assert band is not None and band.dtype == np.uint8 and band.flags.c_contiguous
+        assert np.array_equal(band, image[first:end])
+
+
+def test_a_transparency_chunk_is_applied_as_a_whole_decode_applies_it():
+    """A chunk before the image data may change what the decoder gives (tRNS: an alpha channel): such PNGs
+    go through OpenCV's own decoder, so the rows are still those of a whole decode."""
+    import struct
+    import zlib
+
+    image = np.random.default_rng(6).integers(0, 256, (30, 20, 3), dtype=np.uint8)
+    image[5:9] = (7, 8, 9)   # BGR: RGB (9, 8, 7), made transparent below
+    png = _png(image, IMWRITE_PNG_FILTER=cv2.IMWRITE_PNG_FILTER_SUB).tobytes()
+    body = struct.pack(">HHH", 9, 8, 7)
+    trns = struct.pack(">I", len(body)) + b"tRNS" + body + struct.pack(">I", zlib.crc32(b"tRNS" + body))
+    at = 8 + 25   # after the signature and IHDR
+    with_trns = png[:at] + trns + png[at:]
+    whole = cv2.imdecode(np.frombuffer(with_trns, np.uint8), cv2.IMREAD_UNCHANGED)
+    band = decode_rows(with_trns, 12, 3)
+    assert band is not None and band.shape == whole[3:12].shape and np.array_equal(band, whole[3:12])
 
 
 @pytest.mark.parametrize("case", ["end at the height", "end 0", "not a png", "truncated", "damaged", "interlaced"])

@@ -74,7 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--strip", action="store_true", help="the strip map even when the bag has TF")
     parser.add_argument("--workers", type=int, default=None,
                         help="world map: processes decoding a compressed recording's frames (default: one per "
-                             "processor but the one mapping; 1: decoded by the process reading the bag)")
+                             "processor; 1: decoded by the process reading the bag)")
     parser.set_defaults(func=run)
 
 
@@ -218,11 +218,12 @@ def _world_map(args: argparse.Namespace, out: Path, camera) -> int:
     def records() -> Iterator[tuple[object, Any]]:
         # The reader reads the bag (only the band's rows where it can) and cuts the bands: ((stamp,
         # summary), band) for a frame, ((record, transform), None) for a transform. Compressed frames are
-        # decoded and cut by a pool of processes (`decode_pool`), in order: one per processor but the mapping's.
+        # decoded and cut by a pool of processes (`decode_pool`), in order: one per processor (decoding is the
+        # heaviest stage; the reader and the mapping between them take less than a processor).
         from touchroller_bringup.decode_pool import ordered, pool_workers
 
         stream = read_images_and_tf(args.bag, args.topic, rows=rows, decode=False)
-        for record in ordered(stream, cut, _compressed, args.workers or max(1, pool_workers() - 1)):
+        for record in ordered(stream, cut, _compressed, args.workers or pool_workers()):
             if isinstance(record, ImageRecord):
                 yield cut(record)
             elif isinstance(record, TransformRecord):
