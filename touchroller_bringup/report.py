@@ -82,8 +82,9 @@ SECTIONS: tuple[Section, ...] = (
             "recording_size",
             "A 3-pass raster with /tf and /tf_static from the simulator and from the second raster generator, recorded "
             "raw and rewritten as `touchroller record` writes it (PNG CompressedImage on image_raw/compressed, zstd "
-            "MCAP chunks) and each way alone: bytes per frame and per square metre mapped, the time to compress a "
-            "frame, `touchroller map` as a new process on each, and whether its map is the raw recording's."),
+            "MCAP chunks but for those of PNG frames) and each way alone: bytes per frame and per square metre "
+            "mapped, the time to compress a frame, `touchroller map` as a new process on each, and whether its map "
+            "is the raw recording's."),
     Section("map_scale", "Square metres: the tiled world map's memory, pyramid and windows", "map_scale",
             "Frames synthesised straight into the mapper API (the bench's own texture and raster poses, no "
             "simulator: the mapper alone): 1 m x 1 m and 0.5 m x 0.5 m rasters at 0.1 mm per "
@@ -121,10 +122,12 @@ SECTIONS: tuple[Section, ...] = (
     Section("height_sim", "Height in the simulator: ball-press calibration", "height_sim",
             "The simulator's `ball_presses` scene: calibrated on half the presses, the model's slopes against the "
             "renderer's own on the other half."),
-    Section("height_map", "World height map in the simulator", "height_map",
+    Section("height_map", "World height map: the simulator and the second raster generator", "height_map",
             "A 2-pass raster of the `large_surface` grained surface and its `panel` variant (planted cracks and "
             "dents), heights from a photometric model calibrated on simulated ball presses of the same sensor, "
-            "placed by the world mapper: the height map against the true relief in place (simulator only)."),
+            "placed by the world mapper: the height map against the true relief in place; then the same on the second "
+            "raster generator (its own contact model, shading and noise, its own sensor calibrated with its own ball "
+            "presses), mapped by `touchroller map`."),
     Section("sim_to_real", "Simulated against real presses", "sim_to_real",
             "The simulator's presses against real ones at the same place and radius, with its ideal appearance and "
             "with a realistic one fitted on real frames (press shape, colour response, background, noise); and our "
@@ -746,7 +749,7 @@ GOALS: tuple[Goal, ...] = (
          _world_speed("read_ratio", "{:.2f}x", 1.5, below=True)),
     Goal(22, "World map: `touchroller map` within 1.5x of reading the bag (bench.map_speed, new processes)",
          "map_speed", _map_world_ratio),
-    Goal(25, "`touchroller map` on a compressed recording (PNG, zstd MCAP) >= 500 frames/s as a whole command",
+    Goal(25, "`touchroller map` on a compressed recording (PNG images) >= 500 frames/s as a whole command",
          "map_speed", _map_compressed),
     Goal(25, "World map, 1 m x 1 m at 0.1 mm/px: peak RSS <= 1 GB mapping and writing the files (frames "
              "synthesised into the mapper API)", "map_scale", _scale_goal("peak RSS")),
