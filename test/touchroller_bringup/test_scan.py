@@ -216,7 +216,7 @@ def test_a_slow_recorder_slows_the_simulated_scan_down_instead_of_missing_frames
 
     def close_and_keep_stats(self):
         close(self)
-        stats.append(self.stats())
+        stats.append(self.stats() if hasattr(self, "stats") else None)
 
     monkeypatch.setattr(recorder_module._BagWriter, "_handle", slow_handle)
     monkeypatch.setattr(CameraNode, "publish_frame", counted_publish)
