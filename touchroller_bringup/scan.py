@@ -445,7 +445,8 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
     sweep = create("sweep")
     camera = create("camera")
     perception = create("perception")
-    _check_overrides(options.overrides, nodes)
+    _check_overrides({name: value for name, value in options.overrides.items()
+                      if not (options.record and name in _recorder_parameters())}, nodes)
     return sweep, camera, perception
 
 
@@ -484,6 +485,13 @@ def _integer_for_double(exc: Exception, overrides: Mapping[str, Any]) -> str | N
     return None
 
 
+def _recorder_parameters() -> tuple[str, ...]:
+    """The recorder's ROS parameters (queue.max_bytes, ...): with `record`, overrides the recorder takes."""
+    from touchroller_bringup.recorder import RECORDER_PARAMETERS
+
+    return tuple(RECORDER_PARAMETERS)
+
+
 def _check_overrides(overrides: Mapping[str, Any], nodes: Sequence[Any]) -> None:
     unknown = [name for name in overrides if not any(node.has_parameter(name) for node in nodes)]
     if unknown:
@@ -497,8 +505,15 @@ def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: lis
     if path.exists():
         raise UserError(f"{path} already exists; choose another --out")
     topics = [names.topic(name, namespace) for name in RECORDED_TOPICS]
-    recorder = Recorder(path, topics=topics, storage=options.storage, distro=options.bag_format,
-                        compress=options.compress, context=context)
+    from rclpy.exceptions import ParameterException
+    from rclpy.parameter import Parameter
+
+    mine = [Parameter(name, value=value) for name, value in options.overrides.items() if name in _recorder_parameters()]
+    try:
+        recorder = Recorder(path, topics=topics, storage=options.storage, distro=options.bag_format,
+                            compress=options.compress, context=context, parameter_overrides=mine)
+    except (ParameterException, ValueError) as exc:
+        raise UserError(f"cannot start the recorder: {' '.join(str(exc).split())}") from None
     nodes.append(recorder)
     return recorder
 
