@@ -21,7 +21,11 @@ Topics are in the graph's namespace (`namespace:=...`, `touchroller` by default)
   the world map (its height layer when it has one, else its intensity: `scan_findings`, docs/inspection.md);
   simulated, a scene with planted defects also gives `truth_findings.csv`;
 - with `record`: `recording/`, a rosbag2 folder of the namespace's topics and `/diagnostics`
-  (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
+  (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`. It holds
+  every frame the camera published: the camera's first frame waits for the recorder's subscription
+  (`wait_for_subscribers`), the recorder spins on an executor and thread of its own, simulated the clock
+  waits for its writer (`image_raw/recorded`), and at the end the camera stops before the recording closes;
+  what a recorder that cannot keep up with a real camera loses is counted and said (report, stderr).
 
 SIGINT (Ctrl-C), SIGTERM and SIGHUP stop the scan in order, at any moment: the arm first (the sweep
 node's stop), then the frames in flight through perception, the map finished, the recording closed,
