@@ -231,6 +231,37 @@ def test_a_slow_recorder_slows_the_simulated_scan_down_instead_of_missing_frames
 
 
 @pytest.mark.ros
+@pytest.mark.timeout(240)
+def test_a_camera_that_cannot_wait_for_a_slow_recorder_loses_frames_counted_and_said(isolated_ros, tmp_path,
+                                                                                     monkeypatch, capsys):
+    """#25, a real camera's case (sim.lockstep:=false: the simulated camera does not wait either) with a writer
+    far slower than the camera and a queue bound of 1 MiB (queue.max_bytes:=..., about one frame): the frames
+    refused at the bound are missing from the recording, and the report and stderr say how many and why."""
+    from touchroller_bringup import recorder as recorder_module
+    from touchroller_bringup.bags import read_images
+
+    handle = recorder_module._BagWriter._handle
+
+    def slow_handle(self, item):
+        if item[0] == "message" and item[1].endswith("image_raw"):
+            time.sleep(0.2)   # 5 frames/s at most, against the camera's 30
+        handle(self, item)
+
+    monkeypatch.setattr(recorder_module._BagWriter, "_handle", slow_handle)
+    out = tmp_path / "scan"
+    assert main(["scan", *SHORT, "sim.lockstep:=false", f"queue.max_bytes:={2**20}", "--record", "--out",
+                 str(out)]) == 0
+    report = (out / "report.md").read_text()
+    published = int(report.split("frames published by the camera: ")[1].split()[0])
+    missing = published - len(list(read_images(out / "recording")))
+    assert missing > 0, "a writer this slow behind a queue this small must lose frames"
+    said = f"the recording misses {missing} of the {published} frames published (recording lost "
+    assert said in report and "refused at the queue's bound of 1 MiB (the writer fell behind)" in report, report
+    err = error_text(capsys.readouterr().err)
+    assert f"touchroller: warning: {said}" in err, err
+
+
+@pytest.mark.ros
 @pytest.mark.timeout(180)
 def test_a_recording_that_fails_mid_scan_stops_the_arm_and_still_writes_map_contacts_and_report(
         isolated_ros, tmp_path, capsys, monkeypatch):
