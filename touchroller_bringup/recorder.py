@@ -606,6 +606,8 @@ class Recorder(Node):
         # hit one while spin adds it to its wait set ("cannot use Destroyable because destruction
         # was requested", a thread traceback).
         self._writer.finish()
+        for publisher in self._progress.values():   # a simulated clock no longer waits for this recorder
+            self.destroy_publisher(publisher)
         if self._writer.error:
             raise UserError(f"writing bag {self.path} failed: {self._writer.error}; {self._writer.recovered}")
 

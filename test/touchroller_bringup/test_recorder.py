@@ -460,7 +460,8 @@ def test_frames_lost_before_the_recorder_took_them_are_counted_from_the_publishe
 
 def test_the_recorder_says_up_to_which_frame_it_has_written_each_image_topic(ros_context, spin_until, tmp_path):
     """`<image topic>/recorded` carries the stamp of each frame once it is in the bag (the simulated clock
-    waits for it); `record everything` does not record it, nor the recorder's own /diagnostics."""
+    waits for it) until the recording closes; `record everything` does not record it, nor the recorder's own
+    /diagnostics."""
     from sensor_msgs.msg import Image
     from std_msgs.msg import Header
 
@@ -482,6 +483,9 @@ def test_the_recorder_says_up_to_which_frame_it_has_written_each_image_topic(ros
             image_pub.publish(array_to_image(frame, stamp))
         assert spin_until(executor, lambda: len(written) == 5, timeout=20)
         spin_until(executor, lambda: False, timeout=1.5)   # discovery sees the recorder's own topics
+        recorder.close()   # closed, it no longer says anything: a simulated clock stops waiting for it
+        assert spin_until(executor, lambda: talker.count_publishers("/touchroller/image_raw/recorded") == 0,
+                          timeout=20)
     finally:
         recorder.destroy_node()
         executor.shutdown()
