@@ -186,8 +186,11 @@ def test_cli_record_duration_and_bad_arguments(ros_context, tmp_path, capsys):
     assert (tmp_path / "short" / "metadata.yaml").is_file()
     assert main(["record", "--out", str(tmp_path / "short"), "--duration", "0.3"]) == 2
     assert main(["record", "--out", str(tmp_path / "x"), "--duration", "-1"]) == 2
+    assert main(["record", "--out", str(tmp_path / "x"), "--queue-mb", "0.5"]) == 2
     err = capsys.readouterr().err
     assert "already exists" in err and "--duration must be positive" in err and "Traceback" not in err
+    assert "--queue-mb must be at least 1" in err
+    assert main(["record", "--out", str(tmp_path / "bounded"), "--duration", "0.3", "--queue-mb", "8"]) == 0
 
 
 def _start_recording(bag, storage, *, limit_bytes=None):
