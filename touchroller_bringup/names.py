@@ -34,6 +34,7 @@ MAP_HEIGHT = "map_height"        # sensor_msgs/Image 32FC1, the world height map
 MAP_METADATA = "map_metadata"    # nav_msgs/MapMetaData of the world map (resolution, size, origin)
 MAP_MARKERS = "map_markers"      # visualization_msgs/MarkerArray: the world map's tiles, textured quads in place
 IMAGE_DONE = "image_done"        # std_msgs/Header: the newest image perception has finished with
+IMAGE_RECORDED = "image_raw/recorded"   # std_msgs/Header: the newest image a recorder has written
 FINDINGS = "findings"            # visualization_msgs/MarkerArray: defects found in the world map (latched)
 DIAGNOSTICS = "/diagnostics"     # absolute: shared by every node of the robot
 TF = "/tf"                       # absolute, as tf2 publishes them; frame ids carry the prefix instead

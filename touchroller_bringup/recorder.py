@@ -6,8 +6,16 @@ chunks are compressed with zstd. A writer that falls `PNG_LAG_S` behind (PNG cos
 writes frames raw on `<topic>` until it has caught up; readers take both topics in recording order.
 
 `Recorder` is a node: it discovers the wanted topics, subscribes with `raw=True` (serialized CDR,
-never deserialised), and hands each message to a writer thread that owns the `rosbags` Writer,
-so callbacks stay short and nothing is dropped while the disk is busy. The offered QoS profiles
+never deserialised; `queue.depth` deep, in a callback group of its own) and hands each message to a writer
+thread that owns the `rosbags` Writer through a queue bounded in bytes (`queue.max_bytes`,
+`touchroller_bringup.recording_queue`), so callbacks stay short and take messages off the wire at once.
+Nothing is lost silently: a message refused at the queue's bound (a writer behind a camera that cannot
+wait) and a message DDS lost before the recorder took it (a gap in its publisher's sequence numbers) are
+counted per topic (`stats()`), logged, and ERROR on `/diagnostics` ("touchroller recorder"). For every
+sensor_msgs/Image topic it records, the recorder publishes on `<topic>/recorded` (std_msgs/Header) the
+stamp of each frame once written: a simulated scan's clock waits for it as for the perception node
+(`sweep` node, `sim.lockstep`), so a slow recorder slows the simulation down instead of losing frames.
+The offered QoS profiles
 of the publishers are stored in the bag's metadata, so `touchroller replay` (and `ros2 bag play`)
 can publish with them again. `close()` drains what is in flight and finalises the bag: stopping
 with Ctrl-C loses nothing that had arrived.
@@ -24,11 +32,11 @@ stops and says it in one line); what was committed before is kept and indexed.
 from __future__ import annotations
 
 import importlib
-import queue
 import struct
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +45,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from touchroller_bringup.errors import UserError
+from touchroller_bringup.recording_queue import BoundedQueue, QueueStats
 
 #: Topics left out of "record everything" (ros2 bag record -a leaves out hidden topics; these are noise).
 EXCLUDED_BY_DEFAULT = ("/rosout", "/parameter_events")
@@ -52,6 +61,66 @@ RESERVE_NAME, RESERVE_BYTES = ".touchroller-reserve", 256 * 1024
 #: larger) instead of as PNG: the writer never falls further behind than this for the sake of compression
 PNG_LAG_S = 0.25
 _IDLE = ("idle",)
+#: suffix of the topic on which the recorder says, per image topic, up to which frame it has written
+RECORDED_SUFFIX = "/recorded"
+IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    queue_max_bytes: int = 256 * 2**20   # messages taken but not written yet, at most this many bytes
+    queue_depth: int = 300               # each subscription's DDS queue (messages): 10 s of a 30 fps camera
+
+    def __post_init__(self) -> None:
+        if not self.queue_max_bytes >= 2**20:
+            raise ValueError(f"queue.max_bytes must be at least 1 MiB, got {self.queue_max_bytes}")
+        if not self.queue_depth >= 1:
+            raise ValueError(f"queue.depth must be at least 1, got {self.queue_depth}")
+
+
+# ROS parameter -> (RecorderConfig field, description, min, max, read-only)
+RECORDER_PARAMETERS: dict[str, tuple[str, str, int, int, bool]] = {
+    "queue.max_bytes": ("queue_max_bytes", "Messages taken off the wire but not written yet, at most this many "
+                        "bytes (a writer behind a camera that cannot wait: the messages past it are refused, counted "
+                        "and reported ERROR on /diagnostics)", 2**20, 2**40, False),
+    "queue.depth": ("queue_depth", "Depth of each subscription's queue (keep-last, messages) while the recorder's "
+                    "thread is busy", 1, 100_000, True),
+}
+
+
+@dataclass(frozen=True)
+class RecorderStats:
+    """What a recording took, wrote and lost, per topic."""
+
+    received: dict[str, int]             # messages taken off the wire and queued for the writer
+    written: int                         # messages written to the bag
+    written_raw: int                     # images written raw because the writer was behind (lossless, larger)
+    queue: QueueStats                    # the writer's queue: bytes now, at most, and refused at its bound
+    lost_in_transport: dict[str, int]    # gaps in the publishers' sequence numbers: lost before the recorder
+
+    @property
+    def overflowed(self) -> dict[str, int]:
+        return self.queue.overflowed
+
+    @property
+    def lost(self) -> dict[str, int]:
+        """Messages published while recording and not in the bag, per topic (refused at the bound or lost)."""
+        topics = set(self.queue.overflowed) | set(self.lost_in_transport)
+        return {t: self.queue.overflowed.get(t, 0) + self.lost_in_transport.get(t, 0) for t in sorted(topics)
+                if self.queue.overflowed.get(t, 0) + self.lost_in_transport.get(t, 0)}
+
+    def summary(self) -> str:
+        """One line: what was lost and why ("" when nothing was)."""
+        parts = [f"{n} on {topic}" for topic, n in self.lost.items()]
+        if not parts:
+            return ""
+        why = []
+        if self.queue.overflowed_total:
+            why.append(f"{self.queue.overflowed_total} refused at the queue's bound of "
+                       f"{self.queue.max_bytes / 2**20:g} MiB (the writer fell behind)")
+        if sum(self.lost_in_transport.values()):
+            why.append(f"{sum(self.lost_in_transport.values())} lost before the recorder took them")
+        return f"recording lost {sum(self.lost.values())} messages ({', '.join(parts)}): {'; '.join(why)}"
 
 
 def message_class(msgtype: str) -> Any:
@@ -109,7 +178,9 @@ def subscription_qos(offered: Sequence[QoSProfile], depth: int = 100) -> QoSProf
 class _BagWriter(threading.Thread):
     """Owns the rosbags Writer; every call on it happens on this thread, in arrival order."""
 
-    def __init__(self, path: Path, storage: str, distro: str = "auto", compress: bool = False) -> None:
+    def __init__(self, path: Path, storage: str, distro: str = "auto", compress: bool = False,
+                 max_bytes: int = RecorderConfig.queue_max_bytes,
+                 on_image_written: Callable[[str, int], None] | None = None) -> None:
         super().__init__(name="touchroller-bag-writer", daemon=True)
         from rosbags.typesys import Stores, get_typestore
 
@@ -125,7 +196,9 @@ class _BagWriter(threading.Thread):
         self.written_raw = 0          # images written raw because the writer was behind (PNG costs time)
         self.distro = self._writer.distro
         self._opened = threading.Event()
-        self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self.queue = BoundedQueue(max_bytes)
+        self._on_image_written = on_image_written   # (topic, stamp_ns) of each image written, on this thread
+        self._images: set[str] = set()               # the sensor_msgs/Image topics
         self._connections: dict[str, Any] = {}
         self.written = 0
         self.committed = 0          # messages on disk: a kill from now on loses none of them
@@ -142,14 +215,16 @@ class _BagWriter(threading.Thread):
             raise UserError(f"cannot write bag: {self.error}")
 
     def add_topic(self, topic: str, msgtype: str, offered: list[Any]) -> None:
-        self._queue.put(("topic", topic, msgtype, offered))
+        self.queue.put_always(("topic", topic, msgtype, offered))
 
-    def write(self, topic: str, stamp_ns: int, data: bytes, arrived: float | None = None) -> None:
-        """Queue a message; `arrived`: when it arrived (time.monotonic(), default now), the commit's clock."""
-        self._queue.put(("message", topic, stamp_ns, data, time.monotonic() if arrived is None else arrived))
+    def write(self, topic: str, stamp_ns: int, data: bytes, arrived: float | None = None) -> bool:
+        """Queue a message; `arrived`: when it arrived (time.monotonic(), default now), the commit's clock.
+        False when the queue's bound refused it (counted in `queue.stats().overflowed`)."""
+        return self.queue.put(("message", topic, stamp_ns, data, time.monotonic() if arrived is None else arrived),
+                              len(data), topic)
 
     def finish(self) -> None:
-        self._queue.put(None)
+        self.queue.put_always(None)
         self.join()
 
     def run(self) -> None:
@@ -186,9 +261,9 @@ class _BagWriter(threading.Thread):
         """The next item, or _IDLE when the oldest uncommitted message comes of commit age without one."""
         try:
             if oldest is None:
-                return self._queue.get(timeout=COMMIT_INTERVAL_S)
-            return self._queue.get(timeout=max(0.0, oldest + COMMIT_AGE_S - time.monotonic()))
-        except queue.Empty:
+                return self.queue.get(timeout=COMMIT_INTERVAL_S)   # type: ignore[no-any-return]
+            return self.queue.get(timeout=max(0.0, oldest + COMMIT_AGE_S - time.monotonic()))  # type: ignore[no-any-return]
+        except TimeoutError:
             return _IDLE
 
     def _handle(self, item: tuple[Any, ...]) -> None:
@@ -197,6 +272,8 @@ class _BagWriter(threading.Thread):
         if item[0] == "topic":
             _, topic, msgtype, offered = item
             stored_topic = topic
+            if msgtype == IMAGE_TYPE:
+                self._images.add(topic)
             if self.compress and msgtype == IMAGE_TYPE:
                 self._png[topic] = offered
                 stored_topic, msgtype = topic + COMPRESSED_SUFFIX, COMPRESSED_TYPE
@@ -221,9 +298,18 @@ class _BagWriter(threading.Thread):
                         data = compressed_message(data, self._typestore)
                     except (ValueError, struct.error):   # a malformed image: what it holds cannot be kept
                         self.unconvertible += 1
+                        self._done_with(topic, item[3])
                         return
             self._writer.write(connection, stamp_ns, data)
             self.written += 1
+            self._done_with(topic, item[3])
+
+    def _done_with(self, topic: str, data: bytes) -> None:
+        """An image is written (or could not be): say so with its stamp (the simulated clock waits for it)."""
+        if self._on_image_written is not None and topic in self._images:
+            stamp = header_stamp_ns(data)
+            if stamp is not None:
+                self._on_image_written(topic, stamp)
 
     def _commit(self) -> None:
         """Put everything written so far on disk: an sqlite3 commit, or the MCAP chunk in progress
@@ -284,36 +370,96 @@ class _BagWriter(threading.Thread):
             self.recovered = f"not indexed ({_one_line(exc)}); run `touchroller reindex {self.path}` once there is room"
 
 
+def header_stamp_ns(data: bytes | memoryview) -> int | None:
+    """The header stamp of a CDR-encoded message that starts with a std_msgs/Header (an Image), in ns;
+    None when `data` is too short."""
+    if len(data) < 12:
+        return None
+    order = "<" if data[1] & 1 else ">"   # the encapsulation: CDR_LE / CDR_BE
+    sec, nanosec = struct.unpack_from(order + "iI", data, 4)
+    return int(sec) * 1_000_000_000 + int(nanosec)
+
+
 def _one_line(exc: BaseException) -> str:
     text = " ".join(str(exc).split())
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 class Recorder(Node):
-    """Records `topics` (all but /rosout and /parameter_events when None) to a new bag at `path`."""
+    """Records `topics` (all but /rosout and /parameter_events when None) to a new bag at `path`.
+
+    `config` (or the ROS parameters of RECORDER_PARAMETERS, given as `parameter_overrides`) bounds the
+    writer's queue and sets the subscriptions' depth. Spin it on an executor (and thread) of its own where
+    other nodes' callbacks can be long (`touchroller scan` does): its callbacks only queue."""
 
     def __init__(self, path: str | Path, *, topics: Iterable[str] | None = None, storage: str = "sqlite3",
                  distro: str = "auto", compress: bool = False, discovery_period: float = 0.2,
-                 node_name: str = "touchroller_recorder", **node_kwargs: Any) -> None:
+                 node_name: str = "touchroller_recorder", config: RecorderConfig | None = None,
+                 **node_kwargs: Any) -> None:
         # What close() and destroy_node use comes before Node.__init__: from there on the context tracks
         # the node and destroys it at shutdown, also when the rest of this constructor raises.
         self.path = Path(path)
         self.topics = None if topics is None else [t if t.startswith("/") else "/" + t for t in topics]
         self.counts: dict[str, int] = {}
         self._recorded_subscriptions: dict[str, Any] = {}
+        self._progress: dict[str, Any] = {}          # image topic -> publisher of <topic>/recorded
+        self._last_sequence: dict[tuple[str, Any], int] = {}   # (topic, publisher gid) -> last sequence number
+        self._lost: dict[str, int] = {}              # topic -> messages lost before the recorder took them
         self._warned: set[str] = set()
         self._lock = threading.Lock()
         self._closed = False
         self._timer: Any = None
-        self._writer = _BagWriter(self.path, storage, distro, compress)
+        self._diagnostics: Any = None
+        self.config = config or RecorderConfig()
+        self._writer = _BagWriter(self.path, storage, distro, compress, self.config.queue_max_bytes,
+                                  self._image_written)
         self._writer.start()   # opens the bag: UserError (e.g. a read-only folder) before any node exists
         try:
             super().__init__(node_name, **node_kwargs)
+            self._declare_parameters(config)
         except BaseException:
             self._writer.finish()
             raise
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+
+        from touchroller_bringup.ros_diagnostics import DiagnosticsPublisher
+
+        self._group = MutuallyExclusiveCallbackGroup()   # the subscriptions: never behind the discovery timer
+        self._diagnostics = DiagnosticsPublisher(self, "touchroller recorder", hardware_id=str(self.path))
+        self._diagnostics.add(self._status)
         self._discover()
         self._timer = self.create_timer(discovery_period, self._discover)
+
+    def _declare_parameters(self, config: RecorderConfig | None) -> None:
+        from touchroller_bringup.ros_params import declare
+
+        defaults = config or RecorderConfig()
+        for name, (field, description, lo, hi, read_only) in RECORDER_PARAMETERS.items():
+            declare(self, name, int(getattr(defaults, field)), description, min=lo, max=hi, read_only=read_only)
+        self.config = self._config_from_parameters()
+        self._writer.queue.max_bytes = self.config.queue_max_bytes
+        self.add_on_set_parameters_callback(self._validate)
+        self.add_post_set_parameters_callback(self._apply)
+
+    def _config_from_parameters(self, overrides: dict[str, Any] | None = None) -> RecorderConfig:
+        values = {name: self.get_parameter(name).value for name in RECORDER_PARAMETERS}
+        values.update(overrides or {})
+        return RecorderConfig(**{RECORDER_PARAMETERS[name][0]: int(v) for name, v in values.items()})
+
+    def _validate(self, parameters: Sequence[Any]) -> Any:
+        from rcl_interfaces.msg import SetParametersResult
+
+        changes = {p.name: p.value for p in parameters if p.name in RECORDER_PARAMETERS}
+        try:
+            self._config_from_parameters(changes)
+        except (TypeError, ValueError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply(self, parameters: Sequence[Any]) -> None:
+        if any(p.name in RECORDER_PARAMETERS for p in parameters):
+            self.config = self._config_from_parameters()
+            self._writer.queue.max_bytes = self.config.queue_max_bytes
 
     @property
     def message_count(self) -> int:
@@ -328,10 +474,25 @@ class Recorder(Node):
         """Set at once when writing fails (e.g. the disk is full); `close()` then raises UserError."""
         return self._writer.failed
 
+    def stats(self) -> RecorderStats:
+        with self._lock:
+            received, lost = dict(self.counts), dict(self._lost)
+        return RecorderStats(received, self._writer.written, self._writer.written_raw, self._writer.queue.stats(),
+                             lost)
+
     def _wanted(self, topic: str) -> bool:
         if self.topics is None:
-            return topic not in EXCLUDED_BY_DEFAULT
+            return topic not in EXCLUDED_BY_DEFAULT and topic not in self._progress_topics()
         return topic in self.topics
+
+    def _progress_topics(self) -> set[str]:
+        return {topic + RECORDED_SUFFIX for topic in self._progress}
+
+    def _others(self, topic: str) -> list[Any]:
+        """The publishers on `topic` but this node (its /diagnostics and <image>/recorded)."""
+        me = (self.get_name(), self.get_namespace())
+        return [info for info in self.get_publishers_info_by_topic(topic)
+                if (info.node_name, info.node_namespace) != me]
 
     def _discover(self) -> None:
         if self._closed:
@@ -339,30 +500,95 @@ class Recorder(Node):
         for topic, types in self.get_topic_names_and_types():
             if topic in self._recorded_subscriptions or not self._wanted(topic):
                 continue
-            offered = [info.qos_profile for info in self.get_publishers_info_by_topic(topic)]
+            offered = [info.qos_profile for info in
+                       (self._others(topic) if self.topics is None else self.get_publishers_info_by_topic(topic))]
             if not offered:
-                continue  # only subscribers so far: wait for a publisher to learn its QoS
+                continue  # only subscribers (or only this node) so far: wait for a publisher to learn its QoS
             msgtype = types[0]
             cls = message_class(msgtype)
             if cls is None:
                 self._warn_once(topic, f"not recording {topic}: message type {msgtype} is not installed")
                 continue
+            if msgtype == IMAGE_MSGTYPE:   # before the writer can say a frame of it is written
+                from std_msgs.msg import Header
+
+                self._progress[topic] = self.create_publisher(Header, topic + RECORDED_SUFFIX, QoSProfile(
+                    history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
             self._writer.add_topic(topic, msgtype, [to_bag_qos(p) for p in offered])
             self.counts[topic] = 0
             self._recorded_subscriptions[topic] = self.create_subscription(
-                cls, topic, self._callback_for(topic), subscription_qos(offered), raw=True)
+                cls, topic, self._callback_for(topic), subscription_qos(offered, self.config.queue_depth), raw=True,
+                callback_group=self._group)
             self.get_logger().info(f"recording {topic} ({msgtype})")
 
-    def _callback_for(self, topic: str):
-        def on_message(data: bytes) -> None:
+    def _callback_for(self, topic: str) -> Callable[..., None]:
+        def on_message(data: bytes, info: Any) -> None:   # two arguments: rclpy hands MessageInfo
             stamp_ns = self.get_clock().now().nanoseconds  # receive time, as rosbag2 records
             with self._lock:
                 if self._closed:
                     return
-                self.counts[topic] += 1
-                self._writer.write(topic, stamp_ns, data)
+                gap = self._sequence_gap(topic, info)
+                queued = self._writer.write(topic, stamp_ns, data)
+                if queued:
+                    self.counts[topic] += 1
+            if gap:
+                self.get_logger().error(f"recording {topic}: {gap} message(s) lost before the recorder took them "
+                                        f"({self._lost[topic]} in all)", throttle_duration_sec=5.0)
+            if not queued:
+                self.get_logger().error(
+                    f"recording {topic}: the writer is behind and its queue is full "
+                    f"({self.config.queue_max_bytes / 2**20:g} MiB, queue.max_bytes): messages refused "
+                    f"({self._writer.queue.stats().overflowed.get(topic, 0)} in all)", throttle_duration_sec=5.0)
 
+        if not _has_message_info():
+            return lambda data: on_message(data, None)
         return on_message
+
+    def _sequence_gap(self, topic: str, info: Any) -> int:
+        """Messages of `topic`'s publisher skipped since the last one taken (0 without MessageInfo)."""
+        sequence = info.get("publication_sequence_number") if isinstance(info, dict) else None
+        if not sequence:
+            return 0
+        gid = info.get("publisher_gid")
+        key = (topic, tuple(gid.get("data", ())) if isinstance(gid, dict) else None)
+        last = self._last_sequence.get(key)
+        self._last_sequence[key] = max(int(sequence), last or 0)
+        gap = int(sequence) - last - 1 if last is not None and sequence > last + 1 else 0
+        if gap:
+            self._lost[topic] = self._lost.get(topic, 0) + gap
+        return gap
+
+    def _image_written(self, topic: str, stamp_ns: int) -> None:
+        """On the writer thread: a frame of image topic `topic` is in the bag; say so on `<topic>/recorded`."""
+        publisher = self._progress.get(topic)
+        if publisher is None:
+            return
+        from std_msgs.msg import Header
+
+        header = Header()
+        header.stamp.sec, header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        try:
+            publisher.publish(header)
+        except Exception:  # noqa: BLE001 - the context went down while the writer finished
+            if self.context.ok():
+                raise
+
+    def _status(self) -> Any:
+        from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, Status
+
+        stats = self.stats()
+        values = {"messages": sum(stats.received.values()), "written": stats.written,
+                  "written_raw": stats.written_raw, "queued_bytes": stats.queue.queued_bytes,
+                  "queue_peak_bytes": stats.queue.peak_bytes, "queue_max_bytes": stats.queue.max_bytes,
+                  "refused_queue_full": stats.queue.overflowed_total,
+                  "lost_before_taken": sum(stats.lost_in_transport.values())}
+        if self._writer.error:
+            return Status(ERROR, f"writing failed: {self._writer.error}", values)
+        if stats.lost:
+            return Status(ERROR, stats.summary(), values)
+        if stats.queue.queued_bytes > stats.queue.max_bytes // 2:
+            return Status(WARN, "the writer is behind: its queue is over half full", values)
+        return Status(OK, "recording", values)
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:
@@ -380,6 +606,8 @@ class Recorder(Node):
         # hit one while spin adds it to its wait set ("cannot use Destroyable because destruction
         # was requested", a thread traceback).
         self._writer.finish()
+        for publisher in self._progress.values():   # a simulated clock no longer waits for this recorder
+            self.destroy_publisher(publisher)
         if self._writer.error:
             raise UserError(f"writing bag {self.path} failed: {self._writer.error}; {self._writer.recovered}")
 
@@ -388,3 +616,9 @@ class Recorder(Node):
             self.close()
         finally:
             super().destroy_node()
+
+
+def _has_message_info() -> bool:
+    import rclpy.subscription
+
+    return hasattr(rclpy.subscription, "MessageInfo")

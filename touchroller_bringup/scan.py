@@ -21,7 +21,11 @@ Topics are in the graph's namespace (`namespace:=...`, `touchroller` by default)
   the world map (its height layer when it has one, else its intensity: `scan_findings`, docs/inspection.md);
   simulated, a scene with planted defects also gives `truth_findings.csv`;
 - with `record`: `recording/`, a rosbag2 folder of the namespace's topics and `/diagnostics`
-  (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`.
+  (the driver's `Recorder`), for `touchroller contacts`, `touchroller map` or `touchroller replay`. It holds
+  every frame the camera published: the camera's first frame waits for the recorder's subscription
+  (`wait_for_subscribers`), the recorder spins on an executor and thread of its own, simulated the clock
+  waits for its writer (`image_raw/recorded`), and at the end the camera stops before the recording closes;
+  what a recorder that cannot keep up with a real camera loses is counted and said (report, stderr).
 
 SIGINT (Ctrl-C), SIGTERM and SIGHUP stop the scan in order, at any moment: the arm first (the sweep
 node's stop), then the frames in flight through perception, the map finished, the recording closed,
@@ -75,6 +79,9 @@ GRAPH_TOPICS = (names.IMAGE, names.CAMERA_INFO, names.CONTACTS, names.MAP, names
 
 
 OUTPUT_FILES = ("contacts.csv", "report.md", PREVIEW, "map.png", "map.yaml")
+#: with `record`, the camera holds its first frame until this many subscriptions take its images: the scan's
+#: own counter (the probe), the perception node and the recorder
+IMAGE_SUBSCRIBERS_WITH_RECORDER = 3
 
 
 @dataclass
@@ -117,6 +124,7 @@ class ScanResult:
     coverage: ScanCoverage | None = None   # the requested area and how much of it the world map covers
     findings: list[Any] | None = None      # of DIR/findings.csv when the scan wrote one
     findings_problem: str = ""             # why findings.csv could not be read
+    recording_lost: str = ""               # what the recorder itself counted lost, and why (RecorderStats.summary)
 
     @property
     def ok(self) -> bool:
@@ -124,14 +132,24 @@ class ScanResult:
 
     @property
     def images_not_recorded(self) -> int:
-        """Camera frames published but not in the recording (raw or PNG); 0 without a recording. A recorder
-        that falls behind a reliable keep-last publisher (a starved machine) loses frames: the scan says so."""
+        """Camera frames published but not in the recording (raw or PNG); 0 without a recording. The scan stops
+        the camera before it closes the recording, so every frame published counts: one the recorder lost
+        (refused at its queue's bound, lost on the way, published before it subscribed) is said, never hidden."""
         if not self.recorded:
             return 0
         image_topics = {f"/{names.IMAGE}", f"/{names.IMAGE}/compressed"}
         images = sum(count for topic, count in self.recorded.items()
                      if any(topic.endswith(suffix) for suffix in image_topics))
         return max(0, self.frames_published - images)
+
+    @property
+    def recording_warning(self) -> str:
+        """What the recording misses and why, in one sentence; "" when it holds every frame and message."""
+        missing = self.images_not_recorded
+        if not missing:
+            return self.recording_lost
+        why = self.recording_lost or "not taken by the recorder before it closed"
+        return f"the recording misses {missing} of the {self.frames_published} frames published ({why})"
 
 
 @dataclass
@@ -249,9 +267,13 @@ def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiT
         sys.setswitchinterval(switch_interval)
         _restore_environment(saved_environment)
         raise
+    from rclpy.executors import SingleThreadedExecutor
+
     nodes: list[Any] = []
     executor = MultiThreadedExecutor(num_threads=4, context=context)
     spinner: threading.Thread | None = None
+    recorder_executor: Any = None
+    recorder_spinner: threading.Thread | None = None
     stop_spinning = threading.Event()
     sweep = None
     try:
@@ -272,10 +294,19 @@ def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiT
         failures: list[str] = []   # callbacks that raised on the executor (`_spin`)
         check = _checker(stop, recorder, failures)
         for node in nodes:
-            executor.add_node(node)
+            if node is not recorder:
+                executor.add_node(node)
         spinner = threading.Thread(target=_spin, args=(executor, stop_spinning, failures),
                                    name="scan-executor", daemon=True)
         spinner.start()
+        if recorder is not None:
+            # its own executor and thread: its callbacks only queue, and must not wait behind the perception
+            # node's (a map update, a whole-map flat field) while the camera goes on publishing
+            recorder_executor = SingleThreadedExecutor(context=context)
+            recorder_executor.add_node(recorder)
+            recorder_spinner = threading.Thread(target=_spin, args=(recorder_executor, stop_spinning, failures),
+                                                name="scan-recorder-executor", daemon=True)
+            recorder_spinner.start()
         say(f"scan: graph up ({', '.join(n.get_name() for n in (sweep, camera, perception))}); "
             f"{'simulated sensor and arm' if graph.arguments['use_sim'] == 'true' else 'camera and UR5'}")
         if graph.rviz_config:
@@ -305,26 +336,34 @@ def _run_graph(options: ScanOptions, stop: Any, rclpy: Any, Context: Any, MultiT
         _flush_map(perception, collected)
         answer = sweep.last_answer[2] if sweep.last_answer else ""
         recorded: dict[str, int] = {}
+        recording_lost = ""
         if recorder is not None:
+            # the recording ends with the camera's last frame: none published after it closed, none in flight
+            camera.stop()
+            _wait_for_recorder_to_take(recorder, camera)
             try:
                 recorder.close()  # drains and finalises the bag (UserError if writing failed)
                 recorded = dict(recorder.counts)
+                recording_lost = recorder.stats().summary()
             except UserError as exc:   # what the bag kept is in the message; the map must not be lost too
                 outcome, message = "recording failed", str(exc)
         result = _write_outputs(out_dir, graph, perception, collected, outcome, message, duration, answer, recorded,
-                                camera, during_sweep, sweep)
+                                camera, during_sweep, sweep, recording_lost)
         if stop is not None and outcome == "interrupted":
             result.signal = stop.last_signal
         return result
     finally:
         _stop_arm(sweep)   # a sweep still moving (an error above): stopped before anything is destroyed
         stop_spinning.set()
-        if spinner is not None:
-            # Nodes must not be destroyed under a running spin_once (rclpy then raises in the thread):
-            # wait for it however loaded the machine is; it ends within one spin_once and its callbacks.
-            spinner.join(timeout=60.0)
+        for thread in (spinner, recorder_spinner):
+            if thread is not None:
+                # Nodes must not be destroyed under a running spin_once (rclpy then raises in the thread):
+                # wait for it however loaded the machine is; it ends within one spin_once and its callbacks.
+                thread.join(timeout=60.0)
         _drain(executor)
         executor.shutdown(timeout_sec=2.0)
+        if recorder_executor is not None:
+            recorder_executor.shutdown(timeout_sec=2.0)
         for node in reversed(nodes):
             node.destroy_node()
         context.try_shutdown()
@@ -405,10 +444,13 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
     if options.height and not (overrides.get("map.height.photometric") and overrides.get("map.height.reference")):
         raise UserError("--height on a real sensor needs its photometric model: map.height.photometric:=P.npz "
                         "map.height.reference:=REF.png ('touchroller calibrate photometric', docs/height.md)")
+    if options.record:   # the camera's first frame only once the recorder takes it too: the recording is whole
+        overrides.setdefault("wait_for_subscribers", IMAGE_SUBSCRIBERS_WITH_RECORDER)
     sweep = create("sweep")
     camera = create("camera")
     perception = create("perception")
-    _check_overrides(options.overrides, nodes)
+    _check_overrides({name: value for name, value in options.overrides.items()
+                      if not (options.record and name in _recorder_parameters())}, nodes)
     return sweep, camera, perception
 
 
@@ -447,6 +489,13 @@ def _integer_for_double(exc: Exception, overrides: Mapping[str, Any]) -> str | N
     return None
 
 
+def _recorder_parameters() -> tuple[str, ...]:
+    """The recorder's ROS parameters (queue.max_bytes, ...): with `record`, overrides the recorder takes."""
+    from touchroller_bringup.recorder import RECORDER_PARAMETERS
+
+    return tuple(RECORDER_PARAMETERS)
+
+
 def _check_overrides(overrides: Mapping[str, Any], nodes: Sequence[Any]) -> None:
     unknown = [name for name in overrides if not any(node.has_parameter(name) for node in nodes)]
     if unknown:
@@ -460,8 +509,15 @@ def _make_recorder(out_dir: Path, options: ScanOptions, context: Any, nodes: lis
     if path.exists():
         raise UserError(f"{path} already exists; choose another --out")
     topics = [names.topic(name, namespace) for name in RECORDED_TOPICS]
-    recorder = Recorder(path, topics=topics, storage=options.storage, distro=options.bag_format,
-                        compress=options.compress, context=context)
+    from rclpy.exceptions import ParameterException
+    from rclpy.parameter import Parameter
+
+    mine = [Parameter(name, value=value) for name, value in options.overrides.items() if name in _recorder_parameters()]
+    try:
+        recorder = Recorder(path, topics=topics, storage=options.storage, distro=options.bag_format,
+                            compress=options.compress, context=context, parameter_overrides=mine)
+    except (ParameterException, ValueError) as exc:
+        raise UserError(f"cannot start the recorder: {' '.join(str(exc).split())}") from None
     nodes.append(recorder)
     return recorder
 
@@ -474,6 +530,23 @@ def _wait_for_recorder(recorder: Any, timeout: float, check: Callable[[], None] 
         check()
         if time.monotonic() > deadline:
             raise UserError(f"the recorder did not find {image_topic} within {timeout:.0f} s")
+        time.sleep(0.02)
+
+
+def _wait_for_recorder_to_take(recorder: Any, camera: Any, timeout: float = 10.0) -> None:
+    """Once the camera has stopped: until the recorder has taken (or counted lost) every image it published,
+    so none is in flight when the recording closes."""
+    published = getattr(camera, "published", None)
+    if not isinstance(published, int):
+        return
+    image_topic = recorder.topics[0]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        stats = recorder.stats()
+        taken = (stats.received.get(image_topic, 0) + stats.overflowed.get(image_topic, 0)
+                 + stats.lost_in_transport.get(image_topic, 0))
+        if taken >= published:
+            return
         time.sleep(0.02)
 
 
@@ -747,7 +820,7 @@ def _published(camera: Any, collected: _Collected) -> int:
 def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Collected, outcome: str,
                    message: str, duration: float, sweep_answer: str,
                    recorded: Mapping[str, int] | None = None, camera: Any = None,
-                   during_sweep: int | None = None, sweep: Any = None) -> ScanResult:
+                   during_sweep: int | None = None, sweep: Any = None, recording_lost: str = "") -> ScanResult:
     """The small, irreplaceable outputs first (contacts.csv, report.md), then the map's preview (the report
     again without it if it does not fit) and the map: every output is tried, and each that could not be
     written is named in `ScanResult.failed` (a nearly full disk keeps a completed sweep's contacts when the
@@ -810,7 +883,7 @@ def _write_outputs(out_dir: Path, graph: Graph, perception: Any, collected: _Col
                         int(getattr(perception, "dropped", 0)), int(getattr(perception, "malformed", 0)),
                         len(contacts), map_shape, files, sweep_answer, dict(recorded or {}), world_map,
                         frames_during_sweep=during_sweep, failed=failed,
-                        findings_summary=found.summary() if found is not None else "")
+                        findings_summary=found.summary() if found is not None else "", recording_lost=recording_lost)
     if recorded:
         files["recording"] = out_dir / "recording"
     if found is not None:   # before the report, which shows them

@@ -226,9 +226,7 @@ def report_markdown(result: ScanResult, graph: Graph) -> str:
         *(_world_lines(result.world_map) if result.world_map else []),
         *([f"- recording: `recording/` ({', '.join(f'{t} {n}' for t, n in result.recorded.items())})"]
           if result.recorded else []),
-        *([f"- **the recording misses {result.images_not_recorded} of the {result.frames_published} frames "
-           "published** (the recorder fell behind the camera: a machine short of CPU)"]
-          if result.images_not_recorded else []),
+        *([f"- **{result.recording_warning}**"] if result.recording_warning else []),
         *([f"- not written: {', '.join(f'{name} ({why})' for name, why in result.failed.items())}"]
           if result.failed else []),
         "",

@@ -37,8 +37,8 @@ def test_the_scene_is_a_lazy_panel_with_defects_under_the_whole_raster(tmp_path)
     assert isinstance(made, TiledSurface) and made.tiles_made == 0
 
 
-def _case(bench, side, offline_rss, live_rss=600.0, fps=700.0, update_ms=1.2, outcome="done"):
-    live = bench.LiveResult(outcome, "", 600.0, 900.0, 15000, 15000, 0, 14900, (1250, 1250), 99.0, 22, live_rss, (),
+def _case(bench, side, offline_rss, live_rss=600.0, fps=700.0, update_ms=1.2, outcome="done", recorded=15000):
+    live = bench.LiveResult(outcome, "", 600.0, 900.0, 15000, 15000, 0, recorded, (1250, 1250), 99.0, 22, live_rss, (),
                             15000, update_ms, 3.0, 4.0, 9.0, 600, 10.0, 50.0, 400, 96, 6000.0, "")
     offline = bench.OfflineResult(0, offline_rss, 14900 / fps, 40.0, 14900, fps, "mapped")
     return bench.CaseResult(side, (10400, 10400), "8 cracks", 50.0, live, offline)
@@ -50,17 +50,19 @@ def test_the_goal_rows_judge_the_largest_side_and_a_failed_scan_meets_none():
     cases = [_case(bench, 1.0, 560.0), _case(bench, 0.5, 500.0)]
     result = bench.ScanSquareMetreResult(stamp, False, 0.05, cases, 560.0 / 500.0, 1.0, "1.0")
     rows = bench.goals(result)
-    assert [met for _, met, _ in rows] == [True, True, True, True, True]
+    assert [met for _, met, _ in rows] == [True, True, True, True, True, True]
     assert "560 MB" in rows[0][2] and "x1.12" in rows[1][2]
     worse = dataclasses.replace(result, offline_rss_ratio=1.3,
-                                cases=[_case(bench, 1.0, 650.0, live_rss=1100.0, fps=300.0, update_ms=2.5), cases[1]])
-    assert [met for _, met, _ in bench.goals(worse)] == [True, False, False, False, False]
+                                cases=[_case(bench, 1.0, 650.0, live_rss=1100.0, fps=300.0, update_ms=2.5,
+                                             recorded=14900), cases[1]])
+    assert [met for _, met, _ in bench.goals(worse)] == [True, False, False, False, False, False]
+    assert bench.goals(worse)[5][2] == "14900 of 15000 frames"
     failed = dataclasses.replace(result, cases=[_case(bench, 1.0, 560.0, outcome="timeout"), cases[1]])
     assert not any(met for _, met, _ in bench.goals(failed))
     text = bench.to_markdown(result)
-    assert text.count("**Goal:") == 5 and "| 1 | 10400 x 10400 |" in text
+    assert text.count("**Goal:") == 6 and "| 1 | 10400 x 10400 |" in text
     from touchroller_bringup import report
 
     goals = [g for g in report.GOALS if g.section == "scan_square_metre"]
-    assert len(goals) == 5 and all(g.measure(result)[1] for g in goals)
+    assert len(goals) == 6 and all(g.measure(result)[1] for g in goals)
     assert all(g.measure(dataclasses.replace(result, quick=True))[1] is None for g in goals)

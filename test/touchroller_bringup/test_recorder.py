@@ -186,8 +186,11 @@ def test_cli_record_duration_and_bad_arguments(ros_context, tmp_path, capsys):
     assert (tmp_path / "short" / "metadata.yaml").is_file()
     assert main(["record", "--out", str(tmp_path / "short"), "--duration", "0.3"]) == 2
     assert main(["record", "--out", str(tmp_path / "x"), "--duration", "-1"]) == 2
+    assert main(["record", "--out", str(tmp_path / "x"), "--queue-mb", "0.5"]) == 2
     err = capsys.readouterr().err
     assert "already exists" in err and "--duration must be positive" in err and "Traceback" not in err
+    assert "--queue-mb must be at least 1" in err
+    assert main(["record", "--out", str(tmp_path / "bounded"), "--duration", "0.3", "--queue-mb", "8"]) == 0
 
 
 def _start_recording(bag, storage, *, limit_bytes=None):
@@ -366,3 +369,130 @@ def test_the_writer_commits_by_the_messages_arrival_not_by_its_own_last_commit(t
         assert writer.committed == 1
     finally:
         writer.finish()
+
+
+def test_a_writer_behind_a_camera_that_cannot_wait_refuses_frames_past_its_bound_and_says_so(
+        ros_context, spin_until, tmp_path, monkeypatch):
+    """#25: the writer's queue is bounded in bytes (queue.max_bytes): a camera faster than a slow writer
+    (a slow disk) fills it, and the frames past it are refused, counted per topic and reported ERROR on
+    /diagnostics, never held without bound nor dropped silently; the bag holds every frame it took."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+
+    from touchroller_bringup import recorder as recorder_module
+
+    handle = recorder_module._BagWriter._handle
+
+    def slow_handle(self, item):
+        if item[0] == "message":
+            time.sleep(0.05)   # 20 frames/s at most
+        handle(self, item)
+
+    monkeypatch.setattr(recorder_module._BagWriter, "_handle", slow_handle)
+    talker = Node("talker", context=ros_context)
+    image_pub = talker.create_publisher(Image, "/touchroller/image_raw",
+                                        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    statuses: list = []
+    talker.create_subscription(DiagnosticArray, "/diagnostics",
+                               lambda msg: statuses.extend(s for s in msg.status if s.name == "touchroller recorder"),
+                               10)
+    recorder = Recorder(tmp_path / "bag", topics=["/touchroller/image_raw"], context=ros_context,
+                        parameter_overrides=[Parameter("queue.max_bytes", value=2**20)])
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(talker)
+    executor.add_node(recorder)
+    rng = np.random.default_rng(3)
+    frames = [rng.integers(0, 256, (256, 256, 3), dtype=np.uint8) for _ in range(30)]   # 196 kB each
+    try:
+        assert spin_until(executor, lambda: image_pub.get_subscription_count() == 1, timeout=20)
+        for i, frame in enumerate(frames):   # all at once: far faster than the writer
+            image_pub.publish(array_to_image(frame, 5_000_000_000 + i * 1_000_000))
+        assert spin_until(executor, lambda: recorder.message_count + recorder.stats().queue.overflowed_total == 30,
+                          timeout=20)
+        assert spin_until(executor, lambda: any(s.level == b"\x02" for s in statuses), timeout=20)
+        stats = recorder.stats()
+    finally:
+        recorder.destroy_node()
+        executor.shutdown()
+        talker.destroy_node()
+    refused = stats.overflowed["/touchroller/image_raw"]
+    assert refused > 0 and stats.queue.peak_bytes <= 2**20 + frames[0].nbytes   # bounded, and said
+    assert stats.lost == {"/touchroller/image_raw": refused}
+    assert f"recording lost {refused} messages" in stats.summary() and "queue's bound of 1 MiB" in stats.summary()
+    error = next(s for s in statuses if s.level == b"\x02")
+    assert "recording lost" in error.message and dict((kv.key, kv.value) for kv in error.values)[
+        "refused_queue_full"] != "0"
+    kept = list(read_images(tmp_path / "bag"))
+    assert len(kept) == 30 - refused and len(kept) == recorder.counts["/touchroller/image_raw"]
+    by_stamp = {5_000_000_000 + i * 1_000_000: f for i, f in enumerate(frames)}
+    assert all(np.array_equal(r.image, by_stamp[r.stamp_ns]) for r in kept)   # what it took, exactly
+
+
+def test_frames_lost_before_the_recorder_took_them_are_counted_from_the_publishers_sequence_numbers(
+        ros_context, spin_until, tmp_path):
+    """A gap in a publisher's sequence numbers (DDS dropped messages the recorder's queue could not hold)
+    is counted for its topic and said, per publisher."""
+    from touchroller_bringup.recorder import _has_message_info
+
+    if not _has_message_info():
+        pytest.skip("this rclpy has no MessageInfo (Humble)")
+    talker = Node("talker", context=ros_context)
+    publisher = talker.create_publisher(String, "/chatter", 10)
+    recorder = Recorder(tmp_path / "bag", topics=["/chatter"], context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(talker)
+    executor.add_node(recorder)
+    try:
+        assert spin_until(executor, lambda: publisher.get_subscription_count() == 1, timeout=20)
+        callback = recorder._recorded_subscriptions["/chatter"].callback
+        from rclpy.serialization import serialize_message
+
+        data = serialize_message(String(data="x"))
+        for publisher_id, sequence in ((1, 1), (1, 2), (2, 7), (1, 5), (2, 8), (1, 6)):
+            callback(data, {"publication_sequence_number": sequence, "publisher_gid": {"data": [publisher_id]}})
+        stats = recorder.stats()
+    finally:
+        recorder.destroy_node()
+        executor.shutdown()
+        talker.destroy_node()
+    assert stats.lost_in_transport == {"/chatter": 2}   # publisher 1's 3 and 4; publisher 2 has no gap
+    assert stats.received == {"/chatter": 6} and "2 lost before the recorder took them" in stats.summary()
+    assert len(bag_messages(tmp_path / "bag")[1]) == 6
+
+
+def test_the_recorder_says_up_to_which_frame_it_has_written_each_image_topic(ros_context, spin_until, tmp_path):
+    """`<image topic>/recorded` carries the stamp of each frame once it is in the bag (the simulated clock
+    waits for it) until the recording closes; `record everything` does not record it, nor the recorder's own
+    /diagnostics."""
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Header
+
+    talker = Node("talker", context=ros_context)
+    image_pub = talker.create_publisher(Image, "/touchroller/image_raw",
+                                        QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE))
+    written: list[int] = []
+    talker.create_subscription(Header, "/touchroller/image_raw/recorded",
+                               lambda msg: written.append(msg.stamp.sec * 1_000_000_000 + msg.stamp.nanosec),
+                               QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE))
+    recorder = Recorder(tmp_path / "bag", storage="mcap", compress=True, context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(talker)
+    executor.add_node(recorder)
+    stamps = [5_000_000_000 + i * 1_000_000 for i in range(5)]
+    try:
+        assert spin_until(executor, lambda: image_pub.get_subscription_count() == 1, timeout=20)
+        for stamp, frame in zip(stamps, images(5), strict=True):
+            image_pub.publish(array_to_image(frame, stamp))
+        assert spin_until(executor, lambda: len(written) == 5, timeout=20)
+        spin_until(executor, lambda: False, timeout=1.5)   # discovery sees the recorder's own topics
+        recorder.close()   # closed, it no longer says anything: a simulated clock stops waiting for it
+        assert spin_until(executor, lambda: talker.count_publishers("/touchroller/image_raw/recorded") == 0,
+                          timeout=20)
+    finally:
+        recorder.destroy_node()
+        executor.shutdown()
+        talker.destroy_node()
+    assert written == stamps
+    connections, _ = bag_messages(tmp_path / "bag")
+    assert set(connections) == {"/touchroller/image_raw/compressed"}

@@ -115,3 +115,19 @@ def test_frames_the_recording_misses_are_said_in_the_report():
                                                                                         build_graph("scan", {}, []))
     unrecorded = ScanResult(Path("."), "done", "ok", 1.0, 100, 100, 0, 0, 0, None, {})
     assert unrecorded.images_not_recorded == 0
+
+
+def test_what_the_recorder_itself_counted_lost_is_the_reason_given():
+    """#25: the report says why frames are missing with the recorder's own count (refused at its queue's bound,
+    lost before it took them), and says a loss on another topic even when every image is there."""
+    lost = ("recording lost 6 messages (6 on /touchroller/image_raw): 6 refused at the queue's bound of "
+            "256 MiB (the writer fell behind)")
+    recorded = {"/touchroller/image_raw": 94}
+    result = ScanResult(Path("."), "done", "ok", 1.0, 100, 100, 0, 0, 0, None, {}, recorded=recorded,
+                        recording_lost=lost)
+    report = report_markdown(result, build_graph("scan", {}, []))
+    assert f"**the recording misses 6 of the 100 frames published ({lost})**" in report
+    other = "recording lost 2 messages (2 on /tf): 2 lost before the recorder took them"
+    whole = ScanResult(Path("."), "done", "ok", 1.0, 94, 94, 0, 0, 0, None, {}, recorded=recorded,
+                       recording_lost=other)
+    assert whole.images_not_recorded == 0 and f"**{other}**" in report_markdown(whole, build_graph("scan", {}, []))

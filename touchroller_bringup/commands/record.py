@@ -1,4 +1,5 @@
-"""`touchroller record --out BAG [--storage sqlite3|mcap] [--topics T ...] [--duration S] [--uncompressed]`.
+"""`touchroller record --out BAG [--storage sqlite3|mcap] [--topics T ...] [--duration S] [--uncompressed]
+[--queue-mb MB]`.
 
 Images are stored losslessly compressed (sensor_msgs/CompressedImage PNG on `<topic>/compressed`, MCAP
 chunks zstd; `touchroller_bringup.bag_compression`) unless `--uncompressed`.
@@ -8,12 +9,14 @@ metadata. Ctrl-C, SIGTERM or SIGHUP (the terminal closed) stop it between callba
 written and the bag is finalised (a second signal during that short drain changes nothing). Killed
 (SIGKILL, a crash), the bag keeps all but its last second: `touchroller reindex BAG` makes it readable.
 A write that fails (a full disk) stops the recording at once: one line, exit 2, and what was written
-before is kept and indexed.
+before is kept and indexed. Messages the recorder could not keep (its queue at `--queue-mb`, or lost before
+it took them) are counted and said at the end on stderr (and ERROR on /diagnostics while it records).
 """
 from __future__ import annotations
 
 import argparse
 import signal
+import sys
 import threading
 import time
 
@@ -33,6 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--bag-format", choices=bag_format.CHOICES, default="auto", help=bag_format.HELP)
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="topics to record (default: all)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--queue-mb", type=float, metavar="MB", help="messages taken but not written yet, at most "
+                        "this many MiB (default 256; past it messages are refused, counted and reported)")
     parser.set_defaults(func=run)
 
 
@@ -49,6 +54,8 @@ def drain(executor, count, quiet_s: float = 0.2, max_s: float = 2.0) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be positive, got {args.duration}")
+    if args.queue_mb is not None and not args.queue_mb >= 1:
+        raise UserError(f"--queue-mb must be at least 1, got {args.queue_mb}")
     from touchroller_bringup.outputs import Output, check_outputs
 
     check_outputs([Output("--out", args.out, folder=True)])
@@ -57,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from touchroller_bringup.recorder import Recorder
+    from touchroller_bringup.recorder import Recorder, RecorderConfig
 
     context = Context()
     # Our own Ctrl-C handling: rclpy's handler would shut the context down before the drain, and a
@@ -68,8 +75,10 @@ def run(args: argparse.Namespace) -> int:
                 for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     recorder = None
     try:
+        config = RecorderConfig() if args.queue_mb is None else \
+            RecorderConfig(queue_max_bytes=round(args.queue_mb * 2**20))
         recorder = Recorder(args.out, topics=args.topics, storage=args.storage, distro=args.bag_format,
-                            compress=not args.uncompressed, context=context)
+                            compress=not args.uncompressed, context=context, config=config)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(recorder)
         deadline = None if args.duration is None else time.monotonic() + args.duration
@@ -83,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
         recorder.close()   # UserError (one line) when writing failed
         counts = ", ".join(f"{topic}: {n}" for topic, n in sorted(recorder.counts.items())) or "no topics seen"
         print(f"recorded {recorder.written} messages to {args.out} ({counts})")
+        lost = recorder.stats().summary()
+        if lost:
+            print(f"touchroller: warning: {lost}", file=sys.stderr)
         return 0
     finally:
         if recorder is not None:

@@ -162,10 +162,8 @@ def run(args: argparse.Namespace) -> int:
     map_text = "x".join(map(str, result.map_shape)) if result.map_shape else "no map"
     print(f"scan {result.outcome}: {result.duration_s:.1f} s, {result.frames_published} frames "
           f"({result.frames_processed} processed), {result.contacts} contacts, map {map_text} -> {result.out_dir}/")
-    if result.images_not_recorded:
-        print(f"touchroller: warning: the recording misses {result.images_not_recorded} of the "
-              f"{result.frames_published} frames published (the recorder fell behind the camera: a machine short "
-              "of CPU)", file=sys.stderr)
+    if result.recording_warning:
+        print(f"touchroller: warning: {result.recording_warning}", file=sys.stderr)
     if result.failed:
         written = ", ".join(sorted(path.name for path in result.files.values())) or "nothing"
         failures = "; ".join(f"{name}: {why}" for name, why in result.failed.items())

@@ -26,8 +26,9 @@ time, and publishes on /clock; the graph runs every node with use_sim_time, so t
 renders on the same clock as the arm (exact poses), and a sweep starts on a whole second of it, so the
 same sweep gives the same images. With `sim.lockstep` the clock also waits for the frames: it moves on
 only while the camera's frames (`camera_info`) are no more than `sim.max_lead` s behind it and the
-perception node has finished them (`image_done`), so on a loaded machine simulated time runs slower
-and every frame is rendered, delivered and processed as on an idle one
+perception node has finished them (`image_done`), and a recorder of the images has written them
+(`image_raw/recorded`, `touchroller_bringup.recorder`) when one runs, so on a loaded machine simulated
+time runs slower and every frame is rendered, delivered, processed and recorded as on an idle one
 (`touchroller_driver.sim.clock.FrameGate`). `~/start` answers at once; the simulated sweep begins on the
 clock's next whole second.
 
@@ -99,6 +100,8 @@ SHUTDOWN_STOP_S = 0.5
 #: sim.lockstep: wall seconds without any frame published or finished before the clock goes on regardless
 #: (a camera or perception that stopped must not freeze the simulation; said on the log)
 LOCKSTEP_STALL_S = 10.0
+#: sim.lockstep: the topics (relative) on which the frames' consumers say up to which frame they are done
+FRAME_CONSUMERS = {names.IMAGE_DONE: "perception", names.IMAGE_RECORDED: "recorder"}
 
 # Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
 SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
@@ -177,7 +180,7 @@ class SweepNode(Node):
         self.frame_gate: FrameGate | None = None   # use_sim and sim.lockstep: the clock waits for the frames
         self._deferred: SweepPlan | None = None    # simulated: a started sweep waiting for the whole second
         self._consumer_checked = -1.0
-        self._consumer = False
+        self._consumers: tuple[str, ...] = ()
         self.arm: Arm = arm if arm is not None else self._make_arm()
         self.sequencer = SweepSequencer(self.arm)
         self.finished = threading.Event()  # set when a started sweep ends (done, stopped or fault)
@@ -269,9 +272,9 @@ class SweepNode(Node):
         declare(self, "sim.rate", 1.0, "use_sim: simulated seconds per wall-clock second of the simulated clock "
                 "(published on /clock; the simulated camera renders on it)", min=0.1, max=20.0, read_only=True)
         declare(self, "sim.lockstep", True, "use_sim: the simulated clock waits for the frames: never more than "
-                "sim.max_lead s past a frame the camera has not published or the perception node has not finished "
-                "(camera_info, image_done), so a loaded machine makes the simulation slower, not different",
-                read_only=True)
+                "sim.max_lead s past a frame the camera has not published, the perception node has not finished or a "
+                "recorder has not written (camera_info, image_done, image_raw/recorded), so a loaded machine makes the "
+                "simulation slower, not different", read_only=True)
         declare(self, "sim.max_lead", 0.05, "use_sim and sim.lockstep: how far the simulated clock may run ahead of "
                 "the oldest frame perception has not finished (and of the camera's next frame), s; frames in "
                 "flight are about max_lead x fps", min=0.0, max=10.0, read_only=True)
@@ -379,38 +382,45 @@ class SweepNode(Node):
 
     def _follow_frames(self, lead_s: float) -> None:
         """sim.lockstep: the camera's frames (camera_info, one per image, same stamp) and the ones the
-        perception node finished (image_done) feed the clock's FrameGate; in their own callback group, so
+        perception node finished (image_done) and a recorder wrote (image_raw/recorded) feed the clock's
+        FrameGate; in their own callback group, so
         they arrive while a service callback waits for the arm thread."""
         gate = self.frame_gate = FrameGate(round(lead_s * 1e9))
         group = MutuallyExclusiveCallbackGroup()
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.create_subscription(CameraInfo, names.CAMERA_INFO, lambda msg: gate.published(_stamp_ns(msg.header)),
                                  qos, callback_group=group)
-        self.create_subscription(Header, names.IMAGE_DONE, lambda msg: gate.finished(_stamp_ns(msg)), qos,
-                                 callback_group=group)
+        for topic, consumer in FRAME_CONSUMERS.items():
+            self.create_subscription(Header, topic, lambda msg, c=consumer: gate.finished(_stamp_ns(msg), c), qos,
+                                     callback_group=group)
 
-    def _consumer_present(self) -> bool:
-        """A perception node publishes image_done (asked of the ROS graph at most twice a second)."""
+    def _consumers_present(self) -> tuple[str, ...]:
+        """The frames' consumers present: a perception node publishes image_done, a recorder of image_raw
+        image_raw/recorded (asked of the ROS graph at most twice a second)."""
         now = time.monotonic()
         if now - self._consumer_checked >= 0.5:
             self._consumer_checked = now
-            self._consumer = self.count_publishers(names.IMAGE_DONE) > 0
-        return self._consumer
+            self._consumers = tuple(consumer for topic, consumer in FRAME_CONSUMERS.items()
+                                    if self.count_publishers(topic) > 0)
+        return self._consumers
 
     def _wait_for_frames(self) -> None:
         """sim.lockstep: hold the clock's next tick until the frame gate allows it; a command (a stop) or
-        shutdown does not wait, and nothing moving for LOCKSTEP_STALL_S lets the clock go on (logged)."""
+        shutdown does not wait, and nothing moving for LOCKSTEP_STALL_S lets the clock go on (logged during a
+        sweep)."""
         gate, clock = self.frame_gate, self.sim_clock
         assert gate is not None and clock is not None
         since, events = time.monotonic(), gate.events
-        while not gate.allows(clock.next_ns(), self._consumer_present()):
+        while not gate.allows(clock.next_ns(), self._consumers_present()):
             if not self._commands.empty() or self._shutdown.is_set() or not self.context.ok():
                 return
             if gate.events != events:
                 since, events = time.monotonic(), gate.events
             elif time.monotonic() - since > LOCKSTEP_STALL_S:
-                self.get_logger().warning(f"sim.lockstep: no frame published or finished for {LOCKSTEP_STALL_S:g} s; "
-                                          "the simulated clock goes on", throttle_duration_sec=30.0)
+                if self.active:   # idle (a scan that stopped its camera and writes its files), it only goes on
+                    self.get_logger().warning(f"sim.lockstep: no frame published or finished for "
+                                              f"{LOCKSTEP_STALL_S:g} s; the simulated clock goes on",
+                                              throttle_duration_sec=30.0)
                 return
             gate.wait(0.05)
 

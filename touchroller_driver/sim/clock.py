@@ -14,10 +14,12 @@ fall behind the arm or a consumer miss frames.
 """
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 import time
 from collections import deque
+from collections.abc import Iterable
 from fractions import Fraction
 
 NS = 1_000_000_000
@@ -99,24 +101,26 @@ class SimClock:
 
 
 class FrameGate:
-    """When a simulated clock may move on, given the frames a camera published on it and the ones a
-    consumer (the perception node) has finished; thread-safe (events come from callbacks, the owner asks).
+    """When a simulated clock may move on, given the frames a camera published on it and the ones its
+    consumers (the perception node, a recorder) have finished; thread-safe (events come from callbacks, the
+    owner asks).
 
-    With a consumer: not more than `lead_ns` past the oldest published frame it has not finished (it
-    finishes frames without the clock, so this never deadlocks). Without one, or with nothing
+    With consumers present: not more than `lead_ns` past the oldest published frame one of them has not
+    finished (they finish frames without the clock, so this never deadlocks). Without one, or with nothing
     unfinished: not more than `lead_ns` past the camera's next frame (newest + frame interval, the
     smallest interval seen between published stamps), so the camera cannot fall behind the arm either.
     Free until the camera has published twice. Stamps are the frames' (latency included); monotonic.
+    Each consumer is named (`finished(stamp, consumer)`); `consumers=True` is the unnamed one ("").
     """
 
     def __init__(self, lead_ns: int, memory: int = 1000) -> None:
         if lead_ns < 0:
             raise ValueError(f"lead must be >= 0 ns, got {lead_ns}")
         self.lead_ns = int(lead_ns)
-        self._unfinished: deque[int] = deque(maxlen=memory)
+        self._published: deque[int] = deque(maxlen=memory)   # the newest published stamps, increasing
         self._newest: int | None = None
         self._interval: int | None = None
-        self._finished: int | None = None
+        self._finished: dict[str, int] = {}   # consumer -> the newest stamp it finished
         self._changed = threading.Condition()
         self.events = 0   # published + finished reports so far (a waiting owner sees whether anything moved)
 
@@ -129,32 +133,36 @@ class FrameGate:
                 step = stamp_ns - self._newest
                 self._interval = step if self._interval is None else min(self._interval, step)
             self._newest = stamp_ns
-            if self._finished is None or stamp_ns > self._finished:
-                self._unfinished.append(stamp_ns)
+            self._published.append(stamp_ns)
             self.events += 1
             self._changed.notify_all()
 
-    def finished(self, stamp_ns: int) -> None:
+    def finished(self, stamp_ns: int, consumer: str = "") -> None:
         with self._changed:
             stamp_ns = int(stamp_ns)
-            if self._finished is None or stamp_ns > self._finished:
-                self._finished = stamp_ns
-            while self._unfinished and self._unfinished[0] <= self._finished:
-                self._unfinished.popleft()
+            if consumer not in self._finished or stamp_ns > self._finished[consumer]:
+                self._finished[consumer] = stamp_ns
             self.events += 1
             self._changed.notify_all()
 
-    def limit_ns(self, consumer: bool) -> int | None:
-        """The latest time the clock may move to now (None: no limit)."""
+    def _oldest_unfinished(self, consumer: str) -> int | None:
+        done = self._finished.get(consumer)
+        index = 0 if done is None else bisect.bisect_right(self._published, done)
+        return self._published[index] if index < len(self._published) else None
+
+    def limit_ns(self, consumers: bool | Iterable[str]) -> int | None:
+        """The latest time the clock may move to now (None: no limit), with `consumers` present."""
+        present = ("",) if consumers is True else () if consumers is False else tuple(consumers)
         with self._changed:
-            if consumer and self._unfinished:
-                return self._unfinished[0] + self.lead_ns
+            oldest = [stamp for stamp in map(self._oldest_unfinished, present) if stamp is not None]
+            if oldest:
+                return min(oldest) + self.lead_ns
             if self._newest is None or self._interval is None:
                 return None
             return self._newest + self._interval + self.lead_ns
 
-    def allows(self, t_ns: int, consumer: bool) -> bool:
-        limit = self.limit_ns(consumer)
+    def allows(self, t_ns: int, consumers: bool | Iterable[str]) -> bool:
+        limit = self.limit_ns(consumers)
         return limit is None or t_ns <= limit
 
     def wait(self, timeout: float) -> None:
