@@ -1,5 +1,6 @@
 """Recording size and `touchroller map` speed: raw recordings against the compressed ones `touchroller record`
-and `touchroller scan --record` write (PNG CompressedImage on image_raw/compressed, zstd MCAP chunks).
+and `touchroller scan --record` write (PNG CompressedImage on image_raw/compressed, zstd MCAP chunks but
+for those of PNG frames).
 
 Two sources film a 3-pass raster with /tf and /tf_static: the simulator (`bench.world_map.make_bag`, as
 `touchroller scan --record` holds it) and the second raster generator (`bench.raster_generator`, which

@@ -10,7 +10,7 @@ For each side (1 m and 0.5 m; the 0.5 m run is the 0.25 m² reference of "memory
   simulated arm and camera on the simulated clock in lockstep with the perception node, `sim.rate` 20 so
   simulated time runs as fast as the frames are taken) rolls a raster over the side x side square at
   `SPEED` (boustrophedon passes of the default usable width and overlap: 22 passes for 1 m), recording on
-  (the default compressed recording: lossless PNG images, zstd MCAP chunks). The simulated arm is given
+  (the default compressed recording: lossless PNG images, MCAP). The simulated arm is given
   `arm.reach` 1.8 m (a square metre is beyond a UR5's 0.85 m) and `sweep.approach_speed` 0.05 m/s (moves
   between passes); live findings are off (`inspect:=false`: the measure is the map's);
 * measured live: the scan process's peak resident memory (VmHWM; every node of the graph, the simulator and

@@ -2,8 +2,9 @@
 
 With `compress`, the recording is lossless but smaller (`touchroller_bringup.bag_compression`): every
 sensor_msgs/Image topic is stored as sensor_msgs/CompressedImage PNG on `<topic>/compressed`, and MCAP
-chunks are compressed with zstd. A writer that falls `PNG_LAG_S` behind (PNG costs several ms a frame)
-writes frames raw on `<topic>` until it has caught up; readers take both topics in recording order.
+chunks are compressed with zstd but for those mostly of PNG frames (which zstd does not shrink). A writer
+that falls `PNG_LAG_S` behind (PNG costs several ms a frame) writes frames raw on `<topic>` until it has
+caught up; readers take both topics in recording order.
 
 `Recorder` is a node: it discovers the wanted topics, subscribes with `raw=True` (serialized CDR,
 never deserialised; `queue.depth` deep, in a callback group of its own) and hands each message to a writer

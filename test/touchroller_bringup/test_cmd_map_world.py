@@ -96,7 +96,7 @@ def test_the_reader_process_and_the_reader_thread_make_the_same_map(scan_bag, tm
 
 @pytest.mark.slow
 def test_a_compressed_recording_maps_as_the_raw_one_whatever_the_decoding_workers(scan_bag, tmp_path, capsys):
-    # PNG frames in zstd MCAP: decoded up to the band's last row, by a pool of processes or by the reader
+    # PNG frames in MCAP: decoded up to the band's last row, by a pool of processes or by the reader
     from touchroller_bringup.bag_compression import compress_recording
 
     compress_recording(scan_bag, tmp_path / "small")

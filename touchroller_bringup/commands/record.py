@@ -2,7 +2,7 @@
 [--queue-mb MB]`.
 
 Images are stored losslessly compressed (sensor_msgs/CompressedImage PNG on `<topic>/compressed`, MCAP
-chunks zstd; `touchroller_bringup.bag_compression`) unless `--uncompressed`.
+chunks zstd but for those of PNG frames; `touchroller_bringup.bag_compression`) unless `--uncompressed`.
 
 Like `ros2 bag record`: raw subscriptions into a rosbag2 folder with the publishers' QoS in its
 metadata. Ctrl-C, SIGTERM or SIGHUP (the terminal closed) stop it between callbacks; what had arrived is
@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="storage plugin")
     parser.add_argument("--uncompressed", action="store_true",
                         help="store images as raw sensor_msgs/Image (default: lossless PNG CompressedImage on "
-                             "<topic>/compressed, and zstd MCAP chunks)")
+                             "<topic>/compressed, and zstd MCAP chunks but for those of PNG frames)")
     parser.add_argument("--bag-format", choices=bag_format.CHOICES, default="auto", help=bag_format.HELP)
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="topics to record (default: all)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")

@@ -59,7 +59,7 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                         help="the --record bag: " + bag_format.HELP)
     parser.add_argument("--uncompressed", action="store_true",
                         help="the --record bag stores raw sensor_msgs/Image (default: lossless PNG on "
-                             "image_raw/compressed, zstd MCAP chunks)")
+                             "image_raw/compressed, zstd MCAP chunks but for those of PNG frames)")
 
 
 class _RestParser(argparse.ArgumentParser):
