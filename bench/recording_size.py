@@ -32,7 +32,7 @@ from bench._common import ROOT, Provenance, provenance, provenance_markdown, res
 from touchroller_perception.files import atomic_write_text
 
 FULL = {"length": 0.08, "repeats": 2}
-QUICK = {"length": 0.04, "repeats": 1}
+QUICK = {"length": 0.025, "repeats": 1}
 #: (name, storage, PNG images, zstd chunks)
 VARIANTS = (("sqlite3 raw", "sqlite3", False, False), ("MCAP raw", "mcap", False, False),
             ("MCAP zstd chunks", "mcap", False, True), ("sqlite3 PNG", "sqlite3", True, False),

@@ -156,7 +156,7 @@ SECTIONS: tuple[Section, ...] = (
     Section("soak", "Soak: the camera and perception nodes as processes", "soak",
             "The camera node (the simulator's scene looped) and the perception node with its default parameters, "
             "each its own process as `ros2 run` starts it, no sweep node (nothing starts a new map), until the "
-            "perception node has taken 54 000 frames (30 minutes at 30 Hz; the quick run 1 500): the resident "
+            "perception node has taken 54 000 frames (30 minutes at 30 Hz; the quick run 750): the resident "
             "memory of both processes and the perception node's time per frame along the way."),
     Section("scan_soak", "Soak: the scan graph in one process over a long raster", "scan_soak",
             "`touchroller scan`'s graph (simulated camera, perception, sweep) in one process over a raster of the "

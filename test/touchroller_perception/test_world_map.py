@@ -277,6 +277,44 @@ def test_bands_pushed_with_their_contact_summaries_map_as_the_frames_alone(scans
     np.testing.assert_array_equal(mapper.map_image().grey, alone.map_image().grey)
 
 
+def test_a_band_pushed_with_its_summary_is_not_summarised_again(scans, sensor, monkeypatch):
+    """The summary given with a band is the one the contact timing keeps: with the band's own summarising
+    made to fail, bands pushed with their summaries still map, and one pushed without fails."""
+    import touchroller_perception.contact_timing as contact_timing
+
+    _, _, events = scans
+    alone = run(events[0.04], sensor)
+    mapper, buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(bounds=alone.config.bounds))
+    pushes = []
+    for event in events[0.04]:
+        if event[0] == "tf":
+            pushes.append(("tf", event))
+        else:
+            band = mapper.band(event[2])
+            pushes.append((band, event[1], WorldMapper.contact_summary(band)))
+
+    def no_summarising(*_args):
+        raise AssertionError("a band was summarised although its summary was given")
+
+    monkeypatch.setattr(contact_timing, "_summarise", no_summarising)
+    for push in pushes:
+        if isinstance(push[0], str):
+            buffer.set_transform("base", "tool0", push[1][1], push[1][2])
+        else:
+            mapper.push_band(push[0], push[1], summary=push[2])
+    mapper.finalise()
+    assert mapper.stats == alone.stats
+    bare, bare_buffer = sim_scans.world_mapper(sensor.camera, WorldMapConfig(bounds=alone.config.bounds))
+    bare.band(next(event[2] for event in events[0.04] if event[0] != "tf"))   # as a reader cuts bands first
+    with pytest.raises(AssertionError, match="summarised although"):
+        for push in pushes:
+            if isinstance(push[0], str):
+                bare_buffer.set_transform("base", "tool0", push[1][1], push[1][2])
+            else:
+                bare.push_band(push[0], push[1])
+        bare.finalise()
+
+
 def _naive_sums(patches, shape_hint=(4000, 4000)):
     """The sums of (plane, column, row) patches on an unbounded grid: (sums, lowest column, lowest row)."""
     c_lo = min(c for _, c, _ in patches)
