@@ -85,6 +85,9 @@ DRIFT = 0.02
 # 3 label radii, the per-pixel median) and keeps it when those far fields match it better than the given
 # no-contact frame (each press against one built without it): a rule on the calibration's own input, no truth
 REFERENCE = "auto"
+# PressCalibrationConfig.position_colour_degrees: the colour terms that get position factors, up to a degree chosen by
+# the calibration on its own held-out presses (their normal-angle error); the trade-off table keeps the model's own 2
+COLOUR_POSITION = (1, 2, 3)
 BASELINE = {"angle_deg": 6.2, "rms_um": 25.0, "radius_mm": 1.89, "depth_ratio": 0.96, "ms": 40.0}
 GOALS = {"angle_deg": 4.0, "rms_um": 15.0, "radius_rel": 0.03, "depth_lo": 0.9, "depth_hi": 1.1, "flat_um": 5.0,
          "frame_ms": 10.0, "band_ms": 2.0}
@@ -290,7 +293,7 @@ def kfold(data: PressSet, folds: int, cfg: PressCalibrationConfig, ball: float =
         cal = calibrate_photometric(presses_of(data, train), data.background, ball, cfg)
         seconds.append(time.perf_counter() - start)
         reference = calibrated_reference(cal, data)
-        choices.append(reference_text(cal))
+        choices.append(reference_text(cal) + colour_degree_text(cal))
         est = HeightEstimator(cal.model, reference, pixel, config=height)
         for i in test:
             measures.append(measure_press(i, est, data.presses[i], reference, (*data.centres[i], data.radii[i]),
@@ -312,6 +315,13 @@ def reference_text(cal: PhotometricCalibration) -> str:
     if not math.isfinite(c.given_change):
         return c.source
     return f"{c.source} ({100 * c.given_change:.2f} % / {100 * c.presses_change:.2f} %)"
+
+
+def colour_degree_text(cal: PhotometricCalibration) -> str:
+    if not cal.colour_degree_scores:
+        return ""
+    weighed = ", ".join(f"{s.degree}: {s.normal_error_deg:.2f}" for s in cal.colour_degree_scores)
+    return f", position-colour degree {cal.model.config.position_colour_degree} ({weighed} deg)"
 
 
 def cpu_ms(fn: Any, repeats: int) -> float:
@@ -382,6 +392,11 @@ def tradeoffs(data: PressSet, base: PressCalibrationConfig, band: tuple[int, int
     add("integration on a 2x coarser grid", m, height=HeightConfig(downsample=2))
     add(f"zero-slope prior: colour change within {STILL_CHANGE:g} reads flat (chosen on gelsight_mini)", m,
         height=HeightConfig(still_change=STILL_CHANGE))
+    if base.position_colour_degrees:
+        rows.append(dataclasses.replace(
+            add_split(data, dataclasses.replace(base, position_colour_degrees=()), reps),
+            setting=f"position terms on colour terms up to degree {m.position_colour_degree} (the model's own, "
+                    "not chosen on held-out presses)"))
     if base.reference != "given":
         rows.append(dataclasses.replace(add_split(data, dataclasses.replace(base, reference="given"), reps),
                                         setting="reference as given (the no-contact frame), not from the presses"))
@@ -409,7 +424,7 @@ def run(quick: bool = False) -> HeightRealResult:
         raise SystemExit("the taxim wheel is not installed (pinned in requirements.txt): run `make setup`")
     cv2.setNumThreads(1)
     stamp = provenance("height_real", quick)
-    cfg = PressCalibrationConfig(reference=REFERENCE)
+    cfg = PressCalibrationConfig(reference=REFERENCE, position_colour_degrees=COLOUR_POSITION)
     data = load_presses("gelsight")
     folds = 3 if quick else FOLDS
     measures, calibrate_s, choices = kfold(data, folds, cfg)
@@ -476,10 +491,12 @@ def to_markdown(r: HeightRealResult) -> str:
              f"taxim `gelsight`: {g.presses} presses of a 2.0 mm ball, {r.folds}-fold (each press measured with a "
              f"model calibrated on the others; calibration {r.calibrate_s:.1f} s per fold). Real data: shares "
              "nothing with the simulator.", "",
-             f"Reference: `PressCalibrationConfig.reference = {r.config.get('reference', 'given')!r}`"
+             f"Reference: `PressCalibrationConfig.reference = {r.config.get('reference', 'given')!r}`, "
+             f"`position_colour_degrees = {tuple(r.config.get('position_colour_degrees', ()))}`"
              + (" (each fold's calibration: " + "; ".join(r.reference_choices) + "; the median far-field colour "
                 "change of its presses against the given no-contact frame / against one built from its other "
-                "presses, the smaller kept)" if r.reference_choices else "") + ".", "",
+                "presses, the smaller kept; the position-colour degree chosen by its held-out presses' median "
+                "normal-angle error)" if r.reference_choices else "") + ".", "",
              "| measure | ours | baseline (RGB LUT + DCT, 6-fold) | goal |", "|---|---|---|---|"]
     base = r.baseline
     rows = [("normal-angle error, median", f"{g.angle_deg:.2f} deg", f"{base['angle_deg']} deg", "<= 4 deg"),

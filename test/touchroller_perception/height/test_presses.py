@@ -202,3 +202,61 @@ def test_position_degree_choice_needs_presses_and_valid_candidates(synthetic_pre
     with pytest.raises(CalibrationError, match="at least 4 presses"):
         calibrate_photometric(_presses(presses[:3]), reference, BALL,
                               dataclasses.replace(CONFIG, position_degrees=(0, 1)))
+
+
+def _shade_turning(gx, gy, turn_deg=40.0):
+    """The renderer's three lights, their azimuths turning by `turn_deg` from the left edge to the right: how a
+    slope colours a pixel then depends on where it is, beyond a gain the colour ratios divide out."""
+    h, w = gx.shape
+    vv, uu = np.mgrid[0:h, 0:w]
+    n = np.stack([-gx, -gy, np.ones_like(gx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    el = np.radians(35.0)
+    turn = np.radians(turn_deg) * (uu / w - 0.5)
+    channels = []
+    for az in (0.0, 120.0, 240.0):
+        a = np.radians(az) + turn
+        lvec = np.stack([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.full_like(a, np.sin(el))], -1)
+        channels.append(40 + 150 * np.clip((n * lvec).sum(-1), 0, None))
+    return np.clip(np.rint(np.stack(channels, -1)), 0, 255).astype(np.uint8)
+
+
+def test_the_position_colour_degree_is_chosen_by_held_out_presses():
+    # lights whose direction turns across the image: a slope's colour means another slope elsewhere, which a model
+    # without position factors on its colour terms cannot follow; the choice weighs each candidate on presses it was
+    # not fitted on, takes the one that reads their normals best, and that one reads unseen presses better
+    rng = np.random.default_rng(5)
+    presses = []
+    for k in range(14):
+        cu, cv, contact = 20 + 120 * (k % 7) / 6 + rng.uniform(-4, 4), rng.uniform(40, 80), rng.uniform(16, 22)
+        gx, gy, _z = cap_slopes(SHAPE, cu, cv, contact)
+        presses.append((_shade_turning(gx, gy), cu, cv, contact, gx, gy))
+    reference = _shade_turning(np.zeros(SHAPE), np.zeros(SHAPE))
+    items = [BallPress(img, cu, cv, contact, (PIXEL, PIXEL), str(k))
+             for k, (img, cu, cv, contact, *_rest) in enumerate(presses[:10])]
+    config = dataclasses.replace(CONFIG, model=dataclasses.replace(CONFIG.model, position_colour_degree=0),
+                                 position_colour_degrees=(0, 2), selection_folds=5)
+    result = calibrate_photometric(items, reference, BALL, config)
+    scores = {s.degree: s for s in result.colour_degree_scores}
+    assert set(scores) == {0, 2}
+    assert result.model.config.position_colour_degree == min(scores.values(), key=lambda s: s.normal_error_deg).degree
+    assert result.model.config.position_colour_degree == 2 and "held-out normal-angle error" in result.summary()
+    own = calibrate_photometric(items, reference, BALL, dataclasses.replace(config, position_colour_degrees=()))
+    assert own.model.config.position_colour_degree == 0 and not own.colour_degree_scores
+
+    def angle(model):
+        errors = []
+        for img, cu, cv, contact, gx, gy in presses[10:]:
+            vv, uu = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+            inside = np.hypot(uu - cu, vv - cv) < contact - 2
+            px, py = model.slopes(img, reference)
+            errors.append(float(np.median(normal_angles_deg(px[inside], py[inside], gx[inside], gy[inside]))))
+        return float(np.median(errors))
+
+    assert angle(result.model) < 0.5 * angle(own.model)
+
+
+def test_position_colour_degree_candidates_must_fit_the_colour_degree():
+    with pytest.raises(ValueError, match="position_colour_degrees"):
+        PressCalibrationConfig(position_colour_degrees=(4,))
+    assert PressCalibrationConfig(position_colour_degrees=(0, 3)).position_colour_degrees == (0, 3)
