@@ -334,12 +334,30 @@ def cpu_ms(fn: Any, repeats: int) -> float:
     return best * 1e3
 
 
+_SPLIT_CALIBRATIONS: dict[tuple[str, PressCalibrationConfig], PhotometricCalibration] = {}
+
+
+def split_calibration(data: PressSet, cfg: PressCalibrationConfig) -> PhotometricCalibration:
+    """The even presses' calibration for `cfg`, made once per sensor and fitting (the lookup's size is not part
+    of the fit: rows that change only it reuse the fit, with the model's configuration replaced)."""
+    lookup = {"lookup_bins": cfg.model.lookup_bins, "lookup_cells": cfg.model.lookup_cells}
+    base = PhotometricConfig()
+    key = (data.sensor, dataclasses.replace(cfg, model=dataclasses.replace(
+        cfg.model, lookup_bins=base.lookup_bins, lookup_cells=base.lookup_cells)))
+    if key not in _SPLIT_CALIBRATIONS:
+        _SPLIT_CALIBRATIONS[key] = calibrate_photometric(presses_of(data, range(0, len(data), 2)), data.background,
+                                                         BALL, key[1])
+    cal = _SPLIT_CALIBRATIONS[key]
+    model = dataclasses.replace(cal.model, config=dataclasses.replace(cal.model.config, **lookup))
+    return dataclasses.replace(cal, model=model)
+
+
 def split_angle(data: PressSet, cfg: PressCalibrationConfig, lookup: bool = True, rows: tuple[int, int] | None = None,
                 height: HeightConfig | None = None, repeats: int = 10) -> tuple[float, float, float]:
     """(median normal-angle error on the odd presses calibrated on the even ones, CPU ms per frame, median
     no-contact window RMS in um: whole frames through the lookup only, else nan)."""
     pixel = data.mm_per_pixel * 1e-3
-    cal = calibrate_photometric(presses_of(data, range(0, len(data), 2)), data.background, BALL, cfg)
+    cal = split_calibration(data, cfg)
     reference = calibrated_reference(cal, data)
     est = HeightEstimator(cal.model, reference, pixel, rows=rows, config=height)
     errors, flats = [], []

@@ -35,6 +35,7 @@ from touchroller_perception.height.photometric import (
     PhotometricModel,
     colour_features,
     fit_model,
+    model_terms,
 )
 from touchroller_perception.height.reference import ReferenceChoice, choose_reference
 
@@ -414,7 +415,65 @@ def choose_position_colour_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, 
     light's unevenness bends a slope's colour is what these terms take, and presses that keep to one
     place cannot teach it (their held-out presses say so)."""
     candidates = {int(d): replace(model, position_colour_degree=int(d)) for d in config.position_colour_degrees}
-    return held_out_scores(parts, config, candidates, width, height)
+    return nested_held_out_scores(parts, config, candidates, width, height)
+
+
+def nested_held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                           config: PressCalibrationConfig, candidates: dict[int, PhotometricConfig], width: int,
+                           height: int) -> tuple[DegreeScore, ...]:
+    """`held_out_scores` for candidates whose terms all lie among the largest one's (the position-colour
+    degrees of one model), in one pass: each press's normal equations are formed once in the largest
+    candidate's terms (the colour scaled by all the presses' features, not each fold's), and each fold and
+    candidate solves the sum of its training presses' over its own terms (the column scaling and ridge of
+    `fit_model`)."""
+    n = len(parts)
+    folds = min(config.selection_folds, n)
+    if n < 4:
+        raise CalibrationError(f"choosing a model degree needs at least 4 presses, got {n}")
+    largest = max(candidates.values(), key=lambda c: len(model_terms(c)))
+    index = {t: k for k, t in enumerate(model_terms(largest))}
+    columns = {}
+    for degree, candidate in candidates.items():
+        terms = model_terms(candidate)
+        if not all(t in index for t in terms):      # not nested: fit each candidate on its own
+            return held_out_scores(parts, config, candidates, width, height)
+        columns[degree] = np.array([index[t] for t in terms])
+    feats = np.concatenate([p[0] for p in parts])
+    feats = feats[np.isfinite(feats).all(axis=1)]
+    if feats.shape[0] < 10 * len(index):
+        raise CalibrationError(f"too few samples ({feats.shape[0]}) for {len(index)} model terms")
+    scale = np.maximum(np.percentile(np.abs(feats), 99, axis=0), 1e-3)
+    shell = PhotometricModel(largest, np.zeros((len(index), 2)), int(width), int(height), scale, scale)
+    designs, grams, rights = [], [], []
+    for f, us, vs, targets in parts:
+        ok = np.isfinite(f).all(axis=1) & np.isfinite(targets).all(axis=1)
+        x = shell.design(f[ok], us[ok], vs[ok])
+        designs.append((x, targets[ok], np.abs(targets[ok]).sum(axis=1) > 0))
+        grams.append(x.T @ x)
+        rights.append(x.T @ targets[ok])
+    scores = []
+    for degree, candidate in candidates.items():
+        cols = columns[degree]
+        gains, angles = [], []
+        for k in range(folds):
+            train = [i for i in range(n) if i % folds != k]
+            gram = sum(grams[i] for i in train)[np.ix_(cols, cols)]
+            right = sum(rights[i] for i in train)[cols]
+            norms = np.sqrt(np.maximum(np.diag(gram), 1e-24))
+            a = gram / np.outer(norms, norms) + candidate.ridge * np.eye(len(cols))
+            coefficients = np.linalg.solve(a, right / norms[:, None]) / norms[:, None]
+            for i in range(k, n, folds):
+                x, targets, contact = designs[i]
+                if contact.sum() < 10:
+                    continue
+                read = x[contact][:, cols] @ coefficients
+                true = targets[contact]
+                for j in range(2):
+                    gains.append(float(read[:, j] @ true[:, j]) / max(float(true[:, j] @ true[:, j]), 1e-12))
+                angles.append(float(np.median(normal_angles_deg(read[:, 0], read[:, 1], true[:, 0], true[:, 1]))))
+        deviation = float(np.sqrt(np.mean((np.array(gains) - 1.0) ** 2))) if gains else math.inf
+        scores.append(DegreeScore(degree, deviation, float(np.median(angles)) if angles else math.inf))
+    return tuple(scores)
 
 
 def held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],

@@ -260,3 +260,24 @@ def test_position_colour_degree_candidates_must_fit_the_colour_degree():
     with pytest.raises(ValueError, match="position_colour_degrees"):
         PressCalibrationConfig(position_colour_degrees=(4,))
     assert PressCalibrationConfig(position_colour_degrees=(0, 3)).position_colour_degrees == (0, 3)
+
+
+def test_nested_candidates_score_as_fitting_each_on_its_own(synthetic_presses):
+    # the one-pass scoring of nested candidates (each press's normal equations formed once) gives the scores that
+    # fitting every candidate on every fold gives (up to the colour scaling, all presses' rather than each fold's)
+    from touchroller_perception.height.presses import held_out_scores, nested_held_out_scores, press_samples
+
+    reference, presses = synthetic_presses
+    items = _presses(presses[:8])
+    rng = np.random.default_rng(0)
+    parts = [press_samples(p, refine_circle(change_magnitude(p.image, reference), p.u, p.v, p.radius_px, CONFIG),
+                           reference, BALL, CONFIG, rng) for p in items]
+    candidates = {d: dataclasses.replace(CONFIG.model, position_colour_degree=d) for d in (0, 1, 2)}
+    fast = nested_held_out_scores(parts, CONFIG, candidates, SHAPE[1], SHAPE[0])
+    slow = held_out_scores(parts, CONFIG, candidates, SHAPE[1], SHAPE[0])
+    assert [s.degree for s in fast] == [s.degree for s in slow] == [0, 1, 2]
+    for a, b in zip(fast, slow, strict=True):
+        assert a.normal_error_deg == pytest.approx(b.normal_error_deg, rel=0.02, abs=0.01)
+        assert a.gain_deviation == pytest.approx(b.gain_deviation, rel=0.02, abs=1e-3)
+    with pytest.raises(CalibrationError, match="at least 4 presses"):
+        nested_held_out_scores(parts[:3], CONFIG, candidates, SHAPE[1], SHAPE[0])
