@@ -37,7 +37,7 @@ from touchroller_perception.height.photometric import (
     fit_model,
     model_terms,
 )
-from touchroller_perception.height.reference import ReferenceChoice, choose_reference
+from touchroller_perception.height.reference import ReferenceChoice, choose_reference, far_masks
 
 
 @dataclass(frozen=True)
@@ -160,6 +160,9 @@ class PhotometricCalibration:
     reference_choice: ReferenceChoice | None = None
     # the position-colour degrees weighed (`DegreeScore.degree` is the position-colour degree; empty: none were)
     colour_degree_scores: tuple[DegreeScore, ...] = ()
+    # with position-colour candidates: the fraction of the image beyond `reference_factor` contact radii of at
+    # least 3 presses (below 1: the presses keep to a part of the image, the model's own degree is kept; nan: none)
+    press_spread: float = math.nan
 
     @property
     def normal_error_deg(self) -> float:
@@ -177,6 +180,10 @@ class PhotometricCalibration:
                 + self._reference_summary())
 
     def _colour_degree_summary(self) -> str:
+        if math.isfinite(self.press_spread) and self.press_spread < 1.0:
+            return (f"; position terms on colour terms up to degree {self.model.config.position_colour_degree}, the "
+                    f"model's own (the presses leave {100 * (1 - self.press_spread):.0f} % of the image near all but "
+                    "a few of them: too few places to choose from)")
         if not self.colour_degree_scores:
             return ""
         weighed = ", ".join(f"{s.degree}: {s.normal_error_deg:.2f} deg" for s in self.colour_degree_scores)
@@ -381,7 +388,11 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
         best = min(scores, key=lambda sc: (sc.gain_deviation, sc.degree))
         model_config = replace(config.model, position_degree=best.degree)
     colour_scores: tuple[DegreeScore, ...] = ()
+    spread = math.nan
     if config.position_colour_degrees:
+        spread = float(np.mean(far_masks((h, w), [(p.u, p.v, p.radius_px) for p in presses],
+                                         config.reference_factor).sum(axis=0) >= 3))
+    if config.position_colour_degrees and spread >= 1.0:
         colour_scores = choose_position_colour_degree(parts, config, model_config, w, h)
         pick = min(colour_scores, key=lambda sc: (sc.normal_error_deg, sc.degree))
         model_config = replace(model_config, position_colour_degree=pick.degree)
@@ -390,7 +401,7 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
     except ValueError as exc:
         raise CalibrationError(str(exc)) from None
     fits = tuple(press_fit(model, p, c, reference, ball_radius, config) for p, c in zip(presses, circles, strict=True))
-    return PhotometricCalibration(model, fits, float(ball_radius), scores, reference, choice, colour_scores)
+    return PhotometricCalibration(model, fits, float(ball_radius), scores, reference, choice, colour_scores, spread)
 
 
 def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
@@ -412,8 +423,10 @@ def choose_position_colour_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, 
     """Each candidate of `config.position_colour_degrees` (the colour terms up to which position factors
     multiply, on `model`) weighed on held-out presses as `choose_position_degree` does; the score the
     calibration picks by is the held-out normal-angle error (`DegreeScore.normal_error_deg`): how the
-    light's unevenness bends a slope's colour is what these terms take, and presses that keep to one
-    place cannot teach it (their held-out presses say so)."""
+    light's unevenness bends a slope's colour is what these terms take. Presses that keep to one place
+    cannot teach it, and their held-out presses, at the same place, cannot tell: `calibrate_photometric`
+    weighs the candidates only when every pixel lies beyond `reference_factor` contact radii of at least 3
+    presses (the presses move about, as `choose_reference` asks), and keeps the model's own degree otherwise."""
     candidates = {int(d): replace(model, position_colour_degree=int(d)) for d in config.position_colour_degrees}
     return nested_held_out_scores(parts, config, candidates, width, height)
 

@@ -221,27 +221,37 @@ def _shade_turning(gx, gy, turn_deg=40.0):
     return np.clip(np.rint(np.stack(channels, -1)), 0, 255).astype(np.uint8)
 
 
+def _turning_presses(places, shape=(120, 320), seed=5):
+    rng = np.random.default_rng(seed)
+    presses = []
+    for cu, cv in places:
+        cu, cv, contact = cu + rng.uniform(-4, 4), cv + rng.uniform(-10, 10), rng.uniform(16, 22)
+        gx, gy, _z = cap_slopes(shape, cu, cv, contact)
+        presses.append((_shade_turning(gx, gy), cu, cv, contact, gx, gy))
+    return _shade_turning(np.zeros(shape), np.zeros(shape)), presses
+
+
+def _items(presses):
+    return [BallPress(img, cu, cv, contact, (PIXEL, PIXEL), str(k))
+            for k, (img, cu, cv, contact, *_rest) in enumerate(presses)]
+
+
+TURNING = dataclasses.replace(CONFIG, model=dataclasses.replace(CONFIG.model, position_colour_degree=0),
+                              position_colour_degrees=(0, 2), selection_folds=5)
+
+
 def test_the_position_colour_degree_is_chosen_by_held_out_presses():
     # lights whose direction turns across the image: a slope's colour means another slope elsewhere, which a model
     # without position factors on its colour terms cannot follow; the choice weighs each candidate on presses it was
     # not fitted on, takes the one that reads their normals best, and that one reads unseen presses better
-    rng = np.random.default_rng(5)
-    presses = []
-    for k in range(14):
-        cu, cv, contact = 20 + 120 * (k % 7) / 6 + rng.uniform(-4, 4), rng.uniform(40, 80), rng.uniform(16, 22)
-        gx, gy, _z = cap_slopes(SHAPE, cu, cv, contact)
-        presses.append((_shade_turning(gx, gy), cu, cv, contact, gx, gy))
-    reference = _shade_turning(np.zeros(SHAPE), np.zeros(SHAPE))
-    items = [BallPress(img, cu, cv, contact, (PIXEL, PIXEL), str(k))
-             for k, (img, cu, cv, contact, *_rest) in enumerate(presses[:10])]
-    config = dataclasses.replace(CONFIG, model=dataclasses.replace(CONFIG.model, position_colour_degree=0),
-                                 position_colour_degrees=(0, 2), selection_folds=5)
-    result = calibrate_photometric(items, reference, BALL, config)
+    reference, presses = _turning_presses([(20 + 280 * (k % 7) / 6, 60) for k in range(14)])
+    items = _items(presses[:10])
+    result = calibrate_photometric(items, reference, BALL, TURNING)
     scores = {s.degree: s for s in result.colour_degree_scores}
-    assert set(scores) == {0, 2}
+    assert set(scores) == {0, 2} and result.press_spread == 1.0
     assert result.model.config.position_colour_degree == min(scores.values(), key=lambda s: s.normal_error_deg).degree
     assert result.model.config.position_colour_degree == 2 and "held-out normal-angle error" in result.summary()
-    own = calibrate_photometric(items, reference, BALL, dataclasses.replace(config, position_colour_degrees=()))
+    own = calibrate_photometric(items, reference, BALL, dataclasses.replace(TURNING, position_colour_degrees=()))
     assert own.model.config.position_colour_degree == 0 and not own.colour_degree_scores
 
     def angle(model):
@@ -254,6 +264,15 @@ def test_the_position_colour_degree_is_chosen_by_held_out_presses():
         return float(np.median(errors))
 
     assert angle(result.model) < 0.5 * angle(own.model)
+
+
+def test_presses_at_one_place_keep_the_models_own_position_colour_degree():
+    # presses that keep to one place cannot say how a slope's colour changes elsewhere, and held-out presses at
+    # the same place cannot tell: the candidates are not weighed, the model's own degree is kept, and said
+    reference, presses = _turning_presses([(160, 60)] * 10)
+    result = calibrate_photometric(_items(presses), reference, BALL, TURNING)
+    assert not result.colour_degree_scores and result.press_spread < 1.0
+    assert result.model.config.position_colour_degree == 0 and "the model's own" in result.summary()
 
 
 def test_position_colour_degree_candidates_must_fit_the_colour_degree():
