@@ -85,6 +85,9 @@ DRIFT = 0.02
 # 3 label radii, the per-pixel median) and keeps it when those far fields match it better than the given
 # no-contact frame (each press against one built without it): a rule on the calibration's own input, no truth
 REFERENCE = "auto"
+# PressCalibrationConfig.position_colour_degrees: the colour terms that get position factors, up to a degree chosen by
+# the calibration on its own held-out presses (their normal-angle error); the trade-off table keeps the model's own 2
+COLOUR_POSITION = (1, 2, 3)
 BASELINE = {"angle_deg": 6.2, "rms_um": 25.0, "radius_mm": 1.89, "depth_ratio": 0.96, "ms": 40.0}
 GOALS = {"angle_deg": 4.0, "rms_um": 15.0, "radius_rel": 0.03, "depth_lo": 0.9, "depth_hi": 1.1, "flat_um": 5.0,
          "frame_ms": 10.0, "band_ms": 2.0}
@@ -290,7 +293,7 @@ def kfold(data: PressSet, folds: int, cfg: PressCalibrationConfig, ball: float =
         cal = calibrate_photometric(presses_of(data, train), data.background, ball, cfg)
         seconds.append(time.perf_counter() - start)
         reference = calibrated_reference(cal, data)
-        choices.append(reference_text(cal))
+        choices.append(reference_text(cal) + colour_degree_text(cal))
         est = HeightEstimator(cal.model, reference, pixel, config=height)
         for i in test:
             measures.append(measure_press(i, est, data.presses[i], reference, (*data.centres[i], data.radii[i]),
@@ -314,6 +317,13 @@ def reference_text(cal: PhotometricCalibration) -> str:
     return f"{c.source} ({100 * c.given_change:.2f} % / {100 * c.presses_change:.2f} %)"
 
 
+def colour_degree_text(cal: PhotometricCalibration) -> str:
+    if not cal.colour_degree_scores:
+        return ""
+    weighed = ", ".join(f"{s.degree}: {s.normal_error_deg:.2f}" for s in cal.colour_degree_scores)
+    return f", position-colour degree {cal.model.config.position_colour_degree} ({weighed} deg)"
+
+
 def cpu_ms(fn: Any, repeats: int) -> float:
     fn()
     best = math.inf
@@ -324,12 +334,30 @@ def cpu_ms(fn: Any, repeats: int) -> float:
     return best * 1e3
 
 
+_SPLIT_CALIBRATIONS: dict[tuple[str, PressCalibrationConfig], PhotometricCalibration] = {}
+
+
+def split_calibration(data: PressSet, cfg: PressCalibrationConfig) -> PhotometricCalibration:
+    """The even presses' calibration for `cfg`, made once per sensor and fitting (the lookup's size is not part
+    of the fit: rows that change only it reuse the fit, with the model's configuration replaced)."""
+    lookup = {"lookup_bins": cfg.model.lookup_bins, "lookup_cells": cfg.model.lookup_cells}
+    base = PhotometricConfig()
+    key = (data.sensor, dataclasses.replace(cfg, model=dataclasses.replace(
+        cfg.model, lookup_bins=base.lookup_bins, lookup_cells=base.lookup_cells)))
+    if key not in _SPLIT_CALIBRATIONS:
+        _SPLIT_CALIBRATIONS[key] = calibrate_photometric(presses_of(data, range(0, len(data), 2)), data.background,
+                                                         BALL, key[1])
+    cal = _SPLIT_CALIBRATIONS[key]
+    model = dataclasses.replace(cal.model, config=dataclasses.replace(cal.model.config, **lookup))
+    return dataclasses.replace(cal, model=model)
+
+
 def split_angle(data: PressSet, cfg: PressCalibrationConfig, lookup: bool = True, rows: tuple[int, int] | None = None,
                 height: HeightConfig | None = None, repeats: int = 10) -> tuple[float, float, float]:
     """(median normal-angle error on the odd presses calibrated on the even ones, CPU ms per frame, median
     no-contact window RMS in um: whole frames through the lookup only, else nan)."""
     pixel = data.mm_per_pixel * 1e-3
-    cal = calibrate_photometric(presses_of(data, range(0, len(data), 2)), data.background, BALL, cfg)
+    cal = split_calibration(data, cfg)
     reference = calibrated_reference(cal, data)
     est = HeightEstimator(cal.model, reference, pixel, rows=rows, config=height)
     errors, flats = [], []
@@ -382,6 +410,11 @@ def tradeoffs(data: PressSet, base: PressCalibrationConfig, band: tuple[int, int
     add("integration on a 2x coarser grid", m, height=HeightConfig(downsample=2))
     add(f"zero-slope prior: colour change within {STILL_CHANGE:g} reads flat (chosen on gelsight_mini)", m,
         height=HeightConfig(still_change=STILL_CHANGE))
+    if base.position_colour_degrees:
+        rows.append(dataclasses.replace(
+            add_split(data, dataclasses.replace(base, position_colour_degrees=()), reps),
+            setting=f"position terms on colour terms up to degree {m.position_colour_degree} (the model's own, "
+                    "not chosen on held-out presses)"))
     if base.reference != "given":
         rows.append(dataclasses.replace(add_split(data, dataclasses.replace(base, reference="given"), reps),
                                         setting="reference as given (the no-contact frame), not from the presses"))
@@ -409,7 +442,7 @@ def run(quick: bool = False) -> HeightRealResult:
         raise SystemExit("the taxim wheel is not installed (pinned in requirements.txt): run `make setup`")
     cv2.setNumThreads(1)
     stamp = provenance("height_real", quick)
-    cfg = PressCalibrationConfig(reference=REFERENCE)
+    cfg = PressCalibrationConfig(reference=REFERENCE, position_colour_degrees=COLOUR_POSITION)
     data = load_presses("gelsight")
     folds = 3 if quick else FOLDS
     measures, calibrate_s, choices = kfold(data, folds, cfg)
@@ -476,10 +509,12 @@ def to_markdown(r: HeightRealResult) -> str:
              f"taxim `gelsight`: {g.presses} presses of a 2.0 mm ball, {r.folds}-fold (each press measured with a "
              f"model calibrated on the others; calibration {r.calibrate_s:.1f} s per fold). Real data: shares "
              "nothing with the simulator.", "",
-             f"Reference: `PressCalibrationConfig.reference = {r.config.get('reference', 'given')!r}`"
+             f"Reference: `PressCalibrationConfig.reference = {r.config.get('reference', 'given')!r}`, "
+             f"`position_colour_degrees = {tuple(r.config.get('position_colour_degrees', ()))}`"
              + (" (each fold's calibration: " + "; ".join(r.reference_choices) + "; the median far-field colour "
                 "change of its presses against the given no-contact frame / against one built from its other "
-                "presses, the smaller kept)" if r.reference_choices else "") + ".", "",
+                "presses, the smaller kept; the position-colour degree chosen by its held-out presses' median "
+                "normal-angle error)" if r.reference_choices else "") + ".", "",
              "| measure | ours | baseline (RGB LUT + DCT, 6-fold) | goal |", "|---|---|---|---|"]
     base = r.baseline
     rows = [("normal-angle error, median", f"{g.angle_deg:.2f} deg", f"{base['angle_deg']} deg", "<= 4 deg"),

@@ -70,6 +70,8 @@ def test_height_flat_pixel_size_whole_frame(pressed):
     ({"--ball-radius": "0.0001"}, "not smaller than the ball"),
     ({"--labels": "missing.csv"}, "no such labels file"),
     ({"--reference": "missing.png"}, "no such reference image"),
+    ({"--position-colour-degrees": "1,x"}, "comma-separated integers"),
+    ({"--position-colour-degrees": "2,4"}, "each be 0..3"),
 ])
 def test_calibrate_refusals_are_one_line(pressed, capsys, change, message):
     root = pressed
@@ -144,3 +146,15 @@ def test_calibrate_builds_the_reference_from_the_presses(pressed, capsys, tmp_pa
     assert away[0] < 0.3 * away[1]
     assert main(["height", str(root / "presses"), "--photometric", str(tmp_path / "p.npz"), "--reference", str(built),
                  "--params", str(root / "cal.yaml"), "--out", str(tmp_path / "h")]) == 0
+
+
+def test_calibrate_chooses_the_position_colour_degree(pressed, capsys, tmp_path):
+    root = pressed
+    out = tmp_path / "p.npz"
+    assert main(["calibrate", "photometric", str(root / "presses"), "--labels", str(root / "labels.csv"),
+                 "--reference", str(root / "ref.png"), "--ball-radius", "0.004", "--params", str(root / "cal.yaml"),
+                 "--position-colour-degrees", "0,1", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "held-out normal-angle error by degree: 0: " in text and ", 1: " in text
+    from touchroller_perception.height import PhotometricModel
+    assert PhotometricModel.load(out).config.position_colour_degree in (0, 1)

@@ -69,6 +69,10 @@ def register_calibration(steps: argparse._SubParsersAction) -> None:
     parser.add_argument("--reference-out", type=Path,
                         help="PNG to write the reference the model was calibrated against (needed with "
                              "--reference-from presses or auto)")
+    parser.add_argument("--position-colour-degrees", default="",
+                        help="comma-separated candidate degrees (0..3) of the colour terms that get image-position "
+                             "factors; the one whose held-out presses read their normals best is used (e.g. 1,2,3; "
+                             "default: none, the model's own 2)")
     parser.add_argument("--out", type=Path, required=True, help="PHOTOMETRIC.npz to write")
     parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic in a recording (default: %(default)s)")
     parser.set_defaults(func=run_calibrate)
@@ -128,6 +132,17 @@ def read_labels(path: Path) -> list[tuple[str, float, float, float]]:
     return rows
 
 
+def _degrees(text: str) -> tuple[int, ...]:
+    """--position-colour-degrees: comma-separated degrees 0..3 (the model's colour degree), or none."""
+    try:
+        degrees = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise UserError(f"--position-colour-degrees must be comma-separated integers, got {text!r}") from None
+    if not all(0 <= d <= 3 for d in degrees):
+        raise UserError(f"--position-colour-degrees must each be 0..3, got {text!r}")
+    return degrees
+
+
 def _positive(value: float | None, what: str) -> None:
     if value is not None and not (math.isfinite(value) and value > 0):
         raise UserError(f"{what} must be a positive number of metres, got {value}")
@@ -157,7 +172,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise UserError(f"{args.labels}: {name}: {exc}") from None
         presses.append(ht.BallPress(images[name], u, v, r, size, name,
                                     math.inf if camera is None else float(camera.radius)))
-    config = ht.PressCalibrationConfig(refine=not args.no_refine, reference=args.reference_from)
+    config = ht.PressCalibrationConfig(refine=not args.no_refine, reference=args.reference_from,
+                                       position_colour_degrees=_degrees(args.position_colour_degrees))
     try:
         result = ht.calibrate_photometric(presses, reference, args.ball_radius, config)
     except CalibrationError as exc:

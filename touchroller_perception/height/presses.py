@@ -35,8 +35,9 @@ from touchroller_perception.height.photometric import (
     PhotometricModel,
     colour_features,
     fit_model,
+    model_terms,
 )
-from touchroller_perception.height.reference import ReferenceChoice, choose_reference
+from touchroller_perception.height.reference import ReferenceChoice, choose_reference, far_masks
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,10 @@ class PressCalibrationConfig:
     # candidate position degrees, the one whose slopes hold their gain best on held-out presses is used
     # (`choose_position_degree`); empty: the model's own `position_degree`
     position_degrees: tuple[int, ...] = ()
+    # candidate degrees of the colour monomials that get position factors (`PhotometricConfig.position_colour_degree`),
+    # the one whose held-out presses read their normals best is used (`choose_position_colour_degree`, after the
+    # position degree); empty: the model's own
+    position_colour_degrees: tuple[int, ...] = ()
     selection_folds: int = 4             # presses split this many ways (press i in fold i mod folds) to choose
     # the reference the model reads colour changes against (`reference.choose_reference`): "given" the no-contact
     # frame given, "presses" one built from the presses' far fields (beyond `reference_factor` label radii),
@@ -93,6 +98,9 @@ class PressCalibrationConfig:
             raise ValueError("max_slope_angle_deg must be in (0, 90)")
         if not all(0 <= int(d) <= 6 for d in self.position_degrees):
             raise ValueError(f"position_degrees must be 0..6 each, got {self.position_degrees}")
+        if not all(0 <= int(d) <= self.model.colour_degree for d in self.position_colour_degrees):
+            raise ValueError(f"position_colour_degrees must be 0..colour_degree ({self.model.colour_degree}) each, "
+                             f"got {self.position_colour_degrees}")
         if not 2 <= self.selection_folds <= 20:
             raise ValueError(f"selection_folds must be 2..20, got {self.selection_folds}")
         if self.reference not in ("given", "presses", "auto"):
@@ -150,6 +158,11 @@ class PhotometricCalibration:
     # the reference the model was calibrated against (give this one to `HeightEstimator`), and how it was chosen
     reference: np.ndarray | None = None
     reference_choice: ReferenceChoice | None = None
+    # the position-colour degrees weighed (`DegreeScore.degree` is the position-colour degree; empty: none were)
+    colour_degree_scores: tuple[DegreeScore, ...] = ()
+    # with position-colour candidates: the fraction of the image beyond `reference_factor` contact radii of at
+    # least 3 presses (below 1: the presses keep to a part of the image, the model's own degree is kept; nan: none)
+    press_spread: float = math.nan
 
     @property
     def normal_error_deg(self) -> float:
@@ -163,7 +176,19 @@ class PhotometricCalibration:
         return (f"photometric calibration: {len(self.presses)} presses, ball radius {self.ball_radius * 1e3:.3f} mm, "
                 f"{len(self.model.coefficients)} terms; normal-angle residual median {self.normal_error_deg:.2f} deg "
                 f"(in-sample); {refined} circles refined from the images (centre moved {np.median(shifts):.1f} px, "
-                f"radius {np.median(dr):+.1f} px, medians)" + self._degree_summary() + self._reference_summary())
+                f"radius {np.median(dr):+.1f} px, medians)" + self._degree_summary() + self._colour_degree_summary()
+                + self._reference_summary())
+
+    def _colour_degree_summary(self) -> str:
+        if math.isfinite(self.press_spread) and self.press_spread < 1.0:
+            return (f"; position terms on colour terms up to degree {self.model.config.position_colour_degree}, the "
+                    f"model's own (the presses leave {100 * (1 - self.press_spread):.0f} % of the image near all but "
+                    "a few of them: too few places to choose from)")
+        if not self.colour_degree_scores:
+            return ""
+        weighed = ", ".join(f"{s.degree}: {s.normal_error_deg:.2f} deg" for s in self.colour_degree_scores)
+        return (f"; position terms on colour terms up to degree {self.model.config.position_colour_degree} "
+                f"(held-out normal-angle error by degree: {weighed})")
 
     def _reference_summary(self) -> str:
         choice = self.reference_choice
@@ -362,12 +387,21 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
         scores = choose_position_degree(parts, config, w, h)
         best = min(scores, key=lambda sc: (sc.gain_deviation, sc.degree))
         model_config = replace(config.model, position_degree=best.degree)
+    colour_scores: tuple[DegreeScore, ...] = ()
+    spread = math.nan
+    if config.position_colour_degrees:
+        spread = float(np.mean(far_masks((h, w), [(p.u, p.v, p.radius_px) for p in presses],
+                                         config.reference_factor).sum(axis=0) >= 3))
+    if config.position_colour_degrees and spread >= 1.0:
+        colour_scores = choose_position_colour_degree(parts, config, model_config, w, h)
+        pick = min(colour_scores, key=lambda sc: (sc.normal_error_deg, sc.degree))
+        model_config = replace(model_config, position_colour_degree=pick.degree)
     try:
         model = fit_model(model_config, feats, us, vs, targets, w, h, pixel_size=pixel, ball_radius=ball_radius)
     except ValueError as exc:
         raise CalibrationError(str(exc)) from None
     fits = tuple(press_fit(model, p, c, reference, ball_radius, config) for p, c in zip(presses, circles, strict=True))
-    return PhotometricCalibration(model, fits, float(ball_radius), scores, reference, choice)
+    return PhotometricCalibration(model, fits, float(ball_radius), scores, reference, choice, colour_scores, spread)
 
 
 def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
@@ -379,13 +413,95 @@ def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndar
     so a gain that wanders from place to place is a relief that is not there, while the normal-angle
     residual (also reported) is led by a ball's steep slopes. Position terms of a high degree fit the
     presses' own patches and wander between them; how high the presses' coverage carries is what this finds."""
+    candidates = {int(d): replace(config.model, position_degree=int(d)) for d in config.position_degrees}
+    return held_out_scores(parts, config, candidates, width, height)
+
+
+def choose_position_colour_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                                  config: PressCalibrationConfig, model: PhotometricConfig, width: int,
+                                  height: int) -> tuple[DegreeScore, ...]:
+    """Each candidate of `config.position_colour_degrees` (the colour terms up to which position factors
+    multiply, on `model`) weighed on held-out presses as `choose_position_degree` does; the score the
+    calibration picks by is the held-out normal-angle error (`DegreeScore.normal_error_deg`): how the
+    light's unevenness bends a slope's colour is what these terms take. Presses that keep to one place
+    cannot teach it, and their held-out presses, at the same place, cannot tell: `calibrate_photometric`
+    weighs the candidates only when every pixel lies beyond `reference_factor` contact radii of at least 3
+    presses (the presses move about, as `choose_reference` asks), and keeps the model's own degree otherwise."""
+    candidates = {int(d): replace(model, position_colour_degree=int(d)) for d in config.position_colour_degrees}
+    return nested_held_out_scores(parts, config, candidates, width, height)
+
+
+def nested_held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                           config: PressCalibrationConfig, candidates: dict[int, PhotometricConfig], width: int,
+                           height: int) -> tuple[DegreeScore, ...]:
+    """`held_out_scores` for candidates whose terms all lie among the largest one's (the position-colour
+    degrees of one model), in one pass: each press's normal equations are formed once in the largest
+    candidate's terms (the colour scaled by all the presses' features, not each fold's), and each fold and
+    candidate solves the sum of its training presses' over its own terms (the column scaling and ridge of
+    `fit_model`)."""
     n = len(parts)
     folds = min(config.selection_folds, n)
     if n < 4:
-        raise CalibrationError(f"choosing the position degree needs at least 4 presses, got {n}")
+        raise CalibrationError(f"choosing a model degree needs at least 4 presses, got {n}")
+    largest = max(candidates.values(), key=lambda c: len(model_terms(c)))
+    index = {t: k for k, t in enumerate(model_terms(largest))}
+    columns = {}
+    for degree, candidate in candidates.items():
+        terms = model_terms(candidate)
+        if not all(t in index for t in terms):      # not nested: fit each candidate on its own
+            return held_out_scores(parts, config, candidates, width, height)
+        columns[degree] = np.array([index[t] for t in terms])
+    feats = np.concatenate([p[0] for p in parts])
+    feats = feats[np.isfinite(feats).all(axis=1)]
+    if feats.shape[0] < 10 * len(index):
+        raise CalibrationError(f"too few samples ({feats.shape[0]}) for {len(index)} model terms")
+    scale = np.maximum(np.percentile(np.abs(feats), 99, axis=0), 1e-3)
+    shell = PhotometricModel(largest, np.zeros((len(index), 2)), int(width), int(height), scale, scale)
+    designs, grams, rights = [], [], []
+    for f, us, vs, targets in parts:
+        ok = np.isfinite(f).all(axis=1) & np.isfinite(targets).all(axis=1)
+        x = shell.design(f[ok], us[ok], vs[ok])
+        designs.append((x, targets[ok], np.abs(targets[ok]).sum(axis=1) > 0))
+        grams.append(x.T @ x)
+        rights.append(x.T @ targets[ok])
     scores = []
-    for degree in dict.fromkeys(int(d) for d in config.position_degrees):
-        model_config = replace(config.model, position_degree=degree)
+    for degree, candidate in candidates.items():
+        cols = columns[degree]
+        gains, angles = [], []
+        for k in range(folds):
+            train = [i for i in range(n) if i % folds != k]
+            gram = sum(grams[i] for i in train)[np.ix_(cols, cols)]
+            right = sum(rights[i] for i in train)[cols]
+            norms = np.sqrt(np.maximum(np.diag(gram), 1e-24))
+            a = gram / np.outer(norms, norms) + candidate.ridge * np.eye(len(cols))
+            coefficients = np.linalg.solve(a, right / norms[:, None]) / norms[:, None]
+            for i in range(k, n, folds):
+                x, targets, contact = designs[i]
+                if contact.sum() < 10:
+                    continue
+                read = x[contact][:, cols] @ coefficients
+                true = targets[contact]
+                for j in range(2):
+                    gains.append(float(read[:, j] @ true[:, j]) / max(float(true[:, j] @ true[:, j]), 1e-12))
+                angles.append(float(np.median(normal_angles_deg(read[:, 0], read[:, 1], true[:, 0], true[:, 1]))))
+        deviation = float(np.sqrt(np.mean((np.array(gains) - 1.0) ** 2))) if gains else math.inf
+        scores.append(DegreeScore(degree, deviation, float(np.median(angles)) if angles else math.inf))
+    return tuple(scores)
+
+
+def held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                    config: PressCalibrationConfig, candidates: dict[int, PhotometricConfig], width: int,
+                    height: int) -> tuple[DegreeScore, ...]:
+    """Per candidate model (keyed by the degree weighed): the presses split `config.selection_folds` ways
+    (press i in part i mod folds), each part's presses read by the candidate fitted on the others; the RMS
+    over held-out presses and both slopes of (least-squares gain of read on true over the contact - 1),
+    and the median over held-out presses of each one's median normal-angle error."""
+    n = len(parts)
+    folds = min(config.selection_folds, n)
+    if n < 4:
+        raise CalibrationError(f"choosing a model degree needs at least 4 presses, got {n}")
+    scores = []
+    for degree, model_config in candidates.items():
         gains, angles = [], []
         for k in range(folds):
             train = [parts[i] for i in range(n) if i % folds != k]
@@ -406,7 +522,7 @@ def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndar
                     gains.append(float(read[:, j] @ true[:, j]) / max(float(true[:, j] @ true[:, j]), 1e-12))
                 angles.append(float(np.median(normal_angles_deg(read[:, 0], read[:, 1], true[:, 0], true[:, 1]))))
         deviation = float(np.sqrt(np.mean((np.array(gains) - 1.0) ** 2))) if gains else math.inf
-        scores.append(DegreeScore(degree, deviation, float(np.median(angles)) if angles else math.nan))
+        scores.append(DegreeScore(degree, deviation, float(np.median(angles)) if angles else math.inf))
     return tuple(scores)
 
 

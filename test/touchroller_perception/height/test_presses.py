@@ -202,3 +202,101 @@ def test_position_degree_choice_needs_presses_and_valid_candidates(synthetic_pre
     with pytest.raises(CalibrationError, match="at least 4 presses"):
         calibrate_photometric(_presses(presses[:3]), reference, BALL,
                               dataclasses.replace(CONFIG, position_degrees=(0, 1)))
+
+
+def _shade_turning(gx, gy, turn_deg=40.0):
+    """The renderer's three lights, their azimuths turning by `turn_deg` from the left edge to the right: how a
+    slope colours a pixel then depends on where it is, beyond a gain the colour ratios divide out."""
+    h, w = gx.shape
+    vv, uu = np.mgrid[0:h, 0:w]
+    n = np.stack([-gx, -gy, np.ones_like(gx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    el = np.radians(35.0)
+    turn = np.radians(turn_deg) * (uu / w - 0.5)
+    channels = []
+    for az in (0.0, 120.0, 240.0):
+        a = np.radians(az) + turn
+        lvec = np.stack([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.full_like(a, np.sin(el))], -1)
+        channels.append(40 + 150 * np.clip((n * lvec).sum(-1), 0, None))
+    return np.clip(np.rint(np.stack(channels, -1)), 0, 255).astype(np.uint8)
+
+
+def _turning_presses(places, shape=(120, 320), seed=5):
+    rng = np.random.default_rng(seed)
+    presses = []
+    for cu, cv in places:
+        cu, cv, contact = cu + rng.uniform(-4, 4), cv + rng.uniform(-10, 10), rng.uniform(16, 22)
+        gx, gy, _z = cap_slopes(shape, cu, cv, contact)
+        presses.append((_shade_turning(gx, gy), cu, cv, contact, gx, gy))
+    return _shade_turning(np.zeros(shape), np.zeros(shape)), presses
+
+
+def _items(presses):
+    return [BallPress(img, cu, cv, contact, (PIXEL, PIXEL), str(k))
+            for k, (img, cu, cv, contact, *_rest) in enumerate(presses)]
+
+
+TURNING = dataclasses.replace(CONFIG, model=dataclasses.replace(CONFIG.model, position_colour_degree=0),
+                              position_colour_degrees=(0, 2), selection_folds=5)
+
+
+def test_the_position_colour_degree_is_chosen_by_held_out_presses():
+    # lights whose direction turns across the image: a slope's colour means another slope elsewhere, which a model
+    # without position factors on its colour terms cannot follow; the choice weighs each candidate on presses it was
+    # not fitted on, takes the one that reads their normals best, and that one reads unseen presses better
+    reference, presses = _turning_presses([(20 + 280 * (k % 7) / 6, 60) for k in range(14)])
+    items = _items(presses[:10])
+    result = calibrate_photometric(items, reference, BALL, TURNING)
+    scores = {s.degree: s for s in result.colour_degree_scores}
+    assert set(scores) == {0, 2} and result.press_spread == 1.0
+    assert result.model.config.position_colour_degree == min(scores.values(), key=lambda s: s.normal_error_deg).degree
+    assert result.model.config.position_colour_degree == 2 and "held-out normal-angle error" in result.summary()
+    own = calibrate_photometric(items, reference, BALL, dataclasses.replace(TURNING, position_colour_degrees=()))
+    assert own.model.config.position_colour_degree == 0 and not own.colour_degree_scores
+
+    def angle(model):
+        errors = []
+        for img, cu, cv, contact, gx, gy in presses[10:]:
+            vv, uu = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+            inside = np.hypot(uu - cu, vv - cv) < contact - 2
+            px, py = model.slopes(img, reference)
+            errors.append(float(np.median(normal_angles_deg(px[inside], py[inside], gx[inside], gy[inside]))))
+        return float(np.median(errors))
+
+    assert angle(result.model) < 0.5 * angle(own.model)
+
+
+def test_presses_at_one_place_keep_the_models_own_position_colour_degree():
+    # presses that keep to one place cannot say how a slope's colour changes elsewhere, and held-out presses at
+    # the same place cannot tell: the candidates are not weighed, the model's own degree is kept, and said
+    reference, presses = _turning_presses([(160, 60)] * 10)
+    result = calibrate_photometric(_items(presses), reference, BALL, TURNING)
+    assert not result.colour_degree_scores and result.press_spread < 1.0
+    assert result.model.config.position_colour_degree == 0 and "the model's own" in result.summary()
+
+
+def test_position_colour_degree_candidates_must_fit_the_colour_degree():
+    with pytest.raises(ValueError, match="position_colour_degrees"):
+        PressCalibrationConfig(position_colour_degrees=(4,))
+    assert PressCalibrationConfig(position_colour_degrees=(0, 3)).position_colour_degrees == (0, 3)
+
+
+def test_nested_candidates_score_as_fitting_each_on_its_own(synthetic_presses):
+    # the one-pass scoring of nested candidates (each press's normal equations formed once) gives the scores that
+    # fitting every candidate on every fold gives (up to the colour scaling, all presses' rather than each fold's)
+    from touchroller_perception.height.presses import held_out_scores, nested_held_out_scores, press_samples
+
+    reference, presses = synthetic_presses
+    items = _presses(presses[:8])
+    rng = np.random.default_rng(0)
+    parts = [press_samples(p, refine_circle(change_magnitude(p.image, reference), p.u, p.v, p.radius_px, CONFIG),
+                           reference, BALL, CONFIG, rng) for p in items]
+    candidates = {d: dataclasses.replace(CONFIG.model, position_colour_degree=d) for d in (0, 1, 2)}
+    fast = nested_held_out_scores(parts, CONFIG, candidates, SHAPE[1], SHAPE[0])
+    slow = held_out_scores(parts, CONFIG, candidates, SHAPE[1], SHAPE[0])
+    assert [s.degree for s in fast] == [s.degree for s in slow] == [0, 1, 2]
+    for a, b in zip(fast, slow, strict=True):
+        assert a.normal_error_deg == pytest.approx(b.normal_error_deg, rel=0.02, abs=0.01)
+        assert a.gain_deviation == pytest.approx(b.gain_deviation, rel=0.02, abs=1e-3)
+    with pytest.raises(CalibrationError, match="at least 4 presses"):
+        nested_held_out_scores(parts[:3], CONFIG, candidates, SHAPE[1], SHAPE[0])
