@@ -429,6 +429,57 @@ def test_a_writer_behind_a_camera_that_cannot_wait_refuses_frames_past_its_bound
     assert all(np.array_equal(r.image, by_stamp[r.stamp_ns]) for r in kept)   # what it took, exactly
 
 
+def test_a_writer_behind_warns_while_its_queue_is_over_half_full_and_is_ok_again_once_it_caught_up(
+        ros_context, spin_until, tmp_path, monkeypatch):
+    """#25: before anything is refused, a queue over half its bound is a WARN on /diagnostics (a slow disk the
+    operator can still act on); once the writer has caught up the status is OK again, nothing lost."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+
+    from touchroller_bringup import recorder as recorder_module
+
+    handle = recorder_module._BagWriter._handle
+
+    def slow_handle(self, item):
+        if item[0] == "message":
+            time.sleep(0.5)   # over half full for about 3.5 s: several diagnostics periods
+        handle(self, item)
+
+    monkeypatch.setattr(recorder_module._BagWriter, "_handle", slow_handle)
+    talker = Node("talker", context=ros_context)
+    image_pub = talker.create_publisher(Image, "/touchroller/image_raw",
+                                        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    statuses: list = []
+    talker.create_subscription(DiagnosticArray, "/diagnostics",
+                               lambda msg: statuses.extend(s for s in msg.status if s.name == "touchroller recorder"),
+                               10)
+    recorder = Recorder(tmp_path / "bag", topics=["/touchroller/image_raw"], context=ros_context,
+                        parameter_overrides=[Parameter("queue.max_bytes", value=4 * 2**20)])
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(talker)
+    executor.add_node(recorder)
+    rng = np.random.default_rng(4)
+    frames = [rng.integers(0, 256, (256, 256, 3), dtype=np.uint8) for _ in range(18)]   # 3.5 MB in all
+    try:
+        assert spin_until(executor, lambda: image_pub.get_subscription_count() == 1, timeout=20)
+        for i, frame in enumerate(frames):
+            image_pub.publish(array_to_image(frame, 5_000_000_000 + i * 1_000_000))
+        assert spin_until(executor, lambda: any(s.level == b"\x01" for s in statuses), timeout=20)
+        warned = len(statuses)
+        assert spin_until(executor, lambda: recorder.stats().written == 18
+                          and any(s.level == b"\x00" for s in statuses[warned:]), timeout=30)
+        stats = recorder.stats()
+    finally:
+        recorder.destroy_node()
+        executor.shutdown()
+        talker.destroy_node()
+    warning = next(s for s in statuses if s.level == b"\x01")
+    assert "queue is over half full" in warning.message
+    assert not stats.lost and stats.queue.overflowed_total == 0
+    assert len(list(read_images(tmp_path / "bag"))) == 18
+
+
 def test_frames_lost_before_the_recorder_took_them_are_counted_from_the_publishers_sequence_numbers(
         ros_context, spin_until, tmp_path):
     """A gap in a publisher's sequence numbers (DDS dropped messages the recorder's queue could not hold)
