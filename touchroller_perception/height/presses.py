@@ -467,7 +467,8 @@ def nested_held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndar
     scores = []
     for degree, candidate in candidates.items():
         cols = columns[degree]
-        gains, angles = [], []
+        gains: list[float] = []
+        angles: list[float] = []
         for k in range(folds):
             train = [i for i in range(n) if i % folds != k]
             gram = sum(grams[i] for i in train)[np.ix_(cols, cols)]
@@ -480,13 +481,23 @@ def nested_held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndar
                 if contact.sum() < 10:
                     continue
                 read = x[contact][:, cols] @ coefficients
-                true = targets[contact]
-                for j in range(2):
-                    gains.append(float(read[:, j] @ true[:, j]) / max(float(true[:, j] @ true[:, j]), 1e-12))
-                angles.append(float(np.median(normal_angles_deg(read[:, 0], read[:, 1], true[:, 0], true[:, 1]))))
-        deviation = float(np.sqrt(np.mean((np.array(gains) - 1.0) ** 2))) if gains else math.inf
-        scores.append(DegreeScore(degree, deviation, float(np.median(angles)) if angles else math.inf))
+                _score_held_out(read, targets[contact], gains, angles)
+        scores.append(_degree_score(degree, gains, angles))
     return tuple(scores)
+
+
+def _score_held_out(read: np.ndarray, true: np.ndarray, gains: list[float], angles: list[float]) -> None:
+    """One held-out press's slopes read against the true ones (contact pixels, 2 columns): each slope's
+    least-squares gain of read on true into `gains`, the median normal-angle error into `angles`."""
+    for j in range(2):
+        gains.append(float(read[:, j] @ true[:, j]) / max(float(true[:, j] @ true[:, j]), 1e-12))
+    angles.append(float(np.median(normal_angles_deg(read[:, 0], read[:, 1], true[:, 0], true[:, 1]))))
+
+
+def _degree_score(degree: int, gains: list[float], angles: list[float]) -> DegreeScore:
+    """RMS of (gain - 1) over the held-out presses' slopes and their median normal-angle error."""
+    deviation = float(np.sqrt(np.mean((np.array(gains) - 1.0) ** 2))) if gains else math.inf
+    return DegreeScore(degree, deviation, float(np.median(angles)) if angles else math.inf)
 
 
 def held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
@@ -502,7 +513,8 @@ def held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np
         raise CalibrationError(f"choosing a model degree needs at least 4 presses, got {n}")
     scores = []
     for degree, model_config in candidates.items():
-        gains, angles = [], []
+        gains: list[float] = []
+        angles: list[float] = []
         for k in range(folds):
             train = [parts[i] for i in range(n) if i % folds != k]
             try:
@@ -517,12 +529,8 @@ def held_out_scores(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np
                 if contact.sum() < 10:
                     continue
                 read = model.slopes_at(feats[contact], us[contact], vs[contact])
-                true = targets[contact]
-                for j in range(2):
-                    gains.append(float(read[:, j] @ true[:, j]) / max(float(true[:, j] @ true[:, j]), 1e-12))
-                angles.append(float(np.median(normal_angles_deg(read[:, 0], read[:, 1], true[:, 0], true[:, 1]))))
-        deviation = float(np.sqrt(np.mean((np.array(gains) - 1.0) ** 2))) if gains else math.inf
-        scores.append(DegreeScore(degree, deviation, float(np.median(angles)) if angles else math.inf))
+                _score_held_out(read, targets[contact], gains, angles)
+        scores.append(_degree_score(degree, gains, angles))
     return tuple(scores)
 
 
