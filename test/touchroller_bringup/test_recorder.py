@@ -371,11 +371,10 @@ def test_the_writer_commits_by_the_messages_arrival_not_by_its_own_last_commit(t
         writer.finish()
 
 
-def test_a_writer_behind_a_camera_that_cannot_wait_refuses_frames_past_its_bound_and_says_so(
-        ros_context, spin_until, tmp_path, monkeypatch):
-    """#25: the writer's queue is bounded in bytes (queue.max_bytes): a camera faster than a slow writer
-    (a slow disk) fills it, and the frames past it are refused, counted per topic and reported ERROR on
-    /diagnostics, never held without bound nor dropped silently; the bag holds every frame it took."""
+def _behind_a_slow_writer(ros_context, tmp_path, monkeypatch, seconds_per_message: float, max_bytes: int):
+    """A talker publishing /touchroller/image_raw (reliable, depth 100) and collecting the recorder's
+    /diagnostics statuses, and a Recorder of that topic bounded at `max_bytes` whose writer takes
+    `seconds_per_message` per message (a slow disk); both on one executor."""
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import Image
@@ -386,7 +385,7 @@ def test_a_writer_behind_a_camera_that_cannot_wait_refuses_frames_past_its_bound
 
     def slow_handle(self, item):
         if item[0] == "message":
-            time.sleep(0.05)   # 20 frames/s at most
+            time.sleep(seconds_per_message)
         handle(self, item)
 
     monkeypatch.setattr(recorder_module._BagWriter, "_handle", slow_handle)
@@ -398,10 +397,21 @@ def test_a_writer_behind_a_camera_that_cannot_wait_refuses_frames_past_its_bound
                                lambda msg: statuses.extend(s for s in msg.status if s.name == "touchroller recorder"),
                                10)
     recorder = Recorder(tmp_path / "bag", topics=["/touchroller/image_raw"], context=ros_context,
-                        parameter_overrides=[Parameter("queue.max_bytes", value=2**20)])
+                        parameter_overrides=[Parameter("queue.max_bytes", value=max_bytes)])
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(talker)
     executor.add_node(recorder)
+    return talker, image_pub, statuses, recorder, executor
+
+
+def test_a_writer_behind_a_camera_that_cannot_wait_refuses_frames_past_its_bound_and_says_so(
+        ros_context, spin_until, tmp_path, monkeypatch):
+    """#25: the writer's queue is bounded in bytes (queue.max_bytes): a camera faster than a slow writer
+    (a slow disk) fills it, and the frames past it are refused, counted per topic and reported ERROR on
+    /diagnostics, never held without bound nor dropped silently; the bag holds every frame it took."""
+    # 20 frames/s at most
+    talker, image_pub, statuses, recorder, executor = _behind_a_slow_writer(ros_context, tmp_path, monkeypatch,
+                                                                            0.05, 2**20)
     rng = np.random.default_rng(3)
     frames = [rng.integers(0, 256, (256, 256, 3), dtype=np.uint8) for _ in range(30)]   # 196 kB each
     try:
@@ -433,32 +443,9 @@ def test_a_writer_behind_warns_while_its_queue_is_over_half_full_and_is_ok_again
         ros_context, spin_until, tmp_path, monkeypatch):
     """#25: before anything is refused, a queue over half its bound is a WARN on /diagnostics (a slow disk the
     operator can still act on); once the writer has caught up the status is OK again, nothing lost."""
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.parameter import Parameter
-    from sensor_msgs.msg import Image
-
-    from touchroller_bringup import recorder as recorder_module
-
-    handle = recorder_module._BagWriter._handle
-
-    def slow_handle(self, item):
-        if item[0] == "message":
-            time.sleep(0.5)   # over half full for about 3.5 s: several diagnostics periods
-        handle(self, item)
-
-    monkeypatch.setattr(recorder_module._BagWriter, "_handle", slow_handle)
-    talker = Node("talker", context=ros_context)
-    image_pub = talker.create_publisher(Image, "/touchroller/image_raw",
-                                        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
-    statuses: list = []
-    talker.create_subscription(DiagnosticArray, "/diagnostics",
-                               lambda msg: statuses.extend(s for s in msg.status if s.name == "touchroller recorder"),
-                               10)
-    recorder = Recorder(tmp_path / "bag", topics=["/touchroller/image_raw"], context=ros_context,
-                        parameter_overrides=[Parameter("queue.max_bytes", value=4 * 2**20)])
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(talker)
-    executor.add_node(recorder)
+    # over half full for about 3.5 s: several diagnostics periods
+    talker, image_pub, statuses, recorder, executor = _behind_a_slow_writer(ros_context, tmp_path, monkeypatch,
+                                                                            0.5, 4 * 2**20)
     rng = np.random.default_rng(4)
     frames = [rng.integers(0, 256, (256, 256, 3), dtype=np.uint8) for _ in range(18)]   # 3.5 MB in all
     try:
