@@ -20,8 +20,12 @@ passes, w across, at the map's resolution), where:
   line (or a step) the truth does not have at the border is not, because the fit never saw it. The same
   measure at lines 4 mm or more from any border (`seam_floor`, its 95th percentile) says how much the
   map's texture alone departs from the truth's: a border is a seam only where it stands out of that;
-* planted features (cracks, dents, grooves, pits): each one's 8 x 8 mm neighbourhood in the map located
-  in the truth (+-1.5 mm), mm off.
+* planted features (cracks, dents, grooves, pits), each centred 6 mm or more inside the rectangle: its
+  neighbourhood in the map (8 x 8 mm, or for a crack or groove 5 mm wide and as long as holds both its
+  ends with 1.5 mm to spare, turned along it) located in the truth (+-1.5 mm), mm off, where the map covers the
+  whole window. On a smooth surface a feature is the only
+  texture in its window, so the window must hold a crack's ends: a crack running through the window
+  pins its placement across itself but not along.
 """
 from __future__ import annotations
 
@@ -30,11 +34,13 @@ import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from bench._common import subpixel_peak
+from bench.raster_generator.surfaces import Feature
 from bench.raster_generator.truth import RasterTruth
 
 STRIP_HALF = 0.012
@@ -43,6 +49,9 @@ SEAM_NEAR = 0.0015            # m either side of a border where a line is looked
 SEAM_SIDES = (0.002, 0.008)   # m from the border: the profile the texture fit sees on each side
 SEAM_TAPS = 2                 # the truth's profile filtered over +-2 rows (+-0.2 mm at 0.1 mm)
 SEAM_CLEAR = 0.004            # m: the floor's lines lie at least this far from every border
+FEATURE_HALF = 0.004          # m: a feature's window reaches this far either side of its centre, at least
+FEATURE_END_MARGIN = 0.0015   # m: a crack's window reaches this far beyond its ends
+CRACK_HALF_ACROSS = 0.0025    # m: and this far either side of it (10 to 30 crack widths)
 SEAM_RIDGE = 0.03             # map stds: the truth's profile varying less than this leaves the taps at the gain
 
 
@@ -272,30 +281,64 @@ def _seam_floor(a: np.ndarray, b: np.ndarray, region: np.ndarray, ws: np.ndarray
     return float(np.percentile(values, 95)) if values else math.nan
 
 
+def _feature_frame(feature: Feature) -> tuple[np.ndarray, float, float]:
+    """The frame a feature is scored in: its unit direction (x, y) in base (x for a dent), and the half
+    extents (m) along and across it of its window: 4 mm either side of its centre, or, for a crack or
+    groove, as far as its ends and 1.5 mm beyond, and 2.5 mm either side (less than a dent's, so that a
+    long crack's window still fits the mapped area near its ends). A crack longer than the window would leave the match
+    free to slide along it, as nothing in the window pins it there; and on a window not turned along the
+    crack, the correlation's ridge runs diagonally through the pixel grid, where the pixel nearest the
+    ridge line wins over the one its ends point to."""
+    if feature.kind not in ("crack", "groove"):
+        return np.array([1.0, 0.0]), FEATURE_HALF, FEATURE_HALF
+    d = np.asarray(feature.end, float) - np.asarray(feature.start, float)
+    length = float(np.hypot(*d))
+    direction = d / length if length > 0 else np.array([1.0, 0.0])
+    return direction, max(FEATURE_HALF, 0.5 * length + FEATURE_END_MARGIN), CRACK_HALF_ACROSS
+
+
+def _turned(image: np.ndarray, centre: tuple[float, float], direction: np.ndarray, size: tuple[int, int]
+            ) -> np.ndarray:
+    """`image` resampled on a (rows, cols) = `size` grid centred on `centre` (col, row) whose columns run
+    along `direction` and rows across it (rows growing with y, as the map's)."""
+    (c, s), (rows, cols) = direction, size
+    dst_c, dst_r = (cols - 1) / 2, (rows - 1) / 2
+    # src = centre + R (dst - dst centre), with R's columns the direction and its normal
+    matrix = np.array([[c, -s, centre[0] - c * dst_c + s * dst_r],
+                       [s, c, centre[1] - s * dst_c - c * dst_r]])
+    return cv2.warpAffine(image, matrix, (cols, rows), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+
+
+def _inside(feature: Feature, spec: Any) -> bool:
+    """The feature's centre is 6 mm or more inside the rectangle."""
+    local = np.asarray(feature.centre) - np.asarray(spec.corner)
+    u, w = float(local @ spec.roll), float(local @ spec.across)
+    return 0.006 <= u <= spec.length - 0.006 and 0.006 <= w <= spec.width - 0.006
+
+
 def _features(grey: np.ndarray, weight: np.ndarray, expected: np.ndarray, origin: tuple[float, float],
               resolution: float, truth: RasterTruth) -> list[FeatureScore]:
-    """Each planted feature well inside the rectangle, located in the truth by its map neighbourhood."""
-    spec = truth.spec
-    half, search = int(round(0.004 / resolution)), int(round(0.0015 / resolution))
+    """Each planted feature well inside the rectangle, located in the truth by its map neighbourhood (a
+    window holding the whole feature, turned along a crack: see `_feature_frame`)."""
+    search = int(round(0.0015 / resolution))
     out = []
     for feature in truth.surface.features:
-        centre = np.asarray(feature.centre)
-        local = centre - np.asarray(spec.corner)
-        u, w = float(local @ spec.roll), float(local @ spec.across)
-        if not (0.006 <= u <= spec.length - 0.006 and 0.006 <= w <= spec.width - 0.006):
+        if not _inside(feature, truth.spec):
             continue
-        col = int(round((centre[0] - origin[0]) / resolution - 0.5))
-        row = int(round((centre[1] - origin[1]) / resolution - 0.5))
-        r0, r1, c0, c1 = row - half, row + half, col - half, col + half
-        if r0 - search < 0 or c0 - search < 0 or r1 + search > grey.shape[0] or c1 + search > grey.shape[1]:
-            continue
-        if weight[r0:r1, c0:c1].mean() < 0.99:
-            continue
-        template = _highpass(grey[r0 - search:r1 + search, c0 - search:c1 + search])[search:-search, search:-search]
-        image = _highpass(expected[r0 - search:r1 + search, c0 - search:c1 + search])
-        dx, dy, peak = _locate(template, image)
+        direction, half_along, half_across = _feature_frame(feature)
+        along, across = int(round(half_along / resolution)), int(round(half_across / resolution))
+        centre = ((feature.centre[0] - origin[0]) / resolution - 0.5,
+                  (feature.centre[1] - origin[1]) / resolution - 0.5)
+        size = (2 * (across + search) + 1, 2 * (along + search) + 1)
+        if _turned(weight, centre, direction, size)[search:-search, search:-search].mean() < 0.99:
+            continue   # not mapped throughout (a window off the map reads weight 0)
+        template = _highpass(_turned(grey, centre, direction, size))[search:-search, search:-search]
+        image = _highpass(_turned(expected, centre, direction, size))
+        du, dw, peak = _locate(template, image)
+        dx, dy = du * direction + dw * np.array([-direction[1], direction[0]])   # back to base x, y
         offset = (-dx * resolution * 1e3, -dy * resolution * 1e3)   # the map's content lies here relative to the truth
-        out.append(FeatureScore(feature.kind, (float(centre[0]), float(centre[1])), offset,
+        out.append(FeatureScore(feature.kind, (float(feature.centre[0]), float(feature.centre[1])), offset,
                                 float(math.hypot(*offset)), peak))
     return out
 

@@ -4,7 +4,9 @@ a nearly flat truth does not let the texture fit run away; and, on the second ge
 a line detector over `touchroller map`'s own map finds nothing above the map's noise."""
 from __future__ import annotations
 
+import dataclasses
 import functools
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -18,8 +20,18 @@ from hypothesis import strategies as st
 
 from bench.raster_generator import MotionConfig, RasterSpec, generate
 from bench.raster_generator.render import Camera, Look, appearance
-from bench.raster_generator.surfaces import make_surface
-from bench.raster_score import SEAM_SIDES, _borders, _profiles, _seam_floor, _seams, _standard, read_map, seam_at
+from bench.raster_generator.surfaces import Feature, _plant, make_surface
+from bench.raster_score import (
+    SEAM_SIDES,
+    _borders,
+    _features,
+    _profiles,
+    _seam_floor,
+    _seams,
+    _standard,
+    read_map,
+    seam_at,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 RES = 1e-4
@@ -175,3 +187,40 @@ def test_a_line_detector_over_the_map_of_plain_glass_finds_nothing_above_the_map
     assert len(readings) == len(lines)
     assert max(readings) < 0.25, (max(readings), lines[int(np.argmax(readings))])
     assert len(_borders(ws, truth)) == 6   # the pass borders and band edges were among the lines searched
+
+
+def _crack_on_glass(shift_mm: float) -> tuple[np.ndarray, np.ndarray, SimpleNamespace]:
+    """Glass 4 x 4 cm with one 15 mm crack at 133 deg through its middle (no other feature), its ideal map
+    and the same map with the surface slid `shift_mm` along the crack (so the crack runs through its
+    8 mm window unchanged, and only its ends have moved), a little noise on the map."""
+    size, res = 0.04, RES
+    surface = make_surface("glass", (size, size), (0.0, 0.0, 0.0), features=0, seed=3)
+    angle = math.radians(133.0)
+    direction = np.array([math.cos(angle), math.sin(angle)])
+    half = 0.0075 * direction
+    mid = np.array([0.02, 0.02])
+    _plant(surface.height, surface.resolution, ("crack", tuple(mid - half), tuple(mid + half), 0.25e-3, 30e-6))
+    crack = Feature("crack", tuple(mid - half), tuple(mid + half), 0.25e-3, 30e-6)
+    surface = dataclasses.replace(surface, features=(crack,))
+    roll = np.array([1.0, 0.0])
+    shape = (int(size / res), int(size / res))
+    expected = appearance(surface, Camera(), Look(), (0.0, 0.0), shape, res, roll)
+    shift = shift_mm * 1e-3 * direction   # the map's content lies here relative to the truth
+    moved = appearance(surface, Camera(), Look(), (-shift[0], -shift[1]), shape, res, roll)
+    noise = np.random.default_rng(0).standard_normal(shape).astype(np.float32)
+    grey = moved + 0.05 * float(expected.std()) * noise
+    spec = SimpleNamespace(corner=(0.0, 0.0), roll=roll, across=np.array([0.0, 1.0]), length=size, width=size)
+    return grey, expected, SimpleNamespace(spec=spec, surface=surface)
+
+
+@pytest.mark.parametrize("shift_mm", [0.0, 0.3])
+def test_a_long_crack_slid_along_itself_reads_the_slide(shift_mm: float) -> None:
+    """A crack longer than the 8 mm window (as the second generator plants up to 20 mm long) is scored in
+    a window holding its ends: a map slid 0.3 mm along the crack reads 0.3 mm off, along it (the 8 mm
+    window saw the same groove either way and could read anything along it), and an unmoved one 0."""
+    grey, expected, truth = _crack_on_glass(shift_mm)
+    [score] = _features(grey, np.ones_like(grey), expected, (0.0, 0.0), RES, truth)
+    direction = np.array([math.cos(math.radians(133.0)), math.sin(math.radians(133.0))])
+    offset = np.array(score.offset_mm)
+    assert abs(float(offset @ direction) - shift_mm) < 0.03, score
+    assert abs(float(offset @ np.array([-direction[1], direction[0]]))) < 0.03, score
