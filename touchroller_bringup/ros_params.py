@@ -2,9 +2,9 @@
 
 `declare` wraps `Node.declare_parameter` with a ParameterDescriptor carrying the description and
 a floating-point or integer range, so `ros2 param describe` shows them and rclpy rejects values
-outside the range. `declare_geometry_parameters` declares docs/design.md's camera/cylinder/extrinsics
-parameters; `GeometryParameters` validates a whole update in the on-set callback (the model is
-rebuilt from the candidate values) and applies it in the post-set callback.
+outside the range. `GeometryParameters` binds docs/design.md's camera/cylinder/extrinsics parameters to
+the node's CameraModel (a `ConfigParameters`, below): a whole update is validated in the on-set callback
+(the model is rebuilt from the candidate values) and applied in the post-set callback.
 
 Every parameter declared through `declare` is checked in one place, at declaration (the value a params
 file or `name:=value` gave) and in an on-set callback `declare` adds once per node: its type (a number
@@ -204,17 +204,6 @@ def declare_frame_prefix(node: Node) -> str:
         raise UserError(str(exc)) from None
 
 
-def declare_geometry_parameters(node: Node, model: CameraModel | None = None) -> None:
-    """Declare docs/design.md's geometry parameters with the model's values as defaults."""
-    defaults = (model or CameraModel()).to_params()
-    for name, (description, lo, hi) in GEOMETRY_PARAMETERS.items():
-        declare(node, name, defaults[name], description, min=lo, max=hi)
-
-
-def camera_model_from_node(node: Node) -> CameraModel:
-    return CameraModel.from_params({name: node.get_parameter(name).value for name in PARAMETER_NAMES})
-
-
 @dataclass(frozen=True)
 class ParameterField:
     """One row of a node's parameter table: the ROS parameter sets config field `field`.
@@ -270,6 +259,26 @@ def _scalar(name: str, value: Any, kind: type) -> Any:
     return kind(value)
 
 
+def parameter_values(config: Any, table: Mapping[str, TableRow]) -> dict[str, Any]:
+    """The values of `config`'s fields as the table's parameters hold them (an array as a list; a field's
+    type decides: a float field's 1 is 1.0)."""
+    hints = get_type_hints(type(config))
+    out: dict[str, Any] = {}
+    for name, row in table.items():
+        field = parameter_field(row).field
+        kind, element = _kind(hints[field])
+        value = getattr(config, field)
+        out[name] = [element(v) for v in value] if element is not None else kind(value)
+    return out
+
+
+#: the geometry parameters' table: each sets the CameraModel field its name ends with (camera.fx -> fx)
+GEOMETRY_FIELDS: dict[str, ParameterField] = {
+    name: ParameterField(name.split(".", 1)[1], description, lo, hi)
+    for name, (description, lo, hi) in GEOMETRY_PARAMETERS.items()
+}
+
+
 class ConfigParameters(Generic[C]):
     """A frozen config dataclass bound to ROS parameters by a table (parameter name -> `ParameterField`).
 
@@ -318,13 +327,7 @@ class ConfigParameters(Generic[C]):
 
     def values(self, config: C | None = None) -> dict[str, Any]:
         """The parameters' values of `config` (default: the current one), as ROS holds them (arrays as lists)."""
-        config = self.config if config is None else config
-        out: dict[str, Any] = {}
-        for name, row in self.table.items():
-            kind, element = self._kinds[name]
-            value = getattr(config, row.field)
-            out[name] = [element(v) for v in value] if element is not None else kind(value)
-        return out
+        return parameter_values(self.config if config is None else config, self.table)
 
     def _field_value(self, name: str, value: Any) -> Any:
         kind, element = self._kinds[name]
@@ -373,38 +376,17 @@ def _one_line(exc: BaseException) -> str:
 
 
 class GeometryParameters:
-    """Keeps a node's CameraModel in step with its parameters.
+    """Keeps a node's CameraModel in step with its parameters: a `ConfigParameters` of GEOMETRY_FIELDS.
 
-    On-set: the candidate model is built from the new values over the current ones; an invalid
+    On-set: the candidate model is the current one with the new values (`dataclasses.replace`); an invalid
     combination (e.g. |d| >= r, 4 distortion coefficients) is rejected with the model's reason.
     Post-set: the new model is stored and `on_change(model)` is called.
     """
 
     def __init__(self, node: Node, model: CameraModel | None = None,
                  on_change: Callable[[CameraModel], None] | None = None) -> None:
-        declare_geometry_parameters(node, model)
-        self._node = node
-        self.model = camera_model_from_node(node)
-        self._on_change = on_change
-        node.add_on_set_parameters_callback(self._validate)
-        node.add_post_set_parameters_callback(self._apply)
+        self.binding = ConfigParameters(node, model or CameraModel(), GEOMETRY_FIELDS, on_change=on_change)
 
-    def _candidate(self, parameters: Sequence[Parameter]) -> CameraModel:
-        values = self.model.to_params()
-        values.update({p.name: p.value for p in parameters if p.name in GEOMETRY_PARAMETERS})
-        return CameraModel.from_params(values)
-
-    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        if not any(p.name in GEOMETRY_PARAMETERS for p in parameters):
-            return SetParametersResult(successful=True)
-        try:
-            self._candidate(parameters)
-        except (TypeError, ValueError) as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        return SetParametersResult(successful=True)
-
-    def _apply(self, parameters: Sequence[Parameter]) -> None:
-        if any(p.name in GEOMETRY_PARAMETERS for p in parameters):
-            self.model = self._candidate(parameters)
-            if self._on_change is not None:
-                self._on_change(self.model)
+    @property
+    def model(self) -> CameraModel:
+        return self.binding.config
