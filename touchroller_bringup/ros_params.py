@@ -292,7 +292,8 @@ class ConfigParameters(Generic[C]):
     `dataclasses.replace(config, ...)` with the new values, so the config's own `__post_init__` checks the
     whole combination, then `check(candidate)` (the node's own checks, e.g. a sweep's plan); an exception of
     `errors` refuses the change with its message as the one-line reason. Post-set: `config` becomes the
-    candidate and `on_change(config)` is called. Parameters outside the table are left to the node."""
+    candidate (the hook is not run twice) and `on_change(config)` is called. Parameters outside the table
+    are left to the node."""
 
     def __init__(self, node: Node, config: C | type[C], table: Mapping[str, TableRow], *,
                  on_change: Callable[[C], None] | None = None, check: Callable[[C], None] | None = None,
@@ -344,10 +345,10 @@ class ConfigParameters(Generic[C]):
             raise ValueError(f"{name} needs {row.length} values, got {len(items)}: {items}")
         return kind(items)
 
-    def _candidate(self, changes: Mapping[str, Any]) -> C:
+    def _candidate(self, changes: Mapping[str, Any], *, check: bool = True) -> C:
         candidate = replace(self.config, **{self.table[name].field: self._field_value(name, value)   # type: ignore[type-var]
                                             for name, value in changes.items()})
-        if self._check is not None:
+        if check and self._check is not None:
             self._check(candidate)
         return candidate
 
@@ -365,8 +366,8 @@ class ConfigParameters(Generic[C]):
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:
         changes = self._changes(parameters)
-        if changes:
-            self.config = self._candidate(changes)
+        if changes:   # accepted by _validate: the check hook (e.g. a sweep's whole plan) is not run again
+            self.config = self._candidate(changes, check=False)
             if self._on_change is not None:
                 self._on_change(self.config)
 

@@ -182,7 +182,10 @@ def test_a_refused_change_leaves_the_config_and_says_why_in_one_line(node, name,
 
 
 def test_the_check_hook_refuses_what_the_config_alone_allows(node):
+    checked: list[_Config] = []
+
     def check(config: _Config) -> None:
+        checked.append(config)
         if config.high - config.low > 5.0:
             raise ValueError(f"the span {config.high - config.low:g} is wider than 5")
 
@@ -190,7 +193,9 @@ def test_the_check_hook_refuses_what_the_config_alone_allows(node):
     ConfigParameters(node, _Config, _TABLE, on_change=seen.append, check=check)
     (result,) = node.set_parameters([Parameter("x.high", value=9.0)])
     assert not result.successful and result.reason == "the span 8 is wider than 5"
+    checked.clear()
     assert node.set_parameters([Parameter("x.high", value=6.0)])[0].successful and seen[-1].high == 6.0
+    assert checked == [seen[-1]]   # once, on set (a sweep's plan is not made again after it was accepted)
 
 
 def test_start_up_values_get_the_checks_a_change_gets(ros_context):
