@@ -49,10 +49,8 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo
@@ -61,16 +59,11 @@ from std_srvs.srv import Trigger
 
 from touchroller_bringup import names
 from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
-from touchroller_bringup.ros_params import declare, declare_frame_prefix
+from touchroller_bringup.ros_params import ConfigParameters, declare, declare_frame_prefix, parameter_values
 from touchroller_bringup.sweep_action import SweepActionServer, make_sweep_action
+from touchroller_bringup.sweep_settings import MOUNT_FIELDS, SWEEP_FIELDS, MountConfig, SweepSettings
 from touchroller_bringup.tf import TransformPublisher
 from touchroller_driver.arm import (
-    DEFAULT_CLEARANCE,
-    DEFAULT_DIRECTION,
-    DEFAULT_MOUNT_RPY,
-    DEFAULT_MOUNT_XYZ,
-    DEFAULT_START_POSE,
-    SWEEP_PROFILES,
     Arm,
     ArmError,
     ArmLimits,
@@ -80,7 +73,6 @@ from touchroller_driver.arm import (
     SweepSequencer,
     SweepStatus,
     check_plan,
-    mount_transform,
     plan_duration,
     plan_raster,
     plan_sweep,
@@ -102,11 +94,6 @@ SHUTDOWN_STOP_S = 0.5
 LOCKSTEP_STALL_S = 10.0
 #: sim.lockstep: the topics (relative) on which the frames' consumers say up to which frame they are done
 FRAME_CONSUMERS = {names.IMAGE_DONE: "perception", names.IMAGE_RECORDED: "recorder"}
-
-# Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
-SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
-                    "sweep.start_pose", "sweep.direction", "sweep.retract", "sweep.clearance", "sweep.area",
-                    "sweep.usable_width", "sweep.overlap", "sweep.profile")
 
 
 def rotation_vector_to_quaternion(rotation: Sequence[float]) -> tuple[float, float, float, float]:
@@ -161,20 +148,20 @@ class SweepNode(Node):
         super().__init__(node_name, **node_kwargs)
         self._declare_parameters()
         self.frame_prefix = declare_frame_prefix(self)
-        self.settings = {name: self.get_parameter(name).value for name in SWEEP_PARAMETERS}
-        self.add_on_set_parameters_callback(self._validate_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
-
         self.limits = self._limits_from_parameters()
         if arm is not None:  # a supplied arm keeps its own limits; the stricter of the two apply here
             reaches = [r for r in (self.limits.reach, arm.limits.reach) if r is not None]
             self.limits = ArmLimits(max_speed=min(self.limits.max_speed, arm.limits.max_speed),
                                     max_accel=min(self.limits.max_accel, arm.limits.max_accel),
                                     reach=min(reaches) if reaches else None)
-        try:   # start-up values get the checks a change at run time gets (the on-set callback's)
-            self._plan_from(self.settings)
-        except (ArmError, ValueError) as exc:
-            raise ValueError(f"sweep parameters refused: {exc}") from None
+        # run-time parameters: the mount (re-published on /tf_static when it changes) and the sweep of the
+        # next ~/start, checked whole (the plan) on set and at start-up
+        self.mount_parameters = ConfigParameters(self, MountConfig(), MOUNT_FIELDS,
+                                                 on_change=lambda _: self._publish_mount())
+        self.sweep_parameters = ConfigParameters(
+            self, SweepSettings(), SWEEP_FIELDS,
+            check=lambda settings: self._plan_from(parameter_values(settings, SWEEP_FIELDS)),
+            errors=(ArmError, TypeError, ValueError), refused="sweep parameters refused: ")
         self.sim_clock: SimClock | None = None   # use_sim: the one clock of the simulated arm and camera
         self._clock_pub: Any = None
         self.frame_gate: FrameGate | None = None   # use_sim and sim.lockstep: the clock waits for the frames
@@ -243,32 +230,6 @@ class SweepNode(Node):
                 read_only=True)
         declare(self, "sweep.max_duration", 1800.0, "Longest a sweep or raster may take (all its moves, from where "
                 "the arm is), s; a longer one is refused", min=1.0, max=86400.0, read_only=True)
-        declare(self, "sweep.length", 0.11, "Length of the roll along sweep.direction, m", min=0.0, max=1.0)
-        declare(self, "sweep.speed", 0.011, "Roll speed, m/s (paper: 11 cm in 10 s)", min=1e-4, max=1.0)
-        declare(self, "sweep.accel", 0.1, "Acceleration of every move, m/s^2", min=1e-3, max=5.0)
-        declare(self, "sweep.depth", 0.0005, "How far the roller is pressed into the surface, m", min=0.0, max=0.01)
-        declare(self, "sweep.approach_speed", 0.005, "Speed to the start pose, pressing and lifting, m/s",
-                min=1e-4, max=1.0)
-        declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
-                "TCP pose [x, y, z, rx, ry, rz] (base frame, m, rotation vector) where the roller just "
-                "touches the surface at the start of the sweep")
-        declare(self, "sweep.area", [0.0, 0.0, 0.0, 0.0], "Rectangle to cover [x, y, length, width], m, in "
-                "arm.base_frame: corner (x, y), length along sweep.direction, width along the roller's axis; "
-                "a boustrophedon raster of passes rolled alternately forwards and back (one pass when narrower "
-                "than sweep.usable_width). length 0: one roll of sweep.length from sweep.start_pose")
-        declare(self, "sweep.usable_width", 0.06, "Width of surface one pass maps, m (the band the camera "
-                "sees along the axis, less a margin)", min=0.001, max=1.0)
-        declare(self, "sweep.overlap", 0.25, "Least fraction of sweep.usable_width neighbouring passes share",
-                min=0.0, max=0.9)
-        declare(self, "sweep.direction", list(DEFAULT_DIRECTION), "Rolling direction in the base frame (horizontal)")
-        declare(self, "sweep.profile", "ramp", "Motion of each pass: ramp (stop above the pass, press in at "
-                "rest, accelerate, roll, stop, lift: moves one at a time), blend (each pass one path at "
-                "sweep.speed through its waypoints with blend radii: descending before the pass, touching down "
-                "and lifting off while moving, as a UR program of movels with blend radii) or constant (the same "
-                "path with sharp corners); docs/ur5.md", additional_constraints="one of: " + ", ".join(SWEEP_PROFILES))
-        declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
-        declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "Height above the start pose the roller approaches "
-                "from and lifts back to, m", min=0.0, max=0.05)
         declare(self, "sim.rate", 1.0, "use_sim: simulated seconds per wall-clock second of the simulated clock "
                 "(published on /clock; the simulated camera renders on it)", min=0.1, max=20.0, read_only=True)
         declare(self, "sim.lockstep", True, "use_sim: the simulated clock waits for the frames: never more than "
@@ -289,36 +250,15 @@ class SweepNode(Node):
                 "the TCP pose is its pose", read_only=True)
         declare(self, "publish_tf", True, "Publish arm.base_frame -> arm.tool_frame on /tf from the arm's pose; "
                 "false when a robot driver (e.g. ur_robot_driver) already does", read_only=True)
-        declare(self, "mount.xyz", list(DEFAULT_MOUNT_XYZ), f"Position of {names.CYLINDER_FRAME} (the roller's "
-                "axis centre) in the tool frame, m; published on /tf_static")
-        declare(self, "mount.rpy", list(DEFAULT_MOUNT_RPY), f"Orientation of {names.CYLINDER_FRAME} in the tool "
-                "frame, fixed-axis roll, pitch, yaw, rad (x along the roller axis, z down at the contact)")
 
-    def _validate_parameters(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        mount = {p.name: p.value for p in parameters if p.name.startswith("mount.")}
-        if mount:
-            try:
-                self.mount(mount)
-            except (TypeError, ValueError) as exc:
-                return SetParametersResult(successful=False, reason=str(exc))
-        candidate = dict(self.settings)
-        candidate.update({p.name: p.value for p in parameters if p.name in SWEEP_PARAMETERS})
-        try:
-            self._plan_from(candidate)
-        except (ArmError, ValueError) as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        return SetParametersResult(successful=True)
+    @property
+    def settings(self) -> dict[str, Any]:
+        """The sweep.* parameters of the next `~/start` (a new dict: name -> value as ROS holds it)."""
+        return self.sweep_parameters.values()
 
-    def _apply_parameters(self, parameters: Sequence[Parameter]) -> None:
-        self.settings.update({p.name: p.value for p in parameters if p.name in SWEEP_PARAMETERS})
-        if any(p.name.startswith("mount.") for p in parameters):
-            self._publish_mount()
-
-    def mount(self, overrides: dict[str, Any] | None = None) -> Transform:
+    def mount(self) -> Transform:
         """T_tool_cylinder from the mount.* parameters."""
-        values = {name: self.get_parameter(name).value for name in ("mount.xyz", "mount.rpy")}
-        values.update(overrides or {})
-        return mount_transform(values["mount.xyz"], values["mount.rpy"])
+        return self.mount_parameters.config.transform()
 
     def _publish_mount(self) -> None:
         self.tf.set_static(self._tool_frame, self._cylinder_frame, self.mount())
