@@ -25,7 +25,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
-from typing import Any, Generic, TypeVar, get_args, get_origin, get_type_hints
+from types import UnionType
+from typing import Any, Generic, TypeVar, Union, get_args, get_origin, get_type_hints
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
@@ -231,8 +232,13 @@ def parameter_field(row: TableRow) -> ParameterField:
 
 
 def _kind(annotation: Any) -> tuple[type, type | None]:
-    """(ROS-side kind, element kind): bool/int/float/str, or tuple/list with their element's kind."""
+    """(ROS-side kind, element kind): bool/int/float/str, or tuple/list with their element's kind. An optional
+    field (`int | None`) is its type's: a parameter always holds a value."""
     origin = get_origin(annotation)
+    if origin in (UnionType, Union):
+        present = [a for a in get_args(annotation) if a is not type(None)]
+        if len(present) == 1:
+            return _kind(present[0])
     if origin in (tuple, list):
         elements = {a for a in get_args(annotation) if a is not Ellipsis}
         if len(elements) != 1 or next(iter(elements)) not in (bool, int, float, str):

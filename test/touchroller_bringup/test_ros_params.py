@@ -212,3 +212,14 @@ def test_start_up_values_get_the_checks_a_change_gets(ros_context):
         assert ConfigParameters(node, _Config, _TABLE, refused="x refused: ").config == _Config(low=0.5, count=7)
     finally:
         node.destroy_node()
+
+
+@dataclass(frozen=True)
+class _Optional:
+    most: int | None = 10
+
+
+def test_an_optional_field_is_declared_with_its_types_parameter(node):
+    binding = ConfigParameters(node, _Optional, {"most": ParameterField("most", "At most", 1, 100)})
+    assert node.get_parameter("most").type_ == Parameter.Type.INTEGER
+    assert node.set_parameters([Parameter("most", value=20)])[0].successful and binding.config == _Optional(20)
