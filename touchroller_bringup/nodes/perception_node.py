@@ -86,6 +86,7 @@ from touchroller_bringup.ros_diagnostics import (
     Status,
 )
 from touchroller_bringup.ros_params import (
+    ConfigParameters,
     GeometryParameters,
     check_start_up,
     declare,
@@ -238,9 +239,9 @@ class PerceptionNode(Node):
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         check_start_up(self, self._validate)   # the start-up values pass the checks a change does
-        self.detector = ContactDetector(self._detector_config(), int(self.get_parameter("reference.frames").value))
+        self.detector = ContactDetector(self.detector_parameters.config,
+                                        int(self.get_parameter("reference.frames").value))
         self.frame_id = self._contacts_frame_id()
-        self.stitcher_config = self._stitcher_config()
         self.stitcher: Any = None
         self.world: WorldMapper | None = None   # the world map, once TF links world_frame to the cylinder
         self.world_frame = str(self.get_parameter("world_frame").value)   # the robot's: no prefix
@@ -254,7 +255,7 @@ class PerceptionNode(Node):
         self._rolling = False
         self._finish_after_ns: int | None = None   # a world map is finished with the first frame after this
         self.saved_maps = 0
-        self.live_findings = LiveFindings(self._findings_config())   # `findings`: markers of the defects found
+        self.live_findings = LiveFindings(self.findings_parameters.config)   # `findings`: markers of the defects found
         self.findings_pub = self.create_publisher(MarkerArray, names.FINDINGS, MAP_QOS)
         self.findings_published = 0
         self._findings_timer: Any = None
@@ -284,7 +285,7 @@ class PerceptionNode(Node):
         self.map_pub = self.create_publisher(Image, names.MAP, MAP_QOS)
         self.map_metadata_pub = self.create_publisher(MapMetaData, names.MAP_METADATA, MAP_QOS)
         self.map_height_pub = self.create_publisher(Image, names.MAP_HEIGHT, MAP_QOS)
-        self.map_views = MapViewPublisher(self, self.map_pub, self.map_metadata_pub, self._view_config())
+        self.map_views = MapViewPublisher(self, self.map_pub, self.map_metadata_pub, self.view_parameters.config)
         self.done_pub = self.create_publisher(Header, names.IMAGE_DONE, QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
         # progress only from the sweep node of this namespace: another publisher must not cut a map short
@@ -306,15 +307,14 @@ class PerceptionNode(Node):
 
     # ------------------------------------------------------------------ parameters
     def _declare_parameters(self) -> None:
-        defaults = DetectorConfig()
-        for name, (field, description, lo, hi) in DETECTOR_PARAMETERS.items():
-            declare(self, name, getattr(defaults, field), description, min=lo, max=hi)
+        # the algorithms' configs, each bound to its table (declared, checked on set, applied after set)
+        self.detector_parameters = ConfigParameters(self, DetectorConfig(), DETECTOR_PARAMETERS,
+                                                    on_change=self._on_detector_config)
         declare(self, "contacts.frame_id", names.CYLINDER_FRAME, "frame_id of the published contact points (after "
                 "frame_prefix)")
         declare(self, "reference.frames", 5, "No-contact frames averaged into the reference", min=1, max=1000)
-        defaults_map = StitcherConfig()
-        for name, (field, description, lo, hi) in STITCHER_PARAMETERS.items():
-            declare(self, name, getattr(defaults_map, field), description, min=lo, max=hi)
+        self.stitcher_parameters = ConfigParameters(self, StitcherConfig(), STITCHER_PARAMETERS,
+                                                    on_change=lambda _: self.reset_map())
         declare(self, "map.save_path", "", "PNG file the finished map is written to when a sweep ends "
                 "(empty: not saved); a world map also writes map.yaml beside it (nav2 map_server format)")
         declare(self, "world_frame", names.BASE_FRAME, "Frame of the world map: the robot's base, as the robot "
@@ -333,43 +333,39 @@ class PerceptionNode(Node):
         declare(self, "map.height.reference", "", "World map: a no-contact image of the sensor for the height map")
         from touchroller_perception.world_height import WorldHeightConfig
 
-        defaults_height = WorldHeightConfig()
-        for name, (field, description, lo, hi) in HEIGHT_PARAMETERS.items():
-            declare(self, name, getattr(defaults_height, field), description, min=lo, max=hi)
-        defaults_view = TileConfig()
-        for name, (field, description, lo, hi) in VIEW_PARAMETERS.items():
-            declare(self, name, getattr(defaults_view, field), description, min=lo, max=hi)
+        self.height_parameters = ConfigParameters(self, WorldHeightConfig(), HEIGHT_PARAMETERS,
+                                                  on_change=lambda _: self.reset_map())
+        self.view_parameters = ConfigParameters(self, TileConfig(), VIEW_PARAMETERS, on_change=self._on_view_config)
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
                 min=0.0, max=100.0)
-        defaults_findings = LiveFindingsConfig()
-        for name, (field, description, lo, hi) in LIVE_FINDINGS_PARAMETERS.items():
-            declare(self, name, getattr(defaults_findings, field), description, min=lo, max=hi)
+        self.findings_parameters = ConfigParameters(self, LiveFindingsConfig(), LIVE_FINDINGS_PARAMETERS,
+                                                    on_change=self._on_findings_config)
 
-    def _detector_config(self, overrides: dict[str, Any] | None = None) -> DetectorConfig:
-        values = {name: self.get_parameter(name).value for name in DETECTOR_PARAMETERS}
-        values.update(overrides or {})
-        return DetectorConfig(**{DETECTOR_PARAMETERS[name][0]: value for name, value in values.items()})
+    @property
+    def stitcher_config(self) -> StitcherConfig:
+        return self.stitcher_parameters.config
 
-    def _stitcher_config(self, overrides: dict[str, Any] | None = None) -> StitcherConfig:
-        values = {name: self.get_parameter(name).value for name in STITCHER_PARAMETERS}
-        values.update(overrides or {})
-        return StitcherConfig(**{STITCHER_PARAMETERS[name][0]: value for name, value in values.items()})
+    def _on_detector_config(self, config: DetectorConfig) -> None:
+        self.detector.config = config
 
-    def _view_config(self, overrides: dict[str, Any] | None = None) -> TileConfig:
-        values = {name: self.get_parameter(name).value for name in VIEW_PARAMETERS}
-        values.update(overrides or {})
-        return TileConfig(**{VIEW_PARAMETERS[name][0]: int(value) for name, value in values.items()})
+    def _on_view_config(self, config: TileConfig) -> None:
+        with self._map_lock:
+            self.map_views.configure(config)
+            self._map_dirty = True
+
+    def _on_findings_config(self, config: LiveFindingsConfig) -> None:
+        self.live_findings.config = config
+        self._set_findings_timer()
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config),
-                            (WORLD_PARAMETERS, self._world_config), (HEIGHT_PARAMETERS, self._height_config),
-                            (VIEW_PARAMETERS, self._view_config), (LIVE_FINDINGS_PARAMETERS, self._findings_config)):
-            changes = {p.name: p.value for p in parameters if p.name in table}
-            if changes:
-                try:
-                    make(changes)
-                except (TypeError, ValueError) as exc:
-                    return SetParametersResult(successful=False, reason=str(exc))
+        """The parameters no config binding covers: the world map's, the band that must fit it, frame ids and
+        map.save_path (the algorithms' configs are checked by their ConfigParameters)."""
+        changes = {p.name: p.value for p in parameters if p.name in WORLD_PARAMETERS}
+        if changes:
+            try:
+                self._world_config(changes)
+            except (TypeError, ValueError) as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
         band = {p.name: p.value for p in parameters if p.name in ("map.world", "map.resolution", "map.band_rows")}
         if band:   # a world map whose every band would be refused (too many map pixels) maps nothing
             values = {name: self.get_parameter(name).value for name in ("map.world", "map.resolution", "map.band_rows")}
@@ -389,13 +385,12 @@ class PerceptionNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:
+        """The parameters no config binding covers (a binding's change of the stitcher's or the height map's
+        config also starts a new map: a map is stitched one way throughout)."""
         changed = {p.name for p in parameters}
-        if changed & set(DETECTOR_PARAMETERS):
-            self.detector.config = self._detector_config()
         if "world_frame" in changed:
             self.world_frame = str(self.get_parameter("world_frame").value)   # the robot's: no prefix
-        if changed & (set(STITCHER_PARAMETERS) | set(WORLD_PARAMETERS) | set(HEIGHT_PARAMETERS)):
-            self.stitcher_config = self._stitcher_config()
+        if changed & set(WORLD_PARAMETERS):
             self.reset_map()   # a map is stitched one way throughout
         if "reference.frames" in changed:
             self.detector.reference_frames = int(self.get_parameter("reference.frames").value)
@@ -404,18 +399,7 @@ class PerceptionNode(Node):
         if "map.publish_rate" in changed:
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
             self._set_findings_timer()
-        if changed & set(VIEW_PARAMETERS):
-            with self._map_lock:
-                self.map_views.configure(self._view_config())
-                self._map_dirty = True
-        if changed & set(LIVE_FINDINGS_PARAMETERS):
-            self.live_findings.config = self._findings_config()
-            self._set_findings_timer()
 
-    def _findings_config(self, overrides: dict[str, Any] | None = None) -> LiveFindingsConfig:
-        values = {name: self.get_parameter(name).value for name in LIVE_FINDINGS_PARAMETERS}
-        values.update(overrides or {})
-        return LiveFindingsConfig(**{LIVE_FINDINGS_PARAMETERS[name][0]: value for name, value in values.items()})
 
     def _world_config(self, overrides: dict[str, Any] | None = None) -> WorldMapConfig:
         values = {name: self.get_parameter(name).value for name in WORLD_PARAMETERS}
@@ -429,13 +413,6 @@ class PerceptionNode(Node):
                               register=bool(values["map.register"]),
                               # live: frames waiting for the latency estimate are read provisionally
                               provisional=True)
-
-    def _height_config(self, overrides: dict[str, Any] | None = None) -> Any:
-        from touchroller_perception.world_height import WorldHeightConfig
-
-        values = {name: self.get_parameter(name).value for name in HEIGHT_PARAMETERS}
-        values.update(overrides or {})
-        return WorldHeightConfig(**{HEIGHT_PARAMETERS[name][0]: value for name, value in values.items()})
 
     def _contacts_frame_id(self) -> str:
         return names.frame(str(self.get_parameter("contacts.frame_id").value), self.frame_prefix)
@@ -782,7 +759,7 @@ class PerceptionNode(Node):
         except (OSError, ValueError, KeyError) as exc:
             self.get_logger().error(f"no height map: {exc}")
             return None
-        return HeightSource(model, reference, self._height_config())
+        return HeightSource(model, reference, self.height_parameters.config)
 
     def _publish_height(self, height: np.ndarray, stamp_ns: int) -> None:
         """The world height map on map_height: 32FC1 metres (REP 118), row 0 the top as the map, NaN unmapped,
