@@ -142,9 +142,6 @@ class CameraNode(Node):
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         check_start_up(self, self._validate)   # the start-up values pass the checks a change does
-        problem = self.camera_info.problem(self.camera_info.url, self.camera_info.camera_name)
-        if problem:
-            raise UserError(problem)
         self.camera_info.load()
         if not self._external_source:
             self._check_source_exists()
