@@ -211,7 +211,8 @@ class ParameterField:
 
     The parameter is declared with `description`, the range [`min`, `max`] (both or neither), read-only or
     not, and `choices` (a text parameter: its values, said in the descriptor's additional constraints and
-    checked on set); `length`: an array's length, checked on set."""
+    checked on set); `length`: an array's length, checked on set; `constraints`: the descriptor's additional
+    constraints in other words than "one of: ..."."""
 
     field: str
     description: str
@@ -220,6 +221,7 @@ class ParameterField:
     read_only: bool = False
     choices: tuple[str, ...] = ()
     length: int | None = None
+    constraints: str = ""
 
 
 #: a table row: a ParameterField, or the tuple (field, description, min, max[, read_only]) the tables write
@@ -321,7 +323,7 @@ class ConfigParameters(Generic[C]):
         self._errors = errors
         defaults = self.values(start)
         for name, row in self.table.items():
-            constraints = "one of: " + ", ".join(row.choices) if row.choices else ""
+            constraints = row.constraints or ("one of: " + ", ".join(row.choices) if row.choices else "")
             declare(node, name, defaults[name], row.description, min=row.min, max=row.max, read_only=row.read_only,
                     additional_constraints=constraints, length=row.length)
         self.config: C = start

@@ -128,7 +128,7 @@ _TABLE = {
     "x.low": ParameterField("low", "The low end", 0.0, 10.0),
     "x.high": ParameterField("high", "The high end", 0.0, 10.0),
     "x.count": ParameterField("count", "How many", 1, 100, read_only=True),
-    "x.mode": ParameterField("mode", "The mode", choices=("a", "b")),
+    "x.mode": ParameterField("mode", "The mode", choices=("a", "b"), constraints="a or b"),
     "x.flag": ("flag", "A flag", None, None),          # a table's tuple row
     "x.pose": ParameterField("pose", "Three numbers", length=3),
 }
@@ -145,7 +145,7 @@ def test_every_parameter_of_the_table_is_declared_once_with_its_type_range_and_d
     assert (declared.from_value, declared.to_value) == (0.0, 10.0)
     count = node.describe_parameter("x.count")
     assert count.read_only and (count.integer_range[0].from_value, count.integer_range[0].to_value) == (1, 100)
-    assert node.describe_parameter("x.mode").additional_constraints == "one of: a, b"
+    assert node.describe_parameter("x.mode").additional_constraints == "a or b"
     types = {n: node.get_parameter(n).type_ for n in _TABLE}
     assert types["x.low"] == Parameter.Type.DOUBLE and types["x.count"] == Parameter.Type.INTEGER
     assert types["x.pose"] == Parameter.Type.DOUBLE_ARRAY and types["x.flag"] == Parameter.Type.BOOL
@@ -223,3 +223,10 @@ def test_an_optional_field_is_declared_with_its_types_parameter(node):
     binding = ConfigParameters(node, _Optional, {"most": ParameterField("most", "At most", 1, 100)})
     assert node.get_parameter("most").type_ == Parameter.Type.INTEGER
     assert node.set_parameters([Parameter("most", value=20)])[0].successful and binding.config == _Optional(20)
+
+
+def test_choices_are_said_in_the_descriptor_unless_the_row_words_them(node):
+    ConfigParameters(node, _Config, {"x.mode": ParameterField("mode", "The mode", choices=("a", "b")),
+                                     "x.high": ParameterField("high", "The high end", constraints="above x.low")})
+    assert node.describe_parameter("x.mode").additional_constraints == "one of: a, b"
+    assert node.describe_parameter("x.high").additional_constraints == "above x.low"
