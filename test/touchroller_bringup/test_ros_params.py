@@ -207,6 +207,12 @@ def test_start_up_values_get_the_checks_a_change_gets(ros_context):
             ConfigParameters(node, _Config, _TABLE)
     finally:
         node.destroy_node()
+    node = _node_with(ros_context, **{"x.mode": "c"})
+    try:
+        with pytest.raises(UserError, match=r"^x refused: x.mode must be one of a, b, got 'c'$"):
+            ConfigParameters(node, _Config, _TABLE, refused="x refused: ")
+    finally:
+        node.destroy_node()
     node = _node_with(ros_context, **{"x.low": 0.5, "x.count": 7})
     try:
         assert ConfigParameters(node, _Config, _TABLE, refused="x refused: ").config == _Config(low=0.5, count=7)
