@@ -348,10 +348,8 @@ class ConfigParameters(Generic[C]):
             return value
         if isinstance(value, str | bytes) or not hasattr(value, "__iter__"):
             raise TypeError(f"{name} must be a list, got {value!r}")
-        items = [_scalar(f"{name}[{i}]", v, element) for i, v in enumerate(value)]
-        if row.length is not None and len(items) != row.length:
-            raise ValueError(f"{name} needs {row.length} values, got {len(items)}: {items}")
-        return kind(items)
+        # the length is `declare`'s to check (its own on-set callback), after the config's own checks
+        return kind(_scalar(f"{name}[{i}]", v, element) for i, v in enumerate(value))
 
     def _candidate(self, changes: Mapping[str, Any], *, check: bool = True) -> C:
         candidate = replace(self.config, **{self.table[name].field: self._field_value(name, value)   # type: ignore[type-var]
