@@ -236,3 +236,34 @@ def test_choices_are_said_in_the_descriptor_unless_the_row_words_them(node):
                                      "x.high": ParameterField("high", "The high end", constraints="above x.low")})
     assert node.describe_parameter("x.mode").additional_constraints == "one of: a, b"
     assert node.describe_parameter("x.high").additional_constraints == "above x.low"
+
+
+def test_the_config_stays_in_step_with_the_parameters_whatever_is_set(ros_context):
+    """Property: after any run of changes, refused or not, atomic or one by one, the binding's config is the
+    config of the node's parameter values, and it is valid (low < high)."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from touchroller_bringup.ros_params import parameter_values
+
+    node = Node("params_in_step", context=ros_context)
+    binding = ConfigParameters(node, _Config, _TABLE)
+    value = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=32), st.integers(-3, 12))
+    change = st.tuples(st.sampled_from(["x.low", "x.high"]), value)
+
+    @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+    @given(st.lists(st.tuples(st.lists(change, min_size=1, max_size=2), st.booleans()), max_size=4))
+    def run(steps):
+        for changes, atomic in steps:
+            parameters = [Parameter(n, value=float(v)) for n, v in changes]
+            if atomic:
+                node.set_parameters_atomically(parameters)
+            else:
+                node.set_parameters(parameters)
+            assert parameter_values(binding.config, _TABLE) == {n: node.get_parameter(n).value for n in _TABLE}
+            assert binding.config.low < binding.config.high
+
+    try:
+        run()
+    finally:
+        node.destroy_node()
