@@ -1,9 +1,11 @@
-"""The sweep node's run-time parameters as frozen configs: the sweep `~/start` plans and the roller's mount.
+"""The sweep node's parameters as frozen configs: its arm, the sweep `~/start` plans and the roller's mount.
 
-`SWEEP_FIELDS` binds `SweepSettings` to the `sweep.*` parameters that apply at the next `~/start` (a running
-sweep keeps the plan it started with), `MOUNT_FIELDS` binds `MountConfig` to `mount.xyz` / `mount.rpy`
-(`touchroller_bringup.ros_params.ConfigParameters`). The sweep's own checks (limits, reach, passes,
-duration) need the arm and the node's read-only limits: the node passes them as the binding's check hook.
+`ARM_FIELDS` binds `ArmSettings` to the read-only parameters read at start-up (the arm, its limits, the
+simulated clock, the robot's frames); `SWEEP_FIELDS` binds `SweepSettings` to the `sweep.*` parameters that
+apply at the next `~/start` (a running sweep keeps the plan it started with), `MOUNT_FIELDS` binds
+`MountConfig` to `mount.xyz` / `mount.rpy` (`touchroller_bringup.ros_params.ConfigParameters`). The sweep's
+own checks (limits, reach, passes, duration) need the arm and the node's read-only limits: the node passes
+them as the binding's check hook.
 """
 from __future__ import annotations
 
@@ -21,6 +23,72 @@ from touchroller_driver.arm import (
     mount_transform,
 )
 from touchroller_perception.transforms import Transform
+
+ARM_BACKENDS = ("ur_rtde", "ur_driver", "sim")   # arm.backend; use_sim true is sim whatever it says
+UR5_REACH_M = 0.85   # a UR5's reach from its base (the datasheet's 850 mm)
+
+
+@dataclass(frozen=True)
+class ArmSettings:
+    """What the sweep node reads once, at start-up: which arm, its hard limits, the simulated clock, frames."""
+
+    use_sim: bool = True
+    robot_ip: str = "192.168.1.10"
+    backend: str = "ur_rtde"
+    robot_timeout: float = 10.0
+    max_speed: float = 0.1
+    max_accel: float = 0.5
+    reach: float = UR5_REACH_M
+    max_duration: float = 1800.0
+    sim_rate: float = 1.0
+    sim_lockstep: bool = True
+    sim_max_lead: float = 0.05
+    publish_rate: float = 50.0
+    base_frame: str = names.BASE_FRAME
+    tool_frame: str = names.TOOL_FRAME
+    publish_tf: bool = True
+
+
+def _read_only(field: str, description: str, lo: float | None = None, hi: float | None = None,
+               constraints: str = "") -> ParameterField:
+    return ParameterField(field, description, lo, hi, read_only=True, constraints=constraints)
+
+
+ARM_FIELDS: dict[str, ParameterField] = {
+    "use_sim": _read_only("use_sim", "Use the simulated arm instead of a UR5 (read at start-up)"),
+    "robot_ip": _read_only("robot_ip", "IP address of the UR controller (ur_rtde)"),
+    # the node refuses an unknown backend when it makes the arm (not for an arm it is given)
+    "arm.backend": _read_only("backend", "The arm when use_sim is false: ur_rtde (its own control script through "
+                              "ur_rtde) or ur_driver (URScript through a running ur_robot_driver, docs/ur5.md); sim: "
+                              "the simulated arm", constraints="one of: " + ", ".join(ARM_BACKENDS)),
+    "robot_timeout": _read_only("robot_timeout", "Longest a ur_rtde interface may take to connect (the control "
+                                "interface uploads its script), s; a UR that greets and then stays silent is given up "
+                                "after it", 0.5, 120.0),
+    "arm.max_speed": _read_only("max_speed", "Hard limit on any commanded tool speed, m/s", 1e-4, 1.0),
+    "arm.max_accel": _read_only("max_accel", "Hard limit on any commanded tool acceleration, m/s^2", 1e-3, 5.0),
+    "arm.reach": _read_only("reach", "Farthest any commanded tool position may be from the base frame's origin, m "
+                            "(UR5: 0.85); a sweep or raster reaching beyond is refused", 0.05, 3.0),
+    "sweep.max_duration": _read_only("max_duration", "Longest a sweep or raster may take (all its moves, from where "
+                                     "the arm is), s; a longer one is refused", 1.0, 86400.0),
+    "sim.rate": _read_only("sim_rate", "use_sim: simulated seconds per wall-clock second of the simulated clock "
+                           "(published on /clock; the simulated camera renders on it)", 0.1, 20.0),
+    "sim.lockstep": _read_only("sim_lockstep", "use_sim: the simulated clock waits for the frames: never more than "
+                               "sim.max_lead s past a frame the camera has not published, the perception node has not "
+                               "finished or a recorder has not written (camera_info, image_done, image_raw/recorded), "
+                               "so a loaded machine makes the simulation slower, not different"),
+    "sim.max_lead": _read_only("sim_max_lead", "use_sim and sim.lockstep: how far the simulated clock may run ahead "
+                               "of the oldest frame perception has not finished (and of the camera's next frame), s; "
+                               "frames in flight are about max_lead x fps", 0.0, 10.0),
+    "sweep.publish_rate": _read_only("publish_rate", "Rate of the arm loop: TCP pose, /tf and progress messages, with "
+                                     "use_sim the simulated clock's tick, watchdog kicks (>= 10 Hz), Hz", 10.0, 500.0),
+    "arm.base_frame": _read_only("base_frame", "Frame of the published TCP pose and parent of the tool frame on /tf "
+                                 "(the UR base, the robot driver's name: frame_prefix does not apply)"),
+    "arm.tool_frame": _read_only("tool_frame", "The arm's flange frame (UR: tool0, the robot driver's name: "
+                                 "frame_prefix does not apply; a second simulated arm in another namespace gets its "
+                                 "own); the TCP pose is its pose"),
+    "publish_tf": _read_only("publish_tf", "Publish arm.base_frame -> arm.tool_frame on /tf from the arm's pose; false "
+                             "when a robot driver (e.g. ur_robot_driver) already does"),
+}
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,10 @@ import pytest
 pytest.importorskip("rclpy")
 from touchroller_bringup.ros_params import parameter_values  # noqa: E402
 from touchroller_bringup.sweep_settings import (  # noqa: E402
+    ARM_FIELDS,
     MOUNT_FIELDS,
     SWEEP_FIELDS,
+    ArmSettings,
     MountConfig,
     SweepSettings,
 )
@@ -17,9 +19,12 @@ from touchroller_driver.arm import SWEEP_PROFILES  # noqa: E402
 
 
 def test_every_field_is_a_parameter_and_every_parameter_a_field():
-    for config, table in ((SweepSettings, SWEEP_FIELDS), (MountConfig, MOUNT_FIELDS)):
+    for config, table in ((SweepSettings, SWEEP_FIELDS), (MountConfig, MOUNT_FIELDS), (ArmSettings, ARM_FIELDS)):
         assert sorted(row.field for row in table.values()) == sorted(f.name for f in fields(config))
         assert all(row.description for row in table.values())
+    # what the node reads once, at start-up, cannot change under it; the sweep and the mount can
+    assert all(row.read_only for row in ARM_FIELDS.values())
+    assert not any(row.read_only for row in (*SWEEP_FIELDS.values(), *MOUNT_FIELDS.values()))
 
 
 def test_the_parameters_hold_the_configs_values_arrays_as_lists():

@@ -59,9 +59,17 @@ from std_srvs.srv import Trigger
 
 from touchroller_bringup import names
 from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
-from touchroller_bringup.ros_params import ConfigParameters, declare, declare_frame_prefix, parameter_values
+from touchroller_bringup.ros_params import ConfigParameters, declare_frame_prefix, parameter_values
 from touchroller_bringup.sweep_action import SweepActionServer, make_sweep_action
-from touchroller_bringup.sweep_settings import MOUNT_FIELDS, SWEEP_FIELDS, MountConfig, SweepSettings
+from touchroller_bringup.sweep_settings import (
+    ARM_BACKENDS,
+    ARM_FIELDS,
+    MOUNT_FIELDS,
+    SWEEP_FIELDS,
+    ArmSettings,
+    MountConfig,
+    SweepSettings,
+)
 from touchroller_bringup.tf import TransformPublisher
 from touchroller_driver.arm import (
     Arm,
@@ -82,10 +90,8 @@ from touchroller_driver.arm import (
 from touchroller_driver.sim.clock import FrameGate, SimClock
 from touchroller_perception.transforms import Transform
 
-ARM_BACKENDS = ("ur_rtde", "ur_driver", "sim")   # arm.backend; use_sim true is sim whatever it says
 #: how long a service waits for its answer; a start not accepted by then is cancelled (it never moves the arm)
 COMMAND_TIMEOUT_S = 5.0
-UR5_REACH_M = 0.85   # a UR5's reach from its base (the datasheet's 850 mm)
 #: shutting down (a stop signal, the node destroyed): how long the arm thread gets to stop the arm before a
 #: call it is stuck in is given up (`Arm.abort`: the ur_rtde process ends, the robot's watchdog stops it)
 SHUTDOWN_STOP_S = 0.5
@@ -182,11 +188,11 @@ class SweepNode(Node):
         self.last_answer: tuple[str, bool, str] | None = None  # (service, success, message) of the last call
 
         # the robot's frames are the robot driver's names (parameters, no prefix); the prefix is on ours only
-        self._frame_id = str(self.get_parameter("arm.base_frame").value)
-        self._tool_frame = str(self.get_parameter("arm.tool_frame").value)
+        self._frame_id = self.arm_settings.base_frame
+        self._tool_frame = self.arm_settings.tool_frame
         self._cylinder_frame = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         # tool0 has one parent: the UR driver's robot_state_publisher publishes it when it drives the arm
-        self._publish_tf = (bool(self.get_parameter("publish_tf").value)
+        self._publish_tf = (self.arm_settings.publish_tf
                             and not getattr(self.arm, "publishes_tool_tf", False))
         self.tf = TransformPublisher(self)
         self._publish_mount()
@@ -202,7 +208,7 @@ class SweepNode(Node):
         simulated = isinstance(self.arm, SimulatedArm)
         through_driver = getattr(self.arm, "publishes_tool_tf", False)
         hardware = ("simulated arm" if simulated else "UR through ur_robot_driver" if through_driver
-                    else f"UR at {self.get_parameter('robot_ip').value}")
+                    else f"UR at {self.arm_settings.robot_ip}")
         self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name(), hardware_id=hardware)
         self.diagnostics.add(self._diagnostic_status)
 
@@ -213,43 +219,8 @@ class SweepNode(Node):
 
     # -- parameters ----------------------------------------------------------------------------
     def _declare_parameters(self) -> None:
-        declare(self, "use_sim", True, "Use the simulated arm instead of a UR5 (read at start-up)", read_only=True)
-        declare(self, "robot_ip", "192.168.1.10", "IP address of the UR controller (ur_rtde)", read_only=True)
-        declare(self, "arm.backend", "ur_rtde", "The arm when use_sim is false: ur_rtde (its own control script "
-                "through ur_rtde) or ur_driver (URScript through a running ur_robot_driver, docs/ur5.md); sim: the "
-                "simulated arm", read_only=True, additional_constraints="one of: " + ", ".join(ARM_BACKENDS))
-        declare(self, "robot_timeout", 10.0, "Longest a ur_rtde interface may take to connect (the control "
-                "interface uploads its script), s; a UR that greets and then stays silent is given up after it",
-                min=0.5, max=120.0, read_only=True)
-        declare(self, "arm.max_speed", 0.1, "Hard limit on any commanded tool speed, m/s", min=1e-4, max=1.0,
-                read_only=True)
-        declare(self, "arm.max_accel", 0.5, "Hard limit on any commanded tool acceleration, m/s^2",
-                min=1e-3, max=5.0, read_only=True)
-        declare(self, "arm.reach", UR5_REACH_M, "Farthest any commanded tool position may be from the base frame's "
-                "origin, m (UR5: 0.85); a sweep or raster reaching beyond is refused", min=0.05, max=3.0,
-                read_only=True)
-        declare(self, "sweep.max_duration", 1800.0, "Longest a sweep or raster may take (all its moves, from where "
-                "the arm is), s; a longer one is refused", min=1.0, max=86400.0, read_only=True)
-        declare(self, "sim.rate", 1.0, "use_sim: simulated seconds per wall-clock second of the simulated clock "
-                "(published on /clock; the simulated camera renders on it)", min=0.1, max=20.0, read_only=True)
-        declare(self, "sim.lockstep", True, "use_sim: the simulated clock waits for the frames: never more than "
-                "sim.max_lead s past a frame the camera has not published, the perception node has not finished or a "
-                "recorder has not written (camera_info, image_done, image_raw/recorded), so a loaded machine makes the "
-                "simulation slower, not different", read_only=True)
-        declare(self, "sim.max_lead", 0.05, "use_sim and sim.lockstep: how far the simulated clock may run ahead of "
-                "the oldest frame perception has not finished (and of the camera's next frame), s; frames in "
-                "flight are about max_lead x fps", min=0.0, max=10.0, read_only=True)
-        declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose, /tf and progress messages, "
-                "with use_sim the simulated clock's tick, "
-                "watchdog kicks (>= 10 Hz), Hz", min=10.0, max=500.0,
-                read_only=True)
-        declare(self, "arm.base_frame", names.BASE_FRAME, "Frame of the published TCP pose and parent of the tool "
-                "frame on /tf (the UR base, the robot driver's name: frame_prefix does not apply)", read_only=True)
-        declare(self, "arm.tool_frame", names.TOOL_FRAME, "The arm's flange frame (UR: tool0, the robot driver's name: "
-                "frame_prefix does not apply; a second simulated arm in another namespace gets its own); "
-                "the TCP pose is its pose", read_only=True)
-        declare(self, "publish_tf", True, "Publish arm.base_frame -> arm.tool_frame on /tf from the arm's pose; "
-                "false when a robot driver (e.g. ur_robot_driver) already does", read_only=True)
+        self.arm_parameters = ConfigParameters(self, ArmSettings(), ARM_FIELDS)   # read-only: read at start-up
+        self.arm_settings = self.arm_parameters.config
 
     @property
     def settings(self) -> dict[str, Any]:
@@ -264,9 +235,8 @@ class SweepNode(Node):
         self.tf.set_static(self._tool_frame, self._cylinder_frame, self.mount())
 
     def _limits_from_parameters(self) -> ArmLimits:
-        return ArmLimits(max_speed=float(self.get_parameter("arm.max_speed").value),
-                         max_accel=float(self.get_parameter("arm.max_accel").value),
-                         reach=float(self.get_parameter("arm.reach").value))
+        return ArmLimits(max_speed=self.arm_settings.max_speed, max_accel=self.arm_settings.max_accel,
+                         reach=self.arm_settings.reach)
 
     def _plan_from(self, settings: dict[str, Any], from_pose: np.ndarray | None = None) -> SweepPlan:
         """The sweep of `settings`, checked whole: limits, reach, at most MAX_PASSES passes and at most
@@ -291,7 +261,7 @@ class SweepNode(Node):
                 approach_speed=float(settings["sweep.approach_speed"]), retract=bool(settings["sweep.retract"]),
                 clearance=float(settings["sweep.clearance"]), profile=str(settings["sweep.profile"]))
         check_plan(self.limits, plan)   # every move, each path's waypoints and blended corners
-        limit = float(self.get_parameter("sweep.max_duration").value)
+        limit = self.arm_settings.max_duration
         duration = plan_duration(plan, from_pose)
         if not duration <= limit:
             where = "" if from_pose is None else " from where the arm is"
@@ -299,17 +269,18 @@ class SweepNode(Node):
         return plan
 
     def _make_arm(self) -> Arm:
-        backend = str(self.get_parameter("arm.backend").value)
+        settings = self.arm_settings
+        backend = settings.backend
         if backend not in ARM_BACKENDS:
             raise ValueError(f"arm.backend must be one of {', '.join(ARM_BACKENDS)}, got {backend!r}")
-        if self.get_parameter("use_sim").value or backend == "sim":
+        if settings.use_sim or backend == "sim":
             rest, _ = simulated_arm_origin(self.settings["sweep.start_pose"], float(self.settings["sweep.clearance"]))
-            rate_hz = float(self.get_parameter("sweep.publish_rate").value)
-            self.sim_clock = SimClock(rate_hz, rate=float(self.get_parameter("sim.rate").value))
+            rate_hz = settings.publish_rate
+            self.sim_clock = SimClock(rate_hz, rate=settings.sim_rate)
             self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10)
-            if self.get_parameter("sim.lockstep").value:
+            if settings.sim_lockstep:
                 # at least one tick: the tick after a frame's stamp must be allowed (its pose on TF)
-                self._follow_frames(max(float(self.get_parameter("sim.max_lead").value), 1.0 / rate_hz))
+                self._follow_frames(max(settings.sim_max_lead, 1.0 / rate_hz))
             return SimulatedArm(rest, limits=self.limits, clock=self.sim_clock.now)
         if backend == "ur_driver":
             from touchroller_bringup.ur_driver_arm import make_ur_driver_arm
@@ -317,8 +288,7 @@ class SweepNode(Node):
             return make_ur_driver_arm(self, self.limits)
         from touchroller_driver.ur5 import UR5Arm
 
-        return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits,
-                      open_timeout=float(self.get_parameter("robot_timeout").value))
+        return UR5Arm(settings.robot_ip, limits=self.limits, open_timeout=settings.robot_timeout)
 
     def _follow_frames(self, lead_s: float) -> None:
         """sim.lockstep: the camera's frames (camera_info, one per image, same stamp) and the ones the
@@ -488,7 +458,7 @@ class SweepNode(Node):
 
     def _run_worker(self) -> None:
         self._connect()
-        period = 1.0 / float(self.get_parameter("sweep.publish_rate").value)
+        period = 1.0 / self.arm_settings.publish_rate
         while not self._shutdown.is_set() and self.context.ok():  # Ctrl-C shuts the context down first
             try:
                 # Simulated, the loop is the clock: one tick per pass, paced by SimClock.advance.
