@@ -20,10 +20,9 @@ Setting a `camera.*` parameter by hand publishes that model (P = [K | 0]) from t
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.srv import SetCameraInfo
@@ -40,38 +39,53 @@ from touchroller_bringup.camera_info_files import (
     url_path,
     write_camera_info,
 )
-from touchroller_bringup.ros_params import GeometryParameters, declare
+from touchroller_bringup.ros_params import ConfigParameters, GeometryParameters, ParameterField
 from touchroller_perception.geometry import CameraModel
 
 SERVICE = f"~/{names.SET_CAMERA_INFO}"
 
 
+@dataclass(frozen=True)
+class CameraInfoSettings:
+    """Where the camera's calibration file is (`url`, may be empty) and the camera's name in it."""
+
+    camera_name: str = DEFAULT_CAMERA_NAME
+    url: str = ""
+
+
+CAMERA_INFO_PARAMETERS: dict[str, ParameterField] = {
+    "camera_name": ParameterField("camera_name", "Camera name in calibration files and ${NAME} of camera_info_url "
+                                  "(letters, digits and _; camera_info_manager's rule)"),
+    "camera_info_url": ParameterField("url", "camera_calibration_parsers YAML with the intrinsics: "
+                                      "file:///path.yaml or package://PACKAGE/path.yaml (${NAME}, ${ROS_HOME}); read "
+                                      "at start-up when it exists (setting camera.*), written by ~/set_camera_info; "
+                                      "empty: camera info from camera.*"),
+}
+
+
 class CameraInfoManager:
     """Declares `camera_name` and `camera_info_url` on `node`, keeps the CameraInfo to publish in step with them
     and with `geometry`, and serves `~/set_camera_info`. Call `geometry_changed(model)` from the geometry's
-    on_change, and `load()` once after the node's start-up checks."""
+    on_change, and `load()` once after the node's start-up checks. A URL or name it cannot use stops the node
+    at start-up (UserError, one line) and is refused on set; a new one is loaded (`load()`) after set."""
 
     def __init__(self, node: Node, geometry: GeometryParameters) -> None:
         self._node = node
         self._geometry = geometry
         self._lock = threading.Lock()
-        declare(node, "camera_name", DEFAULT_CAMERA_NAME, "Camera name in calibration files and ${NAME} of "
-                "camera_info_url (letters, digits and _; camera_info_manager's rule)")
-        declare(node, "camera_info_url", "", "camera_calibration_parsers YAML with the intrinsics: "
-                "file:///path.yaml or package://PACKAGE/path.yaml (${NAME}, ${ROS_HOME}); read at start-up when it "
-                "exists (setting camera.*), written by ~/set_camera_info; empty: camera info from camera.*")
+        # checked whole on set and at start-up (UserError: the problem, one line); a new URL or name is loaded
+        self.parameters = ConfigParameters(node, CameraInfoSettings(), CAMERA_INFO_PARAMETERS, check=self._check,
+                                           on_change=lambda _: self.load(), refused="")
         self.calibration = CameraCalibration.from_model(geometry.model, self.camera_name)
-        node.add_on_set_parameters_callback(self._validate)
-        node.add_post_set_parameters_callback(self._apply)
         self.service = node.create_service(SetCameraInfo, SERVICE, self._set_camera_info)
 
     @property
     def camera_name(self) -> str:
-        return str(self._node.get_parameter("camera_name").value)
+        return self.parameters.config.camera_name
 
     @property
     def url(self) -> str:
-        return str(self._node.get_parameter("camera_info_url").value)
+        return self.parameters.config.url
 
     # ------------------------------------------------------------------ parameters
     def problem(self, url: str, camera_name: str) -> str:
@@ -92,18 +106,10 @@ class CameraInfoManager:
             return f"camera info file of {url}: {exc}"
         return ""
 
-    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        changed = {p.name: p.value for p in parameters if p.name in ("camera_name", "camera_info_url")}
-        if not changed:
-            return SetParametersResult(successful=True)
-        url = str(changed.get("camera_info_url", self.url if self._node.has_parameter("camera_info_url") else ""))
-        name = str(changed.get("camera_name", self.camera_name if self._node.has_parameter("camera_name") else ""))
-        problem = self.problem(url, name)
-        return SetParametersResult(successful=not problem, reason=problem)
-
-    def _apply(self, parameters: Sequence[Parameter]) -> None:
-        if any(p.name in ("camera_name", "camera_info_url") for p in parameters):
-            self.load()   # sets camera.* (a nested set: the file's intrinsics win over ones set in the same call)
+    def _check(self, settings: CameraInfoSettings) -> None:
+        problem = self.problem(settings.url, settings.camera_name)
+        if problem:
+            raise ValueError(problem)
 
     def load(self) -> CameraCalibration:
         """Read the URL's file when it exists and set its intrinsics on the node; the calibration published."""

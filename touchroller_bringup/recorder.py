@@ -432,35 +432,16 @@ class Recorder(Node):
         self._timer = self.create_timer(discovery_period, self._discover)
 
     def _declare_parameters(self, config: RecorderConfig | None) -> None:
-        from touchroller_bringup.ros_params import declare
+        from touchroller_bringup.ros_params import ConfigParameters
 
-        defaults = config or RecorderConfig()
-        for name, (field, description, lo, hi, read_only) in RECORDER_PARAMETERS.items():
-            declare(self, name, int(getattr(defaults, field)), description, min=lo, max=hi, read_only=read_only)
-        self.config = self._config_from_parameters()
-        self._writer.queue.max_bytes = self.config.queue_max_bytes
-        self.add_on_set_parameters_callback(self._validate)
-        self.add_post_set_parameters_callback(self._apply)
+        self.parameters = ConfigParameters(self, config or RecorderConfig(), RECORDER_PARAMETERS,
+                                           on_change=self._configure)
+        self._configure(self.parameters.config)
 
-    def _config_from_parameters(self, overrides: dict[str, Any] | None = None) -> RecorderConfig:
-        values = {name: self.get_parameter(name).value for name in RECORDER_PARAMETERS}
-        values.update(overrides or {})
-        return RecorderConfig(**{RECORDER_PARAMETERS[name][0]: int(v) for name, v in values.items()})
-
-    def _validate(self, parameters: Sequence[Any]) -> Any:
-        from rcl_interfaces.msg import SetParametersResult
-
-        changes = {p.name: p.value for p in parameters if p.name in RECORDER_PARAMETERS}
-        try:
-            self._config_from_parameters(changes)
-        except (TypeError, ValueError) as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        return SetParametersResult(successful=True)
-
-    def _apply(self, parameters: Sequence[Any]) -> None:
-        if any(p.name in RECORDER_PARAMETERS for p in parameters):
-            self.config = self._config_from_parameters()
-            self._writer.queue.max_bytes = self.config.queue_max_bytes
+    def _configure(self, config: RecorderConfig) -> None:
+        """The config of the parameters, at start-up and after a change (queue.max_bytes applies at once)."""
+        self.config = config
+        self._writer.queue.max_bytes = config.queue_max_bytes
 
     @property
     def message_count(self) -> int:

@@ -2,9 +2,9 @@
 
 `declare` wraps `Node.declare_parameter` with a ParameterDescriptor carrying the description and
 a floating-point or integer range, so `ros2 param describe` shows them and rclpy rejects values
-outside the range. `declare_geometry_parameters` declares docs/design.md's camera/cylinder/extrinsics
-parameters; `GeometryParameters` validates a whole update in the on-set callback (the model is
-rebuilt from the candidate values) and applies it in the post-set callback.
+outside the range. `GeometryParameters` binds docs/design.md's camera/cylinder/extrinsics parameters to
+the node's CameraModel (a `ConfigParameters`, below): a whole update is validated in the on-set callback
+(the model is rebuilt from the candidate values) and applied in the post-set callback.
 
 Every parameter declared through `declare` is checked in one place, at declaration (the value a params
 file or `name:=value` gave) and in an on-set callback `declare` adds once per node: its type (a number
@@ -13,13 +13,20 @@ boolean is never a number), finiteness (NaN or infinity is refused for every dou
 for arrays, its length. A node then validates the whole set once its own callbacks are added
 (`check_start_up`): a combination it refuses stops it at start-up, in one line, exit 2 (through
 `ros_main.run_node`), instead of running on values it cannot use.
+
+`ConfigParameters` binds a frozen config dataclass to parameters by a table (parameter name ->
+`ParameterField`: config field, description, range, choices, read-only): it declares them all through
+`declare` (the type is the field's), checks a change in the on-set callback by building the candidate
+config with `dataclasses.replace` (the config's own `__post_init__`, then an optional `check` hook of the
+node's) and, in the post-set callback, keeps the new config and hands it to `on_change`.
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, fields, replace
+from types import UnionType
+from typing import Any, Generic, TypeVar, Union, get_args, get_origin, get_type_hints
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
@@ -198,50 +205,195 @@ def declare_frame_prefix(node: Node) -> str:
         raise UserError(str(exc)) from None
 
 
-def declare_geometry_parameters(node: Node, model: CameraModel | None = None) -> None:
-    """Declare docs/design.md's geometry parameters with the model's values as defaults."""
-    defaults = (model or CameraModel()).to_params()
-    for name, (description, lo, hi) in GEOMETRY_PARAMETERS.items():
-        declare(node, name, defaults[name], description, min=lo, max=hi)
+@dataclass(frozen=True)
+class ParameterField:
+    """One row of a node's parameter table: the ROS parameter sets config field `field`.
+
+    The parameter is declared with `description`, the range [`min`, `max`] (both or neither), read-only or
+    not, and `choices` (a text parameter: its values, said in the descriptor's additional constraints and
+    checked on set); `length`: an array's length, checked on set; `constraints`: the descriptor's additional
+    constraints in other words than "one of: ..."."""
+
+    field: str
+    description: str
+    min: float | None = None
+    max: float | None = None
+    read_only: bool = False
+    choices: tuple[str, ...] = ()
+    length: int | None = None
+    constraints: str = ""
 
 
-def camera_model_from_node(node: Node) -> CameraModel:
-    return CameraModel.from_params({name: node.get_parameter(name).value for name in PARAMETER_NAMES})
+#: a table row: a ParameterField, or the tuple (field, description, min, max[, read_only]) the tables write
+TableRow = ParameterField | tuple[Any, ...]
+C = TypeVar("C")
+
+
+def parameter_field(row: TableRow) -> ParameterField:
+    return row if isinstance(row, ParameterField) else ParameterField(*row)
+
+
+def _kind(annotation: Any) -> tuple[type, type | None]:
+    """(ROS-side kind, element kind): bool/int/float/str, or tuple/list with their element's kind. An optional
+    field (`int | None`) is its type's: a parameter always holds a value."""
+    origin = get_origin(annotation)
+    if origin in (UnionType, Union):
+        present = [a for a in get_args(annotation) if a is not type(None)]
+        if len(present) == 1:
+            return _kind(present[0])
+    if origin in (tuple, list):
+        elements = {a for a in get_args(annotation) if a is not Ellipsis}
+        if len(elements) != 1 or next(iter(elements)) not in (bool, int, float, str):
+            raise TypeError(f"no ROS parameter type for {annotation!r}")
+        return origin, next(iter(elements))
+    if annotation in (bool, int, float, str):
+        return annotation, None
+    raise TypeError(f"no ROS parameter type for {annotation!r}")
+
+
+def _scalar(name: str, value: Any, kind: type) -> Any:
+    """`value` as a `kind` field value; TypeError (one line) when it is not one (a boolean is no number)."""
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise TypeError(f"{name} must be true or false, got {value!r}")
+        return value
+    if kind is str:
+        if not isinstance(value, str):
+            raise TypeError(f"{name} must be text, got {value!r}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float) \
+            or (kind is int and not float(value).is_integer()):
+        raise TypeError(f"{name} must be {'an integer' if kind is int else 'a number'}, got {value!r}")
+    return kind(value)
+
+
+def parameter_values(config: Any, table: Mapping[str, TableRow]) -> dict[str, Any]:
+    """The values of `config`'s fields as the table's parameters hold them (an array as a list; a field's
+    type decides: a float field's 1 is 1.0)."""
+    hints = get_type_hints(type(config))
+    out: dict[str, Any] = {}
+    for name, row in table.items():
+        field = parameter_field(row).field
+        kind, element = _kind(hints[field])
+        value = getattr(config, field)
+        out[name] = [element(v) for v in value] if element is not None else kind(value)
+    return out
+
+
+#: the geometry parameters' table: each sets the CameraModel field its name ends with (camera.fx -> fx)
+GEOMETRY_FIELDS: dict[str, ParameterField] = {
+    name: ParameterField(name.split(".", 1)[1], description, lo, hi)
+    for name, (description, lo, hi) in GEOMETRY_PARAMETERS.items()
+}
+
+
+class ConfigParameters(Generic[C]):
+    """A frozen config dataclass bound to ROS parameters by a table (parameter name -> `ParameterField`).
+
+    Every parameter of the table is declared once (`declare`): its type is the config field's (bool, int,
+    float, str, or a tuple/list of one of them: an array), its default the start config's value, with the
+    row's description, range, choices and read-only flag. The start config is then built from the declared
+    values (a params file's, `name:=value`'s) and checked like a change; a refusal raises UserError,
+    `refused` followed by the reason, in one line.
+
+    On-set (a change to any of the table's parameters): the candidate config is
+    `dataclasses.replace(config, ...)` with the new values, so the config's own `__post_init__` checks the
+    whole combination, then `check(candidate)` (the node's own checks, e.g. a sweep's plan); an exception of
+    `errors` refuses the change with its message as the one-line reason. Post-set: `config` becomes the
+    candidate (the hook is not run twice) and `on_change(config)` is called. Parameters outside the table
+    are left to the node."""
+
+    def __init__(self, node: Node, config: C | type[C], table: Mapping[str, TableRow], *,
+                 on_change: Callable[[C], None] | None = None, check: Callable[[C], None] | None = None,
+                 errors: tuple[type[BaseException], ...] = (TypeError, ValueError),
+                 refused: str | None = None) -> None:
+        start = config() if isinstance(config, type) else config
+        self.type: type[C] = type(start)
+        self.table = {name: parameter_field(row) for name, row in table.items()}
+        hints = get_type_hints(self.type)
+        names_ = {f.name for f in fields(self.type)}   # type: ignore[arg-type]
+        self._kinds: dict[str, tuple[type, type | None]] = {}
+        for name, row in self.table.items():
+            if row.field not in names_:
+                raise TypeError(f"{name}: {self.type.__name__} has no field {row.field!r}")
+            self._kinds[name] = _kind(hints[row.field])
+        self._node = node
+        self._on_change = on_change
+        self._check = check
+        self._errors = errors
+        defaults = self.values(start)
+        for name, row in self.table.items():
+            constraints = row.constraints or ("one of: " + ", ".join(row.choices) if row.choices else "")
+            declare(node, name, defaults[name], row.description, min=row.min, max=row.max, read_only=row.read_only,
+                    additional_constraints=constraints, length=row.length)
+        self.config: C = start
+        try:
+            self.config = self._candidate({name: node.get_parameter(name).value for name in self.table})
+        except errors as exc:
+            raise UserError(f"{node.get_name() + ': ' if refused is None else refused}{_one_line(exc)}") from None
+        node.add_on_set_parameters_callback(self._validate)
+        node.add_post_set_parameters_callback(self._apply)
+
+    def values(self, config: C | None = None) -> dict[str, Any]:
+        """The parameters' values of `config` (default: the current one), as ROS holds them (arrays as lists)."""
+        return parameter_values(self.config if config is None else config, self.table)
+
+    def _field_value(self, name: str, value: Any) -> Any:
+        kind, element = self._kinds[name]
+        row = self.table[name]
+        if element is None:
+            value = _scalar(name, value, kind)
+            if row.choices and value not in row.choices:
+                raise ValueError(f"{name} must be one of {', '.join(row.choices)}, got {value!r}")
+            return value
+        if isinstance(value, str | bytes) or not hasattr(value, "__iter__"):
+            raise TypeError(f"{name} must be a list, got {value!r}")
+        # the length is `declare`'s to check (its own on-set callback), after the config's own checks
+        return kind(_scalar(f"{name}[{i}]", v, element) for i, v in enumerate(value))
+
+    def _candidate(self, changes: Mapping[str, Any], *, check: bool = True) -> C:
+        candidate = replace(self.config, **{self.table[name].field: self._field_value(name, value)   # type: ignore[type-var]
+                                            for name, value in changes.items()})
+        if check and self._check is not None:
+            self._check(candidate)
+        return candidate
+
+    def _changes(self, parameters: Sequence[Parameter]) -> dict[str, Any]:
+        return {p.name: p.value for p in parameters if p.name in self.table}
+
+    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        changes = self._changes(parameters)
+        if changes:
+            try:
+                self._candidate(changes)
+            except self._errors as exc:
+                return SetParametersResult(successful=False, reason=_one_line(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply(self, parameters: Sequence[Parameter]) -> None:
+        changes = self._changes(parameters)
+        if changes:   # accepted by _validate: the check hook (e.g. a sweep's whole plan) is not run again
+            self.config = self._candidate(changes, check=False)
+            if self._on_change is not None:
+                self._on_change(self.config)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 class GeometryParameters:
-    """Keeps a node's CameraModel in step with its parameters.
+    """Keeps a node's CameraModel in step with its parameters: a `ConfigParameters` of GEOMETRY_FIELDS.
 
-    On-set: the candidate model is built from the new values over the current ones; an invalid
+    On-set: the candidate model is the current one with the new values (`dataclasses.replace`); an invalid
     combination (e.g. |d| >= r, 4 distortion coefficients) is rejected with the model's reason.
     Post-set: the new model is stored and `on_change(model)` is called.
     """
 
     def __init__(self, node: Node, model: CameraModel | None = None,
                  on_change: Callable[[CameraModel], None] | None = None) -> None:
-        declare_geometry_parameters(node, model)
-        self._node = node
-        self.model = camera_model_from_node(node)
-        self._on_change = on_change
-        node.add_on_set_parameters_callback(self._validate)
-        node.add_post_set_parameters_callback(self._apply)
+        self.binding = ConfigParameters(node, model or CameraModel(), GEOMETRY_FIELDS, on_change=on_change)
 
-    def _candidate(self, parameters: Sequence[Parameter]) -> CameraModel:
-        values = self.model.to_params()
-        values.update({p.name: p.value for p in parameters if p.name in GEOMETRY_PARAMETERS})
-        return CameraModel.from_params(values)
-
-    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        if not any(p.name in GEOMETRY_PARAMETERS for p in parameters):
-            return SetParametersResult(successful=True)
-        try:
-            self._candidate(parameters)
-        except (TypeError, ValueError) as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        return SetParametersResult(successful=True)
-
-    def _apply(self, parameters: Sequence[Parameter]) -> None:
-        if any(p.name in GEOMETRY_PARAMETERS for p in parameters):
-            self.model = self._candidate(parameters)
-            if self._on_change is not None:
-                self._on_change(self.model)
+    @property
+    def model(self) -> CameraModel:
+        return self.binding.config

@@ -534,3 +534,28 @@ def test_the_recorder_says_up_to_which_frame_it_has_written_each_image_topic(ros
     assert written == stamps
     connections, _ = bag_messages(tmp_path / "bag")
     assert set(connections) == {"/touchroller/image_raw/compressed"}
+
+
+def test_queue_parameters_are_declared_from_the_config_checked_on_set_and_applied_to_the_writer(ros_context,
+                                                                                              tmp_path):
+    """The recorder's RecorderConfig is bound to queue.max_bytes / queue.depth (ros_params.ConfigParameters):
+    a change reaches the writer's queue at once; a value below the bound or a read-only one is refused."""
+    from rclpy.parameter import Parameter
+
+    from touchroller_bringup.recorder import RecorderConfig
+
+    recorder = Recorder(tmp_path / "bag", topics=["/nothing"], context=ros_context,
+                        config=RecorderConfig(queue_max_bytes=2**21, queue_depth=7))
+    try:
+        assert recorder.get_parameter("queue.max_bytes").value == 2**21
+        assert recorder.get_parameter("queue.depth").value == 7 and recorder.describe_parameter("queue.depth").read_only
+        (declared,) = recorder.describe_parameter("queue.max_bytes").integer_range
+        assert (declared.from_value, declared.to_value) == (2**20, 2**40)
+        assert recorder.set_parameters([Parameter("queue.max_bytes", value=2**22)])[0].successful
+        assert recorder.config == RecorderConfig(queue_max_bytes=2**22, queue_depth=7)
+        assert recorder.stats().queue.max_bytes == 2**22
+        for name, value in (("queue.max_bytes", 1000), ("queue.depth", 20)):
+            assert not recorder.set_parameters([Parameter(name, value=value)])[0].successful
+        assert recorder.config == RecorderConfig(queue_max_bytes=2**22, queue_depth=7)
+    finally:
+        recorder.destroy_node()

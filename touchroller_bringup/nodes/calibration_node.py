@@ -54,7 +54,13 @@ from touchroller_bringup.camera_info_files import (
 )
 from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.ros_diagnostics import OK, WARN, DiagnosticsPublisher, Status
-from touchroller_bringup.ros_params import GeometryParameters, check_start_up, declare, declare_frame_prefix
+from touchroller_bringup.ros_params import (
+    ConfigParameters,
+    GeometryParameters,
+    check_start_up,
+    declare,
+    declare_frame_prefix,
+)
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_perception import calibration as cal
 from touchroller_perception import height
@@ -75,16 +81,6 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
     "output_path": ("touchroller_calibration.yaml", "Calibration YAML written by ~/solve ('' = none); solved "
                     "intrinsics also go to NAME.camera_info.yaml beside it (camera_calibration_parsers' YAML)",
                     None, None),
-    "board.columns": (7, "Chessboard inner corners along a row", 2, 100),
-    "board.rows": (7, "Chessboard inner corners along a column", 2, 100),
-    "board.square": (0.012, "Chessboard square side, m", 1e-4, 1.0),
-    "frame.rows": (2, "Hemisphere frame rows (across the roller axis)", 2, 100),
-    "frame.columns": (5, "Hemisphere frame columns (along the roller axis)", 2, 100),
-    "frame.pitch_x": (0.010, "Hemisphere centre distance along the axis, m", 1e-4, 0.1),
-    "frame.pitch_y": (0.008, "Hemisphere centre distance across the axis, m", 1e-4, 0.1),
-    "frame.hemisphere_radius": (0.001, "Hemisphere radius, m", 1e-5, 0.01),
-    "frame.press_depth": (0.0005, "Depth the hemispheres press into the membrane at the contact line, m",
-                          0.0, 0.01),
     "row_balance": (True, "Correct each press for the frame's shift along y from the rows' imprint strengths "
                           "(applied only when the presses show it)", None, None),
     "intrinsics.distortion": ("auto", "Distortion model: auto (k1, k2, p1, p2, plus k3 when held-out views need "
@@ -101,6 +97,22 @@ SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
     "imprints.strength": ("auto", "Imprint strengths for the row balance: auto (relative given a dark capture, "
                                   "else size), relative (energy relative to the light), size (extent, which no "
                                   "light level changes) or absolute", None, None),
+}
+# parameter -> (Chessboard field, description, min, max); a change re-detects the captured chessboards
+BOARD_PARAMETERS: dict[str, tuple[str, str, float, float]] = {
+    "board.columns": ("columns", "Chessboard inner corners along a row", 2, 100),
+    "board.rows": ("rows", "Chessboard inner corners along a column", 2, 100),
+    "board.square": ("square", "Chessboard square side, m", 1e-4, 1.0),
+}
+# parameter -> (HemisphereFrame field, description, min, max)
+FRAME_PARAMETERS: dict[str, tuple[str, str, float, float]] = {
+    "frame.rows": ("rows", "Hemisphere frame rows (across the roller axis)", 2, 100),
+    "frame.columns": ("columns", "Hemisphere frame columns (along the roller axis)", 2, 100),
+    "frame.pitch_x": ("pitch_x", "Hemisphere centre distance along the axis, m", 1e-4, 0.1),
+    "frame.pitch_y": ("pitch_y", "Hemisphere centre distance across the axis, m", 1e-4, 0.1),
+    "frame.hemisphere_radius": ("hemisphere_radius", "Hemisphere radius, m", 1e-5, 0.01),
+    "frame.press_depth": ("press_depth", "Depth the hemispheres press into the membrane at the contact line, m",
+                          0.0, 0.01),
 }
 #: string parameters and the values they accept
 CHOICES: dict[str, tuple[str, ...]] = {
@@ -120,6 +132,10 @@ class CalibrationNode(Node):
         self.geometry = GeometryParameters(self)
         for name, (default, description, lo, hi) in SETTINGS.items():
             declare(self, name, default, description, min=lo, max=hi)
+        # the chessboard and the hemisphere frame: frozen configs bound to their tables (checked whole on set)
+        self.board_parameters = ConfigParameters(self, cal.Chessboard(), BOARD_PARAMETERS,
+                                                 on_change=lambda _: self._redetect_boards())
+        self.frame_parameters = ConfigParameters(self, cal.HemisphereFrame(), FRAME_PARAMETERS)
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         check_start_up(self, self._validate)   # the start-up values pass the checks a change does
@@ -147,8 +163,8 @@ class CalibrationNode(Node):
         return SetParametersResult(successful=not problem, reason=problem)
 
     def _problem(self, parameters: Sequence[Parameter]) -> str:
-        """Why these values cannot be used ("" when they can): choices, names, the output path, and the
-        board and hemisphere frame they describe (built from the candidate values over the current ones)."""
+        """Why these values cannot be used ("" when they can): choices, names and the output path (the board
+        and the hemisphere frame are checked by their ConfigParameters)."""
         from rclpy.validate_node_name import validate_node_name
         from rclpy.validate_topic_name import validate_topic_name
 
@@ -168,14 +184,6 @@ class CalibrationNode(Node):
                 path = Path(str(p.value))
                 if path.exists() and not path.is_file():
                     return f"output_path {path} exists and is not a regular file; give a YAML file name"
-        values = {name: self.get_parameter(name).value for name in SETTINGS if self.has_parameter(name)}
-        values.update({p.name: p.value for p in parameters if p.name in SETTINGS})
-        if all(name in values for name in SETTINGS):
-            try:
-                self._frame(values)
-                self._board(values)
-            except (TypeError, ValueError, cal.CalibrationError) as exc:
-                return str(exc)
         return ""
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:
@@ -186,8 +194,6 @@ class CalibrationNode(Node):
                 self._remote_client = None
             elif p.name == "camera_node":
                 self._camera_client = None
-            elif p.name.startswith("board."):
-                self._redetect_boards()
 
     def _subscribe(self, topic: str) -> None:
         if self.image_sub is not None:
@@ -195,26 +201,15 @@ class CalibrationNode(Node):
         # sensor-data QoS (best effort, depth 5) matches reliable and best-effort publishers
         self.image_sub = self.create_subscription(Image, topic, self._on_image, qos_profile_sensor_data)
 
-    def _frame(self, values: dict[str, Any] | None = None) -> cal.HemisphereFrame:
-        g = values.__getitem__ if values is not None else (lambda name: self.get_parameter(name).value)
-        return cal.HemisphereFrame(rows=g("frame.rows"), columns=g("frame.columns"),
-                                   pitch_x=g("frame.pitch_x"), pitch_y=g("frame.pitch_y"),
-                                   hemisphere_radius=g("frame.hemisphere_radius"),
-                                   press_depth=g("frame.press_depth"))
-
-    def _board(self, values: dict[str, Any] | None = None) -> cal.Chessboard:
-        g = values.__getitem__ if values is not None else (lambda name: self.get_parameter(name).value)
-        return cal.Chessboard(columns=g("board.columns"), rows=g("board.rows"), square=g("board.square"))
-
     def _intrinsics_config(self) -> cal.IntrinsicsConfig:
         distortion = str(self.get_parameter("intrinsics.distortion").value)
-        return cal.IntrinsicsConfig(board=self._board(), distortion=distortion,
+        return cal.IntrinsicsConfig(board=self.board_parameters.config, distortion=distortion,
                                     corners=str(self.get_parameter("intrinsics.corners").value))
 
     def _extrinsics_config(self) -> cal.ExtrinsicsConfig:
         detector = cal.ImprintDetectorConfig(centre=str(self.get_parameter("imprints.centre").value),
                                              strength=str(self.get_parameter("imprints.strength").value))
-        return cal.ExtrinsicsConfig(frame=self._frame(), detector=detector,
+        return cal.ExtrinsicsConfig(frame=self.frame_parameters.config, detector=detector,
                                     balance_rows=bool(self.get_parameter("row_balance").value))
 
     # ------------------------------------------------------------------ images and services
@@ -249,7 +244,7 @@ class CalibrationNode(Node):
 
     def coverage(self) -> cal.BoardCoverage:
         """What the captured chessboard views cover (bars, image corners, map)."""
-        board = self._board()
+        board = self.board_parameters.config
         views = self.captures["chessboard"]
         size = (views[0].shape[1], views[0].shape[0]) if views else (self.geometry.model.width,
                                                                       self.geometry.model.height)
@@ -266,7 +261,7 @@ class CalibrationNode(Node):
         return Status(WARN if warnings else OK, "; ".join(warnings) or "views cover the image", values)
 
     def _redetect_boards(self) -> None:
-        board = self._board()
+        board = self.board_parameters.config
         found = (cal.find_chessboard(image, board).corners for image in self.captures["chessboard"])
         self.board_corners = [corners for corners in found if corners is not None]
 
@@ -275,12 +270,12 @@ class CalibrationNode(Node):
         again at once), or None. A usable chessboard's corners are kept for the coverage."""
         try:
             if target == "chessboard":
-                detection = cal.find_chessboard(image, self._board())
+                detection = cal.find_chessboard(image, self.board_parameters.config)
                 if detection.corners is not None:
                     self.board_corners.append(detection.corners)
                 return detection.reason
             if target == "hemispheres":
-                detection = cal.find_imprints(image, self._frame(), self._extrinsics_config().detector,
+                detection = cal.find_imprints(image, self.frame_parameters.config, self._extrinsics_config().detector,
                                               reference=self._reference())
                 if detection.found == 0:
                     return "no imprints: is the roller pressed on the frame?"

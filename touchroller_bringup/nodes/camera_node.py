@@ -32,6 +32,7 @@ import os
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from rcl_interfaces.msg import SetParametersResult
@@ -56,11 +57,14 @@ from touchroller_bringup.ros_diagnostics import (
     Status,
 )
 from touchroller_bringup.ros_params import (
+    ConfigParameters,
     GeometryParameters,
+    ParameterField,
     check_start_up,
     declare,
     declare_frame_prefix,
     frame_id_problem,
+    parameter_values,
 )
 from touchroller_bringup.tf import TransformListener, TransformPublisher
 from touchroller_driver.sources import SOURCE_KINDS, FrameSource, SourceStats, as_bgr8, make_source
@@ -68,11 +72,67 @@ from touchroller_perception.geometry import CameraModel
 from touchroller_perception.transforms import Transform, TransformBuffer
 
 SIM_MOTIONS = ("scene", "arm")
-#: Parameters that select or configure the source: changing one reopens it.
-SOURCE_PARAMETERS = (
-    "source", "device", "width", "height", "fps", "exposure", "video_path", "bag_path", "bag_topic",
-    "scene", "seed", "rate", "loop", "wait_for_subscribers", "sim.motion", "sim.latency", "world_frame",
-)
+
+
+@dataclass(frozen=True)
+class SourceSettings:
+    """The source the camera node opens and how (its parameters: SOURCE_FIELDS; changing one reopens it)."""
+
+    source: str = "v4l2"
+    device: str = "0"
+    width: int = 640
+    height: int = 480
+    fps: float = 30.0
+    exposure: float = 0.0
+    video_path: str = ""
+    bag_path: str = ""
+    bag_topic: str = names.topic(names.IMAGE)
+    scene: str = "surface_mapping"
+    seed: int = 0
+    rate: float = 1.0
+    loop: bool = False
+    wait_for_subscribers: int = 0
+    sim_motion: str = "scene"
+    sim_latency: float = 0.0
+    world_frame: str = names.BASE_FRAME
+
+    def __post_init__(self) -> None:
+        for name in ("device", "bag_topic"):
+            if not str(getattr(self, name)).strip():
+                raise ValueError(f"{name} must not be empty")
+        problem = frame_id_problem("world_frame", self.world_frame)
+        if problem:
+            raise ValueError(problem)
+
+
+#: Parameters that select or configure the source (SourceSettings' fields): changing one reopens it.
+SOURCE_FIELDS: dict[str, ParameterField] = {
+    "source": ParameterField("source", f"Camera source: one of {', '.join(SOURCE_KINDS)}", choices=SOURCE_KINDS,
+                             constraints=f"one of {', '.join(SOURCE_KINDS)}"),
+    "device": ParameterField("device", "V4L2 device: an index or a path (prefer a stable /dev/v4l/by-id/... path)"),
+    "width": ParameterField("width", "Requested capture width, pixels (v4l2)", 16, 8192),
+    "height": ParameterField("height", "Requested capture height, pixels (v4l2)", 16, 8192),
+    "fps": ParameterField("fps", "Requested frame rate, Hz (v4l2; sim when bound to an arm)", 0.1, 1000.0),
+    "exposure": ParameterField("exposure", "Manual exposure in V4L2 units; 0 = auto exposure", 0.0, 100000.0),
+    "video_path": ParameterField("video_path", "Video file to play (source=video)"),
+    "bag_path": ParameterField("bag_path", "rosbag2 folder to play images from (source=bag)"),
+    "bag_topic": ParameterField("bag_topic", "Image topic inside the bag (source=bag)"),
+    "scene": ParameterField("scene", "Simulator scene: NAME, NAME:VARIANT or a YAML path (source=sim)"),
+    "seed": ParameterField("seed", "Simulator random seed (source=sim)", 0, 2**31 - 1),
+    "rate": ParameterField("rate", "Playback rate for video/bag/sim: 1 real time, 0 as fast as possible", 0.0, 100.0),
+    "loop": ParameterField("loop", "Restart video/bag/sim sources at their end"),
+    "wait_for_subscribers": ParameterField(
+        "wait_for_subscribers", f"Open the source only once {names.IMAGE} has this many subscribers (replay: "
+        "perception must see a recording's first, reference frames); 0: at once", 0, 100),
+    "sim.motion": ParameterField(
+        "sim_motion", "source=sim: 'scene' plays the scene's own motion; 'arm' renders the roller where TF "
+        "(world_frame -> touchroller_cylinder) has it, on the simulated clock", choices=SIM_MOTIONS,
+        constraints="scene or arm"),
+    "sim.latency": ParameterField("sim_latency", "source=sim, sim.motion=arm: how late the simulated webcam stamps "
+                                  "its frames after exposure, s (an effect the mapper is not told)", 0.0, 1.0),
+    "world_frame": ParameterField("world_frame", "source=sim, sim.motion=arm: the frame the scene's surface lies in "
+                                  "(the arm's base, as the robot driver names it: frame_prefix does not apply)"),
+}
 
 
 def image_qos() -> QoSProfile:
@@ -142,12 +202,7 @@ class CameraNode(Node):
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         check_start_up(self, self._validate)   # the start-up values pass the checks a change does
-        problem = self.camera_info.problem(self.camera_info.url, self.camera_info.camera_name)
-        if problem:
-            raise UserError(problem)
         self.camera_info.load()
-        if not self._external_source:
-            self._check_source_exists()
         self.frame_id = self._prefixed_frame_id()
         self.tf = TransformPublisher(self)
         self._publish_optical_frame()
@@ -173,66 +228,39 @@ class CameraNode(Node):
 
     # ------------------------------------------------------------------ parameters
     def _declare_parameters(self) -> None:
-        declare(self, "source", "v4l2", f"Camera source: one of {', '.join(SOURCE_KINDS)}",
-                additional_constraints=f"one of {', '.join(SOURCE_KINDS)}")
-        declare(self, "device", "0", "V4L2 device: an index or a path (prefer a stable /dev/v4l/by-id/... path)")
-        declare(self, "width", 640, "Requested capture width, pixels (v4l2)", min=16, max=8192)
-        declare(self, "height", 480, "Requested capture height, pixels (v4l2)", min=16, max=8192)
-        declare(self, "fps", 30.0, "Requested frame rate, Hz (v4l2; sim when bound to an arm)", min=0.1, max=1000.0)
-        declare(self, "exposure", 0.0, "Manual exposure in V4L2 units; 0 = auto exposure", min=0.0, max=100000.0)
-        declare(self, "video_path", "", "Video file to play (source=video)")
-        declare(self, "bag_path", "", "rosbag2 folder to play images from (source=bag)")
-        declare(self, "bag_topic", names.topic(names.IMAGE), "Image topic inside the bag (source=bag)")
-        declare(self, "scene", "surface_mapping", "Simulator scene: NAME, NAME:VARIANT or a YAML path (source=sim)")
-        declare(self, "seed", 0, "Simulator random seed (source=sim)", min=0, max=2**31 - 1)
-        declare(self, "rate", 1.0, "Playback rate for video/bag/sim: 1 real time, 0 as fast as possible",
-                min=0.0, max=100.0)
-        declare(self, "loop", False, "Restart video/bag/sim sources at their end")
+        # the source: checked whole on set and at start-up (a file, bag or scene that does not exist stops the
+        # node in one line: unlike a camera device, it will not come back by itself), reopened after a change
+        self.source_parameters = ConfigParameters(self, SourceSettings(), SOURCE_FIELDS, check=self._check_source,
+                                                  on_change=self._on_source)
         declare(self, "frame_id", names.CAMERA_OPTICAL_FRAME, "frame_id of published images and camera info (after "
                 f"frame_prefix); other than {names.CAMERA_FRAME}, it is published on /tf_static as "
                 f"{names.CAMERA_FRAME} with its axes (that frame is optical already: z along the view, x along u, "
                 "y along v)")
-        declare(self, "wait_for_subscribers", 0, f"Open the source only once {names.IMAGE} has this many "
-                "subscribers (replay: perception must see a recording's first, reference frames); 0: at once",
-                min=0, max=100)
         declare(self, "camera.latency", 0.0, "Seconds from a frame's exposure to its capture stamp, subtracted "
                 "from the stamps (like v4l2_camera's timestamp_offset); 0: stamps as captured", min=0.0, max=1.0)
-        declare(self, "sim.motion", "scene", "source=sim: 'scene' plays the scene's own motion; 'arm' renders the "
-                "roller where TF (world_frame -> touchroller_cylinder) has it, on the simulated clock",
-                additional_constraints="scene or arm")
-        declare(self, "sim.latency", 0.0, "source=sim, sim.motion=arm: how late the simulated webcam stamps its "
-                "frames after exposure, s (an effect the mapper is not told)", min=0.0, max=1.0)
-        declare(self, "world_frame", names.BASE_FRAME, "source=sim, sim.motion=arm: the frame the scene's surface "
-                "lies in (the arm's base, as the robot driver names it: frame_prefix does not apply)")
+
+    @property
+    def source_settings(self) -> SourceSettings:
+        return self.source_parameters.config
+
+    def _check_source(self, settings: SourceSettings) -> None:
+        if not self._external_source:
+            problem = source_problem(parameter_values(settings, SOURCE_FIELDS))
+            if problem:
+                raise ValueError(problem)
+
+    def _on_source(self, _settings: SourceSettings) -> None:
+        if not self._external_source:
+            self._listen_to_tf_if_on_arm()
+            self._restart.set()  # the publishing thread reopens the source
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        if not self._external_source and any(p.name in SOURCE_PARAMETERS for p in parameters):
-            values = {name: self.get_parameter(name).value for name in SOURCE_PARAMETERS
-                      if self.has_parameter(name)}
-            values.update({p.name: p.value for p in parameters if p.name in SOURCE_PARAMETERS})
-            problem = source_problem(values) if values.get("source") in SOURCE_KINDS else ""
-            if problem:
-                return SetParametersResult(successful=False, reason=problem)
+        """frame_id (the source's parameters are checked by their ConfigParameters)."""
         for param in parameters:
-            if param.name == "source" and str(param.value) not in SOURCE_KINDS:
-                return SetParametersResult(
-                    successful=False, reason=f"source must be one of {', '.join(SOURCE_KINDS)}, got {param.value!r}")
-            if param.name == "sim.motion" and str(param.value) not in SIM_MOTIONS:
-                return SetParametersResult(successful=False, reason=f"sim.motion must be one of "
-                                           f"{', '.join(SIM_MOTIONS)}, got {param.value!r}")
-            if param.name in ("device", "bag_topic") and not str(param.value).strip():
-                return SetParametersResult(successful=False, reason=f"{param.name} must not be empty")
-            problem = frame_id_problem(param.name, param.value) if param.name in ("frame_id", "world_frame") else ""
+            problem = frame_id_problem(param.name, param.value) if param.name == "frame_id" else ""
             if problem:
                 return SetParametersResult(successful=False, reason=problem)
         return SetParametersResult(successful=True)
-
-    def _check_source_exists(self) -> None:
-        """A file, bag or scene that does not exist (or a bag without images on its topic) stops the node at
-        start-up, in one line: unlike a camera device, it will not come back by itself."""
-        problem = source_problem({name: self.get_parameter(name).value for name in SOURCE_PARAMETERS})
-        if problem:
-            raise UserError(problem)
 
     def _prefixed_frame_id(self) -> str:
         return names.frame(str(self.get_parameter("frame_id").value), self.frame_prefix)
@@ -242,14 +270,11 @@ class CameraNode(Node):
         if "frame_id" in changed:
             self.frame_id = self._prefixed_frame_id()
             self._publish_optical_frame()
-        if changed & set(SOURCE_PARAMETERS) and not self._external_source:
-            self._listen_to_tf_if_on_arm()
-            self._restart.set()  # the publishing thread reopens the source
 
     # ------------------------------------------------------------------ the simulated sensor on the arm
     def _on_arm(self) -> bool:
-        return (not self._external_source and str(self.get_parameter("source").value) == "sim"
-                and str(self.get_parameter("sim.motion").value) == "arm")
+        return (not self._external_source and self.source_settings.source == "sim"
+                and self.source_settings.sim_motion == "arm")
 
     def _listen_to_tf_if_on_arm(self) -> None:
         # Created here (executor or constructing thread), never from the publishing thread; kept once made.
@@ -258,7 +283,7 @@ class CameraNode(Node):
 
     def _cylinder_pose(self, t_ns: int) -> Transform | None:
         listener = self.tf_listener
-        world = str(self.get_parameter("world_frame").value)   # the robot's frame: the driver's name, no prefix
+        world = self.source_settings.world_frame   # the robot's frame: the driver's name, no prefix
         cylinder = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         return None if listener is None else listener.lookup(world, cylinder, t_ns)
 
@@ -277,7 +302,7 @@ class CameraNode(Node):
             self._restart.set()
 
     def _make_source(self) -> FrameSource:
-        param = {name: self.get_parameter(name).value for name in SOURCE_PARAMETERS}
+        param = self.source_parameters.values()
         kind = str(param["source"])
         clock_ns = self._now_ns
         if kind == "v4l2":
@@ -371,7 +396,7 @@ class CameraNode(Node):
     def _wait_for_subscribers(self) -> None:
         """Hold the source until `wait_for_subscribers` subscriptions match the image topic, so that a
         replayed recording's first (reference) frames reach perception started in another process."""
-        wanted = int(self.get_parameter("wait_for_subscribers").value)
+        wanted = self.source_settings.wait_for_subscribers
         if wanted > 0 and self.image_pub.get_subscription_count() < wanted:
             self.get_logger().info(f"waiting for {wanted} subscriber(s) on {self.image_pub.topic_name}")
             while (self.image_pub.get_subscription_count() < wanted and not self._stop.is_set()

@@ -75,6 +75,14 @@ from touchroller_bringup.image_conversion import image_to_array, stamp_to_ns
 from touchroller_bringup.live_findings import LIVE_FINDINGS_PARAMETERS, LiveFindings, LiveFindingsConfig, markers
 from touchroller_bringup.map_files import write_world_map
 from touchroller_bringup.map_markers import MapViewPublisher
+from touchroller_bringup.perception_parameters import (
+    DETECTOR_PARAMETERS,
+    HEIGHT_PARAMETERS,
+    STITCHER_PARAMETERS,
+    VIEW_PARAMETERS,
+    WORLD_FIELDS,
+    WorldSettings,
+)
 from touchroller_bringup.publisher_filter import PublisherFilter
 from touchroller_bringup.ros_diagnostics import (
     ERROR,
@@ -86,6 +94,7 @@ from touchroller_bringup.ros_diagnostics import (
     Status,
 )
 from touchroller_bringup.ros_params import (
+    ConfigParameters,
     GeometryParameters,
     check_start_up,
     declare,
@@ -94,7 +103,7 @@ from touchroller_bringup.ros_params import (
 )
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_bringup.tf import TransformListener, TransformPublisher, camera_in_cylinder
-from touchroller_perception.contacts import METHODS, ContactDetector, DetectorConfig
+from touchroller_perception.contacts import ContactDetector, DetectorConfig
 from touchroller_perception.geometry import CameraModel
 from touchroller_perception.localisation import SurfaceLookup, localise
 from touchroller_perception.map_tiles import TileConfig
@@ -102,7 +111,6 @@ from touchroller_perception.map_windows import MapWindows
 from touchroller_perception.stitching import Stitcher, StitcherConfig
 from touchroller_perception.transforms import TransformBuffer, TransformError
 from touchroller_perception.world_map import (
-    WorldMapConfig,
     WorldMapper,
     buffer_lookup,
     check_band_fits,
@@ -121,107 +129,12 @@ def image_qos() -> QoSProfile:
 MAP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
-# parameter name -> (DetectorConfig field, description, min, max)
-DETECTOR_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
-    "contacts.method": ("method", f"Detector: {' or '.join(METHODS)} (the paper's grey/threshold/moments)",
-                        None, None),
-    "contacts.threshold_sigma": ("threshold_sigma", "Threshold in multiples of the reference's measured noise",
-                                 0.5, 100.0),
-    "contacts.min_threshold": ("min_threshold", "Lowest threshold on the colour distance, grey levels", 0.0, 255.0),
-    "contacts.downscale": ("downscale", "Candidate search on a 1/downscale image (refined at full size)", 1, 16),
-    "contacts.min_area": ("min_area", "Smallest contact, pixels above threshold (full resolution)", 0.0, 1e6),
-    "contacts.max_contacts": ("max_contacts", "Most contacts reported per frame", 1, 1000),
-    "contacts.paper_threshold": ("paper_threshold", "Fixed grey threshold of the paper's pipeline", 0.0, 255.0),
-    "contacts.compensate_illumination": ("compensate_illumination",
-                                         "Fit a per-channel gain/offset to the reference (LED drift, exposure)",
-                                         None, None),
-    "contacts.background_sigma": ("background_sigma", "Scale of the smooth shading field removed from the "
-                                  "difference, px (0 disables)", 0.0, 10000.0),
-    "contacts.min_score": ("min_score", "Smallest contact peak, in noise std of the difference", 0.0, 1e6),
-    "contacts.lobe_fraction": ("lobe_fraction", "Centre from each lobe's part above this fraction of its peak",
-                               0.0, 0.95),
-    "contacts.extent_fraction": ("extent_fraction", "A contact's area and ellipse: pixels above this fraction "
-                                 "of its peak", 0.0, 0.95),
-    "contacts.border": ("border", "Band along the image edges that cannot make a contact on its own, px",
-                        0.0, 1000.0),
-    "contacts.adapt_rate": ("adapt_rate", "Weight of a quiet frame blended into the reference every 8 frames "
-                            "(0: fixed reference)", 0.0, 0.95),
-}
-
-
-# parameter name -> (StitcherConfig field, description, min, max); a change starts a new map
-STITCHER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
-    "map.method": ("method", "Stitching: default (subpixel keyframe registration) or paper (integer MAE search)",
-                   None, None),
-    "map.band_rows": ("band_rows", "Rows of the contact band used per frame (the paper: 70)", 8, 480),
-    "map.search": ("search", "Largest shift per frame searched, pixels (the paper: 25)", 1, 200),
-    "map.rectify": ("rectify", "Resample the band to membrane coordinates through the camera model", None, None),
-    "map.subpixel": ("subpixel", "Subpixel registration and placement", None, None),
-    "map.keyframes": ("keyframes", "Register against a keyframe (less drift) rather than the previous frame",
-                      None, None),
-    "map.keyframe_overlap": ("keyframe_overlap", "Take a new keyframe when the overlap falls below this",
-                             0.05, 0.95),
-    "map.motion_prior": ("motion_prior", "Search near the shift the recent velocity predicts first", None, None),
-    "map.local_search": ("local_search", "Half-width of that first search, pixels", 0, 50),
-    "map.background": ("background", "Divide out the flat field (what does not move with the surface)",
-                       None, None),
-    "map.lateral": ("lateral", "Also track shifts along the roller axis", None, None),
-    "map.column_bin": ("column_bin", "Columns averaged together for registration (speed)", 1, 32),
-    "map.highpass": ("highpass", "Box size of the high-pass filter before registration, pixels", 1, 99),
-    "map.min_confidence": ("min_confidence", "Below this registration confidence the motion prior is used",
-                           0.0, 1.0),
-    "map.history": ("history", "Per-frame registration records kept (the newest)", 1, 1_000_000),
-    "map.max_rows": ("max_rows", "Strip map: the most rows kept (0.1 mm each with the default geometry); a longer "
-                     "map keeps the rows nearest the newest frame, drops the rest and says so on /diagnostics "
-                     "(memory stays bounded however long frames come without a sweep); at least 8 x map.band_rows",
-                     64, 10_000_000),
-}
 
 
 #: /diagnostics stays WARN this long after a malformed, refused or unmappable frame (published once a second)
 BAD_INPUT_HOLD_S = 10.0
 #: the map stage is reported as failing (ERROR) after this many frames in a row it could not map
 MAP_FAILING_FRAMES = 10
-
-# parameter name -> (WorldHeightConfig field, description, min, max); a change starts a new map
-HEIGHT_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
-    "map.height.band_depth": ("band_depth", "Height map: the rows integrated are those a press this deep reaches, m "
-                              "(more than the scan presses: the rows beyond are the zero)", 1e-5, 0.0099),
-    "map.height.outer_fraction": ("outer_fraction", "Height map: fraction of those rows at either end taken as "
-                                  "undeformed", 0.02, 0.4),
-    "map.height.min_indentation": ("min_indentation", "Height map: band pixels indented less are not in contact "
-                                   "(no height there), m", 0.0, 1e-3),
-    "map.height.min_weight": ("min_weight", "Height map: a cell has a height where its summed weight is at least "
-                              "this", 1e-3, 100.0),
-    "map.height.min_overlap": ("min_overlap", "Height map: cells two passes must share to be levelled against each "
-                               "other", 10, 10_000_000),
-    "map.height.axis_sigma": ("axis_sigma", "Height map: along the axis, variation slower than a Gaussian of this "
-                              "sigma (px) comes from each column's slopes across the band (0: the 2-D solution)",
-                              0.0, 200.0),
-    "map.height.smoothing": ("smoothing", "Height map: the image's smoothing (Gaussian sigma, px) before the colour "
-                             "features when a frame's slopes are read (the calibration may have used more)", 0.0, 20.0),
-    "map.height.follow_arm": ("follow_arm", "Height map: raise each frame's relief by the roller's height above its "
-                              "pressed height (the arm's pose); false: the press depth is taken as constant along a "
-                              "pass", None, None),
-    "map.height.resampling": ("resampling", "Height map: how a frame's relief goes onto the map grid: lanczos4 or "
-                              "cubic (interpolated, times the weights placed bilinearly), linear (the weighted relief "
-                              "splatted bilinearly as the intensity is: loses a fine relief's depth)", None, None),
-    "map.height.row_frames": ("row_frames", "Height map: take the band rows' static error (the press shape as the "
-                              "model reads it, averaged over the frames mapped) out of each frame's relief once this "
-                              "many frames are in (0: never)", 0, 1_000_000),
-}
-
-# parameter name -> (TileConfig field, description, min, max): the world map's live views
-VIEW_PARAMETERS: dict[str, tuple[str, str, int, int]] = {
-    "map.view_max_pixels": ("max_pixels", "World map: the most pixels of the view published on map (and of "
-                            "the tiles on map_markers): the map is downsampled by 2, 4, ... to fit", 262_144,
-                            100_000_000),
-    "map.tile_px": ("tile_px", "World map: the side of a tile on map_markers, view pixels", 64, 2048),
-}
-
-# world-map parameters: a change starts a new map
-WORLD_PARAMETERS = ("world_frame", "map.world", "map.resolution", "map.bounds", "map.latency_estimate",
-                    "map.register", "map.height.photometric", "map.height.reference")
 
 
 class PerceptionNode(Node):
@@ -238,12 +151,12 @@ class PerceptionNode(Node):
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         check_start_up(self, self._validate)   # the start-up values pass the checks a change does
-        self.detector = ContactDetector(self._detector_config(), int(self.get_parameter("reference.frames").value))
+        self.detector = ContactDetector(self.detector_parameters.config,
+                                        int(self.get_parameter("reference.frames").value))
         self.frame_id = self._contacts_frame_id()
-        self.stitcher_config = self._stitcher_config()
         self.stitcher: Any = None
         self.world: WorldMapper | None = None   # the world map, once TF links world_frame to the cylinder
-        self.world_frame = str(self.get_parameter("world_frame").value)   # the robot's: no prefix
+        self.world_frame = self.world_parameters.config.world_frame   # the robot's: no prefix
         self.tf_listener = TransformListener(self, TransformBuffer(cache_ns=20_000_000_000),
                                              on_update=self._on_transforms)
         self._done_ns = 0             # the stamp last published on image_done
@@ -254,7 +167,7 @@ class PerceptionNode(Node):
         self._rolling = False
         self._finish_after_ns: int | None = None   # a world map is finished with the first frame after this
         self.saved_maps = 0
-        self.live_findings = LiveFindings(self._findings_config())   # `findings`: markers of the defects found
+        self.live_findings = LiveFindings(self.findings_parameters.config)   # `findings`: markers of the defects found
         self.findings_pub = self.create_publisher(MarkerArray, names.FINDINGS, MAP_QOS)
         self.findings_published = 0
         self._findings_timer: Any = None
@@ -284,7 +197,7 @@ class PerceptionNode(Node):
         self.map_pub = self.create_publisher(Image, names.MAP, MAP_QOS)
         self.map_metadata_pub = self.create_publisher(MapMetaData, names.MAP_METADATA, MAP_QOS)
         self.map_height_pub = self.create_publisher(Image, names.MAP_HEIGHT, MAP_QOS)
-        self.map_views = MapViewPublisher(self, self.map_pub, self.map_metadata_pub, self._view_config())
+        self.map_views = MapViewPublisher(self, self.map_pub, self.map_metadata_pub, self.view_parameters.config)
         self.done_pub = self.create_publisher(Header, names.IMAGE_DONE, QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
         # progress only from the sweep node of this namespace: another publisher must not cut a map short
@@ -306,70 +219,50 @@ class PerceptionNode(Node):
 
     # ------------------------------------------------------------------ parameters
     def _declare_parameters(self) -> None:
-        defaults = DetectorConfig()
-        for name, (field, description, lo, hi) in DETECTOR_PARAMETERS.items():
-            declare(self, name, getattr(defaults, field), description, min=lo, max=hi)
+        # the algorithms' configs, each bound to its table (declared, checked on set, applied after set)
+        self.detector_parameters = ConfigParameters(self, DetectorConfig(), DETECTOR_PARAMETERS,
+                                                    on_change=self._on_detector_config)
         declare(self, "contacts.frame_id", names.CYLINDER_FRAME, "frame_id of the published contact points (after "
                 "frame_prefix)")
         declare(self, "reference.frames", 5, "No-contact frames averaged into the reference", min=1, max=1000)
-        defaults_map = StitcherConfig()
-        for name, (field, description, lo, hi) in STITCHER_PARAMETERS.items():
-            declare(self, name, getattr(defaults_map, field), description, min=lo, max=hi)
+        self.stitcher_parameters = ConfigParameters(self, StitcherConfig(), STITCHER_PARAMETERS,
+                                                    on_change=lambda _: self.reset_map())
         declare(self, "map.save_path", "", "PNG file the finished map is written to when a sweep ends "
                 "(empty: not saved); a world map also writes map.yaml beside it (nav2 map_server format)")
-        declare(self, "world_frame", names.BASE_FRAME, "Frame of the world map: the robot's base, as the robot "
-                "driver names it (frame_prefix does not apply)")
-        declare(self, "map.world", True, "Map in world_frame when TF links it to touchroller_cylinder (else "
-                "the strip map along the roll)")
-        declare(self, "map.resolution", 1e-4, "World map: metres per pixel", min=1e-6, max=0.01)
-        declare(self, "map.bounds", [0.0, 0.0, 0.0, 0.0], "World map: [x_min, y_min, x_max, y_max] in world_frame, "
-                "m (the scan's rectangle and a margin); all 0: it grows with what is mapped", length=4)
-        declare(self, "map.latency_estimate", True, "World map: estimate the camera's latency (what stamps still "
-                "lag the exposure after camera.latency) from the image-registered motion against the arm's")
-        declare(self, "map.register", True, "World map: register each pass against the earlier ones where they "
-                "overlap")
-        declare(self, "map.height.photometric", "", "World map: PHOTOMETRIC.npz of 'touchroller calibrate "
-                "photometric'; with map.height.reference, also the height map on map_height (empty: none)")
-        declare(self, "map.height.reference", "", "World map: a no-contact image of the sensor for the height map")
+        self.world_parameters = ConfigParameters(self, WorldSettings(), WORLD_FIELDS, on_change=self._on_world_settings)
         from touchroller_perception.world_height import WorldHeightConfig
 
-        defaults_height = WorldHeightConfig()
-        for name, (field, description, lo, hi) in HEIGHT_PARAMETERS.items():
-            declare(self, name, getattr(defaults_height, field), description, min=lo, max=hi)
-        defaults_view = TileConfig()
-        for name, (field, description, lo, hi) in VIEW_PARAMETERS.items():
-            declare(self, name, getattr(defaults_view, field), description, min=lo, max=hi)
+        self.height_parameters = ConfigParameters(self, WorldHeightConfig(), HEIGHT_PARAMETERS,
+                                                  on_change=lambda _: self.reset_map())
+        self.view_parameters = ConfigParameters(self, TileConfig(), VIEW_PARAMETERS, on_change=self._on_view_config)
         declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
                 min=0.0, max=100.0)
-        defaults_findings = LiveFindingsConfig()
-        for name, (field, description, lo, hi) in LIVE_FINDINGS_PARAMETERS.items():
-            declare(self, name, getattr(defaults_findings, field), description, min=lo, max=hi)
+        self.findings_parameters = ConfigParameters(self, LiveFindingsConfig(), LIVE_FINDINGS_PARAMETERS,
+                                                    on_change=self._on_findings_config)
 
-    def _detector_config(self, overrides: dict[str, Any] | None = None) -> DetectorConfig:
-        values = {name: self.get_parameter(name).value for name in DETECTOR_PARAMETERS}
-        values.update(overrides or {})
-        return DetectorConfig(**{DETECTOR_PARAMETERS[name][0]: value for name, value in values.items()})
+    @property
+    def stitcher_config(self) -> StitcherConfig:
+        return self.stitcher_parameters.config
 
-    def _stitcher_config(self, overrides: dict[str, Any] | None = None) -> StitcherConfig:
-        values = {name: self.get_parameter(name).value for name in STITCHER_PARAMETERS}
-        values.update(overrides or {})
-        return StitcherConfig(**{STITCHER_PARAMETERS[name][0]: value for name, value in values.items()})
+    def _on_detector_config(self, config: DetectorConfig) -> None:
+        self.detector.config = config
 
-    def _view_config(self, overrides: dict[str, Any] | None = None) -> TileConfig:
-        values = {name: self.get_parameter(name).value for name in VIEW_PARAMETERS}
-        values.update(overrides or {})
-        return TileConfig(**{VIEW_PARAMETERS[name][0]: int(value) for name, value in values.items()})
+    def _on_view_config(self, config: TileConfig) -> None:
+        with self._map_lock:
+            self.map_views.configure(config)
+            self._map_dirty = True
+
+    def _on_world_settings(self, settings: WorldSettings) -> None:
+        self.world_frame = settings.world_frame   # the robot's: no prefix
+        self.reset_map()   # a map is stitched one way throughout
+
+    def _on_findings_config(self, config: LiveFindingsConfig) -> None:
+        self.live_findings.config = config
+        self._set_findings_timer()
 
     def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        for table, make in ((DETECTOR_PARAMETERS, self._detector_config), (STITCHER_PARAMETERS, self._stitcher_config),
-                            (WORLD_PARAMETERS, self._world_config), (HEIGHT_PARAMETERS, self._height_config),
-                            (VIEW_PARAMETERS, self._view_config), (LIVE_FINDINGS_PARAMETERS, self._findings_config)):
-            changes = {p.name: p.value for p in parameters if p.name in table}
-            if changes:
-                try:
-                    make(changes)
-                except (TypeError, ValueError) as exc:
-                    return SetParametersResult(successful=False, reason=str(exc))
+        """What no config binding covers: the band that must fit the world map, contacts.frame_id and
+        map.save_path (the configs are checked by their ConfigParameters)."""
         band = {p.name: p.value for p in parameters if p.name in ("map.world", "map.resolution", "map.band_rows")}
         if band:   # a world map whose every band would be refused (too many map pixels) maps nothing
             values = {name: self.get_parameter(name).value for name in ("map.world", "map.resolution", "map.band_rows")}
@@ -380,7 +273,7 @@ class PerceptionNode(Node):
                 except ValueError as exc:
                     return SetParametersResult(successful=False, reason=f"map.resolution {exc}")
         for p in parameters:
-            problem = frame_id_problem(p.name, p.value) if p.name in ("contacts.frame_id", "world_frame") else ""
+            problem = frame_id_problem(p.name, p.value) if p.name == "contacts.frame_id" else ""
             if p.name == "map.save_path" and str(p.value) and os.path.exists(str(p.value)) \
                     and not os.path.isfile(str(p.value)):
                 problem = f"map.save_path {p.value} exists and is not a regular file; give a PNG file name"
@@ -389,14 +282,9 @@ class PerceptionNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply(self, parameters: Sequence[Parameter]) -> None:
+        """What no config binding covers (a change of the stitcher's, the height map's or the world map's
+        config starts a new map in its binding's on_change)."""
         changed = {p.name for p in parameters}
-        if changed & set(DETECTOR_PARAMETERS):
-            self.detector.config = self._detector_config()
-        if "world_frame" in changed:
-            self.world_frame = str(self.get_parameter("world_frame").value)   # the robot's: no prefix
-        if changed & (set(STITCHER_PARAMETERS) | set(WORLD_PARAMETERS) | set(HEIGHT_PARAMETERS)):
-            self.stitcher_config = self._stitcher_config()
-            self.reset_map()   # a map is stitched one way throughout
         if "reference.frames" in changed:
             self.detector.reference_frames = int(self.get_parameter("reference.frames").value)
         if "contacts.frame_id" in changed:
@@ -404,38 +292,7 @@ class PerceptionNode(Node):
         if "map.publish_rate" in changed:
             self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
             self._set_findings_timer()
-        if changed & set(VIEW_PARAMETERS):
-            with self._map_lock:
-                self.map_views.configure(self._view_config())
-                self._map_dirty = True
-        if changed & set(LIVE_FINDINGS_PARAMETERS):
-            self.live_findings.config = self._findings_config()
-            self._set_findings_timer()
 
-    def _findings_config(self, overrides: dict[str, Any] | None = None) -> LiveFindingsConfig:
-        values = {name: self.get_parameter(name).value for name in LIVE_FINDINGS_PARAMETERS}
-        values.update(overrides or {})
-        return LiveFindingsConfig(**{LIVE_FINDINGS_PARAMETERS[name][0]: value for name, value in values.items()})
-
-    def _world_config(self, overrides: dict[str, Any] | None = None) -> WorldMapConfig:
-        values = {name: self.get_parameter(name).value for name in WORLD_PARAMETERS}
-        values.update(overrides or {})
-        bounds = [float(v) for v in values["map.bounds"]]
-        if len(bounds) != 4:
-            raise ValueError(f"map.bounds is [x_min, y_min, x_max, y_max], got {bounds}")
-        return WorldMapConfig(resolution=float(values["map.resolution"]),
-                              bounds=None if not any(bounds) else (bounds[0], bounds[1], bounds[2], bounds[3]),
-                              latency=None if values["map.latency_estimate"] else 0.0,
-                              register=bool(values["map.register"]),
-                              # live: frames waiting for the latency estimate are read provisionally
-                              provisional=True)
-
-    def _height_config(self, overrides: dict[str, Any] | None = None) -> Any:
-        from touchroller_perception.world_height import WorldHeightConfig
-
-        values = {name: self.get_parameter(name).value for name in HEIGHT_PARAMETERS}
-        values.update(overrides or {})
-        return WorldHeightConfig(**{HEIGHT_PARAMETERS[name][0]: value for name, value in values.items()})
 
     def _contacts_frame_id(self) -> str:
         return names.frame(str(self.get_parameter("contacts.frame_id").value), self.frame_prefix)
@@ -642,7 +499,7 @@ class PerceptionNode(Node):
         """A world map if TF links world_frame to the cylinder now, else the strip map."""
         cylinder = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         linked = self.tf_listener.lookup(self.world_frame, cylinder) is not None
-        if bool(self.get_parameter("map.world").value) and linked:
+        if self.world_parameters.config.world and linked:
             listener = self.tf_listener
             lookup = buffer_lookup(listener.buffer, self.world_frame, cylinder)
 
@@ -650,8 +507,8 @@ class PerceptionNode(Node):
                 with listener.lock:
                     return lookup(stamps)
 
-            self.world = WorldMapper(self.camera, poses, self._world_config(), self.stitcher_config,
-                                     height=self._height_source())
+            self.world = WorldMapper(self.camera, poses, self.world_parameters.config.map_config(),
+                                     self.stitcher_config, height=self._height_source())
             self.get_logger().info(f"world map in {self.world_frame} at {self.world.config.resolution * 1e3:g} mm/px")
         else:
             self.stitcher = Stitcher(self.stitcher_config, camera=self.camera)
@@ -765,8 +622,8 @@ class PerceptionNode(Node):
 
     def _height_source(self) -> Any:
         """The world mapper's HeightSource from map.height.*; None when not both are set or they do not load."""
-        model_path = str(self.get_parameter("map.height.photometric").value)
-        reference_path = str(self.get_parameter("map.height.reference").value)
+        model_path = self.world_parameters.config.photometric
+        reference_path = self.world_parameters.config.reference
         if not model_path or not reference_path:
             return None
         import cv2
@@ -782,7 +639,7 @@ class PerceptionNode(Node):
         except (OSError, ValueError, KeyError) as exc:
             self.get_logger().error(f"no height map: {exc}")
             return None
-        return HeightSource(model, reference, self._height_config())
+        return HeightSource(model, reference, self.height_parameters.config)
 
     def _publish_height(self, height: np.ndarray, stamp_ns: int) -> None:
         """The world height map on map_height: 32FC1 metres (REP 118), row 0 the top as the map, NaN unmapped,

@@ -49,10 +49,8 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo
@@ -61,16 +59,19 @@ from std_srvs.srv import Trigger
 
 from touchroller_bringup import names
 from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
-from touchroller_bringup.ros_params import declare, declare_frame_prefix
+from touchroller_bringup.ros_params import ConfigParameters, declare_frame_prefix, parameter_values
 from touchroller_bringup.sweep_action import SweepActionServer, make_sweep_action
+from touchroller_bringup.sweep_settings import (
+    ARM_BACKENDS,
+    ARM_FIELDS,
+    MOUNT_FIELDS,
+    SWEEP_FIELDS,
+    ArmSettings,
+    MountConfig,
+    SweepSettings,
+)
 from touchroller_bringup.tf import TransformPublisher
 from touchroller_driver.arm import (
-    DEFAULT_CLEARANCE,
-    DEFAULT_DIRECTION,
-    DEFAULT_MOUNT_RPY,
-    DEFAULT_MOUNT_XYZ,
-    DEFAULT_START_POSE,
-    SWEEP_PROFILES,
     Arm,
     ArmError,
     ArmLimits,
@@ -80,7 +81,6 @@ from touchroller_driver.arm import (
     SweepSequencer,
     SweepStatus,
     check_plan,
-    mount_transform,
     plan_duration,
     plan_raster,
     plan_sweep,
@@ -90,10 +90,8 @@ from touchroller_driver.arm import (
 from touchroller_driver.sim.clock import FrameGate, SimClock
 from touchroller_perception.transforms import Transform
 
-ARM_BACKENDS = ("ur_rtde", "ur_driver", "sim")   # arm.backend; use_sim true is sim whatever it says
 #: how long a service waits for its answer; a start not accepted by then is cancelled (it never moves the arm)
 COMMAND_TIMEOUT_S = 5.0
-UR5_REACH_M = 0.85   # a UR5's reach from its base (the datasheet's 850 mm)
 #: shutting down (a stop signal, the node destroyed): how long the arm thread gets to stop the arm before a
 #: call it is stuck in is given up (`Arm.abort`: the ur_rtde process ends, the robot's watchdog stops it)
 SHUTDOWN_STOP_S = 0.5
@@ -102,11 +100,6 @@ SHUTDOWN_STOP_S = 0.5
 LOCKSTEP_STALL_S = 10.0
 #: sim.lockstep: the topics (relative) on which the frames' consumers say up to which frame they are done
 FRAME_CONSUMERS = {names.IMAGE_DONE: "perception", names.IMAGE_RECORDED: "recorder"}
-
-# Sweep parameters that apply at the next `~/start` (a running sweep keeps the plan it started with).
-SWEEP_PARAMETERS = ("sweep.length", "sweep.speed", "sweep.accel", "sweep.depth", "sweep.approach_speed",
-                    "sweep.start_pose", "sweep.direction", "sweep.retract", "sweep.clearance", "sweep.area",
-                    "sweep.usable_width", "sweep.overlap", "sweep.profile")
 
 
 def rotation_vector_to_quaternion(rotation: Sequence[float]) -> tuple[float, float, float, float]:
@@ -161,20 +154,20 @@ class SweepNode(Node):
         super().__init__(node_name, **node_kwargs)
         self._declare_parameters()
         self.frame_prefix = declare_frame_prefix(self)
-        self.settings = {name: self.get_parameter(name).value for name in SWEEP_PARAMETERS}
-        self.add_on_set_parameters_callback(self._validate_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
-
         self.limits = self._limits_from_parameters()
         if arm is not None:  # a supplied arm keeps its own limits; the stricter of the two apply here
             reaches = [r for r in (self.limits.reach, arm.limits.reach) if r is not None]
             self.limits = ArmLimits(max_speed=min(self.limits.max_speed, arm.limits.max_speed),
                                     max_accel=min(self.limits.max_accel, arm.limits.max_accel),
                                     reach=min(reaches) if reaches else None)
-        try:   # start-up values get the checks a change at run time gets (the on-set callback's)
-            self._plan_from(self.settings)
-        except (ArmError, ValueError) as exc:
-            raise ValueError(f"sweep parameters refused: {exc}") from None
+        # run-time parameters: the mount (re-published on /tf_static when it changes) and the sweep of the
+        # next ~/start, checked whole (the plan) on set and at start-up
+        self.mount_parameters = ConfigParameters(self, MountConfig(), MOUNT_FIELDS,
+                                                 on_change=lambda _: self._publish_mount())
+        self.sweep_parameters = ConfigParameters(
+            self, SweepSettings(), SWEEP_FIELDS,
+            check=lambda settings: self._plan_from(parameter_values(settings, SWEEP_FIELDS)),
+            errors=(ArmError, TypeError, ValueError), refused="sweep parameters refused: ")
         self.sim_clock: SimClock | None = None   # use_sim: the one clock of the simulated arm and camera
         self._clock_pub: Any = None
         self.frame_gate: FrameGate | None = None   # use_sim and sim.lockstep: the clock waits for the frames
@@ -195,11 +188,11 @@ class SweepNode(Node):
         self.last_answer: tuple[str, bool, str] | None = None  # (service, success, message) of the last call
 
         # the robot's frames are the robot driver's names (parameters, no prefix); the prefix is on ours only
-        self._frame_id = str(self.get_parameter("arm.base_frame").value)
-        self._tool_frame = str(self.get_parameter("arm.tool_frame").value)
+        self._frame_id = self.arm_settings.base_frame
+        self._tool_frame = self.arm_settings.tool_frame
         self._cylinder_frame = names.frame(names.CYLINDER_FRAME, self.frame_prefix)
         # tool0 has one parent: the UR driver's robot_state_publisher publishes it when it drives the arm
-        self._publish_tf = (bool(self.get_parameter("publish_tf").value)
+        self._publish_tf = (self.arm_settings.publish_tf
                             and not getattr(self.arm, "publishes_tool_tf", False))
         self.tf = TransformPublisher(self)
         self._publish_mount()
@@ -215,7 +208,7 @@ class SweepNode(Node):
         simulated = isinstance(self.arm, SimulatedArm)
         through_driver = getattr(self.arm, "publishes_tool_tf", False)
         hardware = ("simulated arm" if simulated else "UR through ur_robot_driver" if through_driver
-                    else f"UR at {self.get_parameter('robot_ip').value}")
+                    else f"UR at {self.arm_settings.robot_ip}")
         self.diagnostics = DiagnosticsPublisher(self, self.get_fully_qualified_name(), hardware_id=hardware)
         self.diagnostics.add(self._diagnostic_status)
 
@@ -226,107 +219,24 @@ class SweepNode(Node):
 
     # -- parameters ----------------------------------------------------------------------------
     def _declare_parameters(self) -> None:
-        declare(self, "use_sim", True, "Use the simulated arm instead of a UR5 (read at start-up)", read_only=True)
-        declare(self, "robot_ip", "192.168.1.10", "IP address of the UR controller (ur_rtde)", read_only=True)
-        declare(self, "arm.backend", "ur_rtde", "The arm when use_sim is false: ur_rtde (its own control script "
-                "through ur_rtde) or ur_driver (URScript through a running ur_robot_driver, docs/ur5.md); sim: the "
-                "simulated arm", read_only=True, additional_constraints="one of: " + ", ".join(ARM_BACKENDS))
-        declare(self, "robot_timeout", 10.0, "Longest a ur_rtde interface may take to connect (the control "
-                "interface uploads its script), s; a UR that greets and then stays silent is given up after it",
-                min=0.5, max=120.0, read_only=True)
-        declare(self, "arm.max_speed", 0.1, "Hard limit on any commanded tool speed, m/s", min=1e-4, max=1.0,
-                read_only=True)
-        declare(self, "arm.max_accel", 0.5, "Hard limit on any commanded tool acceleration, m/s^2",
-                min=1e-3, max=5.0, read_only=True)
-        declare(self, "arm.reach", UR5_REACH_M, "Farthest any commanded tool position may be from the base frame's "
-                "origin, m (UR5: 0.85); a sweep or raster reaching beyond is refused", min=0.05, max=3.0,
-                read_only=True)
-        declare(self, "sweep.max_duration", 1800.0, "Longest a sweep or raster may take (all its moves, from where "
-                "the arm is), s; a longer one is refused", min=1.0, max=86400.0, read_only=True)
-        declare(self, "sweep.length", 0.11, "Length of the roll along sweep.direction, m", min=0.0, max=1.0)
-        declare(self, "sweep.speed", 0.011, "Roll speed, m/s (paper: 11 cm in 10 s)", min=1e-4, max=1.0)
-        declare(self, "sweep.accel", 0.1, "Acceleration of every move, m/s^2", min=1e-3, max=5.0)
-        declare(self, "sweep.depth", 0.0005, "How far the roller is pressed into the surface, m", min=0.0, max=0.01)
-        declare(self, "sweep.approach_speed", 0.005, "Speed to the start pose, pressing and lifting, m/s",
-                min=1e-4, max=1.0)
-        declare(self, "sweep.start_pose", list(DEFAULT_START_POSE),
-                "TCP pose [x, y, z, rx, ry, rz] (base frame, m, rotation vector) where the roller just "
-                "touches the surface at the start of the sweep")
-        declare(self, "sweep.area", [0.0, 0.0, 0.0, 0.0], "Rectangle to cover [x, y, length, width], m, in "
-                "arm.base_frame: corner (x, y), length along sweep.direction, width along the roller's axis; "
-                "a boustrophedon raster of passes rolled alternately forwards and back (one pass when narrower "
-                "than sweep.usable_width). length 0: one roll of sweep.length from sweep.start_pose")
-        declare(self, "sweep.usable_width", 0.06, "Width of surface one pass maps, m (the band the camera "
-                "sees along the axis, less a margin)", min=0.001, max=1.0)
-        declare(self, "sweep.overlap", 0.25, "Least fraction of sweep.usable_width neighbouring passes share",
-                min=0.0, max=0.9)
-        declare(self, "sweep.direction", list(DEFAULT_DIRECTION), "Rolling direction in the base frame (horizontal)")
-        declare(self, "sweep.profile", "ramp", "Motion of each pass: ramp (stop above the pass, press in at "
-                "rest, accelerate, roll, stop, lift: moves one at a time), blend (each pass one path at "
-                "sweep.speed through its waypoints with blend radii: descending before the pass, touching down "
-                "and lifting off while moving, as a UR program of movels with blend radii) or constant (the same "
-                "path with sharp corners); docs/ur5.md", additional_constraints="one of: " + ", ".join(SWEEP_PROFILES))
-        declare(self, "sweep.retract", True, "Lift the roller off the surface at the end of the sweep")
-        declare(self, "sweep.clearance", DEFAULT_CLEARANCE, "Height above the start pose the roller approaches "
-                "from and lifts back to, m", min=0.0, max=0.05)
-        declare(self, "sim.rate", 1.0, "use_sim: simulated seconds per wall-clock second of the simulated clock "
-                "(published on /clock; the simulated camera renders on it)", min=0.1, max=20.0, read_only=True)
-        declare(self, "sim.lockstep", True, "use_sim: the simulated clock waits for the frames: never more than "
-                "sim.max_lead s past a frame the camera has not published, the perception node has not finished or a "
-                "recorder has not written (camera_info, image_done, image_raw/recorded), so a loaded machine makes the "
-                "simulation slower, not different", read_only=True)
-        declare(self, "sim.max_lead", 0.05, "use_sim and sim.lockstep: how far the simulated clock may run ahead of "
-                "the oldest frame perception has not finished (and of the camera's next frame), s; frames in "
-                "flight are about max_lead x fps", min=0.0, max=10.0, read_only=True)
-        declare(self, "sweep.publish_rate", 50.0, "Rate of the arm loop: TCP pose, /tf and progress messages, "
-                "with use_sim the simulated clock's tick, "
-                "watchdog kicks (>= 10 Hz), Hz", min=10.0, max=500.0,
-                read_only=True)
-        declare(self, "arm.base_frame", names.BASE_FRAME, "Frame of the published TCP pose and parent of the tool "
-                "frame on /tf (the UR base, the robot driver's name: frame_prefix does not apply)", read_only=True)
-        declare(self, "arm.tool_frame", names.TOOL_FRAME, "The arm's flange frame (UR: tool0, the robot driver's name: "
-                "frame_prefix does not apply; a second simulated arm in another namespace gets its own); "
-                "the TCP pose is its pose", read_only=True)
-        declare(self, "publish_tf", True, "Publish arm.base_frame -> arm.tool_frame on /tf from the arm's pose; "
-                "false when a robot driver (e.g. ur_robot_driver) already does", read_only=True)
-        declare(self, "mount.xyz", list(DEFAULT_MOUNT_XYZ), f"Position of {names.CYLINDER_FRAME} (the roller's "
-                "axis centre) in the tool frame, m; published on /tf_static")
-        declare(self, "mount.rpy", list(DEFAULT_MOUNT_RPY), f"Orientation of {names.CYLINDER_FRAME} in the tool "
-                "frame, fixed-axis roll, pitch, yaw, rad (x along the roller axis, z down at the contact)")
+        self.arm_parameters = ConfigParameters(self, ArmSettings(), ARM_FIELDS)   # read-only: read at start-up
+        self.arm_settings = self.arm_parameters.config
 
-    def _validate_parameters(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        mount = {p.name: p.value for p in parameters if p.name.startswith("mount.")}
-        if mount:
-            try:
-                self.mount(mount)
-            except (TypeError, ValueError) as exc:
-                return SetParametersResult(successful=False, reason=str(exc))
-        candidate = dict(self.settings)
-        candidate.update({p.name: p.value for p in parameters if p.name in SWEEP_PARAMETERS})
-        try:
-            self._plan_from(candidate)
-        except (ArmError, ValueError) as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        return SetParametersResult(successful=True)
+    @property
+    def settings(self) -> dict[str, Any]:
+        """The sweep.* parameters of the next `~/start` (a new dict: name -> value as ROS holds it)."""
+        return self.sweep_parameters.values()
 
-    def _apply_parameters(self, parameters: Sequence[Parameter]) -> None:
-        self.settings.update({p.name: p.value for p in parameters if p.name in SWEEP_PARAMETERS})
-        if any(p.name.startswith("mount.") for p in parameters):
-            self._publish_mount()
-
-    def mount(self, overrides: dict[str, Any] | None = None) -> Transform:
+    def mount(self) -> Transform:
         """T_tool_cylinder from the mount.* parameters."""
-        values = {name: self.get_parameter(name).value for name in ("mount.xyz", "mount.rpy")}
-        values.update(overrides or {})
-        return mount_transform(values["mount.xyz"], values["mount.rpy"])
+        return self.mount_parameters.config.transform()
 
     def _publish_mount(self) -> None:
         self.tf.set_static(self._tool_frame, self._cylinder_frame, self.mount())
 
     def _limits_from_parameters(self) -> ArmLimits:
-        return ArmLimits(max_speed=float(self.get_parameter("arm.max_speed").value),
-                         max_accel=float(self.get_parameter("arm.max_accel").value),
-                         reach=float(self.get_parameter("arm.reach").value))
+        return ArmLimits(max_speed=self.arm_settings.max_speed, max_accel=self.arm_settings.max_accel,
+                         reach=self.arm_settings.reach)
 
     def _plan_from(self, settings: dict[str, Any], from_pose: np.ndarray | None = None) -> SweepPlan:
         """The sweep of `settings`, checked whole: limits, reach, at most MAX_PASSES passes and at most
@@ -351,7 +261,7 @@ class SweepNode(Node):
                 approach_speed=float(settings["sweep.approach_speed"]), retract=bool(settings["sweep.retract"]),
                 clearance=float(settings["sweep.clearance"]), profile=str(settings["sweep.profile"]))
         check_plan(self.limits, plan)   # every move, each path's waypoints and blended corners
-        limit = float(self.get_parameter("sweep.max_duration").value)
+        limit = self.arm_settings.max_duration
         duration = plan_duration(plan, from_pose)
         if not duration <= limit:
             where = "" if from_pose is None else " from where the arm is"
@@ -359,17 +269,18 @@ class SweepNode(Node):
         return plan
 
     def _make_arm(self) -> Arm:
-        backend = str(self.get_parameter("arm.backend").value)
+        settings = self.arm_settings
+        backend = settings.backend
         if backend not in ARM_BACKENDS:
             raise ValueError(f"arm.backend must be one of {', '.join(ARM_BACKENDS)}, got {backend!r}")
-        if self.get_parameter("use_sim").value or backend == "sim":
+        if settings.use_sim or backend == "sim":
             rest, _ = simulated_arm_origin(self.settings["sweep.start_pose"], float(self.settings["sweep.clearance"]))
-            rate_hz = float(self.get_parameter("sweep.publish_rate").value)
-            self.sim_clock = SimClock(rate_hz, rate=float(self.get_parameter("sim.rate").value))
+            rate_hz = settings.publish_rate
+            self.sim_clock = SimClock(rate_hz, rate=settings.sim_rate)
             self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10)
-            if self.get_parameter("sim.lockstep").value:
+            if settings.sim_lockstep:
                 # at least one tick: the tick after a frame's stamp must be allowed (its pose on TF)
-                self._follow_frames(max(float(self.get_parameter("sim.max_lead").value), 1.0 / rate_hz))
+                self._follow_frames(max(settings.sim_max_lead, 1.0 / rate_hz))
             return SimulatedArm(rest, limits=self.limits, clock=self.sim_clock.now)
         if backend == "ur_driver":
             from touchroller_bringup.ur_driver_arm import make_ur_driver_arm
@@ -377,8 +288,7 @@ class SweepNode(Node):
             return make_ur_driver_arm(self, self.limits)
         from touchroller_driver.ur5 import UR5Arm
 
-        return UR5Arm(str(self.get_parameter("robot_ip").value), limits=self.limits,
-                      open_timeout=float(self.get_parameter("robot_timeout").value))
+        return UR5Arm(settings.robot_ip, limits=self.limits, open_timeout=settings.robot_timeout)
 
     def _follow_frames(self, lead_s: float) -> None:
         """sim.lockstep: the camera's frames (camera_info, one per image, same stamp) and the ones the
@@ -548,7 +458,7 @@ class SweepNode(Node):
 
     def _run_worker(self) -> None:
         self._connect()
-        period = 1.0 / float(self.get_parameter("sweep.publish_rate").value)
+        period = 1.0 / self.arm_settings.publish_rate
         while not self._shutdown.is_set() and self.context.ok():  # Ctrl-C shuts the context down first
             try:
                 # Simulated, the loop is the clock: one tick per pass, paced by SimClock.advance.

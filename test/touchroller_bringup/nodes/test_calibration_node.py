@@ -300,3 +300,24 @@ def test_an_implausible_result_is_refused_and_never_set_on_perception(graph, pre
     assert "implausible result, not applied: d = " in solved.message and "intrinsics" in solved.message
     assert node.remote_result is None and perception.geometry.model.d == 0.0
     assert not (tmp_path / "cal.yaml").exists()
+
+
+def test_a_board_change_reaches_its_config_and_detects_the_captured_views_again(ros_context):
+    """board.* and frame.* are bound to cal.Chessboard and cal.HemisphereFrame (ros_params.ConfigParameters):
+    a board change re-detects the captured chessboards, a frame change does not."""
+    from touchroller_bringup.nodes.calibration_node import CalibrationNode
+    from touchroller_perception import calibration as cal
+
+    node = CalibrationNode(context=ros_context)
+    try:
+        detected: list = []
+        node._redetect_boards = lambda: detected.append(node.board_parameters.config)
+        assert node.set_parameters_atomically([Parameter("board.columns", value=9),
+                                               Parameter("board.square", value=0.02)]).successful
+        assert detected == [cal.Chessboard(columns=9, square=0.02)]
+        assert node.set_parameters([Parameter("frame.rows", value=3)])[0].successful
+        assert node.frame_parameters.config == cal.HemisphereFrame(rows=3) and len(detected) == 1
+        refused = node.set_parameters([Parameter("board.rows", value=1)])[0]
+        assert not refused.successful and node.board_parameters.config.rows == 7
+    finally:
+        node.destroy_node()

@@ -666,14 +666,14 @@ def test_the_world_height_map_is_published_latched_as_32fc1_metres(ros_context, 
         refused = node.set_parameters([Parameter("map.height.outer_fraction", value=0.9)])[0]
         assert not refused.successful
         assert node.set_parameters([Parameter("map.height.axis_sigma", value=0.0)])[0].successful
-        assert node._height_config().axis_sigma == 0.0
+        assert node.height_parameters.config.axis_sigma == 0.0
         assert node.set_parameters([Parameter("map.height.smoothing", value=1.0),
                                     Parameter("map.height.follow_arm", value=False)])[0].successful
-        assert (node._height_config().smoothing, node._height_config().follow_arm) == (1.0, False)
-        assert node._height_config().resampling == "lanczos4"
+        assert (node.height_parameters.config.smoothing, node.height_parameters.config.follow_arm) == (1.0, False)
+        assert node.height_parameters.config.resampling == "lanczos4"
         assert not node.set_parameters([Parameter("map.height.resampling", value="nearest")])[0].successful
         assert node.set_parameters([Parameter("map.height.resampling", value="linear")])[0].successful
-        assert node._height_config().resampling == "linear"
+        assert node.height_parameters.config.resampling == "linear"
         # a world map of 3 x 4 cells, all mapped, with a height layer (the world height's is a ratio of two
         # layers of the canvas, as this one) known at two cells of its bottom row (rows grow with y)
         world = WorldMapper(CAMERA, lambda stamps: np.zeros((len(stamps), 4, 4)),
