@@ -329,3 +329,67 @@ def test_frames_barely_in_contact_teach_nothing_and_row_frames_0_leaves_the_reli
         off.observe(band)
     assert off.row_error() is None
     np.testing.assert_array_equal(off.relief(bands[0]), bands[0].relief)
+
+
+def _waves(shape: tuple[int, int], wavelengths: tuple[float, ...], seed: int = 0,
+           along_rows: bool = False) -> tuple[np.ndarray, ...]:
+    """A sum of cosines of the given wavelengths (px) in random directions (or along the rows) and phases, and
+    per pixel: the height
+    at its centre, and its slopes as a camera's pixel gathers them, the mean over its footprint (the difference
+    across the pixel, averaged across it)."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    z, gx, gy = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    for wavelength in wavelengths:
+        angle, phase = (0.0 if along_rows else rng.uniform(0, np.pi)), rng.uniform(0, 2 * np.pi)
+        kx, ky = 2 * np.pi / wavelength * np.cos(angle), 2 * np.pi / wavelength * np.sin(angle)
+        z += np.cos(kx * u + ky * v + phase)
+        # the mean over the pixel [u - 1/2, u + 1/2] x [v - 1/2, v + 1/2] of dz/du, and of dz/dv
+        gx += (np.cos(kx * (u + 0.5) + ky * v + phase) - np.cos(kx * (u - 0.5) + ky * v + phase)) * np.sinc(ky / 2 / np.pi)
+        gy += (np.cos(kx * u + ky * (v + 0.5) + phase) - np.cos(kx * u + ky * (v - 0.5) + phase)) * np.sinc(kx / 2 / np.pi)
+    return z, gx, gy
+
+
+def _gain(read: np.ndarray, true: np.ndarray) -> float:
+    inner = (slice(12, -12), slice(12, -12))   # the boundary's own error left out
+    a, b = read[inner] - read[inner].mean(), true[inner] - true[inner].mean()
+    return float(a.ravel() @ b.ravel() / (b.ravel() @ b.ravel()))
+
+
+@pytest.mark.parametrize("wavelength", [3.0, 4.0, 6.0, 20.0])
+def test_footprint_slopes_integrate_to_the_height_at_every_wavelength_the_pixels_hold(wavelength):
+    """A pixel's colour tells its mean slope over its area: the height's difference across it. Integrated as
+    such, a relief of any wavelength down to 3 px comes back whole; integrated as the slope at the pixel's centre
+    (the centre model, `height.integrate`), a relief along the pixels' rows keeps cos(pi / wavelength) of its
+    depth: half at 3 px."""
+    from touchroller_perception.height.integrate import integrate
+    from touchroller_perception.world_height import footprint_integrate
+
+    z, gx, gy = _waves((72, 96), (wavelength,) * 3)
+    spacing = 1e-4
+    read = footprint_integrate(gx / spacing, gy / spacing, (spacing, spacing))   # slopes dz/dx: z per metre
+    assert read.dtype == np.float32
+    assert _gain(read, z) == pytest.approx(1.0, abs=0.01)
+    inner = (slice(12, -12), slice(12, -12))
+    error = (read - read[inner].mean()) - (z - z[inner].mean())
+    assert float(np.sqrt(np.mean(error[inner] ** 2))) < 0.02 * float(z[inner].std())
+    z, gx, gy = _waves((72, 96), (wavelength,), along_rows=True)
+    assert _gain(footprint_integrate(gx, gy, (1.0, 1.0)), z) == pytest.approx(1.0, abs=0.01)
+    assert _gain(integrate(gx, gy, 1.0), z) == pytest.approx(np.cos(np.pi / wavelength), abs=0.01)
+
+
+def test_footprint_integration_treats_non_finite_slopes_as_flat_and_needs_two_by_two():
+    from touchroller_perception.world_height import footprint_integrate
+
+    z, gx, gy = _waves((40, 50), (8.0, 11.0))
+    gx[5, 7], gy[20, 30] = np.nan, np.inf
+    read = footprint_integrate(gx, gy, (1.0, 1.0))
+    assert np.isfinite(read).all() and abs(float(read.mean())) < 1e-5
+    with pytest.raises(ValueError, match="2 x 2"):
+        footprint_integrate(np.zeros((1, 5)), np.zeros((1, 5)), (1.0, 1.0))
+
+
+def test_frames_are_integrated_as_footprint_slopes_by_default_and_the_way_is_checked():
+    assert WorldHeightConfig().slopes == "footprint"
+    with pytest.raises(ValueError, match="slopes"):
+        WorldHeightConfig(slopes="corner")
