@@ -345,8 +345,10 @@ def _waves(shape: tuple[int, int], wavelengths: tuple[float, ...], seed: int = 0
         kx, ky = 2 * np.pi / wavelength * np.cos(angle), 2 * np.pi / wavelength * np.sin(angle)
         z += np.cos(kx * u + ky * v + phase)
         # the mean over the pixel [u - 1/2, u + 1/2] x [v - 1/2, v + 1/2] of dz/du, and of dz/dv
-        gx += (np.cos(kx * (u + 0.5) + ky * v + phase) - np.cos(kx * (u - 0.5) + ky * v + phase)) * np.sinc(ky / 2 / np.pi)
-        gy += (np.cos(kx * u + ky * (v + 0.5) + phase) - np.cos(kx * u + ky * (v - 0.5) + phase)) * np.sinc(kx / 2 / np.pi)
+        across_x = np.cos(kx * (u + 0.5) + ky * v + phase) - np.cos(kx * (u - 0.5) + ky * v + phase)
+        across_y = np.cos(kx * u + ky * (v + 0.5) + phase) - np.cos(kx * u + ky * (v - 0.5) + phase)
+        gx += across_x * np.sinc(ky / 2 / np.pi)   # np.sinc(t) = sin(pi t) / (pi t): the box's mean across
+        gy += across_y * np.sinc(kx / 2 / np.pi)
     return z, gx, gy
 
 
