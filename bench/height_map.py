@@ -27,7 +27,9 @@ Beside the figures, the maps read with other height configurations (`HEIGHT_CONF
 replaced and the alternatives tried; `WorldHeightConfig.slopes` and `smoothing`): the simulator's grained
 surface in process, and the second generator's raster by the same `touchroller map` with its height source given
 that configuration; the second generator also on another seed (`SECOND_SEEDS`: its own surface, sensor and
-calibration presses), so that a default is not chosen on the scored raster alone.
+calibration presses), so that a default is not chosen on the scored raster alone; and the second generator's
+frames read one at a time against the indentation it pressed (`frame_gains`): where a fine relief's depth is
+lost, reading a frame or placing the frames on the map.
 """
 from __future__ import annotations
 
@@ -149,6 +151,25 @@ class ConfigScore:
 
 
 @dataclasses.dataclass(frozen=True)
+class FrameGain:
+    """The second generator's frames read one at a time with one `HEIGHT_CONFIGS` entry, against the indentation
+    the generator pressed (at the pixel centres, its gel's low pass included): the gain and coherence by
+    wavelength (`WAVELENGTH_BANDS`), pooled over the frames. Set beside the map's, it tells what is lost reading
+    a frame (smoothing, colour to slope, integration) from what is lost placing the frames on the map."""
+
+    config: str
+    seed: int
+    frames: int
+    gains: list[float]
+    coherences: list[float]
+
+
+#: the second generator's frames read one at a time (`FrameGain`): how many, pressed along the raster's first pass,
+#: and the image window scored (rows around the contact line, columns in from the image's sides)
+FRAME_COUNT, FRAME_ROWS, FRAME_COLUMNS = 12, 40, 40
+
+
+@dataclasses.dataclass(frozen=True)
 class HeightMapResult:
     provenance: Provenance
     quick: bool
@@ -160,6 +181,7 @@ class HeightMapResult:
     second_position_degree: int = -1            # the second generator's
     draws: list[PressDraw] = dataclasses.field(default_factory=list)
     configs: list[ConfigScore] = dataclasses.field(default_factory=list)   # the maps with other height configs
+    frames: list[FrameGain] = dataclasses.field(default_factory=list)      # the frames read one at a time
 
 
 def _config_score(config: str, surface: str, seed: int, score: SurfaceScore) -> ConfigScore:
@@ -295,6 +317,72 @@ def _second_generator_calibration(presses: int, seed: int = 0) -> tuple[object, 
     return calibration.model, reference, float(calibration.normal_error_deg)
 
 
+def _band_gains(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[list[float], list[float]]:
+    """Gain and coherence of read against true by `WAVELENGTH_BANDS` (frequency in cycles per pixel of 0.1 mm),
+    each pair less its mean and Hann-windowed, the spectra pooled over the pairs."""
+    cross = np.zeros(len(WAVELENGTH_BANDS), complex)
+    power, mine = np.zeros(len(WAVELENGTH_BANDS)), np.zeros(len(WAVELENGTH_BANDS))
+    for read, true in pairs:
+        window = np.outer(np.hanning(read.shape[0]), np.hanning(read.shape[1]))
+        a = np.fft.rfft2((read - read.mean()) * window)
+        b = np.fft.rfft2((true - true.mean()) * window)
+        f = np.hypot(np.fft.fftfreq(read.shape[0])[:, None], np.fft.rfftfreq(read.shape[1])[None, :])
+        for k, (short, long) in enumerate(WAVELENGTH_BANDS):
+            band = (f > 0.1 / long) & (f <= 0.1 / short)
+            cross[k] += complex((a[band] * b[band].conj()).sum())
+            power[k] += float((np.abs(b[band]) ** 2).sum())
+            mine[k] += float((np.abs(a[band]) ** 2).sum())
+    ok = (power > 0) & (mine > 0)
+    gains = np.where(ok, cross.real / np.where(ok, power, 1.0), math.nan)
+    coherence = np.where(ok, np.abs(cross) / np.sqrt(np.where(ok, power * mine, 1.0)), math.nan)
+    return [float(g) for g in gains], [float(c) for c in coherence]
+
+
+def frame_gains(model: object, reference: np.ndarray, seed: int, configs: tuple[tuple[str, dict[str, Any]], ...]
+                ) -> list[FrameGain]:
+    """The second generator's raster sensor (of `seed`) pressed on its surface at `FRAME_COUNT` places along the
+    first pass, each frame read by `BandHeights` with each of `configs` and scored against the indentation the
+    generator pressed there, at the pixel centres (the membrane's depth under the tube, its gel's low pass as the
+    generator applies it), over `FRAME_ROWS` rows either side of the contact line."""
+    from bench.raster_generator import Look, load_camera, sensor
+    from touchroller_bringup.commands import read_calibration
+    from touchroller_perception.stitching import BandSampler
+    from touchroller_perception.world_height import BandHeights, WorldHeightConfig
+
+    camera, look = load_camera(str(PARAMS)), dataclasses.replace(Look(), exposure_samples=1)
+    spec: Any = second_raster_spec(seed)
+    renderer = sensor(spec, camera, look)
+    model_camera = read_calibration(PARAMS)
+    sampler = BandSampler((camera.height, camera.width), 70, model_camera, None, True)   # as `touchroller map`
+    n = look.pixel_samples
+    roll = np.asarray(spec.roll, np.float32)
+    axis = np.array([-roll[1], roll[0]], np.float32)
+    frames = []
+    for u in np.linspace(0.1, 0.9, FRAME_COUNT) * spec.length:
+        position = spec.to_base(u, 0.0).astype(np.float32)
+        image = renderer.frame([(position, roll, 0.0)])
+        xy = position + renderer.x_axial[..., None] * axis + renderer.y_roll[..., None] * roll
+        pressed = renderer.tube - renderer.membrane(-renderer.surface.sample(xy))
+        if look.gel_blur_px:
+            pressed = cv2.GaussianBlur(pressed, (0, 0), look.gel_blur_px * n)
+        frames.append((image, pressed[n // 2::n, n // 2::n], renderer.rows.start))
+    centre = int(round(camera.cy - camera.fy * math.tan(camera.theta)))
+    out = []
+    for label, fields in configs:
+        reader = BandHeights(model, reference, model_camera, sampler, WorldHeightConfig(**fields))  # type: ignore[arg-type]
+        v0 = reader.rows[0]
+        pairs = []
+        for image, pressed, first in frames:
+            read = reader.indentation(image)
+            rows = slice(centre - FRAME_ROWS, centre + FRAME_ROWS)
+            cols = slice(FRAME_COLUMNS, camera.width - FRAME_COLUMNS)
+            pairs.append((read[rows.start - v0:rows.stop - v0, cols].astype(np.float64),
+                          pressed[rows.start - first:rows.stop - first, cols].astype(np.float64)))
+        gains, coherences = _band_gains(pairs)
+        out.append(FrameGain(label, seed, len(pairs), gains, coherences))
+    return out
+
+
 @contextlib.contextmanager
 def _height_config(config: object | None) -> Iterator[None]:
     """`touchroller map` reads its frames' height with `config` (a `WorldHeightConfig`; the command itself takes
@@ -318,10 +406,11 @@ def _height_config(config: object | None) -> Iterator[None]:
 
 
 def second_generator(presses: int, seed: int = 0, configs: tuple[tuple[str, dict[str, Any]], ...] = ()
-                     ) -> tuple[SurfaceScore, float, int, list[ConfigScore]]:
+                     ) -> tuple[SurfaceScore, float, int, list[ConfigScore], list[FrameGain]]:
     """The second generator's grained raster (of `seed`: its surface and sensor) mapped by `touchroller map` with
-    its own calibration: the score with the defaults, the calibration's fit and position degree, and the same bag
-    mapped with the `WorldHeightConfig`s of `configs` (label, fields)."""
+    its own calibration: the score with the defaults, the calibration's fit and position degree, the same bag
+    mapped with the `WorldHeightConfig`s of `configs` (label, fields), and its frames read one at a time with
+    each (`frame_gains`)."""
     import shutil
     import tempfile
 
@@ -367,7 +456,8 @@ def second_generator(presses: int, seed: int = 0, configs: tuple[tuple[str, dict
                 for label, fields in configs]
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return score, fit, int(model.config.position_degree), rows   # type: ignore[attr-defined]
+    per_frame = frame_gains(model, reference, seed, configs) if configs else []
+    return score, fit, int(model.config.position_degree), rows, per_frame   # type: ignore[attr-defined]
 
 
 def _spectra(height: np.ndarray, truth: np.ndarray
@@ -489,12 +579,15 @@ def run(quick: bool = False) -> HeightMapResult:
         rows += by_config
         if variant is None:
             fit, degree, draws = error, chosen, others
-    second, second_fit, second_degree, by_config = second_generator(_second_presses(quick), 0, configs)
+    second, second_fit, second_degree, by_config, per_frame = second_generator(_second_presses(quick), 0, configs)
     scores.append(second)
     rows += by_config
     for seed in SECOND_SEEDS[1:] if not quick else ():
-        rows += second_generator(_second_presses(quick), seed, configs)[3]
-    return HeightMapResult(stamp, quick, presses, fit, scores, second_fit, degree, second_degree, draws, rows)
+        other = second_generator(_second_presses(quick), seed, configs)
+        rows += other[3]
+        per_frame += other[4]
+    return HeightMapResult(stamp, quick, presses, fit, scores, second_fit, degree, second_degree, draws, rows,
+                           per_frame)
 
 
 def goals(r: HeightMapResult) -> list[tuple[str, str, bool | None]]:
@@ -579,6 +672,22 @@ def to_markdown(r: HeightMapResult) -> str:
                 cells.append("" if c is None else f"{c.rms_um:.1f} um, {c.correlation:.3f}, "
                               + " / ".join(f"{g:.2f}" for g in c.fine_gains))
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    if r.frames:
+        fine = [k for k, (short, _) in enumerate(WAVELENGTH_BANDS) if 0.3 <= short < 0.6]
+        lines += ["", f"The second generator's frames read one at a time ({r.frames[0].frames} frames pressed along "
+                  "its first pass, each against the indentation the generator pressed there, at the pixel centres, "
+                  f"{FRAME_ROWS} rows either side of the contact line): the gain (coherence) at 0.3-0.4 / 0.4-0.5 / "
+                  "0.5-0.6 mm, and the map's gain there (the table above). What a frame loses is read there (the "
+                  "smoothing, colour to slope, the integration); what the map loses beyond it, in placing the "
+                  "frames (the band's resampling, the interpolation onto the cells, the blending of overlapping "
+                  "frames and their misplacement):", "",
+                  "| configuration | seed | per frame | in the map |", "|---|---|---|---|"]
+        for g in r.frames:
+            placed = next((c for c in r.configs if c.config == g.config and c.seed == g.seed and "second" in c.surface),
+                          None)
+            per_frame = " / ".join(f"{g.gains[k]:.2f} ({g.coherences[k]:.2f})" for k in fine)
+            in_map = "" if placed is None else " / ".join(f"{x:.2f}" for x in placed.fine_gains)
+            lines.append(f"| {g.config} | {g.seed} | {per_frame} | {in_map} |")
     lines += ["", "Fine relief: where the true relief departs from its own 2 mm Gaussian by more than 3 um (the "
               "planted cracks, dents, grooves and pits, and the grain's finer part), the map's departure from its "
               "own 2 mm Gaussian against the truth's: how much of a feature's depth the map reads, and how well "
@@ -604,6 +713,7 @@ def load(path: Path) -> HeightMapResult:
                        for s in raw["surfaces"]]
     raw["draws"] = [PressDraw(**d) for d in raw.get("draws", [])]
     raw["configs"] = [ConfigScore(**c) for c in raw.get("configs", [])]
+    raw["frames"] = [FrameGain(**f) for f in raw.get("frames", [])]
     return HeightMapResult(**raw)
 
 

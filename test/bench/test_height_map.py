@@ -138,3 +138,23 @@ def test_the_map_command_reads_the_height_with_the_configuration_given_and_then_
     assert command._height_source is original
     with _height_config(None):
         assert command._height_source is original
+
+
+def test_frames_read_one_at_a_time_are_scored_by_wavelength_and_set_beside_the_map() -> None:
+    from bench._common import provenance
+    from bench.height_map import HEIGHT_CONFIGS, ConfigScore, FrameGain, HeightMapResult, _band_gains, to_markdown
+
+    truth = _relief((80, 560))
+    gains, coherences = _band_gains([(truth.copy(), truth), (2 * truth[::-1].copy(), truth[::-1].copy())])
+    assert len(gains) == len(WAVELENGTH_BANDS)
+    # a frame read whole and one (of the same relief's power) read twice as deep: pooled, the gain is their mean
+    # and the coherence (1 + 2) / sqrt((1 + 1) (1 + 4)), less than either's own 1
+    assert all(g == pytest.approx(1.5, abs=1e-9) and c == pytest.approx(3 / math.sqrt(10), abs=1e-9)
+               for g, c in zip(gains, coherences, strict=True))
+    blurred, _ = _band_gains([(cv2.GaussianBlur(truth, (0, 0), 1.0), truth)])
+    assert blurred[1] < 0.3 < 0.9 < blurred[-1]   # 0.3-0.4 mm lost, 3.2-6.4 mm kept
+    label = HEIGHT_CONFIGS[0][0]
+    result = HeightMapResult(provenance("height_map", True), True, 8, 0.5, [],
+                             configs=[ConfigScore(label, "grained (second generator)", 0, 4.0, 0.97, [0.6, 0.7, 0.8])],
+                             frames=[FrameGain(label, 0, 12, gains, coherences)])
+    assert f"| {label} | 0 | 1.50 (0.95) / 1.50 (0.95) / 1.50 (0.95) | 0.60 / 0.70 / 0.80 |" in to_markdown(result)
