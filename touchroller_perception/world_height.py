@@ -104,6 +104,28 @@ def footprint_integrate(gx: np.ndarray, gy: np.ndarray, spacing: tuple[float, fl
     return z.astype(np.float32, copy=False)
 
 
+def column_heights(gy: np.ndarray, spacing: float, slopes: str = "footprint") -> np.ndarray:
+    """Each column's height (float32, up to a constant per column) from its own slopes along the rows, gy, alone,
+    its closure removed (the column's mean slope: both ends at one height). `slopes` as `WorldHeightConfig.slopes`:
+    "footprint", the 1-D form of `footprint_integrate` (a relief along the rows comes back as that solver gives it:
+    whole); "centre", the slopes summed down the column."""
+    g = np.asarray(gy, np.float32) - np.asarray(gy, np.float32).mean(axis=0, keepdims=True)
+    if slopes == "centre":
+        column: np.ndarray = np.cumsum(g, axis=0, dtype=np.float32)
+        column *= np.float32(spacing)
+        return column
+    h = g.shape[0]
+    if h < 2:
+        return np.zeros_like(g)
+    coefficients = scipy.fft.dst(g * np.float32(spacing), type=2, norm="ortho", axis=0, overwrite_x=True)
+    inverse = np.zeros(h, np.float32)
+    inverse[1:] = -0.5 / np.sin(0.5 * np.pi * np.arange(1, h) / h)   # 1 / the difference across a pixel
+    hat = np.zeros_like(coefficients)
+    np.multiply(coefficients[:-1], inverse[1:, None], out=hat[1:])     # DST-II's l - 1 is the cosine's l
+    out: np.ndarray = scipy.fft.idct(hat, type=2, norm="ortho", axis=0, overwrite_x=True)
+    return out.astype(np.float32, copy=False)
+
+
 @dataclass(frozen=True)
 class WorldHeightConfig:
     """How each frame's height is made and passes are levelled; the perception node's `map.height.*`
@@ -259,11 +281,8 @@ class BandHeights:
         sigma = self.config.axis_sigma
         if sigma <= 0:
             return z
-        # each column on its own: gy summed from the outer rows, its closure (both ends undeformed) removed
-        column = np.cumsum(gy - gy.mean(axis=0, keepdims=True), axis=0, dtype=np.float32)
-        if self.config.slopes == "footprint":   # the sum to a row's far edge, less half its own difference
-            column -= np.float32(0.5) * (gy - gy.mean(axis=0, keepdims=True))
-        column *= np.float32(self.pixel_size[1])
+        # each column on its own, from its slopes across the band, zero on the outer rows
+        column = column_heights(gy, self.pixel_size[1], self.config.slopes)
         column -= column[self.outer[:, 0]].mean(axis=0, keepdims=True)
         # the slow variation along the axis from the columns, the rest from the whole surface
         kernel = cv2.getGaussianKernel(int(6 * sigma) | 1, sigma, cv2.CV_32F)

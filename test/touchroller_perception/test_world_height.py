@@ -395,3 +395,25 @@ def test_frames_are_integrated_as_footprint_slopes_by_default_and_the_way_is_che
     assert WorldHeightConfig().slopes == "footprint"
     with pytest.raises(ValueError, match="slopes"):
         WorldHeightConfig(slopes="corner")
+
+
+@pytest.mark.parametrize("wavelength", [3.0, 5.0, 40.0])
+def test_a_columns_own_height_reads_a_relief_along_the_rows_as_the_band_solver_does(wavelength):
+    """The slow variation along the axis comes from each column's own slopes (`axis_sigma`): where a relief varies
+    only along the rows (a groove along the roller's axis), that is all the frame gives, and it must read the
+    relief whole, as the 2-D solver does, or the groove is read shallow."""
+    from touchroller_perception.world_height import column_heights, footprint_integrate
+
+    # whole periods down the columns (120 rows), varying along the rows alone: the column's ends at one height,
+    # as the band's undeformed rows are
+    z, gx, gy = _waves((30, 120), (wavelength,), along_rows=True)
+    z, gx, gy = z.T.copy(), gy.T.copy(), gx.T.copy()
+    column = column_heights(gy, 1.0)
+    assert _gain(column, z) == pytest.approx(1.0, abs=0.01)   # summed as a trapezoid: cos(pi / wavelength)
+    solved = footprint_integrate(gx, gy, (1.0, 1.0))
+    inner = slice(12, -12)
+    assert np.allclose(column[inner] - column[inner].mean(), solved[inner] - solved[inner].mean(), atol=0.02)
+    # a slope common to the whole column (the closure) is no height
+    assert np.abs(column_heights(np.full((50, 4), 0.3), 1.0)).max() < 1e-5
+    # the centre reading sums the slopes: the earlier behaviour, kept
+    assert np.allclose(column_heights(gy, 2.0, "centre"), 2.0 * np.cumsum(gy - gy.mean(axis=0), axis=0), atol=1e-5)
