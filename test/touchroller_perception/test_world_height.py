@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from touchroller_perception.tiles import TileConfig
 from touchroller_perception.world_canvas import WorldCanvas
@@ -417,3 +419,34 @@ def test_a_columns_own_height_reads_a_relief_along_the_rows_as_the_band_solver_d
     assert np.abs(column_heights(np.full((50, 4), 0.3), 1.0)).max() < 1e-5
     # the centre reading sums the slopes: the earlier behaviour, kept
     assert np.allclose(column_heights(gy, 2.0, "centre"), 2.0 * np.cumsum(gy - gy.mean(axis=0), axis=0), atol=1e-5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(h=st.integers(2, 40), w=st.integers(2, 40), seed=st.integers(0, 2**32 - 1),
+       spoil=st.sampled_from([None, np.nan, np.inf, -np.inf]))
+def test_footprint_integration_gives_back_any_height_from_its_own_slopes_and_never_a_non_finite_one(h, w, seed, spoil):
+    """Any height on any grid of at least 2 x 2: its footprint slopes (the solver's own model, applied in the
+    transform domain) integrate back to it, less its mean; a non-finite slope anywhere still gives a finite
+    height of the grid's shape."""
+    import scipy.fft
+
+    from touchroller_perception.world_height import _footprint_operator, footprint_integrate
+
+    rng = np.random.default_rng(seed)
+    z = rng.normal(0.0, 1.0, (h, w))
+    ox, oy = _footprint_operator(h, w)
+    denominator = np.where(ox**2 + oy**2 > 0, ox**2 + oy**2, 1.0)
+    hx, hy = ox / denominator, oy / denominator          # the model's operators back from their pseudo-inverse
+    c = scipy.fft.dctn(z, type=2, norm="ortho")
+    sx, sy = np.zeros((h, w)), np.zeros((h, w))
+    sx[:, :-1] = (hx * c)[:, 1:]                         # DST-II's k - 1 is the cosine's k
+    sy[:-1, :] = (hy * c)[1:, :]
+    gx = scipy.fft.idst(scipy.fft.idct(sx, type=2, norm="ortho", axis=0), type=2, norm="ortho", axis=1)
+    gy = scipy.fft.idst(scipy.fft.idct(sy, type=2, norm="ortho", axis=1), type=2, norm="ortho", axis=0)
+    read = footprint_integrate(gx, gy, (1.0, 1.0))
+    assert read.shape == (h, w) and read.dtype == np.float32
+    np.testing.assert_allclose(read, z - z.mean(), atol=1e-4 * max(1.0, float(np.abs(z).max())))   # float32
+    if spoil is not None:
+        gx[rng.integers(h), rng.integers(w)] = spoil
+        gy[rng.integers(h), rng.integers(w)] = spoil
+        assert np.isfinite(footprint_integrate(gx, gy, (1.0, 1.0))).all()
