@@ -22,15 +22,25 @@ roller's radius from config/touchroller.yaml's camera model, calibrated as a wor
 held-out presses; the map reads its frames with `WorldHeightConfig`'s defaults); its raster is mapped by
 `touchroller map --photometric --reference` as a whole command, and height.tif is scored against the
 generator's surface (low-passed as its gel is) in place, on the cells 1 mm inside height.tif's mapped area.
+
+Beside the figures, the maps read with other height configurations (`HEIGHT_CONFIGS`: the default, the one it
+replaced and the alternatives tried; `WorldHeightConfig.slopes` and `smoothing`): the simulator's grained
+surface in process, and the second generator's raster by the same `touchroller map` with its height source given
+that configuration; the second generator also on another seed (`SECOND_SEEDS`: its own surface, sensor and
+calibration presses), so that a default is not chosen on the scored raster alone; and the second generator's
+frames read one at a time against the indentation it pressed (`frame_gains`): where a fine relief's depth is
+lost, reading a frame or placing the frames on the map.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -114,6 +124,51 @@ class PressDraw:
     correlation: float
 
 
+#: the map read with other `WorldHeightConfig`s: (label, its fields other than the defaults). The first is the
+#: default; the others are what it replaced and the alternatives tried, kept as rows of the bench's table
+HEIGHT_CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("footprint slopes, image smoothed 0.5 px (default)", {}),
+    ("centre slopes, 0.5 px (the earlier default)", {"slopes": "centre"}),
+    ("footprint slopes, no smoothing", {"smoothing": 0.0}),
+    ("centre slopes, the model's 1 px", {"slopes": "centre", "smoothing": None}),
+)
+#: the second generator's other raster (its own surface, sensor and calibration presses): the defaults must hold
+#: beyond the raster scored
+SECOND_SEEDS = (0, 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigScore:
+    """One surface's map read with one `HEIGHT_CONFIGS` entry: the error after one best plane, the correlation,
+    and the gain at the 0.3-0.4, 0.4-0.5 and 0.5-0.6 mm wavelengths."""
+
+    config: str
+    surface: str
+    seed: int
+    rms_um: float
+    correlation: float
+    fine_gains: list[float] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameGain:
+    """The second generator's frames read one at a time with one `HEIGHT_CONFIGS` entry, against the indentation
+    the generator pressed (at the pixel centres, its gel's low pass included): the gain and coherence by
+    wavelength (`WAVELENGTH_BANDS`), pooled over the frames. Set beside the map's, it tells what is lost reading
+    a frame (smoothing, colour to slope, integration) from what is lost placing the frames on the map."""
+
+    config: str
+    seed: int
+    frames: int
+    gains: list[float]
+    coherences: list[float]
+
+
+#: the second generator's frames read one at a time (`FrameGain`): how many, pressed along the raster's first pass,
+#: and the image window scored (rows around the contact line, columns in from the image's sides)
+FRAME_COUNT, FRAME_ROWS, FRAME_COLUMNS = 12, 40, 40
+
+
 @dataclasses.dataclass(frozen=True)
 class HeightMapResult:
     provenance: Provenance
@@ -125,6 +180,13 @@ class HeightMapResult:
     position_degree: int = -1                   # the simulator's calibration's chosen position degree
     second_position_degree: int = -1            # the second generator's
     draws: list[PressDraw] = dataclasses.field(default_factory=list)
+    configs: list[ConfigScore] = dataclasses.field(default_factory=list)   # the maps with other height configs
+    frames: list[FrameGain] = dataclasses.field(default_factory=list)      # the frames read one at a time
+
+
+def _config_score(config: str, surface: str, seed: int, score: SurfaceScore) -> ConfigScore:
+    gains = [w.gain for w in score.wavelengths if 0.3 <= w.shortest_mm < 0.6]
+    return ConfigScore(config, surface, seed, score.rms_um, score.correlation, gains)
 
 
 def _detrended(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -134,11 +196,13 @@ def _detrended(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.nda
     return out
 
 
-def score_surface(variant: str | None, presses: int,
-                  draws: tuple[tuple[int, int], ...] = ()) -> tuple[SurfaceScore, float, int, list[PressDraw]]:
+def score_surface(variant: str | None, presses: int, draws: tuple[tuple[int, int], ...] = (),
+                  configs: tuple[tuple[str, dict[str, Any]], ...] = ()
+                  ) -> tuple[SurfaceScore, float, int, list[PressDraw], list[ConfigScore]]:
     """The surface's map with the default calibration (seed 0, `presses`): its score, the calibration's
-    in-sample fit and chosen position degree; and the same raster mapped with the calibrations of `draws`
-    ((presses, seed) each: other press counts and other places of the presses)."""
+    in-sample fit and chosen position degree; the same raster mapped with the calibrations of `draws`
+    ((presses, seed) each: other press counts and other places of the presses); and with the default
+    calibration read with the `WorldHeightConfig`s of `configs` (label, fields)."""
     from bench.world_map import map_events
     from touchroller_driver.arm import (
         DEFAULT_MOUNT_RPY,
@@ -152,7 +216,7 @@ def score_surface(variant: str | None, presses: int,
     from touchroller_driver.sim.photometric import SimPhotometric, sim_photometric
     from touchroller_driver.sim.sweep import simulate_sweep
     from touchroller_perception.transforms import TransformBuffer
-    from touchroller_perception.world_height import HeightSource
+    from touchroller_perception.world_height import HeightSource, WorldHeightConfig
     from touchroller_perception.world_map import WorldMapConfig, WorldMapper, buffer_lookup
 
     sensor = SimulatedSensor(load_scene("large_surface", variant=variant), seed=0)
@@ -165,12 +229,13 @@ def score_surface(variant: str | None, presses: int,
     name = "grain" if variant is None else variant
     truths: dict[tuple[object, ...], np.ndarray] = {}
 
-    def mapped(photometric: SimPhotometric) -> SurfaceScore:
+    def mapped(photometric: SimPhotometric, config: WorldHeightConfig | None = None) -> SurfaceScore:
         buffer = TransformBuffer(cache_ns=None)
         buffer.set_transform("tool0", "touchroller_cylinder", 0, mount, static=True)
         mapper = WorldMapper(sensor.camera, buffer_lookup(buffer, "base", "touchroller_cylinder"),
                              WorldMapConfig(bounds=bounds, latency=0.03),
-                             height=HeightSource(photometric.calibration.model, photometric.reference))
+                             height=HeightSource(photometric.calibration.model, photometric.reference,
+                                                 config or WorldHeightConfig()))
         cpu = map_events(mapper, buffer, events)
         layer = mapper.height_layer(crop=False)
         if layer is None:
@@ -190,19 +255,22 @@ def score_surface(variant: str | None, presses: int,
         result = mapped(other)
         others.append(PressDraw(count, seed, other.calibration.model.config.position_degree, result.rms_um,
                                 result.correlation))
+    rows = [_config_score(label, name, 0, score if not fields else mapped(photometric, WorldHeightConfig(**fields)))
+            for label, fields in configs]
     chosen = photometric.calibration.model.config.position_degree
-    return score, float(photometric.calibration.normal_error_deg), chosen, others
+    return score, float(photometric.calibration.normal_error_deg), chosen, others, rows
 
 
-def second_raster_spec() -> object:
-    """The second generator's raster this bench maps (a `RasterSpec`; its seed is also its sensor's)."""
+def second_raster_spec(seed: int = 0) -> object:
+    """The second generator's raster this bench maps (a `RasterSpec`; its seed is also its surface's and its
+    sensor's)."""
     from bench.raster_generator import MotionConfig, RasterSpec
 
     return RasterSpec(surface="grained", corner=(0.42, -0.045), length=0.04, width=0.09, passes=2, latency=0.03,
-                      tf_rate=125.0, motion=dataclasses.replace(MotionConfig(), profile="blend"), seed=0)
+                      tf_rate=125.0, motion=dataclasses.replace(MotionConfig(), profile="blend"), seed=seed)
 
 
-def _calibration_renderer(camera: object, look: object) -> object:
+def _calibration_renderer(camera: object, look: object, seed: int = 0) -> object:
     """The second generator's raster's own sensor (`raster_generator.sensor`: the same flat field, dust specks
     and lifted-roller frame as the raster's frames) pressing the calibration ball, the roller held 0.2 mm above
     the base (a 0.8 mm cap: 0.6 mm pressed). A no-contact reference is of the sensor that scans (docs/height.md):
@@ -216,10 +284,10 @@ def _calibration_renderer(camera: object, look: object) -> object:
     yy, xx = (np.mgrid[0:n, 0:n] + 0.5) * resolution - 6e-3
     height = np.maximum(np.sqrt(np.maximum(radius**2 - xx**2 - yy**2, 0.0)) - (radius - cap), 0.0)
     surface = Surface("grained", height.astype(np.float32), resolution, (0.5 - 6e-3, -6e-3, 0.0), 0.0, ())
-    return sensor(second_raster_spec(), camera, look, surface, depth=-2e-4)   # type: ignore[arg-type]
+    return sensor(second_raster_spec(seed), camera, look, surface, depth=-2e-4)   # type: ignore[arg-type]
 
 
-def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, float]:
+def _second_generator_calibration(presses: int, seed: int = 0) -> tuple[object, np.ndarray, float]:
     """(photometric model, reference, in-sample fit deg) of the second generator's sensor, from ball caps."""
     from bench.raster_generator import Look, load_camera
     from touchroller_bringup.commands import read_calibration
@@ -234,7 +302,7 @@ def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, flo
     camera, look = load_camera(str(PARAMS)), dataclasses.replace(Look(), exposure_samples=1)
     model_camera = read_calibration(PARAMS)
     radius = CALIBRATION_BALL[0]
-    renderer: Any = _calibration_renderer(camera, look)
+    renderer: Any = _calibration_renderer(camera, look, seed)
     rng = np.random.default_rng(5)
     roll, axis = np.array([1.0, 0.0]), np.array([0.0, 1.0])
     reference = np.median(np.stack([renderer.frame([(np.array([0.3, 0.3]), roll, 5e-3)]) for _ in range(5)]),
@@ -249,40 +317,147 @@ def _second_generator_calibration(presses: int) -> tuple[object, np.ndarray, flo
     return calibration.model, reference, float(calibration.normal_error_deg)
 
 
-def second_generator(presses: int) -> tuple[SurfaceScore, float, int]:
-    """The second generator's grained raster mapped by `touchroller map` with its own calibration."""
+def _band_gains(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[list[float], list[float]]:
+    """Gain and coherence of read against true by `WAVELENGTH_BANDS` (frequency in cycles per pixel of 0.1 mm),
+    each pair less its mean and Hann-windowed, the spectra pooled over the pairs."""
+    cross = np.zeros(len(WAVELENGTH_BANDS), complex)
+    power, mine = np.zeros(len(WAVELENGTH_BANDS)), np.zeros(len(WAVELENGTH_BANDS))
+    for read, true in pairs:
+        window = np.outer(np.hanning(read.shape[0]), np.hanning(read.shape[1]))
+        a = np.fft.rfft2((read - read.mean()) * window)
+        b = np.fft.rfft2((true - true.mean()) * window)
+        f = np.hypot(np.fft.fftfreq(read.shape[0])[:, None], np.fft.rfftfreq(read.shape[1])[None, :])
+        for k, (short, long) in enumerate(WAVELENGTH_BANDS):
+            band = (f > 0.1 / long) & (f <= 0.1 / short)
+            cross[k] += complex((a[band] * b[band].conj()).sum())
+            power[k] += float((np.abs(b[band]) ** 2).sum())
+            mine[k] += float((np.abs(a[band]) ** 2).sum())
+    ok = (power > 0) & (mine > 0)
+    gains = np.where(ok, cross.real / np.where(ok, power, 1.0), math.nan)
+    coherence = np.where(ok, np.abs(cross) / np.sqrt(np.where(ok, power * mine, 1.0)), math.nan)
+    return [float(g) for g in gains], [float(c) for c in coherence]
+
+
+def frame_gains(model: object, reference: np.ndarray, seed: int, configs: tuple[tuple[str, dict[str, Any]], ...]
+                ) -> list[FrameGain]:
+    """The second generator's raster sensor (of `seed`) pressed on its surface at `FRAME_COUNT` places along the
+    first pass, each frame read by `BandHeights` with each of `configs` and scored against the indentation the
+    generator pressed there, at the pixel centres (the membrane's depth under the tube, its gel's low pass as the
+    generator applies it), over `FRAME_ROWS` rows either side of the contact line."""
+    from bench.raster_generator import Look, load_camera, sensor
+    from touchroller_bringup.commands import read_calibration
+    from touchroller_perception.stitching import BandSampler
+    from touchroller_perception.world_height import BandHeights, WorldHeightConfig
+
+    camera, look = load_camera(str(PARAMS)), dataclasses.replace(Look(), exposure_samples=1)
+    spec: Any = second_raster_spec(seed)
+    renderer = sensor(spec, camera, look)
+    model_camera = read_calibration(PARAMS)
+    sampler = BandSampler((camera.height, camera.width), 70, model_camera, None, True)   # as `touchroller map`
+    n = look.pixel_samples
+    roll = np.asarray(spec.roll, np.float32)
+    axis = np.array([-roll[1], roll[0]], np.float32)
+    frames = []
+    for u in np.linspace(0.1, 0.9, FRAME_COUNT) * spec.length:
+        position = spec.to_base(u, 0.0).astype(np.float32)
+        image = renderer.frame([(position, roll, 0.0)])
+        xy = position + renderer.x_axial[..., None] * axis + renderer.y_roll[..., None] * roll
+        pressed = renderer.tube - renderer.membrane(-renderer.surface.sample(xy))
+        if look.gel_blur_px:
+            pressed = cv2.GaussianBlur(pressed, (0, 0), look.gel_blur_px * n)
+        frames.append((image, pressed[n // 2::n, n // 2::n], renderer.rows.start))
+    centre = int(round(camera.cy - camera.fy * math.tan(camera.theta)))
+    out = []
+    for label, fields in configs:
+        reader = BandHeights(model, reference, model_camera, sampler, WorldHeightConfig(**fields))  # type: ignore[arg-type]
+        v0 = reader.rows[0]
+        pairs = []
+        for image, pressed, first in frames:
+            read = reader.indentation(image)
+            rows = slice(centre - FRAME_ROWS, centre + FRAME_ROWS)
+            cols = slice(FRAME_COLUMNS, camera.width - FRAME_COLUMNS)
+            pairs.append((read[rows.start - v0:rows.stop - v0, cols].astype(np.float64),
+                          pressed[rows.start - first:rows.stop - first, cols].astype(np.float64)))
+        gains, coherences = _band_gains(pairs)
+        out.append(FrameGain(label, seed, len(pairs), gains, coherences))
+    return out
+
+
+@contextlib.contextmanager
+def _height_config(config: object | None) -> Iterator[None]:
+    """`touchroller map` reads its frames' height with `config` (a `WorldHeightConfig`; the command itself takes
+    the defaults): its height source, loaded by the command as always, given that config. None: as it is."""
+    from touchroller_bringup.commands import map as command
+
+    if config is None:
+        yield
+        return
+    original = command._height_source
+
+    def source(args: argparse.Namespace) -> Any:
+        found = original(args)
+        return None if found is None else dataclasses.replace(found, config=config)
+
+    command._height_source = source
+    try:
+        yield
+    finally:
+        command._height_source = original
+
+
+def second_generator(presses: int, seed: int = 0, configs: tuple[tuple[str, dict[str, Any]], ...] = ()
+                     ) -> tuple[SurfaceScore, float, int, list[ConfigScore], list[FrameGain]]:
+    """The second generator's grained raster (of `seed`: its surface and sensor) mapped by `touchroller map` with
+    its own calibration: the score with the defaults, the calibration's fit and position degree, the same bag
+    mapped with the `WorldHeightConfig`s of `configs` (label, fields), and its frames read one at a time with
+    each (`frame_gains`)."""
     import shutil
     import tempfile
 
     from bench.raster_generator import Look, generate, load_camera
     from touchroller_bringup.cli import main as cli
     from touchroller_bringup.map_files import read_height_tif
+    from touchroller_perception.world_height import WorldHeightConfig
 
-    model, reference, fit = _second_generator_calibration(presses)
+    model, reference, fit = _second_generator_calibration(presses, seed)
     camera, look = load_camera(str(PARAMS)), dataclasses.replace(Look(), exposure_samples=1)
     tmp = Path(tempfile.mkdtemp(prefix="height_map_"))
+    name = "grained (second generator)"
     try:
         model.save(tmp / "photometric.npz")   # type: ignore[attr-defined]
         cv2.imwrite(str(tmp / "reference.png"), reference)
-        truth = generate(second_raster_spec(), tmp / "raster", camera=camera, look=look)   # type: ignore[arg-type]
-        begin = time.perf_counter()
-        code = cli(["map", str(tmp / "raster" / "bag"), "--out", str(tmp / "map.png"), "--latency", "0.03",
-                    "--photometric", str(tmp / "photometric.npz"), "--reference", str(tmp / "reference.png")])
-        seconds = time.perf_counter() - begin
-        if code != 0:
-            raise RuntimeError(f"touchroller map failed on the second generator's raster ({code})")
-        top_down, (x0, y_top), resolution = read_height_tif(tmp / "height.tif")
-        height = top_down[::-1]
-        rows, cols = height.shape
-        xs = x0 + (np.arange(cols) + 0.5) * resolution
-        ys = y_top - rows * resolution + (np.arange(rows) + 0.5) * resolution
-        grid = np.stack(np.meshgrid(xs, ys), axis=-1)
-        sigma = look.gel_blur_px * camera.radius / camera.fx / resolution   # the gel's low pass, as the generator's
-        true_height = cv2.GaussianBlur(truth.surface.sample(grid).astype(np.float64), (0, 0), sigma)
-        score = _score("grained (second generator)", height, true_height, 2, truth.frames, seconds, resolution)
+        truth = generate(second_raster_spec(seed), tmp / "raster", camera=camera, look=look)   # type: ignore[arg-type]
+        sigma_m = look.gel_blur_px * camera.radius / camera.fx   # the gel's low pass, as the generator's
+        true_heights: dict[tuple[object, ...], np.ndarray] = {}
+
+        def mapped(config: object | None) -> SurfaceScore:
+            out = tmp / "map.png"
+            begin = time.perf_counter()
+            with _height_config(config):
+                code = cli(["map", str(tmp / "raster" / "bag"), "--out", str(out), "--latency", "0.03",
+                            "--photometric", str(tmp / "photometric.npz"), "--reference", str(tmp / "reference.png")])
+            seconds = time.perf_counter() - begin
+            if code != 0:
+                raise RuntimeError(f"touchroller map failed on the second generator's raster ({code})")
+            top_down, (x0, y_top), resolution = read_height_tif(tmp / "height.tif")
+            height = top_down[::-1]
+            key = (x0, y_top, height.shape, resolution)
+            if key not in true_heights:
+                rows, cols = height.shape
+                xs = x0 + (np.arange(cols) + 0.5) * resolution
+                ys = y_top - rows * resolution + (np.arange(rows) + 0.5) * resolution
+                grid = np.stack(np.meshgrid(xs, ys), axis=-1)
+                true_heights[key] = cv2.GaussianBlur(truth.surface.sample(grid).astype(np.float64), (0, 0),
+                                                     sigma_m / resolution)
+            return _score(name, height, true_heights[key], 2, truth.frames, seconds, resolution)
+
+        score = mapped(None)
+        rows = [_config_score(label, name, seed, score if not fields else mapped(WorldHeightConfig(**fields)))
+                for label, fields in configs]
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return score, fit, int(model.config.position_degree)   # type: ignore[attr-defined]
+    per_frame = frame_gains(model, reference, seed, configs) if configs else []
+    return score, fit, int(model.config.position_degree), rows, per_frame   # type: ignore[attr-defined]
 
 
 def _spectra(height: np.ndarray, truth: np.ndarray
@@ -395,15 +570,24 @@ def run(quick: bool = False) -> HeightMapResult:
     # the simulator's model from as many presses as `touchroller scan --height` makes it from (the default):
     # how the presses land moves the map's smooth error along the axis (see docs/height.md)
     presses = 8 if quick else int(inspect.signature(sim_photometric).parameters["presses"].default)
-    scores, fit, degree, draws = [], math.nan, -1, []
+    configs = HEIGHT_CONFIGS if not quick else HEIGHT_CONFIGS[:2]
+    scores, fit, degree, draws, rows = [], math.nan, -1, [], []
     for variant in ((None,) if quick else (None, "panel")):
-        score, error, chosen, others = score_surface(variant, presses, DRAWS if variant is None and not quick else ())
+        score, error, chosen, others, by_config = score_surface(
+            variant, presses, DRAWS if variant is None and not quick else (), configs if variant is None else ())
         scores.append(score)
+        rows += by_config
         if variant is None:
             fit, degree, draws = error, chosen, others
-    second, second_fit, second_degree = second_generator(_second_presses(quick))
+    second, second_fit, second_degree, by_config, per_frame = second_generator(_second_presses(quick), 0, configs)
     scores.append(second)
-    return HeightMapResult(stamp, quick, presses, fit, scores, second_fit, degree, second_degree, draws)
+    rows += by_config
+    for seed in SECOND_SEEDS[1:] if not quick else ():
+        other = second_generator(_second_presses(quick), seed, configs)
+        rows += other[3]
+        per_frame += other[4]
+    return HeightMapResult(stamp, quick, presses, fit, scores, second_fit, degree, second_degree, draws, rows,
+                           per_frame)
 
 
 def goals(r: HeightMapResult) -> list[tuple[str, str, bool | None]]:
@@ -473,6 +657,37 @@ def to_markdown(r: HeightMapResult) -> str:
         for k, c in enumerate(cut[0].cutoffs):
             cells = " | ".join(f"{x.cutoffs[k].correlation:.3f} | {x.cutoffs[k].rms_um:.1f}" for x in cut)
             lines.append(f"| {c.longer_than_mm:g} | {cells} |")
+    if r.configs:
+        columns = list(dict.fromkeys((c.surface, c.seed) for c in r.configs))
+        lines += ["", "The maps read with other height configurations (`WorldHeightConfig`: what a pixel's slope is "
+                  "taken to be when a frame is integrated, `slopes`, and the image's smoothing before its colours are "
+                  "read, `smoothing`); each cell: error RMS after one best plane (um), correlation, and the gain at "
+                  "0.3-0.4 / 0.4-0.5 / 0.5-0.6 mm wavelengths:", "",
+                  "| configuration | " + " | ".join(f"{surface}, seed {seed}" for surface, seed in columns) + " |",
+                  "|---|" + "---|" * len(columns)]
+        for label in dict.fromkeys(c.config for c in r.configs):
+            cells = []
+            for surface, seed in columns:
+                c = next((c for c in r.configs if (c.config, c.surface, c.seed) == (label, surface, seed)), None)
+                cells.append("" if c is None else f"{c.rms_um:.1f} um, {c.correlation:.3f}, "
+                              + " / ".join(f"{g:.2f}" for g in c.fine_gains))
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    if r.frames:
+        fine = [k for k, (short, _) in enumerate(WAVELENGTH_BANDS) if 0.3 <= short < 0.6]
+        lines += ["", f"The second generator's frames read one at a time ({r.frames[0].frames} frames pressed along "
+                  "its first pass, each against the indentation the generator pressed there, at the pixel centres, "
+                  f"{FRAME_ROWS} rows either side of the contact line): the gain (coherence) at 0.3-0.4 / 0.4-0.5 / "
+                  "0.5-0.6 mm, and the map's gain there (the table above). What a frame loses is read there (the "
+                  "smoothing, colour to slope, the integration); what the map loses beyond it, in placing the "
+                  "frames (the band's resampling, the interpolation onto the cells, the blending of overlapping "
+                  "frames and their misplacement):", "",
+                  "| configuration | seed | per frame | in the map |", "|---|---|---|---|"]
+        for g in r.frames:
+            placed = next((c for c in r.configs if c.config == g.config and c.seed == g.seed and "second" in c.surface),
+                          None)
+            per_frame = " / ".join(f"{g.gains[k]:.2f} ({g.coherences[k]:.2f})" for k in fine)
+            in_map = "" if placed is None else " / ".join(f"{x:.2f}" for x in placed.fine_gains)
+            lines.append(f"| {g.config} | {g.seed} | {per_frame} | {in_map} |")
     lines += ["", "Fine relief: where the true relief departs from its own 2 mm Gaussian by more than 3 um (the "
               "planted cracks, dents, grooves and pits, and the grain's finer part), the map's departure from its "
               "own 2 mm Gaussian against the truth's: how much of a feature's depth the map reads, and how well "
@@ -497,6 +712,8 @@ def load(path: Path) -> HeightMapResult:
                                        "cutoffs": [CutoffCorrelation(**c) for c in s.get("cutoffs", [])]})
                        for s in raw["surfaces"]]
     raw["draws"] = [PressDraw(**d) for d in raw.get("draws", [])]
+    raw["configs"] = [ConfigScore(**c) for c in raw.get("configs", [])]
+    raw["frames"] = [FrameGain(**f) for f in raw.get("frames", [])]
     return HeightMapResult(**raw)
 
 

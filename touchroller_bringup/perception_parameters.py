@@ -95,6 +95,9 @@ HEIGHT_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "map.height.resampling": ("resampling", "Height map: how a frame's relief goes onto the map grid: lanczos4 or "
                               "cubic (interpolated, times the weights placed bilinearly), linear (the weighted relief "
                               "splatted bilinearly as the intensity is: loses a fine relief's depth)", None, None),
+    "map.height.slopes": ("slopes", "Height map: what a pixel's slope is when a frame is integrated: footprint (the "
+                          "mean over the pixel's area, the height's difference across it) or centre (the slope at "
+                          "its centre: reads a relief a few pixels across shallow)", None, None),
     "map.height.row_frames": ("row_frames", "Height map: take the band rows' static error (the press shape as the "
                               "model reads it, averaged over the frames mapped) out of each frame's relief once this "
                               "many frames are in (0: never)", 0, 1_000_000),

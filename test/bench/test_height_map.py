@@ -1,7 +1,9 @@
 """bench/height_map.py: the map's gain against the truth by wavelength."""
 from __future__ import annotations
 
+import argparse
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -94,3 +96,65 @@ def test_the_correlation_by_low_pass_cut_off_tells_where_it_is_lost() -> None:
     assert cuts[0].correlation < 0.9 < cuts[-1].correlation
     assert all(b.correlation >= a.correlation - 1e-3 for a, b in zip(cuts, cuts[1:], strict=False))
     assert cutoff_correlations(truth[:60, :60], truth[:60, :60], 1e-4) == []
+
+
+def test_the_maps_by_height_configuration_are_a_table_and_survive_the_json(tmp_path: Path) -> None:
+    """The rows of other `WorldHeightConfig`s (the default first, the one it replaced kept) are one table with
+    a column per surface and seed, and come back from the recorded JSON."""
+    import json
+
+    from bench._common import provenance, to_json
+    from bench.height_map import HEIGHT_CONFIGS, ConfigScore, HeightMapResult, load, to_markdown
+    from touchroller_perception.world_height import WorldHeightConfig
+
+    assert HEIGHT_CONFIGS[0][1] == {}                                    # the first row is the default
+    assert any(fields == {"slopes": "centre"} for _, fields in HEIGHT_CONFIGS)   # the earlier default kept
+    for _, fields in HEIGHT_CONFIGS:
+        WorldHeightConfig(**fields)                                      # each a valid configuration
+    rows = [ConfigScore(label, surface, seed, 4.0 + k, 0.97 - 0.01 * k, [0.6, 0.7, 0.8])
+            for k, (label, _) in enumerate(HEIGHT_CONFIGS)
+            for surface, seed in (("grain", 0), ("grained (second generator)", 0), ("grained (second generator)", 1))]
+    result = HeightMapResult(provenance("height_map", True), True, 8, 0.5, [], configs=rows)
+    text = to_markdown(result)
+    header = next(line for line in text.splitlines() if line.startswith("| configuration |"))
+    assert header.count("|") == 5 and "grained (second generator), seed 1" in header
+    assert f"| {HEIGHT_CONFIGS[1][0]} | 5.0 um, 0.960, 0.60 / 0.70 / 0.80 |" in text
+    path = tmp_path / "height_map.json"
+    path.write_text(to_json(result, indent=1))
+    assert load(path).configs == rows
+    assert json.loads(path.read_text())["configs"][0]["config"] == HEIGHT_CONFIGS[0][0]
+
+
+def test_the_map_command_reads_the_height_with_the_configuration_given_and_then_as_before() -> None:
+    from bench.height_map import _height_config
+    from touchroller_bringup.commands import map as command
+    from touchroller_perception.world_height import WorldHeightConfig
+
+    original = command._height_source
+    config = WorldHeightConfig(slopes="centre")
+    with _height_config(config):
+        assert command._height_source is not original
+        assert command._height_source(argparse.Namespace(photometric=None)) is None
+    assert command._height_source is original
+    with _height_config(None):
+        assert command._height_source is original
+
+
+def test_frames_read_one_at_a_time_are_scored_by_wavelength_and_set_beside_the_map() -> None:
+    from bench._common import provenance
+    from bench.height_map import HEIGHT_CONFIGS, ConfigScore, FrameGain, HeightMapResult, _band_gains, to_markdown
+
+    truth = _relief((80, 560))
+    gains, coherences = _band_gains([(truth.copy(), truth), (2 * truth[::-1].copy(), truth[::-1].copy())])
+    assert len(gains) == len(WAVELENGTH_BANDS)
+    # a frame read whole and one (of the same relief's power) read twice as deep: pooled, the gain is their mean
+    # and the coherence (1 + 2) / sqrt((1 + 1) (1 + 4)), less than either's own 1
+    assert all(g == pytest.approx(1.5, abs=1e-9) and c == pytest.approx(3 / math.sqrt(10), abs=1e-9)
+               for g, c in zip(gains, coherences, strict=True))
+    blurred, _ = _band_gains([(cv2.GaussianBlur(truth, (0, 0), 1.0), truth)])
+    assert blurred[1] < 0.3 < 0.9 < blurred[-1]   # 0.3-0.4 mm lost, 3.2-6.4 mm kept
+    label = HEIGHT_CONFIGS[0][0]
+    result = HeightMapResult(provenance("height_map", True), True, 8, 0.5, [],
+                             configs=[ConfigScore(label, "grained (second generator)", 0, 4.0, 0.97, [0.6, 0.7, 0.8])],
+                             frames=[FrameGain(label, 0, 12, gains, coherences)])
+    assert f"| {label} | 0 | 1.50 (0.95) / 1.50 (0.95) / 1.50 (0.95) | 0.60 / 0.70 / 0.80 |" in to_markdown(result)

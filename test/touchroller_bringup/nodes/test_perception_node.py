@@ -674,6 +674,10 @@ def test_the_world_height_map_is_published_latched_as_32fc1_metres(ros_context, 
         assert not node.set_parameters([Parameter("map.height.resampling", value="nearest")])[0].successful
         assert node.set_parameters([Parameter("map.height.resampling", value="linear")])[0].successful
         assert node.height_parameters.config.resampling == "linear"
+        assert node.height_parameters.config.slopes == "footprint"
+        assert not node.set_parameters([Parameter("map.height.slopes", value="corner")])[0].successful
+        assert node.set_parameters([Parameter("map.height.slopes", value="centre")])[0].successful
+        assert node.height_parameters.config.slopes == "centre"
         # a world map of 3 x 4 cells, all mapped, with a height layer (the world height's is a ratio of two
         # layers of the canvas, as this one) known at two cells of its bottom row (rows grow with y)
         world = WorldMapper(CAMERA, lambda stamps: np.zeros((len(stamps), 4, 4)),
