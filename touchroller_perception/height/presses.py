@@ -60,6 +60,10 @@ class BallPress:
                                    f"got {self.membrane_radius}")
 
 
+#: `PressCalibrationConfig.still_quantile`'s default (see docs/height.md, "Zero-slope prior")
+STILL_QUANTILE = 0.9
+
+
 @dataclass(frozen=True)
 class PressCalibrationConfig:
     model: PhotometricConfig = field(default_factory=PhotometricConfig)
@@ -86,6 +90,9 @@ class PressCalibrationConfig:
     # "auto" the one of the two the presses' far fields match better
     reference: str = "given"
     reference_factor: float = 3.0
+    # the zero-slope prior's threshold (`PhotometricModel.still_slope`): this quantile of the slope's magnitude
+    # the fitted model reads on the presses beyond `reference_factor` label radii, the undeformed gel (0: none)
+    still_quantile: float = STILL_QUANTILE
 
     def __post_init__(self) -> None:
         if not (0.0 < self.search[0] < 1.0 < self.search[1] <= 2.0):
@@ -107,6 +114,8 @@ class PressCalibrationConfig:
             raise ValueError(f"reference must be 'given', 'presses' or 'auto', got {self.reference!r}")
         if not (math.isfinite(self.reference_factor) and self.reference_factor > 1.0):
             raise ValueError(f"reference_factor must be > 1, got {self.reference_factor}")
+        if not (math.isfinite(self.still_quantile) and 0.0 <= self.still_quantile < 1.0):
+            raise ValueError(f"still_quantile must be in [0, 1) (0: no zero-slope prior), got {self.still_quantile}")
 
 
 #: a world height map's calibration: the map's model (`MAP_PHOTOMETRIC`), its position degree chosen from 0..3
@@ -400,8 +409,30 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
         model = fit_model(model_config, feats, us, vs, targets, w, h, pixel_size=pixel, ball_radius=ball_radius)
     except ValueError as exc:
         raise CalibrationError(str(exc)) from None
+    if config.still_quantile > 0:
+        model = replace(model, still_slope=still_slope(model, presses, reference, config.reference_factor,
+                                                       config.still_quantile))
     fits = tuple(press_fit(model, p, c, reference, ball_radius, config) for p, c in zip(presses, circles, strict=True))
     return PhotometricCalibration(model, fits, float(ball_radius), scores, reference, choice, colour_scores, spread)
+
+
+def still_slope(model: PhotometricModel, presses: Sequence[BallPress], reference: np.ndarray, factor: float,
+                quantile: float, step: int = 4) -> float:
+    """The slope the undeformed gel reads: the `quantile` of the slope's magnitude the model reads (its exact
+    polynomial, on a 1-in-`step` grid) over the presses' pixels beyond `factor` label radii of their contact,
+    where the calibration takes the membrane to be flat (0 when there are none)."""
+    magnitudes = []
+    for press in presses:
+        feats = colour_features(press.image, reference, model.config.smoothing, model.config.gain)[::step, ::step]
+        h, w = feats.shape[:2]
+        vv, uu = np.mgrid[0:h, 0:w] * step
+        far = np.hypot(uu - press.u, vv - press.v) > factor * press.radius_px
+        if far.any():
+            g = model.slopes_at(feats[far].astype(np.float64), uu[far], vv[far])
+            magnitudes.append(np.hypot(g[:, 0], g[:, 1]))
+    values = np.concatenate(magnitudes) if magnitudes else np.zeros(0)
+    values = values[np.isfinite(values)]
+    return float(np.quantile(values, quantile)) if values.size else 0.0
 
 
 def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],

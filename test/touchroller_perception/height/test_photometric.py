@@ -5,9 +5,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from touchroller_perception.height import BallPress, PhotometricConfig, PressCalibrationConfig, calibrate_photometric
-from touchroller_perception.height.photometric import SLOPE_UNIT, smooth
+from touchroller_perception.height.photometric import SLOPE_UNIT, smooth, still_prior
 
 from .conftest import BALL, PIXEL
 
@@ -56,3 +58,49 @@ def test_lookup_reads_the_reference_as_flat(synthetic_presses, model):
     reference, _ = synthetic_presses
     gx, gy = model.compile(reference).slopes(reference)
     assert np.abs(gx).max() == 0.0 and np.abs(gy).max() == 0.0
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(0.001, 0.2))
+def test_still_prior_is_a_firm_threshold_on_the_slopes_magnitude(gx, gy, threshold):
+    """Below the threshold 0, beyond twice it as given, in between shorter, never longer, direction kept;
+    monotone in the magnitude."""
+    slopes = np.array([[gx, gy], [2 * gx, 2 * gy]])
+    out = still_prior(slopes, threshold)
+    m, shrunk = np.hypot(*slopes.T), np.hypot(*out.T)
+    for k in range(2):
+        if m[k] < threshold:
+            assert shrunk[k] == 0.0
+        elif m[k] >= 2 * threshold:
+            np.testing.assert_allclose(out[k], slopes[k], rtol=1e-12)
+        else:
+            assert shrunk[k] == pytest.approx(2 * (m[k] - threshold), rel=1e-9, abs=1e-15)
+            assert float(out[k] @ slopes[k]) >= 0.0          # same direction
+        assert shrunk[k] <= m[k] + 1e-15
+    assert shrunk[1] >= shrunk[0]
+
+
+def test_still_prior_keeps_non_finite_slopes_and_is_off_at_zero():
+    slopes = np.array([[np.nan, 0.01], [0.001, 0.0], [0.3, 0.4]], np.float32)
+    out = still_prior(slopes, 0.05)
+    assert out.dtype == np.float32 and np.isnan(out[0, 0]) and (out[1] == 0).all()
+    np.testing.assert_array_equal(out[2], slopes[2])
+    np.testing.assert_array_equal(still_prior(slopes[1:], 0.0), slopes[1:])
+
+
+def test_the_lookup_bakes_the_prior_in(synthetic_presses, model):
+    """The compiled table with the prior reads what the prior makes of the table without it (to the
+    fixed-point step), and the exact polynomial with it what the prior makes of the polynomial."""
+    reference, presses = synthetic_presses
+    img = presses[11][0]
+    threshold = 0.04
+    gx, gy = model.compile(reference).slopes(img)
+    px, py = model.compile(reference, still_slope=threshold).slopes(img)
+    want = still_prior(np.stack([gx, gy], -1), threshold)
+    np.testing.assert_allclose(np.stack([px, py], -1), want, atol=3 * SLOPE_UNIT)
+    assert np.count_nonzero(np.hypot(gx, gy) > 0) > np.count_nonzero(np.hypot(px, py) > 0)
+    ex, ey = model.slopes(img, reference)
+    qx, qy = model.slopes(img, reference, still_slope=threshold)
+    np.testing.assert_allclose(np.stack([qx, qy], -1), still_prior(np.stack([ex, ey], -1), threshold), atol=1e-6)
+    with pytest.raises(ValueError, match="still_slope"):
+        model.compile(reference, still_slope=-0.1)

@@ -17,6 +17,7 @@ from touchroller_perception.height import (
     normal_angles_deg,
     refine_circle,
 )
+from touchroller_perception.height.presses import still_slope
 
 from .conftest import BALL, PIXEL, SHAPE, cap_slopes, press_image, shade
 
@@ -300,3 +301,29 @@ def test_nested_candidates_score_as_fitting_each_on_its_own(synthetic_presses):
         assert a.gain_deviation == pytest.approx(b.gain_deviation, rel=0.02, abs=1e-3)
     with pytest.raises(CalibrationError, match="at least 4 presses"):
         nested_held_out_scores(parts[:3], CONFIG, candidates, SHAPE[1], SHAPE[0])
+
+
+def test_the_calibration_measures_what_the_undeformed_gel_reads(synthetic_presses):
+    """`PhotometricModel.still_slope` is the quantile of the slope the model reads beyond `reference_factor`
+    label radii of the presses: larger for a larger quantile, none with quantile 0, and it survives the file."""
+    reference, presses = synthetic_presses
+    items = _presses(presses[:10])
+    base = calibrate_photometric(items, reference, BALL, dataclasses.replace(CONFIG, still_quantile=0.0))
+    assert base.model.still_slope == 0.0
+    low = calibrate_photometric(items, reference, BALL, dataclasses.replace(CONFIG, still_quantile=0.5))
+    high = calibrate_photometric(items, reference, BALL, dataclasses.replace(CONFIG, still_quantile=0.95))
+    np.testing.assert_array_equal(low.model.coefficients, base.model.coefficients)   # the fit is not touched
+    assert 0.0 < low.model.still_slope < high.model.still_slope < 0.2
+    want = still_slope(base.model, items, reference, CONFIG.reference_factor, 0.95)
+    assert high.model.still_slope == pytest.approx(want)
+    # by hand: the exact polynomial on the far pixels of a 1-in-4 grid
+    mags = []
+    for press in items:
+        px, py = base.model.slopes(press.image, reference)
+        vv, uu = np.mgrid[0:SHAPE[0]:4, 0:SHAPE[1]:4]
+        far = np.hypot(uu - press.u, vv - press.v) > CONFIG.reference_factor * press.radius_px
+        mags.append(np.hypot(px[::4, ::4], py[::4, ::4])[far])
+    assert want == pytest.approx(float(np.quantile(np.concatenate(mags), 0.95)), rel=1e-4, abs=1e-6)
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="still_quantile"):
+            dataclasses.replace(CONFIG, still_quantile=bad)
