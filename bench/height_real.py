@@ -72,7 +72,7 @@ from touchroller_perception.height import (
     sphere_slopes,
 )
 from touchroller_perception.height.photometric import frame_gain
-from touchroller_perception.height.presses import still_slope
+from touchroller_perception.height.presses import fit_still_prior
 
 BALL = 2.0e-3
 BAND_DEPTH = 5.0e-4     # the roller's band: rows a 0.5 mm press reaches (the scenes' press depth)
@@ -94,14 +94,16 @@ REFERENCE = "auto"
 # PressCalibrationConfig.position_colour_degrees: the colour terms that get position factors, up to a degree chosen by
 # the calibration on its own held-out presses (their normal-angle error); the trade-off table keeps the model's own 2
 COLOUR_POSITION = (1, 2, 3)
-# PressCalibrationConfig.still_quantile: the zero-slope prior's threshold is this quantile of the slope the model reads
-# on its calibration presses beyond 3 label radii. Chosen with `--choose-prior` (inside each of the 6 folds, a quarter
-# of its 40 calibration presses measured with a model calibrated on the other 30; the presses each fold measures never
-# seen) as the least prior whose held-out calibration presses read the no-contact window within the goal: window
-# median none 6.93, 0.5 6.93, 0.75 6.64, 0.85 6.15, 0.9 4.52, 0.95 2.16 um; normal-angle median 2.95 deg up to 0.9
-# (2.96) and 0.95 (2.97), fitted R 2.047-2.048 mm, depth ratio 0.981 -> 0.978 (0.9), 0.975 (0.95). Every bit of prior
+# PressCalibrationConfig.still_quantile / still_ellipse: the zero-slope prior's threshold is this quantile of the length
+# of the slopes the model reads on its calibration presses beyond 3 label radii, measured in their covariance's ellipse.
+# Chosen with `--choose-prior` (inside each of the 6 folds, a quarter of its 40 calibration presses measured with a
+# model calibrated on the other 30; the presses each fold measures never seen) as the least prior whose held-out
+# calibration presses read the no-contact window within the goal: window median none 6.93, quantile 0.5 6.93, 0.75
+# 6.80, 0.85 5.86, 0.9 4.25, 0.95 1.58 um (0.9 round: 4.51); normal-angle median 2.95 -> 2.96 (0.9), 2.97 deg (0.95),
+# fitted R 2.047 -> 2.048 mm, depth ratio 0.981 -> 0.978 (0.9), 0.975 (0.95). At 0.9 on the same split a hard threshold
+# read 6.47 um, a soft one 2.36 um with R 2.213 mm and depth 0.909 (the firm one: 4.52, round). Every bit of prior
 # flattens gentle relief, which a ball's steep cap cannot show: the least that meets the goal, not the most the ball
-# allows. The trade-off table shows the prior off and the neighbouring quantiles.
+# allows. The trade-off table shows the prior off, round, and at the neighbouring quantiles.
 STILL_QUANTILES = (0.5, 0.75, 0.85, 0.9, 0.95)
 BASELINE = {"angle_deg": 6.2, "rms_um": 25.0, "radius_mm": 1.89, "depth_ratio": 0.96, "ms": 40.0}
 GOALS = {"angle_deg": 4.0, "rms_um": 15.0, "radius_rel": 0.03, "depth_lo": 0.9, "depth_hi": 1.1, "flat_um": 5.0,
@@ -322,9 +324,13 @@ def choose_prior(data: PressSet, cfg: PressCalibrationConfig, quantiles: Sequenc
     """How `PressCalibrationConfig.still_quantile` is chosen, on calibration presses alone: inside each fold's
     calibration presses (those the fold does not measure), every fourth (from the fold's index) is measured with a
     model calibrated on the others, its prior's threshold that quantile of those others' far-field slopes (none: the
-    prior off). The summaries pool the folds' held-out calibration presses per candidate."""
+    prior off), its shape the configuration's (`still_ellipse`; the default quantile also with the other shape).
+    The summaries pool the folds' held-out calibration presses per candidate."""
     pixel = data.mm_per_pixel * 1e-3
-    pooled: dict[str, list[PressMeasure]] = {"none": [], **{f"{q:g}": [] for q in quantiles}}
+    candidates = {"none": (0.0, False), **{f"{q:g}": (q, cfg.still_ellipse) for q in quantiles},
+                  **{f"{q:g} {'round' if cfg.still_ellipse else 'ellipse'}": (q, not cfg.still_ellipse)
+                     for q in quantiles if q == cfg.still_quantile}}
+    pooled: dict[str, list[PressMeasure]] = {name: [] for name in candidates}
     for k in range(folds):
         train = [i for i in range(len(data)) if i % folds != k]
         inner_test = train[k % 4::4]
@@ -332,10 +338,11 @@ def choose_prior(data: PressSet, cfg: PressCalibrationConfig, quantiles: Sequenc
         cal = calibrate_photometric(presses_of(data, inner_cal), data.background, BALL,
                                     dataclasses.replace(cfg, still_quantile=0.0))
         reference = calibrated_reference(cal, data)
-        slopes = {"none": 0.0, **{f"{q:g}": still_slope(cal.model, presses_of(data, inner_cal), reference,
-                                                         cfg.reference_factor, q) for q in quantiles}}
-        for name, slope in slopes.items():
-            est = HeightEstimator(cal.model, reference, pixel, config=HeightConfig(still_slope=slope))
+        for name, (q, ellipse) in candidates.items():
+            slope, shape = (fit_still_prior(cal.model, presses_of(data, inner_cal), reference, cfg.reference_factor, q,
+                                            ellipse) if q > 0 else (0.0, (1.0, 0.0, 0.0, 1.0)))
+            model = dataclasses.replace(cal.model, still_slope=slope, still_shape=shape)
+            est = HeightEstimator(model, reference, pixel)
             pooled[name] += [measure_press(i, est, data.presses[i], reference, (*data.centres[i], data.radii[i]),
                                            pixel, cfg) for i in inner_test]
     return {name: summarise(measures) for name, measures in pooled.items()}
@@ -463,10 +470,14 @@ def tradeoffs(data: PressSet, base: PressCalibrationConfig, band: tuple[int, int
     reference = calibrated_reference(cal, data)
     for q in (0.85, 0.95):
         if q != base.still_quantile:
-            slope = still_slope(cal.model, presses_of(data, range(0, len(data), 2)), reference,
-                                base.reference_factor, q)
+            slope, _ = fit_still_prior(cal.model, presses_of(data, range(0, len(data), 2)), reference,
+                                       base.reference_factor, q, base.still_ellipse)
             add(f"zero-slope prior at the {q:g} quantile of the far-field slopes ({slope:.4f}; default "
                 f"{base.still_quantile:g}: {cal.model.still_slope:.4f})", m, height=HeightConfig(still_slope=slope))
+    rows.append(dataclasses.replace(
+        add_split(data, dataclasses.replace(base, still_ellipse=not base.still_ellipse), reps),
+        setting="zero-slope prior " + ("round (the plain length)" if base.still_ellipse else
+                                       "in the far-field slopes' ellipse") + f", {base.still_quantile:g} quantile"))
     if base.position_colour_degrees:
         rows.append(dataclasses.replace(
             add_split(data, dataclasses.replace(base, position_colour_degrees=()), reps),
@@ -608,7 +619,8 @@ def to_markdown(r: HeightRealResult) -> str:
                   f"median); normal-angle error {m.angle_deg:.2f} deg; sphere-fit RMS {m.rms_um:.1f} um"]
     lines += ["", "What accuracy costs in time (even presses calibrate, odd measured; CPU ms of slopes + integration "
               "per frame or band, one thread; the exact polynomial row is slopes only; no-contact: the median "
-              "window RMS as above, whole-frame lookup rows):", "",
+              "window RMS as above, whole-frame lookup rows; every row reads with the zero-slope prior its own "
+              "calibration measured unless it says otherwise):", "",
               "| setting | normal-angle error, median | ms | region | no-contact window, median |",
               "|---|---|---|---|---|"]
     lines += [f"| {t.setting} | {t.angle_deg:.2f} deg | {t.ms:.2f} | {t.rows} | "

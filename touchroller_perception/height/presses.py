@@ -93,6 +93,9 @@ class PressCalibrationConfig:
     # the zero-slope prior's threshold (`PhotometricModel.still_slope`): this quantile of the slope's magnitude
     # the fitted model reads on the presses beyond `reference_factor` label radii, the undeformed gel (0: none)
     still_quantile: float = STILL_QUANTILE
+    # ... that length measured in the ellipse of those slopes' covariance (unit area; `PhotometricModel.still_shape`);
+    # False: round (the plain length)
+    still_ellipse: bool = True
 
     def __post_init__(self) -> None:
         if not (0.0 < self.search[0] < 1.0 < self.search[1] <= 2.0):
@@ -410,29 +413,44 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
     except ValueError as exc:
         raise CalibrationError(str(exc)) from None
     if config.still_quantile > 0:
-        model = replace(model, still_slope=still_slope(model, presses, reference, config.reference_factor,
-                                                       config.still_quantile))
+        threshold, shape = fit_still_prior(model, presses, reference, config.reference_factor, config.still_quantile,
+                                           config.still_ellipse)
+        model = replace(model, still_slope=threshold, still_shape=shape)
     fits = tuple(press_fit(model, p, c, reference, ball_radius, config) for p, c in zip(presses, circles, strict=True))
     return PhotometricCalibration(model, fits, float(ball_radius), scores, reference, choice, colour_scores, spread)
 
 
-def still_slope(model: PhotometricModel, presses: Sequence[BallPress], reference: np.ndarray, factor: float,
-                quantile: float, step: int = 4) -> float:
-    """The slope the undeformed gel reads: the `quantile` of the slope's magnitude the model reads (its exact
-    polynomial, on a 1-in-`step` grid) over the presses' pixels beyond `factor` label radii of their contact,
-    where the calibration takes the membrane to be flat (0 when there are none)."""
-    magnitudes = []
+def fit_still_prior(model: PhotometricModel, presses: Sequence[BallPress], reference: np.ndarray, factor: float,
+                    quantile: float, ellipse: bool = True, step: int = 4
+                    ) -> tuple[float, tuple[float, float, float, float]]:
+    """The zero-slope prior the undeformed gel asks for: (threshold, shape) of `photometric.still_prior`. The
+    model's slopes (its exact polynomial, on a 1-in-`step` grid) over the presses' pixels beyond `factor` label
+    radii of their contact, where the calibration takes the membrane to be flat; with `ellipse` the shape
+    whitens them (their covariance's ellipse, scaled to unit area), else it is round; the threshold is the
+    `quantile` of their length in that shape ((0, round) when there are none)."""
+    samples = []
     for press in presses:
         feats = colour_features(press.image, reference, model.config.smoothing, model.config.gain)[::step, ::step]
         h, w = feats.shape[:2]
         vv, uu = np.mgrid[0:h, 0:w] * step
         far = np.hypot(uu - press.u, vv - press.v) > factor * press.radius_px
         if far.any():
-            g = model.slopes_at(feats[far].astype(np.float64), uu[far], vv[far])
-            magnitudes.append(np.hypot(g[:, 0], g[:, 1]))
-    values = np.concatenate(magnitudes) if magnitudes else np.zeros(0)
-    values = values[np.isfinite(values)]
-    return float(np.quantile(values, quantile)) if values.size else 0.0
+            samples.append(model.slopes_at(feats[far].astype(np.float64), uu[far], vv[far]))
+    g = np.concatenate(samples) if samples else np.zeros((0, 2))
+    g = g[np.isfinite(g).all(axis=1)]
+    shape: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 1.0)
+    if len(g) == 0:
+        return 0.0, shape
+    if ellipse and len(g) >= 10:
+        values, vectors = np.linalg.eigh(np.cov(g.T))
+        if values[0] > 1e-12 * max(values[1], 1e-300):
+            whiten = (vectors / np.sqrt(values)).T * math.sqrt(math.sqrt(values[0] * values[1]))   # |det| 1
+            if np.linalg.det(whiten) < 0:
+                whiten[1] *= -1.0
+            shape = tuple(float(x) for x in whiten.ravel())  # type: ignore[assignment]
+    a, b, c, d = shape
+    length = np.hypot(a * g[:, 0] + b * g[:, 1], c * g[:, 0] + d * g[:, 1])
+    return float(np.quantile(length, quantile)), shape
 
 
 def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],

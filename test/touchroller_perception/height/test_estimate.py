@@ -168,14 +168,22 @@ def test_the_models_zero_slope_prior_reads_a_wandering_no_contact_frame_flatter(
 def test_the_prior_threshold_round_trips_and_old_files_have_none(tmp_path, calibrated):
     path = tmp_path / "m.npz"
     calibrated.save(path)
-    assert PhotometricModel.load(path).still_slope == calibrated.still_slope > 0
+    loaded = PhotometricModel.load(path)
+    assert loaded.still_slope == calibrated.still_slope > 0 and loaded.still_shape == calibrated.still_shape
+    assert calibrated.still_shape != (1.0, 0.0, 0.0, 1.0)
     with np.load(path) as data:
         arrays = dict(data)
     meta = json.loads(str(arrays["meta"]))
-    del meta["still_slope"]                    # a model file made before the prior
+    skewed = dict(meta, still_shape=[2.0, 0.0, 0.0, 1.0])     # not of unit determinant
+    arrays["meta"] = np.array(json.dumps(skewed))
+    np.savez(tmp_path / "skewed.npz", **arrays)
+    with pytest.raises(ValueError, match="still_shape is not of determinant 1"):
+        PhotometricModel.load(tmp_path / "skewed.npz")
+    del meta["still_slope"], meta["still_shape"]     # a model file made before the prior
     arrays["meta"] = np.array(json.dumps(meta))
     np.savez(tmp_path / "old.npz", **arrays)
-    assert PhotometricModel.load(tmp_path / "old.npz").still_slope == 0.0
+    old = PhotometricModel.load(tmp_path / "old.npz")
+    assert old.still_slope == 0.0 and old.still_shape == (1.0, 0.0, 0.0, 1.0)
     meta["still_slope"] = -1.0
     arrays["meta"] = np.array(json.dumps(meta))
     np.savez(tmp_path / "bad.npz", **arrays)
