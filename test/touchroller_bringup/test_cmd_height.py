@@ -74,6 +74,7 @@ def test_height_reads_with_the_models_zero_slope_prior_unless_told(pressed, caps
     common = ["--labels", str(root / "labels.csv"), "--reference", str(root / "ref.png"), "--ball-radius", "0.004",
               "--params", str(root / "cal.yaml")]
     assert main(["calibrate", "photometric", str(root / "presses"), *common, "--out", str(tmp_path / "p.npz")]) == 0
+    assert "zero-slope prior: slopes shorter than" in capsys.readouterr().out
     assert main(["calibrate", "photometric", str(root / "presses"), *common, "--still-quantile", "0", "--out",
                  str(tmp_path / "none.npz")]) == 0
     threshold = PhotometricModel.load(tmp_path / "p.npz").still_slope

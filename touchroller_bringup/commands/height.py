@@ -44,7 +44,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--band-depth", type=float, default=1.0e-3,
                         help="with --params: the band is the rows a press this deep reaches, m (default 0.001)")
     parser.add_argument("--still-slope", type=float, default=None,
-                        help="the zero-slope prior's threshold: slopes below it read 0, above twice it as they are "
+                        help="the zero-slope prior's threshold: slopes shorter than it (in the model's ellipse) read "
+                             "0, longer than twice it as they are "
                              "(default: the model's own, what its calibration presses' undeformed gel read; 0: off)")
     parser.add_argument("--out", type=Path, required=True, help="folder for the <image stem>.tiff files")
     parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic in a recording (default: %(default)s)")

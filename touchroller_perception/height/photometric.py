@@ -152,7 +152,7 @@ class PhotometricModel:
     pixel_size: float = float("nan")   # metres per pixel the model was calibrated at (information)
     ball_radius: float = float("nan")  # metres (information)
     # the slope the undeformed gel reads: the calibration presses' far fields (beyond a few contact radii) read
-    # by this model, a quantile of the slope's magnitude there (`PressCalibrationConfig.still_quantile`); the
+    # by this model, a quantile of the slope's length there (`PressCalibrationConfig.still_quantile`); the
     # zero-slope prior's threshold (`still_prior`, `HeightConfig.still_slope`); 0: not measured
     still_slope: float = 0.0
     # the metric the prior measures a slope's length in: a 2 x 2 matrix W (row-major, determinant 1), length |W g|;

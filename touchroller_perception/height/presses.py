@@ -189,7 +189,14 @@ class PhotometricCalibration:
                 f"{len(self.model.coefficients)} terms; normal-angle residual median {self.normal_error_deg:.2f} deg "
                 f"(in-sample); {refined} circles refined from the images (centre moved {np.median(shifts):.1f} px, "
                 f"radius {np.median(dr):+.1f} px, medians)" + self._degree_summary() + self._colour_degree_summary()
-                + self._reference_summary())
+                + self._reference_summary() + self._prior_summary())
+
+    def _prior_summary(self) -> str:
+        if self.model.still_slope <= 0:
+            return ""
+        shape = "round" if self.model.still_shape == (1.0, 0.0, 0.0, 1.0) else "in the far-field slopes' ellipse"
+        return (f"; zero-slope prior: slopes shorter than {self.model.still_slope:.4f} ({shape}) read 0, what the "
+                "presses' undeformed gel reads")
 
     def _colour_degree_summary(self) -> str:
         if math.isfinite(self.press_spread) and self.press_spread < 1.0:
