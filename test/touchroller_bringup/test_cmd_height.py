@@ -65,6 +65,33 @@ def test_height_flat_pixel_size_whole_frame(pressed):
     assert np.isfinite(z).all() and z.shape == (480, 640)
 
 
+def test_height_reads_with_the_models_zero_slope_prior_unless_told(pressed, capsys, tmp_path):
+    """The calibration stores the prior's threshold (none with --still-quantile 0); `touchroller height` reads
+    with it by default and without it with --still-slope 0; a bad --still-slope is refused in one line."""
+    from touchroller_perception.height import PhotometricModel
+
+    root = pressed
+    common = ["--labels", str(root / "labels.csv"), "--reference", str(root / "ref.png"), "--ball-radius", "0.004",
+              "--params", str(root / "cal.yaml")]
+    assert main(["calibrate", "photometric", str(root / "presses"), *common, "--out", str(tmp_path / "p.npz")]) == 0
+    assert "zero-slope prior: slopes shorter than" in capsys.readouterr().out
+    assert main(["calibrate", "photometric", str(root / "presses"), *common, "--still-quantile", "0", "--out",
+                 str(tmp_path / "none.npz")]) == 0
+    threshold = PhotometricModel.load(tmp_path / "p.npz").still_slope
+    assert threshold > 0 and PhotometricModel.load(tmp_path / "none.npz").still_slope == 0.0
+    image = sorted((root / "presses").glob("*.png"))[0]
+    base = ["height", str(image), "--photometric", str(tmp_path / "p.npz"), "--reference", str(root / "ref.png"),
+            "--pixel-size", "1.3e-4"]
+    assert main([*base, "--out", str(tmp_path / "on")]) == 0
+    assert main([*base, "--still-slope", "0", "--out", str(tmp_path / "off")]) == 0
+    on, off = (tifffile.imread(tmp_path / d / f"{image.stem}.tiff") for d in ("on", "off"))
+    assert not np.array_equal(on, off)
+    capsys.readouterr()
+    assert main([*base, "--still-slope", "-1", "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err
+    assert "--still-slope must be a slope in [0, 1]" in err and len(err.strip().splitlines()) == 1
+
+
 @pytest.mark.parametrize("change, message", [
     ({"--ball-radius": "-1"}, "--ball-radius must be a positive"),
     ({"--ball-radius": "0.0001"}, "not smaller than the ball"),
@@ -72,6 +99,7 @@ def test_height_flat_pixel_size_whole_frame(pressed):
     ({"--reference": "missing.png"}, "no such reference image"),
     ({"--position-colour-degrees": "1,x"}, "comma-separated integers"),
     ({"--position-colour-degrees": "2,4"}, "each be 0..3"),
+    ({"--still-quantile": "1.5"}, "--still-quantile must be in [0, 1)"),
 ])
 def test_calibrate_refusals_are_one_line(pressed, capsys, change, message):
     root = pressed

@@ -43,6 +43,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _pixel_arguments(parser)
     parser.add_argument("--band-depth", type=float, default=1.0e-3,
                         help="with --params: the band is the rows a press this deep reaches, m (default 0.001)")
+    parser.add_argument("--still-slope", type=float, default=None,
+                        help="the zero-slope prior's threshold: slopes shorter than it (in the model's ellipse) read "
+                             "0, longer than twice it as they are "
+                             "(default: the model's own, what its calibration presses' undeformed gel read; 0: off)")
     parser.add_argument("--out", type=Path, required=True, help="folder for the <image stem>.tiff files")
     parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic in a recording (default: %(default)s)")
     parser.set_defaults(func=run_height)
@@ -73,6 +77,10 @@ def register_calibration(steps: argparse._SubParsersAction) -> None:
                         help="comma-separated candidate degrees (0..3) of the colour terms that get image-position "
                              "factors; the one whose held-out presses read their normals best is used (e.g. 1,2,3; "
                              "default: none, the model's own 2)")
+    parser.add_argument("--still-quantile", type=float, default=None,
+                        help="the zero-slope prior's threshold stored in the model: this quantile of the slope the "
+                             "model reads on the presses beyond 3 label radii (default: "
+                             "PressCalibrationConfig's; 0: none)")
     parser.add_argument("--out", type=Path, required=True, help="PHOTOMETRIC.npz to write")
     parser.add_argument("--topic", default=IMAGE_TOPIC, help="image topic in a recording (default: %(default)s)")
     parser.set_defaults(func=run_calibrate)
@@ -172,8 +180,12 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise UserError(f"{args.labels}: {name}: {exc}") from None
         presses.append(ht.BallPress(images[name], u, v, r, size, name,
                                     math.inf if camera is None else float(camera.radius)))
+    quantile = ht.PressCalibrationConfig().still_quantile if args.still_quantile is None else args.still_quantile
+    if not (math.isfinite(quantile) and 0.0 <= quantile < 1.0):
+        raise UserError(f"--still-quantile must be in [0, 1) (0: none), got {quantile}")
     config = ht.PressCalibrationConfig(refine=not args.no_refine, reference=args.reference_from,
-                                       position_colour_degrees=_degrees(args.position_colour_degrees))
+                                       position_colour_degrees=_degrees(args.position_colour_degrees),
+                                       still_quantile=quantile)
     try:
         result = ht.calibrate_photometric(presses, reference, args.ball_radius, config)
     except CalibrationError as exc:
@@ -229,8 +241,11 @@ def run_height(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UserError(f"--band-depth / {args.params}: {exc}") from None
         rows, size = band.rows, band.pixel_size
+    if args.still_slope is not None and not (math.isfinite(args.still_slope) and 0.0 <= args.still_slope <= 1.0):
+        raise UserError(f"--still-slope must be a slope in [0, 1] (0: off), got {args.still_slope}")
     try:
-        estimator = ht.HeightEstimator(model, reference, size, rows=rows)
+        estimator = ht.HeightEstimator(model, reference, size, rows=rows,
+                                       config=ht.HeightConfig(still_slope=args.still_slope))
     except ValueError as exc:
         raise UserError(f"{args.reference}: {exc}") from None
     images = named_images(args.input, args.topic)

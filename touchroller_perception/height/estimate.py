@@ -7,7 +7,8 @@ membrane's indentation, positive into the gel, float32 metres, NaN where nothing
 rows outside the band). What the slopes cannot give (a constant) or give badly (a slope bias over the
 whole frame: light that drifted since the reference) is fixed by the flat pixels, those whose slope
 is below `flat_slope`: a robust best plane through them is 0 (the undeformed membrane), or with
-`level="offset"` just their median.
+`level="offset"` just their median. Slopes as short as the undeformed gel reads are taken as 0 first
+(`HeightConfig.still_slope`: the model's zero-slope prior, `photometric.still_prior`).
 
 For the roller, `contact_band` gives the rows the contact can reach and the pixel size at the
 contact line from the camera model (the band is integrated as a plane at that pixel size: the
@@ -32,6 +33,10 @@ class HeightConfig:
     level: str = "plane"             # "plane": a robust best plane through the flat pixels is 0; "offset": their median
     downsample: int = 1              # integrate on a grid this many times coarser (speed), then upsample
     still_change: float = 0.0        # relative colour change (every channel) within which a pixel reads slope 0
+    # the zero-slope prior's threshold (`photometric.still_prior`: slopes below it read 0, above twice it as
+    # they are): None the model's own (`PhotometricModel.still_slope`, what the calibration presses' undeformed
+    # gel read; 0 in a model made without it), 0 off, or a slope
+    still_slope: float | None = None
 
     def __post_init__(self) -> None:
         if self.level not in ("plane", "offset"):
@@ -42,6 +47,12 @@ class HeightConfig:
             raise ValueError(f"downsample must be 1, 2 or 4, got {self.downsample}")
         if not (math.isfinite(self.still_change) and 0.0 <= self.still_change < 1.0):
             raise ValueError(f"still_change must be in [0, 1), got {self.still_change}")
+        if self.still_slope is not None and not (math.isfinite(self.still_slope) and 0.0 <= self.still_slope <= 1.0):
+            raise ValueError(f"still_slope must be None (the model's own) or a slope in [0, 1], got {self.still_slope}")
+
+    def prior_slope(self, model: PhotometricModel) -> float:
+        """The zero-slope prior's threshold for `model`: `still_slope`, or the model's own when None."""
+        return float(model.still_slope if self.still_slope is None else self.still_slope)
 
 
 def _spacing(pixel_size: float | tuple[float, float]) -> tuple[float, float]:
@@ -139,7 +150,7 @@ class HeightEstimator:
             self.rows: tuple[int, int] = (v0, v1)
         else:
             self.rows = (0, h)
-        self.lookup: SlopeLookup = model.compile(reference, self.config.still_change)
+        self.lookup: SlopeLookup = model.compile(reference, self.config.still_change, self.config.prior_slope(model))
         self.shape = reference.shape[:2]
 
     def slopes(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -179,7 +190,8 @@ def band_height(band_image: np.ndarray, band_reference: np.ndarray, model: Photo
         raise ValueError(f"a band of {band_image.shape[1]}x{band_image.shape[0]} at row {first_row} does not fit "
                          f"the model's {model.width}x{model.height} images")
     config = config or HeightConfig()
-    gx, gy = model.slopes(band_image, band_reference, first_row=first_row, still_change=config.still_change)
+    gx, gy = model.slopes(band_image, band_reference, first_row=first_row, still_change=config.still_change,
+                          still_slope=config.prior_slope(model))
     return slopes_to_height(gx, gy, pixel_size, config)
 
 

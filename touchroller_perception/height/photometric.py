@@ -20,6 +20,10 @@ Evaluating the polynomial per pixel is exact but slow; `PhotometricModel.compile
 per reference and image size (`SlopeLookup`): the colour cube in `lookup_bins` steps per channel
 times `lookup_cells` position cells (gx and gy as two 16-bit fixed-point numbers side by side), so a
 frame costs a few array operations and one gather.
+
+A zero-slope prior (`still_prior`: slopes shorter than a threshold read 0, longer than twice it as they are)
+is a function of the slope alone, so it goes into the table too; its threshold is what the undeformed gel
+reads (`PhotometricModel.still_slope`, measured by the calibration).
 """
 from __future__ import annotations
 
@@ -27,6 +31,7 @@ import dataclasses
 import io
 import itertools
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -146,6 +151,13 @@ class PhotometricModel:
     colour_range: np.ndarray     # 3: the lookup spans +-this relative change per channel
     pixel_size: float = float("nan")   # metres per pixel the model was calibrated at (information)
     ball_radius: float = float("nan")  # metres (information)
+    # the slope the undeformed gel reads: the calibration presses' far fields (beyond a few contact radii) read
+    # by this model, a quantile of the slope's length there (`PressCalibrationConfig.still_quantile`); the
+    # zero-slope prior's threshold (`still_prior`, `HeightConfig.still_slope`); 0: not measured
+    still_slope: float = 0.0
+    # the metric the prior measures a slope's length in: a 2 x 2 matrix W (row-major, determinant 1), length |W g|;
+    # the calibration's far-field slopes whitened (their covariance's ellipse, of unit area), or round (identity)
+    still_shape: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 1.0)
 
     @property
     def terms(self) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
@@ -162,22 +174,24 @@ class PhotometricModel:
         return result
 
     def slopes(self, image: np.ndarray, reference: np.ndarray, first_row: int = 0,
-               still_change: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+               still_change: float = 0.0, still_slope: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(gx, gy) float32 per pixel from the polynomial, of an image (or a band of rows of one that starts
         at `first_row`) and the same rows of the reference; 0 where every channel's relative change is
-        within `still_change`."""
+        within `still_change`; shrunk by the zero-slope prior `still_prior` of threshold `still_slope`."""
         feats = colour_features(image, reference, self.config.smoothing, self.config.gain)
         h, w = feats.shape[:2]
         vv, uu = np.mgrid[first_row:first_row + h, 0:w]
         out = self.slopes_at(feats.reshape(-1, 3).astype(np.float64), uu.ravel(), vv.ravel())
         if still_change > 0:
             out[(np.abs(feats.reshape(-1, 3)) <= still_change).all(axis=1)] = 0.0
+        if still_slope > 0:
+            out = still_prior(out, still_slope, self.still_shape)
         return out[:, 0].reshape(h, w).astype(np.float32), out[:, 1].reshape(h, w).astype(np.float32)
 
-    def compile(self, reference: np.ndarray, still_change: float = 0.0) -> SlopeLookup:
-        """The fast per-frame form of this model for one reference frame (`still_change`: see
+    def compile(self, reference: np.ndarray, still_change: float = 0.0, still_slope: float = 0.0) -> SlopeLookup:
+        """The fast per-frame form of this model for one reference frame (`still_change`, `still_slope`: see
         `SlopeLookup.build`)."""
-        return SlopeLookup.build(self, reference, still_change)
+        return SlopeLookup.build(self, reference, still_change, still_slope)
 
     # ------------------------------------------------------------------ file
     def save(self, path: str | Path) -> None:
@@ -189,7 +203,8 @@ class PhotometricModel:
     def save_to(self, stream: Any) -> None:
         """Into a binary stream (a file opened "wb", BytesIO)."""
         meta = {"format": FORMAT, "config": dataclasses.asdict(self.config), "width": self.width,
-                "height": self.height, "pixel_size": self.pixel_size, "ball_radius": self.ball_radius}
+                "height": self.height, "pixel_size": self.pixel_size, "ball_radius": self.ball_radius,
+                "still_slope": self.still_slope, "still_shape": list(self.still_shape)}
         np.savez(stream, meta=np.array(json.dumps(meta)), coefficients=self.coefficients,
                  colour_scale=self.colour_scale, colour_range=self.colour_range)
 
@@ -210,11 +225,16 @@ class PhotometricModel:
         cfg["lookup_cells"] = tuple(cfg["lookup_cells"])
         config = PhotometricConfig(**cfg)
         model = cls(config, coefficients, int(meta["width"]), int(meta["height"]), scale, colour_range,
-                    float(meta["pixel_size"]), float(meta["ball_radius"]))
+                    float(meta["pixel_size"]), float(meta["ball_radius"]),
+                    float(meta.get("still_slope", 0.0)),   # files made before it: not measured
+                    _shape(meta.get("still_shape", (1.0, 0.0, 0.0, 1.0)), path))
         if coefficients.shape != (len(model_terms(config)), 2) or scale.shape != (3,) or colour_range.shape != (3,):
             raise ValueError(f"{path}: photometric model arrays do not match its configuration")
-        if not (np.isfinite(coefficients).all() and np.isfinite(scale).all() and (scale > 0).all()):
+        if not (np.isfinite(coefficients).all() and np.isfinite(scale).all() and (scale > 0).all()
+                and math.isfinite(model.still_slope) and model.still_slope >= 0):
             raise ValueError(f"{path}: photometric model has non-finite or non-positive values")
+        if abs(float(np.linalg.det(np.reshape(model.still_shape, (2, 2)))) - 1.0) > 1e-6:
+            raise ValueError(f"{path}: the photometric model's still_shape is not of determinant 1")
         return model
 
 
@@ -297,6 +317,44 @@ def fit_model(config: PhotometricConfig, features: np.ndarray, u: np.ndarray, v:
     return dataclasses.replace(model, coefficients=coefficients)
 
 
+def _shape(value: Any, path: str | Path) -> tuple[float, float, float, float]:
+    try:
+        shape = tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: not a photometric model (still_shape {value!r})") from None
+    if len(shape) != 4 or not all(math.isfinite(x) for x in shape):
+        raise ValueError(f"{path}: not a photometric model (still_shape {value!r})")
+    return shape[0], shape[1], shape[2], shape[3]
+
+
+def still_prior(slopes: np.ndarray, threshold: float,
+                shape: tuple[float, float, float, float] | None = None) -> np.ndarray:
+    """A zero-slope prior (a firm threshold on the slope's length, its direction kept): slopes (... x 2,
+    gx and gy last) shorter than `threshold` read 0, those longer than twice it read as they are, and in
+    between the length rises linearly from 0 to 2 threshold (continuous; every slope is scaled by one
+    factor). The length is |W g| with `shape` W (2 x 2 row-major, determinant 1; None: the plain length):
+    the undeformed gel's slopes whitened, so the threshold is an ellipse of its readings. The threshold is
+    what the undeformed gel reads (`PhotometricModel.still_slope`): a colour change that small cannot be
+    told from one of a flat membrane, and a soft threshold (every slope shortened by it) would also flatten
+    the steep ones. Non-finite slopes stay as they are."""
+    dtype = np.float32 if np.asarray(slopes).dtype == np.float32 else np.float64
+    out: np.ndarray = np.array(slopes, dtype=dtype)
+    if threshold <= 0:
+        return out
+    t = float(threshold)
+    if shape is None or tuple(shape) == (1.0, 0.0, 0.0, 1.0):
+        magnitude = np.hypot(out[..., 0], out[..., 1])
+    else:
+        a, b, c, d = (float(x) for x in shape)
+        magnitude = np.hypot(a * out[..., 0] + b * out[..., 1], c * out[..., 0] + d * out[..., 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.where(magnitude >= 2.0 * t, 1.0,
+                          np.clip(magnitude - t, 0.0, None) * 2.0 / np.where(magnitude > 0, magnitude, 1.0))
+    factor = np.where(np.isfinite(magnitude), factor, 1.0)
+    out *= factor[..., None].astype(dtype)
+    return out
+
+
 SLOPE_UNIT = 1.0 / 8192.0   # the lookup's fixed-point slope step: int16 spans slopes of +-4 (76 deg)
 
 
@@ -321,12 +379,17 @@ class SlopeLookup:
     raw: np.ndarray          # H x W x 3 uint8/float: the reference as given
 
     @classmethod
-    def build(cls, model: PhotometricModel, reference: np.ndarray, still_change: float = 0.0) -> SlopeLookup:
+    def build(cls, model: PhotometricModel, reference: np.ndarray, still_change: float = 0.0,
+              still_slope: float = 0.0) -> SlopeLookup:
         """still_change: a colour step whose relative change is within this in every channel reads slope 0
         (the frame matches the reference there: a zero-slope prior where nothing touches, at no cost per
-        frame); 0 keeps only the step at no change, which the polynomial maps to 0 anyway."""
+        frame); 0 keeps only the step at no change, which the polynomial maps to 0 anyway. still_slope: the
+        table's slopes shrunk by `still_prior` of this threshold in the model's `still_shape` (0: off), also
+        at no cost per frame."""
         if not (np.isfinite(still_change) and 0.0 <= still_change < 1.0):
             raise ValueError(f"still_change must be a relative colour change in [0, 1), got {still_change}")
+        if not (math.isfinite(still_slope) and still_slope >= 0.0):
+            raise ValueError(f"still_slope must be a slope >= 0, got {still_slope}")
         cfg = model.config
         ref = smooth(reference, cfg.smoothing)
         h, w = ref.shape[:2]
@@ -353,6 +416,9 @@ class SlopeLookup:
         values = colour @ np.concatenate(coefficients, axis=1)
         if still_change > 0:
             values[(np.abs(grid) <= still_change).all(axis=1)] = 0.0
+        if still_slope > 0:     # a function of the slope alone: the table's entries, each cell's gx, gy
+            values = still_prior(values.reshape(len(grid), -1, 2), still_slope,
+                                 model.still_shape).reshape(values.shape)
         tables = values.reshape(len(grid), cu * cv, 2).transpose(1, 0, 2).reshape(-1, 2)
         fixed = np.clip(np.rint(tables / SLOPE_UNIT), -32767, 32767).astype(np.int16)
         table = np.ascontiguousarray(fixed).view(np.uint32).ravel()

@@ -60,6 +60,10 @@ class BallPress:
                                    f"got {self.membrane_radius}")
 
 
+#: `PressCalibrationConfig.still_quantile`'s default (see docs/height.md, "Zero-slope prior")
+STILL_QUANTILE = 0.9
+
+
 @dataclass(frozen=True)
 class PressCalibrationConfig:
     model: PhotometricConfig = field(default_factory=PhotometricConfig)
@@ -86,6 +90,12 @@ class PressCalibrationConfig:
     # "auto" the one of the two the presses' far fields match better
     reference: str = "given"
     reference_factor: float = 3.0
+    # the zero-slope prior's threshold (`PhotometricModel.still_slope`): this quantile of the slope's magnitude
+    # the fitted model reads on the presses beyond `reference_factor` label radii, the undeformed gel (0: none)
+    still_quantile: float = STILL_QUANTILE
+    # ... that length measured in the ellipse of those slopes' covariance (unit area; `PhotometricModel.still_shape`);
+    # False: round (the plain length)
+    still_ellipse: bool = True
 
     def __post_init__(self) -> None:
         if not (0.0 < self.search[0] < 1.0 < self.search[1] <= 2.0):
@@ -107,6 +117,8 @@ class PressCalibrationConfig:
             raise ValueError(f"reference must be 'given', 'presses' or 'auto', got {self.reference!r}")
         if not (math.isfinite(self.reference_factor) and self.reference_factor > 1.0):
             raise ValueError(f"reference_factor must be > 1, got {self.reference_factor}")
+        if not (math.isfinite(self.still_quantile) and 0.0 <= self.still_quantile < 1.0):
+            raise ValueError(f"still_quantile must be in [0, 1) (0: no zero-slope prior), got {self.still_quantile}")
 
 
 #: a world height map's calibration: the map's model (`MAP_PHOTOMETRIC`), its position degree chosen from 0..3
@@ -177,7 +189,14 @@ class PhotometricCalibration:
                 f"{len(self.model.coefficients)} terms; normal-angle residual median {self.normal_error_deg:.2f} deg "
                 f"(in-sample); {refined} circles refined from the images (centre moved {np.median(shifts):.1f} px, "
                 f"radius {np.median(dr):+.1f} px, medians)" + self._degree_summary() + self._colour_degree_summary()
-                + self._reference_summary())
+                + self._reference_summary() + self._prior_summary())
+
+    def _prior_summary(self) -> str:
+        if self.model.still_slope <= 0:
+            return ""
+        shape = "round" if self.model.still_shape == (1.0, 0.0, 0.0, 1.0) else "in the far-field slopes' ellipse"
+        return (f"; zero-slope prior: slopes shorter than {self.model.still_slope:.4f} ({shape}) read 0, what the "
+                "presses' undeformed gel reads")
 
     def _colour_degree_summary(self) -> str:
         if math.isfinite(self.press_spread) and self.press_spread < 1.0:
@@ -400,8 +419,45 @@ def calibrate_photometric(presses: Sequence[BallPress], reference: np.ndarray, b
         model = fit_model(model_config, feats, us, vs, targets, w, h, pixel_size=pixel, ball_radius=ball_radius)
     except ValueError as exc:
         raise CalibrationError(str(exc)) from None
+    if config.still_quantile > 0:
+        threshold, shape = fit_still_prior(model, presses, reference, config.reference_factor, config.still_quantile,
+                                           config.still_ellipse)
+        model = replace(model, still_slope=threshold, still_shape=shape)
     fits = tuple(press_fit(model, p, c, reference, ball_radius, config) for p, c in zip(presses, circles, strict=True))
     return PhotometricCalibration(model, fits, float(ball_radius), scores, reference, choice, colour_scores, spread)
+
+
+def fit_still_prior(model: PhotometricModel, presses: Sequence[BallPress], reference: np.ndarray, factor: float,
+                    quantile: float, ellipse: bool = True, step: int = 4
+                    ) -> tuple[float, tuple[float, float, float, float]]:
+    """The zero-slope prior the undeformed gel asks for: (threshold, shape) of `photometric.still_prior`. The
+    model's slopes (its exact polynomial, on a 1-in-`step` grid) over the presses' pixels beyond `factor` label
+    radii of their contact, where the calibration takes the membrane to be flat; with `ellipse` the shape
+    whitens them (their covariance's ellipse, scaled to unit area), else it is round; the threshold is the
+    `quantile` of their length in that shape ((0, round) when there are none)."""
+    samples = []
+    for press in presses:
+        feats = colour_features(press.image, reference, model.config.smoothing, model.config.gain)[::step, ::step]
+        h, w = feats.shape[:2]
+        vv, uu = np.mgrid[0:h, 0:w] * step
+        far = np.hypot(uu - press.u, vv - press.v) > factor * press.radius_px
+        if far.any():
+            samples.append(model.slopes_at(feats[far].astype(np.float64), uu[far], vv[far]))
+    g = np.concatenate(samples) if samples else np.zeros((0, 2))
+    g = g[np.isfinite(g).all(axis=1)]
+    shape: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 1.0)
+    if len(g) == 0:
+        return 0.0, shape
+    if ellipse and len(g) >= 10:
+        values, vectors = np.linalg.eigh(np.cov(g.T))
+        if values[0] > 1e-12 * max(values[1], 1e-300):
+            whiten = (vectors / np.sqrt(values)).T * math.sqrt(math.sqrt(values[0] * values[1]))   # |det| 1
+            if np.linalg.det(whiten) < 0:
+                whiten[1] *= -1.0
+            shape = tuple(float(x) for x in whiten.ravel())  # type: ignore[assignment]
+    a, b, c, d = shape
+    length = np.hypot(a * g[:, 0] + b * g[:, 1], c * g[:, 0] + d * g[:, 1])
+    return float(np.quantile(length, quantile)), shape
 
 
 def choose_position_degree(parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],

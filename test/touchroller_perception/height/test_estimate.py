@@ -2,6 +2,9 @@
 gives zero; a band gives NaN outside; the model file round-trips and refuses what it is not."""
 from __future__ import annotations
 
+import json
+
+import cv2
 import numpy as np
 import pytest
 
@@ -126,3 +129,63 @@ def test_still_change_reads_a_frame_that_matches_the_reference_as_flat(synthetic
     assert np.abs(exact).max() < 1e-9
     with pytest.raises(ValueError):
         HeightConfig(still_change=-0.1)
+
+
+def _wander(shape, rng, amplitude=0.01, sigma=3.0):
+    """1 + a colour wander per channel in patches a few pixels across (a gel's creases, uneven light)."""
+    field = cv2.GaussianBlur(rng.normal(0.0, 1.0, shape), (0, 0), sigma)
+    return 1.0 + field * (amplitude / field.std())
+
+
+def test_the_models_zero_slope_prior_reads_a_wandering_no_contact_frame_flatter(synthetic_presses):
+    """Presses whose colour wanders in patches a few pixels across teach the calibration what the undeformed
+    gel reads (`still_slope`); a no-contact frame that wanders alike then reads less relief with the prior
+    (the default) than without it (`still_slope` 0, the old behaviour), and a held-out press keeps its depth."""
+    reference, presses = synthetic_presses
+    rng = np.random.default_rng(5)
+    items = [BallPress(np.clip(np.rint(img * _wander(img.shape, rng)), 0, 255).astype(np.uint8), cu, cv, contact,
+                       (PIXEL, PIXEL), str(k)) for k, (img, cu, cv, contact, *_rest) in enumerate(presses[:10])]
+    model = calibrate_photometric(items, reference, BALL, CONFIG).model
+    assert model.still_slope > 0
+    frame = np.clip(np.rint(reference * _wander(reference.shape, rng)), 0, 255).astype(np.uint8)
+    off = HeightEstimator(model, reference, PIXEL, config=HeightConfig(still_slope=0.0)).height(frame)
+    default = HeightEstimator(model, reference, PIXEL)
+    on = default.height(frame)
+    assert np.sqrt(np.mean(on**2)) < 0.7 * np.sqrt(np.mean(off**2))
+    img, cu, cv, _contact, _gx, _gy, z = presses[10]
+    got = default.height(img)
+    assert got[int(round(cv)), int(round(cu))] == pytest.approx(z[int(round(cv)), int(round(cu))], rel=0.1)
+    exact_on = band_height(frame[30:90], reference[30:90], model, PIXEL, first_row=30)
+    exact_off = band_height(frame[30:90], reference[30:90], model, PIXEL, first_row=30,
+                            config=HeightConfig(still_slope=0.0))
+    assert np.sqrt(np.mean(exact_on**2)) < 0.7 * np.sqrt(np.mean(exact_off**2))
+    assert HeightConfig(still_slope=0.02).prior_slope(model) == 0.02
+    for bad in (-0.01, float("nan"), 2.0):
+        with pytest.raises(ValueError, match="still_slope"):
+            HeightConfig(still_slope=bad)
+
+
+def test_the_prior_threshold_round_trips_and_old_files_have_none(tmp_path, calibrated):
+    path = tmp_path / "m.npz"
+    calibrated.save(path)
+    loaded = PhotometricModel.load(path)
+    assert loaded.still_slope == calibrated.still_slope > 0 and loaded.still_shape == calibrated.still_shape
+    assert calibrated.still_shape != (1.0, 0.0, 0.0, 1.0)
+    with np.load(path) as data:
+        arrays = dict(data)
+    meta = json.loads(str(arrays["meta"]))
+    skewed = dict(meta, still_shape=[2.0, 0.0, 0.0, 1.0])     # not of unit determinant
+    arrays["meta"] = np.array(json.dumps(skewed))
+    np.savez(tmp_path / "skewed.npz", **arrays)
+    with pytest.raises(ValueError, match="still_shape is not of determinant 1"):
+        PhotometricModel.load(tmp_path / "skewed.npz")
+    del meta["still_slope"], meta["still_shape"]     # a model file made before the prior
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "old.npz", **arrays)
+    old = PhotometricModel.load(tmp_path / "old.npz")
+    assert old.still_slope == 0.0 and old.still_shape == (1.0, 0.0, 0.0, 1.0)
+    meta["still_slope"] = -1.0
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match="non-finite or non-positive"):
+        PhotometricModel.load(tmp_path / "bad.npz")

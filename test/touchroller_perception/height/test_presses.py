@@ -17,6 +17,7 @@ from touchroller_perception.height import (
     normal_angles_deg,
     refine_circle,
 )
+from touchroller_perception.height.presses import fit_still_prior
 
 from .conftest import BALL, PIXEL, SHAPE, cap_slopes, press_image, shade
 
@@ -300,3 +301,40 @@ def test_nested_candidates_score_as_fitting_each_on_its_own(synthetic_presses):
         assert a.gain_deviation == pytest.approx(b.gain_deviation, rel=0.02, abs=1e-3)
     with pytest.raises(CalibrationError, match="at least 4 presses"):
         nested_held_out_scores(parts[:3], CONFIG, candidates, SHAPE[1], SHAPE[0])
+
+
+def test_the_calibration_measures_what_the_undeformed_gel_reads(synthetic_presses):
+    """`PhotometricModel.still_slope` is the quantile of the length of the slopes the model reads beyond
+    `reference_factor` label radii of the presses, measured in their covariance's ellipse of unit area
+    (`still_shape`; round with `still_ellipse` False): larger for a larger quantile, none with quantile 0."""
+    reference, presses = synthetic_presses
+    items = _presses(presses[:10])
+    base = calibrate_photometric(items, reference, BALL, dataclasses.replace(CONFIG, still_quantile=0.0))
+    assert base.model.still_slope == 0.0 and base.model.still_shape == (1.0, 0.0, 0.0, 1.0)
+    low = calibrate_photometric(items, reference, BALL, dataclasses.replace(CONFIG, still_quantile=0.5))
+    high = calibrate_photometric(items, reference, BALL, dataclasses.replace(CONFIG, still_quantile=0.95))
+    np.testing.assert_array_equal(low.model.coefficients, base.model.coefficients)   # the fit is not touched
+    assert 0.0 < low.model.still_slope < high.model.still_slope < 0.2
+    want, shape = fit_still_prior(base.model, items, reference, CONFIG.reference_factor, 0.95)
+    assert high.model.still_slope == pytest.approx(want) and high.model.still_shape == pytest.approx(shape)
+    # by hand: the exact polynomial on the far pixels of a 1-in-4 grid
+    samples = []
+    for press in items:
+        px, py = base.model.slopes(press.image, reference)
+        vv, uu = np.mgrid[0:SHAPE[0]:4, 0:SHAPE[1]:4]
+        far = np.hypot(uu - press.u, vv - press.v) > CONFIG.reference_factor * press.radius_px
+        samples.append(np.stack([px[::4, ::4][far], py[::4, ::4][far]], axis=1).astype(np.float64))
+    g = np.concatenate(samples)
+    whiten = np.reshape(shape, (2, 2))
+    assert np.linalg.det(whiten) == pytest.approx(1.0)
+    covariance = whiten @ np.cov(g.T) @ whiten.T            # round: a multiple of the identity
+    assert covariance[0, 1] == pytest.approx(0.0, abs=1e-3 * covariance[0, 0])
+    assert covariance[0, 0] == pytest.approx(covariance[1, 1], rel=1e-3)
+    assert want == pytest.approx(float(np.quantile(np.linalg.norm(g @ whiten.T, axis=1), 0.95)), rel=1e-3)
+    round_ = calibrate_photometric(items, reference, BALL, dataclasses.replace(CONFIG, still_quantile=0.95,
+                                                                               still_ellipse=False))
+    assert round_.model.still_shape == (1.0, 0.0, 0.0, 1.0)
+    assert round_.model.still_slope == pytest.approx(float(np.quantile(np.hypot(g[:, 0], g[:, 1]), 0.95)), rel=1e-3)
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="still_quantile"):
+            dataclasses.replace(CONFIG, still_quantile=bad)
