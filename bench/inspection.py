@@ -517,8 +517,9 @@ def end_to_end_markdown(e: EndToEnd) -> str:
              _scan_row("intensity", e.intensity), _scan_row("height, undeclared", e.height_undeclared),
              _scan_row("height, blur declared", e.height), "",
              "The sensor's line spread off its height map (a reference sample of known cracks): across each true "
-             "crack the map's full width at half depth W, the blur sqrt(W² - w²), and the cross-section's area "
-             "read over the true one.", "",
+             "crack the map's full width at half depth W (its half-depth crossings interpolated), the blur beyond the "
+             "map's pixel sqrt(W² - w² - p²) (p: the detector's pixel footprint, 1 px, which it adds back), and the "
+             "cross-section's area read over the true one.", "",
              "| scan | crack width mm | depth µm | map's FWHM mm | blur FWHM mm | area read / true |",
              "|---|---|---|---|---|---|"]
     for label, spread in (("reference (calibration)", e.reference_spread), ("scored (diagnostic)", e.spread)):

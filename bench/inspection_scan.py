@@ -7,8 +7,10 @@ and the time to inspect a square metre. Helpers of `bench.inspection`, not a ben
   its own rclpy context) recording, as they arrive, the tool poses (`tcp_pose`) and the `findings`
   MarkerArrays.
 * `line_spread(height_tif, truth)`: across each true crack, the height map's profile (a line fitted to its
-  flanks 1.5-2.5 mm out taken off): its full width at half depth W and cross-section area; the blur is
-  sqrt(W² - w²) for the crack's true width w, and the area over the true one is how much of a crack's
+  flanks 1.5-2.5 mm out taken off): its full width at half depth W (the half-depth crossings interpolated
+  between the profile's samples) and cross-section area; the blur is sqrt(W² - w² - p²) for the crack's true
+  width w and the map's pixel footprint p (`InspectionConfig.footprint_fwhm_px`): the spread beyond the pixel,
+  which is what the detector's declared blur means; the area over the true one is how much of a crack's
   cross-section the height map reads. What a user does with a reference sample of known scratches.
 * `live_latency(watch, truth, map extent)`: per planted defect, from the arrival of the tool pose of the
   last frame whose mapped band still reached it to the arrival of the first `findings` message with a marker
@@ -180,14 +182,38 @@ class LineSpread:
     width_mm: float           # the crack's true width (FWHM)
     depth_um: float
     map_fwhm_mm: float        # the height map's FWHM across it (median along its middle 60 %)
-    blur_fwhm_mm: float       # sqrt(map² - true²)
+    blur_fwhm_mm: float       # sqrt(map² - true² - pixel²): the spread beyond the map's pixel, as the detector's
+                              # blur_fwhm_m means it (it adds its pixel footprint back in quadrature)
     area_ratio: float         # the map's cross-section area / the true one (a Gaussian's: 1.0645 w d)
 
 
-def line_spread(height_tif: Path, truth: Sequence[Finding]) -> list[LineSpread]:
+def half_depth_width(offsets: np.ndarray, depth: np.ndarray) -> float:
+    """The profile's full width at half its deepest sample, each side's crossing interpolated linearly between
+    the samples either side of it (not the outermost samples past half depth: those read the width short by up
+    to a sample spacing on each side, in steps of it); NaN where a side never rises above half depth."""
+    k = int(np.argmax(depth))
+    half = 0.5 * float(depth[k])
+    below = depth < half
+    right = np.flatnonzero(below[k:])
+    left = np.flatnonzero(below[:k + 1][::-1])
+    if half <= 0 or right.size == 0 or left.size == 0:
+        return math.nan
+    r, l_ = k + int(right[0]), k - int(left[0])     # first samples below half depth, either side of the peak
+
+    def crossing(outer: int, inner: int) -> float:
+        t = (depth[inner] - half) / (depth[inner] - depth[outer])
+        return float(offsets[inner] + t * (offsets[outer] - offsets[inner]))
+
+    return crossing(r, r - 1) - crossing(l_, l_ + 1)
+
+
+def line_spread(height_tif: Path, truth: Sequence[Finding], footprint_px: float | None = None) -> list[LineSpread]:
     from touchroller_bringup.findings_files import read_height_tif
+    from touchroller_perception.inspection import InspectionConfig
 
     h, res, origin = read_height_tif(height_tif)
+    # the detector's own pixel footprint, which it adds to the declared blur in quadrature
+    pixel = (InspectionConfig().footprint_fwhm_px if footprint_px is None else footprint_px) * res
     rows = h.shape[0]
     out = []
     offsets = np.arange(-2.5e-3, 2.5e-3 + 1e-9, 2e-5)
@@ -213,14 +239,16 @@ def line_spread(height_tif: Path, truth: Sequence[Finding]) -> list[LineSpread]:
                 continue
             a, b = np.polyfit(offsets[flank], prof[flank], 1)
             depth = -(prof - (a * offsets + b))
-            above = offsets[depth >= depth.max() / 2]
-            widths.append(above.max() - above.min())
+            width = half_depth_width(offsets, depth)
+            if not math.isfinite(width):
+                continue
+            widths.append(width)
             areas.append(float(np.trapezoid(np.clip(depth[core], 0, None), offsets[core])))
         if not widths:
             continue
         w_map = float(np.median(widths))
         out.append(LineSpread(t.width_m * 1e3, t.depth_m * 1e6, w_map * 1e3,
-                              math.sqrt(max(w_map**2 - t.width_m**2, 0.0)) * 1e3,
+                              math.sqrt(max(w_map**2 - t.width_m**2 - pixel**2, 0.0)) * 1e3,
                               float(np.median(areas)) / (1.0645 * t.width_m * t.depth_m)))
     return out
 
