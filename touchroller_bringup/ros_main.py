@@ -15,7 +15,10 @@ the import machinery's weakref callback (only printed, "Exception ignored"), or 
 module and replaces whatever failed with an ImportError of its own (an extension module's
 initialisation, such as numpy's). Further signals during that cleanup
 change nothing however many arrive (a user's second Ctrl-C under launch is the third and fourth
-signal); a process that must go at once is ended with SIGKILL (launch escalates to it by itself).
+signal); a process that must go at once is ended with SIGKILL (launch escalates to it by itself). A
+signal before the console script has run this module's entry (the interpreter's own start and its site
+imports, the first tens of milliseconds) meets Python's default handling, KeyboardInterrupt: no code of
+ours has run yet.
 
 Bad start-up input (a parameter out of its range or of the wrong type, a params file rcl cannot
 parse, a combination the node refuses) is one line on stderr and exit code 2, as in the

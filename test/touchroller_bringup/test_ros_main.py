@@ -233,7 +233,7 @@ ros_main.sweep_node()
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_stop_signal_while_the_node_module_loads_ends_it_there(ros_context, tmp_path, signum):
     """#29: a Ctrl-C while the sweep node's modules loaded ended the process only once they had all loaded
-    (2.24 s under load). The import is held here until after the signal: the process ends in it, exit 0,
+    (2.24 s under load). The import is held here until after the signal: the process ends at its next import, exit 0,
     no traceback, the node's module never loaded (it did, then exited, before the fix)."""
     process = subprocess.Popen([sys.executable, "-c", HELD_IMPORT], cwd=tmp_path, stdin=subprocess.PIPE,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
