@@ -123,7 +123,7 @@ class _StopAtImport:
         self._stop = stop
         self._thread = thread
 
-    def find_spec(self, _name: str, _path: Any = None, _target: Any = None) -> None:
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> None:   # importlib's signature
         if self._stop.requested.is_set() and threading.get_ident() == self._thread:
             raise StartUpInterrupted(self._stop.name)
         return None
