@@ -8,10 +8,17 @@ through its cleanup (a sweep worker's arm stop). Here SIGINT and SIGTERM only as
 installed before the node's module is imported): the node is built to the end, spinning ends between
 callbacks, the node's own stop path runs first (the sweep node stops the arm), then the node is
 destroyed and the context shut down, and the process exits 0. A stop signal while the node's modules
-load (seconds on a loaded machine) ends the process there, exit 0: nothing is built yet that a stop must
-wait for, so it does not wait for the imports to finish either. Further signals during that cleanup
+load (seconds on a loaded machine) ends the process there, at the next module it imports, exit 0: nothing
+is built yet that a stop must wait for, so it does not wait for the imports to finish either. The handler
+itself never raises: an exception from a signal handler lands wherever the main thread is, which may be
+the import machinery's weakref callback (only printed, "Exception ignored"), or C code that imports a
+module and replaces whatever failed with an ImportError of its own (an extension module's
+initialisation, such as numpy's). Further signals during that cleanup
 change nothing however many arrive (a user's second Ctrl-C under launch is the third and fourth
-signal); a process that must go at once is ended with SIGKILL (launch escalates to it by itself).
+signal); a process that must go at once is ended with SIGKILL (launch escalates to it by itself). A
+signal before the console script has run this module's entry (the interpreter's own start and its site
+imports, the first tens of milliseconds) meets Python's default handling, KeyboardInterrupt: no code of
+ours has run yet.
 
 Bad start-up input (a parameter out of its range or of the wrong type, a params file rcl cannot
 parse, a combination the node refuses) is one line on stderr and exit code 2, as in the
@@ -49,7 +56,6 @@ class StopSignals:
         self.count = 0
         self.last_signal: int | None = None
         self._previous: dict[int, Any] = {}
-        self._interrupting = False
 
     @classmethod
     def install(cls, signals: Sequence[int] = STOP_SIGNALS) -> StopSignals:
@@ -79,25 +85,48 @@ class StopSignals:
 
     @contextmanager
     def interrupting(self) -> Iterator[None]:
-        """Within it, a stop signal also raises StartUpInterrupted in the main thread, where it is (for the
-        imports of a node's modules: nothing is built yet that must be stopped in order); a stop requested
-        before raises at once. Only the first signal raises: one that comes while that is handled only
-        asks to stop."""
+        """For the imports of a node's modules (nothing is built yet that must be stopped in order): once a
+        stop is requested, the next module this thread imports raises StartUpInterrupted instead of loading,
+        and so does every one after it; a stop requested before raises at once. Whatever leaves the block
+        after a stop was requested leaves it as StartUpInterrupted: code between the raise and here may
+        have caught it and raised something else (C code that imports a module replaces the exception with
+        an ImportError of its own), or swallowed it and finished."""
         if self.requested.is_set():
             raise StartUpInterrupted(self.name)
-        self._interrupting = True
+        gate = _StopAtImport(self, threading.get_ident())
+        sys.meta_path.insert(0, gate)
         try:
             yield
+        except BaseException as exc:
+            if self.requested.is_set():
+                raise StartUpInterrupted(self.name) from exc
+            raise
         finally:
-            self._interrupting = False
+            if gate in sys.meta_path:
+                sys.meta_path.remove(gate)
+        if self.requested.is_set():
+            raise StartUpInterrupted(self.name)
 
     def _on_signal(self, signum: int, _frame: Any) -> None:
+        # never raises: it runs wherever the main thread is (see the module's docstring)
         self.count += 1
         self.last_signal = signum
         self.requested.set()
-        if self._interrupting:
-            self._interrupting = False
-            raise StartUpInterrupted(self.name)
+
+
+class _StopAtImport:
+    """A meta-path finder first in line: after a stop request, an import of a module not loaded yet (in the
+    thread that started the imports) raises StartUpInterrupted. A finder that raises is a way out of an
+    import that importlib expects: it holds no lock of its own then, and half-loaded modules are undone."""
+
+    def __init__(self, stop: StopSignals, thread: int) -> None:
+        self._stop = stop
+        self._thread = thread
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> None:   # importlib's signature
+        if self._stop.requested.is_set() and threading.get_ident() == self._thread:
+            raise StartUpInterrupted(self._stop.name)
+        return None
 
 
 def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) -> None:
@@ -247,7 +276,7 @@ def _entry(module: str) -> Callable[[], None]:
     def main() -> None:
         stop = StopSignals.install()   # before the node's module (rclpy, OpenCV, ...) loads: seconds on a slow machine
         try:
-            with stop.interrupting():   # a Ctrl-C meanwhile ends the process now, not once they have loaded
+            with stop.interrupting():   # a Ctrl-C meanwhile ends the process at the next import, not once all loaded
                 node_module = importlib.import_module(module)
         except StartUpInterrupted:
             return   # exit 0, as a stop of a running node: nothing was built
