@@ -31,13 +31,10 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, Image
@@ -60,8 +57,6 @@ from touchroller_bringup.ros_params import (
     ConfigParameters,
     GeometryParameters,
     ParameterField,
-    check_start_up,
-    declare,
     declare_frame_prefix,
     frame_id_problem,
     parameter_values,
@@ -135,6 +130,31 @@ SOURCE_FIELDS: dict[str, ParameterField] = {
 }
 
 
+@dataclass(frozen=True)
+class StampSettings:
+    """What the published images carry: their frame id (before frame_prefix) and the camera's latency, taken
+    off their capture stamps (its parameters: STAMP_FIELDS; applied to the next frame)."""
+
+    frame_id: str = names.CAMERA_OPTICAL_FRAME
+    latency: float = 0.0
+
+    def __post_init__(self) -> None:
+        problem = frame_id_problem("frame_id", self.frame_id)
+        if problem:
+            raise ValueError(problem)
+
+
+STAMP_FIELDS: dict[str, ParameterField] = {
+    "frame_id": ParameterField("frame_id", "frame_id of published images and camera info (after frame_prefix); "
+                               f"other than {names.CAMERA_FRAME}, it is published on /tf_static as "
+                               f"{names.CAMERA_FRAME} with its axes (that frame is optical already: z along the "
+                               "view, x along u, y along v)"),
+    "camera.latency": ParameterField("latency", "Seconds from a frame's exposure to its capture stamp, subtracted "
+                                     "from the stamps (like v4l2_camera's timestamp_offset); 0: stamps as captured",
+                                     0.0, 1.0),
+}
+
+
 def image_qos() -> QoSProfile:
     """Reliable keep-last 5 (REP 2003). A new object per publisher: QoS overrides modify it in place."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE,
@@ -199,11 +219,9 @@ class CameraNode(Node):
         self.frame_prefix = declare_frame_prefix(self)
         self.geometry = GeometryParameters(self, on_change=self._on_geometry)
         self.camera_info = CameraInfoManager(self, self.geometry)
-        self.add_on_set_parameters_callback(self._validate)
-        self.add_post_set_parameters_callback(self._apply)
-        check_start_up(self, self._validate)   # the start-up values pass the checks a change does
+        self.stamp_parameters = ConfigParameters(self, StampSettings(), STAMP_FIELDS, on_change=self._on_stamp)
         self.camera_info.load()
-        self.frame_id = self._prefixed_frame_id()
+        self.frame_id = names.frame(self.stamp_parameters.config.frame_id, self.frame_prefix)
         self.tf = TransformPublisher(self)
         self._publish_optical_frame()
         self._image_msg = Image()
@@ -232,12 +250,6 @@ class CameraNode(Node):
         # node in one line: unlike a camera device, it will not come back by itself), reopened after a change
         self.source_parameters = ConfigParameters(self, SourceSettings(), SOURCE_FIELDS, check=self._check_source,
                                                   on_change=self._on_source)
-        declare(self, "frame_id", names.CAMERA_OPTICAL_FRAME, "frame_id of published images and camera info (after "
-                f"frame_prefix); other than {names.CAMERA_FRAME}, it is published on /tf_static as "
-                f"{names.CAMERA_FRAME} with its axes (that frame is optical already: z along the view, x along u, "
-                "y along v)")
-        declare(self, "camera.latency", 0.0, "Seconds from a frame's exposure to its capture stamp, subtracted "
-                "from the stamps (like v4l2_camera's timestamp_offset); 0: stamps as captured", min=0.0, max=1.0)
 
     @property
     def source_settings(self) -> SourceSettings:
@@ -254,21 +266,10 @@ class CameraNode(Node):
             self._listen_to_tf_if_on_arm()
             self._restart.set()  # the publishing thread reopens the source
 
-    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        """frame_id (the source's parameters are checked by their ConfigParameters)."""
-        for param in parameters:
-            problem = frame_id_problem(param.name, param.value) if param.name == "frame_id" else ""
-            if problem:
-                return SetParametersResult(successful=False, reason=problem)
-        return SetParametersResult(successful=True)
-
-    def _prefixed_frame_id(self) -> str:
-        return names.frame(str(self.get_parameter("frame_id").value), self.frame_prefix)
-
-    def _apply(self, parameters: Sequence[Parameter]) -> None:
-        changed = {p.name for p in parameters}
-        if "frame_id" in changed:
-            self.frame_id = self._prefixed_frame_id()
+    def _on_stamp(self, settings: StampSettings) -> None:
+        frame_id = names.frame(settings.frame_id, self.frame_prefix)
+        if frame_id != self.frame_id:
+            self.frame_id = frame_id
             self._publish_optical_frame()
 
     # ------------------------------------------------------------------ the simulated sensor on the arm
@@ -328,7 +329,7 @@ class CameraNode(Node):
                            loop=param["loop"], clock_ns=clock_ns)
 
     def _latency_ns(self) -> int:
-        return round(float(self.get_parameter("camera.latency").value) * 1e9)
+        return round(self.stamp_parameters.config.latency * 1e9)
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
