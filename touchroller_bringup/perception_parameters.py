@@ -3,10 +3,13 @@
 DETECTOR_PARAMETERS (DetectorConfig), STITCHER_PARAMETERS (StitcherConfig), HEIGHT_PARAMETERS
 (WorldHeightConfig), VIEW_PARAMETERS (TileConfig) and WORLD_FIELDS (`WorldSettings`, the world map's
 parameters, which give the mapper its WorldMapConfig); a change of the stitcher's, the height map's or the
-world map's starts a new map. The live findings' table is touchroller_bringup.live_findings'.
+world map's starts a new map. PERCEPTION_FIELDS binds the node's own `PerceptionSettings` (the contacts'
+frame, the reference's frames, where and how often the map goes out). The live findings' table is
+touchroller_bringup.live_findings'.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 from touchroller_bringup import names
@@ -163,3 +166,38 @@ WORLD_FIELDS: dict[str, ParameterField] = {
                                            "map"),
 }
 WORLD_PARAMETERS = tuple(WORLD_FIELDS)
+
+
+@dataclass(frozen=True)
+class PerceptionSettings:
+    """The node's own parameters (PERCEPTION_FIELDS), no algorithm's config: the frame of the contacts it
+    publishes, the frames of a new reference, the file a finished map is saved to and the map's rate."""
+
+    contacts_frame_id: str = names.CYLINDER_FRAME
+    reference_frames: int = 5
+    save_path: str = ""
+    publish_rate: float = 1.0
+
+    def __post_init__(self) -> None:
+        problem = frame_id_problem("contacts.frame_id", self.contacts_frame_id)
+        if problem:
+            raise ValueError(problem)
+
+
+def check_save_path(settings: PerceptionSettings) -> None:
+    """ValueError when map.save_path names something that is there and is no file (a folder)."""
+    path = settings.save_path
+    if path and os.path.exists(path) and not os.path.isfile(path):
+        raise ValueError(f"map.save_path {path} exists and is not a regular file; give a PNG file name")
+
+
+PERCEPTION_FIELDS: dict[str, ParameterField] = {
+    "contacts.frame_id": ParameterField("contacts_frame_id", "frame_id of the published contact points (after "
+                                        "frame_prefix)"),
+    "reference.frames": ParameterField("reference_frames", "No-contact frames averaged into the reference", 1, 1000),
+    "map.save_path": ParameterField("save_path", "PNG file the finished map is written to when a sweep ends (empty: "
+                                    "not saved); a world map also writes map.yaml beside it (nav2 map_server "
+                                    "format)"),
+    "map.publish_rate": ParameterField("publish_rate", "Tactile map publishing rate, Hz (0 disables the map)",
+                                       0.0, 100.0),
+}

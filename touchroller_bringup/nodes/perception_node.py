@@ -49,7 +49,6 @@ set at run time (the calibration node sets `extrinsics.theta` and `extrinsics.d`
 from __future__ import annotations
 
 import math
-import os
 import sys
 import threading
 import time
@@ -78,10 +77,13 @@ from touchroller_bringup.map_markers import MapViewPublisher
 from touchroller_bringup.perception_parameters import (
     DETECTOR_PARAMETERS,
     HEIGHT_PARAMETERS,
+    PERCEPTION_FIELDS,
     STITCHER_PARAMETERS,
     VIEW_PARAMETERS,
     WORLD_FIELDS,
+    PerceptionSettings,
     WorldSettings,
+    check_save_path,
 )
 from touchroller_bringup.publisher_filter import PublisherFilter
 from touchroller_bringup.ros_diagnostics import (
@@ -97,9 +99,7 @@ from touchroller_bringup.ros_params import (
     ConfigParameters,
     GeometryParameters,
     check_start_up,
-    declare,
     declare_frame_prefix,
-    frame_id_problem,
 )
 from touchroller_bringup.ros_services import create_trigger_service
 from touchroller_bringup.tf import TransformListener, TransformPublisher, camera_in_cylinder
@@ -131,6 +131,8 @@ MAP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=Relia
 
 
 
+#: the parameters of the band that must fit the world map (check_band_fits), from two bindings
+BAND_PARAMETERS = ("map.world", "map.resolution", "map.band_rows")
 #: /diagnostics stays WARN this long after a malformed, refused or unmappable frame (published once a second)
 BAD_INPUT_HOLD_S = 10.0
 #: the map stage is reported as failing (ERROR) after this many frames in a row it could not map
@@ -148,12 +150,14 @@ class PerceptionNode(Node):
         self.geometry = GeometryParameters(self, on_change=self._on_geometry)
         self.camera: CameraModel = self.geometry.model
         self.lookup = SurfaceLookup(self.camera)   # per-pixel back-projection: microseconds per contact
-        self.add_on_set_parameters_callback(self._validate)
-        self.add_post_set_parameters_callback(self._apply)
-        check_start_up(self, self._validate)   # the start-up values pass the checks a change does
-        self.detector = ContactDetector(self.detector_parameters.config,
-                                        int(self.get_parameter("reference.frames").value))
-        self.frame_id = self._contacts_frame_id()
+        # the band that must fit map.resolution spans two bindings: checked in its own on-set callback, added
+        # after the node's settings' binding (rclpy runs the newest first), and at start-up before it
+        check_start_up(self, self._validate_band, BAND_PARAMETERS)
+        self.settings_parameters = ConfigParameters(self, PerceptionSettings(), PERCEPTION_FIELDS,
+                                                    check=check_save_path, on_change=self._on_settings)
+        self.add_on_set_parameters_callback(self._validate_band)
+        self.detector = ContactDetector(self.detector_parameters.config, self.settings.reference_frames)
+        self.frame_id = names.frame(self.settings.contacts_frame_id, self.frame_prefix)
         self.stitcher: Any = None
         self.world: WorldMapper | None = None   # the world map, once TF links world_frame to the cylinder
         self.world_frame = self.world_parameters.config.world_frame   # the robot's: no prefix
@@ -163,6 +167,7 @@ class PerceptionNode(Node):
         self._done_frame_id = ""
         self._map_dirty = False
         self._map_timer = None
+        self._map_rate_hz = 0.0   # the map timer's rate (0: none)
         self._map_lock = threading.Lock()   # `touchroller scan` finishes the map from its own thread
         self._rolling = False
         self._finish_after_ns: int | None = None   # a world map is finished with the first frame after this
@@ -210,7 +215,7 @@ class PerceptionNode(Node):
         on_image = self._on_image_with_info if _has_message_info() else self._on_image
         self.image_sub = self._subscribe_images(on_image)
         self._create_recapture_interface()
-        self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+        self._set_map_rate(self.settings.publish_rate)
         self._set_findings_timer()
         self.tf = TransformPublisher(self)
         self._publish_camera_frame()
@@ -222,21 +227,14 @@ class PerceptionNode(Node):
         # the algorithms' configs, each bound to its table (declared, checked on set, applied after set)
         self.detector_parameters = ConfigParameters(self, DetectorConfig(), DETECTOR_PARAMETERS,
                                                     on_change=self._on_detector_config)
-        declare(self, "contacts.frame_id", names.CYLINDER_FRAME, "frame_id of the published contact points (after "
-                "frame_prefix)")
-        declare(self, "reference.frames", 5, "No-contact frames averaged into the reference", min=1, max=1000)
         self.stitcher_parameters = ConfigParameters(self, StitcherConfig(), STITCHER_PARAMETERS,
                                                     on_change=lambda _: self.reset_map())
-        declare(self, "map.save_path", "", "PNG file the finished map is written to when a sweep ends "
-                "(empty: not saved); a world map also writes map.yaml beside it (nav2 map_server format)")
         self.world_parameters = ConfigParameters(self, WorldSettings(), WORLD_FIELDS, on_change=self._on_world_settings)
         from touchroller_perception.world_height import WorldHeightConfig
 
         self.height_parameters = ConfigParameters(self, WorldHeightConfig(), HEIGHT_PARAMETERS,
                                                   on_change=lambda _: self.reset_map())
         self.view_parameters = ConfigParameters(self, TileConfig(), VIEW_PARAMETERS, on_change=self._on_view_config)
-        declare(self, "map.publish_rate", 1.0, "Tactile map publishing rate, Hz (0 disables the map)",
-                min=0.0, max=100.0)
         self.findings_parameters = ConfigParameters(self, LiveFindingsConfig(), LIVE_FINDINGS_PARAMETERS,
                                                     on_change=self._on_findings_config)
 
@@ -260,42 +258,30 @@ class PerceptionNode(Node):
         self.live_findings.config = config
         self._set_findings_timer()
 
-    def _validate(self, parameters: Sequence[Parameter]) -> SetParametersResult:
-        """What no config binding covers: the band that must fit the world map, contacts.frame_id and
-        map.save_path (the configs are checked by their ConfigParameters)."""
-        band = {p.name: p.value for p in parameters if p.name in ("map.world", "map.resolution", "map.band_rows")}
+    def _validate_band(self, parameters: Sequence[Parameter]) -> SetParametersResult:
+        """The band that must fit the world map (map.world, map.resolution: WORLD_FIELDS; map.band_rows:
+        STITCHER_PARAMETERS), which no one binding holds."""
+        band = {p.name: p.value for p in parameters if p.name in BAND_PARAMETERS}
         if band:   # a world map whose every band would be refused (too many map pixels) maps nothing
-            values = {name: self.get_parameter(name).value for name in ("map.world", "map.resolution", "map.band_rows")}
+            values = {name: self.get_parameter(name).value for name in BAND_PARAMETERS}
             values.update(band)
             if values["map.world"]:
                 try:
                     check_band_fits(self.camera, int(values["map.band_rows"]), float(values["map.resolution"]))
                 except ValueError as exc:
                     return SetParametersResult(successful=False, reason=f"map.resolution {exc}")
-        for p in parameters:
-            problem = frame_id_problem(p.name, p.value) if p.name == "contacts.frame_id" else ""
-            if p.name == "map.save_path" and str(p.value) and os.path.exists(str(p.value)) \
-                    and not os.path.isfile(str(p.value)):
-                problem = f"map.save_path {p.value} exists and is not a regular file; give a PNG file name"
-            if problem:
-                return SetParametersResult(successful=False, reason=problem)
         return SetParametersResult(successful=True)
 
-    def _apply(self, parameters: Sequence[Parameter]) -> None:
-        """What no config binding covers (a change of the stitcher's, the height map's or the world map's
-        config starts a new map in its binding's on_change)."""
-        changed = {p.name for p in parameters}
-        if "reference.frames" in changed:
-            self.detector.reference_frames = int(self.get_parameter("reference.frames").value)
-        if "contacts.frame_id" in changed:
-            self.frame_id = self._contacts_frame_id()
-        if "map.publish_rate" in changed:
-            self._set_map_rate(float(self.get_parameter("map.publish_rate").value))
+    @property
+    def settings(self) -> PerceptionSettings:
+        return self.settings_parameters.config
+
+    def _on_settings(self, settings: PerceptionSettings) -> None:
+        self.detector.reference_frames = settings.reference_frames
+        self.frame_id = names.frame(settings.contacts_frame_id, self.frame_prefix)
+        if settings.publish_rate != self._map_rate_hz:
+            self._set_map_rate(settings.publish_rate)
             self._set_findings_timer()
-
-
-    def _contacts_frame_id(self) -> str:
-        return names.frame(str(self.get_parameter("contacts.frame_id").value), self.frame_prefix)
 
     def _publish_camera_frame(self) -> None:
         """touchroller_cylinder -> touchroller_camera on /tf_static, from extrinsics.theta and d."""
@@ -441,6 +427,7 @@ class PerceptionNode(Node):
 
     # ------------------------------------------------------------------ map
     def _set_map_rate(self, rate_hz: float) -> None:
+        self._map_rate_hz = rate_hz
         if self._map_timer is not None:
             self.destroy_timer(self._map_timer)
             self._map_timer = None
@@ -454,7 +441,7 @@ class PerceptionNode(Node):
             self.destroy_timer(self._findings_timer)
             self._findings_timer = None
         config = self.live_findings.config
-        rate = float(self.get_parameter("map.publish_rate").value)
+        rate = self.settings.publish_rate
         if config.enabled and rate > 0 and 0 < config.period_s < 1.0 / rate:
             self._findings_timer = self.create_timer(config.period_s, self.publish_findings)
 
@@ -572,7 +559,7 @@ class PerceptionNode(Node):
                 return
             self._map_dirty = True
         tactile_map = self.publish_map(all_findings=True)
-        path = str(self.get_parameter("map.save_path").value)
+        path = self.settings.save_path
         if path and tactile_map is not None:
             self._save_map(tactile_map, path)
 
