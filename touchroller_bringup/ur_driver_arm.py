@@ -56,6 +56,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Bool, String
 from std_srvs.srv import Trigger
 
+from touchroller_bringup.ros_params import ParameterField
 from touchroller_bringup.tf import TransformListener
 from touchroller_driver.arm import ArmError, ArmLimits, as_pose, check_path_start
 from touchroller_driver.path import blend_radii, fraction_along_path
@@ -137,7 +138,7 @@ class URDriverConfig:
 
 
 # parameter name -> (URDriverConfig field, description, min, max); read at start-up (read-only)
-UR_DRIVER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
+_UR_DRIVER_ROWS: dict[str, tuple[str, str, float | None, float | None]] = {
     "ur_driver.script_topic": ("script_topic", "arm.backend ur_driver: the driver's urscript_interface topic "
                                "(std_msgs/String) the movel/stopl programs are published on", None, None),
     "ur_driver.program_running_topic": ("program_running_topic", "arm.backend ur_driver: the driver's External "
@@ -173,29 +174,21 @@ UR_DRIVER_PARAMETERS: dict[str, tuple[str, str, float | None, float | None]] = {
     "ur_driver.stop_deceleration": ("stop_deceleration", "arm.backend ur_driver: stopl's tool deceleration, "
                                     "m/s^2", 0.01, 10.0),
 }
-assert {field for field, *_ in UR_DRIVER_PARAMETERS.values()} == {f.name for f in fields(URDriverConfig)}
-
-
-def declare_ur_driver_parameters(node: Node) -> None:
-    """Declare the `ur_driver.*` parameters (read-only: the arm is made once, at start-up)."""
-    from touchroller_bringup.ros_params import declare
-
-    defaults = URDriverConfig()
-    for name, (attribute, description, lo, hi) in UR_DRIVER_PARAMETERS.items():
-        declare(node, name, getattr(defaults, attribute), description, min=lo, max=hi, read_only=True)
-
-
-def ur_driver_config(node: Node) -> URDriverConfig:
-    """The config from the node's `ur_driver.*` parameters; ValueError (one line) for a bad value."""
-    return URDriverConfig(**{field: node.get_parameter(name).value
-                             for name, (field, *_) in UR_DRIVER_PARAMETERS.items()})
+#: the `ur_driver.*` parameters, bound to URDriverConfig; read-only: the arm is made once, at start-up
+UR_DRIVER_PARAMETERS: dict[str, ParameterField] = {name: ParameterField(*row, read_only=True)
+                                                   for name, row in _UR_DRIVER_ROWS.items()}
+assert {row.field for row in UR_DRIVER_PARAMETERS.values()} == {f.name for f in fields(URDriverConfig)}
 
 
 def make_ur_driver_arm(node: Node, limits: ArmLimits) -> URDriverArm:
-    """The sweep node's factory for `arm.backend: ur_driver`: declares `ur_driver.*` on `node` and builds
-    the arm in the node's context (it connects later, from the sweep node's worker thread)."""
-    declare_ur_driver_parameters(node)
-    return URDriverArm(ur_driver_config(node), limits=limits, context=node.context)
+    """The sweep node's factory for `arm.backend: ur_driver`: declares `ur_driver.*` on `node` (a
+    ConfigParameters of UR_DRIVER_PARAMETERS) and builds the arm in the node's context (it connects later,
+    from the sweep node's worker thread). UserError (one line, naming the node and the parameter) for a bad
+    value."""
+    from touchroller_bringup.ros_params import ConfigParameters
+
+    config = ConfigParameters(node, URDriverConfig(), UR_DRIVER_PARAMETERS).config
+    return URDriverArm(config, limits=limits, context=node.context)
 
 
 def format_number(value: float) -> str:
@@ -673,5 +666,5 @@ def _fraction_along(start: np.ndarray, target: np.ndarray, pose: np.ndarray) -> 
     return min(max(fraction, 0.0), 1.0) if math.isfinite(fraction) else float("nan")
 
 
-__all__ = ["UR_DRIVER_PARAMETERS", "URDriverArm", "URDriverConfig", "declare_ur_driver_parameters",
-           "make_ur_driver_arm", "movel_program", "path_program", "stopl_program", "ur_driver_config"]
+__all__ = ["UR_DRIVER_PARAMETERS", "URDriverArm", "URDriverConfig", "make_ur_driver_arm", "movel_program",
+           "path_program", "stopl_program"]

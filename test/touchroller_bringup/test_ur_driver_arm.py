@@ -19,6 +19,7 @@ pytest.importorskip("rclpy")
 pytest.importorskip("ur_dashboard_msgs.msg")
 from std_msgs.msg import Bool  # noqa: E402
 
+from touchroller_bringup.errors import UserError  # noqa: E402
 from touchroller_bringup.ur_driver_arm import (  # noqa: E402
     UR_DRIVER_PARAMETERS,
     URDriverArm,
@@ -143,7 +144,9 @@ def test_parameter_table_declares_every_field_and_the_factory_reads_it(ros_conte
     node = rclpy.create_node("factory_bad", context=ros_context, parameter_overrides=[
         Parameter("ur_driver.base_frame", value="tool0")])
     try:
-        with pytest.raises(ValueError, match="ur_driver.base_frame and ur_driver.tool_frame"):
+        # refused as the node's other bindings refuse: one line naming the node and the parameters
+        with pytest.raises(UserError, match="^factory_bad: ur_driver.base_frame and ur_driver.tool_frame are both "
+                                            "'tool0'$"):
             make_ur_driver_arm(node, ArmLimits())
     finally:
         node.destroy_node()
