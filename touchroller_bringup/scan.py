@@ -428,6 +428,8 @@ def _make_nodes(graph: Graph, classes: Mapping[str, type], context: Any, options
                 if name is None:
                     raise UserError(f"cannot start node {spec.full_name}: {' '.join(str(exc).split())}") from None
                 overrides[name] = float(overrides[name])  # `speed:=1` means 1.0, as ros2 param set would not
+            except UserError as exc:   # a start-up value a node's config binding refused (one line already)
+                raise UserError(f"cannot start node {spec.full_name}: {exc}") from None
         nodes.append(node)
         return node
 
