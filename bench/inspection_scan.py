@@ -188,23 +188,15 @@ class LineSpread:
 
 
 def half_depth_width(offsets: np.ndarray, depth: np.ndarray) -> float:
-    """The profile's full width at half its deepest sample, each side's crossing interpolated linearly between
-    the samples either side of it (not the outermost samples past half depth: those read the width short by up
-    to a sample spacing on each side, in steps of it); NaN where a side never rises above half depth."""
+    """The profile's full width at half its deepest sample (`offsets` evenly spaced), each side's crossing
+    interpolated as the detector's `across` does (`centreline.half_width`), not the outermost samples past half
+    depth: those read the width short by up to a sample spacing on each side, in steps of it; NaN where a side
+    never rises above half depth."""
+    from touchroller_perception.inspection.centreline import half_width
+
     k = int(np.argmax(depth))
-    half = 0.5 * float(depth[k])
-    below = depth < half
-    right = np.flatnonzero(below[k:])
-    left = np.flatnonzero(below[:k + 1][::-1])
-    if half <= 0 or right.size == 0 or left.size == 0:
-        return math.nan
-    r, l_ = k + int(right[0]), k - int(left[0])     # first samples below half depth, either side of the peak
-
-    def crossing(outer: int, inner: int) -> float:
-        t = (depth[inner] - half) / (depth[inner] - depth[outer])
-        return float(offsets[inner] + t * (offsets[outer] - offsets[inner]))
-
-    return crossing(r, r - 1) - crossing(l_, l_ + 1)
+    samples = half_width(np.asarray(depth, np.float64)[None, :], np.array([k]), np.array([float(depth[k])]))[0]
+    return float(samples * (offsets[1] - offsets[0]))
 
 
 def line_spread(height_tif: Path, truth: Sequence[Finding], footprint_px: float | None = None) -> list[LineSpread]:

@@ -116,6 +116,33 @@ class Profiles:
     peak: np.ndarray          # (n,) the profile's peak (depth), in the residual's unit
 
 
+def half_width(values: np.ndarray, k: np.ndarray, peak: np.ndarray) -> np.ndarray:
+    """Per profile (a row of `values`, its peak `peak` at sample `k`), the full width where it falls to half of
+    the peak, in samples: each side's crossing interpolated linearly between the samples either side of it;
+    NaN where a side never falls to half, or the peak is not positive."""
+    n, size = values.shape
+    half = 0.5 * peak
+    idx = np.arange(size)[None, :]
+    below = values < half[:, None]
+    right_mask = below & (idx > k[:, None])
+    left_mask = below & (idx < k[:, None])
+    has_right, has_left = right_mask.any(axis=1), left_mask.any(axis=1)
+    r = np.argmax(right_mask, axis=1)
+    l_ = size - 1 - np.argmax(left_mask[:, ::-1], axis=1)
+    rr = np.arange(n)
+
+    def crossing(i_out: np.ndarray, i_in: np.ndarray) -> np.ndarray:
+        v_out, v_in = values[rr, i_out], values[rr, i_in]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(v_in != v_out, (v_in - half) / (v_in - v_out), 0.5)
+        return i_in + np.clip(t, 0, 1) * (i_out - i_in)
+
+    right = crossing(r, np.maximum(r - 1, 0))
+    left = crossing(l_, np.minimum(l_ + 1, size - 1))
+    out: np.ndarray = np.where(has_right & has_left & (peak > 0), right - left, np.nan)
+    return out
+
+
 def across(depth: np.ndarray, path: np.ndarray, half_width_px: float, step: float = 0.25) -> Profiles:
     """Profiles of `depth` (a depression positive, NaN-free) across the path at each of its points: the peak
     near the path (parabola-refined), and the full width where the profile falls to half of it."""
@@ -142,24 +169,6 @@ def across(depth: np.ndarray, path: np.ndarray, half_width_px: float, step: floa
     shift = np.clip(shift, -0.5, 0.5)
     peak = y1 - 0.25 * (y0 - y2) * shift
     at = (k + shift - middle) * step
-    half = 0.5 * peak
-    idx = np.arange(offsets.size)[None, :]
-    below = values < half[:, None]
-    right_mask = below & (idx > k[:, None])
-    left_mask = below & (idx < k[:, None])
-    has_right, has_left = right_mask.any(axis=1), left_mask.any(axis=1)
-    r = np.argmax(right_mask, axis=1)
-    l_ = offsets.size - 1 - np.argmax(left_mask[:, ::-1], axis=1)
-    rr = np.arange(n)
-
-    def crossing(i_out: np.ndarray, i_in: np.ndarray) -> np.ndarray:
-        v_out, v_in = values[rr, i_out], values[rr, i_in]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(v_in != v_out, (v_in - half) / (v_in - v_out), 0.5)
-        return (i_in + np.clip(t, 0, 1) * (i_out - i_in)) * step
-
-    right = crossing(r, np.maximum(r - 1, 0))
-    left = crossing(l_, np.minimum(l_ + 1, offsets.size - 1))
-    fwhm = np.where(has_right & has_left & (peak > 0), right - left, np.nan)
+    fwhm = half_width(values, k, peak) * step
     centre = path + normal * at[:, None]
     return Profiles(centre, fwhm, peak)
