@@ -14,6 +14,20 @@ from bench.hostile.probe import Probe
 
 SPREAD_MOMENTS = 16   # moments spread evenly over the Python calls of the start, per node
 
+#: script text (stdlib only) defining `initialising_extension()`: the name of the extension module whose
+#: initialisation (its loader's create_module / exec_module) is on the stack, or None: where a module imported
+#: then is imported by C code that replaces any exception with its own ImportError
+INITIALISING_EXTENSION = """
+def initialising_extension():
+    frame = sys._getframe()
+    while frame is not None:
+        loader = frame.f_locals.get("self") if frame.f_code.co_name in ("create_module", "exec_module") else None
+        if type(loader).__name__ == "ExtensionFileLoader":
+            return loader.name
+        frame = frame.f_back
+    return None
+"""
+
 #: `python -c` argv: ENTRY HOW ARG. HOW is `extension` (at the first import an extension module's initialisation
 #: makes), `function` (at the first call of the function named ARG in importlib or rclpy), `call` (at the ARG-th
 #: Python call of the main thread) or `count` (print the calls made up to the first spin, then exit).
@@ -26,15 +40,7 @@ def ctrl_c_twice(where):
     os.kill(os.getpid(), signal.SIGINT)
     os.kill(os.getpid(), signal.SIGINT)
 
-def initialising_extension():
-    frame = sys._getframe()
-    while frame is not None:
-        loader = frame.f_locals.get("self") if frame.f_code.co_name in ("create_module", "exec_module") else None
-        if type(loader).__name__ == "ExtensionFileLoader":
-            return loader.name
-        frame = frame.f_back
-    return None
-
+""" + INITIALISING_EXTENSION + """
 class AtExtensionImport:
     done = False
     def find_spec(self, name, path=None, target=None):

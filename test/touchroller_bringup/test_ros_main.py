@@ -9,6 +9,8 @@ import sys
 import pytest
 
 pytest.importorskip("rclpy")
+from bench.hostile.start_signals import INITIALISING_EXTENSION  # noqa: E402
+
 pytestmark = pytest.mark.ros
 
 NODE_MODULES = {
@@ -255,20 +257,11 @@ def test_a_stop_signal_while_the_node_module_loads_ends_it_there(ros_context, tm
 #: held until the test writes a line
 HELD_EXTENSION_IMPORT = """
 import atexit, sys
-
-def extension_initialising():
-    frame = sys._getframe()
-    while frame is not None:
-        loader = frame.f_locals.get("self") if frame.f_code.co_name in ("create_module", "exec_module") else None
-        if type(loader).__name__ == "ExtensionFileLoader":
-            return loader.name
-        frame = frame.f_back
-    return None
-
+""" + INITIALISING_EXTENSION + """
 class Hold:
     held = False
     def find_spec(self, name, path=None, target=None):
-        extension = None if Hold.held else extension_initialising()
+        extension = None if Hold.held else initialising_extension()
         if extension:
             Hold.held = True
             print("importing", name, "for", extension, flush=True)
