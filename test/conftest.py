@@ -93,6 +93,32 @@ def ros_context(monkeypatch: pytest.MonkeyPatch) -> Iterator[object]:
             context.try_shutdown()
 
 
+@pytest.fixture
+def other_participant(ros_context: object) -> Iterator[object]:
+    """A second initialised Context on ros_context's domain: a DDS participant of its own, as a caller in
+    another process has (discovery between the two is not immediate, and QoS is matched across it)."""
+    import os
+
+    import rclpy
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+    try:
+        yield context
+    finally:
+        context.try_shutdown()
+
+
+@pytest.fixture
+def never_answered_qos() -> object:
+    """A client with this QoS is served (its request writer matches a service's volatile request reader)
+    but its reply reader never matches the service's volatile reply writer: rmw_fastrtps drops every
+    answer to it, as it drops one to a caller it has not discovered yet."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 def _spin_until(executor_or_node: object, predicate: Callable[[], bool], timeout: float = 20.0) -> bool:
     """Spin until `predicate()` is true or `timeout` s pass; returns the predicate's last value.
 
