@@ -160,6 +160,7 @@ def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) ->
                 raise SystemExit(_start_up_failure(exc)) from None
         executor = SingleThreadedExecutor()
         if node is not None:
+            _deliver_answers(node)
             executor.add_node(node)
         while not stop.requested.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)   # a signal is seen within this, between callbacks
@@ -181,6 +182,17 @@ def run_node(make_node: Callable[[], Any], args: Sequence[str] | None = None) ->
             rclpy.try_shutdown()
             if ours:   # called in-process (tests): the caller's handlers again
                 StopSignals.uninstall()
+
+
+def _deliver_answers(node: Any) -> None:
+    """Answers DDS dropped are sent again for every service of a node in a process of its own, where
+    callers from other processes meet that (answer_delivery); a node that handles some itself keeps its own."""
+    from touchroller_bringup.answer_delivery import AnswerDelivery
+
+    delivery = getattr(node, "answers", None)
+    if not isinstance(delivery, AnswerDelivery):
+        delivery = AnswerDelivery(node)
+    delivery.handle_all()
 
 
 def start_up_errors() -> tuple[type[BaseException], ...]:

@@ -420,3 +420,42 @@ def test_every_node_that_fails_right_after_node_init_keeps_its_error_and_shuts_d
         cls(context=ros_context)
     ros_context.try_shutdown()   # destroys the half-built node, which the traceback keeps alive
     assert raised.value is not None and not ros_context.ok()
+
+
+@pytest.mark.timeout(120)
+def test_a_node_process_gives_up_an_answer_dds_drops_with_an_error_and_answers_the_next_caller(
+        ros_context, other_participant, never_answered_qos, spin_until, tmp_path):
+    """run_node hands every service of its node to answer_delivery: a parameter service's answer that
+    can never reach its caller is resent, then given up with one ERROR line; the node answers on."""
+    from rcl_interfaces.srv import ListParameters
+    from rclpy.node import Node
+
+    module = "touchroller_bringup.nodes.calibration_node"
+    process = subprocess.Popen([sys.executable, "-c", f"from {module} import main; main()"], cwd=tmp_path,
+                               env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
+    service = f"{NODE_MODULES[module]}/list_parameters"
+    probe = Node("answer_probe", context=ros_context)
+    deaf_node = Node("deaf_probe", context=other_participant)
+    try:
+        client = probe.create_client(ListParameters, service)
+        ready = spin_until(probe, lambda: client.service_is_ready() or process.poll() is not None, timeout=60.0)
+        assert ready and process.poll() is None, f"{module} exited early or never came up:\n{_output(process)}"
+        deaf = deaf_node.create_client(ListParameters, service, qos_profile=never_answered_qos)
+        for _ in range(6):   # one request taken is enough; its answer never arrives
+            deaf.call_async(ListParameters.Request())
+            spin_until(probe, lambda: False, timeout=0.5)
+        future = _call_until_answered(probe, client, ListParameters.Request(), spin_until, timeout=30.0)
+        assert future is not None and future.result().result.names, _output(process)
+        spin_until(probe, lambda: False, timeout=4.0)   # the deaf caller's answers are given up after 3 s
+        process.send_signal(signal.SIGINT)
+        output, _ = process.communicate(timeout=30)
+    finally:
+        probe.destroy_node()
+        deaf_node.destroy_node()
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 0, output
+    assert "list_parameters: the answer" in output and "never reached its caller" in output, output
+    assert "failed to send response" not in output, output   # handled, not rclpy's bare warning

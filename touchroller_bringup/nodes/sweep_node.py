@@ -58,6 +58,7 @@ from std_msgs.msg import Float32, Header, UInt32MultiArray
 from std_srvs.srv import Trigger
 
 from touchroller_bringup import names
+from touchroller_bringup.answer_delivery import AnswerDelivery
 from touchroller_bringup.ros_diagnostics import ERROR, OK, WARN, DiagnosticsPublisher, Status
 from touchroller_bringup.ros_params import ConfigParameters, declare_frame_prefix, parameter_values
 from touchroller_bringup.sweep_action import SweepActionServer, make_sweep_action
@@ -203,6 +204,11 @@ class SweepNode(Node):
         self._start_srv = self.create_service(Trigger, f"~/{names.START}", self._on_start)
         self._stop_srv = self.create_service(Trigger, f"~/{names.STOP}", self._on_stop)
         self._reset_srv = self.create_service(Trigger, f"~/{names.RESET_FAULT}", self._on_reset_fault)
+        # an answer DDS dropped is sent again; a start answered success that never reaches its caller
+        # stops the arm: the arm moves only after a start that was answered success
+        self.answers = AnswerDelivery(self)
+        self.answers.handle(self._start_srv, on_lost=self._start_answer_lost)
+        self.answers.handle_all()
         self._plan_settings: dict[str, Any] = dict(self.settings)   # the parameters of the sweep started last
         self._action: SweepActionServer | None = make_sweep_action(self)
         simulated = isinstance(self.arm, SimulatedArm)
@@ -343,6 +349,14 @@ class SweepNode(Node):
 
     def _on_reset_fault(self, request: Any, response: Any) -> Any:
         return self._answer(response, self._submit("reset_fault"))
+
+    def _start_answer_lost(self, response: Any) -> None:
+        """A start's answer never reached its caller (AnswerDelivery gave up): a started sweep is stopped."""
+        if not response.success:
+            return
+        stopped = self._stop()
+        self.get_logger().error(f"start: its caller never heard the answer, so the sweep it started is stopped "
+                                f"({stopped.message}); call ~/start again")
 
     def _stopping(self) -> bool:
         """Shutting down: the node is being destroyed, its context is down, or a stop signal arrived."""

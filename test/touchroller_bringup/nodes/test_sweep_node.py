@@ -550,3 +550,29 @@ def test_stop_mid_path_halts_the_arm(harness_factory, spin_until):
     here = arm.tcp_pose()
     time.sleep(0.2)
     assert not arm.is_moving() and np.array_equal(arm.tcp_pose(), here)
+
+
+def test_a_start_whose_answer_never_reaches_its_caller_stops_the_arm(harness_factory, other_participant,
+                                                                     never_answered_qos, spin_until):
+    """rmw dropped the answer of a start that succeeded (a caller in another participant whose reply reader
+    never matches): once the answer is given up, the sweep it started is stopped, as the arm moves only
+    after a start that was answered success."""
+    arm = SlowRollArm()   # the roll lasts 50 s of wall time: the stop comes while it rolls
+    h = harness_factory(arm=arm)
+    caller = Node("deaf_caller", context=other_participant)
+    deaf = caller.create_client(Trigger, names.service(names.SWEEP_NODE, names.START), qos_profile=never_answered_qos)
+    try:
+        deadline = time.monotonic() + 30.0
+        while not arm.moves and time.monotonic() < deadline:   # until its request writer is matched
+            deaf.call_async(Trigger.Request())
+            spin_until(h.executor, lambda: arm.moves > 0, timeout=0.5)
+        assert arm.moves, "the start was never taken"
+        assert spin_until(h.executor, h.node.finished.is_set, timeout=30.0)
+        assert h.node.status.phase is SweepPhase.STOPPED and not arm.is_moving()
+        assert not h.progress or h.progress[-1] < 1.0   # stopped, not finished
+        assert h.node.answers.counts.lost >= 1
+        assert h.call(spin_until, "start").success   # a caller who hears the answer starts it again
+        assert arm.is_moving() or h.node.sequencer.active
+        assert h.call(spin_until, "stop").success
+    finally:
+        caller.destroy_node()
