@@ -1,5 +1,6 @@
 """Hostile probes of the arm (issue #29): a UR that greets and then goes silent, oversized rasters, a start
-its caller was told failed, and foreign publishers on a scan's topics.
+its caller was told failed, a start whose answer never reaches its caller, and foreign publishers on a
+scan's topics.
 
 Each probe runs what a user runs (the `sweep_node` and `touchroller` console scripts, as processes, on a
 ROS domain of its own, loopback only) and returns None when the expectation held, else one line. The
@@ -217,6 +218,80 @@ def _failed_start_never_moves(scratch: Path) -> str | None:
             context.try_shutdown()
 
 
+# -- a start whose answer never reaches its caller -------------------------------------------------------
+
+def _unheard_start_stops(scratch: Path) -> str | None:
+    """A caller in another process whose reply reader can never match (a transient-local durability the
+    service does not offer) is served by `~/start`, but DDS drops every answer to it: the sweep node
+    must stop the sweep that start began once it gives the answer up."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_srvs.srv import Trigger
+
+    from touchroller_bringup import names
+
+    deaf_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    log = scratch / "sweep_node.log"
+    with _domain() as env, log.open("w") as out:
+        # a 10 cm roll at 5 mm/s: 20 s, far longer than the 3 s after which an unheard answer is given up
+        process = subprocess.Popen([str(BIN / "sweep_node"), "--ros-args", "-p", "use_sim:=true",
+                                    "-p", "sweep.length:=0.1", "-p", "sweep.speed:=0.005"], env=env,
+                                   stdout=out, stderr=subprocess.STDOUT, text=True)
+        context = rclpy.context.Context()
+        rclpy.init(context=context, args=[], domain_id=int(env["ROS_DOMAIN_ID"]))
+        probe = Node("hostile_deaf_caller", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(probe)
+        poses: list[tuple[float, list[float]]] = []
+        probe.create_subscription(PoseStamped, names.topic(names.TCP_POSE), lambda m: poses.append(
+            (time.monotonic(), [m.pose.position.x, m.pose.position.y, m.pose.position.z])), 50)
+        deaf = probe.create_client(Trigger, names.service(names.SWEEP_NODE, names.START), qos_profile=deaf_qos)
+
+        def spin_for(seconds: float) -> None:
+            deadline = time.monotonic() + seconds
+            while time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.05)
+
+        def moving_since(since: float) -> bool:
+            after = [xyz for t, xyz in poses if t >= since]
+            return len(after) >= 2 and max(abs(a - b) for a, b in zip(after[0], after[-1], strict=True)) > 1e-6
+
+        try:
+            deadline = time.monotonic() + 60.0
+            while not poses and time.monotonic() < deadline:   # the node is up and publishes its pose
+                spin_for(0.2)
+            if not poses:
+                return "no tcp_pose from the sweep node within 60 s"
+            called = time.monotonic()
+            while not moving_since(called) and time.monotonic() < called + 30.0:
+                deaf.call_async(Trigger.Request())   # until its request writer is matched and a start taken
+                spin_for(0.5)
+            if not moving_since(called):
+                return "the deaf caller's start never moved the arm (the probe did not start a sweep)"
+            spin_for(6.0)   # the answer is given up after 3 s; the stop follows at once
+            still = time.monotonic()
+            spin_for(1.5)
+            if moving_since(still):
+                return "the arm still moves 6 s after a start whose answer never reached its caller"
+        finally:
+            executor.shutdown()
+            probe.destroy_node()
+            context.try_shutdown()
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(timeout=30.0)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(timeout=10)
+    text = log.read_text()
+    if "never reached its caller" not in text or "is stopped" not in text:
+        return f"stopped, but the log does not say why: {text.strip().splitlines()[-1:]}"
+    return None
+
+
 # -- foreign publishers on a scan's topics -------------------------------------------------------------
 
 def _scan_with(stray: Callable[[Path, dict[str, str]], subprocess.Popen], *words: str) -> Callable[[Path], str | None]:
@@ -276,6 +351,9 @@ def probes() -> list[Probe]:
               _huge_area_at_set_time),
         Probe("~/start whose planning outlasts the service's wait", "arm",
               "answered failure, and the arm never moves for it", _failed_start_never_moves),
+        Probe("~/start from a caller DDS never delivers the answer to", "arm",
+              "the sweep it started is stopped once the answer is given up, and the log says why",
+              _unheard_start_stops),
         Probe("a stray sweep_progress publisher before touchroller scan", "arm",
               "exit 2, one line naming /stray_progress, no output folder left",
               _scan_with(_progress_publisher, "/stray_progress")),
