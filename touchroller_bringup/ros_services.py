@@ -1,4 +1,5 @@
-"""Trigger services for every node (rclpy glue, no algorithms).
+"""Trigger services for every node, and calls to other nodes' services that cannot wait for ever
+(rclpy glue, no algorithms).
 
 The nodes' "do it now" services (sweep `~/start`/`~/stop`, calibration `~/capture`/`~/solve`/`~/reset`,
 perception `~/recapture_reference`) are `std_srvs/srv/Trigger`
@@ -6,6 +7,7 @@ perception `~/recapture_reference`) are `std_srvs/srv/Trigger`
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -28,3 +30,39 @@ def create_trigger_service(node: Node, name: str, action: Callable[[], tuple[boo
         return response
 
     return node.create_service(Trigger, name, serve, **kwargs)
+
+
+def call_with_deadline(node: Node, client: Any, request: Any, timeout_s: float,
+                       on_done: Callable[[Any | None, str], None]) -> Any:
+    """Call `client` without blocking; `on_done(response, "")` once answered, or `on_done(None, why)` when
+    no answer came within `timeout_s` (a server that died, or an answer DDS dropped and its server did not
+    send again: answer_delivery): the request is then forgotten, and a late answer ignored. `on_done` runs
+    once, on the node's executor. Returns the call's future."""
+    from rclpy.clock import Clock, ClockType
+
+    finished = threading.Event()
+    lock = threading.Lock()
+    timer: Any = None
+
+    def finish(response: Any | None, why: str) -> None:
+        with lock:
+            if finished.is_set():
+                return
+            finished.set()
+        if timer is not None:
+            timer.cancel()
+            node.destroy_timer(timer)
+        on_done(response, why)
+
+    def expired() -> None:
+        if future.done():
+            return
+        finish(None, f"no answer from {client.srv_name} within {timeout_s:g} s")
+        client.remove_pending_request(future)
+        future.cancel()
+
+    future = client.call_async(request)
+    # a steady clock: a paused simulated /clock must not make a call wait for ever
+    timer = node.create_timer(timeout_s, expired, clock=Clock(clock_type=ClockType.STEADY_TIME))
+    future.add_done_callback(lambda done: finish(None if done.cancelled() else done.result(), ""))
+    return future

@@ -61,13 +61,15 @@ from touchroller_bringup.ros_params import (
     declare,
     declare_frame_prefix,
 )
-from touchroller_bringup.ros_services import create_trigger_service
+from touchroller_bringup.ros_services import call_with_deadline, create_trigger_service
 from touchroller_perception import calibration as cal
 from touchroller_perception import height
 from touchroller_perception.files import atomic_write
 from touchroller_perception.geometry import CameraModel
 
 TARGETS = ("chessboard", "hemispheres", "reference", "dark", "ball")
+#: how long the solved calibration's calls to the camera and perception nodes wait for their answer
+REMOTE_TIMEOUT_S = 10.0
 
 # parameter -> (default, description, min, max)
 SETTINGS: dict[str, tuple[Any, str, float | None, float | None]] = {
@@ -417,14 +419,12 @@ class CalibrationNode(Node):
         for field, value in cal.camera_info_fields(camera).items():
             setattr(request.camera_info, field, value)
         self.camera_result = None
-        future = self._camera_client.call_async(request)
-        future.add_done_callback(self._on_camera_result)
+        call_with_deadline(self, self._camera_client, request, REMOTE_TIMEOUT_S, self._on_camera_result)
         return f"sending the intrinsics to {service}"
 
-    def _on_camera_result(self, future: Any) -> None:
-        response = future.result()
-        self.camera_result = (False, "no response") if response is None else (response.success,
-                                                                               response.status_message)
+    def _on_camera_result(self, response: Any | None, why: str) -> None:
+        self.camera_result = (False, why or "no response") if response is None else (response.success,
+                                                                                      response.status_message)
         if self.camera_result[0]:   # one severity per call site: rclpy's logger refuses a change
             self.get_logger().info(f"set_camera_info: {self.camera_result[1]}")
         else:
@@ -443,14 +443,13 @@ class CalibrationNode(Node):
         request = SetParametersAtomically.Request()
         request.parameters = [Parameter(n, value=v).to_parameter_msg() for n, v in _changed(camera, with_intrinsics)]
         self.remote_result = None
-        future = self._remote_client.call_async(request)
-        future.add_done_callback(lambda f: self._on_remote_result(f, name))
+        call_with_deadline(self, self._remote_client, request, REMOTE_TIMEOUT_S,
+                           lambda response, why: self._on_remote_result(response, why, name))
         return f"setting {len(request.parameters)} parameters on {name}"
 
-    def _on_remote_result(self, future: Any, name: str) -> None:
-        response = future.result()
+    def _on_remote_result(self, response: Any | None, why: str, name: str) -> None:
         self.remote_result = response.result if response is not None else SetParametersResult(
-            successful=False, reason="no response")
+            successful=False, reason=why or "no response")
         if self.remote_result.successful:
             self.get_logger().info(f"{name} accepted the calibration")
         else:

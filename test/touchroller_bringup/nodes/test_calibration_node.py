@@ -321,3 +321,38 @@ def test_a_board_change_reaches_its_config_and_detects_the_captured_views_again(
         assert not refused.successful and node.board_parameters.config.rows == 7
     finally:
         node.destroy_node()
+
+
+def test_a_perception_node_that_never_answers_is_reported_after_the_deadline(ros_context, other_participant, spin_until,
+                                                                            monkeypatch, tmp_path):
+    """The solved calibration's set_parameters_atomically to a node that takes no requests (here a node
+    nobody spins: discovered, never answering) ends in a failed result naming the service and the wait,
+    instead of waiting for ever."""
+    from rclpy.node import Node
+
+    from touchroller_bringup.nodes import calibration_node
+    from touchroller_bringup.nodes.calibration_node import CalibrationNode
+
+    monkeypatch.setattr(calibration_node, "REMOTE_TIMEOUT_S", 1.0)
+    ghost = Node("ghost_perception", namespace="/touchroller", context=other_participant)   # never spun
+    node = CalibrationNode(context=ros_context, parameter_overrides=[
+        Parameter("perception_node", value="/touchroller/ghost_perception"),
+        Parameter("output_path", value=str(tmp_path / "cal.yaml"))])
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    try:
+        said = ""
+        for _ in range(100):   # until discovery shows the ghost's service
+            said = node._send(node.geometry.model, with_intrinsics=False)
+            if "setting" in said:
+                break
+            spin_until(executor, lambda: False, timeout=0.2)
+        assert said.startswith("setting"), said
+        assert spin_until(executor, lambda: node.remote_result is not None, timeout=20.0)
+        assert not node.remote_result.successful
+        assert node.remote_result.reason == \
+            "no answer from /touchroller/ghost_perception/set_parameters_atomically within 1 s"
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        ghost.destroy_node()
