@@ -450,10 +450,11 @@ class CalibrationNode(Node):
     def _on_remote_result(self, response: Any | None, why: str, name: str) -> None:
         self.remote_result = response.result if response is not None else SetParametersResult(
             successful=False, reason=why or "no response")
+        verdict = "rejected the calibration" if response is not None else "did not take the calibration"
         if self.remote_result.successful:
             self.get_logger().info(f"{name} accepted the calibration")
-        else:
-            self.get_logger().error(f"{name} rejected the calibration: {self.remote_result.reason}")
+        else:   # one severity per call site: rclpy's logger refuses a change
+            self.get_logger().error(f"{name} {verdict}: {self.remote_result.reason}")
 
 
 def _changed(camera: CameraModel, with_intrinsics: bool) -> list[tuple[str, Any]]:
