@@ -40,15 +40,12 @@ def call_with_deadline(node: Node, client: Any, request: Any, timeout_s: float,
     once, on the node's executor. Returns the call's future."""
     from rclpy.clock import Clock, ClockType
 
-    finished = threading.Event()
-    lock = threading.Lock()
+    once = threading.Lock()   # taken by the first of the answer and the deadline, never released
     timer: Any = None
 
     def finish(response: Any | None, why: str) -> None:
-        with lock:
-            if finished.is_set():
-                return
-            finished.set()
+        if not once.acquire(blocking=False):
+            return
         if timer is not None:
             timer.cancel()
             node.destroy_timer(timer)

@@ -205,10 +205,10 @@ class SweepNode(Node):
         self._stop_srv = self.create_service(Trigger, f"~/{names.STOP}", self._on_stop)
         self._reset_srv = self.create_service(Trigger, f"~/{names.RESET_FAULT}", self._on_reset_fault)
         # an answer DDS dropped is sent again; a start answered success that never reaches its caller
-        # stops the arm: the arm moves only after a start that was answered success
+        # stops the arm: the arm moves only after a start that was answered success (run_node hands
+        # the node's other services to the same delivery)
         self.answers = AnswerDelivery(self)
         self.answers.handle(self._start_srv, on_lost=self._start_answer_lost)
-        self.answers.handle_all()
         self._plan_settings: dict[str, Any] = dict(self.settings)   # the parameters of the sweep started last
         self._action: SweepActionServer | None = make_sweep_action(self)
         simulated = isinstance(self.arm, SimulatedArm)
