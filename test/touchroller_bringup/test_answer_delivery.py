@@ -15,7 +15,12 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from touchroller_bringup.answer_delivery import AnswerDelivery, AnswerDeliveryConfig, send_once  # noqa: E402
+from touchroller_bringup.answer_delivery import (  # noqa: E402
+    AnswerDelivery,
+    AnswerDeliveryConfig,
+    _ensure_filter,
+    send_once,
+)
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(90)]
 
@@ -104,7 +109,7 @@ def test_other_warnings_and_errors_of_a_send_are_left_as_they_are():
     with pytest.raises(TypeError):
         send_once(FakeService(drops=0), "not a response", "request")
     with warnings.catch_warnings(record=True) as caught:   # the same text from elsewhere is only a warning
-        warnings.simplefilter("always")
+        _ensure_filter()
         warnings.warn("failed to send response (timeout): elsewhere", RuntimeWarning, stacklevel=1)
     assert len(caught) == 1
 
