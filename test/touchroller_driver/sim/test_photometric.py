@@ -41,24 +41,32 @@ def test_the_band_relief_follows_the_true_indentation(grained):
     assert float(np.std(fine(band.relief) - fine(truth))) < 0.6 * float(np.std(fine(truth)))
 
 
+def _fine_relief(grained, config: WorldHeightConfig, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """A grained frame's band relief as the map reads it with `config`, and the true relief there (the
+    indentation on the band's grid plus the cylinder), each less its Gaussian of `sigma` px (its fine relief)."""
+    sensor, photometric = grained
+    layers = sensor.render_layers(sim.RollerState(travel=0.1, depth=5e-4))
+    mapper = WorldMapper(sensor.camera, lambda stamps: np.full((len(stamps), 4, 4), np.nan), WorldMapConfig(),
+                         height=HeightSource(photometric.calibration.model, photometric.reference, config))
+    band = mapper.height_band(layers["image"])
+    maker = mapper._band_heights
+    assert band is not None and maker is not None
+    v0, v1 = maker.rows
+    truth = cv2.remap(layers["indentation"][v0:v1].astype(np.float32), *maker.maps, cv2.INTER_LINEAR)
+    truth += maker.cylinder
+    read, true = ((a - cv2.GaussianBlur(a, (0, 0), sigma))[:, 20:-20].ravel() for a in (band.relief, truth))
+    return read, true
+
+
 def test_the_map_reads_a_frame_with_less_smoothing_than_the_model_was_calibrated_with(grained):
     """The model is calibrated with the image smoothed by 1 px (`MAP_CALIBRATION`); the map reads its frames
     with 0.5 px (`WorldHeightConfig.smoothing`) and keeps more of the relief a few pixels across: its fine
     relief (what departs from a 3 px Gaussian) reads nearer its true size than read with the model's own."""
-    sensor, photometric = grained
+    _, photometric = grained
     assert photometric.calibration.model.config.smoothing == 1.0
-    layers = sensor.render_layers(sim.RollerState(travel=0.1, depth=5e-4))
     gains = []
     for config in (WorldHeightConfig(), WorldHeightConfig(smoothing=None)):
-        mapper = WorldMapper(sensor.camera, lambda stamps: np.full((len(stamps), 4, 4), np.nan), WorldMapConfig(),
-                             height=HeightSource(photometric.calibration.model, photometric.reference, config))
-        band = mapper.height_band(layers["image"])
-        maker = mapper._band_heights
-        assert band is not None and maker is not None
-        v0, v1 = maker.rows
-        indentation = layers["indentation"][v0:v1].astype(np.float32)
-        truth = cv2.remap(indentation, *maker.maps, cv2.INTER_LINEAR) + maker.cylinder
-        read, true = ((a - cv2.GaussianBlur(a, (0, 0), 3.0))[:, 20:-20].ravel() for a in (band.relief, truth))
+        read, true = _fine_relief(grained, config, 3.0)
         gains.append(float(read @ true / (true @ true)))
         assert np.corrcoef(read, true)[0, 1] > 0.95
     assert WorldHeightConfig().smoothing == 0.5
@@ -69,19 +77,9 @@ def test_the_map_integrates_a_frames_slopes_as_the_pixels_footprints_and_keeps_m
     """Read as each pixel's mean slope over its footprint (`WorldHeightConfig.slopes`, the default), a frame's
     fine relief (what departs from a 1.5 px Gaussian) reads nearer its true size than read as the slopes at the
     pixel centres, and follows it as well."""
-    sensor, photometric = grained
-    layers = sensor.render_layers(sim.RollerState(travel=0.1, depth=5e-4))
     gains = []
     for config in (WorldHeightConfig(), WorldHeightConfig(slopes="centre")):
-        mapper = WorldMapper(sensor.camera, lambda stamps: np.full((len(stamps), 4, 4), np.nan), WorldMapConfig(),
-                             height=HeightSource(photometric.calibration.model, photometric.reference, config))
-        band = mapper.height_band(layers["image"])
-        maker = mapper._band_heights
-        assert band is not None and maker is not None
-        v0, v1 = maker.rows
-        truth = cv2.remap(layers["indentation"][v0:v1].astype(np.float32), *maker.maps, cv2.INTER_LINEAR)
-        truth += maker.cylinder
-        read, true = ((a - cv2.GaussianBlur(a, (0, 0), 1.5))[:, 20:-20].ravel() for a in (band.relief, truth))
+        read, true = _fine_relief(grained, config, 1.5)
         gains.append(float(read @ true / (true @ true)))
         assert np.corrcoef(read, true)[0, 1] > 0.98
     assert WorldHeightConfig().slopes == "footprint"
