@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from touchroller_perception.tiles import TileConfig
 from touchroller_perception.world_canvas import WorldCanvas
@@ -333,120 +331,7 @@ def test_frames_barely_in_contact_teach_nothing_and_row_frames_0_leaves_the_reli
     np.testing.assert_array_equal(off.relief(bands[0]), bands[0].relief)
 
 
-def _waves(shape: tuple[int, int], wavelengths: tuple[float, ...], seed: int = 0,
-           along_rows: bool = False) -> tuple[np.ndarray, ...]:
-    """A sum of cosines of the given wavelengths (px) in random directions (or along the rows) and phases, and
-    per pixel: the height
-    at its centre, and its slopes as a camera's pixel gathers them, the mean over its footprint (the difference
-    across the pixel, averaged across it)."""
-    rng = np.random.default_rng(seed)
-    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
-    z, gx, gy = np.zeros(shape), np.zeros(shape), np.zeros(shape)
-    for wavelength in wavelengths:
-        angle, phase = (0.0 if along_rows else rng.uniform(0, np.pi)), rng.uniform(0, 2 * np.pi)
-        kx, ky = 2 * np.pi / wavelength * np.cos(angle), 2 * np.pi / wavelength * np.sin(angle)
-        z += np.cos(kx * u + ky * v + phase)
-        # the mean over the pixel [u - 1/2, u + 1/2] x [v - 1/2, v + 1/2] of dz/du, and of dz/dv
-        across_x = np.cos(kx * (u + 0.5) + ky * v + phase) - np.cos(kx * (u - 0.5) + ky * v + phase)
-        across_y = np.cos(kx * u + ky * (v + 0.5) + phase) - np.cos(kx * u + ky * (v - 0.5) + phase)
-        gx += across_x * np.sinc(ky / 2 / np.pi)   # np.sinc(t) = sin(pi t) / (pi t): the box's mean across
-        gy += across_y * np.sinc(kx / 2 / np.pi)
-    return z, gx, gy
-
-
-def _gain(read: np.ndarray, true: np.ndarray) -> float:
-    inner = (slice(12, -12), slice(12, -12))   # the boundary's own error left out
-    a, b = read[inner] - read[inner].mean(), true[inner] - true[inner].mean()
-    return float(a.ravel() @ b.ravel() / (b.ravel() @ b.ravel()))
-
-
-@pytest.mark.parametrize("wavelength", [3.0, 4.0, 6.0, 20.0])
-def test_footprint_slopes_integrate_to_the_height_at_every_wavelength_the_pixels_hold(wavelength):
-    """A pixel's colour tells its mean slope over its area: the height's difference across it. Integrated as
-    such, a relief of any wavelength down to 3 px comes back whole; integrated as the slope at the pixel's centre
-    (the centre model, `height.integrate`), a relief along the pixels' rows keeps cos(pi / wavelength) of its
-    depth: half at 3 px."""
-    from touchroller_perception.height.integrate import integrate
-    from touchroller_perception.world_height import footprint_integrate
-
-    z, gx, gy = _waves((72, 96), (wavelength,) * 3)
-    spacing = 1e-4
-    read = footprint_integrate(gx / spacing, gy / spacing, (spacing, spacing))   # slopes dz/dx: z per metre
-    assert read.dtype == np.float32
-    assert _gain(read, z) == pytest.approx(1.0, abs=0.01)
-    inner = (slice(12, -12), slice(12, -12))
-    error = (read - read[inner].mean()) - (z - z[inner].mean())
-    assert float(np.sqrt(np.mean(error[inner] ** 2))) < 0.02 * float(z[inner].std())
-    z, gx, gy = _waves((72, 96), (wavelength,), along_rows=True)
-    assert _gain(footprint_integrate(gx, gy, (1.0, 1.0)), z) == pytest.approx(1.0, abs=0.01)
-    assert _gain(integrate(gx, gy, 1.0), z) == pytest.approx(np.cos(np.pi / wavelength), abs=0.01)
-
-
-def test_footprint_integration_treats_non_finite_slopes_as_flat_and_needs_two_by_two():
-    from touchroller_perception.world_height import footprint_integrate
-
-    z, gx, gy = _waves((40, 50), (8.0, 11.0))
-    gx[5, 7], gy[20, 30] = np.nan, np.inf
-    read = footprint_integrate(gx, gy, (1.0, 1.0))
-    assert np.isfinite(read).all() and abs(float(read.mean())) < 1e-5
-    with pytest.raises(ValueError, match="2 x 2"):
-        footprint_integrate(np.zeros((1, 5)), np.zeros((1, 5)), (1.0, 1.0))
-
-
 def test_frames_are_integrated_as_footprint_slopes_by_default_and_the_way_is_checked():
     assert WorldHeightConfig().slopes == "footprint"
     with pytest.raises(ValueError, match="slopes"):
         WorldHeightConfig(slopes="corner")
-
-
-@pytest.mark.parametrize("wavelength", [3.0, 5.0, 40.0])
-def test_a_columns_own_height_reads_a_relief_along_the_rows_as_the_band_solver_does(wavelength):
-    """The slow variation along the axis comes from each column's own slopes (`axis_sigma`): where a relief varies
-    only along the rows (a groove along the roller's axis), that is all the frame gives, and it must read the
-    relief whole, as the 2-D solver does, or the groove is read shallow."""
-    from touchroller_perception.world_height import column_heights, footprint_integrate
-
-    # whole periods down the columns (120 rows), varying along the rows alone: the column's ends at one height,
-    # as the band's undeformed rows are
-    z, gx, gy = _waves((30, 120), (wavelength,), along_rows=True)
-    z, gx, gy = z.T.copy(), gy.T.copy(), gx.T.copy()
-    column = column_heights(gy, 1.0)
-    assert _gain(column, z) == pytest.approx(1.0, abs=0.01)   # summed as a trapezoid: cos(pi / wavelength)
-    solved = footprint_integrate(gx, gy, (1.0, 1.0))
-    inner = slice(12, -12)
-    assert np.allclose(column[inner] - column[inner].mean(), solved[inner] - solved[inner].mean(), atol=0.02)
-    # a slope common to the whole column (the closure) is no height
-    assert np.abs(column_heights(np.full((50, 4), 0.3), 1.0)).max() < 1e-5
-    # the centre reading sums the slopes: the earlier behaviour, kept
-    assert np.allclose(column_heights(gy, 2.0, "centre"), 2.0 * np.cumsum(gy - gy.mean(axis=0), axis=0), atol=1e-5)
-
-
-@settings(max_examples=40, deadline=None)
-@given(h=st.integers(2, 40), w=st.integers(2, 40), seed=st.integers(0, 2**32 - 1),
-       spoil=st.sampled_from([None, np.nan, np.inf, -np.inf]))
-def test_footprint_integration_gives_back_any_height_from_its_own_slopes_and_never_a_non_finite_one(h, w, seed, spoil):
-    """Any height on any grid of at least 2 x 2: its footprint slopes (the solver's own model, applied in the
-    transform domain) integrate back to it, less its mean; a non-finite slope anywhere still gives a finite
-    height of the grid's shape."""
-    import scipy.fft
-
-    from touchroller_perception.world_height import _footprint_operator, footprint_integrate
-
-    rng = np.random.default_rng(seed)
-    z = rng.normal(0.0, 1.0, (h, w))
-    ox, oy = _footprint_operator(h, w)
-    denominator = np.where(ox**2 + oy**2 > 0, ox**2 + oy**2, 1.0)
-    hx, hy = ox / denominator, oy / denominator          # the model's operators back from their pseudo-inverse
-    c = scipy.fft.dctn(z, type=2, norm="ortho")
-    sx, sy = np.zeros((h, w)), np.zeros((h, w))
-    sx[:, :-1] = (hx * c)[:, 1:]                         # DST-II's k - 1 is the cosine's k
-    sy[:-1, :] = (hy * c)[1:, :]
-    gx = scipy.fft.idst(scipy.fft.idct(sx, type=2, norm="ortho", axis=0), type=2, norm="ortho", axis=1)
-    gy = scipy.fft.idst(scipy.fft.idct(sy, type=2, norm="ortho", axis=1), type=2, norm="ortho", axis=0)
-    read = footprint_integrate(gx, gy, (1.0, 1.0))
-    assert read.shape == (h, w) and read.dtype == np.float32
-    np.testing.assert_allclose(read, z - z.mean(), atol=1e-4 * max(1.0, float(np.abs(z).max())))   # float32
-    if spoil is not None:
-        gx[rng.integers(h), rng.integers(w)] = spoil
-        gy[rng.integers(h), rng.integers(w)] = spoil
-        assert np.isfinite(footprint_integrate(gx, gy, (1.0, 1.0))).all()

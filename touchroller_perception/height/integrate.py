@@ -16,6 +16,11 @@ differences the solver wants by averaging neighbouring centres (`sampled="centre
 accurate); slopes that already are forward differences pass through (`sampled="forward"`).
 Non-finite slopes carry no information: they are treated as zero slope (the solver bridges them
 smoothly); the caller masks the height where it knows nothing.
+
+A camera pixel gathers the light of its whole footprint, so its slope is the height's difference across
+the pixel, averaged across it: `footprint_integrate` solves that model exactly in the transform domain
+(DST/DCT), where the centre model keeps only cos(pi / wavelength in px) of a fine relief's depth;
+`column_heights` is its one-dimensional form, each column on its own.
 """
 from __future__ import annotations
 
@@ -170,3 +175,76 @@ def _integrate_line(gx: np.ndarray, gy: np.ndarray, spacing: float | tuple[float
     z: np.ndarray = np.concatenate([[0.0], np.cumsum(d * dtype(s))]).astype(dtype)
     z -= z.mean()
     return z.reshape(H, W)
+
+
+@lru_cache(maxsize=8)
+def _footprint_operator(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """(Hx / (Hx^2 + Hy^2), Hy / (Hx^2 + Hy^2)) on the h x w DCT-II coefficients (row l, column k; 0 at (0, 0)):
+    a pixel's mean slope over its footprint, of the height's cosine (l, k), is Hx (along the columns) or Hy
+    (along the rows) times the sine of the same frequency (DST-II): the height's difference across the pixel
+    (2 sin(w / 2) at w = pi k / w), averaged across it (the box's sin(w / 2) / (w / 2))."""
+    wx = np.pi * np.arange(w) / w
+    wy = np.pi * np.arange(h) / h
+
+    def box(a: np.ndarray) -> np.ndarray:
+        half = 0.5 * a
+        out = np.ones_like(a)
+        out[1:] = np.sin(half[1:]) / half[1:]
+        return out
+
+    hx = (-2.0 * np.sin(0.5 * wx))[None, :] * box(wy)[:, None]
+    hy = (-2.0 * np.sin(0.5 * wy))[:, None] * box(wx)[None, :]
+    denominator = hx * hx + hy * hy
+    denominator[0, 0] = 1.0
+    ox, oy = (hx / denominator).astype(np.float32), (hy / denominator).astype(np.float32)
+    ox.setflags(write=False)
+    oy.setflags(write=False)
+    return ox, oy
+
+
+def footprint_integrate(gx: np.ndarray, gy: np.ndarray, spacing: tuple[float, float]) -> np.ndarray:
+    """The height (float32, mean zero, on the pixel centres) whose mean slopes over each pixel's footprint best
+    match gx, gy (least squares, Neumann boundary): a pixel integrates the light over its area, so its colour
+    tells the height's difference across it, not the slope at its centre. Exact for such slopes at every
+    frequency the grid holds (the centre model's integration keeps cos(w / 2) of them: half at a 3-pixel
+    wavelength)."""
+    h, w = gx.shape
+    ox, oy = _footprint_operator(h, w)
+    if h < 2 or w < 2:
+        raise ValueError(f"footprint_integrate needs at least 2 x 2 slopes, got {h} x {w}")
+    # non-finite slopes carry nothing: zero slope there (as `height.integrate`)
+    px = np.nan_to_num(np.asarray(gx, np.float32) * np.float32(spacing[0]), nan=0.0, posinf=0.0, neginf=0.0)
+    py = np.nan_to_num(np.asarray(gy, np.float32) * np.float32(spacing[1]), nan=0.0, posinf=0.0, neginf=0.0)
+    sx = scipy.fft.dct(scipy.fft.dst(px, type=2, norm="ortho", axis=1, overwrite_x=True), type=2, norm="ortho",
+                       axis=0, overwrite_x=True)
+    sy = scipy.fft.dct(scipy.fft.dst(py, type=2, norm="ortho", axis=0, overwrite_x=True), type=2, norm="ortho",
+                       axis=1, overwrite_x=True)
+    hat = np.zeros((h, w), np.float32)
+    # DST-II's coefficient k - 1 is the cosine's k (its last, k = w, is the pixel-to-pixel alternation no cosine
+    # of the grid has)
+    np.multiply(ox[:, 1:], sx[:, :-1], out=hat[:, 1:])
+    hat[1:, :] += oy[1:, :] * sy[:-1, :]
+    z: np.ndarray = scipy.fft.idctn(hat, type=2, norm="ortho", overwrite_x=True)
+    return z.astype(np.float32, copy=False)
+
+
+def column_heights(gy: np.ndarray, spacing: float, slopes: str = "footprint") -> np.ndarray:
+    """Each column's height (float32, up to a constant per column) from its own slopes along the rows, gy, alone,
+    its closure removed (the column's mean slope: both ends at one height). `slopes` as `WorldHeightConfig.slopes`:
+    "footprint", the 1-D form of `footprint_integrate` (a relief along the rows comes back as that solver gives it:
+    whole); "centre", the slopes summed down the column."""
+    g = np.asarray(gy, np.float32) - np.asarray(gy, np.float32).mean(axis=0, keepdims=True)
+    if slopes == "centre":
+        column: np.ndarray = np.cumsum(g, axis=0, dtype=np.float32)
+        column *= np.float32(spacing)
+        return column
+    h = g.shape[0]
+    if h < 2:
+        return np.zeros_like(g)
+    coefficients = scipy.fft.dst(g * np.float32(spacing), type=2, norm="ortho", axis=0, overwrite_x=True)
+    inverse = np.zeros(h, np.float32)
+    inverse[1:] = -0.5 / np.sin(0.5 * np.pi * np.arange(1, h) / h)   # 1 / the difference across a pixel
+    hat = np.zeros_like(coefficients)
+    np.multiply(coefficients[:-1], inverse[1:, None], out=hat[1:])     # DST-II's l - 1 is the cosine's l
+    out: np.ndarray = scipy.fft.idct(hat, type=2, norm="ortho", axis=0, overwrite_x=True)
+    return out.astype(np.float32, copy=False)
